@@ -1,0 +1,1 @@
+"""geometry (placeholder public API; filled in by its issue)."""

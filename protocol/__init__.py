@@ -1,0 +1,1 @@
+"""protocol (placeholder public API; filled in by its issue)."""

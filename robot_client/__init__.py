@@ -1,0 +1,1 @@
+"""robot_client (placeholder public API; filled in by its issue)."""

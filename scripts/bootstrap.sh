@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# Set up everything `make test` and `make demo` need on a fresh Debian/Ubuntu machine:
+# the system library libzbar0 (for pyzbar) and a local .venv with the project installed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV="${VENV:-.venv}"
+PYTHON="${PYTHON:-python3}"
+
+have_zbar() {
+    ldconfig -p 2>/dev/null | grep -q 'libzbar\.so\.0' && return 0
+    # ldconfig may be absent from PATH for non-root users; look in the usual places too.
+    compgen -G '/usr/lib/*/libzbar.so.0' >/dev/null || compgen -G '/usr/lib/libzbar.so.0' >/dev/null
+}
+
+if ! have_zbar; then
+    if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then
+        echo "bootstrap: installing libzbar0 with apt-get"
+        DEBIAN_FRONTEND=noninteractive apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libzbar0 >/dev/null
+    else
+        echo "bootstrap: the system library libzbar0 is missing. Install it with:" >&2
+        echo "    sudo apt-get update && sudo apt-get install -y libzbar0" >&2
+        exit 1
+    fi
+fi
+
+"$PYTHON" - <<'PY'
+import sys
+if sys.version_info < (3, 11):
+    sys.exit(f"bootstrap: Python >= 3.11 is needed, {sys.executable} is {sys.version.split()[0]}")
+PY
+
+stamp="$VENV/.cellvision-installed"
+if [ ! -x "$VENV/bin/python" ]; then
+    "$PYTHON" -m venv "$VENV"
+fi
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+    "$VENV/bin/python" -m pip install -q --upgrade pip
+    "$VENV/bin/python" -m pip install -q -e ".[dev]"
+    touch "$stamp"
+fi

@@ -1,0 +1,1 @@
+"""simulation (placeholder public API; filled in by its issue)."""

@@ -1,0 +1,24 @@
+"""Shared fixtures: paths to the repository and to ../shared/data (present in CI, maybe not locally)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    return REPO_ROOT
+
+
+@pytest.fixture(scope="session")
+def qr_real_dir() -> Path:
+    """The real QR photographs (../shared/data/qr_real); the test is skipped where absent."""
+    path = SHARED_DATA / "qr_real"
+    if not (path / "manifest.json").is_file():
+        pytest.skip(f"real QR photographs not found at {path} (shared/ sits beside the clone in CI)")
+    return path

@@ -1,0 +1,1 @@
+"""vision_server (placeholder public API; filled in by its issue)."""
