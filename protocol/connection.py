@@ -1,0 +1,349 @@
+"""The sans-IO connection: bytes in, messages out; messages in, bytes out.
+
+Like h11, it does no I/O. Feed received bytes with :meth:`Connection.receive_data` (``b""`` for
+end of stream), take events with :meth:`Connection.next_event` until it returns ``NEED_DATA``,
+and turn outgoing messages into bytes with :meth:`Connection.send`.
+
+Everything that affects the state machine lives in this file, in ``TRANSITIONS``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+from .constants import NO_REQUEST, SUPPORTED_VERSIONS, MessageType
+from .errors import (
+    CellvisionError,
+    DuplicateRequestId,
+    LocalProtocolError,
+    MalformedFrame,
+    NotAuthenticated,
+    UnexpectedMessage,
+    UnknownMessageType,
+    UnsupportedVersion,
+)
+from .frames import Frame, FrameDecoder, Limits
+from .messages import DecodeContext, Error, Message, Version, Welcome, message_from_frame
+
+
+class Role(Enum):
+    CLIENT = "client"
+    SERVER = "server"
+
+
+class State(Enum):
+    """The state of one connection, seen from one side."""
+
+    HANDSHAKE = "handshake"
+    """Client: HELLO not yet sent or WELCOME not yet received. Server: waiting for HELLO."""
+    HELLO_RECEIVED = "hello_received"
+    """Server only: HELLO received, WELCOME (or a fatal ERROR) not yet sent."""
+    OPEN = "open"
+    CLOSING = "closing"
+    """Client: it sent CLOSE and waits for the server's CLOSE. Server: the client sent CLOSE;
+    the server answers what is in flight, then sends CLOSE."""
+    CLOSED = "closed"
+
+
+class Direction(Enum):
+    SEND = "send"
+    RECEIVE = "receive"
+
+
+class _NeedData:
+    def __repr__(self) -> str:
+        return "NEED_DATA"
+
+
+NEED_DATA = _NeedData()
+"""Returned by next_event when a whole frame has not arrived yet."""
+
+
+@dataclass(frozen=True)
+class ConnectionClosed:
+    """Returned by next_event once the peer closed the stream cleanly between frames."""
+
+
+S, R = Direction.SEND, Direction.RECEIVE
+C, V = Role.CLIENT, Role.SERVER
+T = MessageType
+
+REQUESTS = frozenset({T.HELLO, T.PING, T.LIST_INSPECTIONS, T.INSPECT, T.CAPTURE})
+"""Client → server messages that are answered by a response with the same request id."""
+
+RESPONSES: dict[MessageType, frozenset[MessageType]] = {
+    T.HELLO: frozenset({T.WELCOME, T.ERROR}),
+    T.PING: frozenset({T.PONG, T.ERROR}),
+    T.LIST_INSPECTIONS: frozenset({T.INSPECTIONS, T.ERROR}),
+    T.INSPECT: frozenset({T.RESULT, T.ERROR}),
+    T.CAPTURE: frozenset({T.FRAMES, T.ERROR}),
+}
+"""The message types that may answer each request type."""
+
+_OPEN_REQUESTS = (T.PING, T.LIST_INSPECTIONS, T.INSPECT, T.CAPTURE)
+_OPEN_RESPONSES = (T.PONG, T.INSPECTIONS, T.RESULT, T.FRAMES, T.ERROR)
+
+TRANSITIONS: dict[tuple[Role, State, Direction, MessageType], State] = {
+    # client handshake
+    (C, State.HANDSHAKE, S, T.HELLO): State.HANDSHAKE,
+    (C, State.HANDSHAKE, R, T.WELCOME): State.OPEN,
+    (C, State.HANDSHAKE, R, T.ERROR): State.HANDSHAKE,
+    # server handshake
+    (V, State.HANDSHAKE, R, T.HELLO): State.HELLO_RECEIVED,
+    (V, State.HELLO_RECEIVED, S, T.WELCOME): State.OPEN,
+    (V, State.HELLO_RECEIVED, S, T.ERROR): State.HELLO_RECEIVED,
+    (V, State.HANDSHAKE, S, T.ERROR): State.HANDSHAKE,
+    # open: requests one way, responses the other
+    **{(C, State.OPEN, S, t): State.OPEN for t in _OPEN_REQUESTS},
+    **{(V, State.OPEN, R, t): State.OPEN for t in _OPEN_REQUESTS},
+    **{(C, State.OPEN, R, t): State.OPEN for t in _OPEN_RESPONSES},
+    **{(V, State.OPEN, S, t): State.OPEN for t in _OPEN_RESPONSES},
+    # graceful close started by the client: the server still answers what is in flight
+    (C, State.OPEN, S, T.CLOSE): State.CLOSING,
+    (V, State.OPEN, R, T.CLOSE): State.CLOSING,
+    **{(C, State.CLOSING, R, t): State.CLOSING for t in _OPEN_RESPONSES},
+    **{(V, State.CLOSING, S, t): State.CLOSING for t in _OPEN_RESPONSES},
+    (C, State.CLOSING, R, T.CLOSE): State.CLOSED,
+    (V, State.CLOSING, S, T.CLOSE): State.CLOSED,
+    # close started by the server (shutdown): nothing more comes from it
+    (V, State.OPEN, S, T.CLOSE): State.CLOSED,
+    (C, State.OPEN, R, T.CLOSE): State.CLOSED,
+    (C, State.HANDSHAKE, R, T.CLOSE): State.CLOSED,
+    (V, State.HANDSHAKE, S, T.CLOSE): State.CLOSED,
+    (V, State.HELLO_RECEIVED, S, T.CLOSE): State.CLOSED,
+}
+"""(role, state, direction, message type) → next state. A pair not listed is not allowed.
+
+After any fatal ERROR (sent or received) the state becomes CLOSED, whatever the table says.
+"""
+
+
+class Connection:
+    """One side of one protocol connection, with no I/O.
+
+    ``limits`` bound what is accepted from the peer. ``versions`` are the (major, minor)
+    versions this side speaks, newest first.
+    """
+
+    def __init__(
+        self,
+        role: Role,
+        *,
+        limits: Limits | None = None,
+        versions: tuple[Version, ...] = SUPPORTED_VERSIONS,
+    ) -> None:
+        self.role = role
+        self.limits = limits or Limits()
+        self.versions = tuple(sorted(versions, reverse=True))
+        self.state = State.HANDSHAKE
+        self.version: Version | None = None
+        self._decoder = FrameDecoder(self.limits)
+        self._ctx = DecodeContext(max_image_pixels=self.limits.max_image_pixels)
+        # request id -> request type: ids the client sent and awaits, or the server owes.
+        self._pending: dict[int, MessageType] = {}
+        self._closed_cleanly = False
+
+    # ------------------------------------------------------------------ introspection
+
+    @property
+    def pending(self) -> frozenset[int]:
+        """Request ids awaiting an answer (client) or owed an answer (server)."""
+        return frozenset(self._pending)
+
+    def speaks(self, version: Version) -> bool:
+        """True when this side speaks ``version`` (same major, minor not above ours)."""
+        return any(version[0] == major and version[1] <= minor for major, minor in self.versions)
+
+    @property
+    def wire_version(self) -> Version:
+        """The version written in outgoing headers: the negotiated one, else our newest."""
+        return self.version or self.versions[0]
+
+    # ------------------------------------------------------------------ receiving
+
+    def receive_data(self, data: bytes) -> None:
+        """Feed bytes from the peer; ``b""`` means the peer closed its sending side."""
+        self._decoder.feed(bytes(data))
+
+    def next_event(self) -> Message | _NeedData | ConnectionClosed:
+        """The next message from the peer, ``NEED_DATA``, or ``ConnectionClosed``.
+
+        Raises a :class:`~protocol.errors.CellvisionError` subclass when the peer broke the
+        protocol. When the error is not fatal, its frame has been consumed and the connection
+        goes on; a server answers it with an ERROR carrying the error's request id. When it is
+        fatal, the state is CLOSED: answer with an ERROR (``send`` allows it) and close.
+        """
+        if self.state is State.CLOSED and self._closed_cleanly:
+            return ConnectionClosed()
+        try:
+            frame = self._decoder.next_frame()
+        except CellvisionError:
+            self.state = State.CLOSED
+            raise
+        if frame is None:
+            if self._decoder.eof:
+                if (
+                    self.state not in (State.CLOSED, State.CLOSING)
+                    and self._pending
+                    and self.role is Role.CLIENT
+                ):
+                    self.state = State.CLOSED
+                    raise MalformedFrame(
+                        f"the server closed the connection with {len(self._pending)} "
+                        "requests unanswered"
+                    )
+                self.state = State.CLOSED
+                self._closed_cleanly = True
+                return ConnectionClosed()
+            return NEED_DATA
+        try:
+            return self._receive_frame_checked(frame.type, frame)
+        except CellvisionError as exc:
+            if exc.fatal:
+                self.state = State.CLOSED
+            elif self.role is Role.SERVER and exc.request_id != NO_REQUEST:
+                # The server owes an ERROR for this request id.
+                self._pending.setdefault(exc.request_id, MessageType.ERROR)
+            raise
+
+    def _receive_frame_checked(self, raw_type: int, frame: Frame) -> Message:
+        rid = frame.request_id
+        try:
+            mtype = MessageType(raw_type)
+        except ValueError:
+            if self.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
+                raise NotAuthenticated(
+                    f"message type 0x{raw_type:04x} before the handshake completed",
+                    request_id=rid,
+                ) from None
+            raise UnknownMessageType(
+                f"unknown message type 0x{raw_type:04x}", request_id=rid
+            ) from None
+        self._check_version(mtype, frame.version, rid)
+        key = (self.role, self.state, Direction.RECEIVE, mtype)
+        if key not in TRANSITIONS:
+            self._reject_unexpected(mtype, rid)
+        if self.role is Role.SERVER and mtype in REQUESTS and rid in self._pending:
+            raise DuplicateRequestId(
+                f"request id {rid} is already in flight on this connection", request_id=rid
+            )
+        message = message_from_frame(frame, self._ctx)
+        if self.role is Role.CLIENT and mtype not in REQUESTS and mtype is not T.CLOSE:
+            self._match_response(mtype, rid)
+        self._apply(key, message)
+        return message
+
+    def _check_version(self, mtype: MessageType, version: Version, rid: int) -> None:
+        if mtype in (T.HELLO, T.ERROR) or self.version is None:
+            # HELLO comes before a version is agreed; an ERROR may answer a failed handshake.
+            return
+        if version[0] != self.version[0]:
+            raise UnsupportedVersion(
+                f"frame of version {version[0]}.{version[1]} on a connection that agreed on "
+                f"{self.version[0]}.{self.version[1]}",
+                request_id=rid,
+            )
+
+    def _reject_unexpected(self, mtype: MessageType, rid: int) -> None:
+        if self.role is Role.SERVER and self.state is State.HANDSHAKE:
+            raise NotAuthenticated(
+                f"{mtype.name} before HELLO: the handshake must come first", request_id=rid
+            )
+        if self.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
+            raise UnexpectedMessage(f"{mtype.name} during the handshake", request_id=rid)
+        raise UnexpectedMessage(
+            f"{mtype.name} is not allowed from the {'client' if self.role is V else 'server'} "
+            f"in state {self.state.value}",
+            request_id=rid,
+        )
+
+    def _match_response(self, mtype: MessageType, rid: int) -> None:
+        if mtype is T.ERROR and rid == NO_REQUEST:
+            return
+        request = self._pending.get(rid)
+        if request is None:
+            raise UnexpectedMessage(
+                f"{mtype.name} for request id {rid}, which is not in flight", request_id=rid
+            )
+        if mtype not in RESPONSES[request]:
+            raise UnexpectedMessage(
+                f"{mtype.name} cannot answer {request.name} (id {rid})", request_id=rid
+            )
+
+    # ------------------------------------------------------------------ sending
+
+    def send(self, message: Message) -> bytes:
+        """The bytes of ``message``; raises LocalProtocolError if it may not be sent now."""
+        mtype = message.TYPE
+        key = (self.role, self.state, Direction.SEND, mtype)
+        # A fatal ERROR may still be sent after the peer broke the protocol.
+        late_error = mtype is T.ERROR and self.state is State.CLOSED and not self._closed_cleanly
+        if key not in TRANSITIONS and not late_error:
+            raise LocalProtocolError(
+                f"cannot send {mtype.name} as {self.role.value} in state {self.state.value}"
+            )
+        rid = message.request_id
+        if self.role is Role.CLIENT and mtype in REQUESTS:
+            if rid == NO_REQUEST:
+                raise LocalProtocolError("request id 0 is reserved for connection-level messages")
+            if rid in self._pending:
+                raise LocalProtocolError(f"request id {rid} is already in flight")
+        if (
+            self.role is Role.SERVER
+            and mtype is not T.CLOSE
+            and not (mtype is T.ERROR and rid == NO_REQUEST)
+        ):
+            request = self._pending.get(rid)
+            if request is None:
+                raise LocalProtocolError(f"no request with id {rid} is waiting for an answer")
+            if request is not T.ERROR and mtype not in RESPONSES[request]:
+                raise LocalProtocolError(f"{mtype.name} cannot answer {request.name}")
+        if isinstance(message, Welcome):
+            if not self.speaks(message.version):
+                raise LocalProtocolError(f"version {message.version} is not one we speak")
+            self.version = message.version
+        data = message.to_frame(self.wire_version).serialize()
+        if key in TRANSITIONS:
+            self._apply(key, message)
+        return data
+
+    # ------------------------------------------------------------------ shared bookkeeping
+
+    def _apply(self, key: tuple[Role, State, Direction, MessageType], message: Message) -> None:
+        role, _, direction, mtype = key
+        rid = message.request_id
+        requester = (role is Role.CLIENT and direction is S) or (role is V and direction is R)
+        if mtype in REQUESTS and requester:
+            self._pending[rid] = mtype
+        elif mtype not in REQUESTS and mtype is not T.CLOSE:
+            self._pending.pop(rid, None)
+        if isinstance(message, Welcome) and direction is R:
+            if not self.speaks(message.version):
+                self.state = State.CLOSED
+                raise UnsupportedVersion(
+                    f"the server chose version {message.version}, which this client does not speak"
+                )
+            self.version = message.version
+        self.state = TRANSITIONS[key]
+        if isinstance(message, Error) and message.fatal:
+            self.state = State.CLOSED
+        if self.state is State.CLOSED and mtype is T.CLOSE:
+            self._closed_cleanly = True
+
+
+def negotiate_version(
+    offered: tuple[Version, ...], supported: tuple[Version, ...] = SUPPORTED_VERSIONS
+) -> Version | None:
+    """The version to speak: the highest major both sides have, at the lower of the two minors.
+
+    None when there is no common major version.
+    """
+    ours = {major: minor for major, minor in supported}
+    best: Version | None = None
+    for major, minor in offered:
+        if major in ours:
+            candidate = (major, min(minor, ours[major]))
+            if best is None or candidate > best:
+                best = candidate
+    return best

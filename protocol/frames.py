@@ -1,0 +1,241 @@
+"""Framing: one frame = a 24-byte header, a UTF-8 JSON metadata object, a blob table, blobs.
+
+``Frame`` is the codec's unit: it knows nothing about message semantics. ``FrameDecoder`` turns
+a byte stream into frames incrementally, enforcing the size limits as soon as a header arrives.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+from .constants import BLOB_LENGTH, HEADER, HEADER_SIZE, MAGIC, MAX_U32
+from .errors import BadMetadata, FrameTooLarge, MalformedFrame
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Receive-side limits. Every size is in bytes, pixel counts in pixels."""
+
+    max_frame_bytes: int = 64 * 1024 * 1024
+    max_metadata_bytes: int = 1024 * 1024
+    max_blobs: int = 64
+    max_image_pixels: int = 4096 * 4096
+
+    def __post_init__(self) -> None:
+        for name in ("max_frame_bytes", "max_metadata_bytes", "max_blobs", "max_image_pixels"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value <= 0:
+                raise ValueError(f"Limits.{name} must be a positive integer, got {value!r}")
+        if self.max_frame_bytes > MAX_U32:
+            raise ValueError("Limits.max_frame_bytes cannot exceed 2**32 - 1")
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One frame as it travels: header fields, parsed metadata, raw blobs."""
+
+    type: int
+    request_id: int
+    metadata: dict[str, Any] = field(default_factory=dict)
+    blobs: tuple[bytes, ...] = ()
+    version: tuple[int, int] = (1, 0)
+    flags: int = 0
+
+    def serialize(self) -> bytes:
+        """The frame's bytes. Metadata is compact JSON with sorted keys (deterministic)."""
+        meta = encode_metadata(self.metadata)
+        table = b"".join(BLOB_LENGTH.pack(len(b)) for b in self.blobs)
+        body_length = len(meta) + len(table) + sum(len(b) for b in self.blobs)
+        if body_length > MAX_U32:
+            raise ValueError(f"frame body of {body_length} bytes does not fit a u32 length")
+        header = HEADER.pack(
+            MAGIC,
+            self.version[0],
+            self.version[1],
+            self.type,
+            self.flags,
+            len(self.blobs),
+            self.request_id,
+            len(meta),
+            body_length,
+        )
+        return b"".join((header, meta, table, *self.blobs))
+
+
+def encode_metadata(metadata: dict[str, Any]) -> bytes:
+    """Compact UTF-8 JSON, keys sorted, no NaN; ``{}`` is sent as zero bytes."""
+    if not metadata:
+        return b""
+    return json.dumps(
+        metadata, separators=(",", ":"), sort_keys=True, ensure_ascii=False, allow_nan=False
+    ).encode("utf-8")
+
+
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not valid JSON")
+
+
+def decode_metadata(data: bytes, *, request_id: int) -> dict[str, Any]:
+    """Parse a metadata section; zero bytes means ``{}``."""
+    if not data:
+        return {}
+    try:
+        text = data.decode("utf-8")
+        value = json.loads(text, parse_constant=_reject_constant)
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise BadMetadata(f"metadata is not UTF-8 JSON: {exc}", request_id=request_id) from None
+    if not isinstance(value, dict):
+        raise BadMetadata(
+            f"metadata must be a JSON object, got {type(value).__name__}", request_id=request_id
+        )
+    return value
+
+
+@dataclass(frozen=True)
+class Header:
+    major: int
+    minor: int
+    type: int
+    flags: int
+    blob_count: int
+    request_id: int
+    metadata_length: int
+    body_length: int
+
+    @property
+    def frame_length(self) -> int:
+        return HEADER_SIZE + self.body_length
+
+
+def parse_header(data: bytes | bytearray | memoryview, limits: Limits) -> Header:
+    """Parse and check the first 24 bytes of a frame (``data`` may be longer)."""
+    magic, major, minor, mtype, flags, blobs, rid, meta_len, body_len = HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise MalformedFrame(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
+    header = Header(major, minor, mtype, flags, blobs, rid, meta_len, body_len)
+    if header.frame_length > limits.max_frame_bytes:
+        raise FrameTooLarge(
+            f"frame of {header.frame_length} bytes exceeds the limit of "
+            f"{limits.max_frame_bytes} bytes",
+            request_id=rid,
+            details={"size": header.frame_length, "max_size": limits.max_frame_bytes},
+        )
+    if blobs > limits.max_blobs:
+        raise MalformedFrame(
+            f"{blobs} blobs exceed the limit of {limits.max_blobs}", request_id=rid
+        )
+    if meta_len > limits.max_metadata_bytes:
+        raise FrameTooLarge(
+            f"metadata of {meta_len} bytes exceeds the limit of {limits.max_metadata_bytes} bytes",
+            request_id=rid,
+            details={"size": meta_len, "max_size": limits.max_metadata_bytes},
+        )
+    if meta_len + BLOB_LENGTH.size * blobs > body_len:
+        raise MalformedFrame(
+            f"metadata ({meta_len} bytes) and blob table ({blobs} entries) do not fit in a "
+            f"body of {body_len} bytes",
+            request_id=rid,
+        )
+    return header
+
+
+def parse_body(
+    header: Header, body: bytes | memoryview
+) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    """Split a complete body into (metadata, blobs). ``body`` is exactly body_length bytes."""
+    rid = header.request_id
+    offset = header.metadata_length
+    table_end = offset + BLOB_LENGTH.size * header.blob_count
+    lengths = [
+        BLOB_LENGTH.unpack_from(body, offset + BLOB_LENGTH.size * i)[0]
+        for i in range(header.blob_count)
+    ]
+    if table_end + sum(lengths) != header.body_length:
+        raise MalformedFrame(
+            f"blob lengths {lengths} do not add up to the body length {header.body_length}",
+            request_id=rid,
+        )
+    blobs = []
+    position = table_end
+    for length in lengths:
+        blobs.append(bytes(body[position : position + length]))
+        position += length
+    metadata = decode_metadata(bytes(body[: header.metadata_length]), request_id=rid)
+    return metadata, tuple(blobs)
+
+
+class FrameDecoder:
+    """Incremental frame parser: feed bytes, take complete frames.
+
+    A fatal error (bad magic, too large, inconsistent lengths) leaves the decoder broken: every
+    later call raises the same error. A BadMetadata error consumes its frame and the stream goes on.
+    """
+
+    def __init__(self, limits: Limits | None = None) -> None:
+        self.limits = limits or Limits()
+        self._buffer = bytearray()
+        self._header: Header | None = None
+        self._broken: MalformedFrame | FrameTooLarge | None = None
+        self._eof = False
+
+    @property
+    def buffered(self) -> int:
+        """Bytes received but not yet returned as frames."""
+        return len(self._buffer)
+
+    @property
+    def eof(self) -> bool:
+        return self._eof
+
+    def feed(self, data: bytes) -> None:
+        if data:
+            self._buffer += data
+        else:
+            self._eof = True
+
+    def next_frame(self) -> Frame | None:
+        """The next complete frame, or None when more bytes are needed."""
+        if self._broken is not None:
+            raise self._broken
+        try:
+            return self._next_frame()
+        except (MalformedFrame, FrameTooLarge) as exc:
+            self._broken = exc
+            self._buffer.clear()
+            raise
+
+    def _next_frame(self) -> Frame | None:
+        if self._header is None:
+            if len(self._buffer) < HEADER_SIZE:
+                if self._eof and self._buffer:
+                    raise MalformedFrame(
+                        f"connection closed after {len(self._buffer)} bytes of a 24-byte header"
+                    )
+                return None
+            self._header = parse_header(self._buffer, self.limits)
+        header = self._header
+        if len(self._buffer) < header.frame_length:
+            if self._eof:
+                raise MalformedFrame(
+                    f"connection closed after {len(self._buffer)} of {header.frame_length} "
+                    "bytes of a frame",
+                    request_id=header.request_id,
+                )
+            return None
+        body = memoryview(self._buffer)[HEADER_SIZE : header.frame_length]
+        self._header = None
+        try:
+            metadata, blobs = parse_body(header, body)
+        finally:
+            body.release()
+            del self._buffer[: header.frame_length]
+        return Frame(
+            type=header.type,
+            request_id=header.request_id,
+            metadata=metadata,
+            blobs=blobs,
+            version=(header.major, header.minor),
+            flags=header.flags,
+        )

@@ -1,0 +1,198 @@
+"""Images on the wire: a descriptor in the metadata, the pixels in a blob, never base64.
+
+``ImagePayload`` is what messages carry. ``payload_from_array`` / ``array_from_payload`` convert
+to and from numpy arrays (colour images BGR uint8 or gray uint8; depth uint16 millimetres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from .constants import ImageEncoding, ImageRole
+from .errors import BadImage, ImageTooLarge
+
+
+@dataclass(frozen=True)
+class ImagePayload:
+    """One image: how it is encoded, its size in pixels, its role and its bytes.
+
+    For PNG/JPEG, ``width`` and ``height`` may be 0 (unknown to the sender); the receiver then
+    learns them when decoding.
+    """
+
+    encoding: ImageEncoding
+    width: int
+    height: int
+    data: bytes
+    role: ImageRole = ImageRole.COLOR
+
+    def __post_init__(self) -> None:
+        # Accept plain strings too ("gray8"), normalised to the enums.
+        object.__setattr__(self, "encoding", ImageEncoding(self.encoding))
+        object.__setattr__(self, "role", ImageRole(self.role))
+        if self.width < 0 or self.height < 0:
+            raise ValueError(f"image size must be non-negative, got {self.width}x{self.height}")
+        if self.encoding.is_raw:
+            if self.width == 0 or self.height == 0:
+                raise ValueError(f"a raw {self.encoding} image needs its width and height")
+            expected = self.width * self.height * self.encoding.bytes_per_pixel
+            if len(self.data) != expected:
+                raise ValueError(
+                    f"{self.encoding} image of {self.width}x{self.height} needs {expected} bytes, "
+                    f"got {len(self.data)}"
+                )
+
+    @property
+    def pixels(self) -> int:
+        return self.width * self.height
+
+    def descriptor(self, blob_index: int) -> dict[str, Any]:
+        return {
+            "blob": blob_index,
+            "encoding": self.encoding.value,
+            "width": self.width,
+            "height": self.height,
+            "role": self.role.value,
+        }
+
+
+def _int_field(desc: dict[str, Any], key: str, where: str, request_id: int) -> int:
+    value = desc.get(key, 0)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise BadImage(
+            f"{where}.{key} must be a non-negative integer, got {value!r}", request_id=request_id
+        )
+    return value
+
+
+def payload_from_descriptor(
+    desc: Any,
+    blobs: tuple[bytes, ...],
+    *,
+    where: str,
+    request_id: int,
+    max_pixels: int,
+) -> ImagePayload:
+    """Rebuild an ImagePayload from its metadata descriptor; typed errors name the cause."""
+    if not isinstance(desc, dict):
+        raise BadImage(
+            f"{where} must be an object, got {type(desc).__name__}", request_id=request_id
+        )
+    index = _int_field(desc, "blob", where, request_id)
+    if index >= len(blobs):
+        raise BadImage(
+            f"{where}.blob = {index} but the frame has {len(blobs)} blobs", request_id=request_id
+        )
+    try:
+        encoding = ImageEncoding(str(desc.get("encoding")))
+    except ValueError:
+        raise BadImage(
+            f"{where}.encoding {desc.get('encoding')!r} is not one of "
+            f"{[e.value for e in ImageEncoding]}",
+            request_id=request_id,
+        ) from None
+    try:
+        role = ImageRole(desc.get("role", "color"))
+    except ValueError:
+        raise BadImage(
+            f"{where}.role {desc.get('role')!r} is not one of {[r.value for r in ImageRole]}",
+            request_id=request_id,
+        ) from None
+    width = _int_field(desc, "width", where, request_id)
+    height = _int_field(desc, "height", where, request_id)
+    if width * height > max_pixels:
+        raise ImageTooLarge(
+            f"{where} has {width}x{height} = {width * height} pixels, the limit is {max_pixels}",
+            request_id=request_id,
+            details={"pixels": width * height, "max_pixels": max_pixels},
+        )
+    try:
+        return ImagePayload(encoding, width, height, blobs[index], role)
+    except ValueError as exc:
+        raise BadImage(f"{where}: {exc}", request_id=request_id) from None
+
+
+def payload_from_array(
+    image: npt.NDArray[Any],
+    *,
+    role: ImageRole = ImageRole.COLOR,
+    encoding: ImageEncoding | None = None,
+    jpeg_quality: int = 95,
+) -> ImagePayload:
+    """Wrap a numpy image: (H, W) uint8 → gray8, (H, W, 3) uint8 → bgr8, (H, W) uint16 → depth16.
+
+    Pass ``encoding=PNG`` or ``JPEG`` to compress (JPEG only for uint8 images).
+    """
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    height, width = image.shape[:2]
+    if image.dtype == np.uint8 and image.ndim == 2:
+        raw = ImageEncoding.GRAY8
+    elif image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3:
+        raw = ImageEncoding.BGR8
+    elif image.dtype == np.uint16 and image.ndim == 2:
+        raw = ImageEncoding.DEPTH16
+    else:
+        raise ValueError(
+            f"image must be (H, W) uint8, (H, W, 3) uint8 or (H, W) uint16, "
+            f"got {image.shape} {image.dtype}"
+        )
+    chosen = encoding or raw
+    if chosen.is_raw:
+        if chosen is not raw:
+            raise ValueError(f"a {image.shape} {image.dtype} array cannot be sent as {chosen}")
+        data = np.ascontiguousarray(image, dtype=image.dtype.newbyteorder("<")).tobytes()
+        return ImagePayload(chosen, width, height, data, role)
+    import cv2  # compressed encodings only
+
+    if chosen is ImageEncoding.PNG:
+        ok, buf = cv2.imencode(".png", image)
+    else:
+        if image.dtype != np.uint8:
+            raise ValueError("JPEG takes uint8 images only; send depth as depth16 or png")
+        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+    if not ok:
+        raise ValueError(f"OpenCV could not encode the image as {chosen}")
+    return ImagePayload(chosen, width, height, buf.tobytes(), role)
+
+
+def array_from_payload(payload: ImagePayload, *, request_id: int = 0) -> npt.NDArray[Any]:
+    """Decode an ImagePayload into a numpy array; BadImage names what is wrong."""
+    if payload.encoding is ImageEncoding.GRAY8:
+        return np.frombuffer(payload.data, np.uint8).reshape(payload.height, payload.width)
+    if payload.encoding is ImageEncoding.BGR8:
+        return np.frombuffer(payload.data, np.uint8).reshape(payload.height, payload.width, 3)
+    if payload.encoding is ImageEncoding.DEPTH16:
+        return (
+            np.frombuffer(payload.data, np.dtype("<u2"))
+            .reshape(payload.height, payload.width)
+            .astype(np.uint16)
+        )
+    import cv2
+
+    buf = np.frombuffer(payload.data, np.uint8)
+    decoded = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    if decoded is None:
+        raise BadImage(
+            f"{payload.encoding} blob of {len(payload.data)} bytes cannot be decoded",
+            request_id=request_id,
+        )
+    if decoded.ndim == 3 and decoded.shape[2] == 4:
+        decoded = cv2.cvtColor(decoded, cv2.COLOR_BGRA2BGR)
+    h, w = decoded.shape[:2]
+    if (payload.width and payload.width != w) or (payload.height and payload.height != h):
+        raise BadImage(
+            f"{payload.encoding} image decodes to {w}x{h}, the descriptor says "
+            f"{payload.width}x{payload.height}",
+            request_id=request_id,
+        )
+    if decoded.dtype not in (np.uint8, np.uint16):
+        raise BadImage(
+            f"{payload.encoding} image has unsupported depth {decoded.dtype}", request_id=request_id
+        )
+    return np.asarray(decoded)

@@ -1,0 +1,577 @@
+"""Typed messages of protocol v1: frozen dataclasses that validate on construction.
+
+Each message class knows its ``TYPE`` and converts to and from a :class:`~protocol.frames.Frame`.
+Unknown metadata fields are ignored on receipt (forward compatibility within a major version).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, TypeVar
+
+from .constants import NO_REQUEST, MessageType
+from .errors import (
+    BadMetadata,
+    CellvisionError,
+    ErrorCode,
+    error_from_code,
+)
+from .frames import Frame
+from .images import ImagePayload, payload_from_descriptor
+
+Version = tuple[int, int]
+_T = TypeVar("_T")
+
+
+@dataclass(frozen=True)
+class DecodeContext:
+    """What parsing needs besides the frame: the limits that apply to images."""
+
+    max_image_pixels: int
+
+
+# --------------------------------------------------------------------------- field helpers
+
+
+def _get(
+    meta: dict[str, Any],
+    key: str,
+    kind: type[_T] | tuple[type, ...],
+    rid: int,
+    *,
+    default: Any = ...,
+    what: str = "",
+) -> Any:
+    if key not in meta or meta[key] is None:
+        if default is ...:
+            raise BadMetadata(f"missing field {key!r}{what}", request_id=rid)
+        return default
+    value = meta[key]
+    kinds = kind if isinstance(kind, tuple) else (kind,)
+    ok = isinstance(value, kinds) and not (isinstance(value, bool) and bool not in kinds)
+    if not ok:
+        names = "/".join(k.__name__ for k in kinds)
+        raise BadMetadata(
+            f"field {key!r}{what} must be {names}, got {type(value).__name__}", request_id=rid
+        )
+    return value
+
+
+def _version(value: Any, rid: int, where: str) -> Version:
+    if (
+        isinstance(value, list)
+        and len(value) == 2
+        and all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in value)
+    ):
+        return (value[0], value[1])
+    raise BadMetadata(
+        f"{where} must be [major, minor] with 0..255 integers, got {value!r}", request_id=rid
+    )
+
+
+def _check_id(request_id: int) -> None:
+    if not 0 <= request_id <= 0xFFFFFFFF:
+        raise ValueError(f"request_id must fit in a u32, got {request_id}")
+
+
+def _images_to_wire(
+    images: tuple[ImagePayload, ...],
+) -> tuple[list[dict[str, Any]], tuple[bytes, ...]]:
+    return [img.descriptor(i) for i, img in enumerate(images)], tuple(img.data for img in images)
+
+
+def _images_from_wire(
+    meta: dict[str, Any], blobs: tuple[bytes, ...], rid: int, ctx: DecodeContext
+) -> tuple[ImagePayload, ...]:
+    descs = _get(meta, "images", list, rid, default=[])
+    return tuple(
+        payload_from_descriptor(
+            d, blobs, where=f"images[{i}]", request_id=rid, max_pixels=ctx.max_image_pixels
+        )
+        for i, d in enumerate(descs)
+    )
+
+
+# --------------------------------------------------------------------------- messages
+
+
+@dataclass(frozen=True)
+class Message:
+    """Base of all messages. ``request_id`` is chosen by the requester and echoed in the answer."""
+
+    TYPE: ClassVar[MessageType]
+    request_id: int
+
+    def __post_init__(self) -> None:
+        _check_id(self.request_id)
+
+    def to_frame(self, version: Version) -> Frame:
+        metadata, blobs = self._encode()
+        return Frame(
+            type=self.TYPE,
+            request_id=self.request_id,
+            metadata=metadata,
+            blobs=blobs,
+            version=version,
+        )
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        return {}, ()
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Message:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Hello(Message):
+    """Client → server, first message: the versions the client speaks, optionally a token."""
+
+    TYPE: ClassVar[MessageType] = MessageType.HELLO
+    versions: tuple[Version, ...] = ((1, 0),)
+    client: str = ""
+    auth_token: str | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.versions:
+            raise ValueError("HELLO must list at least one version")
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        meta: dict[str, Any] = {"versions": [list(v) for v in self.versions]}
+        if self.client:
+            meta["client"] = self.client
+        if self.auth_token is not None:
+            meta["auth_token"] = self.auth_token
+        return meta, ()
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Hello:
+        m, rid = frame.metadata, frame.request_id
+        raw = _get(m, "versions", list, rid)
+        versions = tuple(_version(v, rid, f"versions[{i}]") for i, v in enumerate(raw))
+        if not versions:
+            raise BadMetadata("field 'versions' must list at least one version", request_id=rid)
+        return cls(
+            rid,
+            versions,
+            _get(m, "client", str, rid, default=""),
+            _get(m, "auth_token", str, rid, default=None),
+        )
+
+
+@dataclass(frozen=True)
+class Welcome(Message):
+    """Server → client: the chosen version, who the server is, its limits and inspections.
+
+    ``limits`` has at least ``max_frame_bytes``, ``max_image_pixels`` and ``max_in_flight``.
+    ``inspections`` and ``cameras`` are lists of descriptor objects (SPEC.md §5.2).
+    """
+
+    TYPE: ClassVar[MessageType] = MessageType.WELCOME
+    version: Version = (1, 0)
+    server_name: str = ""
+    server_version: str = ""
+    limits: dict[str, int] = field(default_factory=dict)
+    inspections: tuple[dict[str, Any], ...] = ()
+    cameras: tuple[dict[str, Any], ...] = ()
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        return {
+            "version": list(self.version),
+            "server": {"name": self.server_name, "version": self.server_version},
+            "limits": dict(self.limits),
+            "inspections": list(self.inspections),
+            "cameras": list(self.cameras),
+        }, ()
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Welcome:
+        m, rid = frame.metadata, frame.request_id
+        server = _get(m, "server", dict, rid, default={})
+        limits = _get(m, "limits", dict, rid, default={})
+        for key, value in limits.items():
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise BadMetadata(f"limits.{key} must be an integer", request_id=rid)
+        return cls(
+            rid,
+            _version(_get(m, "version", list, rid), rid, "version"),
+            str(server.get("name", "")),
+            str(server.get("version", "")),
+            dict(limits),
+            tuple(_descriptors(m, "inspections", rid)),
+            tuple(_descriptors(m, "cameras", rid)),
+        )
+
+
+def _descriptors(m: dict[str, Any], key: str, rid: int) -> list[dict[str, Any]]:
+    items = _get(m, key, list, rid, default=[])
+    for i, item in enumerate(items):
+        if not isinstance(item, dict) or not isinstance(item.get("name"), str):
+            raise BadMetadata(f"{key}[{i}] must be an object with a string 'name'", request_id=rid)
+    return list(items)
+
+
+@dataclass(frozen=True)
+class Ping(Message):
+    """Keepalive request; ``data`` is echoed in the PONG."""
+
+    TYPE: ClassVar[MessageType] = MessageType.PING
+    data: str = ""
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        return ({"data": self.data} if self.data else {}), ()
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Ping:
+        return cls(
+            frame.request_id, _get(frame.metadata, "data", str, frame.request_id, default="")
+        )
+
+
+@dataclass(frozen=True)
+class Pong(Message):
+    """The answer to PING, echoing its ``data``."""
+
+    TYPE: ClassVar[MessageType] = MessageType.PONG
+    data: str = ""
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        return ({"data": self.data} if self.data else {}), ()
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Pong:
+        return cls(
+            frame.request_id, _get(frame.metadata, "data", str, frame.request_id, default="")
+        )
+
+
+@dataclass(frozen=True)
+class Close(Message):
+    """Graceful close: the sender will send no new requests (client) or nothing more (server)."""
+
+    TYPE: ClassVar[MessageType] = MessageType.CLOSE
+    request_id: int = NO_REQUEST
+    reason: str = ""
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        return ({"reason": self.reason} if self.reason else {}), ()
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Close:
+        return cls(
+            frame.request_id, _get(frame.metadata, "reason", str, frame.request_id, default="")
+        )
+
+
+@dataclass(frozen=True)
+class ListInspections(Message):
+    TYPE: ClassVar[MessageType] = MessageType.LIST_INSPECTIONS
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> ListInspections:
+        return cls(frame.request_id)
+
+
+@dataclass(frozen=True)
+class Inspections(Message):
+    TYPE: ClassVar[MessageType] = MessageType.INSPECTIONS
+    inspections: tuple[dict[str, Any], ...] = ()
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        return {"inspections": list(self.inspections)}, ()
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Inspections:
+        return cls(
+            frame.request_id, tuple(_descriptors(frame.metadata, "inspections", frame.request_id))
+        )
+
+
+@dataclass(frozen=True)
+class Inspect(Message):
+    """Run the named inspection.
+
+    With ``images`` the inspection runs on them (a camera on the robot's tool); without, the
+    server captures from the inspection's configured camera. ``deadline_ms`` counts from the
+    moment the server has received the whole frame. ``options`` are inspection-specific (SPEC §6.1).
+    """
+
+    TYPE: ClassVar[MessageType] = MessageType.INSPECT
+    inspection: str = ""
+    images: tuple[ImagePayload, ...] = ()
+    deadline_ms: float | None = None
+    overlay: bool = False
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.inspection:
+            raise ValueError("INSPECT needs an inspection name")
+        if self.deadline_ms is not None and not (
+            math.isfinite(self.deadline_ms) and self.deadline_ms > 0
+        ):
+            raise ValueError(f"deadline_ms must be a positive number, got {self.deadline_ms}")
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        descs, blobs = _images_to_wire(self.images)
+        meta: dict[str, Any] = {"inspection": self.inspection}
+        if descs:
+            meta["images"] = descs
+        if self.deadline_ms is not None:
+            meta["deadline_ms"] = self.deadline_ms
+        if self.overlay:
+            meta["overlay"] = True
+        if self.options:
+            meta["options"] = dict(self.options)
+        return meta, blobs
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Inspect:
+        m, rid = frame.metadata, frame.request_id
+        name = _get(m, "inspection", str, rid)
+        if not name:
+            raise BadMetadata("field 'inspection' must not be empty", request_id=rid)
+        deadline = _get(m, "deadline_ms", (int, float), rid, default=None)
+        if deadline is not None and not (math.isfinite(deadline) and deadline > 0):
+            raise BadMetadata(
+                f"field 'deadline_ms' must be positive, got {deadline}", request_id=rid
+            )
+        return cls(
+            rid,
+            name,
+            _images_from_wire(m, frame.blobs, rid, ctx),
+            None if deadline is None else float(deadline),
+            _get(m, "overlay", bool, rid, default=False),
+            dict(_get(m, "options", dict, rid, default={})),
+        )
+
+
+@dataclass(frozen=True)
+class Result(Message):
+    """The answer to INSPECT.
+
+    ``passed`` is the verdict. ``data`` holds what the inspection measured or found (SPEC §6.2);
+    ``timing`` durations in milliseconds; ``images`` an optional overlay PNG.
+    """
+
+    TYPE: ClassVar[MessageType] = MessageType.RESULT
+    inspection: str = ""
+    passed: bool = False
+    data: dict[str, Any] = field(default_factory=dict)
+    timing: dict[str, float] = field(default_factory=dict)
+    camera: str = ""
+    config_hash: str = ""
+    images: tuple[ImagePayload, ...] = ()
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        descs, blobs = _images_to_wire(self.images)
+        meta: dict[str, Any] = {
+            "inspection": self.inspection,
+            "verdict": "pass" if self.passed else "fail",
+            "data": dict(self.data),
+            "timing": dict(self.timing),
+        }
+        if self.camera:
+            meta["camera"] = self.camera
+        if self.config_hash:
+            meta["config_hash"] = self.config_hash
+        if descs:
+            meta["images"] = descs
+        return meta, blobs
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Result:
+        m, rid = frame.metadata, frame.request_id
+        verdict = _get(m, "verdict", str, rid)
+        if verdict not in ("pass", "fail"):
+            raise BadMetadata(
+                f"field 'verdict' must be 'pass' or 'fail', got {verdict!r}", request_id=rid
+            )
+        return cls(
+            rid,
+            _get(m, "inspection", str, rid),
+            verdict == "pass",
+            dict(_get(m, "data", dict, rid, default={})),
+            dict(_get(m, "timing", dict, rid, default={})),
+            _get(m, "camera", str, rid, default=""),
+            _get(m, "config_hash", str, rid, default=""),
+            _images_from_wire(m, frame.blobs, rid, ctx),
+        )
+
+
+@dataclass(frozen=True)
+class Capture(Message):
+    """Take ``count`` frames from a server camera (colour, and depth when ``depth`` and the
+    camera has it). ``encoding`` asks for a compressed colour encoding (``png``/``jpeg``)."""
+
+    TYPE: ClassVar[MessageType] = MessageType.CAPTURE
+    camera: str = ""
+    count: int = 1
+    depth: bool = False
+    encoding: str | None = None
+    deadline_ms: float | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.camera:
+            raise ValueError("CAPTURE needs a camera name")
+        if self.count < 1:
+            raise ValueError(f"count must be >= 1, got {self.count}")
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        meta: dict[str, Any] = {"camera": self.camera, "count": self.count}
+        if self.depth:
+            meta["depth"] = True
+        if self.encoding:
+            meta["encoding"] = self.encoding
+        if self.deadline_ms is not None:
+            meta["deadline_ms"] = self.deadline_ms
+        return meta, ()
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Capture:
+        m, rid = frame.metadata, frame.request_id
+        camera = _get(m, "camera", str, rid)
+        count = _get(m, "count", int, rid, default=1)
+        if not camera:
+            raise BadMetadata("field 'camera' must not be empty", request_id=rid)
+        if count < 1:
+            raise BadMetadata(f"field 'count' must be >= 1, got {count}", request_id=rid)
+        deadline = _get(m, "deadline_ms", (int, float), rid, default=None)
+        if deadline is not None and not (math.isfinite(deadline) and deadline > 0):
+            raise BadMetadata(
+                f"field 'deadline_ms' must be positive, got {deadline}", request_id=rid
+            )
+        return cls(
+            rid,
+            camera,
+            count,
+            _get(m, "depth", bool, rid, default=False),
+            _get(m, "encoding", str, rid, default=None),
+            None if deadline is None else float(deadline),
+        )
+
+
+@dataclass(frozen=True)
+class Frames(Message):
+    """The answer to CAPTURE: the images in capture order (colour, then its depth, per frame);
+    ``timestamps`` are the server's capture times in seconds since the Unix epoch."""
+
+    TYPE: ClassVar[MessageType] = MessageType.FRAMES
+    camera: str = ""
+    images: tuple[ImagePayload, ...] = ()
+    timestamps: tuple[float, ...] = ()
+    intrinsics: dict[str, Any] | None = None
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        descs, blobs = _images_to_wire(self.images)
+        meta: dict[str, Any] = {
+            "camera": self.camera,
+            "images": descs,
+            "timestamps": list(self.timestamps),
+        }
+        if self.intrinsics is not None:
+            meta["intrinsics"] = dict(self.intrinsics)
+        return meta, blobs
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Frames:
+        m, rid = frame.metadata, frame.request_id
+        stamps = _get(m, "timestamps", list, rid, default=[])
+        if not all(isinstance(t, int | float) and not isinstance(t, bool) for t in stamps):
+            raise BadMetadata("field 'timestamps' must hold numbers", request_id=rid)
+        return cls(
+            rid,
+            _get(m, "camera", str, rid),
+            _images_from_wire(m, frame.blobs, rid, ctx),
+            tuple(float(t) for t in stamps),
+            _get(m, "intrinsics", dict, rid, default=None),
+        )
+
+
+@dataclass(frozen=True)
+class Error(Message):
+    """An error answering the request ``request_id`` (0: about the connection itself)."""
+
+    TYPE: ClassVar[MessageType] = MessageType.ERROR
+    code: int = ErrorCode.INTERNAL_ERROR
+    message: str = ""
+    fatal: bool = False
+    details: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_exception(cls, exc: CellvisionError, *, request_id: int | None = None) -> Error:
+        return cls(
+            exc.request_id if request_id is None else request_id,
+            int(exc.code),
+            exc.message,
+            exc.fatal,
+            dict(exc.details),
+        )
+
+    def to_exception(self) -> CellvisionError:
+        return error_from_code(
+            self.code,
+            self.message,
+            request_id=self.request_id,
+            details=self.details,
+            fatal=self.fatal,
+        )
+
+    @property
+    def name(self) -> str:
+        try:
+            return ErrorCode(self.code).name
+        except ValueError:
+            return f"UNKNOWN_{self.code}"
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        meta: dict[str, Any] = {
+            "code": int(self.code),
+            "name": self.name,
+            "message": self.message,
+            "fatal": self.fatal,
+        }
+        if self.details:
+            meta["details"] = dict(self.details)
+        return meta, ()
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Error:
+        m, rid = frame.metadata, frame.request_id
+        return cls(
+            rid,
+            _get(m, "code", int, rid),
+            _get(m, "message", str, rid, default=""),
+            _get(m, "fatal", bool, rid, default=False),
+            dict(_get(m, "details", dict, rid, default={})),
+        )
+
+
+MESSAGE_CLASSES: dict[MessageType, type[Message]] = {
+    cls.TYPE: cls
+    for cls in (
+        Hello,
+        Welcome,
+        Ping,
+        Pong,
+        Close,
+        ListInspections,
+        Inspections,
+        Inspect,
+        Result,
+        Capture,
+        Frames,
+        Error,
+    )
+}
+
+Parser = Callable[[Frame, DecodeContext], Message]
+
+
+def message_from_frame(frame: Frame, ctx: DecodeContext) -> Message:
+    """Build the typed message of a frame whose type is known (see MESSAGE_CLASSES)."""
+    return MESSAGE_CLASSES[MessageType(frame.type)].from_frame(frame, ctx)
