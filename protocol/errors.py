@@ -80,7 +80,9 @@ ERROR_TABLE: dict[ErrorCode, ErrorInfo] = {
     ErrorCode.DEADLINE_EXCEEDED: ErrorInfo(
         False, "the request's deadline passed before it was done"
     ),
-    ErrorCode.SHUTTING_DOWN: ErrorInfo(True, "the server is stopping"),
+    ErrorCode.SHUTTING_DOWN: ErrorInfo(
+        False, "the server is stopping: this request was not done; CLOSE follows"
+    ),
     ErrorCode.INTERNAL_ERROR: ErrorInfo(
         False, "a bug in the server: the request failed, the connection survives"
     ),

@@ -1,0 +1,118 @@
+"""``robot-client``: talk to a vision server and run skills.
+
+The server address comes from ``--server HOST:PORT``, else ``$CELLVISION_SERVER``, else
+127.0.0.1 on the default port 7878.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+from collections.abc import Awaitable, Callable, Sequence
+
+from rich.console import Console
+from rich.table import Table
+
+from protocol import CellvisionError
+
+from .address import resolve_server
+from .client import ReconnectPolicy, VisionClient
+from .errors import ClientError
+
+Command = Callable[[argparse.Namespace, VisionClient, Console], Awaitable[int]]
+
+
+async def _ping(args: argparse.Namespace, client: VisionClient, console: Console) -> int:
+    welcome = client.welcome
+    assert welcome is not None
+    rtts = [await client.ping() for _ in range(args.count)]
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "server": {"name": welcome.server_name, "version": welcome.server_version},
+                    "protocol": list(welcome.version),
+                    "rtt_ms": [round(r * 1000.0, 3) for r in rtts],
+                }
+            )
+        )
+    else:
+        console.print(
+            f"[green]PONG[/] from {welcome.server_name} {welcome.server_version} at "
+            f"{client.host}:{client.port} (protocol {welcome.version[0]}.{welcome.version[1]}): "
+            + ", ".join(f"{r * 1000.0:.2f} ms" for r in rtts)
+        )
+    return 0
+
+
+async def _inspections(args: argparse.Namespace, client: VisionClient, console: Console) -> int:
+    inspections = await client.list_inspections()
+    if args.json:
+        print(json.dumps({"inspections": list(inspections)}))
+        return 0
+    table = Table(title=f"Inspections on {client.host}:{client.port}")
+    for column in ("name", "type", "camera", "source", "depth"):
+        table.add_column(column)
+    for item in inspections:
+        table.add_row(
+            str(item.get("name")),
+            str(item.get("type", "")),
+            str(item.get("camera", "")),
+            str(item.get("camera_source", "")),
+            "yes" if item.get("depth") else "no",
+        )
+    console.print(table)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="robot-client", description=__doc__)
+    parser.add_argument("--server", help="HOST:PORT of the vision server")
+    parser.add_argument("--auth-token", default=None, help="token for the server's HELLO")
+    parser.add_argument("--timeout", type=float, default=10.0, help="seconds per request")
+    sub = parser.add_subparsers(dest="command", required=True)
+    ping = sub.add_parser("ping", help="check that the server answers")
+    ping.add_argument("-n", "--count", type=int, default=1)
+    ping.add_argument("--json", action="store_true")
+    ping.set_defaults(func=_ping)
+    insp = sub.add_parser("inspections", help="list the server's inspections")
+    insp.add_argument("--json", action="store_true")
+    insp.set_defaults(func=_inspections)
+    return parser
+
+
+async def _run(args: argparse.Namespace, func: Command, console: Console) -> int:
+    host, port = resolve_server(args.server)
+    client = VisionClient(
+        host,
+        port,
+        auth_token=args.auth_token,
+        request_timeout_s=args.timeout,
+        connect_timeout_s=args.timeout,
+        reconnect=ReconnectPolicy(attempts=0),
+    )
+    async with client:
+        return await func(args, client, console)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    console = Console(stderr=False)
+    err = Console(stderr=True)
+    try:
+        return asyncio.run(_run(args, args.func, console))
+    except ValueError as exc:
+        err.print(f"[red]error:[/] {exc}")
+        return 2
+    except CellvisionError as exc:
+        err.print(f"[red]{exc.code.name}:[/] {exc.message}")
+        return 1
+    except ClientError as exc:
+        err.print(f"[red]error:[/] {exc}")
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

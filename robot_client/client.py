@@ -1,0 +1,479 @@
+"""The asyncio client of a cellvision server, and a small synchronous facade.
+
+Requests are matched to responses by id, so many may be in flight at once (pipelining) and
+answers may come back in any order. A lost connection fails the requests in flight with
+:class:`ConnectionLost`; the next request reconnects (with exponential backoff) when
+``reconnect`` is on. Requests are never re-sent automatically.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import ssl as ssl_module
+import threading
+import time
+from collections.abc import Callable, Coroutine, Iterable, Sequence
+from concurrent.futures import Future as ConcurrentFuture
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+from protocol import (
+    NEED_DATA,
+    PROTOCOL_VERSION,
+    SUPPORTED_VERSIONS,
+    Capture,
+    CellvisionError,
+    Close,
+    Connection,
+    ConnectionClosed,
+    Error,
+    Frames,
+    Hello,
+    ImageEncoding,
+    ImagePayload,
+    ImageRole,
+    Inspect,
+    Inspections,
+    ListInspections,
+    Message,
+    Ping,
+    Pong,
+    Result,
+    Role,
+    State,
+    Welcome,
+    array_from_payload,
+    payload_from_array,
+)
+
+from .errors import ClientClosed, ConnectionLost, RequestTimeout
+
+log = logging.getLogger("robot_client")
+_T = TypeVar("_T")
+_M = TypeVar("_M", bound=Message)
+
+READ_CHUNK = 256 * 1024
+ImageLike = npt.NDArray[Any] | ImagePayload
+
+
+@dataclass(frozen=True)
+class ReconnectPolicy:
+    """Reconnect with exponential backoff: ``initial_s``, doubling up to ``max_s``; give up
+    after ``attempts`` tries (0: never reconnect)."""
+
+    attempts: int = 5
+    initial_s: float = 0.1
+    max_s: float = 2.0
+
+    def delays(self) -> Iterable[float]:
+        delay = self.initial_s
+        for _ in range(self.attempts):
+            yield delay
+            delay = min(delay * 2.0, self.max_s)
+
+
+class VisionClient:
+    """An asyncio client. Use ``async with VisionClient(host, port) as client``."""
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 7878,
+        *,
+        auth_token: str | None = None,
+        client_name: str = "robot_client/0.1.0",
+        connect_timeout_s: float = 5.0,
+        request_timeout_s: float = 30.0,
+        reconnect: ReconnectPolicy | None = None,
+        ssl: ssl_module.SSLContext | None = None,
+    ) -> None:
+        self.host = host
+        self.port = port
+        self.auth_token = auth_token
+        self.client_name = client_name
+        self.connect_timeout_s = connect_timeout_s
+        self.request_timeout_s = request_timeout_s
+        self.reconnect = reconnect if reconnect is not None else ReconnectPolicy()
+        self.ssl = ssl
+        self.welcome: Welcome | None = None
+        self._conn: Connection | None = None
+        self._writer: asyncio.StreamWriter | None = None
+        self._reader_task: asyncio.Task[None] | None = None
+        self._pending: dict[int, asyncio.Future[Message]] = {}
+        self._ids = itertools.count(1)
+        self._connect_lock = asyncio.Lock()
+        self._closed = False
+        self.reconnects = 0
+
+    # ------------------------------------------------------------------ connection
+
+    @property
+    def connected(self) -> bool:
+        return self._conn is not None and self._conn.state is State.OPEN
+
+    async def connect(self) -> Welcome:
+        """Open the connection and do the handshake; returns the server's WELCOME."""
+        async with self._connect_lock:
+            if self.connected:
+                assert self.welcome is not None
+                return self.welcome
+            return await self._open()
+
+    async def _open(self) -> Welcome:
+        try:
+            async with asyncio.timeout(self.connect_timeout_s):
+                reader, writer = await asyncio.open_connection(
+                    self.host, self.port, ssl=self.ssl, limit=READ_CHUNK
+                )
+        except (OSError, TimeoutError) as exc:
+            raise ConnectionLost(
+                f"cannot connect to {self.host}:{self.port}: {exc or type(exc).__name__}"
+            ) from exc
+        conn = Connection(Role.CLIENT, versions=SUPPORTED_VERSIONS)
+        self._conn, self._writer = conn, writer
+        hello_id = self._new_id()
+        future: asyncio.Future[Message] = asyncio.get_running_loop().create_future()
+        self._pending[hello_id] = future
+        self._reader_task = asyncio.create_task(self._read_loop(conn, reader, writer))
+        writer.write(
+            conn.send(Hello(hello_id, SUPPORTED_VERSIONS, self.client_name, self.auth_token))
+        )
+        try:
+            async with asyncio.timeout(self.connect_timeout_s):
+                await writer.drain()
+                answer = await future
+        except TimeoutError:
+            await self._drop_connection(ConnectionLost("no WELCOME within the connect timeout"))
+            raise ConnectionLost(
+                f"{self.host}:{self.port} did not answer HELLO within {self.connect_timeout_s} s"
+            ) from None
+        except BaseException:
+            await self._drop_connection(ConnectionLost("handshake failed"))
+            raise
+        assert isinstance(answer, Welcome)
+        self.welcome = answer
+        return answer
+
+    async def close(self) -> None:
+        """Graceful close: CLOSE, wait for the answers in flight and the server's CLOSE."""
+        self._closed = True
+        conn, writer, task = self._conn, self._writer, self._reader_task
+        if conn is not None and writer is not None and conn.state is State.OPEN:
+            with contextlib.suppress(Exception):
+                writer.write(conn.send(Close(reason="client done")))
+                await writer.drain()
+            if task is not None:
+                with contextlib.suppress(Exception):
+                    async with asyncio.timeout(self.connect_timeout_s):
+                        await asyncio.shield(task)
+        await self._drop_connection(ClientClosed("the client was closed"))
+
+    async def __aenter__(self) -> VisionClient:
+        await self.connect()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def _drop_connection(self, reason: Exception) -> None:
+        task, writer = self._reader_task, self._writer
+        self._reader_task = None
+        self._writer = None
+        self._conn = None
+        if task is not None and task is not asyncio.current_task():
+            task.cancel()
+            with contextlib.suppress(BaseException):
+                await task
+        if writer is not None:
+            writer.close()
+            with contextlib.suppress(Exception):
+                await writer.wait_closed()
+        self._fail_all(reason)
+
+    def _fail_all(self, reason: Exception) -> None:
+        pending, self._pending = self._pending, {}
+        for future in pending.values():
+            if not future.done():
+                future.set_exception(reason)
+
+    async def _read_loop(
+        self, conn: Connection, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
+        reason: Exception = ConnectionLost("the server closed the connection")
+        try:
+            while True:
+                data = await reader.read(READ_CHUNK)
+                conn.receive_data(data)
+                while True:
+                    try:
+                        event = conn.next_event()
+                    except CellvisionError as exc:
+                        log.warning("bad data from the server: %s", exc)
+                        if exc.fatal:
+                            reason = ConnectionLost(f"protocol error from the server: {exc}")
+                            return
+                        continue
+                    if event is NEED_DATA:
+                        break
+                    if isinstance(event, ConnectionClosed):
+                        return
+                    assert isinstance(event, Message)
+                    if isinstance(event, Close):
+                        reason = ConnectionLost(
+                            f"the server closed the connection: {event.reason or 'no reason'}"
+                        )
+                        return
+                    self._deliver(event)
+                    if isinstance(event, Error) and event.fatal:
+                        reason = ConnectionLost(f"the server ended the connection: {event.message}")
+                        return
+        except (OSError, ConnectionError) as exc:
+            reason = ConnectionLost(f"connection to {self.host}:{self.port} lost: {exc}")
+        finally:
+            if self._conn is conn:
+                self._conn = None
+                self._writer = None
+                self._reader_task = None
+                writer.close()
+            self._fail_all(reason)
+
+    def _deliver(self, message: Message) -> None:
+        if isinstance(message, Error) and message.request_id == 0:
+            log.warning("server error: %s %s", message.name, message.message)
+            if message.fatal:
+                self._fail_all(message.to_exception())
+            return
+        future = self._pending.pop(message.request_id, None)
+        if future is None or future.done():
+            return  # the request timed out on our side; its late answer is dropped
+        if isinstance(message, Error):
+            future.set_exception(message.to_exception())
+        else:
+            future.set_result(message)
+
+    def _new_id(self) -> int:
+        while True:
+            rid = next(self._ids) & 0xFFFFFFFF
+            if rid and rid not in self._pending:
+                return rid
+
+    async def _ensure_connected(self) -> tuple[Connection, asyncio.StreamWriter]:
+        if self._closed:
+            raise ClientClosed("the client was closed")
+        if self.connected and self._conn is not None and self._writer is not None:
+            return self._conn, self._writer
+        async with self._connect_lock:
+            if not self.connected:
+                if self.welcome is None:
+                    await self._open()
+                else:
+                    await self._reconnect()
+        if self._conn is None or self._writer is None:
+            raise ConnectionLost(f"the connection to {self.host}:{self.port} dropped at once")
+        return self._conn, self._writer
+
+    async def _reconnect(self) -> None:
+        last: Exception = ConnectionLost("reconnect is off")
+        for delay in self.reconnect.delays():
+            await asyncio.sleep(delay)
+            try:
+                await self._open()
+                self.reconnects += 1
+                log.info("reconnected to %s:%d", self.host, self.port)
+                return
+            except ConnectionLost as exc:
+                last = exc
+        raise ConnectionLost(
+            f"could not reconnect to {self.host}:{self.port} after "
+            f"{self.reconnect.attempts} attempts: {last}"
+        )
+
+    async def request(
+        self, build: Callable[[int], _M], *, timeout_s: float | None = None
+    ) -> Message:
+        """Send the request ``build(request_id)`` and wait for its answer.
+
+        Raises the server's error as its :class:`protocol.CellvisionError` subclass,
+        :class:`RequestTimeout` after ``timeout_s`` (default ``request_timeout_s``), or
+        :class:`ConnectionLost`.
+        """
+        conn, writer = await self._ensure_connected()
+        rid = self._new_id()
+        message = build(rid)
+        future: asyncio.Future[Message] = asyncio.get_running_loop().create_future()
+        self._pending[rid] = future
+        try:
+            writer.write(conn.send(message))
+            await writer.drain()
+        except (OSError, ConnectionError) as exc:
+            self._pending.pop(rid, None)
+            raise ConnectionLost(f"connection lost while sending: {exc}") from exc
+        except BaseException:
+            self._pending.pop(rid, None)
+            raise
+        limit = self.request_timeout_s if timeout_s is None else timeout_s
+        try:
+            async with asyncio.timeout(limit):
+                return await future
+        except TimeoutError:
+            raise RequestTimeout(
+                f"no answer to {message.TYPE.name} (id {rid}) within {limit:g} s"
+            ) from None
+        finally:
+            self._pending.pop(rid, None)
+
+    # ------------------------------------------------------------------ requests
+
+    async def ping(self, data: str = "") -> float:
+        """Round-trip time of a PING, in seconds."""
+        t0 = time.perf_counter()
+        answer = await self.request(lambda rid: Ping(rid, data))
+        assert isinstance(answer, Pong)
+        return time.perf_counter() - t0
+
+    async def list_inspections(self) -> tuple[dict[str, Any], ...]:
+        answer = await self.request(ListInspections)
+        assert isinstance(answer, Inspections)
+        return answer.inspections
+
+    async def inspect(
+        self,
+        inspection: str,
+        image: ImageLike | None = None,
+        *,
+        depth: Sequence[ImageLike] = (),
+        deadline_s: float | None = None,
+        overlay: bool = False,
+        options: dict[str, Any] | None = None,
+        encoding: ImageEncoding | None = None,
+        timeout_s: float | None = None,
+    ) -> Result:
+        """Run a named inspection, on ``image`` (and ``depth`` frames) if given, else on the
+        server's camera. numpy images are sent raw unless ``encoding`` asks for PNG/JPEG."""
+        images: list[ImagePayload] = []
+        if image is not None:
+            images.append(_payload(image, ImageRole.COLOR, encoding))
+        images.extend(_payload(d, ImageRole.DEPTH, None) for d in depth)
+        deadline_ms = None if deadline_s is None else deadline_s * 1000.0
+        answer = await self.request(
+            lambda rid: Inspect(
+                rid, inspection, tuple(images), deadline_ms, overlay, dict(options or {})
+            ),
+            timeout_s=timeout_s,
+        )
+        assert isinstance(answer, Result)
+        return answer
+
+    async def capture(
+        self, camera: str, *, count: int = 1, depth: bool = False, timeout_s: float | None = None
+    ) -> Frames:
+        """``count`` frames from a server camera (colour, plus depth when asked)."""
+        answer = await self.request(
+            lambda rid: Capture(rid, camera, count, depth), timeout_s=timeout_s
+        )
+        assert isinstance(answer, Frames)
+        return answer
+
+
+def _payload(image: ImageLike, role: ImageRole, encoding: ImageEncoding | None) -> ImagePayload:
+    if isinstance(image, ImagePayload):
+        return image
+    return payload_from_array(np.asarray(image), role=role, encoding=encoding)
+
+
+def overlay_image(result: Result) -> npt.NDArray[Any] | None:
+    """The overlay image of a RESULT (BGR uint8), if the server sent one."""
+    for payload in result.images:
+        if payload.role is ImageRole.OVERLAY:
+            return array_from_payload(payload)
+    return None
+
+
+class SyncVisionClient:
+    """A blocking facade over :class:`VisionClient` for scripts and robot programs that are
+    not asyncio: it runs a private event loop in a background thread."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 7878, **kwargs: Any) -> None:
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(
+            target=self._loop.run_forever, name="vision-client", daemon=True
+        )
+        self._thread.start()
+        self._client: VisionClient = self._call(_make_client(host, port, kwargs))
+        try:
+            self.welcome: Welcome = self._call(self._client.connect())
+        except BaseException:
+            self._stop_loop()
+            raise
+
+    def _call(self, coro: Coroutine[Any, Any, _T]) -> _T:
+        future: ConcurrentFuture[_T] = asyncio.run_coroutine_threadsafe(coro, self._loop)
+        return future.result()
+
+    def ping(self, data: str = "") -> float:
+        return self._call(self._client.ping(data))
+
+    def list_inspections(self) -> tuple[dict[str, Any], ...]:
+        return self._call(self._client.list_inspections())
+
+    def inspect(self, inspection: str, image: ImageLike | None = None, **kwargs: Any) -> Result:
+        return self._call(self._client.inspect(inspection, image, **kwargs))
+
+    def capture(self, camera: str, **kwargs: Any) -> Frames:
+        return self._call(self._client.capture(camera, **kwargs))
+
+    def close(self) -> None:
+        if self._loop.is_running():
+            with contextlib.suppress(Exception):
+                self._call(self._client.close())
+            self._stop_loop()
+
+    def _stop_loop(self) -> None:
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout=5.0)
+        self._loop.close()
+
+    def __enter__(self) -> SyncVisionClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+async def _make_client(host: str, port: int, kwargs: dict[str, Any]) -> VisionClient:
+    # Built inside the loop's thread so its asyncio primitives bind to that loop.
+    return VisionClient(host, port, **kwargs)
+
+
+async def wait_for_server(
+    host: str, port: int, *, timeout_s: float = 10.0, **kwargs: Any
+) -> Welcome:
+    """Connect, retrying until ``timeout_s``: for scripts that start a server and then use it."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        client = VisionClient(host, port, reconnect=ReconnectPolicy(attempts=0), **kwargs)
+        try:
+            welcome = await client.connect()
+            await client.close()
+            return welcome
+        except ConnectionLost:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.05)
+
+
+__all__ = [
+    "ImageLike",
+    "ReconnectPolicy",
+    "SyncVisionClient",
+    "VisionClient",
+    "overlay_image",
+    "wait_for_server",
+    "PROTOCOL_VERSION",
+]
