@@ -93,23 +93,31 @@ class CellvisionError(Exception):
     """Base of every error with a wire code.
 
     ``request_id`` is the id of the request the error answers (0 when it concerns the
-    connection). ``details`` is extra JSON-able data sent along.
+    connection). ``details`` is extra JSON-able data sent along. ``fatal`` overrides the
+    table; it is set when the error was rebuilt from an ERROR whose sender said otherwise (the
+    sender closes the connection after a fatal ERROR, whatever our table says).
     """
 
     code: ClassVar[ErrorCode] = ErrorCode.INTERNAL_ERROR
 
     def __init__(
-        self, message: str, *, request_id: int = 0, details: dict[str, Any] | None = None
+        self,
+        message: str,
+        *,
+        request_id: int = 0,
+        details: dict[str, Any] | None = None,
+        fatal: bool | None = None,
     ) -> None:
         super().__init__(message)
         self.message = message
         self.request_id = request_id
         self.details: dict[str, Any] = dict(details or {})
+        self._fatal = fatal
 
     @property
     def fatal(self) -> bool:
         """True when the connection is closed after this error."""
-        return ERROR_TABLE[self.code].fatal
+        return ERROR_TABLE[self.code].fatal if self._fatal is None else self._fatal
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.message!r}, request_id={self.request_id})"
@@ -199,13 +207,8 @@ class UnknownErrorCode(CellvisionError):
     """
 
     def __init__(self, message: str, *, wire_code: int, peer_fatal: bool, **kwargs: Any) -> None:
-        super().__init__(message, **kwargs)
+        super().__init__(message, fatal=peer_fatal, **kwargs)
         self.wire_code = wire_code
-        self._peer_fatal = peer_fatal
-
-    @property
-    def fatal(self) -> bool:
-        return self._peer_fatal
 
 
 ERROR_CLASSES: dict[ErrorCode, type[CellvisionError]] = {
@@ -240,16 +243,27 @@ def error_from_code(
     *,
     request_id: int = 0,
     details: dict[str, Any] | None = None,
-    fatal: bool = False,
+    fatal: bool | None = None,
 ) -> CellvisionError:
-    """Rebuild the exception for a wire code received in an ERROR message."""
+    """Rebuild the exception for a wire code received in an ERROR message.
+
+    ``fatal`` is the ERROR's own flag: when given it wins over the table (the peer closes the
+    connection after a fatal ERROR). An unknown code is non-fatal unless the peer said fatal.
+    """
     try:
         cls = ERROR_CLASSES[ErrorCode(code)]
     except ValueError:
         return UnknownErrorCode(
-            message, wire_code=code, peer_fatal=fatal, request_id=request_id, details=details
+            message,
+            wire_code=code,
+            peer_fatal=bool(fatal),
+            request_id=request_id,
+            details=details,
         )
-    return cls(message, request_id=request_id, details=details)
+    exc = cls(message, request_id=request_id, details=details)
+    if fatal is not None and fatal != exc.fatal:
+        exc._fatal = fatal
+    return exc
 
 
 class LocalProtocolError(Exception):

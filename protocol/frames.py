@@ -7,6 +7,8 @@ a byte stream into frames incrementally, enforcing the size limits as soon as a 
 from __future__ import annotations
 
 import json
+import math
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -77,14 +79,29 @@ def _reject_constant(name: str) -> Any:
     raise ValueError(f"{name} is not valid JSON")
 
 
+def _finite_float(text: str) -> float:
+    # json turns 1e400 into inf, which could never be sent back (allow_nan=False).
+    value = float(text)
+    if math.isinf(value):
+        raise ValueError(f"number {text} is out of the float range")
+    return value
+
+
+# A \uD800-\uDFFF escape may leave a lone surrogate, which no UTF-8 encoder can send back.
+_SURROGATE_ESCAPE = re.compile(r"\\u[dD][89a-fA-F]")
+
+
 def decode_metadata(data: bytes, *, request_id: int) -> dict[str, Any]:
     """Parse a metadata section; zero bytes means ``{}``."""
     if not data:
         return {}
     try:
         text = data.decode("utf-8")
-        value = json.loads(text, parse_constant=_reject_constant)
-    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        value = json.loads(text, parse_constant=_reject_constant, parse_float=_finite_float)
+        if _SURROGATE_ESCAPE.search(text):
+            # Cheap test first; only then the full check that every string encodes.
+            json.dumps(value, ensure_ascii=False).encode("utf-8")
+    except (UnicodeError, ValueError, RecursionError) as exc:
         raise BadMetadata(f"metadata is not UTF-8 JSON: {exc}", request_id=request_id) from None
     if not isinstance(value, dict):
         raise BadMetadata(
