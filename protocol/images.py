@@ -128,6 +128,8 @@ def payload_from_array(
     Pass ``encoding=PNG`` or ``JPEG`` to compress (JPEG only for uint8 images).
     """
     image = np.asarray(image)
+    if not image.dtype.isnative:  # e.g. big-endian uint16 read from a file
+        image = image.astype(image.dtype.newbyteorder("="))
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
     height, width = image.shape[:2]
@@ -161,8 +163,67 @@ def payload_from_array(
     return ImagePayload(chosen, width, height, buf.tobytes(), role)
 
 
-def array_from_payload(payload: ImagePayload, *, request_id: int = 0) -> npt.NDArray[Any]:
-    """Decode an ImagePayload into a numpy array; BadImage names what is wrong."""
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_JPEG_SOI = b"\xff\xd8"
+# Start-of-frame markers carry the image size; C4 (DHT), C8 (JPG) and CC (DAC) are not SOFs.
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    position = 2
+    while position + 4 <= len(data):
+        if data[position] != 0xFF:
+            return None
+        marker = data[position + 1]
+        if marker == 0xFF:  # fill byte
+            position += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
+            position += 2
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, start of scan: no SOF before them
+            return None
+        length = int.from_bytes(data[position + 2 : position + 4], "big")
+        if marker in _JPEG_SOF and position + 9 <= len(data):
+            height = int.from_bytes(data[position + 5 : position + 7], "big")
+            width = int.from_bytes(data[position + 7 : position + 9], "big")
+            return width, height
+        position += 2 + length
+    return None
+
+
+def compressed_size(payload: ImagePayload, *, request_id: int = 0) -> tuple[int, int] | None:
+    """(width, height) read from a PNG/JPEG blob's header without decoding it.
+
+    None when the header does not say (the decoder then decides). BadImage when the blob does
+    not start with the signature of its encoding.
+    """
+    data = payload.data
+    if payload.encoding is ImageEncoding.PNG:
+        if not data.startswith(_PNG_SIGNATURE):
+            raise BadImage(
+                f"png blob of {len(data)} bytes has no PNG signature", request_id=request_id
+            )
+        if len(data) >= 24 and data[12:16] == b"IHDR":
+            return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+        return None
+    if payload.encoding is ImageEncoding.JPEG:
+        if not data.startswith(_JPEG_SOI):
+            raise BadImage(
+                f"jpeg blob of {len(data)} bytes has no JPEG signature", request_id=request_id
+            )
+        return _jpeg_size(data)
+    return payload.width, payload.height
+
+
+def array_from_payload(
+    payload: ImagePayload, *, request_id: int = 0, max_pixels: int | None = None
+) -> npt.NDArray[Any]:
+    """Decode an ImagePayload into a numpy array; BadImage names what is wrong.
+
+    With ``max_pixels``, a PNG/JPEG whose header announces more pixels raises ImageTooLarge
+    before anything is decompressed (the descriptor may say 0x0 for compressed images).
+    """
     if payload.encoding is ImageEncoding.GRAY8:
         return np.frombuffer(payload.data, np.uint8).reshape(payload.height, payload.width)
     if payload.encoding is ImageEncoding.BGR8:
@@ -175,8 +236,21 @@ def array_from_payload(payload: ImagePayload, *, request_id: int = 0) -> npt.NDA
         )
     import cv2
 
+    size = compressed_size(payload, request_id=request_id)
+    if size is not None:
+        _check_size(payload, size, request_id)
+        if max_pixels is not None and size[0] * size[1] > max_pixels:
+            raise ImageTooLarge(
+                f"{payload.encoding} image of {size[0]}x{size[1]} = {size[0] * size[1]} pixels "
+                f"exceeds the limit of {max_pixels}",
+                request_id=request_id,
+                details={"pixels": size[0] * size[1], "max_pixels": max_pixels},
+            )
     buf = np.frombuffer(payload.data, np.uint8)
-    decoded = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    try:
+        decoded = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    except cv2.error:
+        decoded = None
     if decoded is None:
         raise BadImage(
             f"{payload.encoding} blob of {len(payload.data)} bytes cannot be decoded",
@@ -185,14 +259,19 @@ def array_from_payload(payload: ImagePayload, *, request_id: int = 0) -> npt.NDA
     if decoded.ndim == 3 and decoded.shape[2] == 4:
         decoded = cv2.cvtColor(decoded, cv2.COLOR_BGRA2BGR)
     h, w = decoded.shape[:2]
-    if (payload.width and payload.width != w) or (payload.height and payload.height != h):
-        raise BadImage(
-            f"{payload.encoding} image decodes to {w}x{h}, the descriptor says "
-            f"{payload.width}x{payload.height}",
-            request_id=request_id,
-        )
+    _check_size(payload, (w, h), request_id)
     if decoded.dtype not in (np.uint8, np.uint16):
         raise BadImage(
             f"{payload.encoding} image has unsupported depth {decoded.dtype}", request_id=request_id
         )
     return np.asarray(decoded)
+
+
+def _check_size(payload: ImagePayload, size: tuple[int, int], request_id: int) -> None:
+    w, h = size
+    if (payload.width and payload.width != w) or (payload.height and payload.height != h):
+        raise BadImage(
+            f"{payload.encoding} image is {w}x{h}, the descriptor says "
+            f"{payload.width}x{payload.height}",
+            request_id=request_id,
+        )

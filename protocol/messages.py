@@ -71,6 +71,25 @@ def _version(value: Any, rid: int, where: str) -> Version:
     )
 
 
+def _as_float(value: int | float) -> float | None:
+    """``value`` as a finite float, or None (a JSON integer may be too large for a float)."""
+    try:
+        number = float(value)
+    except OverflowError:
+        return None
+    return number if math.isfinite(number) else None
+
+
+def _deadline(meta: dict[str, Any], rid: int) -> float | None:
+    value = _get(meta, "deadline_ms", (int, float), rid, default=None)
+    if value is None:
+        return None
+    deadline = _as_float(value)
+    if deadline is None or deadline <= 0:
+        raise BadMetadata(f"field 'deadline_ms' must be positive, got {value}", request_id=rid)
+    return deadline
+
+
 def _check_id(request_id: int) -> None:
     if not 0 <= request_id <= 0xFFFFFFFF:
         raise ValueError(f"request_id must fit in a u32, got {request_id}")
@@ -334,16 +353,12 @@ class Inspect(Message):
         name = _get(m, "inspection", str, rid)
         if not name:
             raise BadMetadata("field 'inspection' must not be empty", request_id=rid)
-        deadline = _get(m, "deadline_ms", (int, float), rid, default=None)
-        if deadline is not None and not (math.isfinite(deadline) and deadline > 0):
-            raise BadMetadata(
-                f"field 'deadline_ms' must be positive, got {deadline}", request_id=rid
-            )
+        deadline = _deadline(m, rid)
         return cls(
             rid,
             name,
             _images_from_wire(m, frame.blobs, rid, ctx),
-            None if deadline is None else float(deadline),
+            deadline,
             _get(m, "overlay", bool, rid, default=False),
             dict(_get(m, "options", dict, rid, default={})),
         )
@@ -390,12 +405,16 @@ class Result(Message):
             raise BadMetadata(
                 f"field 'verdict' must be 'pass' or 'fail', got {verdict!r}", request_id=rid
             )
+        timing = _get(m, "timing", dict, rid, default={})
+        for key, value in timing.items():
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise BadMetadata(f"timing.{key} must be a number of ms", request_id=rid)
         return cls(
             rid,
             _get(m, "inspection", str, rid),
             verdict == "pass",
             dict(_get(m, "data", dict, rid, default={})),
-            dict(_get(m, "timing", dict, rid, default={})),
+            dict(timing),
             _get(m, "camera", str, rid, default=""),
             _get(m, "config_hash", str, rid, default=""),
             _images_from_wire(m, frame.blobs, rid, ctx),
@@ -440,18 +459,14 @@ class Capture(Message):
             raise BadMetadata("field 'camera' must not be empty", request_id=rid)
         if count < 1:
             raise BadMetadata(f"field 'count' must be >= 1, got {count}", request_id=rid)
-        deadline = _get(m, "deadline_ms", (int, float), rid, default=None)
-        if deadline is not None and not (math.isfinite(deadline) and deadline > 0):
-            raise BadMetadata(
-                f"field 'deadline_ms' must be positive, got {deadline}", request_id=rid
-            )
+        deadline = _deadline(m, rid)
         return cls(
             rid,
             camera,
             count,
             _get(m, "depth", bool, rid, default=False),
             _get(m, "encoding", str, rid, default=None),
-            None if deadline is None else float(deadline),
+            deadline,
         )
 
 
@@ -481,13 +496,17 @@ class Frames(Message):
     def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Frames:
         m, rid = frame.metadata, frame.request_id
         stamps = _get(m, "timestamps", list, rid, default=[])
-        if not all(isinstance(t, int | float) and not isinstance(t, bool) for t in stamps):
-            raise BadMetadata("field 'timestamps' must hold numbers", request_id=rid)
+        times = [
+            _as_float(t) if isinstance(t, int | float) and not isinstance(t, bool) else None
+            for t in stamps
+        ]
+        if None in times:
+            raise BadMetadata("field 'timestamps' must hold finite numbers", request_id=rid)
         return cls(
             rid,
             _get(m, "camera", str, rid),
             _images_from_wire(m, frame.blobs, rid, ctx),
-            tuple(float(t) for t in stamps),
+            tuple(t for t in times if t is not None),
             _get(m, "intrinsics", dict, rid, default=None),
         )
 
@@ -506,7 +525,8 @@ class Error(Message):
     def from_exception(cls, exc: CellvisionError, *, request_id: int | None = None) -> Error:
         return cls(
             exc.request_id if request_id is None else request_id,
-            int(exc.code),
+            # An UnknownErrorCode keeps the number it arrived with, so relaying it is lossless.
+            int(getattr(exc, "wire_code", exc.code)),
             exc.message,
             exc.fatal,
             dict(exc.details),
