@@ -92,7 +92,8 @@ TRANSITIONS: dict[tuple[Role, State, Direction, MessageType], State] = {
     # server handshake
     (V, State.HANDSHAKE, R, T.HELLO): State.HELLO_RECEIVED,
     (V, State.HELLO_RECEIVED, S, T.WELCOME): State.OPEN,
-    (V, State.HELLO_RECEIVED, S, T.ERROR): State.HELLO_RECEIVED,
+    # a non-fatal ERROR answering HELLO (BUSY, ...): the client may send another HELLO
+    (V, State.HELLO_RECEIVED, S, T.ERROR): State.HANDSHAKE,
     (V, State.HANDSHAKE, S, T.ERROR): State.HANDSHAKE,
     # open: requests one way, responses the other
     **{(C, State.OPEN, S, t): State.OPEN for t in _OPEN_REQUESTS},
@@ -143,6 +144,8 @@ class Connection:
         # request id -> request type: ids the client sent and awaits, or the server owes.
         self._pending: dict[int, MessageType] = {}
         self._closed_cleanly = False
+        # The fatal error that closed the connection on receipt; next_event raises it again.
+        self._fatal: CellvisionError | None = None
 
     # ------------------------------------------------------------------ introspection
 
@@ -171,28 +174,29 @@ class Connection:
 
         Raises a :class:`~protocol.errors.CellvisionError` subclass when the peer broke the
         protocol. When the error is not fatal, its frame has been consumed and the connection
-        goes on; a server answers it with an ERROR carrying the error's request id. When it is
-        fatal, the state is CLOSED: answer with an ERROR (``send`` allows it) and close.
+        goes on; a server answers it with an ERROR carrying the error's request id, and a client
+        fails its request of that id (no longer pending). When it is fatal, the state is CLOSED:
+        answer with an ERROR (``send`` allows it) and close; later calls raise it again.
         """
-        if self.state is State.CLOSED and self._closed_cleanly:
+        if self.state is State.CLOSED:
+            # Nothing is read after the connection closed, however it closed.
+            if self._fatal is not None:
+                raise self._fatal
             return ConnectionClosed()
         try:
             frame = self._decoder.next_frame()
-        except CellvisionError:
-            self.state = State.CLOSED
+        except CellvisionError as exc:
+            self._close_with(exc)
             raise
         if frame is None:
             if self._decoder.eof:
-                if (
-                    self.state not in (State.CLOSED, State.CLOSING)
-                    and self._pending
-                    and self.role is Role.CLIENT
-                ):
-                    self.state = State.CLOSED
-                    raise MalformedFrame(
+                if self._pending and self.role is Role.CLIENT:
+                    lost = MalformedFrame(
                         f"the server closed the connection with {len(self._pending)} "
                         "requests unanswered"
                     )
+                    self._close_with(lost)
+                    raise lost
                 self.state = State.CLOSED
                 self._closed_cleanly = True
                 return ConnectionClosed()
@@ -201,18 +205,27 @@ class Connection:
             return self._receive_frame_checked(frame.type, frame)
         except CellvisionError as exc:
             if exc.fatal:
-                self.state = State.CLOSED
-            elif self.role is Role.SERVER and exc.request_id != NO_REQUEST:
-                # The server owes an ERROR for this request id.
-                self._pending.setdefault(exc.request_id, MessageType.ERROR)
+                self._close_with(exc)
+            elif exc.request_id != NO_REQUEST:
+                if self.role is Role.SERVER:
+                    # The server owes an ERROR for this request id.
+                    self._pending.setdefault(exc.request_id, MessageType.ERROR)
+                else:
+                    # The client's request got an answer it cannot use: it is over, and the
+                    # caller fails it with this error.
+                    self._pending.pop(exc.request_id, None)
             raise
+
+    def _close_with(self, exc: CellvisionError) -> None:
+        self.state = State.CLOSED
+        self._fatal = exc
 
     def _receive_frame_checked(self, raw_type: int, frame: Frame) -> Message:
         rid = frame.request_id
         try:
             mtype = MessageType(raw_type)
         except ValueError:
-            if self.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
+            if self.role is Role.SERVER and self.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
                 raise NotAuthenticated(
                     f"message type 0x{raw_type:04x} before the handshake completed",
                     request_id=rid,
@@ -224,6 +237,10 @@ class Connection:
         key = (self.role, self.state, Direction.RECEIVE, mtype)
         if key not in TRANSITIONS:
             self._reject_unexpected(mtype, rid)
+        if self.role is Role.SERVER and mtype in REQUESTS and rid == NO_REQUEST:
+            raise UnexpectedMessage(
+                f"{mtype.name} with request id 0, which is reserved for connection-level messages"
+            )
         if self.role is Role.SERVER and mtype in REQUESTS and rid in self._pending:
             raise DuplicateRequestId(
                 f"request id {rid} is already in flight on this connection", request_id=rid
@@ -246,9 +263,10 @@ class Connection:
             )
 
     def _reject_unexpected(self, mtype: MessageType, rid: int) -> None:
-        if self.role is Role.SERVER and self.state is State.HANDSHAKE:
+        if self.role is Role.SERVER and self.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
             raise NotAuthenticated(
-                f"{mtype.name} before HELLO: the handshake must come first", request_id=rid
+                f"{mtype.name} before the handshake completed: HELLO, then wait for WELCOME",
+                request_id=rid,
             )
         if self.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
             raise UnexpectedMessage(f"{mtype.name} during the handshake", request_id=rid)
@@ -284,6 +302,8 @@ class Connection:
                 f"cannot send {mtype.name} as {self.role.value} in state {self.state.value}"
             )
         rid = message.request_id
+        if mtype is T.CLOSE and rid != NO_REQUEST:
+            raise LocalProtocolError("CLOSE must carry request id 0")
         if self.role is Role.CLIENT and mtype in REQUESTS:
             if rid == NO_REQUEST:
                 raise LocalProtocolError("request id 0 is reserved for connection-level messages")
@@ -292,7 +312,7 @@ class Connection:
         if (
             self.role is Role.SERVER
             and mtype is not T.CLOSE
-            and not (mtype is T.ERROR and rid == NO_REQUEST)
+            and not (mtype is T.ERROR and (rid == NO_REQUEST or late_error))
         ):
             request = self._pending.get(rid)
             if request is None:
