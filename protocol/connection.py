@@ -23,7 +23,7 @@ from .errors import (
     UnknownMessageType,
     UnsupportedVersion,
 )
-from .frames import Frame, FrameDecoder, Limits
+from .frames import FrameDecoder, Limits
 from .messages import DecodeContext, Error, Message, Version, Welcome, message_from_frame
 
 
@@ -186,7 +186,16 @@ class Connection:
         try:
             frame = self._decoder.next_frame()
         except CellvisionError as exc:
-            self._close_with(exc)
+            header = self._decoder.last_header
+            if not exc.fatal and header is not None:
+                # Bad metadata JSON (the frame is consumed): the header still goes through the
+                # state machine first, so a bad frame before HELLO is NOT_AUTHENTICATED, etc.
+                try:
+                    self._check_frame(header.type, (header.major, header.minor), header.request_id)
+                except CellvisionError as first:
+                    self._on_error(first)
+                    raise first from None
+            self._on_error(exc)
             raise
         if frame is None:
             if self._decoder.eof:
@@ -202,26 +211,34 @@ class Connection:
                 return ConnectionClosed()
             return NEED_DATA
         try:
-            return self._receive_frame_checked(frame.type, frame)
+            key = self._check_frame(frame.type, frame.version, frame.request_id)
+            message = message_from_frame(frame, self._ctx)
+            self._apply(key, message)
         except CellvisionError as exc:
-            if exc.fatal:
-                self._close_with(exc)
-            elif exc.request_id != NO_REQUEST:
-                if self.role is Role.SERVER:
-                    # The server owes an ERROR for this request id.
-                    self._pending.setdefault(exc.request_id, MessageType.ERROR)
-                else:
-                    # The client's request got an answer it cannot use: it is over, and the
-                    # caller fails it with this error.
-                    self._pending.pop(exc.request_id, None)
+            self._on_error(exc)
             raise
+        return message
+
+    def _on_error(self, exc: CellvisionError) -> None:
+        if exc.fatal:
+            self._close_with(exc)
+        elif exc.request_id != NO_REQUEST:
+            if self.role is Role.SERVER:
+                # The server owes an ERROR for this request id.
+                self._pending.setdefault(exc.request_id, MessageType.ERROR)
+            else:
+                # The client's request got an answer it cannot use: it is over, and the
+                # caller fails it with this error.
+                self._pending.pop(exc.request_id, None)
 
     def _close_with(self, exc: CellvisionError) -> None:
         self.state = State.CLOSED
         self._fatal = exc
 
-    def _receive_frame_checked(self, raw_type: int, frame: Frame) -> Message:
-        rid = frame.request_id
+    def _check_frame(
+        self, raw_type: int, version: Version, rid: int
+    ) -> tuple[Role, State, Direction, MessageType]:
+        """Check a frame's header against the state machine; the transition key if allowed."""
         try:
             mtype = MessageType(raw_type)
         except ValueError:
@@ -233,7 +250,7 @@ class Connection:
             raise UnknownMessageType(
                 f"unknown message type 0x{raw_type:04x}", request_id=rid
             ) from None
-        self._check_version(mtype, frame.version, rid)
+        self._check_version(mtype, version, rid)
         key = (self.role, self.state, Direction.RECEIVE, mtype)
         if key not in TRANSITIONS:
             self._reject_unexpected(mtype, rid)
@@ -245,11 +262,9 @@ class Connection:
             raise DuplicateRequestId(
                 f"request id {rid} is already in flight on this connection", request_id=rid
             )
-        message = message_from_frame(frame, self._ctx)
         if self.role is Role.CLIENT and mtype not in REQUESTS and mtype is not T.CLOSE:
             self._match_response(mtype, rid)
-        self._apply(key, message)
-        return message
+        return key
 
     def _check_version(self, mtype: MessageType, version: Version, rid: int) -> None:
         if mtype in (T.HELLO, T.ERROR) or self.version is None:

@@ -196,6 +196,8 @@ class FrameDecoder:
         self._header: Header | None = None
         self._broken: MalformedFrame | FrameTooLarge | None = None
         self._eof = False
+        self.last_header: Header | None = None
+        """The header of the latest frame parsed, also when its body was bad."""
 
     @property
     def buffered(self) -> int:
@@ -232,6 +234,7 @@ class FrameDecoder:
                     )
                 return None
             self._header = parse_header(self._buffer, self.limits)
+            self.last_header = self._header
         header = self._header
         if len(self._buffer) < header.frame_length:
             if self._eof:

@@ -720,3 +720,43 @@ def test_exceptions_are_cellvision_errors() -> None:
     # A smoke check that the documented base class covers what next_event raises above.
     for cls in (NotAuthenticated, DuplicateRequestId, UnknownMessageType, MalformedFrame):
         assert issubclass(cls, CellvisionError)
+
+
+def _bad_json(mtype: int, rid: int) -> bytes:
+    return struct.pack("<4sBBHHHIII", b"CVIS", 1, 0, mtype, 0, 0, rid, 3, 3) + b"{x}"
+
+
+def test_bad_json_in_a_request_is_not_fatal() -> None:
+    client, server = opened()
+    with pytest.raises(BadMetadata) as info:
+        events(server, _bad_json(MessageType.INSPECT, 4))
+    assert info.value.request_id == 4
+    assert server.state is State.OPEN
+    assert server.pending == {4}
+    server.send(Error.from_exception(info.value))
+    assert one(server, client.send(Ping(5))) == Ping(5)
+
+
+def test_bad_json_before_hello_is_not_authenticated() -> None:
+    with pytest.raises(NotAuthenticated):
+        events(Connection(Role.SERVER), _bad_json(MessageType.PING, 4))
+
+
+def test_bad_json_in_hello_can_be_answered_and_retried() -> None:
+    client, server = Connection(Role.CLIENT), Connection(Role.SERVER)
+    with pytest.raises(BadMetadata):
+        events(server, _bad_json(MessageType.HELLO, 1))
+    assert server.state is State.HANDSHAKE
+    server.send(Error(1, ErrorCode.BAD_METADATA, "bad JSON"))
+    one(server, client.send(Hello(2)))
+    one(client, server.send(Welcome(2)))
+    assert client.state is server.state is State.OPEN
+
+
+def test_bad_json_in_a_response_fails_the_request() -> None:
+    client, _ = opened()
+    client.send(Inspect(4, "x"))
+    with pytest.raises(BadMetadata):
+        events(client, _bad_json(MessageType.RESULT, 4))
+    assert client.pending == frozenset()
+    assert client.state is State.OPEN
