@@ -163,7 +163,9 @@ def mutated(draw: st.DrawFn, messages: list[Message]) -> bytes:
                 struct.pack_into("<I", data, offset, value)
         elif kind == "u16":  # type, flags, blob count
             offset = draw(st.sampled_from([6, 8, 10]))
-            struct.pack_into("<H", data, offset, draw(st.integers(0, 0xFFFF)))
+            value = draw(st.integers(0, 0xFFFF))
+            if offset + 2 <= len(data):
+                struct.pack_into("<H", data, offset, value)
         elif kind == "insert":
             position = draw(st.integers(0, len(data)))
             data[position:position] = draw(st.binary(min_size=1, max_size=8))
