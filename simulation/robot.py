@@ -89,6 +89,7 @@ class SimRobot:
     def set_user_frame(self, base_from_user: ArrayLike) -> None:
         """Set the frame in which ``frame='user'`` poses are given (calibration sets it)."""
         self._world.base_from_user = _as_pose(base_from_user, "base_from_user").copy()
+        self._world.version += 1
         self._on_change()
 
     def tool_pose(self, frame: str = "base") -> FloatArray:

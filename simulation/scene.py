@@ -10,7 +10,7 @@ The scene never changes while the cell runs; what moves (parts, the robot) is in
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -247,7 +247,6 @@ class Scene:
     switches: tuple[SwitchSpec, ...]
     robot: RobotSpec
     cameras: tuple[CameraSpec, ...]
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def camera(self, name: str) -> CameraSpec:
         for cam in self.cameras:
