@@ -354,7 +354,14 @@ class Renderer:
                 frustum[:, :3] @ c_cam + frustum[:, 3] >= -obj.radius * _plane_norms(frustum)
             ):
                 in_view.append((obj, float(np.linalg.norm(obj.centre - cam_pos))))
-        in_view.sort(key=lambda item: (item[0].layer, -item[1]))
+        # Horizontal surfaces seen from above: the lower one is the farther one. Within the other
+        # layers the farther object (by centre distance) is drawn first.
+        in_view.sort(
+            key=lambda item: (
+                item[0].layer,
+                item[0].centre[2] if item[0].layer == LAYER_SURFACE else -item[1],
+            )
+        )
         in_view = _drop_hidden_surfaces(in_view, camera_from_world, cache.raster)
 
         bg = self.scene.background

@@ -99,6 +99,20 @@ def test_qr_code_decodes_and_corners_match(board_cell: SimCell) -> None:
     assert max(errors) < 2.0
 
 
+@pytest.mark.parametrize("distance", [0.6, 1.4])
+def test_qr_decodes_across_the_working_range(board_cell: SimCell, distance: float) -> None:
+    pose = board_cell.robot.tool_pose()
+    pose[0, 3] = 0.989 - distance
+    board_cell.robot.move_linear(pose)
+    frame = board_cell.render("rgbd")
+    qr = frame.truth.qr_codes["qr"]
+    decoded = pyzbar.decode(cv2.cvtColor(frame.color, cv2.COLOR_BGR2GRAY))
+    assert [d.data for d in decoded] == [b"cellvision:test"]
+    zbar_pts = np.array([(p.x, p.y) for p in decoded[0].polygon], dtype=np.float64)
+    for corner in qr.corners_uv:
+        assert np.min(np.linalg.norm(zbar_pts - corner, axis=1)) < 1.0
+
+
 def test_qr_module_edges_are_exact(board_cell: SimCell) -> None:
     """The left edge of the code, measured from pixel coverage, lies on the c0-c3 line."""
     board_cell.scene.camera("rgbd")
