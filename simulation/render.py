@@ -685,9 +685,13 @@ def _true_depth(
     raster: CameraRaster,
 ) -> NDArray[np.float32]:
     xn, yn = raster.normalized_grid
-    coeffs = np.array(planes + [np.array([np.nan, np.nan, np.nan])], dtype=np.float32)
-    c = coeffs[face_labels]  # label -1 picks the NaN row
-    inv = c[:, :, 0] * xn + c[:, :, 1] * yn + c[:, :, 2]
+    # 1/z = a x + b y + c per face; label -1 picks the last (NaN) row.
+    coeffs = np.array([*planes, np.array([np.nan, np.nan, np.nan])], dtype=np.float32).T.copy()
+    inv = np.take(coeffs[0], face_labels) * xn
+    inv += np.take(coeffs[1], face_labels) * yn
+    inv += np.take(coeffs[2], face_labels)
     with np.errstate(divide="ignore", invalid="ignore"):
-        z = np.where(inv > 0, np.float32(1.0) / inv, np.float32(np.nan))
-    return z.astype(np.float32)
+        z = np.float32(1.0) / inv
+    z[~(inv > 0)] = np.nan
+    result: NDArray[np.float32] = z.astype(np.float32, copy=False)
+    return result
