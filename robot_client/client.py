@@ -218,6 +218,10 @@ class VisionClient:
                         if exc.fatal:
                             reason = ConnectionLost(f"protocol error from the server: {exc}")
                             return
+                        # An answer that could not be decoded fails its request now.
+                        future = self._pending.pop(exc.request_id, None)
+                        if future is not None and not future.done():
+                            future.set_exception(exc)
                         continue
                     if event is NEED_DATA:
                         break

@@ -41,6 +41,7 @@ from protocol import (
     Inspect,
     Inspections,
     InternalError,
+    InvalidArgument,
     Limits,
     ListInspections,
     LocalProtocolError,
@@ -246,7 +247,11 @@ class VisionServer:
 
         def work() -> tuple[InspectionOutcome, float]:
             image = _decode_input(
-                request.images, request.request_id, inspection.uses_depth, inspection.name
+                request.images,
+                request.request_id,
+                inspection.uses_depth,
+                inspection.name,
+                self.settings.max_image_pixels,
             )
             t0 = time.perf_counter()
             outcome = inspection.run(image, overlay=request.overlay)
@@ -276,6 +281,19 @@ class VisionServer:
         if self.on_result is not None:
             self.on_result(ResultRecord(result, request, compute_ms))
         return result
+
+    async def run_capture(self, request: Capture) -> Message:
+        """CAPTURE from a server camera."""
+        camera = self.catalog.camera(request.camera, request_id=request.request_id)
+        if camera.from_request:
+            raise InvalidArgument(
+                f"camera {camera.name!r} gets its images from the request: it cannot capture",
+                request_id=request.request_id,
+            )
+        raise CameraUnavailable(
+            f"camera {camera.name!r} ({camera.source}) cannot capture in this server build",
+            request_id=request.request_id,
+        )
 
     async def _in_pool(
         self, fn: Callable[[], _T], request_id: int, deadline_ms: float | None
@@ -308,7 +326,11 @@ class ResultRecord:
 
 
 def _decode_input(
-    images: tuple[ImagePayload, ...], request_id: int, uses_depth: bool, name: str
+    images: tuple[ImagePayload, ...],
+    request_id: int,
+    uses_depth: bool,
+    name: str,
+    max_pixels: int,
 ) -> InspectionInput:
     colors = [p for p in images if p.role is ImageRole.COLOR]
     depths = [p for p in images if p.role is ImageRole.DEPTH]
@@ -322,7 +344,7 @@ def _decode_input(
             f"inspection {name!r} takes no depth image, the request has {len(depths)}",
             request_id=request_id,
         )
-    color = array_from_payload(colors[0], request_id=request_id)
+    color = array_from_payload(colors[0], request_id=request_id, max_pixels=max_pixels)
     if color.dtype != "uint8":
         raise BadImage(
             f"the colour image must be 8-bit (gray8, bgr8, 8-bit PNG/JPEG), got {color.dtype}",
@@ -330,7 +352,7 @@ def _decode_input(
         )
     depth = []
     for index, payload in enumerate(depths):
-        frame = array_from_payload(payload, request_id=request_id)
+        frame = array_from_payload(payload, request_id=request_id, max_pixels=max_pixels)
         if frame.dtype != "uint16" or frame.ndim != 2:
             raise BadImage(
                 f"depth image {index} must be uint16 millimetres (depth16 or 16-bit PNG), "
@@ -523,9 +545,7 @@ class _ClientSession:
             if isinstance(request, Inspect):
                 response: Message = await self.server.run_inspection(request)
             else:
-                raise BadImage(
-                    "CAPTURE is not supported by this server build", request_id=request.request_id
-                )
+                response = await self.server.run_capture(request)
         except CellvisionError as exc:
             response = Error.from_exception(exc, request_id=request.request_id)
         except Exception as exc:  # a bug in an inspection must not take the server down

@@ -1,0 +1,652 @@
+"""The conformance checks. Each is tagged with the SPEC.md section it verifies.
+
+A check passes by returning, fails by raising :class:`CheckFailed` (or any other exception,
+reported as an error), and is skipped by raising :class:`Skip` (the server offers nothing the
+check can use, e.g. no inspection that takes images in the request).
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import time
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..constants import HEADER, MAGIC, ImageEncoding, ImageRole, MessageType
+from ..errors import ErrorCode
+from ..frames import Frame
+from ..images import ImagePayload, payload_from_array
+from ..messages import Close, Hello, Inspect, ListInspections, Ping
+from .peer import CLOSED, CheckFailed, Peer, Target
+
+E = ErrorCode
+T = MessageType
+
+
+class Skip(Exception):  # noqa: N818 - it is an outcome, not an error
+    """The server offers nothing this check can exercise."""
+
+
+@dataclass(frozen=True)
+class Context:
+    """What the checks learn from one handshake: the server's limits and inspections."""
+
+    target: Target
+    limits: dict[str, int]
+    inspections: tuple[dict[str, Any], ...]
+    cameras: tuple[dict[str, Any], ...]
+
+    def request_inspection(self, *, depth: bool | None = None) -> dict[str, Any]:
+        """An inspection whose images arrive in the request (optionally: that takes depth)."""
+        for item in self.inspections:
+            if item.get("camera_source") == "request" and (
+                depth is None or bool(item.get("depth")) == depth
+            ):
+                return item
+        want = "" if depth is None else (" with depth" if depth else " without depth")
+        raise Skip(f"the server offers no inspection on a request camera{want}")
+
+    def peer(self) -> Peer:
+        return Peer(self.target)
+
+    def open(self) -> Peer:
+        peer = Peer(self.target)
+        peer.handshake()
+        return peer
+
+
+CheckFn = Callable[[Context], None]
+
+
+@dataclass(frozen=True)
+class Check:
+    name: str
+    section: str
+    description: str
+    run: CheckFn
+
+
+CHECKS: list[Check] = []
+
+
+def check(name: str, section: str, description: str) -> Callable[[CheckFn], CheckFn]:
+    def register(fn: CheckFn) -> CheckFn:
+        CHECKS.append(Check(name, section, description, fn))
+        return fn
+
+    return register
+
+
+def _frame(
+    mtype: int,
+    request_id: int,
+    metadata: dict[str, Any] | None = None,
+    blobs: tuple[bytes, ...] = (),
+    version: tuple[int, int] = (1, 0),
+) -> Frame:
+    return Frame(mtype, request_id, metadata or {}, blobs, version)
+
+
+def _raw_frame(
+    mtype: int,
+    request_id: int,
+    meta: bytes,
+    blobs: tuple[bytes, ...] = (),
+    *,
+    version: tuple[int, int] = (1, 0),
+    body_length: int | None = None,
+) -> bytes:
+    table = b"".join(struct.pack("<I", len(b)) for b in blobs)
+    body = meta + table + b"".join(blobs)
+    length = len(body) if body_length is None else body_length
+    header = HEADER.pack(
+        MAGIC, version[0], version[1], mtype, 0, len(blobs), request_id, len(meta), length
+    )
+    return header + body
+
+
+def _test_image(width: int = 320, height: int = 240, *, color: bool = False) -> np.ndarray:
+    rng = np.random.default_rng(7)
+    shape = (height, width, 3) if color else (height, width)
+    return rng.integers(0, 256, size=shape, dtype=np.uint8)
+
+
+def _still_alive(peer: Peer, request_id: int = 900) -> None:
+    peer.send(Ping(request_id, "alive?"))
+    pong = peer.expect(T.PONG, request_id=request_id)
+    if pong.metadata.get("data") != "alive?":
+        raise CheckFailed("the connection answered PING but did not echo its data")
+
+
+def _result_or_errors(peer: Peer, request_id: int, allowed: set[ErrorCode]) -> Frame:
+    frame = peer.recv_frame()
+    if frame is CLOSED:
+        raise CheckFailed("the server closed the connection instead of answering")
+    assert isinstance(frame, Frame)
+    if frame.request_id != request_id:
+        raise CheckFailed(f"answer for id {frame.request_id}, expected {request_id}")
+    if frame.type == T.RESULT:
+        if frame.metadata.get("verdict") not in ("pass", "fail"):
+            raise CheckFailed(f"RESULT.verdict is {frame.metadata.get('verdict')!r}")
+        return frame
+    if frame.type == T.ERROR and frame.metadata.get("code") in {int(c) for c in allowed}:
+        if frame.metadata.get("fatal"):
+            raise CheckFailed(f"error {frame.metadata.get('name')} must not be fatal here")
+        return frame
+    raise CheckFailed(f"expected RESULT, got type 0x{frame.type:04x} {frame.metadata}")
+
+
+# ----------------------------------------------------------------------------- handshake
+
+
+@check("handshake", "§5.1", "HELLO is answered by WELCOME with the same request id")
+def _handshake(ctx: Context) -> None:
+    with ctx.peer() as peer:
+        welcome = peer.handshake(request_id=77)
+        meta = welcome.metadata
+        if meta.get("version") != [1, 0]:
+            raise CheckFailed(f"WELCOME.version is {meta.get('version')!r}, expected [1, 0]")
+        server = meta.get("server")
+        if not isinstance(server, dict) or not isinstance(server.get("name"), str):
+            raise CheckFailed("WELCOME.server must be an object with a string name")
+
+
+@check(
+    "welcome_limits",
+    "§5.2",
+    "WELCOME states max_frame_bytes, max_image_pixels, max_in_flight as positive integers",
+)
+def _welcome_limits(ctx: Context) -> None:
+    for key in ("max_frame_bytes", "max_image_pixels", "max_in_flight"):
+        value = ctx.limits.get(key)
+        if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+            raise CheckFailed(f"WELCOME.limits.{key} is {value!r}")
+
+
+@check("welcome_inspections", "§5.2", "WELCOME lists inspections with name, type, camera")
+def _welcome_inspections(ctx: Context) -> None:
+    for i, item in enumerate(ctx.inspections):
+        for key in ("name", "type", "camera"):
+            if not isinstance(item.get(key), str):
+                raise CheckFailed(f"WELCOME.inspections[{i}].{key} is {item.get(key)!r}")
+
+
+@check("version_minor_negotiation", "§5.3", "a newer minor is answered with the server's minor")
+def _minor(ctx: Context) -> None:
+    with ctx.peer() as peer:
+        peer.send(Hello(5, ((1, 200),), "conformance", ctx.target.auth_token), version=(1, 200))
+        welcome = peer.expect(T.WELCOME, request_id=5)
+        version = welcome.metadata.get("version")
+        if not (isinstance(version, list) and version[0] == 1 and version[1] <= 200):
+            raise CheckFailed(f"negotiated version {version!r} for an offer of 1.200")
+
+
+@check("version_highest_common_major", "§5.3", "of several majors offered, the common one wins")
+def _majors(ctx: Context) -> None:
+    with ctx.peer() as peer:
+        peer.send(Hello(6, ((9, 0), (1, 0)), "conformance", ctx.target.auth_token))
+        welcome = peer.expect(T.WELCOME, request_id=6)
+        if welcome.metadata.get("version", [None])[0] != 1:
+            raise CheckFailed(f"negotiated {welcome.metadata.get('version')!r}, expected 1.x")
+
+
+@check("unsupported_version", "§5.3", "no common major: ERROR UNSUPPORTED_VERSION, then close")
+def _unsupported(ctx: Context) -> None:
+    with ctx.peer() as peer:
+        peer.send(Hello(3, ((99, 0),), "conformance", ctx.target.auth_token), version=(99, 0))
+        peer.expect_error(E.UNSUPPORTED_VERSION, request_id=3, fatal=True)
+        peer.expect_closed()
+
+
+@check("request_before_hello", "§5.4", "a request before HELLO: NOT_AUTHENTICATED, then close")
+def _before_hello(ctx: Context) -> None:
+    with ctx.peer() as peer:
+        peer.send(Ping(4))
+        peer.expect_error(E.NOT_AUTHENTICATED, fatal=True)
+        peer.expect_closed()
+
+
+@check("hello_twice", "§5.7", "a second HELLO is UNEXPECTED_MESSAGE; the connection survives")
+def _hello_twice(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send(Hello(8, ((1, 0),), "again", ctx.target.auth_token))
+        peer.expect_error(E.UNEXPECTED_MESSAGE, request_id=8, fatal=False)
+        _still_alive(peer)
+
+
+@check(
+    "wrong_major_after_handshake",
+    "§5.3",
+    "a frame of another major after WELCOME: UNSUPPORTED_VERSION, then close",
+)
+def _wrong_major(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send(Ping(9), version=(2, 0))
+        peer.expect_error(E.UNSUPPORTED_VERSION, fatal=True)
+        peer.expect_closed()
+
+
+# ----------------------------------------------------------------------------- keepalive, list
+
+
+@check("ping_pong", "§5.5", "PING is answered by PONG with the same id and data")
+def _ping(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send(Ping(10, "hello, cell"))
+        pong = peer.expect(T.PONG, request_id=10)
+        if pong.metadata.get("data") != "hello, cell":
+            raise CheckFailed(f"PONG.data is {pong.metadata.get('data')!r}")
+
+
+@check("max_request_id", "§6.1", "request id 0xFFFFFFFF is echoed exactly")
+def _max_id(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send(Ping(0xFFFFFFFF))
+        peer.expect(T.PONG, request_id=0xFFFFFFFF)
+
+
+@check("list_inspections", "§6.2", "LIST_INSPECTIONS is answered with the WELCOME's names")
+def _list(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send(ListInspections(11))
+        answer = peer.expect(T.INSPECTIONS, request_id=11)
+        names = {i.get("name") for i in answer.metadata.get("inspections", [])}
+        if names != {i.get("name") for i in ctx.inspections}:
+            raise CheckFailed(f"INSPECTIONS lists {sorted(map(str, names))}")
+
+
+@check("unknown_fields_ignored", "§8", "unknown metadata fields are ignored")
+def _unknown_fields(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send_frame(_frame(T.PING, 12, {"data": "x", "future_field": {"a": [1, 2]}}))
+        peer.expect(T.PONG, request_id=12)
+
+
+@check("unknown_flags_ignored", "§3.5", "unknown header flags are ignored")
+def _unknown_flags(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send_frame(Frame(T.PING, 13, {}, (), (1, 0), flags=0x8000))
+        peer.expect(T.PONG, request_id=13)
+
+
+# ----------------------------------------------------------------------------- requests
+
+
+@check("inspect_gray8", "§4.2", "INSPECT with a gray8 image gets a RESULT")
+def _gray8(ctx: Context) -> None:
+    name = ctx.request_inspection(depth=False)["name"]
+    with ctx.open() as peer:
+        peer.send(Inspect(20, name, (payload_from_array(_test_image()),)))
+        _result_or_errors(peer, 20, set())
+
+
+@check("inspect_bgr8", "§4.2", "INSPECT with a bgr8 image gets a RESULT")
+def _bgr8(ctx: Context) -> None:
+    name = ctx.request_inspection(depth=False)["name"]
+    with ctx.open() as peer:
+        peer.send(Inspect(21, name, (payload_from_array(_test_image(color=True)),)))
+        _result_or_errors(peer, 21, set())
+
+
+@check("inspect_png", "§4.2", "INSPECT with a PNG image gets a RESULT")
+def _png(ctx: Context) -> None:
+    name = ctx.request_inspection(depth=False)["name"]
+    payload = payload_from_array(_test_image(color=True), encoding=ImageEncoding.PNG)
+    with ctx.open() as peer:
+        peer.send(Inspect(22, name, (payload,)))
+        _result_or_errors(peer, 22, set())
+
+
+@check("inspect_jpeg", "§4.2", "INSPECT with a JPEG image (size not stated) gets a RESULT")
+def _jpeg(ctx: Context) -> None:
+    name = ctx.request_inspection(depth=False)["name"]
+    jpeg = payload_from_array(_test_image(), encoding=ImageEncoding.JPEG)
+    with ctx.open() as peer:
+        peer.send(Inspect(23, name, (ImagePayload(ImageEncoding.JPEG, 0, 0, jpeg.data),)))
+        _result_or_errors(peer, 23, set())
+
+
+@check(
+    "inspect_depth16",
+    "§4.2",
+    "a depth16 image is parsed: RESULT where the inspection takes "
+    "depth, else a non-fatal BAD_IMAGE naming it",
+)
+def _depth16(ctx: Context) -> None:
+    try:
+        item = ctx.request_inspection(depth=True)
+    except Skip:
+        item = ctx.request_inspection()
+    depth = np.full((240, 320), 1000, np.uint16)
+    images = (payload_from_array(_test_image()), payload_from_array(depth, role=ImageRole.DEPTH))
+    with ctx.open() as peer:
+        peer.send(Inspect(24, item["name"], images))
+        allowed = {E.INSPECTION_FAILED} if item.get("depth") else {E.BAD_IMAGE}
+        _result_or_errors(peer, 24, allowed)
+        _still_alive(peer)
+
+
+@check(
+    "bad_raw_length",
+    "§4.2",
+    "a raw image whose blob length does not match: BAD_IMAGE, the connection survives",
+)
+def _bad_raw(ctx: Context) -> None:
+    name = ctx.request_inspection()["name"]
+    meta = {
+        "inspection": name,
+        "images": [{"blob": 0, "encoding": "gray8", "width": 100, "height": 100, "role": "color"}],
+    }
+    with ctx.open() as peer:
+        peer.send_frame(_frame(T.INSPECT, 25, meta, (b"\x00" * 9999,)))
+        peer.expect_error(E.BAD_IMAGE, request_id=25, fatal=False)
+        _still_alive(peer)
+
+
+@check("corrupt_png", "§4.2", "a PNG blob that does not decode: BAD_IMAGE")
+def _corrupt_png(ctx: Context) -> None:
+    name = ctx.request_inspection()["name"]
+    meta = {
+        "inspection": name,
+        "images": [{"blob": 0, "encoding": "png", "width": 0, "height": 0, "role": "color"}],
+    }
+    blob = b"\x89PNG\r\n\x1a\n" + os.urandom(200)
+    with ctx.open() as peer:
+        peer.send_frame(_frame(T.INSPECT, 26, meta, (blob,)))
+        peer.expect_error(E.BAD_IMAGE, request_id=26, fatal=False)
+        _still_alive(peer)
+
+
+@check("image_too_large", "§4.3", "an image of more pixels than max_image_pixels: IMAGE_TOO_LARGE")
+def _too_many_pixels(ctx: Context) -> None:
+    name = ctx.request_inspection()["name"]
+    side = int(ctx.limits.get("max_image_pixels", 1 << 24) ** 0.5) + 2
+    meta = {
+        "inspection": name,
+        "images": [{"blob": 0, "encoding": "png", "width": side, "height": side, "role": "color"}],
+    }
+    with ctx.open() as peer:
+        peer.send_frame(_frame(T.INSPECT, 27, meta, (_tiny_png(),)))
+        peer.expect_error(E.IMAGE_TOO_LARGE, request_id=27, fatal=False)
+        _still_alive(peer)
+
+
+@check(
+    "png_bomb",
+    "§4.3",
+    "a small PNG that declares more pixels than max_image_pixels: "
+    "IMAGE_TOO_LARGE, not an out-of-memory",
+)
+def _png_bomb(ctx: Context) -> None:
+    name = ctx.request_inspection()["name"]
+    side = int(ctx.limits.get("max_image_pixels", 1 << 24) ** 0.5) + 2
+    meta = {
+        "inspection": name,
+        "images": [{"blob": 0, "encoding": "png", "width": 0, "height": 0, "role": "color"}],
+    }
+    with ctx.open() as peer:
+        peer.send_frame(_frame(T.INSPECT, 28, meta, (_tiny_png(side, side),)))
+        peer.expect_error(E.IMAGE_TOO_LARGE, request_id=28, fatal=False)
+        _still_alive(peer)
+
+
+@check("unknown_inspection", "§7", "INSPECT of an unknown name: UNKNOWN_INSPECTION, non-fatal")
+def _unknown_inspection(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send(
+            Inspect(
+                30,
+                "no-such-inspection-\u00e6\u00f8\u00e5",
+                (payload_from_array(_test_image(8, 8)),),
+            )
+        )
+        peer.expect_error(E.UNKNOWN_INSPECTION, request_id=30, fatal=False)
+        _still_alive(peer)
+
+
+@check("unknown_camera", "§6.4", "CAPTURE from an unknown camera: UNKNOWN_CAMERA, non-fatal")
+def _unknown_camera(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send_frame(_frame(T.CAPTURE, 31, {"camera": "no-such-camera", "count": 1}))
+        peer.expect_error(E.UNKNOWN_CAMERA, request_id=31, fatal=False)
+        _still_alive(peer)
+
+
+@check(
+    "bad_metadata_json",
+    "§3.2",
+    "metadata that is not JSON: BAD_METADATA with the id, the connection survives",
+)
+def _bad_json(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send_raw(_raw_frame(T.INSPECT, 32, b'{"inspection": '))
+        peer.expect_error(E.BAD_METADATA, request_id=32, fatal=False)
+        _still_alive(peer)
+
+
+@check("metadata_not_object", "§3.2", "metadata that is a JSON array: BAD_METADATA")
+def _not_object(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send_raw(_raw_frame(T.PING, 33, b"[1, 2, 3]"))
+        peer.expect_error(E.BAD_METADATA, request_id=33, fatal=False)
+        _still_alive(peer)
+
+
+@check("missing_field", "§6.3", "INSPECT without its inspection name: BAD_METADATA")
+def _missing_field(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send_frame(_frame(T.INSPECT, 34, {"deadline_ms": 100}))
+        peer.expect_error(E.BAD_METADATA, request_id=34, fatal=False)
+        _still_alive(peer)
+
+
+@check("bad_deadline", "§6.1", "a negative deadline_ms: BAD_METADATA")
+def _bad_deadline(ctx: Context) -> None:
+    name = ctx.request_inspection()["name"]
+    with ctx.open() as peer:
+        peer.send_frame(_frame(T.INSPECT, 35, {"inspection": name, "deadline_ms": -5}))
+        peer.expect_error(E.BAD_METADATA, request_id=35, fatal=False)
+        _still_alive(peer)
+
+
+@check(
+    "deadline",
+    "§6.1",
+    "a deadline too short to meet: DEADLINE_EXCEEDED (or a RESULT if "
+    "the server was that fast), never silence",
+)
+def _deadline(ctx: Context) -> None:
+    name = ctx.request_inspection(depth=False)["name"]
+    image = payload_from_array(_test_image(1024, 768))
+    with ctx.open() as peer:
+        peer.send(Inspect(36, name, (image,), deadline_ms=0.001))
+        _result_or_errors(peer, 36, {E.DEADLINE_EXCEEDED})
+        _still_alive(peer)
+
+
+@check(
+    "unknown_message_type",
+    "§8",
+    "an unknown message type: UNKNOWN_MESSAGE_TYPE with its id; the connection survives",
+)
+def _unknown_type(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send_frame(_frame(0x7A7A, 37, {"something": "new"}))
+        peer.expect_error(E.UNKNOWN_MESSAGE_TYPE, request_id=37, fatal=False)
+        _still_alive(peer)
+
+
+@check(
+    "unexpected_direction",
+    "§5.7",
+    "a server-to-client message sent by the client: UNEXPECTED_MESSAGE, non-fatal",
+)
+def _wrong_direction(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send_frame(_frame(T.PONG, 38))
+        peer.expect_error(E.UNEXPECTED_MESSAGE, request_id=38, fatal=False)
+        _still_alive(peer)
+
+
+@check(
+    "pipelining",
+    "§6.1",
+    "many requests sent back to back are all answered, matched by id (order free)",
+)
+def _pipelining(ctx: Context) -> None:
+    item = ctx.request_inspection(depth=False)
+    big = payload_from_array(_test_image(1024, 768))
+    with ctx.open() as peer:
+        batch = b"".join(
+            [Inspect(100, item["name"], (big,)).to_frame((1, 0)).serialize()]
+            + [Ping(101 + i, str(i)).to_frame((1, 0)).serialize() for i in range(8)]
+            + [ListInspections(110).to_frame((1, 0)).serialize()]
+        )
+        peer.send_raw(batch)
+        expected = {100: T.RESULT, 110: T.INSPECTIONS} | {101 + i: T.PONG for i in range(8)}
+        seen: list[int] = []
+        while len(seen) < len(expected):
+            frame = peer.recv_frame()
+            if frame is CLOSED:
+                raise CheckFailed(f"closed after {len(seen)} of {len(expected)} answers")
+            assert isinstance(frame, Frame)
+            want = expected.get(frame.request_id)
+            if want is None or frame.request_id in seen:
+                raise CheckFailed(f"unexpected answer id {frame.request_id}")
+            if frame.type != want and frame.type != T.ERROR:
+                raise CheckFailed(f"id {frame.request_id} answered by type 0x{frame.type:04x}")
+            if frame.type == T.ERROR and frame.metadata.get("code") != E.BUSY:
+                raise CheckFailed(f"id {frame.request_id}: error {frame.metadata}")
+            seen.append(frame.request_id)
+
+
+@check(
+    "duplicate_request_id",
+    "§6.1",
+    "a request id reused while in flight: DUPLICATE_REQUEST_ID, then close",
+)
+def _duplicate(ctx: Context) -> None:
+    item = ctx.request_inspection(depth=False)
+    small = payload_from_array(_test_image(16, 16))
+    # Both copies go out in one small write, so the server reads the second before it can
+    # have answered the first. If it still answered both, that was no duplicate: try again.
+    for attempt in range(3):
+        with ctx.open() as peer:
+            rid = 200 + attempt
+            frame = Inspect(rid, item["name"], (small,)).to_frame((1, 0)).serialize()
+            peer.send_raw(frame + frame)
+            results = 0
+            while results < 2:
+                got = peer.recv_frame()
+                if got is CLOSED:
+                    raise CheckFailed("closed without DUPLICATE_REQUEST_ID")
+                assert isinstance(got, Frame)
+                if got.type == T.ERROR and got.metadata.get("code") == E.DUPLICATE_REQUEST_ID:
+                    if got.metadata.get("fatal") is not True:
+                        raise CheckFailed("DUPLICATE_REQUEST_ID must be fatal")
+                    peer.expect_closed()
+                    return
+                results += 1
+    raise CheckFailed("the server answered both copies of a request id three times over")
+
+
+# ----------------------------------------------------------------------------- framing abuse
+
+
+@check(
+    "oversize_frame",
+    "§3.4",
+    "a header announcing more than max_frame_bytes: FRAME_TOO_LARGE at once, then close",
+)
+def _oversize(ctx: Context) -> None:
+    limit = ctx.limits.get("max_frame_bytes", 1 << 26)
+    with ctx.open() as peer:
+        body_length = min(limit + 1, 0xFFFFFFFF - 24)
+        peer.send_raw(HEADER.pack(MAGIC, 1, 0, T.INSPECT, 0, 0, 40, 0, body_length))
+        peer.expect_error(E.FRAME_TOO_LARGE, fatal=True)
+        peer.expect_closed()
+
+
+@check("garbage", "§3.1", "bytes without the magic: MALFORMED_FRAME, then close")
+def _garbage(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send_raw(b"GET / HTTP/1.1\r\nHost: cell\r\n\r\n")
+        peer.expect_error(E.MALFORMED_FRAME, fatal=True)
+        peer.expect_closed()
+
+
+@check(
+    "inconsistent_lengths", "§3.3", "blob lengths that do not add up: MALFORMED_FRAME, then close"
+)
+def _inconsistent(ctx: Context) -> None:
+    with ctx.open() as peer:
+        meta = b'{"data":"x"}'
+        frame = bytearray(_raw_frame(T.PING, 41, meta, (b"abcd",)))
+        # Blob table says 4 bytes; claim 5 instead: the sum no longer matches the body length.
+        offset = 24 + len(meta)
+        frame[offset : offset + 4] = struct.pack("<I", 5)
+        peer.send_raw(bytes(frame))
+        peer.expect_error(E.MALFORMED_FRAME, fatal=True)
+        peer.expect_closed()
+
+
+@check(
+    "truncated_then_disconnect",
+    "§3.4",
+    "half a frame then end of stream: the server closes the connection and keeps serving others",
+)
+def _truncated(ctx: Context) -> None:
+    with ctx.open() as peer:
+        data = Ping(42, "x" * 100).to_frame((1, 0)).serialize()
+        peer.send_raw(data[: len(data) // 2])
+        peer.shutdown_write()
+        peer.expect_closed()
+    with ctx.open() as other:
+        _still_alive(other)
+
+
+@check(
+    "graceful_close", "§5.6", "CLOSE after a request: the answer, then CLOSE, then end of stream"
+)
+def _graceful(ctx: Context) -> None:
+    with ctx.open() as peer:
+        peer.send_raw(
+            Ping(43).to_frame((1, 0)).serialize() + Close(0, "done").to_frame((1, 0)).serialize()
+        )
+        peer.expect(T.PONG, request_id=43)
+        peer.expect(T.CLOSE)
+        peer.expect_closed()
+
+
+@check(
+    "other_clients_undisturbed",
+    "§2",
+    "while one client sends garbage, another connection keeps getting answers",
+)
+def _isolation(ctx: Context) -> None:
+    with ctx.open() as good, ctx.open() as bad:
+        bad.send_raw(os.urandom(64))
+        for i in range(5):
+            _still_alive(good, 500 + i)
+            time.sleep(0.01)
+
+
+def _tiny_png(width: int = 1, height: int = 1) -> bytes:
+    """A valid PNG header declaring width x height, with a tiny (truncated) image stream."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(data))
+            + kind
+            + data
+            + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+        )
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    rows = zlib.compress(b"\x00" + b"\x80" * min(width, 64))
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", rows) + chunk(b"IEND", b"")
