@@ -25,7 +25,6 @@ import numpy.typing as npt
 
 from protocol import (
     NEED_DATA,
-    PROTOCOL_VERSION,
     SUPPORTED_VERSIONS,
     Capture,
     CellvisionError,
@@ -470,14 +469,3 @@ async def wait_for_server(
             if time.monotonic() > deadline:
                 raise
             await asyncio.sleep(0.05)
-
-
-__all__ = [
-    "ImageLike",
-    "ReconnectPolicy",
-    "SyncVisionClient",
-    "VisionClient",
-    "overlay_image",
-    "wait_for_server",
-    "PROTOCOL_VERSION",
-]
