@@ -1,4 +1,4 @@
-"""Shared fixtures: paths to the repository and to ../shared/data (present in CI, maybe not locally)."""
+"""Shared fixtures: the repository and ../shared/data (present in CI, maybe not locally)."""
 
 from __future__ import annotations
 
@@ -20,5 +20,5 @@ def qr_real_dir() -> Path:
     """The real QR photographs (../shared/data/qr_real); the test is skipped where absent."""
     path = SHARED_DATA / "qr_real"
     if not (path / "manifest.json").is_file():
-        pytest.skip(f"real QR photographs not found at {path} (shared/ sits beside the clone in CI)")
+        pytest.skip(f"real QR photographs not found at {path} (shared/ sits beside the clone)")
     return path
