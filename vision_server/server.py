@@ -69,6 +69,8 @@ log = logging.getLogger("vision_server")
 _T = TypeVar("_T")
 
 READ_CHUNK = 256 * 1024
+REFUSE_HELLO_TIMEOUT_S = 2.0
+"""How long a refused connection may take to send its HELLO before it is closed anyway."""
 
 
 @dataclass(frozen=True)
@@ -210,13 +212,8 @@ class VisionServer:
 
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if len(self._connections) >= self.settings.max_connections or self._stopping.is_set():
-            conn = Connection(Role.SERVER, limits=self.settings.limits())
             reason = "too many connections" if not self._stopping.is_set() else "stopping"
-            exc = Busy(f"server refuses the connection: {reason}")
-            with contextlib.suppress(Exception):
-                writer.write(_late_error(conn, exc))
-                await writer.drain()
-            writer.close()
+            await self._refuse(reader, writer, reason)
             return
         session = _ClientSession(self, reader, writer)
         self._connections.add(session)
@@ -224,6 +221,37 @@ class VisionServer:
             await session.run()
         finally:
             self._connections.discard(session)
+
+    async def _refuse(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, reason: str
+    ) -> None:
+        """Answer the HELLO with BUSY, then close.
+
+        The BUSY carries the HELLO's request id, so that the client's handshake fails with it,
+        and ``fatal``, because the connection is closed after it (SPEC §7: the flag is
+        authoritative). Reading the HELLO first also avoids closing with unread bytes, which
+        would reset the connection before the client could read the BUSY.
+        """
+        conn = Connection(Role.SERVER, limits=self.settings.limits())
+        request_id = 0
+        try:
+            with contextlib.suppress(CellvisionError, TimeoutError):
+                async with asyncio.timeout(REFUSE_HELLO_TIMEOUT_S):
+                    event: object = NEED_DATA
+                    while event is NEED_DATA:
+                        conn.receive_data(await reader.read(READ_CHUNK))
+                        event = conn.next_event()
+                    if isinstance(event, Hello):
+                        request_id = event.request_id
+            exc = Busy(
+                f"server refuses the connection: {reason}", request_id=request_id, fatal=True
+            )
+            writer.write(_late_error(conn, exc))
+            await writer.drain()
+        except (ConnectionError, OSError) as exc:
+            log.info("refused connection lost: %s", exc)
+        finally:
+            writer.close()
 
     # ------------------------------------------------------------------ request work
 
