@@ -582,7 +582,22 @@ class _ClientSession:
                 InternalError(f"{type(exc).__name__}: {exc}", request_id=request.request_id)
             )
         if request.request_id in self.conn.pending:
-            self._write(response)
+            try:
+                self._write(response)
+            except (TypeError, ValueError) as exc:
+                # Data JSON cannot carry (numpy scalars, NaN): fail this request, not the
+                # connection (the state machine is unchanged when serializing fails).
+                log.error(
+                    "%s: answer to request %d not sendable: %s", self.peer, request.request_id, exc
+                )
+                self._write(
+                    Error.from_exception(
+                        InternalError(
+                            f"the server could not encode its answer: {exc}",
+                            request_id=request.request_id,
+                        )
+                    )
+                )
             await self._drain()
 
     async def _shutdown_session(self) -> None:
