@@ -473,8 +473,9 @@ class _ClientSession:
                         self.writer.write(_late_error(self.conn, exc))
                         await self._drain()
                         return False
-                    if exc.request_id:
-                        self._write(Error.from_exception(exc))
+                    # Request id 0 (e.g. a request sent with id 0) gets a connection-level
+                    # ERROR: SPEC §6.1 and §7 want an answer even then.
+                    self._write(Error.from_exception(exc))
                     continue
                 if event is NEED_DATA:
                     break
