@@ -46,6 +46,7 @@ from protocol import (
     Result,
     Role,
     State,
+    UnsupportedVersion,
     Welcome,
     array_from_payload,
     payload_from_array,
@@ -215,7 +216,12 @@ class VisionClient:
                     except CellvisionError as exc:
                         log.warning("bad data from the server: %s", exc)
                         if exc.fatal:
-                            reason = ConnectionLost(f"protocol error from the server: {exc}")
+                            if isinstance(exc, UnsupportedVersion):
+                                # E.g. a WELCOME of a version we do not speak: connect() must
+                                # say so, not report a mere lost connection.
+                                reason = exc
+                            else:
+                                reason = ConnectionLost(f"protocol error from the server: {exc}")
                             return
                         # An answer that could not be decoded fails its request now.
                         future = self._pending.pop(exc.request_id, None)
