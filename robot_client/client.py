@@ -45,6 +45,7 @@ from protocol import (
     Pong,
     Result,
     Role,
+    ShuttingDown,
     State,
     UnsupportedVersion,
     Welcome,
@@ -234,8 +235,11 @@ class VisionClient:
                         return
                     assert isinstance(event, Message)
                     if isinstance(event, Close):
-                        reason = ConnectionLost(
-                            f"the server closed the connection: {event.reason or 'no reason'}"
+                        # SPEC §5.6: requests still in flight crossed the server's CLOSE and
+                        # were not read, so they fail as SHUTTING_DOWN (not done, safe to retry).
+                        reason = ShuttingDown(
+                            f"the server closed the connection ({event.reason or 'no reason'}) "
+                            "before reading this request"
                         )
                         return
                     self._deliver(event)
