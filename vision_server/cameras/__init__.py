@@ -1,0 +1,53 @@
+"""Cameras of the vision server: a name -> a source of frames.
+
+Sources (``source:`` in the configuration): ``request`` (images arrive with the request),
+``opencv`` (device, stream or video file through ``cv2.VideoCapture``, latest-frame semantics,
+automatic reconnect), ``folder`` (replay a directory), ``sim`` (the simulated cell). Any source
+may deliver a depth frame (uint16 mm) registered to its colour frame.
+
+Public API:
+
+- Settings (frozen, validated): :class:`Intrinsics`, :class:`RequestCameraSettings`,
+  :class:`OpenCVCameraSettings`, :class:`FolderCameraSettings`, :class:`SimCameraSettings`,
+  ``CameraSettings`` (their union), ``SOURCE_NAMES`` (source name -> settings class).
+- :class:`CameraFrame` (``color``, ``depth``, ``timestamp``, ``index``) and :class:`Camera`
+  (``name``, ``source``, ``has_depth``, ``intrinsics``, ``open()``,
+  ``grab(*, timeout_s, newer_than=None)``, ``grab_many(n, *, timeout_s)``, ``status()``,
+  ``close()``, ``descriptor()``).
+- :func:`make_camera` ``(name, settings, *, base_dir) -> Camera``.
+- The implementations: :class:`RequestCamera`, :class:`OpenCVCamera`, :class:`FolderCamera`,
+  :class:`SimCamera`.
+"""
+
+from .base import Camera, CameraFrame
+from .factory import make_camera
+from .folder import FolderCamera
+from .opencv import OpenCVCamera
+from .request import RequestCamera
+from .settings import (
+    SOURCE_NAMES,
+    CameraSettings,
+    FolderCameraSettings,
+    Intrinsics,
+    OpenCVCameraSettings,
+    RequestCameraSettings,
+    SimCameraSettings,
+)
+from .sim import SimCamera
+
+__all__ = [
+    "SOURCE_NAMES",
+    "Camera",
+    "CameraFrame",
+    "CameraSettings",
+    "FolderCamera",
+    "FolderCameraSettings",
+    "Intrinsics",
+    "OpenCVCamera",
+    "OpenCVCameraSettings",
+    "RequestCamera",
+    "RequestCameraSettings",
+    "SimCamera",
+    "SimCameraSettings",
+    "make_camera",
+]

@@ -1,0 +1,41 @@
+"""``make_camera``: build the camera object for a name and its settings."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .base import Camera
+from .folder import FolderCamera
+from .opencv import OpenCVCamera
+from .request import RequestCamera
+from .settings import (
+    CameraSettings,
+    FolderCameraSettings,
+    OpenCVCameraSettings,
+    RequestCameraSettings,
+    SimCameraSettings,
+)
+from .sim import SimCamera
+
+__all__ = ["make_camera"]
+
+
+def make_camera(name: str, settings: CameraSettings, *, base_dir: Path) -> Camera:
+    """The camera ``name`` for ``settings``, not yet opened (call ``open()``).
+
+    Relative paths in the settings (a video file, a folder, a scene, a world-state file)
+    resolve against ``base_dir``, the configuration file's directory. Raises ``ValueError`` for
+    a configuration error found without touching hardware (an unreadable scene, a camera the
+    scene lacks); an absent device or folder is reported later, by ``grab``.
+    """
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"camera name must be a non-empty string, got {name!r}")
+    if isinstance(settings, RequestCameraSettings):
+        return RequestCamera(name, settings)
+    if isinstance(settings, OpenCVCameraSettings):
+        return OpenCVCamera(name, settings, base_dir=base_dir)
+    if isinstance(settings, FolderCameraSettings):
+        return FolderCamera(name, settings, base_dir=base_dir)
+    if isinstance(settings, SimCameraSettings):
+        return SimCamera(name, settings, base_dir=base_dir)
+    raise TypeError(f"camera {name!r}: unknown settings type {type(settings).__name__}")

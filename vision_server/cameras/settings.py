@@ -1,0 +1,314 @@
+"""Camera settings: one frozen dataclass per source kind, validated on construction.
+
+The configuration loader turns a camera's YAML mapping into one of these; a ``ValueError`` names
+the bad field (the loader adds the file, line and key path). Lengths in pixels, durations in
+seconds. Relative paths are resolved later by :func:`~vision_server.cameras.make_camera` against
+the configuration file's directory.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path, PurePath
+from typing import Any, Literal
+
+from geometry import CameraIntrinsics
+
+__all__ = [
+    "BACKENDS",
+    "SOURCE_NAMES",
+    "CameraSettings",
+    "FolderCameraSettings",
+    "Intrinsics",
+    "OpenCVCameraSettings",
+    "RequestCameraSettings",
+    "SimCameraSettings",
+]
+
+BACKENDS = ("any", "v4l2", "ffmpeg", "gstreamer")
+"""Values of ``OpenCVCameraSettings.backend`` (``None`` means ``"any"``)."""
+
+# OpenCV accepts 4, 5, 8, 12 or 14 distortion coefficients (k1, k2, p1, p2[, k3[, k4..k6
+# [, s1..s4[, tx, ty]]]]).
+_DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _positive_int(name: str, value: object) -> int:
+    if not _is_int(value) or value <= 0:  # type: ignore[operator]
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)  # type: ignore[call-overload, no-any-return]
+
+
+def _finite(name: str, value: object, *, positive: bool = False) -> float:
+    if not _is_number(value) or not math.isfinite(value):  # type: ignore[arg-type]
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    number = float(value)  # type: ignore[arg-type]
+    if positive and number <= 0:
+        raise ValueError(f"{name} must be > 0, got {value!r}")
+    return number
+
+
+def _bool(name: str, value: object) -> None:
+    if not isinstance(value, bool):
+        raise ValueError(f"{name} must be true or false, got {value!r}")
+
+
+def _path(name: str, value: object) -> Path:
+    if isinstance(value, str):
+        if not value:
+            raise ValueError(f"{name} must be a non-empty path")
+        return Path(value)
+    if isinstance(value, PurePath):
+        return Path(value)
+    raise ValueError(f"{name} must be a path, got {value!r}")
+
+
+def _relative_pattern(name: str, value: object) -> str:
+    """A glob pattern that stays inside the directory it is applied to."""
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"{name} must be a non-empty glob pattern, got {value!r}")
+    pattern = PurePath(value)
+    if pattern.is_absolute() or value.startswith(("/", "\\")):
+        raise ValueError(f"{name} must be relative to the folder, got {value!r}")
+    if ".." in pattern.parts:
+        raise ValueError(f"{name} must not contain '..', got {value!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of a camera, in pixels, for the image size ``width`` x ``height``.
+
+    ``distortion`` is OpenCV's coefficient vector ``(k1, k2, p1, p2[, k3[, ...]])`` with 4, 5,
+    8, 12 or 14 entries; 4 entries are padded to 5 with ``k3 = 0``.
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "width", _positive_int("width", self.width))
+        object.__setattr__(self, "height", _positive_int("height", self.height))
+        for name in ("fx", "fy"):
+            object.__setattr__(self, name, _finite(name, getattr(self, name), positive=True))
+        for name in ("cx", "cy"):
+            object.__setattr__(self, name, _finite(name, getattr(self, name)))
+        distortion: object = self.distortion
+        if isinstance(distortion, str | bytes) or not isinstance(distortion, tuple | list):
+            raise ValueError(f"distortion must be a list of numbers, got {self.distortion!r}")
+        coeffs = tuple(_finite(f"distortion[{i}]", value) for i, value in enumerate(distortion))
+        if len(coeffs) not in _DISTORTION_LENGTHS:
+            raise ValueError(
+                f"distortion must have 4, 5, 8, 12 or 14 coefficients, got {len(coeffs)}"
+            )
+        if len(coeffs) == 4:
+            coeffs = (*coeffs, 0.0)
+        object.__setattr__(self, "distortion", coeffs)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form (as sent in WELCOME and with captured frames)."""
+        return {
+            "width": self.width,
+            "height": self.height,
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+            "distortion": list(self.distortion),
+        }
+
+    def to_geometry(self) -> CameraIntrinsics:
+        """The same camera as :class:`geometry.CameraIntrinsics` (5 coefficients).
+
+        Raises ``ValueError`` when a coefficient beyond ``k3`` is non-zero (the geometry
+        package implements the 5-coefficient model only).
+        """
+        extra = self.distortion[5:]
+        if any(value != 0.0 for value in extra):
+            raise ValueError(
+                "distortion has non-zero coefficients beyond k3, which geometry.CameraIntrinsics "
+                "does not model"
+            )
+        k1, k2, p1, p2, k3 = self.distortion[:5]
+        return CameraIntrinsics(
+            self.width, self.height, self.fx, self.fy, self.cx, self.cy, (k1, k2, p1, p2, k3)
+        )
+
+    @classmethod
+    def from_geometry(cls, camera: CameraIntrinsics) -> Intrinsics:
+        return cls(
+            camera.width,
+            camera.height,
+            camera.fx,
+            camera.fy,
+            camera.cx,
+            camera.cy,
+            tuple(camera.dist),
+        )
+
+
+def _intrinsics(value: object) -> None:
+    if value is not None and not isinstance(value, Intrinsics):
+        raise ValueError(f"intrinsics must be an Intrinsics or None, got {value!r}")
+
+
+@dataclass(frozen=True)
+class RequestCameraSettings:
+    """A camera whose images arrive with each request (the camera on the robot's tool).
+
+    ``depth``: requests may carry a registered depth frame (uint16 mm).
+    """
+
+    intrinsics: Intrinsics | None = None
+    depth: bool = False
+
+    def __post_init__(self) -> None:
+        _intrinsics(self.intrinsics)
+        _bool("depth", self.depth)
+
+
+@dataclass(frozen=True)
+class OpenCVCameraSettings:
+    """A source read through ``cv2.VideoCapture``.
+
+    ``device``: a device index (``0``), a device path (``/dev/video0``), a stream URL
+    (``rtsp://...``, ``http://...``), a GStreamer pipeline (with ``backend: gstreamer``) or a
+    video file (relative paths are relative to the configuration file).
+
+    ``width``/``height``/``fps``/``fourcc`` are asked of the device; if the frames that come
+    back have another size they are resized to the requested one (one of width/height alone
+    keeps the aspect ratio). For a video file ``fps`` overrides the playback rate.
+
+    ``reconnect_interval_s``: pause between attempts to (re)open a source that is down.
+    ``read_timeout_s``: open/read timeout given to the backend for streams, and the age beyond
+    which the newest frame of a live source counts as stalled.
+    ``loop_file``: a video file starts again at its end (else the camera ends there).
+    """
+
+    device: int | str
+    width: int | None = None
+    height: int | None = None
+    fps: float | None = None
+    backend: str | None = None
+    reconnect_interval_s: float = 1.0
+    read_timeout_s: float = 2.0
+    fourcc: str | None = None
+    intrinsics: Intrinsics | None = None
+    loop_file: bool = False
+
+    def __post_init__(self) -> None:
+        if _is_int(self.device):
+            if self.device < 0:  # type: ignore[operator]
+                raise ValueError(f"device index must be >= 0, got {self.device!r}")
+        elif isinstance(self.device, str):
+            if not self.device.strip():
+                raise ValueError("device must be a non-empty string or an index")
+        else:
+            raise ValueError(f"device must be an index or a string, got {self.device!r}")
+        for name in ("width", "height"):
+            if getattr(self, name) is not None:
+                _positive_int(name, getattr(self, name))
+        if self.fps is not None:
+            object.__setattr__(self, "fps", _finite("fps", self.fps, positive=True))
+        if self.backend is not None and self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {list(BACKENDS)}, got {self.backend!r}")
+        for name in ("reconnect_interval_s", "read_timeout_s"):
+            object.__setattr__(self, name, _finite(name, getattr(self, name), positive=True))
+        if self.fourcc is not None and (
+            not isinstance(self.fourcc, str) or len(self.fourcc) != 4 or not self.fourcc.isascii()
+        ):
+            raise ValueError(f"fourcc must be 4 ASCII characters, got {self.fourcc!r}")
+        _intrinsics(self.intrinsics)
+        _bool("loop_file", self.loop_file)
+        if self.intrinsics is not None:
+            for name in ("width", "height"):
+                wanted = getattr(self, name)
+                if wanted is not None and wanted != getattr(self.intrinsics, name):
+                    raise ValueError(
+                        f"{name} is {wanted} but intrinsics.{name} is "
+                        f"{getattr(self.intrinsics, name)}: intrinsics must match the frame size"
+                    )
+
+
+@dataclass(frozen=True)
+class FolderCameraSettings:
+    """Images from a directory, for replay.
+
+    Files matching ``glob`` (relative to ``path``; ``**`` recurses) are taken in natural sort
+    order (``img2`` before ``img10``). ``mode``: ``cycle`` starts again after the last image,
+    ``once`` stops there. ``depth_glob``: depth PNGs (uint16 mm) paired with the colour images
+    by file stem when every colour image has a depth file of the same stem, else by sorted
+    order. ``color``: ``gray`` or ``bgr`` converts on reading, ``unchanged`` keeps gray as gray
+    and colour as BGR (an alpha channel is dropped).
+    """
+
+    path: Path
+    glob: str = "*.png"
+    mode: Literal["cycle", "once"] = "cycle"
+    depth_glob: str | None = None
+    color: Literal["gray", "bgr", "unchanged"] = "unchanged"
+    intrinsics: Intrinsics | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "path", _path("path", self.path))
+        _relative_pattern("glob", self.glob)
+        if self.mode not in ("cycle", "once"):
+            raise ValueError(f"mode must be 'cycle' or 'once', got {self.mode!r}")
+        if self.depth_glob is not None:
+            _relative_pattern("depth_glob", self.depth_glob)
+        if self.color not in ("gray", "bgr", "unchanged"):
+            raise ValueError(f"color must be 'gray', 'bgr' or 'unchanged', got {self.color!r}")
+        _intrinsics(self.intrinsics)
+
+
+@dataclass(frozen=True)
+class SimCameraSettings:
+    """A camera of the simulated cell.
+
+    ``scene``: the scene YAML; ``camera``: the camera's name in it; ``state_file``: the
+    world-state file shared with the process that moves the robot (see simulation/README.md);
+    ``seed``: the simulation seed; ``intrinsics``: default the scene camera's own.
+    """
+
+    scene: Path
+    camera: str
+    state_file: Path | None = None
+    seed: int = 0
+    intrinsics: Intrinsics | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "scene", _path("scene", self.scene))
+        if not isinstance(self.camera, str) or not self.camera:
+            raise ValueError(f"camera must be a non-empty name, got {self.camera!r}")
+        if self.state_file is not None:
+            object.__setattr__(self, "state_file", _path("state_file", self.state_file))
+        if not _is_int(self.seed) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        _intrinsics(self.intrinsics)
+
+
+CameraSettings = (
+    RequestCameraSettings | OpenCVCameraSettings | FolderCameraSettings | SimCameraSettings
+)
+
+SOURCE_NAMES: dict[str, type[CameraSettings]] = {
+    "request": RequestCameraSettings,
+    "opencv": OpenCVCameraSettings,
+    "folder": FolderCameraSettings,
+    "sim": SimCameraSettings,
+}
+"""The ``source:`` value of a camera in the configuration -> its settings class."""
