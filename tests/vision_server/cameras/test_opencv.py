@@ -1,0 +1,275 @@
+"""The opencv source, for real: video files written by the test, read by cv2.VideoCapture."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol import CameraUnavailable
+from vision_server.cameras import CameraFrame, OpenCVCamera, OpenCVCameraSettings, make_camera
+from vision_server.cameras.base import color_image
+from vision_server.cameras.opencv import source_kind
+
+from .conftest import HEIGHT, WIDTH, frame_number, write_video
+
+GRAB_TIMEOUT_S = 5.0
+
+
+def wait_for(predicate: Callable[[], bool], *, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.02)
+    raise AssertionError("condition not met in time")
+
+
+@pytest.fixture
+def opened() -> Iterator[list[OpenCVCamera]]:
+    """Cameras appended here are closed after the test."""
+    cameras: list[OpenCVCamera] = []
+    yield cameras
+    for camera in cameras:
+        camera.close()
+
+
+def open_camera(
+    opened: list[OpenCVCamera], settings: OpenCVCameraSettings, base_dir: Path
+) -> OpenCVCamera:
+    camera = make_camera("cam", settings, base_dir=base_dir)
+    assert isinstance(camera, OpenCVCamera)
+    opened.append(camera)
+    camera.open()
+    return camera
+
+
+def test_frames_are_bgr_uint8_with_increasing_indices(
+    video: Path, opened: list[OpenCVCamera]
+) -> None:
+    camera = open_camera(opened, OpenCVCameraSettings(video.name), video.parent)
+    first = camera.grab(timeout_s=GRAB_TIMEOUT_S)
+    assert first.color.shape == (HEIGHT, WIDTH, 3)
+    assert first.color.dtype == np.uint8
+    assert first.depth is None
+    assert not first.color.flags.writeable
+    second = camera.grab(timeout_s=GRAB_TIMEOUT_S)
+    assert second.index > first.index
+    assert second.timestamp >= first.timestamp
+    assert camera.source == "opencv"
+    assert not camera.has_depth
+
+
+def test_a_grab_returns_a_frame_captured_after_the_call(
+    video: Path, opened: list[OpenCVCamera]
+) -> None:
+    camera = open_camera(opened, OpenCVCameraSettings(str(video)), video.parent)
+    first = camera.grab(timeout_s=GRAB_TIMEOUT_S)
+    time.sleep(0.5)  # 15 frames go by; none of them may be handed out later
+    called_at = time.time()
+    fresh = camera.grab(timeout_s=GRAB_TIMEOUT_S)
+    assert fresh.index > first.index
+    assert fresh.timestamp >= called_at
+    # Playback went on in real time while nobody grabbed: the content skipped ahead instead of
+    # continuing with the next buffered frame.
+    assert frame_number(fresh.color) > frame_number(first.color) + 1
+
+
+def test_newer_than_and_grab_many_give_distinct_frames(
+    video: Path, opened: list[OpenCVCamera]
+) -> None:
+    camera = open_camera(opened, OpenCVCameraSettings(str(video)), video.parent)
+    frame = camera.grab(timeout_s=GRAB_TIMEOUT_S)
+    newer = camera.grab(timeout_s=GRAB_TIMEOUT_S, newer_than=frame.index)
+    assert newer.index > frame.index
+    frames = camera.grab_many(5, timeout_s=GRAB_TIMEOUT_S)
+    indices = [f.index for f in frames]
+    assert indices == sorted(set(indices))
+    assert len(indices) == 5
+    numbers = [frame_number(f.color) for f in frames]
+    assert numbers == sorted(numbers)
+
+
+def test_missing_file_is_unavailable_at_once_then_reconnects_when_it_appears(
+    tmp_path: Path, opened: list[OpenCVCamera]
+) -> None:
+    settings = OpenCVCameraSettings("late.avi", reconnect_interval_s=0.1, loop_file=True)
+    camera = open_camera(opened, settings, tmp_path)
+    wait_for(lambda: camera.status()["state"] == "down")
+    started = time.monotonic()
+    with pytest.raises(CameraUnavailable) as excinfo:
+        camera.grab(timeout_s=30.0)
+    # Down means "raise now with the cause", not "wait out the timeout".
+    assert time.monotonic() - started < 10.0
+    message = excinfo.value.message
+    assert "'cam'" in message
+    assert str(tmp_path / "late.avi") in message
+    assert "does not exist" in message
+    assert excinfo.value.details["camera"] == "cam"
+    status = camera.status()
+    assert status["connected"] is False
+    assert "does not exist" in status["last_error"]
+
+    write_video(tmp_path / "late.avi", 30)
+    frame: CameraFrame | None = None
+    deadline = time.monotonic() + 15.0
+    while frame is None and time.monotonic() < deadline:
+        try:
+            frame = camera.grab(timeout_s=GRAB_TIMEOUT_S)
+        except CameraUnavailable:
+            time.sleep(0.05)
+    assert frame is not None, "the camera did not reconnect by itself"
+    assert frame.color.shape == (HEIGHT, WIDTH, 3)
+    status = camera.status()
+    assert status["connected"] is True
+    assert status["reconnects"] == 1
+    assert status["state"] == "up"
+
+
+def test_requested_resolution_is_delivered(video: Path, opened: list[OpenCVCamera]) -> None:
+    both = open_camera(opened, OpenCVCameraSettings(str(video), width=80, height=60), video.parent)
+    assert both.grab(timeout_s=GRAB_TIMEOUT_S).color.shape == (60, 80, 3)
+    status = both.status()
+    assert (status["width"], status["height"]) == (80, 60)
+    assert (status["native_width"], status["native_height"]) == (WIDTH, HEIGHT)
+    # One of the two keeps the aspect ratio.
+    width_only = open_camera(opened, OpenCVCameraSettings(str(video), width=320), video.parent)
+    assert width_only.grab(timeout_s=GRAB_TIMEOUT_S).color.shape == (240, 320, 3)
+
+
+def test_file_plays_at_fps_setting_and_ends_without_loop(
+    tmp_path: Path, opened: list[OpenCVCamera]
+) -> None:
+    path = write_video(tmp_path / "short.avi", 10, fps=10.0)
+    camera = open_camera(opened, OpenCVCameraSettings(str(path), fps=100.0), tmp_path)
+    camera.grab(timeout_s=GRAB_TIMEOUT_S)
+    assert camera.status()["playback_fps"] == 100.0
+    wait_for(lambda: camera.status()["state"] == "ended")
+    with pytest.raises(CameraUnavailable, match="ended after 10 frames"):
+        camera.grab(timeout_s=GRAB_TIMEOUT_S)
+    assert camera.status()["frames"] == 10
+
+
+def test_looping_file_gives_more_frames_than_it_holds(
+    tmp_path: Path, opened: list[OpenCVCamera]
+) -> None:
+    path = write_video(tmp_path / "loop.avi", 5, fps=60.0)
+    camera = open_camera(opened, OpenCVCameraSettings(str(path), loop_file=True), tmp_path)
+    frames = camera.grab_many(12, timeout_s=10.0)
+    assert len({f.index for f in frames}) == 12
+    assert camera.status()["reconnects"] == 0
+
+
+def test_corrupt_file_is_unavailable(tmp_path: Path, opened: list[OpenCVCamera]) -> None:
+    (tmp_path / "bad.avi").write_bytes(b"not a video at all" * 100)
+    camera = open_camera(opened, OpenCVCameraSettings("bad.avi"), tmp_path)
+    wait_for(lambda: camera.status()["state"] == "down")
+    with pytest.raises(CameraUnavailable, match="cannot open video file"):
+        camera.grab(timeout_s=GRAB_TIMEOUT_S)
+
+
+def test_concurrent_grabs_from_several_threads(video: Path, opened: list[OpenCVCamera]) -> None:
+    camera = open_camera(opened, OpenCVCameraSettings(str(video)), video.parent)
+    results: dict[int, list[int]] = {}
+    errors: list[BaseException] = []
+
+    def worker(k: int) -> None:
+        try:
+            results[k] = [camera.grab(timeout_s=GRAB_TIMEOUT_S).index for _ in range(4)]
+        except BaseException as exc:  # reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not errors
+    for indices in results.values():
+        assert indices == sorted(set(indices))
+
+
+def test_close_joins_the_reader_and_is_idempotent(video: Path) -> None:
+    camera = make_camera("cam", OpenCVCameraSettings(str(video)), base_dir=video.parent)
+    assert isinstance(camera, OpenCVCamera)
+    with pytest.raises(CameraUnavailable, match="not opened"):
+        camera.grab(timeout_s=0.1)
+    with camera:
+        camera.grab(timeout_s=GRAB_TIMEOUT_S)
+        thread = camera._thread
+    assert thread is not None
+    assert not thread.is_alive()
+    camera.close()
+    assert camera.status()["state"] == "closed"
+    with pytest.raises(CameraUnavailable, match="closed"):
+        camera.grab(timeout_s=0.1)
+
+
+def test_close_wakes_a_waiting_grab(tmp_path: Path) -> None:
+    path = write_video(tmp_path / "slow.avi", 3, fps=1.0)
+    camera = make_camera("cam", OpenCVCameraSettings(str(path)), base_dir=tmp_path)
+    camera.open()
+    camera.grab(timeout_s=GRAB_TIMEOUT_S)
+    caught: list[BaseException] = []
+
+    def waiter() -> None:
+        try:
+            camera.grab(timeout_s=30.0)  # the next frame is a second away
+        except CameraUnavailable as exc:
+            caught.append(exc)
+
+    thread = threading.Thread(target=waiter)
+    thread.start()
+    time.sleep(0.1)
+    camera.close()
+    thread.join(timeout=10.0)
+    assert not thread.is_alive()
+    assert len(caught) == 1
+    assert "closed" in caught[0].message
+
+
+@pytest.mark.parametrize(
+    ("device", "backend", "kind"),
+    [
+        (0, None, "index"),
+        ("/dev/video2", None, "device"),
+        ("rtsp://10.0.0.5/stream", None, "url"),
+        ("http://cam.local/mjpg", "ffmpeg", "url"),
+        ("v4l2src ! videoconvert ! appsink", "gstreamer", "pipeline"),
+        ("videos/clip.avi", None, "file"),
+    ],
+)
+def test_source_kind(device: int | str, backend: str | None, kind: str) -> None:
+    assert source_kind(device, backend) == kind
+
+
+def test_stream_credentials_never_appear_in_messages() -> None:
+    settings = OpenCVCameraSettings("rtsp://admin:hunter2@10.0.0.5:554/main")
+    camera = OpenCVCamera("door", settings)
+    described = camera.describe_source()
+    assert "hunter2" not in described
+    assert "admin:***@10.0.0.5:554" in described
+    assert "hunter2" not in str(camera.status())
+
+
+def test_relative_file_resolves_against_base_dir(tmp_path: Path) -> None:
+    camera = make_camera("cam", OpenCVCameraSettings("sub/clip.avi"), base_dir=tmp_path)
+    assert isinstance(camera, OpenCVCamera)
+    assert camera.target == str(tmp_path / "sub" / "clip.avi")
+
+
+def test_color_image_normalises_channels() -> None:
+    bgra = np.zeros((4, 5, 4), np.uint8)
+    bgra[..., 2] = 200
+    bgr = color_image(bgra)
+    assert bgr.shape == (4, 5, 3)
+    assert (bgr[..., 2] == 200).all()
+    assert color_image(np.zeros((4, 5, 1), np.uint8)).shape == (4, 5)
+    with pytest.raises(ValueError, match="8-bit"):
+        color_image(np.zeros((4, 5), np.uint16))
+    with pytest.raises(ValueError, match="shape"):
+        color_image(np.zeros((4, 5, 2), np.uint8))
