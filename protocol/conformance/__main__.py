@@ -13,10 +13,20 @@ from . import Target, run_checks
 
 
 def _address(text: str) -> tuple[str, int]:
-    host, _, port = text.rpartition(":")
-    if not _:
-        return text, DEFAULT_PORT
-    return host.strip("[]") or "127.0.0.1", int(port)
+    """``HOST:PORT``, ``HOST``, ``:PORT``, ``[IPv6]:PORT`` or a bare IPv6 address; ValueError
+    when the port is not a number in 1..65535."""
+    host, port_text = text, ""
+    if text.startswith("["):
+        host, bracket, rest = text[1:].partition("]")
+        if not bracket or (rest and not rest.startswith(":")):
+            raise ValueError(f"bad address {text!r}")
+        port_text = rest[1:]
+    elif text.count(":") == 1:  # more than one colon: a bare IPv6 address
+        host, port_text = text.split(":")
+    port = int(port_text) if port_text else DEFAULT_PORT
+    if not 0 < port < 65536:
+        raise ValueError(f"port {port} out of range")
+    return host or "127.0.0.1", port
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -32,7 +42,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--insecure", action="store_true", help="with --tls: skip verification")
     parser.add_argument("-k", dest="select", help="run only checks whose name contains this")
     args = parser.parse_args(argv)
-    host, port = _address(args.address)
+    try:
+        host, port = _address(args.address)
+    except ValueError as exc:
+        parser.error(f"bad server address {args.address!r}: {exc}")
     target = Target(host, port, args.timeout, args.auth_token, args.tls, not args.insecure)
     try:
         results = run_checks(target, select=args.select)
