@@ -1,0 +1,698 @@
+"""The result log: every answered inspection in a SQLite database, images of failures on disk.
+
+One row per inspection (time, inspection, camera, verdict, measures or features as JSON, duration,
+config hash, request id, peer, error) and, depending on the policy, the input image as a PNG file
+beside the database. The server calls :meth:`ResultLog.record` from its worker threads and sends
+the response only after it returned, so an acknowledged result is in the log.
+
+Choices, and why:
+
+- **Durability.** WAL journal with ``synchronous=NORMAL``: a commit appends to the WAL file with
+  ``write()`` and returns; the data is then in the operating system's page cache, which survives
+  the death of the process (SIGKILL, a crash, the OOM killer). Only a power loss or a kernel panic
+  can lose the last transactions before a checkpoint syncs them, and never corrupts the database.
+  ``FULL`` would add an ``fsync`` per inspection (milliseconds on a cell PC's SSD) to protect
+  against power loss alone; the cell's UPS is the better answer to that.
+- **Faults never stop inspections.** A full disk, an I/O error, a locked or read-only database:
+  :meth:`~ResultLog.record` logs the error (``vision_server.results``), counts it and returns
+  ``None``; the next call tries again, so the log recovers by itself when the fault clears. If
+  only the image cannot be written, the row is still recorded (without an image) and the error is
+  counted: the verdict matters more than the picture.
+- **Disk cap for images.** When the stored images exceed ``max_image_bytes``, the *oldest* images
+  are deleted and their rows keep everything but the image reference (set to NULL). The newest
+  failures are what an operator looks at; stopping at the cap would keep last month's instead.
+  An image larger than the whole cap is not stored at all.
+- **Paths.** Image file names are made here (``<YYYY-MM-DD>/<uuid>.png`` under the image
+  directory), never from a client's strings, and names read back from the database are checked
+  against that pattern before they are opened or deleted.
+- **One writer.** One process writes a log (the server); any number of read-only views
+  (:meth:`ResultLog.open_readonly`, used by ``vision-server results``) read it at the same time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import logging
+import math
+import os
+import re
+import sqlite3
+import threading
+import time
+import uuid
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal, get_args
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "ImagePolicy",
+    "LogStatus",
+    "ResultEntry",
+    "ResultLog",
+    "ResultLogError",
+    "StoredResult",
+]
+
+logger = logging.getLogger("vision_server.results")
+
+ImagePolicy = Literal["none", "failures", "all"]
+GIB = 1 << 30
+
+# Each entry upgrades the schema from version i to i + 1 (``PRAGMA user_version``). Append, never
+# edit: a database written by an older server is brought up to date on open by the scripts it has
+# not seen yet, in one transaction.
+_MIGRATIONS: tuple[str, ...] = (
+    """
+    CREATE TABLE results (
+        id          INTEGER PRIMARY KEY AUTOINCREMENT,
+        time        REAL    NOT NULL,           -- Unix seconds
+        inspection  TEXT    NOT NULL,
+        camera      TEXT    NOT NULL,
+        passed      INTEGER NOT NULL,           -- 0 or 1
+        data        TEXT    NOT NULL,           -- JSON object: measures or features
+        duration_ms REAL    NOT NULL,
+        config_hash TEXT    NOT NULL,
+        request_id  INTEGER NOT NULL DEFAULT 0,
+        peer        TEXT    NOT NULL DEFAULT '',
+        error       TEXT,                       -- NULL unless the request failed
+        image       TEXT,                       -- relative to the image directory, or NULL
+        image_bytes INTEGER NOT NULL DEFAULT 0
+    );
+    CREATE INDEX results_by_time ON results (time);
+    CREATE INDEX results_by_inspection ON results (inspection, time);
+    -- The disk cap deletes the oldest images: find them without scanning rows that have none.
+    CREATE INDEX results_with_image ON results (id) WHERE image IS NOT NULL;
+    CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+    """,
+)
+SCHEMA_VERSION = len(_MIGRATIONS)
+
+_IMAGE_NAME = re.compile(r"\d{4}-\d{2}-\d{2}/[0-9a-f]{32}\.png")
+_COLUMNS = (
+    "id, time, inspection, camera, passed, data, duration_ms, config_hash, request_id, peer, "
+    "error, image"
+)
+
+
+class ResultLogError(Exception):
+    """The result log cannot be opened or used as asked (not its runtime faults: those are
+    counted, see :meth:`ResultLog.record`)."""
+
+
+@dataclass(frozen=True)
+class ResultEntry:
+    """One answered inspection, as the server hands it to :meth:`ResultLog.record`.
+
+    ``time`` in Unix seconds; ``duration_ms`` in milliseconds; ``data`` JSON-able (numpy scalars
+    and arrays are converted); ``image`` the input image, ``(H, W, 3)`` BGR or ``(H, W)`` grey,
+    uint8 or uint16, stored according to the log's policy.
+    """
+
+    time: float
+    inspection: str
+    camera: str
+    passed: bool
+    data: Mapping[str, Any]
+    duration_ms: float
+    config_hash: str
+    request_id: int = 0
+    peer: str = ""
+    image: np.ndarray | None = field(default=None, repr=False, compare=False)
+    error: str | None = None
+
+
+@dataclass(frozen=True)
+class StoredResult:
+    """One row of the log. ``image_path`` is ``None`` when no image was stored or it was deleted
+    by the disk cap (the file may also have been removed by hand: check before opening)."""
+
+    id: int
+    time: float
+    inspection: str
+    camera: str
+    passed: bool
+    data: dict[str, Any]
+    duration_ms: float
+    config_hash: str
+    request_id: int
+    peer: str
+    error: str | None
+    image_path: Path | None
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-able dict (``time`` as Unix seconds and as ISO 8601 UTC, ``verdict``)."""
+        return {
+            "id": self.id,
+            "time": self.time,
+            "time_iso": datetime.fromtimestamp(self.time, UTC).isoformat(timespec="milliseconds"),
+            "inspection": self.inspection,
+            "camera": self.camera,
+            "verdict": "pass" if self.passed else "fail",
+            "data": self.data,
+            "duration_ms": self.duration_ms,
+            "config_hash": self.config_hash,
+            "request_id": self.request_id,
+            "peer": self.peer,
+            "error": self.error,
+            "image_path": str(self.image_path) if self.image_path is not None else None,
+        }
+
+
+@dataclass(frozen=True)
+class LogStatus:
+    """Counters since the log was opened, for health reports.
+
+    ``errors`` counts every fault (a result not recorded, or recorded without its image);
+    ``last_error`` is the latest fault's message and ``last_error_time`` its Unix time.
+    """
+
+    path: Path
+    image_dir: Path
+    store_images: ImagePolicy
+    recorded: int
+    errors: int
+    last_error: str | None
+    last_error_time: float | None
+    images_stored: int
+    images_deleted: int
+    images_skipped: int
+    image_bytes: int
+    max_image_bytes: int
+
+
+def _connect(path: Path, *, readonly: bool, busy_timeout_s: float) -> sqlite3.Connection:
+    """Open a connection in autocommit mode: transactions are explicit (``BEGIN IMMEDIATE``)."""
+    if readonly:
+        target, uri = path.resolve().as_uri() + "?mode=ro", True
+    else:
+        target, uri = str(path), False
+    conn = sqlite3.connect(
+        target, uri=uri, timeout=busy_timeout_s, isolation_level=None, check_same_thread=False
+    )
+    conn.execute(f"PRAGMA busy_timeout = {int(busy_timeout_s * 1000)}")
+    return conn
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, set | frozenset | tuple):
+        return list(value)
+    return repr(value)
+
+
+def _data_json(data: Mapping[str, Any]) -> str:
+    # NaN and infinities are written as JSON's common extension (NaN, Infinity), which
+    # json.loads reads back; a measure that failed to converge is still worth keeping.
+    return json.dumps(dict(data), default=_json_default, separators=(",", ":"))
+
+
+def _encode_png(image: np.ndarray) -> bytes:
+    if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
+        raise ValueError(f"image must be a non-empty (H, W) or (H, W, C) array, got {image!r:.80}")
+    if image.ndim == 3 and image.shape[2] not in (1, 3, 4):
+        raise ValueError(f"image must have 1, 3 or 4 channels, got shape {image.shape}")
+    if image.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"image must be uint8 or uint16, got {image.dtype}")
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(image))
+    if not ok:
+        raise ValueError(f"PNG encoding failed for an image of shape {image.shape}")
+    return bytes(buf)
+
+
+def _write_atomically(path: Path, payload: bytes) -> None:
+    """Write ``payload`` to ``path`` so that the file is either absent or complete."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(payload)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+class ResultLog:
+    """The SQLite result log. Thread-safe; use it as a context manager or call :meth:`close`.
+
+    Parameters
+    ----------
+    path : Path
+        The database file; it and its directory are created when missing.
+    store_images : {"none", "failures", "all"}
+        Which input images to keep: none, those of failed inspections (and failed requests), all.
+    image_dir : Path, optional
+        Where the PNG files go; default ``<db stem>-images/`` beside the database.
+    max_image_bytes : int
+        Disk cap for the stored images; over it, the oldest images are deleted (see module doc).
+    busy_timeout_s : float
+        How long a write waits for a lock held by another connection before it counts as a fault.
+
+    Raises
+    ------
+    ResultLogError
+        The database cannot be created or opened, is not a result log, or was written by a newer
+        cellvision. A server should not start without the log it was configured with.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        *,
+        store_images: ImagePolicy = "failures",
+        image_dir: Path | None = None,
+        max_image_bytes: int = GIB,
+        busy_timeout_s: float = 5.0,
+        _readonly: bool = False,
+    ) -> None:
+        if store_images not in get_args(ImagePolicy):
+            raise ValueError(
+                f"store_images must be one of {get_args(ImagePolicy)}, got {store_images!r}"
+            )
+        if max_image_bytes < 0:
+            raise ValueError(f"max_image_bytes must be >= 0, got {max_image_bytes}")
+        self.path = Path(path)
+        self.store_images: ImagePolicy = store_images
+        self.max_image_bytes = max_image_bytes
+        self.readonly = _readonly
+        # Re-entrant: a fault is counted both from inside a record and from the image writer.
+        self._lock = threading.RLock()
+        self._closed = False
+        self._recorded = 0
+        self._errors = 0
+        self._streak = 0  # consecutive failed records: log the first loudly, then quietly
+        self._last_error: str | None = None
+        self._last_error_time: float | None = None
+        self._images_stored = 0
+        self._images_deleted = 0
+        self._images_skipped = 0
+        self._image_bytes = 0
+        try:
+            if _readonly:
+                if not self.path.is_file():
+                    raise ResultLogError(f"no result log at {self.path}")
+                self._conn = _connect(self.path, readonly=True, busy_timeout_s=busy_timeout_s)
+                self._check_schema_readable()
+            else:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                self._conn = _connect(self.path, readonly=False, busy_timeout_s=busy_timeout_s)
+                self._prepare_for_writing()
+            self.image_dir = self._resolve_image_dir(image_dir)
+            if not _readonly:
+                self._image_bytes = self._query_image_bytes()
+                self._set_meta("image_dir", str(self.image_dir.resolve()))
+                if store_images != "none":
+                    self.image_dir.mkdir(parents=True, exist_ok=True)
+                    self._remove_partial_images()
+        except (sqlite3.Error, OSError) as exc:
+            with contextlib.suppress(Exception):
+                self._conn.close()
+            raise ResultLogError(f"cannot open the result log {self.path}: {exc}") from exc
+        except ResultLogError:
+            with contextlib.suppress(Exception):
+                self._conn.close()
+            raise
+
+    @classmethod
+    def open_readonly(cls, path: Path, *, image_dir: Path | None = None) -> ResultLog:
+        """A read-only view of an existing log, safe while a server writes to it.
+
+        Creates nothing of its own (SQLite may add its ``-wal``/``-shm`` files beside the
+        database); :meth:`record` raises :class:`ResultLogError`. ``image_dir`` defaults to the
+        directory the writer recorded in the database.
+        """
+        return cls(Path(path), image_dir=image_dir, _readonly=True)
+
+    # ------------------------------------------------------------------ opening
+
+    def _prepare_for_writing(self) -> None:
+        conn = self._conn
+        mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+        if str(mode).lower() != "wal":
+            raise ResultLogError(f"{self.path}: cannot switch to WAL (journal mode {mode})")
+        # NORMAL is enough against process crashes in WAL mode: see the module docstring.
+        conn.execute("PRAGMA synchronous = NORMAL")
+        # Keep the WAL file from staying huge after a burst once it has been checkpointed.
+        conn.execute("PRAGMA journal_size_limit = 67108864")
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            version = self._check_version()
+            for script in _MIGRATIONS[version:]:
+                for statement in script.split(";"):
+                    if statement.strip():
+                        conn.execute(statement)
+            conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+            conn.execute("COMMIT")
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+
+    def _check_version(self) -> int:
+        version = int(self._conn.execute("PRAGMA user_version").fetchone()[0])
+        if version > SCHEMA_VERSION:
+            raise ResultLogError(
+                f"{self.path} has result-log schema version {version}, newer than this "
+                f"cellvision's {SCHEMA_VERSION}: upgrade cellvision to use it"
+            )
+        if version == 0:
+            tables = self._conn.execute(
+                "SELECT count(*) FROM sqlite_master WHERE type = 'table'"
+            ).fetchone()[0]
+            if tables:
+                raise ResultLogError(f"{self.path} is an SQLite database but not a result log")
+        return version
+
+    def _check_schema_readable(self) -> None:
+        version = self._check_version()
+        if version < SCHEMA_VERSION:
+            what = "an empty database" if version == 0 else f"schema version {version}"
+            raise ResultLogError(
+                f"{self.path} is {what}; open it once with the server to create or upgrade it "
+                f"to version {SCHEMA_VERSION}"
+            )
+
+    def _resolve_image_dir(self, image_dir: Path | None) -> Path:
+        if image_dir is not None:
+            return Path(image_dir)
+        if self.readonly:
+            row = self._conn.execute("SELECT value FROM meta WHERE key = 'image_dir'").fetchone()
+            if row is not None:
+                return Path(row[0])
+        return self.path.with_name(f"{self.path.stem}-images")
+
+    def _set_meta(self, key: str, value: str) -> None:
+        self._conn.execute(
+            "INSERT INTO meta (key, value) VALUES (?, ?) "
+            "ON CONFLICT (key) DO UPDATE SET value = excluded.value",
+            (key, value),
+        )
+
+    def _remove_partial_images(self) -> None:
+        # A writer killed between writing and renaming an image leaves a temporary file behind.
+        for tmp in self.image_dir.glob("*/.*.png.tmp"):
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+
+    def _query_image_bytes(self) -> int:
+        row = self._conn.execute(
+            "SELECT coalesce(sum(image_bytes), 0) FROM results WHERE image IS NOT NULL"
+        ).fetchone()
+        return int(row[0])
+
+    # ------------------------------------------------------------------ writing
+
+    def record(self, entry: ResultEntry) -> int | None:
+        """Store one result; return its id once it is committed, or ``None`` after a fault.
+
+        Thread-safe. Never raises for runtime faults (full disk, I/O error, locked or read-only
+        database, closed log): they are logged, counted in :attr:`errors`, and the next call
+        tries again. Raises :class:`ResultLogError` only on a read-only view (a programming error).
+        """
+        if self.readonly:
+            raise ResultLogError(f"{self.path} was opened read-only: it cannot record results")
+        image_name, image_bytes = self._store_image(entry)
+        with self._lock:
+            try:
+                if self._closed:
+                    raise ResultLogError("the result log is closed")
+                new_id, pruned = self._insert(entry, image_name, image_bytes)
+            except Exception as exc:  # any fault of the log must not fail the inspection
+                if image_name is not None:
+                    self._unlink(image_name)
+                self._fault(f"result of {entry.inspection!r} not recorded", exc)
+                return None
+            self._recorded += 1
+            if image_name is not None:
+                self._images_stored += 1
+                self._image_bytes += image_bytes
+            for _, size in pruned:
+                self._image_bytes -= size
+            self._images_deleted += len(pruned)
+            if self._streak:
+                logger.warning("result log %s recovered after %d faults", self.path, self._streak)
+                self._streak = 0
+        for name, _ in pruned:
+            self._unlink(name)
+        return new_id
+
+    def _wants_image(self, entry: ResultEntry) -> bool:
+        if entry.image is None or self.store_images == "none":
+            return False
+        return self.store_images == "all" or not entry.passed or entry.error is not None
+
+    def _store_image(self, entry: ResultEntry) -> tuple[str | None, int]:
+        """Encode and write the image (outside the lock: it is the slow part)."""
+        if not self._wants_image(entry):
+            return None, 0
+        assert entry.image is not None
+        try:
+            payload = _encode_png(entry.image)
+        except (ValueError, cv2.error) as exc:
+            self._fault(f"image of {entry.inspection!r} not stored", exc)
+            return None, 0
+        if len(payload) > self.max_image_bytes:
+            with self._lock:
+                self._images_skipped += 1
+            logger.debug("image of %d bytes is larger than the whole cap", len(payload))
+            return None, 0
+        day = datetime.fromtimestamp(entry.time, UTC).strftime("%Y-%m-%d")
+        name = f"{day}/{uuid.uuid4().hex}.png"
+        try:
+            _write_atomically(self.image_dir / name, payload)
+        except OSError as exc:
+            self._fault(f"image of {entry.inspection!r} not stored", exc)
+            return None, 0
+        return name, len(payload)
+
+    def _insert(
+        self, entry: ResultEntry, image_name: str | None, image_bytes: int
+    ) -> tuple[int, list[tuple[str, int]]]:
+        """Insert the row and drop the oldest images over the cap, in one transaction."""
+        conn = self._conn
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            cursor = conn.execute(
+                "INSERT INTO results (time, inspection, camera, passed, data, duration_ms, "
+                "config_hash, request_id, peer, error, image, image_bytes) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    float(entry.time),
+                    str(entry.inspection),
+                    str(entry.camera),
+                    int(bool(entry.passed)),
+                    _data_json(entry.data),
+                    float(entry.duration_ms),
+                    str(entry.config_hash),
+                    int(entry.request_id),
+                    str(entry.peer),
+                    None if entry.error is None else str(entry.error),
+                    image_name,
+                    image_bytes,
+                ),
+            )
+            new_id = cursor.lastrowid
+            assert new_id is not None
+            pruned = self._prune(self._image_bytes + image_bytes, keep=new_id)
+            conn.execute("COMMIT")
+        except BaseException:
+            with contextlib.suppress(sqlite3.Error):
+                conn.execute("ROLLBACK")
+            raise
+        return new_id, pruned
+
+    def _prune(self, total: int, *, keep: int) -> list[tuple[str, int]]:
+        """Null the image reference of the oldest rows until ``total`` fits the cap.
+
+        Returns the (name, bytes) of the files to delete once the transaction is committed: a
+        crash in between leaves an unreferenced file (harmless), never a row pointing at nothing.
+        """
+        pruned: list[tuple[str, int]] = []
+        while total > self.max_image_bytes:
+            rows = self._conn.execute(
+                "SELECT id, image, image_bytes FROM results "
+                "WHERE image IS NOT NULL AND id != ? ORDER BY id LIMIT 64",
+                (keep,),
+            ).fetchall()
+            if not rows:
+                break
+            for row_id, name, size in rows:
+                if total <= self.max_image_bytes:
+                    break
+                self._conn.execute(
+                    "UPDATE results SET image = NULL, image_bytes = 0 WHERE id = ?", (row_id,)
+                )
+                pruned.append((name, int(size)))
+                total -= int(size)
+        return pruned
+
+    def _unlink(self, name: str) -> None:
+        path = self._image_path(name)
+        if path is None:
+            return
+        try:
+            path.unlink(missing_ok=True)
+        except OSError as exc:
+            logger.warning("cannot delete the stored image %s: %s", path, exc)
+
+    def _image_path(self, name: str | None) -> Path | None:
+        # The name comes from our own database, but a copied or edited file must not make us
+        # open or delete anything outside the image directory.
+        if name is None or not _IMAGE_NAME.fullmatch(name):
+            return None
+        return self.image_dir / name
+
+    def _fault(self, what: str, exc: BaseException) -> None:
+        message = f"{what}: {exc}"
+        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+            message += " (disk full)"
+        with self._lock:
+            self._errors += 1
+            self._streak += 1
+            first = self._streak == 1
+            self._last_error = message
+            self._last_error_time = time.time()
+        if first:
+            logger.error("result log %s: %s", self.path, message)
+        else:
+            logger.debug("result log %s: %s", self.path, message)
+
+    # ------------------------------------------------------------------ reading
+
+    def query(
+        self,
+        *,
+        since: float | None = None,
+        inspection: str | None = None,
+        passed: bool | None = None,
+        limit: int = 100,
+        newest_first: bool = True,
+    ) -> list[StoredResult]:
+        """Results with ``time >= since`` (Unix seconds), of one inspection, with one verdict;
+        at most ``limit`` of them, newest (or oldest) first."""
+        where, params = _where(since, inspection, passed)
+        order = "DESC" if newest_first else "ASC"
+        sql = f"SELECT {_COLUMNS} FROM results{where} ORDER BY time {order}, id {order} LIMIT ?"
+        with self._lock:
+            self._check_open()
+            rows = self._conn.execute(sql, (*params, max(0, int(limit)))).fetchall()
+        return [self._row(row) for row in rows]
+
+    def count(
+        self,
+        *,
+        since: float | None = None,
+        inspection: str | None = None,
+        passed: bool | None = None,
+    ) -> int:
+        """How many results match the filters (all of them without filters)."""
+        where, params = _where(since, inspection, passed)
+        with self._lock:
+            self._check_open()
+            return int(
+                self._conn.execute(f"SELECT count(*) FROM results{where}", params).fetchone()[0]
+            )
+
+    def _row(self, row: tuple[Any, ...]) -> StoredResult:
+        (row_id, t, inspection, camera, passed, data, duration, chash, rid, peer, error, image) = (
+            row
+        )
+        try:
+            parsed = json.loads(data)
+        except ValueError:
+            parsed = {"_unparsed": data}
+        return StoredResult(
+            id=int(row_id),
+            time=float(t),
+            inspection=inspection,
+            camera=camera,
+            passed=bool(passed),
+            data=parsed if isinstance(parsed, dict) else {"_value": parsed},
+            duration_ms=float(duration),
+            config_hash=chash,
+            request_id=int(rid),
+            peer=peer,
+            error=error,
+            image_path=self._image_path(image),
+        )
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ResultLogError(f"the result log {self.path} is closed")
+
+    # ------------------------------------------------------------------ status and lifetime
+
+    @property
+    def errors(self) -> int:
+        """Faults since the log was opened (see :class:`LogStatus`)."""
+        return self._errors
+
+    def status(self) -> LogStatus:
+        with self._lock:
+            return LogStatus(
+                path=self.path,
+                image_dir=self.image_dir,
+                store_images=self.store_images,
+                recorded=self._recorded,
+                errors=self._errors,
+                last_error=self._last_error,
+                last_error_time=self._last_error_time,
+                images_stored=self._images_stored,
+                images_deleted=self._images_deleted,
+                images_skipped=self._images_skipped,
+                image_bytes=self._image_bytes,
+                max_image_bytes=self.max_image_bytes,
+            )
+
+    def close(self) -> None:
+        """Close the database; later :meth:`record` calls return ``None``. Idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            try:
+                self._conn.close()
+            except sqlite3.Error as exc:
+                logger.warning("closing the result log %s: %s", self.path, exc)
+
+    def __enter__(self) -> ResultLog:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+def _where(
+    since: float | None, inspection: str | None, passed: bool | None
+) -> tuple[str, tuple[Any, ...]]:
+    clauses: list[str] = []
+    params: list[Any] = []
+    if since is not None:
+        if not math.isfinite(since):
+            raise ValueError(f"since must be a finite Unix time, got {since}")
+        clauses.append("time >= ?")
+        params.append(float(since))
+    if inspection is not None:
+        clauses.append("inspection = ?")
+        params.append(inspection)
+    if passed is not None:
+        clauses.append("passed = ?")
+        params.append(int(passed))
+    return (" WHERE " + " AND ".join(clauses) if clauses else ""), tuple(params)

@@ -1,0 +1,154 @@
+"""``vision-server results``: list the result log, as a table for people or JSON lines for tools.
+
+The command opens the log read-only (:meth:`ResultLog.open_readonly`), so it runs safely beside a
+server that is writing to it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import time
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+from rich.text import Text
+
+from .results import ResultLog, ResultLogError, StoredResult
+
+__all__ = ["parse_since", "results_command"]
+
+_UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0, "w": 7 * 86400.0}
+_RELATIVE = re.compile(r"(?:\d+(?:\.\d+)?[smhdw])+")
+_PART = re.compile(r"(\d+(?:\.\d+)?)([smhdw])")
+_MEASURES_SHOWN = 3
+
+
+def parse_since(text: str, *, now: float | None = None) -> float:
+    """The Unix time that ``--since`` means.
+
+    Accepts a duration back from ``now`` (``90s``, ``10m``, ``2h``, ``1d``, ``1w``, or combined:
+    ``1h30m``) or an ISO 8601 date or date-time (``2024-05-01``, ``2024-05-01T08:30``,
+    ``2024-05-01 08:30:00+02:00``); without a UTC offset it is local time.
+
+    Raises
+    ------
+    ValueError
+        ``text`` is neither; the message says what is accepted.
+    """
+    value = text.strip().lower()
+    if _RELATIVE.fullmatch(value):
+        seconds = sum(float(n) * _UNITS[unit] for n, unit in _PART.findall(value))
+        return (time.time() if now is None else now) - seconds
+    try:
+        moment = datetime.fromisoformat(text.strip())
+    except ValueError:
+        raise ValueError(
+            f"--since {text!r}: expected a duration such as 10m, 2h, 1d or 1h30m, or an ISO "
+            "date/time such as 2024-05-01 or 2024-05-01T08:30"
+        ) from None
+    # A naive datetime is local time: .timestamp() interprets it so.
+    return moment.timestamp()
+
+
+def results_command(
+    db: Path,
+    *,
+    since: str | None,
+    inspection: str | None,
+    json_out: bool,
+    limit: int,
+    failed_only: bool,
+    console: Console,
+    err_console: Console | None = None,
+) -> int:
+    """List results, newest first; return the exit status (0 ok, 1 no readable log, 2 bad
+    argument).
+
+    ``json_out`` writes one JSON object per line (see :meth:`StoredResult.to_json`) to
+    ``console.file`` and nothing else; otherwise a table. Errors go to ``err_console`` (default:
+    standard error).
+    """
+    err = err_console if err_console is not None else Console(stderr=True)
+    try:
+        since_time = parse_since(since) if since is not None else None
+    except ValueError as exc:
+        err.print(f"[red]error:[/] {exc}", highlight=False)
+        return 2
+    if limit < 0:
+        err.print(f"[red]error:[/] --limit must be >= 0, got {limit}", highlight=False)
+        return 2
+    passed = False if failed_only else None
+    try:
+        with ResultLog.open_readonly(db) as log:
+            rows = log.query(since=since_time, inspection=inspection, passed=passed, limit=limit)
+            total = log.count(since=since_time, inspection=inspection, passed=passed)
+    except ResultLogError as exc:
+        err.print(f"[red]error:[/] {exc}", highlight=False)
+        return 1
+    if json_out:
+        for row in rows:
+            console.file.write(json.dumps(row.to_json(), separators=(",", ":")) + "\n")
+        console.file.flush()
+        return 0
+    console.print(_table(rows, total, db))
+    return 0
+
+
+def _table(rows: list[StoredResult], total: int, db: Path) -> Table:
+    table = Table(
+        title=f"Results in {db}",
+        caption=f"{len(rows)} of {total} matching, newest first",
+        header_style="bold",
+    )
+    table.add_column("id", justify="right")
+    table.add_column("time")
+    table.add_column("inspection")
+    table.add_column("camera")
+    table.add_column("verdict")
+    table.add_column("measures")
+    table.add_column("ms", justify="right")
+    table.add_column("image", overflow="fold")
+    for row in rows:
+        table.add_row(
+            str(row.id),
+            datetime.fromtimestamp(row.time).isoformat(sep=" ", timespec="seconds"),
+            row.inspection,
+            row.camera,
+            _verdict(row),
+            Text(_summarise(row.data)),
+            f"{row.duration_ms:.1f}",
+            str(row.image_path) if row.image_path is not None else "",
+        )
+    return table
+
+
+def _verdict(row: StoredResult) -> Text:
+    if row.error is not None:
+        return Text("ERROR", style="bold red")
+    return Text("PASS", style="green") if row.passed else Text("FAIL", style="bold red")
+
+
+def _summarise(data: dict[str, Any]) -> str:
+    """The first few measures as ``key=value``; lists and objects by their size."""
+    parts = [f"{key}={_short(value)}" for key, value in list(data.items())[:_MEASURES_SHOWN]]
+    if len(data) > _MEASURES_SHOWN:
+        parts.append(f"+{len(data) - _MEASURES_SHOWN}")
+    return " ".join(parts)
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, bool) or value is None:
+        return str(value).lower()
+    if isinstance(value, float):
+        return f"{value:.4g}" if math.isfinite(value) else str(value)
+    if isinstance(value, list):
+        return f"[{len(value)}]"
+    if isinstance(value, dict):
+        return f"{{{len(value)}}}"
+    text = str(value)
+    return text if len(text) <= 24 else text[:23] + "…"
