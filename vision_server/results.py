@@ -218,6 +218,24 @@ def _data_json(data: Mapping[str, Any]) -> str:
     return json.dumps(dict(data), default=_json_default, separators=(",", ":"))
 
 
+def _row_values(entry: ResultEntry) -> tuple[Any, ...]:
+    """The entry's columns up to ``error``, checked and converted."""
+    if not math.isfinite(entry.time):
+        raise ValueError(f"time must be a finite Unix time, got {entry.time}")
+    return (
+        float(entry.time),
+        str(entry.inspection),
+        str(entry.camera),
+        int(bool(entry.passed)),
+        _data_json(entry.data),
+        float(entry.duration_ms),
+        str(entry.config_hash),
+        int(entry.request_id),
+        str(entry.peer),
+        None if entry.error is None else str(entry.error),
+    )
+
+
 def _encode_png(image: np.ndarray) -> bytes:
     if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
         raise ValueError(f"image must be a non-empty (H, W) or (H, W, C) array, got {image!r:.80}")
@@ -423,13 +441,26 @@ class ResultLog:
         """
         if self.readonly:
             raise ResultLogError(f"{self.path} was opened read-only: it cannot record results")
-        image_name, image_bytes = self._store_image(entry)
+        # Any fault of the log, even a bug or a strange entry, must not fail the inspection:
+        # hence the broad excepts. Slow work (JSON, PNG, file) happens outside the lock.
+        try:
+            if self._closed:
+                raise ResultLogError("the result log is closed")
+            values = _row_values(entry)
+        except Exception as exc:
+            self._fault(f"result of {entry.inspection!r} not recorded", exc)
+            return None
+        try:
+            image_name, image_bytes = self._store_image(entry)
+        except Exception as exc:
+            self._fault(f"image of {entry.inspection!r} not stored", exc)
+            image_name, image_bytes = None, 0
         with self._lock:
             try:
                 if self._closed:
                     raise ResultLogError("the result log is closed")
-                new_id, pruned = self._insert(entry, image_name, image_bytes)
-            except Exception as exc:  # any fault of the log must not fail the inspection
+                new_id, pruned = self._insert(values, image_name, image_bytes)
+            except Exception as exc:
                 if image_name is not None:
                     self._unlink(image_name)
                 self._fault(f"result of {entry.inspection!r} not recorded", exc)
@@ -454,15 +485,11 @@ class ResultLog:
         return self.store_images == "all" or not entry.passed or entry.error is not None
 
     def _store_image(self, entry: ResultEntry) -> tuple[str | None, int]:
-        """Encode and write the image (outside the lock: it is the slow part)."""
+        """Encode and write the image if the policy wants it; return its name and size."""
         if not self._wants_image(entry):
             return None, 0
         assert entry.image is not None
-        try:
-            payload = _encode_png(entry.image)
-        except (ValueError, cv2.error) as exc:
-            self._fault(f"image of {entry.inspection!r} not stored", exc)
-            return None, 0
+        payload = _encode_png(entry.image)
         if len(payload) > self.max_image_bytes:
             with self._lock:
                 self._images_skipped += 1
@@ -470,15 +497,11 @@ class ResultLog:
             return None, 0
         day = datetime.fromtimestamp(entry.time, UTC).strftime("%Y-%m-%d")
         name = f"{day}/{uuid.uuid4().hex}.png"
-        try:
-            _write_atomically(self.image_dir / name, payload)
-        except OSError as exc:
-            self._fault(f"image of {entry.inspection!r} not stored", exc)
-            return None, 0
+        _write_atomically(self.image_dir / name, payload)
         return name, len(payload)
 
     def _insert(
-        self, entry: ResultEntry, image_name: str | None, image_bytes: int
+        self, values: tuple[Any, ...], image_name: str | None, image_bytes: int
     ) -> tuple[int, list[tuple[str, int]]]:
         """Insert the row and drop the oldest images over the cap, in one transaction."""
         conn = self._conn
@@ -488,20 +511,7 @@ class ResultLog:
                 "INSERT INTO results (time, inspection, camera, passed, data, duration_ms, "
                 "config_hash, request_id, peer, error, image, image_bytes) "
                 "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (
-                    float(entry.time),
-                    str(entry.inspection),
-                    str(entry.camera),
-                    int(bool(entry.passed)),
-                    _data_json(entry.data),
-                    float(entry.duration_ms),
-                    str(entry.config_hash),
-                    int(entry.request_id),
-                    str(entry.peer),
-                    None if entry.error is None else str(entry.error),
-                    image_name,
-                    image_bytes,
-                ),
+                (*values, image_name, image_bytes),
             )
             new_id = cursor.lastrowid
             assert new_id is not None

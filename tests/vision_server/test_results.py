@@ -410,6 +410,22 @@ def test_locked_database_returns_none_then_recovers(db: Path) -> None:
         assert log.count() == 1
 
 
+def test_strange_entries_are_faults_not_exceptions(db: Path) -> None:
+    circular: dict[str, Any] = {}
+    circular["self"] = circular
+    strange = [
+        entry(1, data=circular),
+        entry(2, t=float("nan"), passed=False, image=noise_image(2)),
+        ResultEntry(T0, "presence", "cam", True, {}, 1.0, "h", request_id=2**70),
+        entry(3, data={("tuple", "key"): 1}),  # type: ignore[dict-item]
+    ]
+    with ResultLog(db, store_images="all") as log:
+        assert [log.record(e) for e in strange] == [None] * len(strange)
+        assert log.errors == len(strange)
+        assert log.record(entry(4)) is not None
+        assert not list(log.image_dir.rglob("*.png"))
+
+
 def test_record_after_close_returns_none(db: Path) -> None:
     log = ResultLog(db)
     log.close()
