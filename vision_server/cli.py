@@ -21,9 +21,16 @@ def _serve(args: argparse.Namespace) -> int:
     settings = ServerSettings(host=args.host, port=args.port, auth_token=args.auth_token)
     catalog = builtin_catalog()
 
-    async def main() -> None:
+    async def main() -> int:
         server = VisionServer(catalog, settings)
-        await server.start()
+        try:
+            await server.start()
+        except OSError as exc:  # port in use, address not on this machine, no permission
+            print(
+                f"vision-server: cannot listen on {settings.host}:{settings.port}: {exc}",
+                file=sys.stderr,
+            )
+            return 1
         print(f"vision-server listening on {settings.host}:{server.port}", flush=True)
         loop = asyncio.get_running_loop()
         stop = asyncio.Event()
@@ -32,9 +39,9 @@ def _serve(args: argparse.Namespace) -> int:
                 loop.add_signal_handler(sig, stop.set)
         await stop.wait()
         await server.stop()
+        return 0
 
-    asyncio.run(main())
-    return 0
+    return asyncio.run(main())
 
 
 def build_parser() -> argparse.ArgumentParser:
