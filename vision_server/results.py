@@ -218,6 +218,18 @@ def _data_json(data: Mapping[str, Any]) -> str:
     return json.dumps(dict(data), default=_json_default, separators=(",", ":"))
 
 
+def _statements(script: str) -> list[str]:
+    """Split an SQL script into statements (``executescript`` would commit half-way)."""
+    statements, pending = [], ""
+    for piece in script.split(";"):
+        pending += piece + ";"
+        if sqlite3.complete_statement(pending):
+            if pending.strip(" \n;"):
+                statements.append(pending)
+            pending = ""
+    return statements
+
+
 def _row_values(entry: ResultEntry) -> tuple[Any, ...]:
     """The entry's columns up to ``error``, checked and converted."""
     if not math.isfinite(entry.time):
@@ -369,21 +381,21 @@ class ResultLog:
         try:
             version = self._check_version()
             for script in _MIGRATIONS[version:]:
-                for statement in script.split(";"):
-                    if statement.strip():
-                        conn.execute(statement)
-            conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+                for statement in _statements(script):
+                    conn.execute(statement)
+            conn.execute(f"PRAGMA user_version = {len(_MIGRATIONS)}")
             conn.execute("COMMIT")
         except BaseException:
-            conn.execute("ROLLBACK")
+            with contextlib.suppress(sqlite3.Error):
+                conn.execute("ROLLBACK")
             raise
 
     def _check_version(self) -> int:
         version = int(self._conn.execute("PRAGMA user_version").fetchone()[0])
-        if version > SCHEMA_VERSION:
+        if version > len(_MIGRATIONS):
             raise ResultLogError(
                 f"{self.path} has result-log schema version {version}, newer than this "
-                f"cellvision's {SCHEMA_VERSION}: upgrade cellvision to use it"
+                f"cellvision's {len(_MIGRATIONS)}: upgrade cellvision to use it"
             )
         if version == 0:
             tables = self._conn.execute(
@@ -395,11 +407,11 @@ class ResultLog:
 
     def _check_schema_readable(self) -> None:
         version = self._check_version()
-        if version < SCHEMA_VERSION:
+        if version < len(_MIGRATIONS):
             what = "an empty database" if version == 0 else f"schema version {version}"
             raise ResultLogError(
                 f"{self.path} is {what}; open it once with the server to create or upgrade it "
-                f"to version {SCHEMA_VERSION}"
+                f"to version {len(_MIGRATIONS)}"
             )
 
     def _resolve_image_dir(self, image_dir: Path | None) -> Path:

@@ -106,6 +106,24 @@ def test_newer_schema_or_foreign_database_is_refused(tmp_path: Path) -> None:
         ResultLog(foreign)
 
 
+def test_older_schema_is_upgraded_in_place(db: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    with ResultLog(db) as log:
+        first = log.record(entry(1))
+    upgrade = "ALTER TABLE results ADD COLUMN station TEXT; -- a comment; with semicolons\n"
+    monkeypatch.setattr(results, "_MIGRATIONS", (*results._MIGRATIONS, upgrade))
+    with pytest.raises(ResultLogError, match="open it once with the server"):
+        ResultLog.open_readonly(db)
+    with ResultLog(db) as log:
+        assert [r.id for r in log.query()] == [first]
+        assert log.record(entry(2)) is not None
+    conn = sqlite3.connect(db)
+    assert conn.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION + 1
+    assert "station" in [col[1] for col in conn.execute("PRAGMA table_info(results)")]
+    conn.close()
+    with ResultLog.open_readonly(db) as view:
+        assert view.count() == 2
+
+
 def test_unopenable_path_is_a_typed_error(tmp_path: Path) -> None:
     (tmp_path / "file").write_text("x")
     with pytest.raises(ResultLogError, match="cannot open"):
