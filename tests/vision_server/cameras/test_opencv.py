@@ -214,7 +214,7 @@ def test_close_wakes_a_waiting_grab(tmp_path: Path) -> None:
     camera = make_camera("cam", OpenCVCameraSettings(str(path)), base_dir=tmp_path)
     camera.open()
     camera.grab(timeout_s=GRAB_TIMEOUT_S)
-    caught: list[BaseException] = []
+    caught: list[CameraUnavailable] = []
 
     def waiter() -> None:
         try:

@@ -1,0 +1,141 @@
+"""Camera settings validate on construction, with errors that name the field."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from geometry import CameraIntrinsics
+from vision_server.cameras import (
+    SOURCE_NAMES,
+    FolderCameraSettings,
+    Intrinsics,
+    OpenCVCameraSettings,
+    RequestCameraSettings,
+    SimCameraSettings,
+)
+
+K = {"width": 640, "height": 480, "fx": 570.0, "fy": 571.0, "cx": 319.5, "cy": 239.5}
+
+
+def test_intrinsics_to_dict_is_json_and_round_trips_geometry() -> None:
+    intrinsics = Intrinsics(**K, distortion=(0.1, -0.2, 0.001, 0.002, 0.05))
+    doc = json.loads(json.dumps(intrinsics.to_dict()))
+    assert doc == {**K, "distortion": [0.1, -0.2, 0.001, 0.002, 0.05]}
+    geometric = intrinsics.to_geometry()
+    assert isinstance(geometric, CameraIntrinsics)
+    assert geometric.dist == (0.1, -0.2, 0.001, 0.002, 0.05)
+    assert Intrinsics.from_geometry(geometric) == intrinsics
+
+
+def test_intrinsics_distortion_lengths() -> None:
+    assert Intrinsics(**K, distortion=[0.1, 0.0, 0.0, 0.0]).distortion == (0.1, 0, 0, 0, 0)
+    eight = Intrinsics(**K, distortion=(0.1, 0, 0, 0, 0, 0.3, 0, 0))
+    with pytest.raises(ValueError, match="beyond k3"):
+        eight.to_geometry()
+    assert Intrinsics(**K, distortion=(0.1, 0, 0, 0, 0, 0, 0, 0)).to_geometry().dist[0] == 0.1
+    with pytest.raises(ValueError, match="4, 5, 8, 12 or 14"):
+        Intrinsics(**K, distortion=(0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match=r"distortion\[1\]"):
+        Intrinsics(**K, distortion=(0.0, float("nan"), 0.0, 0.0))
+    with pytest.raises(ValueError, match="distortion must be a list"):
+        Intrinsics(**K, distortion="0 0 0 0")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("width", 0),
+        ("width", True),
+        ("height", 4.5),
+        ("fx", -1.0),
+        ("fy", float("inf")),
+        ("cx", "centre"),
+    ],
+)
+def test_bad_intrinsics_name_the_field(field: str, value: Any) -> None:
+    with pytest.raises(ValueError, match=field):
+        Intrinsics(**{**K, field: value})
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"device": -1}, "device"),
+        ({"device": ""}, "device"),
+        ({"device": 1.5}, "device"),
+        ({"device": 0, "width": 0}, "width"),
+        ({"device": 0, "fps": 0}, "fps"),
+        ({"device": 0, "backend": "dshow"}, "backend"),
+        ({"device": 0, "reconnect_interval_s": 0}, "reconnect_interval_s"),
+        ({"device": 0, "read_timeout_s": -1}, "read_timeout_s"),
+        ({"device": 0, "fourcc": "MJPEG"}, "fourcc"),
+        ({"device": 0, "loop_file": "yes"}, "loop_file"),
+        ({"device": 0, "intrinsics": {"fx": 1}}, "intrinsics"),
+        ({"device": 0, "width": 320, "intrinsics": Intrinsics(**K)}, "width"),
+    ],
+)
+def test_bad_opencv_settings_name_the_field(kwargs: dict[str, Any], field: str) -> None:
+    with pytest.raises(ValueError, match=field):
+        OpenCVCameraSettings(**kwargs)
+
+
+def test_good_opencv_settings() -> None:
+    settings = OpenCVCameraSettings(
+        "/dev/video0", width=640, height=480, fps=30, backend="v4l2", fourcc="MJPG",
+        intrinsics=Intrinsics(**K),
+    )  # fmt: skip
+    assert settings.fps == 30.0
+    assert isinstance(settings.fps, float)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"path": ""}, "path"),
+        ({"path": 3}, "path"),
+        ({"path": "imgs", "glob": "../*.png"}, "glob"),
+        ({"path": "imgs", "glob": "/etc/*"}, "glob"),
+        ({"path": "imgs", "depth_glob": "a/../../b.png"}, "depth_glob"),
+        ({"path": "imgs", "mode": "loop"}, "mode"),
+        ({"path": "imgs", "color": "rgb"}, "color"),
+    ],
+)
+def test_bad_folder_settings_name_the_field(kwargs: dict[str, Any], field: str) -> None:
+    with pytest.raises(ValueError, match=field):
+        FolderCameraSettings(**kwargs)
+
+
+def test_folder_and_sim_paths_become_paths() -> None:
+    assert FolderCameraSettings("imgs").path == Path("imgs")  # type: ignore[arg-type]
+    sim = SimCameraSettings("scene.yaml", "cam", state_file="w.json")  # type: ignore[arg-type]
+    assert sim.scene == Path("scene.yaml")
+    assert sim.state_file == Path("w.json")
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"scene": "s.yaml", "camera": ""}, "camera"),
+        ({"scene": "s.yaml", "camera": "c", "seed": -1}, "seed"),
+        ({"scene": "s.yaml", "camera": "c", "seed": True}, "seed"),
+        ({"scene": "s.yaml", "camera": "c", "state_file": 7}, "state_file"),
+    ],
+)
+def test_bad_sim_settings_name_the_field(kwargs: dict[str, Any], field: str) -> None:
+    with pytest.raises(ValueError, match=field):
+        SimCameraSettings(**kwargs)
+
+
+def test_request_settings_and_source_names() -> None:
+    with pytest.raises(ValueError, match="depth"):
+        RequestCameraSettings(depth=1)  # type: ignore[arg-type]
+    assert dict(SOURCE_NAMES) == {
+        "request": RequestCameraSettings,
+        "opencv": OpenCVCameraSettings,
+        "folder": FolderCameraSettings,
+        "sim": SimCameraSettings,
+    }
