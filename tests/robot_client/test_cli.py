@@ -1,0 +1,143 @@
+"""``robot-client`` against a live server (in a background thread) and against nothing."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from robot_client.address import ENV_VAR
+from robot_client.cli import main
+from vision_server.builtin import builtin_catalog
+from vision_server.server import ServerSettings, VisionServer
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@contextlib.contextmanager
+def server_in_thread(**settings: Any) -> Iterator[VisionServer]:
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, name="test-server", daemon=True)
+    thread.start()
+    server = VisionServer(builtin_catalog(), ServerSettings(port=0, **settings))
+    try:
+        asyncio.run_coroutine_threadsafe(server.start(), loop).result(10.0)
+        yield server
+    finally:
+        asyncio.run_coroutine_threadsafe(server.stop(), loop).result(30.0)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(10.0)
+        loop.close()
+
+
+@pytest.fixture(scope="module")
+def address() -> Iterator[str]:
+    with server_in_thread() as server:
+        yield f"127.0.0.1:{server.port}"
+
+
+@pytest.fixture(autouse=True)
+def _no_env_address(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(ENV_VAR, raising=False)
+
+
+def _flat(text: str) -> str:
+    """Rich wraps long lines at the console width: compare words, not lines."""
+    return " ".join(text.split())
+
+
+def test_ping_json(address: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--server", address, "ping", "--json", "-n", "3"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["server"] == {"name": "cellvision", "version": "0.1.0"}
+    assert report["protocol"] == [1, 0]
+    assert len(report["rtt_ms"]) == 3
+    assert all(rtt >= 0.0 for rtt in report["rtt_ms"])
+
+
+def test_ping_text(address: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--server", address, "ping"]) == 0
+    out = _flat(capsys.readouterr().out)
+    assert out.startswith(f"PONG from cellvision 0.1.0 at {address} (protocol 1.0):")
+    assert out.endswith(" ms")
+
+
+def test_inspections_json(address: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--server", address, "inspections", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report == {
+        "inspections": [
+            {
+                "name": "brightness",
+                "type": "presence",
+                "camera": "tool",
+                "camera_source": "request",
+                "depth": False,
+            }
+        ]
+    }
+
+
+def test_inspections_table(address: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--server", address, "inspections"]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if "brightness" in line)
+    assert row.replace("│", " ").split() == ["brightness", "presence", "tool", "request", "no"]
+
+
+def test_server_address_from_the_environment(
+    address: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(ENV_VAR, address)
+    assert main(["ping", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["protocol"] == [1, 0]
+
+
+def test_no_server_is_a_clear_error(capsys: pytest.CaptureFixture[str]) -> None:
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))  # bound, not listening: connections are refused
+        port = holder.getsockname()[1]
+        code = main(["--server", f"127.0.0.1:{port}", "--timeout", "2", "ping"])
+    captured = capsys.readouterr()
+    assert code == 1
+    assert captured.out == ""
+    err = _flat(captured.err)
+    assert err.startswith(f"error: cannot connect to 127.0.0.1:{port}")
+    assert "Traceback" not in err
+
+
+def test_bad_address_is_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--server", "cell:port", "ping"]) == 2
+    assert "bad port 'port'" in _flat(capsys.readouterr().err)
+
+
+def test_auth_token(capsys: pytest.CaptureFixture[str]) -> None:
+    with server_in_thread(auth_token="s3cret") as server:
+        address = f"127.0.0.1:{server.port}"
+        assert main(["--server", address, "--auth-token", "s3cret", "ping", "--json"]) == 0
+        capsys.readouterr()
+        assert main(["--server", address, "--auth-token", "nope", "ping"]) == 1
+        assert _flat(capsys.readouterr().err).startswith("NOT_AUTHENTICATED:")
+        assert main(["--server", address, "ping"]) == 1
+        assert _flat(capsys.readouterr().err).startswith("NOT_AUTHENTICATED:")
+
+
+def test_as_a_process(address: str) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "robot_client.cli", "--server", address, "inspections", "--json"],
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    assert [i["name"] for i in json.loads(done.stdout)["inspections"]] == ["brightness"]
