@@ -18,6 +18,7 @@ camera. At the end the file starts again when ``loop_file`` is set; otherwise th
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
 from pathlib import Path
@@ -102,6 +103,7 @@ class OpenCVCamera(Camera):
         self._thread: threading.Thread | None = None
         self._state: _State = "idle"
         self._latest: CameraFrame | None = None
+        self._last_frame_at: float | None = None  # monotonic time of the newest frame
         self._next_index = 0
         self._frames = 0
         self._reconnects = 0
@@ -182,10 +184,30 @@ class OpenCVCamera(Camera):
                     raise self.unavailable(str(self._error))
                 if self._state == "closed":
                     raise self.unavailable("the camera is closed")
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
+                now = time.monotonic()
+                wait_s = deadline - now
+                if wait_s <= 0:
                     raise self.unavailable(self._timeout_cause(timeout_s))
-                self._cond.wait(remaining)
+                stall_at = self._stall_deadline()
+                if stall_at is not None:
+                    if now >= stall_at:
+                        silent_s = now - stall_at + self.settings.read_timeout_s
+                        raise self.unavailable(
+                            f"no frame from {self.describe_source()} for {silent_s:.1f} s: "
+                            f"the source stalled"
+                        )
+                    wait_s = min(wait_s, stall_at - now)
+                self._cond.wait(wait_s)
+
+    def _stall_deadline(self) -> float | None:
+        """When a live source that is up counts as stalled (monotonic time), else None.
+
+        A driver can block in read() without failing; waiting out every grab's timeout would
+        hide that. Files are paced by us and never stall.
+        """
+        if self._state != "up" or self.kind == "file" or self._last_frame_at is None:
+            return None
+        return self._last_frame_at + self.settings.read_timeout_s
 
     def _timeout_cause(self, timeout_s: float) -> str:
         cause = f"no new frame from {self.describe_source()} within {timeout_s:.3g} s"
@@ -214,7 +236,8 @@ class OpenCVCamera(Camera):
                 age = time.time() - latest.timestamp
                 out["width"], out["height"] = latest.width, latest.height
                 out["last_frame_age_s"] = round(age, 3)
-                out["stalled"] = self._state == "up" and age > self.settings.read_timeout_s
+                stall_at = self._stall_deadline()
+                out["stalled"] = stall_at is not None and time.monotonic() >= stall_at
             if self._native_size is not None:
                 out["native_width"], out["native_height"] = self._native_size
             if self._file_fps is not None:
@@ -250,6 +273,11 @@ class OpenCVCamera(Camera):
             if self.kind == "file" and not path.is_file():
                 return None, f"{what} is not a regular file"
         backend = self.settings.backend or "any"
+        if self.kind == "index" and sys.platform == "linux" and backend in ("any", "v4l2"):
+            # Saves OpenCV's warnings on every retry, and says which node is missing.
+            node = Path(f"/dev/video{self._target}")
+            if not node.exists():
+                return None, f"{what} does not exist ({node} not found)"
         api = _APIS[backend]
         params: list[int] = []
         if self.kind == "url":
@@ -371,6 +399,7 @@ class OpenCVCamera(Camera):
                     log.info("camera %r: %s is back", self.name, self.describe_source())
                 self._state = "up"
             self._latest = CameraFrame(color, None, timestamp, self._next_index)
+            self._last_frame_at = time.monotonic()
             self._next_index += 1
             self._frames += 1
             self._cond.notify_all()

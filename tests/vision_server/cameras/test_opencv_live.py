@@ -1,0 +1,162 @@
+"""The opencv source against a scripted live device: unplugging, stalling, device settings.
+
+Video files cannot fail in the middle or hang; a live camera can. ``cv2.VideoCapture`` is
+replaced by :class:`FakeCapture`, driven by a :class:`FakeDevice` the test controls; everything
+else (reader thread, reconnects, stall detection, conversion) is the real code.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from protocol import CameraUnavailable
+from vision_server.cameras import CameraFrame, OpenCVCamera, OpenCVCameraSettings
+
+URL = "rtsp://viewer:secret@192.0.2.1/stream"
+
+
+class FakeDevice:
+    """A camera on the network: present or not, delivering frames or hanging in read()."""
+
+    def __init__(self) -> None:
+        self.present = True
+        self.hang = threading.Event()
+        self.opens = 0
+        self.props: dict[int, float] = {}
+        self.frames = 0
+
+
+class FakeCapture:
+    device: FakeDevice
+
+    def __init__(self, target: object, api: int = 0, params: object = ()) -> None:
+        self.device.opens += 1
+        self._open = self.device.present
+
+    def isOpened(self) -> bool:
+        return self._open
+
+    def getBackendName(self) -> str:
+        return "FAKE"
+
+    def set(self, prop: int, value: float) -> bool:
+        self.device.props[prop] = value
+        return True
+
+    def get(self, prop: int) -> float:
+        return self.device.props.get(prop, 0.0)
+
+    def read(self) -> tuple[bool, Any]:
+        time.sleep(0.005)
+        while self.device.hang.is_set():
+            time.sleep(0.005)
+        if not self._open or not self.device.present:
+            return False, None
+        self.device.frames += 1
+        image = np.zeros((30, 40, 4), np.uint8)  # BGRA, as some drivers deliver
+        image[..., 1] = 100
+        return True, image
+
+    def release(self) -> None:
+        self._open = False
+
+
+@pytest.fixture
+def device(monkeypatch: pytest.MonkeyPatch) -> FakeDevice:
+    fake = FakeDevice()
+    monkeypatch.setattr(FakeCapture, "device", fake, raising=False)
+    monkeypatch.setattr(cv2, "VideoCapture", FakeCapture)
+    return fake
+
+
+@pytest.fixture
+def camera(device: FakeDevice) -> Iterator[OpenCVCamera]:
+    settings = OpenCVCameraSettings(
+        URL,
+        width=40,
+        height=30,
+        fps=25,
+        fourcc="MJPG",
+        reconnect_interval_s=0.05,
+        read_timeout_s=0.5,
+    )
+    cam = OpenCVCamera("door", settings)
+    cam.open()
+    yield cam
+    device.hang.clear()
+    cam.close()
+
+
+def eventually(fn: Callable[[], CameraFrame], *, timeout_s: float = 10.0) -> CameraFrame:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return fn()
+        except CameraUnavailable:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
+
+
+def first_failure(camera: OpenCVCamera, *, timeout_s: float) -> CameraUnavailable:
+    """Grab until a grab fails (a frame may still be in flight when the device goes)."""
+    for _ in range(1000):
+        try:
+            camera.grab(timeout_s=timeout_s)
+        except CameraUnavailable as exc:
+            return exc
+    raise AssertionError("the camera kept delivering frames")
+
+
+def test_device_settings_are_requested_and_frames_converted(
+    camera: OpenCVCamera, device: FakeDevice
+) -> None:
+    frame = camera.grab(timeout_s=5.0)
+    assert frame.color.shape == (30, 40, 3)
+    assert int(frame.color[0, 0, 1]) == 100
+    assert device.props[cv2.CAP_PROP_BUFFERSIZE] == 1
+    assert device.props[cv2.CAP_PROP_FRAME_WIDTH] == 40
+    assert device.props[cv2.CAP_PROP_FRAME_HEIGHT] == 30
+    assert device.props[cv2.CAP_PROP_FPS] == 25
+    assert device.props[cv2.CAP_PROP_FOURCC] == cv2.VideoWriter.fourcc(*"MJPG")
+    assert camera.status()["backend"] == "FAKE"
+
+
+def test_unplugged_device_fails_fast_and_comes_back(
+    camera: OpenCVCamera, device: FakeDevice
+) -> None:
+    before = camera.grab(timeout_s=5.0)
+    device.present = False
+    message = first_failure(camera, timeout_s=5.0).message
+    assert "'door'" in message
+    assert "secret" not in message
+    assert "retrying every 0.05 s" in message
+    opens = device.opens
+    time.sleep(0.3)
+    assert device.opens > opens, "the reader keeps trying to reopen the device"
+    assert camera.status()["connected"] is False
+
+    device.present = True
+    after = eventually(lambda: camera.grab(timeout_s=5.0))
+    assert after.index > before.index
+    status = camera.status()
+    assert status["connected"] is True
+    assert status["reconnects"] == 1
+
+
+def test_a_hanging_driver_is_reported_as_stalled(camera: OpenCVCamera, device: FakeDevice) -> None:
+    camera.grab(timeout_s=5.0)
+    device.hang.set()
+    assert "stalled" in first_failure(camera, timeout_s=30.0).message
+    assert camera.status()["stalled"] is True
+    device.hang.clear()
+    frame = eventually(lambda: camera.grab(timeout_s=5.0))
+    assert frame.color.shape == (30, 40, 3)
+    assert camera.status()["stalled"] is False
