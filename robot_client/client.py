@@ -109,6 +109,8 @@ class VisionClient:
         self._pending: dict[int, asyncio.Future[Message]] = {}
         self._ids = itertools.count(1)
         self._connect_lock = asyncio.Lock()
+        # Set whenever a request stops being in flight: wakes requests waiting for room.
+        self._room = asyncio.Event()
         self._closed = False
         self.reconnects = 0
 
@@ -198,6 +200,7 @@ class VisionClient:
         self._fail_all(reason)
 
     def _fail_all(self, reason: Exception) -> None:
+        self._room.set()
         pending, self._pending = self._pending, {}
         for future in pending.values():
             if not future.done():
@@ -257,6 +260,7 @@ class VisionClient:
             self._fail_all(reason)
 
     def _deliver(self, message: Message) -> None:
+        self._room.set()
         if isinstance(message, Error) and message.request_id == 0:
             log.warning("server error: %s %s", message.name, message.message)
             if message.fatal:
@@ -307,6 +311,28 @@ class VisionClient:
             f"{self.reconnect.attempts} attempts: {last}"
         )
 
+    async def _wait_for_room(self, timeout_s: float) -> tuple[Connection, asyncio.StreamWriter]:
+        """The connection, once it has fewer requests in flight than the server's
+        ``max_in_flight`` (SPEC §3.4: a client MUST NOT exceed it). Requests that timed out
+        on our side still count until their late answer comes: the server is still on them.
+        Raises RequestTimeout when no room is made within ``timeout_s``."""
+        deadline = asyncio.get_running_loop().time() + timeout_s
+        while True:
+            conn, writer = await self._ensure_connected()
+            welcome = self.welcome
+            room = welcome.limits.get("max_in_flight", 0) if welcome is not None else 0
+            if room <= 0 or len(conn.pending) < room:
+                return conn, writer
+            self._room.clear()
+            try:
+                async with asyncio.timeout_at(deadline):
+                    await self._room.wait()
+            except TimeoutError:
+                raise RequestTimeout(
+                    f"no room to send a request within {timeout_s:g} s: the server's "
+                    f"max_in_flight ({room}) requests stay unanswered"
+                ) from None
+
     async def request(
         self, build: Callable[[int], _M], *, timeout_s: float | None = None
     ) -> Message:
@@ -316,7 +342,8 @@ class VisionClient:
         :class:`RequestTimeout` after ``timeout_s`` (default ``request_timeout_s``), or
         :class:`ConnectionLost`.
         """
-        conn, writer = await self._ensure_connected()
+        limit = self.request_timeout_s if timeout_s is None else timeout_s
+        conn, writer = await self._wait_for_room(limit)
         rid = self._new_id()
         message = build(rid)
         future: asyncio.Future[Message] = asyncio.get_running_loop().create_future()
@@ -330,7 +357,6 @@ class VisionClient:
         except BaseException:
             self._pending.pop(rid, None)
             raise
-        limit = self.request_timeout_s if timeout_s is None else timeout_s
         try:
             async with asyncio.timeout(limit):
                 return await future
