@@ -290,6 +290,27 @@ def test_fifty_pipelined_requests_are_matched_by_id() -> None:
     run(body())
 
 
+def test_the_client_keeps_within_the_servers_max_in_flight(gate: Gate) -> None:
+    async def body() -> None:
+        settings = ServerSettings(port=0, max_in_flight=2, workers=4)
+        async with (
+            VisionServer(make_catalog(gate), settings) as server,
+            client_for(server) as client,
+        ):
+            tasks = [asyncio.create_task(client.inspect("gate", GRAY)) for _ in range(5)]
+            await wait_until(lambda: gate.entered == 2, "two inspections running")
+            # The other three wait on the client's side instead of being refused BUSY.
+            with pytest.raises(RequestTimeout, match="max_in_flight"):
+                await client.inspect("brightness", GRAY, timeout_s=0.2)
+            assert not any(task.done() for task in tasks)
+            gate.release.set()
+            results = await asyncio.gather(*tasks)
+            assert [r.data for r in results] == [{"gate": True}] * 5
+            assert gate.entered == 5
+
+    run(body())
+
+
 # ----------------------------------------------------------------------------- timeouts
 
 
