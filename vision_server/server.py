@@ -437,9 +437,11 @@ class _ClientSession:
             if self.conn.state is not State.CLOSED:
                 self._write(Close(reason="closing"))
                 await self._drain()
-        except (ConnectionError, OSError) as exc:
-            log.info("%s: connection lost: %s", self.peer, exc)
-        except Exception:
+        # except*: a request task's failure reaches here wrapped in the TaskGroup's
+        # ExceptionGroup, and a peer that resets the connection is no server error.
+        except* (ConnectionError, OSError) as lost:
+            log.info("%s: connection lost: %s", self.peer, lost.exceptions[0])
+        except* Exception:
             log.exception("%s: unexpected error; closing this connection only", self.peer)
         finally:
             self.writer.close()
