@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import select
 import socket
 import threading
@@ -393,7 +394,9 @@ def _push_until_stuck(sock: socket.socket, chunks: Iterator[bytes], stall_s: flo
     return sent
 
 
-def test_a_client_that_never_reads_does_not_hold_up_the_others() -> None:
+def test_a_client_that_never_reads_does_not_hold_up_the_others(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     big = "x" * 65536
     count = 1024  # 64 MiB of PINGs whose PONGs echo the same 64 KiB back
     with server_in_thread(builtin_catalog()) as server:
@@ -424,6 +427,8 @@ def test_a_client_that_never_reads_does_not_hold_up_the_others() -> None:
         with open_peer(server) as peer:
             peer.send(Ping(5, "after"))
             assert peer.expect(MessageType.PONG, request_id=5).metadata["data"] == "after"
+    # Its reset is logged as a lost connection, not as a server error with a traceback.
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
 
 
 def test_garbage_on_one_connection_closes_only_that_one() -> None:
