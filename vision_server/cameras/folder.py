@@ -129,6 +129,12 @@ class FolderCamera(Camera):
             color = color_image(self._decode(path, _READ_FLAGS[self.settings.color]))
         except ValueError as exc:
             raise self.unavailable(f"{path}: {exc}") from exc
+        k = self.intrinsics
+        if k is not None and (color.shape[1], color.shape[0]) != (k.width, k.height):
+            raise self.unavailable(
+                f"{path}: the image is {color.shape[1]}x{color.shape[0]} but the intrinsics "
+                f"are for {k.width}x{k.height}"
+            )
         if depth_path is None:
             return color, None
         depth = self._decode(depth_path, cv2.IMREAD_UNCHANGED)

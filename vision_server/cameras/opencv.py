@@ -372,7 +372,14 @@ class OpenCVCamera(Camera):
         if size is not None:
             shrink = size[0] * size[1] < width * height
             interpolation = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
-            return np.asarray(cv2.resize(color, size, interpolation=interpolation), np.uint8)
+            color = np.asarray(cv2.resize(color, size, interpolation=interpolation), np.uint8)
+        k = self.intrinsics
+        if k is not None and (color.shape[1], color.shape[0]) != (k.width, k.height):
+            # Measuring with intrinsics of another resolution would be silently wrong.
+            raise ValueError(
+                f"frames are {color.shape[1]}x{color.shape[0]} but the intrinsics are for "
+                f"{k.width}x{k.height} (set width/height or fix the intrinsics)"
+            )
         return color
 
     def _output_size(self, width: int, height: int) -> tuple[int, int] | None:

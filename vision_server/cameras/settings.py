@@ -197,6 +197,8 @@ class OpenCVCameraSettings:
     ``read_timeout_s``: open/read timeout given to the backend for streams, and the age beyond
     which the newest frame of a live source counts as stalled.
     ``loop_file``: a video file starts again at its end (else the camera ends there).
+    ``intrinsics``: frames of another size than the intrinsics' are refused (the camera is
+    down with that cause), since measuring with them would be silently wrong.
     """
 
     device: int | str

@@ -58,6 +58,12 @@ class SimCamera(Camera):
         except KeyError as exc:
             raise ValueError(f"camera {name!r}: {exc.args[0]} in scene {self.scene_path}") from exc
         intrinsics = settings.intrinsics or Intrinsics.from_geometry(spec.intrinsics)
+        size = (spec.intrinsics.width, spec.intrinsics.height)
+        if (intrinsics.width, intrinsics.height) != size:
+            raise ValueError(
+                f"camera {name!r}: intrinsics are for {intrinsics.width}x{intrinsics.height} "
+                f"but the scene camera {settings.camera!r} renders {size[0]}x{size[1]}"
+            )
         super().__init__(name, intrinsics=intrinsics, has_depth=spec.depth is not None)
         self._cell = cell
         self._lock = threading.Lock()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from protocol import CameraUnavailable
-from vision_server.cameras import FolderCamera, FolderCameraSettings, make_camera
+from vision_server.cameras import FolderCamera, FolderCameraSettings, Intrinsics, make_camera
 from vision_server.cameras.folder import natural_key
 
 T = 1.0
@@ -183,6 +183,15 @@ def test_depth_count_mismatch_and_bad_depth(tmp_path: Path) -> None:
     write_depth(tmp_path / "f" / "d" / "c1.png", 500, size=(4, 3))
     camera = folder_camera(tmp_path, path=tmp_path / "f", depth_glob="d/*.png")
     with pytest.raises(CameraUnavailable, match="differs from the colour image"):
+        camera.grab(timeout_s=T)
+
+
+def test_images_that_do_not_fit_the_intrinsics_are_refused(tmp_path: Path) -> None:
+    write_gray(tmp_path / "a.png", 1, size=(8, 6))
+    intrinsics = Intrinsics(16, 12, 20.0, 20.0, 7.5, 5.5)
+    camera = folder_camera(tmp_path, path=tmp_path, intrinsics=intrinsics)
+    assert camera.intrinsics == intrinsics
+    with pytest.raises(CameraUnavailable, match=r"a\.png: the image is 8x6 .* for 16x12"):
         camera.grab(timeout_s=T)
 
 

@@ -11,7 +11,13 @@ import numpy as np
 import pytest
 
 from protocol import CameraUnavailable
-from vision_server.cameras import CameraFrame, OpenCVCamera, OpenCVCameraSettings, make_camera
+from vision_server.cameras import (
+    CameraFrame,
+    Intrinsics,
+    OpenCVCamera,
+    OpenCVCameraSettings,
+    make_camera,
+)
 from vision_server.cameras.base import color_image
 from vision_server.cameras.opencv import source_kind
 
@@ -139,6 +145,24 @@ def test_requested_resolution_is_delivered(video: Path, opened: list[OpenCVCamer
     # One of the two keeps the aspect ratio.
     width_only = open_camera(opened, OpenCVCameraSettings(str(video), width=320), video.parent)
     assert width_only.grab(timeout_s=GRAB_TIMEOUT_S).color.shape == (240, 320, 3)
+
+
+def test_frames_that_do_not_fit_the_intrinsics_are_refused(
+    video: Path, opened: list[OpenCVCamera]
+) -> None:
+    intrinsics = Intrinsics(320, 240, 300.0, 300.0, 159.5, 119.5)
+    camera = open_camera(
+        opened, OpenCVCameraSettings(str(video), intrinsics=intrinsics), video.parent
+    )
+    wait_for(lambda: camera.status()["state"] == "down")
+    with pytest.raises(CameraUnavailable, match="160x120 but the intrinsics are for 320x240"):
+        camera.grab(timeout_s=GRAB_TIMEOUT_S)
+    scaled = open_camera(
+        opened,
+        OpenCVCameraSettings(str(video), width=320, height=240, intrinsics=intrinsics),
+        video.parent,
+    )
+    assert scaled.grab(timeout_s=GRAB_TIMEOUT_S).color.shape == (240, 320, 3)
 
 
 def test_file_plays_at_fps_setting_and_ends_without_loop(

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from simulation import SimCell
-from vision_server.cameras import SimCamera, SimCameraSettings, make_camera
+from vision_server.cameras import Intrinsics, SimCamera, SimCameraSettings, make_camera
 
 REPO = Path(__file__).resolve().parents[3]
 EXAMPLE_SCENE = REPO / "examples" / "scenes" / "grundfos_cell.yaml"
@@ -148,5 +148,8 @@ def test_concurrent_grabs_are_serialised(scene: Path) -> None:
 def test_bad_scene_or_camera_is_a_configuration_error(scene: Path, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="no camera named 'nope'"):
         make_camera("sim", SimCameraSettings(scene, "nope"), base_dir=tmp_path)
+    wrong = Intrinsics(320, 240, 300.0, 300.0, 159.5, 119.5)
+    with pytest.raises(ValueError, match="renders 160x120"):
+        make_camera("sim", SimCameraSettings(scene, "top", intrinsics=wrong), base_dir=tmp_path)
     with pytest.raises(ValueError, match="cannot load scene"):
         make_camera("sim", SimCameraSettings(Path("missing.yaml"), "top"), base_dir=tmp_path)
