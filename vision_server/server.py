@@ -36,6 +36,7 @@ from protocol import (
     DeadlineExceeded,
     Error,
     Hello,
+    ImageEncoding,
     ImagePayload,
     ImageRole,
     Inspect,
@@ -273,7 +274,7 @@ class VisionServer:
                 request_id=request.request_id,
             )
 
-        def work() -> tuple[InspectionOutcome, float]:
+        def work() -> tuple[InspectionOutcome, float, tuple[ImagePayload, ...]]:
             image = _decode_input(
                 request.images,
                 request.request_id,
@@ -283,18 +284,20 @@ class VisionServer:
             )
             t0 = time.perf_counter()
             outcome = inspection.run(image, overlay=request.overlay)
-            return outcome, (time.perf_counter() - t0) * 1000.0
+            compute_ms = (time.perf_counter() - t0) * 1000.0
+            images: tuple[ImagePayload, ...] = ()
+            if request.overlay and outcome.overlay is not None:
+                # PNG encoding is CPU work too: here, not on the event loop of every connection.
+                images = (
+                    payload_from_array(
+                        outcome.overlay, role=ImageRole.OVERLAY, encoding=ImageEncoding.PNG
+                    ),
+                )
+            return outcome, compute_ms, images
 
-        outcome, compute_ms = await self._in_pool(work, request.request_id, request.deadline_ms)
-        images: tuple[ImagePayload, ...] = ()
-        if request.overlay and outcome.overlay is not None:
-            from protocol import ImageEncoding
-
-            images = (
-                payload_from_array(
-                    outcome.overlay, role=ImageRole.OVERLAY, encoding=ImageEncoding.PNG
-                ),
-            )
+        outcome, compute_ms, images = await self._in_pool(
+            work, request.request_id, request.deadline_ms
+        )
         total_ms = (time.perf_counter() - started) * 1000.0
         result = Result(
             request.request_id,
