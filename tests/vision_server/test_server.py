@@ -40,6 +40,7 @@ from protocol.conformance import Target
 from protocol.conformance.peer import CLOSED, Peer
 from robot_client.client import ReconnectPolicy, VisionClient
 from robot_client.errors import ConnectionLost
+from vision_server import server as server_module
 from vision_server.builtin import MeanIntensityPresence, builtin_catalog
 from vision_server.catalog import CameraInfo, Catalog, InspectionInput, InspectionOutcome
 from vision_server.server import ResultRecord, ServerSettings, VisionServer
@@ -309,6 +310,30 @@ def test_capture_errors() -> None:
                 await client.capture("nope")
             with pytest.raises(CameraUnavailable):
                 await client.capture("fixed")
+
+    run(body())
+
+
+def test_overlays_are_encoded_in_the_worker_pool(monkeypatch: pytest.MonkeyPatch) -> None:
+    encoded_in: list[str] = []
+
+    def recording(*args: Any, **kwargs: Any) -> Any:
+        encoded_in.append(threading.current_thread().name)
+        return payload_from_array(*args, **kwargs)
+
+    monkeypatch.setattr(server_module, "payload_from_array", recording)
+
+    async def body() -> None:
+        async with (
+            VisionServer(builtin_catalog(), ServerSettings(port=0)) as server,
+            client_for(server) as client,
+        ):
+            result = await client.inspect("brightness", GRAY, overlay=True)
+            assert len(result.images) == 1
+            # CPU work on the event loop would stall every connection meanwhile.
+            assert encoded_in
+            assert threading.current_thread().name not in encoded_in
+            assert all(name.startswith("inspect") for name in encoded_in)
 
     run(body())
 
