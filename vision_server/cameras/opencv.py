@@ -248,6 +248,18 @@ class OpenCVCamera(Camera):
 
     def _run(self) -> None:
         while not self._stop.is_set():
+            try:
+                self._read_until_finished()
+                return
+            except Exception as exc:  # a bug must not kill the reader and leave it "up"
+                log.exception("camera %r: reader failed", self.name)
+                self._mark_down(f"internal error in the reader: {exc!r}")
+                if self._stop.wait(self.settings.reconnect_interval_s):
+                    return
+
+    def _read_until_finished(self) -> None:
+        """Open, read, reopen after failures, until the file ends or the camera closes."""
+        while not self._stop.is_set():
             cap, error = self._open_capture()
             if cap is None:
                 self._mark_down(error or "cannot open")

@@ -160,3 +160,24 @@ def test_a_hanging_driver_is_reported_as_stalled(camera: OpenCVCamera, device: F
     frame = eventually(lambda: camera.grab(timeout_s=5.0))
     assert frame.color.shape == (30, 40, 3)
     assert camera.status()["stalled"] is False
+
+
+def test_a_bug_in_the_reader_marks_the_camera_down_and_it_recovers(
+    camera: OpenCVCamera, device: FakeDevice, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    camera.grab(timeout_s=5.0)
+    original = camera._convert
+    broken = threading.Event()
+    broken.set()
+
+    def convert(image: Any) -> Any:
+        if broken.is_set():
+            raise RuntimeError("boom")
+        return original(image)
+
+    monkeypatch.setattr(camera, "_convert", convert)
+    assert "internal error in the reader" in first_failure(camera, timeout_s=5.0).message
+    broken.clear()
+    frame = eventually(lambda: camera.grab(timeout_s=5.0))
+    assert frame.color.shape == (30, 40, 3)
+    assert camera.status()["reconnects"] >= 1
