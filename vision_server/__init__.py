@@ -4,7 +4,7 @@ Public API:
 
 - :class:`VisionServer` (``start``, ``serve_forever``, ``stop``, ``replace_catalog``, ``port``),
   :class:`ServerSettings`.
-- :class:`Catalog`, :class:`CameraInfo`, :class:`Inspection` (the protocol an inspection
+- :class:`Catalog`, :class:`Inspection` (the protocol an inspection
   implements), :class:`InspectionInput`, :class:`InspectionOutcome`.
 - :func:`builtin_catalog`: what ``vision-server serve`` offers without a configuration file.
 
@@ -12,11 +12,10 @@ The command line is ``vision-server`` (:mod:`vision_server.cli`).
 """
 
 from .builtin import builtin_catalog
-from .catalog import CameraInfo, Catalog, Inspection, InspectionInput, InspectionOutcome
+from .catalog import Catalog, Inspection, InspectionInput, InspectionOutcome
 from .server import ServerSettings, VisionServer
 
 __all__ = [
-    "CameraInfo",
     "Catalog",
     "Inspection",
     "InspectionInput",

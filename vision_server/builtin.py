@@ -7,7 +7,8 @@ from dataclasses import dataclass
 
 import cv2
 
-from .catalog import CameraInfo, Catalog, InspectionInput, InspectionOutcome
+from .cameras import RequestCamera, RequestCameraSettings
+from .catalog import Catalog, InspectionInput, InspectionOutcome
 
 
 @dataclass(frozen=True)
@@ -18,6 +19,7 @@ class MeanIntensityPresence:
     camera: str = "tool"
     low: float = 0.0
     high: float = 255.0
+    frames: int = 1
 
     @property
     def type(self) -> str:
@@ -45,6 +47,6 @@ class MeanIntensityPresence:
 
 def builtin_catalog() -> Catalog:
     return Catalog.build(
-        [CameraInfo("tool", "request")],
+        [RequestCamera("tool", RequestCameraSettings())],
         [MeanIntensityPresence("brightness", "tool", 64.0, 255.0)],
     )

@@ -16,6 +16,8 @@ import numpy.typing as npt
 
 from protocol import UnknownCamera, UnknownInspection
 
+from .cameras import Camera
+
 Image = npt.NDArray[Any]
 
 
@@ -41,7 +43,10 @@ class InspectionOutcome:
 
 
 class Inspection(Protocol):
-    """A named, configured inspection. ``run`` is CPU-bound and runs in a worker thread."""
+    """A named, configured inspection. ``run`` is CPU-bound and runs in a worker thread.
+
+    ``frames``: how many frames a server camera captures for one run (depth averaging).
+    """
 
     @property
     def name(self) -> str: ...
@@ -55,40 +60,22 @@ class Inspection(Protocol):
     @property
     def uses_depth(self) -> bool: ...
 
+    @property
+    def frames(self) -> int: ...
+
     def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome: ...
 
 
 @dataclass(frozen=True)
-class CameraInfo:
-    """A camera as the catalog knows it: its name, its source kind, whether it gives depth."""
-
-    name: str
-    source: str
-    depth: bool = False
-    intrinsics: Mapping[str, Any] | None = None
-
-    @property
-    def from_request(self) -> bool:
-        """True for a camera whose images arrive in the request (on the robot's tool)."""
-        return self.source == "request"
-
-    def descriptor(self) -> dict[str, Any]:
-        desc: dict[str, Any] = {"name": self.name, "source": self.source, "depth": self.depth}
-        if self.intrinsics is not None:
-            desc["intrinsics"] = dict(self.intrinsics)
-        return desc
-
-
-@dataclass(frozen=True)
 class Catalog:
-    cameras: Mapping[str, CameraInfo]
+    cameras: Mapping[str, Camera]
     inspections: Mapping[str, Inspection]
     config_hash: str = ""
 
     @classmethod
     def build(
         cls,
-        cameras: Sequence[CameraInfo],
+        cameras: Sequence[Camera],
         inspections: Sequence[Inspection],
         *,
         config_hash: str | None = None,
@@ -121,7 +108,7 @@ class Catalog:
                 request_id=request_id,
             ) from None
 
-    def camera(self, name: str, *, request_id: int = 0) -> CameraInfo:
+    def camera(self, name: str, *, request_id: int = 0) -> Camera:
         try:
             return self.cameras[name]
         except KeyError:

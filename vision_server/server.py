@@ -20,14 +20,13 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from protocol import (
     DEFAULT_PORT,
     NEED_DATA,
     BadImage,
     Busy,
-    CameraUnavailable,
     Capture,
     CellvisionError,
     Close,
@@ -35,6 +34,7 @@ from protocol import (
     ConnectionClosed,
     DeadlineExceeded,
     Error,
+    Frames,
     Hello,
     ImageEncoding,
     ImagePayload,
@@ -63,13 +63,16 @@ from protocol import (
 )
 from protocol.constants import SUPPORTED_VERSIONS
 
-from .catalog import Catalog, InspectionInput, InspectionOutcome
+from .cameras import Camera, CameraFrame
+from .catalog import Catalog, Image, InspectionInput, InspectionOutcome
+from .results import ResultEntry, ResultLog
 
 __version__ = "0.1.0"
 log = logging.getLogger("vision_server")
 _T = TypeVar("_T")
 
 READ_CHUNK = 256 * 1024
+MAX_CAPTURE_FRAMES = 64
 REFUSE_HELLO_TIMEOUT_S = 2.0
 """How long a refused connection may take to send its HELLO before it is closed anyway."""
 
@@ -94,6 +97,10 @@ class ServerSettings:
     shutdown_grace_s: float = 5.0
     tls_cert: str | None = None
     tls_key: str | None = None
+    capture_timeout_s: float = 5.0
+    """How long a server camera may take for the frames of one request (without a deadline)."""
+    allow_reload: bool = True
+    """Whether a client may ask for a configuration reload (RELOAD)."""
 
     def limits(self) -> Limits:
         return Limits(max_frame_bytes=self.max_frame_bytes, max_image_pixels=self.max_image_pixels)
@@ -147,9 +154,19 @@ class VisionServer:
     connections stay open.
     """
 
-    def __init__(self, catalog: Catalog, settings: ServerSettings | None = None) -> None:
+    def __init__(
+        self,
+        catalog: Catalog,
+        settings: ServerSettings | None = None,
+        *,
+        results: ResultLog | None = None,
+        reloader: Callable[[], Catalog] | None = None,
+    ) -> None:
         self.settings = settings or ServerSettings()
         self.catalog = catalog
+        self.results = results
+        self.reloader = reloader
+        """Builds the catalog of a re-read configuration (raises ConfigError when invalid)."""
         self._pool = WorkPool(self.settings.workers, self.settings.queue_depth)
         self._server: asyncio.Server | None = None
         self._connections: set[_ClientSession] = set()
@@ -256,35 +273,78 @@ class VisionServer:
 
     # ------------------------------------------------------------------ request work
 
-    async def run_inspection(self, request: Inspect) -> Result:
-        """Decode the images, run the named inspection in the pool, build the RESULT."""
+    async def run_inspection(self, request: Inspect, *, peer: str = "") -> Result:
+        """Get the images (from the request or the camera), run the named inspection in the
+        pool, record it in the result log, build the RESULT."""
         started = time.perf_counter()
         catalog = self.catalog
-        inspection = catalog.inspection(request.inspection, request_id=request.request_id)
-        camera = catalog.camera(inspection.camera, request_id=request.request_id)
-        if not camera.from_request:
-            raise CameraUnavailable(
-                f"camera {camera.name!r} ({camera.source}) cannot capture in this server build",
-                request_id=request.request_id,
-            )
-        if not request.images:
-            raise BadImage(
-                f"inspection {inspection.name!r} uses camera {camera.name!r}, whose images "
-                "arrive in the request, and the request has none",
-                request_id=request.request_id,
-            )
+        rid = request.request_id
+        inspection = catalog.inspection(request.inspection, request_id=rid)
+        camera = catalog.camera(inspection.camera, request_id=rid)
+        acquire: Callable[[], InspectionInput]
+        if camera.source == "request":
+            if not request.images:
+                raise BadImage(
+                    f"inspection {inspection.name!r} uses camera {camera.name!r}, whose images "
+                    "arrive in the request, and the request has none",
+                    request_id=rid,
+                )
+
+            def acquire() -> InspectionInput:
+                return _decode_input(
+                    request.images,
+                    rid,
+                    inspection.uses_depth,
+                    inspection.name,
+                    self.settings.max_image_pixels,
+                )
+
+        else:
+            if request.images:
+                raise InvalidArgument(
+                    f"inspection {inspection.name!r} takes its images from the server camera "
+                    f"{camera.name!r}; the request must not carry images",
+                    request_id=rid,
+                )
+            timeout_s = self._capture_timeout(request.deadline_ms)
+
+            def acquire() -> InspectionInput:
+                frames = _grab(camera, inspection.frames, timeout_s, rid)
+                depth = tuple(f.depth for f in frames if f.depth is not None)
+                return InspectionInput(frames[0].color, depth if inspection.uses_depth else ())
 
         def work() -> tuple[InspectionOutcome, float, tuple[ImagePayload, ...]]:
-            image = _decode_input(
-                request.images,
-                request.request_id,
-                inspection.uses_depth,
-                inspection.name,
-                self.settings.max_image_pixels,
-            )
+            image = acquire()
             t0 = time.perf_counter()
-            outcome = inspection.run(image, overlay=request.overlay)
+            try:
+                outcome = inspection.run(image, overlay=request.overlay)
+            except CellvisionError as exc:
+                exc.request_id = rid
+                self._record(
+                    inspection.name,
+                    camera.name,
+                    False,
+                    {},
+                    t0,
+                    catalog,
+                    rid,
+                    peer,
+                    image.color,
+                    error=f"{exc.code.name}: {exc.message}",
+                )
+                raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
+            self._record(
+                inspection.name,
+                camera.name,
+                outcome.passed,
+                outcome.data,
+                t0,
+                catalog,
+                rid,
+                peer,
+                image.color,
+            )
             images: tuple[ImagePayload, ...] = ()
             if request.overlay and outcome.overlay is not None:
                 # PNG encoding is CPU work too: here, not on the event loop of every connection.
@@ -295,12 +355,10 @@ class VisionServer:
                 )
             return outcome, compute_ms, images
 
-        outcome, compute_ms, images = await self._in_pool(
-            work, request.request_id, request.deadline_ms
-        )
+        outcome, compute_ms, images = await self._in_pool(work, rid, request.deadline_ms)
         total_ms = (time.perf_counter() - started) * 1000.0
         result = Result(
-            request.request_id,
+            rid,
             inspection.name,
             outcome.passed,
             outcome.data,
@@ -313,18 +371,99 @@ class VisionServer:
             self.on_result(ResultRecord(result, request, compute_ms))
         return result
 
-    async def run_capture(self, request: Capture) -> Message:
-        """CAPTURE from a server camera."""
-        camera = self.catalog.camera(request.camera, request_id=request.request_id)
-        if camera.from_request:
+    def _record(
+        self,
+        inspection: str,
+        camera: str,
+        passed: bool,
+        data: dict[str, Any],
+        t0: float,
+        catalog: Catalog,
+        request_id: int,
+        peer: str,
+        image: Image,
+        *,
+        error: str | None = None,
+    ) -> None:
+        """Log one run before its answer is sent, so that an acknowledged result is on disk.
+        The log never raises: a full disk is counted and logged, the answer still goes out."""
+        if self.results is None:
+            return
+        self.results.record(
+            ResultEntry(
+                time=time.time(),
+                inspection=inspection,
+                camera=camera,
+                passed=passed,
+                data=data,
+                duration_ms=(time.perf_counter() - t0) * 1000.0,
+                config_hash=catalog.config_hash,
+                request_id=request_id,
+                peer=peer,
+                image=image,
+                error=error,
+            )
+        )
+
+    def _capture_timeout(self, deadline_ms: float | None) -> float:
+        if deadline_ms is None:
+            return self.settings.capture_timeout_s
+        return min(self.settings.capture_timeout_s, deadline_ms / 1000.0)
+
+    async def run_capture(self, request: Capture) -> Frames:
+        """CAPTURE: ``count`` distinct frames from a server camera."""
+        rid = request.request_id
+        camera = self.catalog.camera(request.camera, request_id=rid)
+        if camera.source == "request":
             raise InvalidArgument(
                 f"camera {camera.name!r} gets its images from the request: it cannot capture",
-                request_id=request.request_id,
+                request_id=rid,
             )
-        raise CameraUnavailable(
-            f"camera {camera.name!r} ({camera.source}) cannot capture in this server build",
-            request_id=request.request_id,
-        )
+        if request.count > MAX_CAPTURE_FRAMES:
+            raise InvalidArgument(
+                f"count {request.count} is above the limit of {MAX_CAPTURE_FRAMES} frames",
+                request_id=rid,
+            )
+        if request.depth and not camera.has_depth:
+            raise InvalidArgument(f"camera {camera.name!r} has no depth", request_id=rid)
+        encoding = None
+        if request.encoding is not None:
+            try:
+                encoding = ImageEncoding(request.encoding)
+            except ValueError:
+                encoding = None
+            if encoding not in (ImageEncoding.PNG, ImageEncoding.JPEG, None):
+                encoding = None
+            if encoding is None:
+                raise InvalidArgument(
+                    f"encoding {request.encoding!r}: CAPTURE takes 'png' or 'jpeg' "
+                    "(or nothing, for raw frames)",
+                    request_id=rid,
+                )
+        timeout_s = self._capture_timeout(request.deadline_ms)
+
+        def work() -> tuple[list[ImagePayload], list[float]]:
+            frames = _grab(camera, request.count, timeout_s, rid)
+            payloads: list[ImagePayload] = []
+            for frame in frames:
+                payloads.append(payload_from_array(frame.color, encoding=encoding))
+                if request.depth and frame.depth is not None:
+                    payloads.append(payload_from_array(frame.depth, role=ImageRole.DEPTH))
+            return payloads, [f.timestamp for f in frames]
+
+        payloads, stamps = await self._in_pool(work, rid, request.deadline_ms)
+        intrinsics = None if camera.intrinsics is None else camera.intrinsics.to_dict()
+        return Frames(rid, camera.name, tuple(payloads), tuple(stamps), intrinsics)
+
+    def reload(self) -> Catalog:
+        """Re-read the configuration through ``reloader`` and serve new requests with it.
+        Raises whatever the reloader raises (the old catalog stays)."""
+        if self.reloader is None:
+            raise InvalidArgument("this server was started without a configuration file")
+        catalog = self.reloader()
+        self.replace_catalog(catalog)
+        log.info("configuration reloaded (config hash %s)", catalog.config_hash)
+        return catalog
 
     async def _in_pool(
         self, fn: Callable[[], _T], request_id: int, deadline_ms: float | None
@@ -345,6 +484,14 @@ class VisionServer:
                 f"not done within the request's deadline of {deadline_ms:g} ms",
                 request_id=request_id,
             ) from None
+
+
+def _grab(camera: Camera, count: int, timeout_s: float, request_id: int) -> list[CameraFrame]:
+    try:
+        return camera.grab_many(count, timeout_s=timeout_s)
+    except CellvisionError as exc:
+        exc.request_id = request_id
+        raise
 
 
 @dataclass(frozen=True)
@@ -577,7 +724,7 @@ class _ClientSession:
     async def _answer(self, request: Inspect | Capture) -> None:
         try:
             if isinstance(request, Inspect):
-                response: Message = await self.server.run_inspection(request)
+                response: Message = await self.server.run_inspection(request, peer=self.peer)
             else:
                 response = await self.server.run_capture(request)
         except CellvisionError as exc:

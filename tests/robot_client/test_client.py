@@ -50,7 +50,11 @@ from robot_client.client import (
 )
 from robot_client.errors import ClientClosed, ConnectionLost, RequestTimeout
 from vision_server.builtin import MeanIntensityPresence, builtin_catalog
-from vision_server.catalog import CameraInfo, Catalog, InspectionInput, InspectionOutcome
+from vision_server.cameras import (
+    RequestCamera,
+    RequestCameraSettings,
+)
+from vision_server.catalog import Catalog, InspectionInput, InspectionOutcome
 from vision_server.server import ServerSettings, VisionServer
 
 T = TypeVar("T")
@@ -84,6 +88,7 @@ class Gate:
     camera: str = "tool"
     type: str = "presence"
     uses_depth: bool = False
+    frames: int = 1
     release: threading.Event = field(default_factory=threading.Event)
     entered: int = 0
     finished: int = 0
@@ -108,6 +113,7 @@ class Counting:
     camera: str = "tool"
     type: str = "presence"
     uses_depth: bool = False
+    frames: int = 1
     runs: int = 0
 
     def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
@@ -117,7 +123,7 @@ class Counting:
 
 def make_catalog(*extra: Any) -> Catalog:
     return Catalog.build(
-        [CameraInfo("tool", "request")],
+        [RequestCamera("tool", RequestCameraSettings())],
         [MeanIntensityPresence("brightness", "tool", 64.0, 255.0), *extra],
     )
 
@@ -505,18 +511,19 @@ def test_requests_crossing_the_servers_close_fail_as_shutting_down() -> None:
 
 CRASHING_SERVER = """
 import asyncio, sys, threading
-from vision_server.catalog import CameraInfo, Catalog, InspectionOutcome
+from vision_server.cameras import RequestCamera, RequestCameraSettings
+from vision_server.catalog import Catalog, InspectionOutcome
 from vision_server.server import ServerSettings, VisionServer
 
 class Stall:
-    name, type, camera, uses_depth = "stall", "presence", "tool", False
+    name, type, camera, uses_depth, frames = "stall", "presence", "tool", False, 1
 
     def run(self, image, *, overlay):
         print("started", flush=True)
         threading.Event().wait()  # until the test kills this process
 
 async def main():
-    catalog = Catalog.build([CameraInfo("tool", "request")], [Stall()])
+    catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [Stall()])
     server = VisionServer(catalog, ServerSettings(port=0))
     await server.start()
     print(server.port, flush=True)

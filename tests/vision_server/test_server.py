@@ -14,6 +14,7 @@ import socket
 import threading
 from collections.abc import Callable, Coroutine, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
@@ -42,7 +43,13 @@ from robot_client.client import ReconnectPolicy, VisionClient
 from robot_client.errors import ConnectionLost
 from vision_server import server as server_module
 from vision_server.builtin import MeanIntensityPresence, builtin_catalog
-from vision_server.catalog import CameraInfo, Catalog, InspectionInput, InspectionOutcome
+from vision_server.cameras import (
+    FolderCamera,
+    FolderCameraSettings,
+    RequestCamera,
+    RequestCameraSettings,
+)
+from vision_server.catalog import Catalog, InspectionInput, InspectionOutcome
 from vision_server.server import ResultRecord, ServerSettings, VisionServer
 
 T = TypeVar("T")
@@ -75,6 +82,7 @@ class Gate:
     camera: str = "tool"
     type: str = "presence"
     uses_depth: bool = False
+    frames: int = 1
     release: threading.Event = field(default_factory=threading.Event)
     entered: int = 0
     _lock: threading.Lock = field(default_factory=threading.Lock)
@@ -93,6 +101,7 @@ class Raises:
     camera: str = "tool"
     type: str = "presence"
     uses_depth: bool = False
+    frames: int = 1
 
     def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
         raise ZeroDivisionError("a bug in the inspection")
@@ -106,6 +115,7 @@ class NumpyData:
     camera: str = "tool"
     type: str = "presence"
     uses_depth: bool = False
+    frames: int = 1
 
     def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
         return InspectionOutcome(True, {"count": np.int64(3), "score": float("nan")})
@@ -113,7 +123,12 @@ class NumpyData:
 
 def make_catalog(*extra: Any) -> Catalog:
     return Catalog.build(
-        [CameraInfo("tool", "request"), CameraInfo("fixed", "simulated")],
+        [
+            RequestCamera("tool", RequestCameraSettings()),
+            FolderCamera(
+                "fixed", FolderCameraSettings(Path("no-such-folder")), base_dir=Path("/nonexistent")
+            ),
+        ],
         [MeanIntensityPresence("brightness", "tool", 64.0, 255.0), *extra],
     )
 
