@@ -6,7 +6,7 @@ Public API:
   :func:`negotiate_version`): the state machine; bytes in, messages out.
 - Messages: :class:`Hello`, :class:`Welcome`, :class:`Ping`, :class:`Pong`, :class:`Close`,
   :class:`ListInspections`, :class:`Inspections`, :class:`Inspect`, :class:`Result`,
-  :class:`Capture`, :class:`Frames`, :class:`Error`.
+  :class:`Capture`, :class:`Frames`, :class:`Reload`, :class:`Reloaded`, :class:`Error`.
 - Framing: :class:`Frame`, :class:`FrameDecoder`, :class:`Limits`.
 - Images: :class:`ImagePayload`, :func:`payload_from_array`, :func:`array_from_payload`,
   :class:`ImageEncoding`, :class:`ImageRole`.
@@ -48,6 +48,7 @@ from .errors import (
     Busy,
     CameraUnavailable,
     CellvisionError,
+    ConfigInvalid,
     DeadlineExceeded,
     DuplicateRequestId,
     ErrorCode,
@@ -83,6 +84,8 @@ from .messages import (
     Message,
     Ping,
     Pong,
+    Reload,
+    Reloaded,
     Result,
     Welcome,
 )
@@ -108,6 +111,7 @@ __all__ = [
     "Capture",
     "CellvisionError",
     "Close",
+    "ConfigInvalid",
     "Connection",
     "ConnectionClosed",
     "DeadlineExceeded",
@@ -138,6 +142,8 @@ __all__ = [
     "NotAuthenticated",
     "Ping",
     "Pong",
+    "Reload",
+    "Reloaded",
     "Result",
     "Role",
     "ShuttingDown",

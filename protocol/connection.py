@@ -69,7 +69,7 @@ S, R = Direction.SEND, Direction.RECEIVE
 C, V = Role.CLIENT, Role.SERVER
 T = MessageType
 
-REQUESTS = frozenset({T.HELLO, T.PING, T.LIST_INSPECTIONS, T.INSPECT, T.CAPTURE})
+REQUESTS = frozenset({T.HELLO, T.PING, T.LIST_INSPECTIONS, T.INSPECT, T.CAPTURE, T.RELOAD})
 """Client → server messages that are answered by a response with the same request id."""
 
 RESPONSES: dict[MessageType, frozenset[MessageType]] = {
@@ -78,11 +78,12 @@ RESPONSES: dict[MessageType, frozenset[MessageType]] = {
     T.LIST_INSPECTIONS: frozenset({T.INSPECTIONS, T.ERROR}),
     T.INSPECT: frozenset({T.RESULT, T.ERROR}),
     T.CAPTURE: frozenset({T.FRAMES, T.ERROR}),
+    T.RELOAD: frozenset({T.RELOADED, T.ERROR}),
 }
 """The message types that may answer each request type."""
 
-_OPEN_REQUESTS = (T.PING, T.LIST_INSPECTIONS, T.INSPECT, T.CAPTURE)
-_OPEN_RESPONSES = (T.PONG, T.INSPECTIONS, T.RESULT, T.FRAMES, T.ERROR)
+_OPEN_REQUESTS = (T.PING, T.LIST_INSPECTIONS, T.INSPECT, T.CAPTURE, T.RELOAD)
+_OPEN_RESPONSES = (T.PONG, T.INSPECTIONS, T.RESULT, T.FRAMES, T.RELOADED, T.ERROR)
 
 TRANSITIONS: dict[tuple[Role, State, Direction, MessageType], State] = {
     # client handshake

@@ -45,6 +45,8 @@ class MessageType(IntEnum):
     RESULT = 0x0021
     CAPTURE = 0x0030
     FRAMES = 0x0031
+    RELOAD = 0x0040
+    RELOADED = 0x0041
     ERROR = 0x00FF
 
 

@@ -34,6 +34,7 @@ class ErrorCode(IntEnum):
     CAMERA_UNAVAILABLE = 14
     INSPECTION_FAILED = 15
     INVALID_ARGUMENT = 16
+    CONFIG_INVALID = 17
     BUSY = 20
     DEADLINE_EXCEEDED = 21
     SHUTTING_DOWN = 22
@@ -76,6 +77,9 @@ ERROR_TABLE: dict[ErrorCode, ErrorInfo] = {
         False, "the inspection could not be computed on this input"
     ),
     ErrorCode.INVALID_ARGUMENT: ErrorInfo(False, "a request parameter out of range"),
+    ErrorCode.CONFIG_INVALID: ErrorInfo(
+        False, "the re-read configuration is invalid; the server keeps the old one"
+    ),
     ErrorCode.BUSY: ErrorInfo(False, "over capacity: try again later"),
     ErrorCode.DEADLINE_EXCEEDED: ErrorInfo(
         False, "the request's deadline passed before it was done"
@@ -183,6 +187,10 @@ class InvalidArgument(CellvisionError):
     code = ErrorCode.INVALID_ARGUMENT
 
 
+class ConfigInvalid(CellvisionError):
+    code = ErrorCode.CONFIG_INVALID
+
+
 class Busy(CellvisionError):
     code = ErrorCode.BUSY
 
@@ -229,6 +237,7 @@ ERROR_CLASSES: dict[ErrorCode, type[CellvisionError]] = {
         CameraUnavailable,
         InspectionFailed,
         InvalidArgument,
+        ConfigInvalid,
         Busy,
         DeadlineExceeded,
         ShuttingDown,

@@ -512,6 +512,44 @@ class Frames(Message):
 
 
 @dataclass(frozen=True)
+class Reload(Message):
+    """Administration: re-read the server's configuration file (SPEC §6.5)."""
+
+    TYPE: ClassVar[MessageType] = MessageType.RELOAD
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Reload:
+        return cls(frame.request_id)
+
+
+@dataclass(frozen=True)
+class Reloaded(Message):
+    """The answer to RELOAD: the new configuration's hash and what it now offers."""
+
+    TYPE: ClassVar[MessageType] = MessageType.RELOADED
+    config_hash: str = ""
+    inspections: tuple[dict[str, Any], ...] = ()
+    cameras: tuple[dict[str, Any], ...] = ()
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+        return {
+            "config_hash": self.config_hash,
+            "inspections": list(self.inspections),
+            "cameras": list(self.cameras),
+        }, ()
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Reloaded:
+        m, rid = frame.metadata, frame.request_id
+        return cls(
+            rid,
+            _get(m, "config_hash", str, rid, default=""),
+            tuple(_descriptors(m, "inspections", rid)),
+            tuple(_descriptors(m, "cameras", rid)),
+        )
+
+
+@dataclass(frozen=True)
 class Error(Message):
     """An error answering the request ``request_id`` (0: about the connection itself)."""
 
@@ -585,6 +623,8 @@ MESSAGE_CLASSES: dict[MessageType, type[Message]] = {
         Result,
         Capture,
         Frames,
+        Reload,
+        Reloaded,
         Error,
     )
 }

@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from protocol import UnknownCamera, UnknownInspection
 
-from .cameras import Camera
+from .cameras import Camera, Intrinsics
 
 Image = npt.NDArray[Any]
 
@@ -26,11 +26,12 @@ class InspectionInput:
     """The images one inspection run gets.
 
     ``color``: (H, W) or (H, W, 3) uint8 (BGR); ``depth``: zero or more (H, W) uint16 frames in
-    millimetres, registered to ``color``.
+    millimetres, registered to ``color``; ``intrinsics``: the camera's, when known.
     """
 
     color: Image
     depth: tuple[Image, ...] = ()
+    intrinsics: Intrinsics | None = None
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ from protocol import (
     Capture,
     CellvisionError,
     Close,
+    ConfigInvalid,
     Connection,
     ConnectionClosed,
     DeadlineExceeded,
@@ -50,6 +51,8 @@ from protocol import (
     NotAuthenticated,
     Ping,
     Pong,
+    Reload,
+    Reloaded,
     Result,
     Role,
     ShuttingDown,
@@ -291,13 +294,14 @@ class VisionServer:
                 )
 
             def acquire() -> InspectionInput:
-                return _decode_input(
+                decoded = _decode_input(
                     request.images,
                     rid,
                     inspection.uses_depth,
                     inspection.name,
                     self.settings.max_image_pixels,
                 )
+                return InspectionInput(decoded.color, decoded.depth, camera.intrinsics)
 
         else:
             if request.images:
@@ -311,7 +315,9 @@ class VisionServer:
             def acquire() -> InspectionInput:
                 frames = _grab(camera, inspection.frames, timeout_s, rid)
                 depth = tuple(f.depth for f in frames if f.depth is not None)
-                return InspectionInput(frames[0].color, depth if inspection.uses_depth else ())
+                return InspectionInput(
+                    frames[0].color, depth if inspection.uses_depth else (), camera.intrinsics
+                )
 
         def work() -> tuple[InspectionOutcome, float, tuple[ImagePayload, ...]]:
             image = acquire()
@@ -651,6 +657,11 @@ class _ClientSession:
             return True
         if isinstance(message, Close):
             return False  # the TaskGroup finishes what is in flight, then CLOSE goes out
+        if isinstance(message, Reload):
+            task = group.create_task(self._reload(message))
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+            return True
         if isinstance(message, Inspect | Capture):
             if len(self.conn.pending) > self.server.settings.max_in_flight:
                 self._write(
@@ -751,6 +762,35 @@ class _ClientSession:
                         )
                     )
                 )
+            await self._drain()
+
+    async def _reload(self, request: Reload) -> None:
+        rid = request.request_id
+        response: Message
+        if not self.server.settings.allow_reload or self.server.reloader is None:
+            why = (
+                "this server was started without a configuration file"
+                if self.server.reloader is None
+                else "reload is disabled (allow_reload: false)"
+            )
+            response = Error.from_exception(InvalidArgument(why, request_id=rid))
+        else:
+            try:
+                catalog = await asyncio.to_thread(self.server.reload)
+            except CellvisionError as exc:
+                response = Error.from_exception(exc, request_id=rid)
+            except ValueError as exc:  # ConfigError: the old configuration stays
+                log.error("%s: reload refused, the old configuration stays: %s", self.peer, exc)
+                response = Error.from_exception(ConfigInvalid(str(exc), request_id=rid))
+            else:
+                response = Reloaded(
+                    rid,
+                    catalog.config_hash,
+                    catalog.inspection_descriptors(),
+                    catalog.camera_descriptors(),
+                )
+        if rid in self.conn.pending:
+            self._write(response)
             await self._drain()
 
     async def _shutdown_session(self) -> None:

@@ -31,6 +31,8 @@ from protocol import (
     MessageType,
     Ping,
     Pong,
+    Reload,
+    Reloaded,
     Result,
     Welcome,
     array_from_payload,
@@ -123,6 +125,14 @@ MESSAGES: dict[type[Message], st.SearchStrategy[Message]] = {
         image_lists,
         st.lists(finite, max_size=3).map(tuple),
         st.none() | json_objects,
+    ),
+    Reload: st.builds(Reload, ids),
+    Reloaded: st.builds(
+        Reloaded,
+        ids,
+        texts,
+        st.lists(descriptors, max_size=2).map(tuple),
+        st.lists(descriptors, max_size=2).map(tuple),
     ),
     Error: st.builds(
         Error,
