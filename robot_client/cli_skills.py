@@ -1,0 +1,375 @@
+"""The skill commands of ``robot-client``: teach, run, task run, taught list/show, skills.
+
+Devices come from ``--backend sim`` (the default: the simulated cell of ``--scene``, sharing its
+world with the vision server through ``--state-file``) or ``--backend ur --robot-host HOST``.
+Taught records live in ``--store`` (default ``$CELLVISION_TEACH_STORE`` or ``taught.yaml``);
+calibrated frames are kept between runs in ``--world-file`` (default: beside the store,
+``<store>.world.yaml``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import yaml
+from rich.console import Console
+from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from .address import resolve_server
+from .devices import Devices
+from .devices.vision import LazyVision
+from .skills import Outcome, SkillContext, default_registry, execute
+from .skills import Progress as SkillProgress
+from .skills.world import WorldModel
+from .tasks import OperatorDecision, Step, StepReport, TaskRunner, load_task
+from .teach_store import TeachStore
+
+__all__ = ["add_skill_commands"]
+
+STORE_ENV = "CELLVISION_TEACH_STORE"
+SIM_STATE_ENV = "CELLVISION_SIM_STATE"
+DEFAULT_SCENE = "examples/scenes/grundfos_cell.yaml"
+
+
+def _store(args: argparse.Namespace) -> TeachStore:
+    return TeachStore(args.store or os.environ.get(STORE_ENV) or "taught.yaml")
+
+
+def _world_file(args: argparse.Namespace, store: TeachStore) -> Path:
+    if args.world_file:
+        return Path(args.world_file)
+    return store.path.with_name(store.path.stem + ".world.yaml")
+
+
+def _devices(args: argparse.Namespace) -> Devices:
+    host, port = resolve_server(args.server)
+    vision = LazyVision(
+        host,
+        port,
+        auth_token=args.auth_token,
+        request_timeout_s=args.timeout,
+        connect_timeout_s=args.timeout,
+    )
+    if args.backend == "ur":
+        if not args.robot_host:
+            raise ValueError("--backend ur needs --robot-host HOST")
+        from .devices.ur import connect_ur
+
+        return connect_ur(args.robot_host, vision=vision)
+    from .devices.sim import sim_devices
+
+    state = args.state_file or os.environ.get(SIM_STATE_ENV) or "/tmp/cellvision/world.json"
+    return sim_devices(args.scene, seed=args.seed, state_path=state, vision=vision)
+
+
+@contextmanager
+def _context(args: argparse.Namespace, console: Console) -> Iterator[SkillContext]:
+    """Devices, world model (calibrations loaded from and saved to the world file), store and
+    a Rich progress display (none with --json)."""
+    store = _store(args)
+    devices = _devices(args)
+    world = WorldModel(devices)
+    world_file = _world_file(args, store)
+    if world_file.exists():
+        try:
+            world.load_dict(yaml.safe_load(world_file.read_text(encoding="utf-8")) or {})
+        except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{world_file}: cannot read the world model: {exc}") from None
+    ctx = SkillContext(devices, world, store)
+    try:
+        if args.json:
+            yield ctx
+        else:
+            with _progress(console) as callback:
+                ctx.progress = callback
+                yield ctx
+    finally:
+        world_file.parent.mkdir(parents=True, exist_ok=True)
+        tmp = world_file.with_name(world_file.name + ".tmp")
+        tmp.write_text(yaml.safe_dump(world.to_dict(), sort_keys=False), encoding="utf-8")
+        os.replace(tmp, world_file)
+        devices.close()
+
+
+@contextmanager
+def _progress(console: Console) -> Iterator[Callable[[SkillProgress], None]]:
+    columns = (
+        SpinnerColumn(),
+        TextColumn("[bold]{task.fields[skill]}[/]"),
+        BarColumn(),
+        TextColumn("{task.description}"),
+        TimeElapsedColumn(),
+    )
+    with Progress(*columns, console=console, transient=True) as bar:
+        tasks: dict[tuple[str, str], Any] = {}
+
+        def callback(event: SkillProgress) -> None:
+            key = (event.skill, event.record)
+            if key not in tasks:
+                tasks[key] = bar.add_task(
+                    event.message, total=1.0, skill=f"{event.skill}/{event.record}"
+                )
+            bar.update(tasks[key], description=event.message, completed=event.fraction)
+
+        yield callback
+
+
+def _print_outcome(outcome: Outcome, console: Console) -> None:
+    if outcome.ok:
+        console.print(
+            f"[green]OK[/] {outcome.skill}/{outcome.record} in {outcome.duration_s:.2f} s"
+        )
+        for key, value in outcome.data.items():
+            console.print(f"  {key}: {value}")
+    else:
+        assert outcome.reason is not None
+        console.print(
+            f"[red]FAILED[/] {outcome.skill}/{outcome.record}: [bold]{outcome.reason.value}[/] "
+            f"({outcome.phase}) — {outcome.reason.explanation}"
+        )
+        console.print(f"  {outcome.message}")
+
+
+def _parse_values(args: argparse.Namespace, spec_param: Callable[[str], Any]) -> dict[str, Any]:
+    values: dict[str, Any] = {}
+    for item in args.params:
+        key, sep, text = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"parameters are KEY=VALUE, got {item!r}")
+        try:
+            param = spec_param(key)
+        except KeyError as exc:
+            raise ValueError(str(exc.args[0])) from None
+        values[key] = "current" if text == "current" else param.parse_text(text)
+    return values
+
+
+# --- commands -----------------------------------------------------------------------------
+
+
+def cmd_teach(args: argparse.Namespace, console: Console) -> int:
+    skill = default_registry().get(args.skill)
+    values = _parse_values(args, skill.spec.param)
+    with _context(args, console) as ctx:
+        record = skill.teach(
+            args.name,
+            values,
+            ctx,
+            frame=args.frame,
+            from_current_pose=args.from_current_pose,
+            notes=args.notes,
+        )
+        assert ctx.store is not None
+        stored = ctx.store.put(record)
+    if args.json:
+        print(json.dumps(stored.to_dict()))
+    else:
+        console.print(
+            f"[green]taught[/] {stored.key} (revision {stored.revision}, frame {stored.frame}) "
+            f"in {ctx.store.path}"
+        )
+    return 0
+
+
+def cmd_run(args: argparse.Namespace, console: Console) -> int:
+    skill = default_registry().get(args.skill)
+    store = _store(args)
+    record = store.get(args.skill, args.name)
+    with _context(args, console) as ctx:
+        outcome = execute(skill, record, ctx)
+    if args.json:
+        print(json.dumps(outcome.to_dict()))
+    else:
+        _print_outcome(outcome, console)
+    return 0 if outcome.ok else 1
+
+
+def _operator(mode: str, console: Console) -> Callable[[Step, Outcome], OperatorDecision]:
+    def decide(step: Step, outcome: Outcome) -> OperatorDecision:
+        if mode != "ask":
+            return OperatorDecision(mode)
+        console.print(f"[yellow]operator:[/] {step.skill}/{step.record} failed: {outcome.message}")
+        if not sys.stdin.isatty():
+            return OperatorDecision.ABORT
+        answer = console.input("retry, skip or abort? [abort] ").strip().lower() or "abort"
+        try:
+            return OperatorDecision(answer)
+        except ValueError:
+            return OperatorDecision.ABORT
+
+    return decide
+
+
+def cmd_task_run(args: argparse.Namespace, console: Console) -> int:
+    task = load_task(args.file)
+    registry = default_registry()
+    store = _store(args)
+
+    def on_step(step: StepReport) -> None:
+        if args.json:
+            return
+        mark = "[green]ok[/]" if step.outcome.ok else f"[red]{step.outcome.reason}[/]"
+        it = "".join(f"#{i}" for i in step.iteration)
+        extra = "" if step.outcome.ok else f" — {step.outcome.message} [{step.decision}]"
+        console.print(
+            f"{step.path}{it} {step.skill}/{step.record}: {mark} "
+            f"({step.attempts} attempt{'s' * (step.attempts > 1)}, {step.duration_s:.2f} s){extra}"
+        )
+
+    with _context(args, console) as ctx:
+        runner = TaskRunner(
+            registry, store, ctx, operator=_operator(args.operator, console), on_step=on_step
+        )
+        report = runner.run(task)
+    if args.json:
+        print(json.dumps(report.to_dict()))
+    else:
+        verdict = "[green]done[/]" if report.ok else "[red]failed[/]"
+        console.print(
+            f"task {report.task}: {verdict}, {len(report.steps)} steps, "
+            f"{len(report.failures)} failed, {report.duration_s:.2f} s"
+            + (f", stopped at {report.stopped_at}" if report.stopped_at else "")
+        )
+    return 0 if report.ok else 1
+
+
+def cmd_taught_list(args: argparse.Namespace, console: Console) -> int:
+    store = _store(args)
+    records = store.records(args.skill)
+    if args.json:
+        print(json.dumps({"store": str(store.path), "records": [r.to_dict() for r in records]}))
+        return 0
+    table = Table(title=f"Taught records in {store.path}")
+    for column in ("skill", "name", "rev", "frame", "taught at", "notes"):
+        table.add_column(column)
+    for r in records:
+        table.add_row(r.skill, r.name, str(r.revision), r.frame, r.taught_at, r.notes)
+    console.print(table)
+    return 0
+
+
+def cmd_taught_show(args: argparse.Namespace, console: Console) -> int:
+    record = _store(args).find(args.name)
+    if args.json:
+        print(json.dumps(record.to_dict()))
+    else:
+        console.print(
+            yaml.safe_dump(record.to_dict(), sort_keys=False, default_flow_style=None, width=100),
+            end="",
+            markup=False,
+        )
+    return 0
+
+
+def cmd_skills(args: argparse.Namespace, console: Console) -> int:
+    specs = default_registry().specs()
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "skills": [
+                        {
+                            "name": s.name,
+                            "doc": s.doc,
+                            "params": [
+                                {"name": p.name, "type": p.type.value, "unit": p.unit, "doc": p.doc}
+                                for p in s.params
+                            ],
+                            "pre": [c.describe() for c in s.pre],
+                            "post": [c.describe() for c in s.post],
+                        }
+                        for s in specs
+                    ]
+                }
+            )
+        )
+    else:
+        for s in specs:
+            console.print(s.describe(), markup=False)
+            console.print()
+    return 0
+
+
+# --- parser -------------------------------------------------------------------------------
+
+
+def _device_options() -> argparse.ArgumentParser:
+    parent = argparse.ArgumentParser(add_help=False)
+    group = parent.add_argument_group("robot")
+    group.add_argument("--backend", choices=("sim", "ur"), default="sim")
+    group.add_argument("--scene", default=DEFAULT_SCENE, help="scene YAML of the simulated cell")
+    group.add_argument("--seed", type=int, default=None, help="simulation seed")
+    group.add_argument(
+        "--state-file",
+        default=None,
+        help=f"the sim's shared world-state file (default ${SIM_STATE_ENV} or "
+        "/tmp/cellvision/world.json)",
+    )
+    group.add_argument("--robot-host", default=None, help="UR controller address (--backend ur)")
+    group.add_argument("--world-file", default=None, help="calibrations kept between runs")
+    return parent
+
+
+def _store_options() -> argparse.ArgumentParser:
+    parent = argparse.ArgumentParser(add_help=False)
+    parent.add_argument("--store", default=None, help=f"teach store (default ${STORE_ENV})")
+    parent.add_argument("--json", action="store_true", help="machine-readable output")
+    return parent
+
+
+def add_skill_commands(sub: Any) -> None:
+    """Add teach, run, task, taught and skills to the ``robot-client`` subparsers."""
+    dev, st = _device_options(), _store_options()
+
+    teach = sub.add_parser("teach", parents=[dev, st], help="teach a skill and store the record")
+    teach.add_argument("skill")
+    teach.add_argument("name")
+    teach.add_argument(
+        "params", nargs="*", metavar="KEY=VALUE", help="pose: x,y,z,r,p,y or current"
+    )
+    teach.add_argument(
+        "--from-current-pose",
+        action="store_true",
+        help="pose parameters not given are the robot's current tool pose",
+    )
+    teach.add_argument("--frame", default="base", help="frame of the poses (base or calibrated)")
+    teach.add_argument("--notes", default="")
+    teach.set_defaults(func=cmd_teach, sync=True)
+
+    run = sub.add_parser("run", parents=[dev, st], help="execute a taught skill")
+    run.add_argument("skill")
+    run.add_argument("name")
+    run.set_defaults(func=cmd_run, sync=True)
+
+    task = sub.add_parser("task", help="tasks composed of skills")
+    task_sub = task.add_subparsers(dest="task_command", required=True)
+    task_run = task_sub.add_parser("run", parents=[dev, st], help="run a task file")
+    task_run.add_argument("file")
+    task_run.add_argument(
+        "--operator",
+        choices=("ask", "retry", "skip", "abort"),
+        default="ask",
+        help="answer for the operator policy (ask: prompt on a terminal, else abort)",
+    )
+    task_run.set_defaults(func=cmd_task_run, sync=True)
+
+    taught = sub.add_parser("taught", help="the taught records")
+    taught_sub = taught.add_subparsers(dest="taught_command", required=True)
+    tl = taught_sub.add_parser("list", parents=[st], help="list taught records")
+    tl.add_argument("--skill", default=None)
+    tl.set_defaults(func=cmd_taught_list, sync=True)
+    ts = taught_sub.add_parser("show", parents=[st], help="show one record (NAME or SKILL/NAME)")
+    ts.add_argument("name")
+    ts.set_defaults(func=cmd_taught_show, sync=True)
+
+    skills = sub.add_parser("skills", help="the skills this robot knows")
+    skills.add_argument("--json", action="store_true")
+    skills.set_defaults(func=cmd_skills, sync=True)
