@@ -141,3 +141,22 @@ def test_as_a_process(address: str) -> None:
     )
     assert done.returncode == 0, done.stderr
     assert [i["name"] for i in json.loads(done.stdout)["inspections"]] == ["brightness"]
+
+
+def test_inspect_an_image_file(
+    address: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import cv2
+    import numpy as np
+
+    image = tmp_path / "bright.png"
+    cv2.imwrite(str(image), np.full((48, 64), 200, np.uint8))
+    code = main(["--server", address, "inspect", "brightness", "--image", str(image), "--json"])
+    report = json.loads(capsys.readouterr().out)
+    assert report["inspection"] == "brightness"
+    assert code == (0 if report["passed"] else 1)
+    assert (
+        main(["--server", address, "inspect", "brightness", "--image", str(tmp_path / "x.png")])
+        == 2
+    )
+    assert "cannot read the image" in _flat(capsys.readouterr().err)

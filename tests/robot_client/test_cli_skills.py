@@ -1,0 +1,102 @@
+"""``robot-client`` teach / run / task run / taught / skills on the simulated cell."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from robot_client.cli import main
+
+SCENE = str(Path(__file__).resolve().parents[2] / "examples/scenes/grundfos_cell.yaml")
+
+
+@pytest.fixture
+def opts(tmp_path: Path) -> list[str]:
+    return [
+        "--store", str(tmp_path / "taught.yaml"),
+        "--scene", SCENE,
+        "--state-file", str(tmp_path / "world.json"),
+    ]  # fmt: skip
+
+
+def _err(capsys: pytest.CaptureFixture[str]) -> str:
+    return " ".join(capsys.readouterr().err.split())  # Rich wraps long lines
+
+
+def _json(capsys: pytest.CaptureFixture[str]) -> dict:  # type: ignore[type-arg]
+    return json.loads(capsys.readouterr().out)  # type: ignore[no-any-return]
+
+
+def test_teach_run_and_show(opts: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["teach", "move_to", "above_bin", "pose=0.68,0.3,0.3,3.14159265,0,0", *opts]) == 0
+    assert "taught move_to/above_bin (revision 1" in capsys.readouterr().out
+    assert main(["run", "move_to", "above_bin", "--json", *opts]) == 0
+    outcome = _json(capsys)
+    assert outcome["ok"] is True
+    assert outcome["data"]["pose_xyz"] == [0.68, 0.3, 0.3]
+    # the robot stays where it went (the world-state file): teach place from the current pose
+    assert main(["teach", "place", "bin", "--from-current-pose", "--json", *opts]) == 0
+    record = _json(capsys)
+    assert record["params"]["pose"]["xyz"] == [0.68, 0.3, 0.3]
+    assert record["params"]["approach_m"] == 0.1
+    assert main(["taught", "list", "--json", "--store", opts[1]]) == 0
+    assert [r["name"] for r in _json(capsys)["records"]] == ["above_bin", "bin"]
+    assert main(["taught", "show", "bin", "--store", opts[1]]) == 0
+    assert "approach_m: 0.1" in capsys.readouterr().out
+    assert main(["taught", "list", "--store", opts[1]]) == 0
+    assert "above_bin" in capsys.readouterr().out
+
+
+def test_run_failure_exits_1_with_the_reason(
+    opts: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["teach", "place", "bin", "pose=0.68,0.3,0.05,3.14159265,0,0", *opts]) == 0
+    capsys.readouterr()
+    assert main(["run", "place", "bin", *opts]) == 1
+    out = " ".join(capsys.readouterr().out.split())
+    assert "FAILED place/bin: not_holding (pre)" in out
+    assert "holds no part" in out
+
+
+def test_task_run(opts: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    main(["teach", "move_to", "a", "pose=0.3,-0.3,0.3,3.14159265,0,0", *opts])
+    main(["teach", "move_to", "b", "pose=0.5,-0.3,0.3,3.14159265,0,0", *opts])
+    task = tmp_path / "task.yaml"
+    task.write_text(
+        "task: shuttle\nsteps:\n  - repeat: 2\n    steps: [{move_to: a}, {move_to: b}]\n"
+    )
+    capsys.readouterr()
+    assert main(["task", "run", str(task), "--json", *opts]) == 0
+    report = _json(capsys)
+    assert report["ok"] is True
+    assert len(report["steps"]) == 4
+    assert report["duration_s"] > 0
+    assert main(["task", "run", str(task), *opts]) == 0
+    assert "task shuttle: done, 4 steps, 0 failed" in " ".join(capsys.readouterr().out.split())
+
+
+def test_usage_errors_exit_2(
+    opts: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["teach", "move_to", "x", "pose=1,2", *opts]) == 2
+    assert "a pose is 6 numbers" in _err(capsys)
+    assert main(["teach", "move_to", "x", "colour=red", *opts]) == 2
+    assert "no parameter 'colour'" in _err(capsys)
+    assert main(["run", "nope", "x", *opts]) == 2
+    assert "no skill 'nope'" in _err(capsys)
+    assert main(["run", "move_to", "missing", *opts]) == 2
+    assert "no record 'missing'" in _err(capsys)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("steps: 3\n")
+    assert main(["task", "run", str(bad), *opts]) == 2
+    assert "expected a non-empty list" in _err(capsys)
+    assert main(["run", "move_to", "x", "--backend", "ur", *opts]) == 2
+
+
+def test_skills_lists_specs(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["skills", "--json"]) == 0
+    names = {s["name"]: s for s in _json(capsys)["skills"]}
+    assert {"move_to", "place", "press"} <= set(names)
+    assert names["place"]["pre"] == ["the gripper holds a part"]
