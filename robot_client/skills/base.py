@@ -40,6 +40,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Args",
+    "OperatorCallback",
     "Progress",
     "ProgressCallback",
     "Skill",
@@ -177,17 +178,23 @@ class Progress:
 
 ProgressCallback = Callable[[Progress], None]
 
+OperatorCallback = Callable[[str, Mapping[str, Any]], str]
+"""Asks a person (``message``, ``data``) when a skill cannot go on by itself; the answer is
+``"retry"``, ``"continue"`` (the operator fixed it or accepts it) or ``"abort"``."""
+
 
 @dataclass
 class SkillContext:
     """Everything a skill may use: the devices, the world model, the teach store (may be
-    None), and a progress callback. ``clock`` is the devices' clock (simulated in the sim)."""
+    None), a progress callback and the operator (None: unattended). ``clock`` is the
+    devices' clock (simulated in the sim)."""
 
     devices: Devices
     world: WorldModel
     store: TeachStore | None = None
     progress: ProgressCallback | None = None
     _current: tuple[str, str] = ("", "")
+    operator: OperatorCallback | None = None
 
     @classmethod
     def create(
@@ -197,9 +204,10 @@ class SkillContext:
         store: TeachStore | None = None,
         progress: ProgressCallback | None = None,
         calibration_max_age_s: float | None = None,
+        operator: OperatorCallback | None = None,
     ) -> SkillContext:
         world = WorldModel(devices, calibration_max_age_s=calibration_max_age_s)
-        return cls(devices, world, store, progress)
+        return cls(devices, world, store, progress, operator=operator)
 
     @property
     def robot(self) -> Robot:
