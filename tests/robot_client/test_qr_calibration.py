@@ -419,3 +419,20 @@ def test_live_calibrate_after_docking_and_press_the_switch(vision: SyncVisionCli
         errors.append(pressed_error(ctx, cell, 0.05))
     print("\npress after docking (8 docks): switch error [mm] " + _pct(errors, 1e3))
     assert np.percentile(errors, 95) <= 2e-3
+
+
+def test_example_taught_records_and_task_fit_the_skills() -> None:
+    """examples/robot: every record decodes against its skill; the task names only them."""
+    from robot_client.tasks import load_task
+    from robot_client.teach_store import TeachStore
+
+    examples = Path(__file__).resolve().parents[2] / "examples/robot"
+    store = TeachStore(examples / "taught.yaml")
+    for record in store.records():
+        REG.get(record.skill).spec.decode(record)
+    task = load_task(examples / "demo_task.yaml")
+    assert task.name == "grundfos-demo"
+    press = store.get("press", "conveyor_switch")
+    assert press.frame == default_frame_name(
+        store.get("qr_calibration", "station-1").params["text"]
+    )
