@@ -1,0 +1,549 @@
+"""QR code reading: several decoders, preprocessing where they miss, corners in printed order.
+
+:func:`read_qr` returns :class:`QRCode` objects whose ``corners`` follow docs/conventions.md:
+``c0`` top-left, ``c1`` top-right, ``c2`` bottom-right (the corner without a finder pattern),
+``c3`` bottom-left of the code as printed, in full-image pixels ``(u, v)`` with sub-pixel
+precision (the outer boundary of the dark modules, without the quiet zone).
+
+Decoders, in order: pyzbar (zbar, the paper's choice), zxing-cpp, OpenCV's ``QRCodeDetector``
+and ``QRCodeDetectorAruco``. They run on the plain grey image first; only when they find
+nothing (or nothing matching ``expect``) are preprocessed copies tried: upscaling of small
+images, downscaling of large ones, smoothing, sharpening, adaptive threshold, inversion and a
+45° rotation. The same code found several times is reported once.
+
+Corner order. Every decoder reports the four corners in its own order and starting point, so
+the order is recomputed from the image: the quadrilateral is put in clockwise order on the
+screen, the image is rectified and the corner whose diagonal does not show the 1:1:3:1:1
+profile of a finder pattern is ``c2``; ``c0`` is the opposite corner. A code on a board seen
+from the front is clockwise on the screen. A *mirrored* image (a code seen in a mirror, or a
+flipped sensor) reverses the winding; we do not detect mirroring: ``c0`` is still the corner of
+the top-left finder pattern and ``c2`` the corner without one, and the order stays clockwise on
+the screen, so ``c1`` and ``c3`` are then the printed bottom-left and top-right corners (the
+corners of a real code that would produce that image seen from the front).
+
+Sub-pixel corners. Along each of the four sides, grey-level profiles across the side are
+sampled (bilinear) and the first crossing of the mid-level between the quiet zone and the dark
+modules, coming from outside, is located to a fraction of a pixel. Where the outermost module
+is light the crossing lies a module or more inside; those points are removed by a one-sided
+robust line fit (they can only lie inwards). The corners are the intersections of the four
+lines (straight lines: for a lens with distortion they are the best straight lines through a
+slightly curved side).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import zxingcpp
+from numpy.typing import NDArray
+from pyzbar import pyzbar
+
+from .errors import BadImageError, NotFoundError, RoiError
+
+__all__ = ["QRCode", "read_qr", "decode_raw", "order_corners", "refine_corners"]
+
+FloatArray = NDArray[np.float64]
+GrayImage = NDArray[np.uint8]
+Expect = str | re.Pattern[str] | None
+
+
+@dataclass(frozen=True)
+class QRCode:
+    """A decoded QR code: ``text``; ``corners`` (4, 2) float64 full-image pixels ``(u, v)`` in
+    the order c0 top-left, c1 top-right, c2 bottom-right, c3 bottom-left (as printed);
+    ``decoder`` names the decoder and the preprocessing that found it (e.g. ``"zxing+up2"``)."""
+
+    text: str
+    corners: FloatArray
+    decoder: str
+
+
+@dataclass
+class _Raw:
+    text: str
+    quad: FloatArray  # (4, 2) full-image pixels, any order
+    decoder: str
+    version: int | None = None
+    hits: int = 1
+
+
+# --- decoders ------------------------------------------------------------------------------
+
+
+def _bytes_text(data: bytes) -> str:
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
+def _pyzbar(gray: GrayImage) -> list[_Raw]:
+    out = []
+    for d in pyzbar.decode(gray, symbols=[pyzbar.ZBarSymbol.QRCODE]):
+        if len(d.polygon) != 4:
+            continue
+        quad = np.array([[p.x, p.y] for p in d.polygon], dtype=np.float64)
+        out.append(_Raw(_bytes_text(d.data), quad, "pyzbar"))
+    return out
+
+
+def _zxing(gray: GrayImage) -> list[_Raw]:
+    out = []
+    for b in zxingcpp.read_barcodes(
+        gray, formats=zxingcpp.BarcodeFormats(zxingcpp.BarcodeFormat.QRCode)
+    ):
+        if not b.valid:
+            continue
+        pos = b.position
+        quad = np.array(
+            [
+                [pos.top_left.x, pos.top_left.y],
+                [pos.top_right.x, pos.top_right.y],
+                [pos.bottom_right.x, pos.bottom_right.y],
+                [pos.bottom_left.x, pos.bottom_left.y],
+            ],
+            dtype=np.float64,
+        )
+        version: int | None = None
+        try:
+            extra = b.extra
+            version = int(extra.get("Version", "")) if isinstance(extra, dict) else None
+        except (AttributeError, TypeError, ValueError):
+            version = None
+        out.append(_Raw(b.text, quad, "zxing", version))
+    return out
+
+
+def _opencv_with(
+    detector: cv2.QRCodeDetector | cv2.QRCodeDetectorAruco, name: str
+) -> Callable[[GrayImage], list[_Raw]]:
+    def run(gray: GrayImage) -> list[_Raw]:
+        try:
+            ok, payloads, points, _ = detector.detectAndDecodeBytesMulti(gray)
+        except cv2.error:
+            return []
+        if not ok or points is None:
+            return []
+        out = []
+        for data, pts in zip(payloads, np.asarray(points, dtype=np.float64), strict=False):
+            if data:
+                out.append(_Raw(_bytes_text(bytes(data)), pts.reshape(4, 2), name))
+        return out
+
+    return run
+
+
+def _opencv(gray: GrayImage) -> list[_Raw]:
+    return _opencv_with(cv2.QRCodeDetector(), "opencv")(gray)
+
+
+def _opencv_aruco(gray: GrayImage) -> list[_Raw]:
+    return _opencv_with(cv2.QRCodeDetectorAruco(), "opencv_aruco")(gray)
+
+
+DECODERS: dict[str, Callable[[GrayImage], list[_Raw]]] = {
+    "pyzbar": _pyzbar,
+    "zxing": _zxing,
+    "opencv": _opencv,
+    "opencv_aruco": _opencv_aruco,
+}
+
+
+# --- preprocessing -------------------------------------------------------------------------
+# Each variant returns the processed image and a map from its pixels back to the input's.
+
+Variant = tuple[GrayImage, Callable[[FloatArray], FloatArray]]
+
+
+def _identity(p: FloatArray) -> FloatArray:
+    return p
+
+
+def _scaled(gray: GrayImage, f: float) -> Variant:
+    interp = cv2.INTER_CUBIC if f > 1 else cv2.INTER_AREA
+    img = cv2.resize(gray, None, fx=f, fy=f, interpolation=interp)
+    sx = img.shape[1] / gray.shape[1]
+    sy = img.shape[0] / gray.shape[0]
+
+    def back(p: FloatArray) -> FloatArray:
+        result: FloatArray = (p + 0.5) / np.array([sx, sy]) - 0.5
+        return result
+
+    return np.asarray(img, np.uint8), back
+
+
+def _rotated(gray: GrayImage, angle_deg: float) -> Variant:
+    h, w = gray.shape
+    m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), angle_deg, 1.0)
+    cos, sin = abs(m[0, 0]), abs(m[0, 1])
+    nw, nh = int(np.ceil(w * cos + h * sin)), int(np.ceil(w * sin + h * cos))
+    m[0, 2] += (nw - w) / 2
+    m[1, 2] += (nh - h) / 2
+    img = cv2.warpAffine(gray, m, (nw, nh), flags=cv2.INTER_LINEAR, borderValue=255)
+    inv = cv2.invertAffineTransform(m)
+
+    def back(p: FloatArray) -> FloatArray:
+        result: FloatArray = p @ inv[:, :2].T + inv[:, 2]
+        return result
+
+    return np.asarray(img, np.uint8), back
+
+
+def _variants(gray: GrayImage) -> list[tuple[str, Callable[[], Variant]]]:
+    small = min(gray.shape) < 500
+    large = min(gray.shape) > 900
+    out: list[tuple[str, Callable[[], Variant]]] = []
+    if small:
+        out.append(("up2", lambda: _scaled(gray, 2.0)))
+    if large or not small:
+        out.append(("down2", lambda: _scaled(gray, 0.5)))
+    out.append(("blur", lambda: (np.asarray(cv2.GaussianBlur(gray, (0, 0), 1.2)), _identity)))
+    out.append(("sharpen", lambda: (_sharpen(gray), _identity)))
+    out.append(("adaptive", lambda: (_adaptive(gray), _identity)))
+    out.append(("invert", lambda: (np.asarray(255 - gray, np.uint8), _identity)))
+    out.append(("rot45", lambda: _rotated(gray, 45.0)))
+    if small:
+        out.append(("up3", lambda: _scaled(gray, 3.0)))
+    return out
+
+
+def _sharpen(gray: GrayImage) -> GrayImage:
+    blurred = cv2.GaussianBlur(gray, (0, 0), 2.0)
+    return np.asarray(cv2.addWeighted(gray, 2.0, blurred, -1.0, 0), np.uint8)
+
+
+def _adaptive(gray: GrayImage) -> GrayImage:
+    block = max(11, (min(gray.shape) // 12) | 1)
+    return np.asarray(
+        cv2.adaptiveThreshold(gray, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY, block, 5),
+        np.uint8,
+    )
+
+
+# --- corner order --------------------------------------------------------------------------
+
+
+def _clockwise(quad: FloatArray) -> FloatArray:
+    """The quad in clockwise order on the screen (v down), starting from its first corner."""
+    x, y = quad[:, 0], quad[:, 1]
+    area2 = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    # With v pointing down, a positive shoelace sum is clockwise on the screen.
+    if area2 < 0:
+        return np.asarray(quad[[0, 3, 2, 1]], np.float64)
+    return quad
+
+
+_RECT = 280  # rectified side in pixels
+
+
+def _finder_scores(gray: GrayImage, quad: FloatArray) -> FloatArray:
+    """A misfit (4,) of each corner's diagonal to a finder pattern's 1:1:3:1:1 (low = finder)."""
+    s = _RECT
+    dst = np.array([[0, 0], [s, 0], [s, s], [0, s]], np.float32) - 0.5
+    h = cv2.getPerspectiveTransform(quad.astype(np.float32), dst)
+    rect = cv2.warpPerspective(
+        gray, h, (s, s), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+    thr, _ = cv2.threshold(rect, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    scores = np.zeros(4)
+    for k in range(4):
+        # rotate so that corner k is at the top-left of the rectified image
+        img = np.rot90(rect, k)
+        n = s // 2
+        t = np.arange(n)
+        band = np.stack([img[np.clip(t + d, 0, s - 1), t] for d in (-2, 0, 2)])
+        dark = band.mean(axis=0) < thr
+        scores[k] = _finder_misfit(dark)
+    return scores
+
+
+def _finder_misfit(dark: NDArray[np.bool_]) -> float:
+    # runs along the diagonal, starting at the corner
+    change = np.flatnonzero(np.diff(dark.astype(np.int8))) + 1
+    edges = np.concatenate([[0], change, [dark.size]])
+    lengths = np.diff(edges)
+    first_dark = bool(dark[0])
+    if not first_dark:
+        # allow a thin light sliver at the very corner (rough corner position)
+        if lengths[0] > 0.05 * dark.size or lengths.size < 2:
+            return 10.0
+        lengths = lengths[1:]
+    if lengths.size < 6:
+        return 10.0
+    runs = lengths[:5].astype(np.float64)
+    unit = runs.sum() / 7.0
+    expected = np.array([1, 1, 3, 1, 1], np.float64) * unit
+    return float(np.abs(runs - expected).sum() / runs.sum())
+
+
+# Rotations, by rotation index k (the corner at the rectified top-left after np.rot90(rect, k)):
+# rot90 turns counter-clockwise, so rotation k brings corner index k (clockwise 0..3: TL, TR,
+# BR, BL of the quad) to the top-left.
+
+
+def order_corners(gray: GrayImage, quad: FloatArray) -> tuple[FloatArray, bool]:
+    """``quad`` (4, 2) in any order -> (c0..c3 per docs/conventions.md, confident).
+
+    ``confident`` is False when the finder-pattern test was ambiguous; the caller may then use
+    a decoder's own orientation.
+    """
+    q = _clockwise(np.asarray(quad, np.float64))
+    scores = _finder_scores(gray, q)
+    order = np.argsort(scores)
+    c2 = int(order[3])
+    confident = bool(scores[order[3]] > 0.45 and scores[order[2]] < 0.45)
+    c0 = (c2 + 2) % 4
+    return np.asarray(np.roll(q, -c0, axis=0), np.float64), confident
+
+
+# --- sub-pixel corners ---------------------------------------------------------------------
+
+
+def _line_fit(points: FloatArray, outward: FloatArray, tol: float) -> FloatArray | None:
+    """Line (a, b, c) with a*u + b*v + c = 0, (a, b) = the outward unit normal, fitted with
+    one-sided outlier removal (outliers lie inwards)."""
+    keep = np.ones(len(points), bool)
+    line: FloatArray | None = None
+    for it in range(6):
+        p = points[keep]
+        if len(p) < 4:
+            return None
+        centroid = p.mean(axis=0)
+        _, _, vt = np.linalg.svd(p - centroid)
+        n = vt[1]
+        if n @ outward < 0:
+            n = -n
+        line = np.array([n[0], n[1], -float(n @ centroid)])
+        dist = points @ line[:2] + line[2]  # > 0 outward, < 0 inward
+        limit = max(tol, 3.0 * (0.5**it) * tol * 4)
+        new_keep = dist > -limit
+        if it > 0:
+            # symmetric clean-up of outward noise (bad samples near glare, clutter)
+            new_keep &= dist < 3.0 * limit
+        if np.array_equal(new_keep, keep) and it > 2:
+            break
+        keep = new_keep
+    return line
+
+
+def _edge_points(
+    gray: NDArray[np.float32], a: FloatArray, b: FloatArray, outward: FloatArray, reach: float
+) -> FloatArray:
+    """Sub-pixel mid-level crossings on profiles across side a->b (outside to inside)."""
+    n_samples = int(np.clip(np.linalg.norm(b - a) / 1.5, 12, 120))
+    t = np.linspace(0.06, 0.94, n_samples)
+    step = 0.25
+    s = np.arange(-reach, reach + step / 2, step)  # s > 0 outward
+    base = a[None, :] + t[:, None] * (b - a)[None, :]
+    pts = base[:, None, :] + s[::-1][None, :, None] * outward[None, None, :]  # outside first
+    mx = pts[..., 0].astype(np.float32)
+    my = pts[..., 1].astype(np.float32)
+    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    nq = max(2, len(s) // 5)
+    light = np.median(prof[:, :nq], axis=1)
+    dark = prof.min(axis=1)
+    contrast = light - dark
+    good_contrast = contrast > 0.5 * float(np.median(contrast))
+    level = (light + dark) / 2
+    below = prof < level[:, None]
+    first = np.argmax(below, axis=1)
+    valid = good_contrast & below.any(axis=1) & (first > 0)
+    rows = np.flatnonzero(valid)
+    if rows.size == 0:
+        return np.zeros((0, 2))
+    i1 = first[rows]
+    v0 = prof[rows, i1 - 1]
+    v1 = prof[rows, i1]
+    frac = np.clip((v0 - level[rows]) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
+    s_rev = s[::-1]
+    s_cross = s_rev[i1 - 1] + frac * (s_rev[i1] - s_rev[i1 - 1])
+    result: FloatArray = base[rows] + s_cross[:, None] * outward[None, :]
+    return result
+
+
+def refine_corners(
+    gray: GrayImage, corners: FloatArray, *, modules: int | None = None
+) -> FloatArray:
+    """Sub-pixel outer corners from rough ``corners`` (4, 2) in clockwise order.
+
+    Returns the rough corners unchanged where a side has too few edge points.
+    """
+    q = np.asarray(corners, np.float64)
+    side = float(np.mean(np.linalg.norm(q - np.roll(q, -1, axis=0), axis=1)))
+    module = side / (modules if modules else 25)
+    reach = float(np.clip(max(2.5, 0.8 * module, 0.03 * side), 2.5, 0.2 * side))
+    g = gray.astype(np.float32)
+    centre = q.mean(axis=0)
+    lines = []
+    for i in range(4):
+        a, b = q[i], q[(i + 1) % 4]
+        d = (b - a) / np.linalg.norm(b - a)
+        outward = np.array([d[1], -d[0]])
+        if outward @ ((a + b) / 2 - centre) < 0:
+            outward = -outward
+        pts = _edge_points(g, a, b, outward, reach)
+        line = _line_fit(pts, outward, tol=max(0.35, 0.3 * module))
+        if line is None:
+            return q
+        lines.append(line)
+    out = np.zeros((4, 2))
+    for i in range(4):
+        l1, l2 = lines[(i - 1) % 4], lines[i]  # the sides meeting at corner i
+        p = np.cross(l1, l2)
+        if abs(p[2]) < 1e-12:
+            return q
+        out[i] = p[:2] / p[2]
+    if np.max(np.linalg.norm(out - q, axis=1)) > max(3.0, 0.1 * side):
+        return q
+    return out
+
+
+# --- the reader ----------------------------------------------------------------------------
+
+
+def _to_gray(image: NDArray[np.generic]) -> GrayImage:
+    arr = np.asarray(image)
+    if arr.dtype != np.uint8:
+        raise BadImageError(f"image must be uint8, got {arr.dtype}")
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    if arr.ndim == 3 and arr.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if arr.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        arr = cv2.cvtColor(arr, code)
+    if arr.ndim != 2:
+        raise BadImageError(f"image must be (H, W) or (H, W, 3), got shape {arr.shape}")
+    if arr.shape[0] < 21 or arr.shape[1] < 21:
+        raise BadImageError(f"image too small for a QR code: {arr.shape[1]}x{arr.shape[0]}")
+    return np.ascontiguousarray(arr)
+
+
+def _crop(gray: GrayImage, roi: Sequence[int] | None) -> tuple[GrayImage, FloatArray]:
+    if roi is None:
+        return gray, np.zeros(2)
+    if len(roi) != 4:
+        raise RoiError(f"roi must be [u, v, width, height], got {roi!r}")
+    u, v, w, h = (int(x) for x in roi)
+    height, width = gray.shape
+    if w <= 0 or h <= 0:
+        raise RoiError(f"roi {list(roi)} is empty")
+    if u < 0 or v < 0 or u + w > width or v + h > height:
+        raise RoiError(f"roi {list(roi)} does not lie inside the {width}x{height} image")
+    if w < 21 or h < 21:
+        raise RoiError(f"roi {list(roi)} is too small for a QR code")
+    return np.ascontiguousarray(gray[v : v + h, u : u + w]), np.array([u, v], np.float64)
+
+
+def _matches(text: str, expect: Expect) -> bool:
+    if expect is None:
+        return True
+    if isinstance(expect, re.Pattern):
+        return expect.fullmatch(text) is not None
+    return text == expect
+
+
+def _merge(found: list[_Raw], new: list[_Raw]) -> None:
+    for r in new:
+        side = float(np.mean(np.linalg.norm(r.quad - np.roll(r.quad, -1, axis=0), axis=1)))
+        for f in found:
+            if f.text == r.text and np.linalg.norm(f.quad.mean(0) - r.quad.mean(0)) < 0.5 * side:
+                f.hits += 1
+                if f.version is None:
+                    f.version = r.version
+                break
+        else:
+            found.append(r)
+
+
+def decode_raw(
+    gray: GrayImage, decoders: Sequence[str], expect: Expect = None, *, preprocess: bool = True
+) -> tuple[list[_Raw], list[str]]:
+    """Run ``decoders`` on ``gray`` (then on preprocessed copies while nothing matching
+    ``expect`` is found). Returns the raw detections (quads in ``gray`` pixels, any order)
+    and the list of what was tried."""
+    found: list[_Raw] = []
+    tried: list[str] = []
+
+    def done() -> bool:
+        return any(_matches(f.text, expect) for f in found)
+
+    for name in decoders:
+        tried.append(name)
+        _merge(found, DECODERS[name](gray))
+        if done() and name != "pyzbar":
+            return found, tried
+    if done() or not preprocess:
+        return found, tried
+    cheap = [d for d in decoders if d in ("pyzbar", "zxing")]
+    for label, make in _variants(gray):
+        img, back = make()
+        for name in cheap:
+            tried.append(f"{name}+{label}")
+            for r in DECODERS[name](img):
+                r.quad = back(r.quad)
+                r.decoder = f"{name}+{label}"
+                _merge(found, [r])
+            if done():
+                return found, tried
+    return found, tried
+
+
+def read_qr(
+    image: NDArray[np.generic],
+    *,
+    roi: Sequence[int] | None = None,
+    expect: Expect = None,
+    decoders: Sequence[str] = ("pyzbar", "zxing", "opencv", "opencv_aruco"),
+    refine: bool = True,
+) -> list[QRCode]:
+    """Find and decode the QR codes in ``image`` (uint8 gray or BGR; (u, v) pixels).
+
+    ``roi`` ``[u, v, width, height]`` restricts the search; ``expect`` (an exact string or a
+    compiled pattern that must match the whole text) selects codes. Returns the codes best
+    first (found by more decoders / preprocessings, then larger), corners in full-image pixels,
+    c0..c3 as printed, sub-pixel refined unless ``refine=False``.
+
+    Raises BadImageError, RoiError, or NotFoundError (naming what was tried) when nothing
+    decodes or nothing matches ``expect``.
+    """
+    for name in decoders:
+        if name not in DECODERS:
+            raise ValueError(f"unknown decoder {name!r}; known: {sorted(DECODERS)}")
+    gray_full = _to_gray(image)
+    gray, offset = _crop(gray_full, roi)
+    found, tried = decode_raw(gray, decoders, expect)
+    codes: list[tuple[int, float, QRCode]] = []
+    for r in found:
+        if not _matches(r.text, expect):
+            continue
+        ordered, confident = order_corners(gray, r.quad)
+        if not confident and r.decoder.startswith(("zxing", "opencv")) and "rot" not in r.decoder:
+            # these decoders report corners in symbol order; trust them when the test is unsure
+            ordered = _clockwise(r.quad)
+            ordered = _start_at(ordered, r.quad[0])
+        if refine:
+            modules = 17 + 4 * r.version if r.version else None
+            ordered = refine_corners(gray, ordered, modules=modules)
+        area = float(cv2.contourArea(ordered.astype(np.float32)))
+        codes.append((r.hits, area, QRCode(r.text, ordered + offset, r.decoder)))
+    if not codes:
+        what = "any QR code" if expect is None else f"a QR code matching {_describe(expect)}"
+        seen = sorted({r.text for r in found})
+        extra = f"; decoded instead: {seen}" if seen else ""
+        raise NotFoundError(f"no {what} found (tried {', '.join(tried)}){extra}")
+    codes.sort(key=lambda c: (-c[0], -c[1]))
+    return [c[2] for c in codes]
+
+
+def _start_at(quad: FloatArray, first: FloatArray) -> FloatArray:
+    k = int(np.argmin(np.linalg.norm(quad - first, axis=1)))
+    return np.asarray(np.roll(quad, -k, axis=0), np.float64)
+
+
+def _describe(expect: Expect) -> str:
+    if isinstance(expect, re.Pattern):
+        return f"pattern {expect.pattern!r}"
+    return repr(expect)
