@@ -1,0 +1,771 @@
+"""Feature location: where is the part (or its feature) in the image, to sub-pixel accuracy.
+
+Three methods, one function each, and :func:`locate` to dispatch by name (what the server's
+configuration names):
+
+- :func:`locate_template` -- normalised cross-correlation with a gray template, optionally
+  searching over rotation; several instances with non-maximum suppression.
+- :func:`locate_circles` -- bright (or dark) round features such as rotor caps seen from above:
+  Hough candidates refined by a circle fit to sub-pixel edge points.
+- :func:`locate_blobs` -- threshold and connected components, filtered by area and circularity;
+  intensity-weighted centroid and second-moment orientation.
+
+Every function takes the image first (``uint8`` gray ``(H, W)`` or BGR ``(H, W, 3)``) and its
+options keyword-only, and returns a list of :class:`Feature`, best first. Positions are
+``(u, v)`` = (column, row) in **full-image** pixels, the centre of the top-left pixel being
+``(0.0, 0.0)`` (docs/conventions.md), even when an ``roi`` restricts the search. Angles are in
+radians, measured from the +u axis towards the +v axis (clockwise on the screen).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import BadImageError, NotFoundError, RoiError, TemplateError
+
+__all__ = [
+    "Feature",
+    "crop_roi",
+    "locate",
+    "locate_blobs",
+    "locate_circles",
+    "locate_template",
+    "to_gray",
+]
+
+Gray = NDArray[np.uint8]
+FloatArray = NDArray[np.float64]
+Roi = tuple[int, int, int, int]
+Polarity = Literal["bright", "dark"]
+
+
+@dataclass(frozen=True)
+class Feature:
+    """One located feature.
+
+    Attributes
+    ----------
+    u, v : float
+        Sub-pixel position in full-image pixels (column, row).
+    angle : float
+        Orientation in radians from +u towards +v; 0.0 where it has no meaning (circles).
+    score : float
+        Method-specific quality, higher is better (see each ``locate_*`` function).
+    radius : float or None
+        Circle radius in pixels (``circle`` only).
+    area : float or None
+        Blob area in px² (``blob`` only).
+    """
+
+    u: float
+    v: float
+    angle: float = 0.0
+    score: float = 0.0
+    radius: float | None = None
+    area: float | None = None
+
+
+# --- shared input checks ----------------------------------------------------------------------
+
+
+def to_gray(image: Any, *, what: str = "image") -> Gray:
+    """Check an image and return it as a gray ``uint8`` array ``(H, W)``.
+
+    Parameters
+    ----------
+    image : ndarray
+        ``uint8`` ``(H, W)``, ``(H, W, 1)`` or BGR ``(H, W, 3)``.
+    what : str
+        Name used in the error message.
+
+    Raises
+    ------
+    BadImageError
+        Not a non-empty ``uint8`` gray or BGR array.
+    """
+    if not isinstance(image, np.ndarray):
+        raise BadImageError(f"{what} must be a numpy array, not {type(image).__name__}")
+    if image.dtype != np.uint8:
+        raise BadImageError(f"{what} must be uint8, not {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 3 and image.shape[2] == 3:
+        if image.shape[0] == 0 or image.shape[1] == 0:
+            raise BadImageError(f"{what} is empty: shape {image.shape}")
+        return np.asarray(cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_BGR2GRAY), np.uint8)
+    if image.ndim != 2:
+        raise BadImageError(f"{what} must be gray (H, W) or BGR (H, W, 3), not shape {image.shape}")
+    if image.size == 0:
+        raise BadImageError(f"{what} is empty: shape {image.shape}")
+    return np.ascontiguousarray(image)
+
+
+def crop_roi(gray: Gray, roi: Sequence[int] | None) -> tuple[Gray, Roi]:
+    """Cut ``roi`` = ``[u, v, width, height]`` (full-image pixels) out of ``gray``.
+
+    Returns the view and the ROI as a tuple of ints (the whole image when ``roi`` is None).
+
+    Raises
+    ------
+    RoiError
+        Not four integers, empty, or not inside the image.
+    """
+    height, width = gray.shape
+    if roi is None:
+        return gray, (0, 0, width, height)
+    try:
+        values = [v for v in roi]
+    except TypeError:
+        raise RoiError(f"roi must be [u, v, width, height], not {roi!r}") from None
+    if len(values) != 4:
+        raise RoiError(f"roi must be [u, v, width, height], not {roi!r}")
+    ints = []
+    for value in values:
+        if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+            raise RoiError(f"roi must hold integers, not {roi!r}")
+        if not float(value).is_integer():
+            raise RoiError(f"roi must hold integers, not {roi!r}")
+        ints.append(int(value))
+    u, v, w, h = ints
+    if w <= 0 or h <= 0:
+        raise RoiError(f"roi {ints} is empty")
+    if u < 0 or v < 0 or u + w > width or v + h > height:
+        raise RoiError(f"roi {ints} does not lie inside the {width}x{height} image")
+    return gray[v : v + h, u : u + w], (u, v, w, h)
+
+
+def _check_polarity(polarity: str) -> None:
+    if polarity not in ("bright", "dark"):
+        raise ValueError(f"polarity must be 'bright' or 'dark', not {polarity!r}")
+
+
+# --- sub-pixel helpers ------------------------------------------------------------------------
+
+
+def _parabola_offset(left: float, centre: float, right: float) -> float:
+    """Vertex offset in (-0.5, 0.5) of the parabola through (-1, l), (0, c), (1, r)."""
+    denom = left - 2.0 * centre + right
+    if denom >= 0.0:  # not a maximum
+        return 0.0
+    return float(np.clip(0.5 * (left - right) / denom, -0.5, 0.5))
+
+
+def _quadratic_peak(patch: FloatArray) -> tuple[float, float]:
+    """Sub-pixel peak (dx, dy) of a 3x3 patch by a least-squares 2D quadratic.
+
+    Falls back to separable parabolas when the quadric is not a maximum or its vertex lies more
+    than one pixel away.
+    """
+    ys, xs = np.mgrid[-1:2, -1:2]
+    x = xs.ravel().astype(np.float64)
+    y = ys.ravel().astype(np.float64)
+    a = np.stack([np.ones(9), x, y, x * x, x * y, y * y], axis=1)
+    c, *_ = np.linalg.lstsq(a, patch.ravel(), rcond=None)
+    hess = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
+    if np.linalg.det(hess) > 0 and hess[0, 0] < 0:
+        dx, dy = np.linalg.solve(hess, -c[1:3])
+        if abs(dx) <= 1.0 and abs(dy) <= 1.0:
+            return float(dx), float(dy)
+    return (
+        _parabola_offset(patch[1, 0], patch[1, 1], patch[1, 2]),
+        _parabola_offset(patch[0, 1], patch[1, 1], patch[2, 1]),
+    )
+
+
+# --- template ---------------------------------------------------------------------------------
+
+
+def _rotated(template: Gray, angle: float) -> Gray:
+    """``template`` rotated by ``angle`` (rad, +u towards +v) about its centre, same size."""
+    h, w = template.shape
+    centre = ((w - 1) / 2.0, (h - 1) / 2.0)
+    # OpenCV's positive angle turns counter-clockwise on the screen; ours turns clockwise.
+    matrix = cv2.getRotationMatrix2D(centre, -math.degrees(angle), 1.0)
+    out = cv2.warpAffine(
+        template, matrix, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+    return np.asarray(out, np.uint8)
+
+
+def _disc_mask(shape: tuple[int, int]) -> Gray:
+    h, w = shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    r = (min(h, w) - 1) / 2.0
+    inside = (xs - (w - 1) / 2.0) ** 2 + (ys - (h - 1) / 2.0) ** 2 <= r * r
+    return np.where(inside, 255, 0).astype(np.uint8)
+
+
+def _match(image: Gray, template: Gray, mask: Gray | None) -> NDArray[np.float32]:
+    if mask is None:
+        result = cv2.matchTemplate(image, template, cv2.TM_CCOEFF_NORMED)
+    else:
+        result = cv2.matchTemplate(image, template, cv2.TM_CCOEFF_NORMED, mask=mask)
+    out: NDArray[np.float32] = np.nan_to_num(result, nan=-1.0, posinf=-1.0, neginf=-1.0)
+    return out
+
+
+def _angles(angle_range: tuple[float, float], angle_step: float) -> FloatArray:
+    lo, hi = float(angle_range[0]), float(angle_range[1])
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi < lo:
+        raise ValueError(f"angle_range must be (low, high) with low <= high, not {angle_range}")
+    if hi == lo:
+        return np.array([lo])
+    if not angle_step > 0:
+        raise ValueError(f"angle_step must be > 0, not {angle_step}")
+    n = int(math.floor((hi - lo) / angle_step + 1e-9)) + 1
+    angles = lo + angle_step * np.arange(n, dtype=np.float64)
+    if hi - angles[-1] > 1e-9:
+        angles = np.append(angles, hi)
+    return np.asarray(angles, np.float64)
+
+
+def locate_template(
+    image: Any,
+    template: Any,
+    *,
+    roi: Sequence[int] | None = None,
+    min_score: float = 0.7,
+    max_count: int = 1,
+    angle_range: tuple[float, float] = (0.0, 0.0),
+    angle_step: float = math.radians(5.0),
+    min_distance: float | None = None,
+) -> list[Feature]:
+    """Find instances of a gray template by normalised cross-correlation.
+
+    Parameters
+    ----------
+    image : ndarray
+        ``uint8`` gray ``(H, W)`` or BGR ``(H, W, 3)``.
+    template : ndarray
+        ``uint8`` gray ``(h, w)`` (BGR is converted), not constant, no larger than the ROI.
+        The located point is the template's centre, ``((w - 1) / 2, (h - 1) / 2)`` in template
+        pixels.
+    roi : [u, v, width, height], optional
+        Search region in full-image pixels; the whole template must fit inside it.
+    min_score : float
+        Lowest NCC score (``cv2.TM_CCOEFF_NORMED``, -1..1) reported.
+    max_count : int
+        Most instances reported.
+    angle_range : (float, float)
+        Rotations searched, radians (+u towards +v). ``(0, 0)`` (default): no rotation search,
+        the whole rectangular template is correlated. Otherwise the template is rotated about its
+        centre in steps of ``angle_step`` and only its inscribed disc is correlated (masked NCC),
+        so scores are comparable between angles.
+    angle_step : float
+        Rotation step in radians. The reported angle is interpolated between steps.
+    min_distance : float, optional
+        Closest two instances may be, in pixels (default: half the template's smaller side).
+
+    Returns
+    -------
+    list of Feature
+        Best first. ``score`` is the NCC at the refined angle (-1..1); ``angle`` the rotation
+        of the instance relative to the template (0 without a rotation search).
+        Position: integer NCC peak refined by a 2D quadratic fit of its 3x3 neighbourhood.
+
+    Raises
+    ------
+    BadImageError, RoiError, TemplateError
+    """
+    gray = to_gray(image)
+    tmpl = to_gray(template, what="template") if template is not None else None
+    if tmpl is None:
+        raise TemplateError("no template given")
+    if float(tmpl.std()) == 0.0:
+        raise TemplateError("the template is constant: normalised correlation is undefined")
+    search, (u0, v0, _, _) = crop_roi(gray, roi)
+    th, tw = tmpl.shape
+    if th > search.shape[0] or tw > search.shape[1]:
+        raise TemplateError(
+            f"template {tw}x{th} is larger than the search region "
+            f"{search.shape[1]}x{search.shape[0]}"
+        )
+    if max_count < 1:
+        return []
+    angles = _angles(angle_range, angle_step)
+    rotating = len(angles) > 1 or angles[0] != 0.0
+    mask = _disc_mask(tmpl.shape) if rotating else None
+
+    best: NDArray[np.float32] | None = None
+    best_index = np.zeros((1, 1), np.int32)
+    for k, angle in enumerate(angles):
+        scores = _match(search, _rotated(tmpl, angle) if rotating else tmpl, mask)
+        if best is None:
+            best = scores
+            best_index = np.zeros(scores.shape, np.int32)
+        else:
+            better = scores > best
+            best = np.where(better, scores, best)
+            best_index[better] = k
+    assert best is not None
+
+    # Candidates: local maxima above min_score, then greedy non-maximum suppression.
+    peaks = (best >= cv2.dilate(best, np.ones((3, 3), np.uint8))) & (best >= min_score)
+    ys, xs = np.nonzero(peaks)
+    order = np.argsort(-best[ys, xs], kind="stable")
+    spacing = min(th, tw) / 2.0 if min_distance is None else float(min_distance)
+    accepted: list[tuple[int, int]] = []
+    for i in order:
+        x, y = int(xs[i]), int(ys[i])
+        if all((x - ax) ** 2 + (y - ay) ** 2 >= spacing**2 for ax, ay in accepted):
+            accepted.append((x, y))
+            if len(accepted) >= max_count:
+                break
+
+    features = []
+    for x, y in accepted:
+        k = int(best_index[y, x])
+        angle = float(angles[k])
+        if rotating and len(angles) > 1:
+            angle = _refine_angle(search, tmpl, mask, angles, k, x, y)
+        local = _local_scores(search, _rotated(tmpl, angle) if rotating else tmpl, mask, x, y)
+        dx, dy = _quadratic_peak(local)
+        dx = dx if 0 < x < best.shape[1] - 1 else 0.0
+        dy = dy if 0 < y < best.shape[0] - 1 else 0.0
+        features.append(
+            Feature(
+                u=u0 + x + dx + (tw - 1) / 2.0,
+                v=v0 + y + dy + (th - 1) / 2.0,
+                angle=angle,
+                score=float(min(local[1, 1], 1.0)),
+            )
+        )
+    features.sort(key=lambda f: -f.score)
+    return [f for f in features if f.score >= min_score]
+
+
+def _local_scores(search: Gray, tmpl: Gray, mask: Gray | None, x: int, y: int) -> FloatArray:
+    """NCC scores (3, 3) of ``tmpl`` at offsets (x-1..x+1, y-1..y+1); edges replicate."""
+    th, tw = tmpl.shape
+    sh, sw = search.shape
+    x0, y0 = max(x - 1, 0), max(y - 1, 0)
+    x1, y1 = min(x + 1, sw - tw), min(y + 1, sh - th)
+    patch = search[y0 : y1 + th, x0 : x1 + tw]
+    scores = _match(patch, tmpl, mask).astype(np.float64)
+    out = np.empty((3, 3))
+    for j in range(3):
+        for i in range(3):
+            yy = min(max(y - 1 + j, y0), y1) - y0
+            xx = min(max(x - 1 + i, x0), x1) - x0
+            out[j, i] = scores[yy, xx]
+    return out
+
+
+def _refine_angle(
+    search: Gray, tmpl: Gray, mask: Gray | None, angles: FloatArray, k: int, x: int, y: int
+) -> float:
+    """Interpolate the angle by a parabola through the best local score at steps k-1, k, k+1."""
+    if k == 0 or k == len(angles) - 1:
+        return float(angles[k])
+    s = [
+        float(_local_scores(search, _rotated(tmpl, float(angles[j])), mask, x, y).max())
+        for j in (k - 1, k, k + 1)
+    ]
+    step = float(angles[k + 1] - angles[k])
+    return float(angles[k] + step * _parabola_offset(s[0], s[1], s[2]))
+
+
+# --- circles ----------------------------------------------------------------------------------
+
+
+def _fit_circle_algebraic(points: FloatArray) -> tuple[float, float, float]:
+    """Kåsa fit: least squares on x² + y² + D x + E y + F = 0."""
+    x, y = points[:, 0], points[:, 1]
+    a = np.stack([x, y, np.ones_like(x)], axis=1)
+    b = -(x * x + y * y)
+    (d, e, f), *_ = np.linalg.lstsq(a, b, rcond=None)
+    cx, cy = -d / 2.0, -e / 2.0
+    r2 = cx * cx + cy * cy - f
+    return float(cx), float(cy), float(math.sqrt(max(r2, 0.0)))
+
+
+def _fit_circle_geometric(
+    points: FloatArray, start: tuple[float, float, float], iterations: int = 10
+) -> tuple[float, float, float]:
+    """Gauss-Newton on the orthogonal distances |p - c| - r."""
+    cx, cy, r = start
+    for _ in range(iterations):
+        dx = points[:, 0] - cx
+        dy = points[:, 1] - cy
+        dist = np.hypot(dx, dy)
+        dist = np.where(dist < 1e-12, 1e-12, dist)
+        residual = dist - r
+        jac = np.stack([-dx / dist, -dy / dist, -np.ones_like(dist)], axis=1)
+        step, *_ = np.linalg.lstsq(jac, -residual, rcond=None)
+        cx, cy, r = cx + step[0], cy + step[1], r + step[2]
+        if float(np.abs(step).max()) < 1e-6:
+            break
+    return float(cx), float(cy), float(r)
+
+
+def _edge_points(
+    image: FloatArray,
+    centre: tuple[float, float],
+    radius: float,
+    *,
+    polarity: Polarity,
+    rays: int,
+    half_width: float,
+    min_contrast: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Sub-pixel edge points (n, 2) along radial rays around a circle guess, and their contrasts.
+
+    On each ray the samples (bilinear, 0.25 px apart) within ``half_width`` of the guessed radius
+    are searched for the steepest fall (bright) or rise (dark) going outwards; the edge is where
+    the profile crosses the 50 % level between the local inner and outer levels (the means 2 to
+    3 px either side of the steepest step), found by linear interpolation.
+    """
+    step = 0.25
+    lo = max(radius - half_width - 3.0, 0.5)
+    hi = radius + half_width + 3.0
+    radii = np.arange(lo, hi + step / 2, step)
+    theta = np.linspace(0.0, 2 * np.pi, rays, endpoint=False)
+    cos, sin = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    map_x = (centre[0] + cos * radii[None, :]).astype(np.float32)
+    map_y = (centre[1] + sin * radii[None, :]).astype(np.float32)
+    profiles = cv2.remap(
+        image.astype(np.float32),
+        map_x,
+        map_y,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=float("nan"),
+    ).astype(np.float64)
+    if polarity == "dark":
+        profiles = -profiles
+    points: list[tuple[float, float]] = []
+    contrasts: list[float] = []
+    n3 = int(round(3.0 / step))
+    n2 = int(round(2.0 / step))
+    window = (radii >= radius - half_width) & (radii <= radius + half_width)
+    idx_window = np.nonzero(window)[0]
+    for i in range(rays):
+        prof = profiles[i]
+        if np.isnan(prof).any():
+            continue
+        # Steepest fall going outwards, over a 1 px baseline to resist noise.
+        fall = prof[idx_window - 2] - prof[idx_window + 2]
+        j = int(idx_window[int(np.argmax(fall))])
+        if j - n3 < 0 or j + n3 >= len(prof):
+            continue
+        inner = float(prof[j - n3 : j - n2 + 1].mean())
+        outer = float(prof[j + n2 : j + n3 + 1].mean())
+        contrast = inner - outer
+        if contrast < min_contrast:
+            continue
+        level = 0.5 * (inner + outer)
+        # The crossing of `level` nearest to j, between j - n2 and j + n2.
+        seg = prof[j - n2 : j + n2 + 1] - level
+        crossings = np.nonzero((seg[:-1] >= 0) & (seg[1:] < 0))[0]
+        if len(crossings) == 0:
+            continue
+        c = int(crossings[np.argmin(np.abs(crossings - n2))])
+        frac = seg[c] / (seg[c] - seg[c + 1])
+        r_edge = radii[j - n2 + c] + frac * step
+        points.append((centre[0] + cos[i, 0] * r_edge, centre[1] + sin[i, 0] * r_edge))
+        contrasts.append(contrast)
+    return np.array(points, dtype=np.float64).reshape(-1, 2), np.array(contrasts)
+
+
+def _refine_circle(
+    image: FloatArray,
+    guess: tuple[float, float, float],
+    *,
+    polarity: Polarity,
+    rays: int,
+    min_contrast: float,
+) -> tuple[tuple[float, float, float], float] | None:
+    """Fit a circle to sub-pixel edge points; returns ((u, v, r), inlier fraction) or None."""
+    cx, cy, r = guess
+    half_width = max(3.0, 0.1 * r)
+    fraction = 0.0
+    for _ in range(3):
+        points, _contrast = _edge_points(
+            image,
+            (cx, cy),
+            r,
+            polarity=polarity,
+            rays=rays,
+            half_width=half_width,
+            min_contrast=min_contrast,
+        )
+        if len(points) < max(8, rays // 4):
+            return None
+        fit = _fit_circle_algebraic(points)
+        fit = _fit_circle_geometric(points, fit)
+        for _ in range(3):  # drop outliers (e.g. a shadow or a neighbour), refit
+            residual = np.abs(np.hypot(points[:, 0] - fit[0], points[:, 1] - fit[1]) - fit[2])
+            mad = float(np.median(residual))
+            keep = residual <= max(3.0 * 1.4826 * mad, 0.5)
+            if keep.sum() < max(8, rays // 4):
+                return None
+            fit = _fit_circle_geometric(points[keep], fit)
+        residual = np.abs(np.hypot(points[:, 0] - fit[0], points[:, 1] - fit[1]) - fit[2])
+        fraction = float((residual <= 1.0).sum()) / rays
+        moved = math.hypot(fit[0] - cx, fit[1] - cy) + abs(fit[2] - r)
+        cx, cy, r = fit
+        half_width = 2.0
+        if moved < 0.01:
+            break
+    if not (math.isfinite(cx) and math.isfinite(cy) and r > 0):
+        return None
+    return (cx, cy, r), fraction
+
+
+def locate_circles(
+    image: Any,
+    *,
+    roi: Sequence[int] | None = None,
+    radius_range: tuple[float, float] = (5.0, 200.0),
+    polarity: Polarity = "bright",
+    min_score: float = 0.6,
+    max_count: int = 10,
+    min_contrast: float = 15.0,
+    rays: int = 180,
+    hough_threshold: float = 0.6,
+) -> list[Feature]:
+    """Find round features (e.g. rotor caps seen from above) with sub-pixel centres.
+
+    Candidates come from :func:`cv2.HoughCircles` (``HOUGH_GRADIENT_ALT``) on the lightly
+    smoothed ROI. Each is refined: along ``rays`` radial rays the edge is found where the
+    intensity profile crosses 50 % between its local inner and outer levels (linear
+    interpolation between bilinear samples 0.25 px apart); a circle is fitted to these points,
+    algebraically (Kåsa) and then geometrically (Gauss-Newton on orthogonal distances) with
+    outliers beyond 3 robust standard deviations dropped; rays are re-cast from the new centre
+    until it settles.
+
+    Parameters
+    ----------
+    image : ndarray
+        ``uint8`` gray ``(H, W)`` or BGR ``(H, W, 3)``.
+    roi : [u, v, width, height], optional
+        Search region in full-image pixels. A circle must lie wholly inside it to be refined.
+    radius_range : (float, float)
+        Smallest and largest radius, pixels.
+    polarity : {'bright', 'dark'}
+        A disc brighter (default) or darker than its surroundings.
+    min_score : float
+        Lowest score reported (see Returns).
+    max_count : int
+        Most circles reported.
+    min_contrast : float
+        Smallest grey-level step across the edge for a ray to count.
+    rays : int
+        Number of radial rays.
+    hough_threshold : float
+        ``param2`` of ``HOUGH_GRADIENT_ALT``: the circle "perfectness" (0..1) a candidate needs.
+
+    Returns
+    -------
+    list of Feature
+        Best first, ``radius`` in px, ``angle`` 0. ``score`` is the fraction (0..1) of rays
+        whose edge point lies within 1 px of the fitted circle: the share of the outline seen.
+
+    Raises
+    ------
+    BadImageError, RoiError
+    """
+    _check_polarity(polarity)
+    gray = to_gray(image)
+    search, (u0, v0, _, _) = crop_roi(gray, roi)
+    r_lo, r_hi = float(radius_range[0]), float(radius_range[1])
+    if not 0 < r_lo <= r_hi:
+        raise ValueError(f"radius_range must be (low, high) with 0 < low <= high: {radius_range}")
+    if max_count < 1:
+        return []
+    smooth = cv2.GaussianBlur(search, (5, 5), 1.0)
+    found = cv2.HoughCircles(
+        smooth,
+        cv2.HOUGH_GRADIENT_ALT,
+        dp=1.5,
+        minDist=max(r_lo, 2.0),
+        param1=150,
+        param2=hough_threshold,
+        minRadius=int(math.floor(r_lo)),
+        maxRadius=int(math.ceil(r_hi)),
+    )
+    if found is None:
+        return []
+    sample = search.astype(np.float64)
+    height, width = search.shape
+    features: list[Feature] = []
+    for cx, cy, r in found.reshape(-1, 3)[: 4 * max_count + 8]:
+        refined = _refine_circle(
+            sample,
+            (float(cx), float(cy), float(r)),
+            polarity=polarity,
+            rays=rays,
+            min_contrast=min_contrast,
+        )
+        if refined is None:
+            continue
+        (fx, fy, fr), score = refined
+        if not r_lo <= fr <= r_hi or score < min_score:
+            continue
+        if fx - fr < -0.5 or fy - fr < -0.5 or fx + fr > width - 0.5 or fy + fr > height - 0.5:
+            continue
+        if any(math.hypot(fx - (f.u - u0), fy - (f.v - v0)) < 0.5 * fr for f in features):
+            continue  # the same circle found twice
+        features.append(Feature(u=u0 + fx, v=v0 + fy, angle=0.0, score=score, radius=fr))
+    features.sort(key=lambda f: -f.score)
+    return features[:max_count]
+
+
+# --- blobs ------------------------------------------------------------------------------------
+
+
+def locate_blobs(
+    image: Any,
+    *,
+    roi: Sequence[int] | None = None,
+    threshold: float | Literal["otsu"] | None = None,
+    polarity: Polarity = "bright",
+    min_area: float = 10.0,
+    max_area: float | None = None,
+    min_circularity: float = 0.0,
+    min_score: float = 0.0,
+    max_count: int = 10,
+) -> list[Feature]:
+    """Find blobs: connected regions above (bright) or below (dark) a threshold.
+
+    Parameters
+    ----------
+    image : ndarray
+        ``uint8`` gray ``(H, W)`` or BGR ``(H, W, 3)``.
+    roi : [u, v, width, height], optional
+        Search region in full-image pixels.
+    threshold : float or 'otsu', optional
+        Grey level (0..255); a pixel belongs to a blob when ``> threshold`` (bright) or
+        ``< threshold`` (dark). None or ``'otsu'``: Otsu's threshold of the ROI.
+    polarity : {'bright', 'dark'}
+    min_area, max_area : float
+        Accepted blob area in px² (pixel count of the thresholded region).
+    min_circularity : float
+        Lowest ``4π·area / perimeter²`` (1 for a disc, ~0.785 for a square; the perimeter is
+        that of the pixel outline, so small discs score below 1).
+    min_score : float
+        Lowest score (= area, px²) reported.
+    max_count : int
+        Most blobs reported.
+
+    Returns
+    -------
+    list of Feature
+        Largest first. ``score`` = ``area`` = the anti-aliasing-aware area in px²: the sum of
+        per-pixel weights ``clip((I - background) / (blob - background), 0, 1)`` over the blob
+        grown by 2 px, with the blob and background levels the medians of its interior and of a
+        ring around it. (u, v) is the centroid of these weights, ``angle`` the major axis of
+        their second moments, in (-π/2, π/2].
+
+    Raises
+    ------
+    BadImageError, RoiError
+    """
+    _check_polarity(polarity)
+    gray = to_gray(image)
+    search, (u0, v0, _, _) = crop_roi(gray, roi)
+    if max_count < 1:
+        return []
+    work = search if polarity == "bright" else (255 - search)
+    if threshold is None or threshold == "otsu":
+        _, binary = cv2.threshold(work, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    else:
+        t = float(threshold) if polarity == "bright" else 255.0 - float(threshold)
+        binary = np.where(work > t, 255, 0).astype(np.uint8)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    values = work.astype(np.float64)
+    height, width = work.shape
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    features: list[Feature] = []
+    for label in range(1, count):
+        pixels = int(stats[label, cv2.CC_STAT_AREA])
+        if pixels < min_area or (max_area is not None and pixels > max_area):
+            continue
+        x, y, w, h = (int(s) for s in stats[label, :4])
+        x0, y0 = max(x - 6, 0), max(y - 6, 0)
+        x1, y1 = min(x + w + 6, width), min(y + h + 6, height)
+        mask = (labels[y0:y1, x0:x1] == label).astype(np.uint8)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        perimeter = sum(cv2.arcLength(c, True) for c in contours)
+        circularity = 4.0 * math.pi * pixels / perimeter**2 if perimeter > 0 else 0.0
+        if circularity < min_circularity:
+            continue
+        grown = cv2.dilate(mask, kernel)
+        ring = (cv2.dilate(grown, kernel) > 0) & (grown == 0) & (labels[y0:y1, x0:x1] == 0)
+        core = cv2.erode(mask, kernel)
+        patch = values[y0:y1, x0:x1]
+        fg = float(np.median(patch[core > 0])) if core.any() else float(patch[mask > 0].max())
+        bg = float(np.median(patch[ring > 0])) if ring.any() else float(patch[mask == 0].mean())
+        if fg - bg <= 1e-6:
+            weights = mask.astype(np.float64)
+        else:
+            weights = np.clip((patch - bg) / (fg - bg), 0.0, 1.0) * (grown > 0)
+        # Only this blob's pixels and the unlabelled ones around it (not a neighbour's).
+        weights *= (labels[y0:y1, x0:x1] == label) | (labels[y0:y1, x0:x1] == 0)
+        m = cv2.moments(weights.astype(np.float32), binaryImage=False)
+        if m["m00"] <= 0:
+            continue
+        cx, cy = m["m10"] / m["m00"], m["m01"] / m["m00"]
+        angle = 0.5 * math.atan2(2.0 * m["mu11"], m["mu20"] - m["mu02"])
+        if angle <= -math.pi / 2:
+            angle += math.pi
+        area = float(m["m00"])
+        if area < min_score:
+            continue
+        features.append(Feature(u=u0 + x0 + cx, v=v0 + y0 + cy, angle=angle, score=area, area=area))
+    features.sort(key=lambda f: -f.score)
+    return features[:max_count]
+
+
+# --- dispatcher -------------------------------------------------------------------------------
+
+METHODS = ("template", "circle", "blob")
+
+
+def locate(
+    image: Any,
+    *,
+    method: Literal["template", "circle", "blob"],
+    roi: Sequence[int] | None = None,
+    template: Any = None,
+    **options: Any,
+) -> list[Feature]:
+    """Locate features by the named ``method`` (the server's configuration names it).
+
+    ``"template"`` calls :func:`locate_template` (needs ``template``), ``"circle"``
+    :func:`locate_circles`, ``"blob"`` :func:`locate_blobs`; ``roi`` and the remaining keyword
+    options go to that function unchanged (an unknown option raises ``TypeError``).
+
+    Raises
+    ------
+    ValueError
+        Unknown method.
+    BadImageError, RoiError, TemplateError
+        As the method does.
+    """
+    if method == "template":
+        if template is None:
+            raise TemplateError("method 'template' needs a template")
+        return locate_template(image, template, roi=roi, **options)
+    if template is not None:
+        raise ValueError(f"method {method!r} takes no template")
+    if method == "circle":
+        return locate_circles(image, roi=roi, **options)
+    if method == "blob":
+        return locate_blobs(image, roi=roi, **options)
+    raise ValueError(f"unknown locate method {method!r}; expected one of {METHODS}")
+
+
+def locate_one(image: Any, **kwargs: Any) -> Feature:
+    """The best feature of :func:`locate` (same arguments); NotFoundError if there is none."""
+    found = locate(image, **kwargs)
+    if not found:
+        raise NotFoundError(f"no {kwargs.get('method', '?')} feature found")
+    return found[0]
