@@ -80,3 +80,72 @@ def square_corners(
     local = np.array([[-h, -h], [h, -h], [h, h], [-h, h]])
     result: NDArray[np.float64] = local @ r.T + np.asarray(centre)
     return result
+
+
+# --- the simulated cell: an RGB-D camera in front of a QR board -----------------------------
+
+QR_SCENE = """
+name: qr_pose_test
+seed: {seed}
+surfaces:
+  - {{name: floor, center: [0, 0], height: 0.0, size: [4, 4], color: 90}}
+boxes:
+  - {{name: wall, pose: {{xyz: [1.0, 0, 0], rpy: [0, 0, 0]}}, size: [0.02, 2.0, 2.5], color: 150}}
+qr_boards:
+  - name: qr
+    text: "cellvision:station-1"
+    side_m: 0.16
+    pose: {{xyz: [0.989, 0.0, 1.0], rpy: [1.5707963267948966, 0.0, -1.5707963267948966]}}
+robot:
+  world_from_base: {{xyz: [0, 0, 0]}}
+  home: {{xyz: [0, 0, 1.0], rpy: [-1.5707963267948966, 0, -1.5707963267948966]}}
+  workspace: {{min: [-2, -2, -1], max: [2, 2, 3]}}
+cameras:
+  - name: rgbd
+    model: xtion
+    mount: tool
+    pose: {{xyz: [0, 0, 0]}}
+    noise_sigma: 1.0
+    depth: {{misregistration_px: [{mis_u}, {mis_v}], scale_bias: {bias}}}
+"""
+
+QR_BOARD_CENTRE = np.array([0.989, 0.0, 1.0])
+
+
+def qr_cell(
+    seed: int = 5, misregistration_px: tuple[float, float] = (0.0, 0.0), scale_bias: float = 0.0
+):  # type: ignore[no-untyped-def]
+    """A SimCell with an Xtion-like RGB-D camera on the tool, facing a 0.16 m QR board."""
+    from simulation import SimCell, scene_from_text
+
+    text = QR_SCENE.format(
+        seed=seed, mis_u=misregistration_px[0], mis_v=misregistration_px[1], bias=scale_bias
+    )
+    return SimCell(scene_from_text(text, source="qr_pose_test.yaml"), seed=seed)
+
+
+def random_view(
+    rng: np.random.Generator, distance: tuple[float, float] = (0.7, 1.3), max_tilt_deg: float = 35
+) -> NDArray[np.float64]:
+    """world_from_camera looking at the board from a random direction and distance, the code
+    somewhere in the middle of the image and a random roll."""
+    tilt = np.deg2rad(rng.uniform(0, max_tilt_deg))
+    az = rng.uniform(0, 2 * np.pi)
+    normal = np.array([-1.0, 0.0, 0.0])  # out of the board, towards the viewer
+    a = np.array([0.0, np.cos(az), np.sin(az)])
+    direction = np.cos(tilt) * normal + np.sin(tilt) * a
+    eye = QR_BOARD_CENTRE + rng.uniform(*distance) * direction
+    target = QR_BOARD_CENTRE + np.array([0.0, *rng.uniform(-0.08, 0.08, 2)])
+    z = target - eye
+    z /= np.linalg.norm(z)
+    up = np.array([0.0, 0.0, 1.0])
+    yv = -(up - (up @ z) * z)
+    yv /= np.linalg.norm(yv)
+    roll = rng.uniform(-np.pi, np.pi)
+    x = np.cross(yv, z)
+    c, s = np.cos(roll), np.sin(roll)
+    x, yv = c * x + s * yv, -s * x + c * yv
+    t = np.eye(4)
+    t[:3, :3] = np.column_stack([x, yv, z])
+    t[:3, 3] = eye
+    return t

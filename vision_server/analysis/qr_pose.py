@@ -1,0 +1,419 @@
+"""QR pose from an RGB-D camera: ``camera_from_qr`` from one colour frame and N depth frames.
+
+Frames and corner order are those of docs/conventions.md: QR frame x = (c0 - c3)/|..| (up on
+the print), y = (c2 - c3)/|..| (right), z = x × y (into the surface), origin = mean of the
+corners. Depth frames are uint16 millimetres (0 = no depth) registered to the colour image, so
+depth pixel (u, v) and colour pixel (u, v) see the same point; both are in the colour camera's
+(possibly distorted) pixels, and every pixel is undistorted before its ray is cast.
+
+Two methods:
+
+``"corners"`` (the paper's, section 2.5): for each corner, the depth is the mean over the N
+frames of the valid (non-zero) depths in a small window around the corner pixel (``window_px``
+= 1: the 3x3 pixels around the nearest pixel; the window straddles the code's edge, which is
+fine on a flat board). The corner is back-projected along its undistorted ray at that z; the
+axes follow equations 1-3 (x from c3 to c0, y from c3 to c2, z = x × y) and the translation
+equation 4 (mean of the corners). x and y are not exactly orthogonal with noisy depth: the
+matrix [x y z] is replaced by the nearest rotation (SVD, Frobenius norm), which spreads the
+correction evenly over the axes instead of favouring x as Gram-Schmidt would.
+
+``"plane"`` (default): the depth pixels inside the code's quadrilateral, shrunk towards its
+centre by ``erode`` of the side (depth at the code's edges and across the quiet zone is where
+misregistration and flying pixels hurt), from all N frames pooled (zeros ignored), are
+back-projected and a plane is fitted by RANSAC (threshold from the expected structured-light
+noise at that range, then least squares on the inliers). The four sub-pixel corner rays are
+intersected with the plane, and the rotation is the best fit (Kabsch/SVD) of the ideal square
+to the four 3D corners; the corners are coplanar, so its z is the plane's normal and its
+in-plane angle comes from the image corners. Why this is robust on a Kinect-like sensor:
+
+- disparity noise and 1/8 px quantisation average out over thousands of pixels, where the
+  corners method sees nine;
+- misregistration between depth and colour moves depth pixels along a flat board, which does
+  not move the plane (the quad is eroded so no pixel near the board's edge is used), whereas
+  the corners method samples the wrong spot;
+- a depth scale bias (z read as (1 + b) z) scales the plane about the camera centre and with
+  it the corners. With ``side_m`` (the printed side of the symbol) the corners are rescaled
+  along their rays so the mean measured side equals ``side_m``: the image size of the code
+  plus its known size fixes the distance, independent of depth bias. But the image-based
+  distance is noisier than unbiased depth (about corner error / side in px of the range,
+  ~0.06 % = 0.6 mm at 1 m, against < 0.1 mm from the plane), so ``scale="auto"`` (default)
+  rescales only when the sides disagree with ``side_m`` by more than ``side_tolerance``
+  (0.4 %), i.e. when the depth is evidently biased; "side" and "depth" force either.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from geometry import CameraIntrinsics, fit_plane, orthonormalize
+
+from .errors import BadImageError, DepthError, NotFoundError
+from .qr import Expect, read_qr
+
+__all__ = ["QRPose", "QRPoseQuality", "qr_pose", "QR_CORNERS_QR"]
+
+FloatArray = NDArray[np.float64]
+Method = Literal["plane", "corners"]
+
+
+def QR_CORNERS_QR(side_m: float) -> FloatArray:  # noqa: N802 - reads like a constant
+    """The corners c0..c3 (4, 3) of a code of side ``side_m`` in its own QR frame."""
+    h = side_m / 2
+    return np.array([[h, -h, 0.0], [h, h, 0.0], [-h, h, 0.0], [-h, -h, 0.0]])
+
+
+@dataclass(frozen=True)
+class QRPoseQuality:
+    """How much to trust a :class:`QRPose`.
+
+    ``corner_depth_std_m`` (4,): spread (std) of the depth samples used at each corner
+    (corners method), or of the plane residuals of the inliers near each corner (plane
+    method), metres. ``valid_depth_fraction``: valid depth pixels / all pixels in the eroded
+    quad over all frames. ``plane_rms_m``, ``inlier_fraction``: the plane fit (NaN for the
+    corners method). ``orthogonality_rad``: |angle(x, y) - 90°| of eqs 1-2 before
+    orthonormalisation. ``side_lengths_m`` (4,): |c0c1|, |c1c2|, |c2c3|, |c3c0| measured
+    before any rescaling; ``side_m``: the printed side if given. ``scale``: the factor applied
+    to the corners (1.0 without ``side_m``). ``frames``: depth frames used.
+    """
+
+    corner_depth_std_m: FloatArray
+    valid_depth_fraction: float
+    plane_rms_m: float
+    inlier_fraction: float
+    orthogonality_rad: float
+    side_lengths_m: FloatArray
+    side_m: float | None
+    scale: float
+    frames: int
+
+
+@dataclass(frozen=True)
+class QRPose:
+    """``camera_from_qr`` (4, 4); the code's ``text`` ("" when corners were given without
+    ``expect``); ``corners_uv`` (4, 2) pixels and ``corners_camera`` (4, 3) metres, c0..c3;
+    the ``method``; and the ``quality`` report."""
+
+    camera_from_qr: FloatArray
+    text: str
+    corners_uv: FloatArray
+    corners_camera: FloatArray
+    method: str
+    quality: QRPoseQuality
+
+
+def _depth_stack(depth_frames: object, shape: tuple[int, int]) -> NDArray[np.uint16]:
+    if isinstance(depth_frames, np.ndarray):
+        stack = depth_frames[None] if depth_frames.ndim == 2 else depth_frames
+    elif isinstance(depth_frames, Sequence) and len(depth_frames) > 0:
+        frames = [np.asarray(f) for f in depth_frames]
+        if any(f.shape != frames[0].shape for f in frames):
+            raise BadImageError("depth frames differ in shape")
+        stack = np.stack(frames)
+    else:
+        raise BadImageError("depth_frames must be an (H, W) or (N, H, W) array or a list of them")
+    if stack.dtype != np.uint16:
+        raise BadImageError(f"depth must be uint16 millimetres, got {stack.dtype}")
+    if stack.ndim != 3 or stack.shape[0] < 1:
+        raise BadImageError(f"depth must be (H, W) or (N, H, W), got {stack.shape}")
+    if stack.shape[1:] != shape:
+        raise BadImageError(
+            f"depth {stack.shape[2]}x{stack.shape[1]} is not registered to the "
+            f"{shape[1]}x{shape[0]} colour image"
+        )
+    return np.asarray(stack, np.uint16)
+
+
+def _depth_m(z_mm: NDArray[np.uint16], levels: tuple[float, int] | None) -> FloatArray:
+    """Depth in metres of valid (non-zero) millimetre values, undoing the mm rounding of a
+    structured-light sensor when every value lies on its disparity table."""
+    z = z_mm.astype(np.float64)
+    if levels is not None and z.size:
+        fb, steps = levels
+        k = np.rint(fb * steps * 1000.0 / z)  # disparity in 1/steps px
+        on_table = np.rint(fb * steps * 1000.0 / np.maximum(k, 1.0)) == z
+        if float(on_table.mean()) >= 0.98:
+            result: FloatArray = np.where(on_table, fb * steps / np.maximum(k, 1.0), z / 1000.0)
+            return result
+    return z / 1000.0
+
+
+def _kabsch(model: FloatArray, measured: FloatArray) -> FloatArray:
+    """Rotation R minimising sum |R model_i + t - measured_i|² (both (N, 3))."""
+    a = model - model.mean(axis=0)
+    b = measured - measured.mean(axis=0)
+    u, _, vt = np.linalg.svd(b.T @ a)
+    fix = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(u @ vt)) or 1.0)])
+    result: FloatArray = u @ fix @ vt
+    return result
+
+
+def _sides(c: FloatArray) -> FloatArray:
+    result: FloatArray = np.linalg.norm(c - np.roll(c, -1, axis=0), axis=1)
+    return result
+
+
+def _orthogonality(c: FloatArray) -> float:
+    x = c[0] - c[3]
+    y = c[2] - c[3]
+    cos = float(x @ y / (np.linalg.norm(x) * np.linalg.norm(y)))
+    return abs(float(np.arccos(np.clip(cos, -1.0, 1.0))) - np.pi / 2)
+
+
+def _check_corners(corners_uv: FloatArray, intr: CameraIntrinsics) -> None:
+    area = 0.5 * abs(
+        float(
+            np.sum(
+                corners_uv[:, 0] * np.roll(corners_uv[:, 1], -1)
+                - np.roll(corners_uv[:, 0], -1) * corners_uv[:, 1]
+            )
+        )
+    )
+    if not np.all(np.isfinite(corners_uv)) or area < 25.0:
+        raise DepthError(f"degenerate QR corners {corners_uv.tolist()} (area {area:.1f} px²)")
+    inside = (
+        (corners_uv[:, 0] >= -0.5)
+        & (corners_uv[:, 0] <= intr.width - 0.5)
+        & (corners_uv[:, 1] >= -0.5)
+        & (corners_uv[:, 1] <= intr.height - 0.5)
+    )
+    if not inside.all():
+        raise DepthError(f"QR corners c{np.flatnonzero(~inside).tolist()} lie outside the image")
+
+
+def qr_pose(
+    color: NDArray[np.generic] | None,
+    depth_frames: NDArray[np.uint16] | Sequence[NDArray[np.uint16]],
+    intrinsics: CameraIntrinsics,
+    *,
+    method: Method = "plane",
+    corners: NDArray[np.float64] | None = None,
+    expect: Expect = None,
+    roi: Sequence[int] | None = None,
+    side_m: float | None = None,
+    scale: Literal["auto", "side", "depth"] = "auto",
+    side_tolerance: float = 0.004,
+    erode: float = 0.08,
+    window_px: int = 1,
+    ransac_threshold_m: float | None = None,
+    min_valid_pixels: int = 50,
+    disparity_levels: tuple[float, int] | None = (43.5, 8),
+) -> QRPose:
+    """``camera_from_qr`` of the QR code in ``color`` (or at the given ``corners``).
+
+    ``depth_frames``: one (H, W) or several ((N, H, W) or a list) uint16 mm depth images
+    registered to ``color``. ``intrinsics``: the colour camera (with its distortion).
+    ``corners`` (4, 2): c0..c3 in pixels (then ``color`` may be None); otherwise the code is
+    read with :func:`read_qr` (``expect``, ``roi`` select it). ``side_m``: the printed side
+    of the symbol; ``scale`` "side" rescales the corners along their rays so their mean side
+    is ``side_m``, "depth" keeps the depth's distance, "auto" (default) rescales only when the
+    measured side differs from ``side_m`` by more than ``side_tolerance`` (relative; 0.4 %
+    is well above the image-based noise of ~0.1 % and catches a depth scale bias).
+    ``erode``: fraction of the side removed around the quad's edge before the plane fit.
+    ``window_px``: the corners method's half window. ``ransac_threshold_m``: default from
+    the sensor noise at that range.
+    ``disparity_levels`` ``(fb_px_m, steps)``: a structured-light sensor reports z = fb / d
+    with d quantised to 1/steps px, rounded to mm; when (and only when) at least 98 % of the
+    depth values lie exactly on that table, each is snapped back to its level's exact z,
+    which removes the ±0.5 mm rounding that does not average out over frames (it biases the
+    plane's tilt by up to ~0.2°). None turns this off.
+
+    Raises NotFoundError (no code), DepthError (a corner without depth, too few depth pixels,
+    degenerate geometry), BadImageError (bad depth frames).
+    """
+    if method not in ("plane", "corners"):
+        raise ValueError(f"method must be 'plane' or 'corners', got {method!r}")
+    if side_m is not None and not side_m > 0:
+        raise ValueError(f"side_m must be positive, got {side_m}")
+    if scale not in ("auto", "side", "depth"):
+        raise ValueError(f"scale must be 'auto', 'side' or 'depth', got {scale!r}")
+    if scale == "side" and side_m is None:
+        raise ValueError("scale='side' needs side_m")
+    shape = (intrinsics.height, intrinsics.width)
+    depth = _depth_stack(depth_frames, shape)
+
+    if corners is None:
+        if color is None:
+            raise NotFoundError("neither a colour image nor corners given")
+        if np.asarray(color).shape[:2] != shape:
+            raise BadImageError(
+                f"colour image {np.asarray(color).shape[:2]} does not match the intrinsics {shape}"
+            )
+        code = read_qr(color, roi=roi, expect=expect)[0]
+        corners_uv, text = code.corners, code.text
+    else:
+        corners_uv = np.asarray(corners, np.float64)
+        if corners_uv.shape != (4, 2):
+            raise ValueError(f"corners must have shape (4, 2), got {corners_uv.shape}")
+        text = expect if isinstance(expect, str) else ""
+    _check_corners(corners_uv, intrinsics)
+
+    if method == "corners":
+        corners_cam, spread, valid_fraction = _corners_method(
+            corners_uv, depth, intrinsics, window_px, disparity_levels
+        )
+        rms = inlier_fraction = float("nan")
+    else:
+        corners_cam, spread, valid_fraction, rms, inlier_fraction = _plane_method(
+            corners_uv,
+            depth,
+            intrinsics,
+            erode,
+            ransac_threshold_m,
+            min_valid_pixels,
+            disparity_levels,
+        )
+
+    sides = _sides(corners_cam)
+    if not np.all(sides > 1e-4):
+        raise DepthError(f"degenerate QR geometry: side lengths {sides.tolist()} m")
+    orthogonality = _orthogonality(corners_cam)
+    factor = 1.0
+    if side_m is not None and scale != "depth":
+        ratio = side_m / float(sides.mean())
+        if scale == "side" or abs(ratio - 1.0) > side_tolerance:
+            factor = ratio
+            corners_cam = corners_cam * factor  # along the rays through the camera centre
+
+    if method == "corners":
+        x = corners_cam[0] - corners_cam[3]
+        y = corners_cam[2] - corners_cam[3]
+        x /= np.linalg.norm(x)
+        y /= np.linalg.norm(y)
+        z = np.cross(x, y)
+        if np.linalg.norm(z) < 1e-6:
+            raise DepthError("degenerate QR geometry: x and y axes are parallel")
+        rotation = orthonormalize(np.column_stack([x, y, z / np.linalg.norm(z)]))
+    else:
+        model = QR_CORNERS_QR(side_m if side_m is not None else float(sides.mean()))
+        rotation = _kabsch(model, corners_cam)
+    camera_from_qr = np.eye(4)
+    camera_from_qr[:3, :3] = rotation
+    camera_from_qr[:3, 3] = corners_cam.mean(axis=0)
+    quality = QRPoseQuality(
+        corner_depth_std_m=spread,
+        valid_depth_fraction=valid_fraction,
+        plane_rms_m=rms,
+        inlier_fraction=inlier_fraction,
+        orthogonality_rad=orthogonality,
+        side_lengths_m=sides,
+        side_m=side_m,
+        scale=factor,
+        frames=int(depth.shape[0]),
+    )
+    return QRPose(camera_from_qr, text, corners_uv.copy(), corners_cam, method, quality)
+
+
+def _corners_method(
+    corners_uv: FloatArray,
+    depth: NDArray[np.uint16],
+    intr: CameraIntrinsics,
+    window: int,
+    levels: tuple[float, int] | None,
+) -> tuple[FloatArray, FloatArray, float]:
+    h, w = depth.shape[1:]
+    z = np.zeros(4)
+    spread = np.zeros(4)
+    valid_total = 0
+    count_total = 0
+    for i, (u, v) in enumerate(corners_uv):
+        cu, cv = int(np.rint(u)), int(np.rint(v))
+        patch = depth[
+            :,
+            max(cv - window, 0) : min(cv + window + 1, h),
+            max(cu - window, 0) : min(cu + window + 1, w),
+        ]
+        samples = _depth_m(patch[patch > 0], levels)
+        valid_total += samples.size
+        count_total += patch.size
+        if samples.size == 0:
+            raise DepthError(
+                f"no valid depth at QR corner c{i} ({u:.1f}, {v:.1f}) in {depth.shape[0]} frames"
+            )
+        z[i] = samples.mean()
+        spread[i] = samples.std()
+    corners_cam = intr.backproject(corners_uv, z)
+    return corners_cam, spread, valid_total / max(count_total, 1)
+
+
+def _plane_method(
+    corners_uv: FloatArray,
+    depth: NDArray[np.uint16],
+    intr: CameraIntrinsics,
+    erode: float,
+    threshold: float | None,
+    min_valid: int,
+    levels: tuple[float, int] | None,
+) -> tuple[FloatArray, FloatArray, float, float, float]:
+    n_frames, h, w = depth.shape
+    centre = corners_uv.mean(axis=0)
+    quad = centre + (1.0 - 2.0 * erode) * (corners_uv - centre)
+    u0 = int(np.clip(np.floor(quad[:, 0].min()), 0, w - 1))
+    u1 = int(np.clip(np.ceil(quad[:, 0].max()), 0, w - 1))
+    v0 = int(np.clip(np.floor(quad[:, 1].min()), 0, h - 1))
+    v1 = int(np.clip(np.ceil(quad[:, 1].max()), 0, h - 1))
+    mask = np.zeros((v1 - v0 + 1, u1 - u0 + 1), np.uint8)
+    shift = 4  # fillPoly's fixed-point sub-pixel bits
+    pts = np.rint((quad - [u0, v0]) * (1 << shift)).astype(np.int32)
+    cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=shift)
+    vv, uu = np.nonzero(mask)
+    if vv.size == 0:
+        raise DepthError("the QR code is too small for a plane fit")
+    uv = np.column_stack([uu + u0, vv + v0]).astype(np.float64)
+    xy = intr.undistort_pixels(uv)  # once per pixel, shared by all frames
+    zmm = depth[:, vv + v0, uu + u0]  # (N, P)
+    valid = zmm > 0
+    valid_fraction = float(valid.mean())
+    n_valid = int(valid.sum())
+    if n_valid < min_valid:
+        raise DepthError(
+            f"too few valid depth pixels in the QR code: {n_valid} in {n_frames} frames "
+            f"(need {min_valid})"
+        )
+    z = _depth_m(zmm[valid], levels)
+    pix = np.nonzero(valid)[1]
+    points = np.column_stack([xy[pix, 0] * z, xy[pix, 1] * z, z])
+    z_med = float(np.median(z))
+    if threshold is None:
+        # structured light: sigma_z ~ z² sigma_d / fb (1.4 mm at 1 m) plus 1/8 px steps
+        threshold = 0.002 + 0.005 * z_med * z_med
+    rng = np.random.default_rng(0)
+    sample = points if len(points) <= 3000 else points[rng.choice(len(points), 3000, replace=False)]
+    try:
+        rough = fit_plane(sample, ransac_threshold_m=threshold, ransac_iterations=100, rng=rng)
+    except ValueError as exc:
+        raise DepthError(f"no plane through the QR code's depth: {exc}") from exc
+    inliers = np.abs(points @ rough.normal + rough.d) <= threshold
+    if int(inliers.sum()) < max(3, min_valid // 2):
+        raise DepthError(f"no plane through the QR code's depth ({int(inliers.sum())} inliers)")
+    plane = fit_plane(points[inliers])
+    normal, d = plane.normal, plane.d
+    residual = points[inliers] @ normal + d
+    rays = intr.pixel_rays(corners_uv)
+    denom = rays @ normal
+    if np.any(np.abs(denom) < 1e-3):
+        raise DepthError("degenerate QR geometry: the code's plane is seen edge-on")
+    s = -d / denom
+    if np.any(s <= 0):
+        raise DepthError("degenerate QR geometry: the plane lies behind the camera")
+    corners_cam: FloatArray = rays * s[:, None]
+    # spread near each corner: residuals of inlier points within a quarter side of it
+    in_uv = uv[pix[inliers]]
+    side_px = float(np.mean(np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)))
+    spread = np.full(4, np.nan)
+    for i in range(4):
+        near = np.linalg.norm(in_uv - quad[i], axis=1) < 0.25 * side_px
+        if near.any():
+            spread[i] = float(residual[near].std())
+    return (
+        corners_cam,
+        spread,
+        valid_fraction,
+        float(np.sqrt(np.mean(residual**2))),
+        float(inliers.mean()),
+    )
