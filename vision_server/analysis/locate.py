@@ -405,6 +405,17 @@ def _fit_circle_geometric(
     return float(cx), float(cy), float(r)
 
 
+# Where the local inner and outer grey levels of an edge are read: this far (px) on either side
+# of its steepest step. Near enough not to reach a second edge (a cap's side wall, a few px
+# wide), far enough to be outside the anti-aliased and interpolated transition (~±1 px).
+_LEVEL_NEAR = 1.5
+_LEVEL_FAR = 2.0
+# A side is flat when its level _FLAT_FAR px from the step is within _FLATNESS x contrast
+# (+ 4 grey levels for noise) of the level used.
+_FLAT_FAR = 3.5
+_FLATNESS = 0.2
+
+
 def _edge_points(
     image: FloatArray,
     centre: tuple[float, float],
@@ -419,12 +430,14 @@ def _edge_points(
 
     On each ray the samples (bilinear, 0.25 px apart) within ``half_width`` of the guessed radius
     are searched for the steepest fall (bright) or rise (dark) going outwards; the edge is where
-    the profile crosses the 50 % level between the local inner and outer levels (the means 2 to
-    3 px either side of the steepest step), found by linear interpolation.
+    the profile crosses the 50 % level between the local inner and outer levels (the means
+    ``_LEVEL_NEAR`` to ``_LEVEL_FAR`` px either side of the steepest step), found by linear
+    interpolation. A ray is dropped when either side is not flat out to ``_FLAT_FAR`` px (a
+    second edge close by, e.g. a cap's thin side wall, would bias the 50 % level).
     """
     step = 0.25
-    lo = max(radius - half_width - 3.0, 0.5)
-    hi = radius + half_width + 3.0
+    lo = max(radius - half_width - _FLAT_FAR - 0.5, 0.5)
+    hi = radius + half_width + _FLAT_FAR + 0.5
     radii = np.arange(lo, hi + step / 2, step)
     theta = np.linspace(0.0, 2 * np.pi, rays, endpoint=False)
     cos, sin = np.cos(theta)[:, None], np.sin(theta)[:, None]
@@ -442,8 +455,9 @@ def _edge_points(
         profiles = -profiles
     points: list[tuple[float, float]] = []
     contrasts: list[float] = []
-    n3 = int(round(3.0 / step))
-    n2 = int(round(2.0 / step))
+    n3 = int(round(_LEVEL_FAR / step))
+    n2 = int(round(_LEVEL_NEAR / step))
+    n4 = int(round(_FLAT_FAR / step))
     window = (radii >= radius - half_width) & (radii <= radius + half_width)
     idx_window = np.nonzero(window)[0]
     for i in range(rays):
@@ -453,12 +467,17 @@ def _edge_points(
         # Steepest fall going outwards, over a 1 px baseline to resist noise.
         fall = prof[idx_window - 2] - prof[idx_window + 2]
         j = int(idx_window[int(np.argmax(fall))])
-        if j - n3 < 0 or j + n3 >= len(prof):
+        if j - n4 < 0 or j + n4 >= len(prof):
             continue
         inner = float(prof[j - n3 : j - n2 + 1].mean())
         outer = float(prof[j + n2 : j + n3 + 1].mean())
         contrast = inner - outer
         if contrast < min_contrast:
+            continue
+        inner_far = float(prof[j - n4 : j - n4 + (n3 - n2) + 1].mean())
+        outer_far = float(prof[j + n4 - (n3 - n2) : j + n4 + 1].mean())
+        tolerance = _FLATNESS * contrast + 4.0
+        if abs(inner_far - inner) > tolerance or abs(outer_far - outer) > tolerance:
             continue
         level = 0.5 * (inner + outer)
         # The crossing of `level` nearest to j, between j - n2 and j + n2.
@@ -503,7 +522,7 @@ def _refine_circle(
         for _ in range(3):  # drop outliers (e.g. a shadow or a neighbour), refit
             residual = np.abs(np.hypot(points[:, 0] - fit[0], points[:, 1] - fit[1]) - fit[2])
             mad = float(np.median(residual))
-            keep = residual <= max(3.0 * 1.4826 * mad, 0.5)
+            keep = residual <= max(3.0 * 1.4826 * mad, 0.25)
             if keep.sum() < max(8, rays // 4):
                 return None
             fit = _fit_circle_geometric(points[keep], fit)
