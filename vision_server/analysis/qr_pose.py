@@ -349,6 +349,7 @@ def _plane_method(
     threshold: float | None,
     min_valid: int,
     levels: tuple[float, int] | None,
+    max_points: int = 25000,
 ) -> tuple[FloatArray, FloatArray, float, float, float]:
     n_frames, h, w = depth.shape
     centre = corners_uv.mean(axis=0)
@@ -364,6 +365,12 @@ def _plane_method(
     vv, uu = np.nonzero(mask)
     if vv.size == 0:
         raise DepthError("the QR code is too small for a plane fit")
+    # at most ~max_points pooled samples: a regular pixel grid beyond that (a large code at
+    # close range has plenty; the plane's precision then exceeds the corners' anyway)
+    stride = int(np.ceil(np.sqrt(vv.size * n_frames / max_points)))
+    if stride > 1:
+        keep = ((vv + v0) % stride == 0) & ((uu + u0) % stride == 0)
+        vv, uu = vv[keep], uu[keep]
     uv = np.column_stack([uu + u0, vv + v0]).astype(np.float64)
     xy = intr.undistort_pixels(uv)  # once per pixel, shared by all frames
     zmm = depth[:, vv + v0, uu + u0]  # (N, P)
@@ -378,22 +385,29 @@ def _plane_method(
     z = _depth_m(zmm[valid], levels)
     pix = np.nonzero(valid)[1]
     points = np.column_stack([xy[pix, 0] * z, xy[pix, 1] * z, z])
-    z_med = float(np.median(z))
+    z_med = float(z.mean())
     if threshold is None:
         # structured light: sigma_z ~ z² sigma_d / fb (1.4 mm at 1 m) plus 1/8 px steps
         threshold = 0.002 + 0.005 * z_med * z_med
     rng = np.random.default_rng(0)
-    sample = points if len(points) <= 3000 else points[rng.choice(len(points), 3000, replace=False)]
+    sample = points if len(points) <= 1500 else points[rng.choice(len(points), 1500, replace=False)]
     try:
-        rough = fit_plane(sample, ransac_threshold_m=threshold, ransac_iterations=100, rng=rng)
+        rough = fit_plane(sample, ransac_threshold_m=threshold, ransac_iterations=60, rng=rng)
     except ValueError as exc:
         raise DepthError(f"no plane through the QR code's depth: {exc}") from exc
     inliers = np.abs(points @ rough.normal + rough.d) <= threshold
     if int(inliers.sum()) < max(3, min_valid // 2):
         raise DepthError(f"no plane through the QR code's depth ({int(inliers.sum())} inliers)")
-    plane = fit_plane(points[inliers])
-    normal, d = plane.normal, plane.d
-    residual = points[inliers] @ normal + d
+    # least squares on all inliers: smallest eigenvector of the 3x3 scatter matrix
+    inl = points[inliers]
+    centroid = inl.mean(axis=0)
+    centred = inl - centroid
+    _, vecs = np.linalg.eigh(centred.T @ centred)
+    normal = vecs[:, 0]
+    if normal @ centroid > 0:
+        normal = -normal  # towards the camera
+    d = -float(normal @ centroid)
+    residual = centred @ normal
     rays = intr.pixel_rays(corners_uv)
     denom = rays @ normal
     if np.any(np.abs(denom) < 1e-3):
@@ -407,7 +421,7 @@ def _plane_method(
     side_px = float(np.mean(np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)))
     spread = np.full(4, np.nan)
     for i in range(4):
-        near = np.linalg.norm(in_uv - quad[i], axis=1) < 0.25 * side_px
+        near = np.sum((in_uv - quad[i]) ** 2, axis=1) < (0.25 * side_px) ** 2
         if near.any():
             spread[i] = float(residual[near].std())
     return (
