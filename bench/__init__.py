@@ -1,0 +1,18 @@
+"""cellvision's benchmarks (issue #7): ``python -m bench`` (``make bench``) measures the
+protocol and server against references taken in the same run and writes docs/BENCHMARKS.md
+with plots in docs/bench/.
+
+One module per measurement, each with ``NAME``, ``TITLE`` and ``run(cfg, env) -> Section``,
+in the report's order (``SECTIONS``). ``--quick`` runs all of them with tiny sizes (the smoke
+test in tests/bench/). Benchmarks never assert timings.
+"""
+
+from __future__ import annotations
+
+from types import ModuleType
+
+from . import latency
+
+SECTIONS: tuple[ModuleType, ...] = (latency,)
+
+__all__ = ["SECTIONS"]

@@ -1,0 +1,338 @@
+"""1. Protocol and server overhead: round-trip latency of PING and of an inspection with a
+1024x768 gray image in the request, one client, one request at a time.
+
+References, measured in the same run and interleaved round by round with the server under test
+(so that drift of a shared machine hits them alike):
+
+- floor: the same request bytes through a bare asyncio socket (bench/servers.py ``echo``),
+  answered with as many bytes as the real answer;
+- in-process: the same inspection object called on the same numpy image in this process;
+- HTTP/JSON: aiohttp with the image as base64 in a JSON body, the same inspection inline.
+
+Overhead = p50(cellvision) - p50(floor) - p50(in-process). Goals: overhead <= 0.3 ms at p50;
+HTTP/JSON p50 >= 3x cellvision's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from protocol import Inspect, Ping, Pong, payload_from_array
+from robot_client import VisionClient
+
+from .common import Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
+from .env import Env
+from .plots import cdf, pyplot, save
+from .servers import HOST, READ_LIMIT
+
+NAME = "latency"
+TITLE = "1. Protocol and server overhead: round-trip latency"
+INSPECTION = "brightness"
+VERSION = (1, 0)
+OVERHEAD_GOAL_MS = 0.3
+HTTP_GOAL = 3.0
+
+
+class RoundTrip(Protocol):
+    label: str
+
+    async def open(self) -> None: ...
+
+    async def once(self) -> None: ...
+
+    async def close(self) -> None: ...
+
+
+@dataclass
+class Echo:
+    """The floor: ``request`` bytes out, ``reply_size`` bytes back, through a bare socket."""
+
+    label: str
+    port: int
+    request: bytes
+    reply_size: int
+    _reader: asyncio.StreamReader | None = None
+    _writer: asyncio.StreamWriter | None = None
+
+    async def open(self) -> None:
+        header = bytearray(self.request[:24])
+        header[12:16] = self.reply_size.to_bytes(4, "little")  # tells the echo server
+        self.request = bytes(header) + self.request[24:]
+        self._reader, self._writer = await asyncio.open_connection(
+            HOST, self.port, limit=READ_LIMIT
+        )
+
+    async def once(self) -> None:
+        assert self._reader is not None
+        assert self._writer is not None
+        self._writer.write(self.request)
+        await self._writer.drain()
+        await self._reader.readexactly(self.reply_size)
+
+    async def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            await self._writer.wait_closed()
+
+
+@dataclass
+class Cellvision:
+    label: str
+    port: int
+    image: Any | None  # None: PING
+    client: VisionClient | None = None
+
+    async def open(self) -> None:
+        self.client = VisionClient(HOST, self.port)
+        await self.client.connect()
+
+    async def once(self) -> None:
+        assert self.client is not None
+        if self.image is None:
+            await self.client.ping()
+        else:
+            await self.client.inspect(INSPECTION, self.image)
+
+    async def close(self) -> None:
+        if self.client is not None:
+            await self.client.close()
+
+
+def http_body(image: Any) -> dict[str, Any]:
+    """The JSON body a team would send: the raw pixels as base64 (built per request)."""
+    height, width = image.shape[:2]
+    encoding = "gray8" if image.ndim == 2 else "bgr8"
+    data = base64.b64encode(np.ascontiguousarray(image).tobytes()).decode("ascii")
+    return {"image": {"data": data, "width": width, "height": height, "encoding": encoding}}
+
+
+@dataclass
+class Http:
+    label: str
+    port: int
+    image: Any | None
+    session: Any = None
+
+    async def open(self) -> None:
+        import aiohttp
+
+        self.session = aiohttp.ClientSession()
+
+    async def once(self) -> None:
+        if self.image is None:
+            async with self.session.get(f"http://{HOST}:{self.port}/ping") as resp:
+                await resp.json()
+        else:
+            body = http_body(self.image)
+            url = f"http://{HOST}:{self.port}/inspect/{INSPECTION}"
+            async with self.session.post(url, json=body) as resp:
+                answer = await resp.json()
+                assert resp.status == 200, answer
+
+    async def close(self) -> None:
+        if self.session is not None:
+            await self.session.close()
+
+
+@dataclass
+class InProcess:
+    label: str
+    run: Any
+
+    async def open(self) -> None:
+        pass
+
+    async def once(self) -> None:
+        self.run()
+
+    async def close(self) -> None:
+        pass
+
+
+@dataclass
+class Measured:
+    samples: dict[str, list[float]] = field(default_factory=dict)
+
+    def stats(self, label: str) -> Stats:
+        return Stats.of(self.samples.get(label, []))
+
+
+async def _measure(paths: list[RoundTrip], rounds: int, per_round: int, warmup: int) -> Measured:
+    """``rounds`` rounds; in each, ``per_round`` requests of each path in turn."""
+    out = Measured({p.label: [] for p in paths})
+    for p in paths:
+        await p.open()
+    try:
+        for p in paths:
+            for _ in range(warmup):
+                await p.once()
+        for _ in range(rounds):
+            for p in paths:
+                samples = out.samples[p.label]
+                for _ in range(per_round):
+                    t0 = time.perf_counter_ns()
+                    await p.once()
+                    samples.append((time.perf_counter_ns() - t0) / 1e6)
+    finally:
+        for p in paths:
+            await p.close()
+    return out
+
+
+async def _sizes(port: int, image: Any) -> tuple[int, int, int, int]:
+    """Byte sizes of (PING, PONG, INSPECT, RESULT) as the real server exchanges them."""
+    async with VisionClient(HOST, port) as client:
+        result = await client.inspect(INSPECTION, image)
+    ping = Ping(1, "").to_frame(VERSION).serialize()
+    pong = Pong(1, "").to_frame(VERSION).serialize()
+    inspect = Inspect(1, INSPECTION, (payload_from_array(image),)).to_frame(VERSION).serialize()
+    answer = result.to_frame(VERSION).serialize()
+    return len(ping), len(pong), len(inspect), len(answer)
+
+
+def run(cfg: RunConfig, env: Env) -> Section:
+    section = Section(NAME, TITLE)
+    image = np.ascontiguousarray(env.samples.tool)  # 1024x768 gray, the tool camera
+    assert image.shape == (768, 1024)
+    cellvision = env.server("cellvision")
+    echo = env.server("echo")
+    http = None
+    try:
+        http = env.server("http")
+    except Skip as exc:
+        section.skipped.append(f"HTTP/JSON reference: {exc}")
+    inspection = env.catalog.catalog.inspection(INSPECTION)
+    from vision_server import InspectionInput
+
+    def in_process() -> None:
+        inspection.run(InspectionInput(image), overlay=False)
+
+    ping_size, pong_size, inspect_size, result_size = asyncio.run(_sizes(cellvision.port, image))
+    ping_bytes = Ping(1, "").to_frame(VERSION).serialize()
+    inspect_bytes = (
+        Inspect(1, INSPECTION, (payload_from_array(image),)).to_frame(VERSION).serialize()
+    )
+    ping_paths: list[RoundTrip] = [
+        Echo("floor (bare asyncio socket)", echo.port, ping_bytes, pong_size),
+        Cellvision("cellvision", cellvision.port, None),
+    ]
+    inspect_paths: list[RoundTrip] = [
+        Echo("floor (bare asyncio socket)", echo.port, inspect_bytes, result_size),
+        InProcess("in-process compute", in_process),
+        Cellvision("cellvision", cellvision.port, image),
+    ]
+    if http is not None:
+        ping_paths.append(Http("HTTP/JSON (aiohttp)", http.port, None))
+        inspect_paths.append(Http("HTTP/JSON + base64 (aiohttp)", http.port, image))
+    rounds = cfg.n(5, 1)
+    warmup = cfg.n(100, 3)
+    pings = asyncio.run(_measure(ping_paths, rounds, cfg.n(400, 10), warmup))
+    inspects = asyncio.run(_measure(inspect_paths, rounds, cfg.n(200, 5), warmup))
+
+    section.intro = (
+        f"One client (robot_client.VisionClient), one request at a time, over 127.0.0.1; "
+        f"the server (`vision_server.VisionServer`, default settings, "
+        f"{cellvision.info.get('workers')} workers) and each reference in a process of its "
+        f"own. INSPECT runs `{INSPECTION}` (the built-in mean-intensity presence check) on the "
+        f"tool camera's 1024x768 gray image sent raw in the request ({inspect_size} bytes; "
+        f"the RESULT is {result_size} bytes, PING {ping_size}, PONG {pong_size}). The floor "
+        f"sends the same bytes through a bare asyncio socket and gets as many bytes back. "
+        f"{rounds} interleaved rounds after {warmup} warm-up requests per path."
+    )
+    table = Table(["request", "path", "n", "p50 ms", "p99 ms", "p50 ÷ floor", "p99 ÷ floor"])
+    for label, measured in (("PING", pings), ("INSPECT 1024x768 gray", inspects)):
+        floor = measured.stats("floor (bare asyncio socket)")
+        for path, samples in measured.samples.items():
+            s = Stats.of(samples)
+            table.add(
+                label,
+                path,
+                s.n,
+                fmt(s.p50),
+                fmt(s.p99),
+                ratio(s.p50, floor.p50),
+                ratio(s.p99, floor.p99),
+            )
+    section.tables.append(table)
+
+    floor_i = inspects.stats("floor (bare asyncio socket)")
+    comp = inspects.stats("in-process compute")
+    cv_i = inspects.stats("cellvision")
+    floor_p = pings.stats("floor (bare asyncio socket)")
+    cv_p = pings.stats("cellvision")
+    overhead_p50 = cv_i.p50 - floor_i.p50 - comp.p50
+    overhead_p99 = cv_i.p99 - floor_i.p99 - comp.p99
+    ping_overhead = cv_p.p50 - floor_p.p50
+    values = {
+        "inspect_floor_p50_ms": floor_i.p50,
+        "inspect_floor_p99_ms": floor_i.p99,
+        "inspect_compute_p50_ms": comp.p50,
+        "inspect_cellvision_p50_ms": cv_i.p50,
+        "inspect_cellvision_p99_ms": cv_i.p99,
+        "inspect_overhead_p50_ms": overhead_p50,
+        "inspect_overhead_p99_ms": overhead_p99,
+        "ping_floor_p50_ms": floor_p.p50,
+        "ping_cellvision_p50_ms": cv_p.p50,
+        "ping_cellvision_p99_ms": cv_p.p99,
+        "ping_overhead_p50_ms": ping_overhead,
+    }
+    for key, number in values.items():
+        section.value(key, number)
+    section.goals.append(
+        Goal(
+            f"INSPECT overhead beyond floor + compute <= {OVERHEAD_GOAL_MS} ms at p50",
+            f"{fmt(overhead_p50)} ms (= {fmt(cv_i.p50)} - {fmt(floor_i.p50)} - "
+            f"{fmt(comp.p50)}); at p99 {fmt(overhead_p99)} ms; PING "
+            f"{fmt(ping_overhead)} ms over its floor",
+            overhead_p50 <= OVERHEAD_GOAL_MS,
+        )
+    )
+    if http is not None:
+        http_i = inspects.stats("HTTP/JSON + base64 (aiohttp)")
+        http_p = pings.stats("HTTP/JSON (aiohttp)")
+        section.value("inspect_http_p50_ms", http_i.p50)
+        section.value("inspect_http_p99_ms", http_i.p99)
+        section.value("ping_http_p50_ms", http_p.p50)
+        section.value("http_over_cellvision_p50", http_i.p50 / cv_i.p50)
+        section.goals.append(
+            Goal(
+                f"cellvision >= {HTTP_GOAL:g}x lower latency than HTTP/JSON + base64 (p50)",
+                f"HTTP {fmt(http_i.p50)} ms / cellvision {fmt(cv_i.p50)} ms = "
+                f"{ratio(http_i.p50, cv_i.p50)} (p99: {ratio(http_i.p99, cv_i.p99)}; "
+                f"PING: {ratio(http_p.p50, cv_p.p50)})",
+                http_i.p50 / cv_i.p50 >= HTTP_GOAL,
+            )
+        )
+    section.notes.append(
+        "The HTTP reference runs the inspection inline in its handler (no thread-pool hop), "
+        "its fastest single-request path; cellvision runs every inspection in its worker pool "
+        "so that a long inspection never blocks the connection's PINGs."
+    )
+
+    def plot(directory: Path) -> list[Path]:
+        plt = pyplot()
+        if plt is None:
+            return []
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        for ax, (label, measured) in zip(
+            axes, (("PING", pings), ("INSPECT 1024x768 gray", inspects)), strict=True
+        ):
+            for path, samples in measured.samples.items():
+                cdf(ax, samples, path)
+            ax.set_xscale("log")
+            ax.set_xlabel("round-trip latency [ms]")
+            ax.set_ylabel("fraction of requests")
+            ax.set_title(label)
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend(fontsize=8)
+        return [save(fig, directory / "latency.png")]
+
+    section.plot = plot
+    return section

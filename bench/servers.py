@@ -1,0 +1,245 @@
+"""Servers under test, each in its own process on 127.0.0.1 (as the cell PC would run them):
+
+- ``cellvision``: :class:`vision_server.VisionServer` with the bench catalog (bench/cell.py),
+  default settings except the port.
+- ``echo``: the floor, a bare asyncio socket. It reads a frame's 24-byte header and body (the
+  same bytes a cellvision client sends) and answers with as many bytes as the header's request
+  id field says (the client puts there the size of the real answer), so the same bytes cross
+  the socket in both directions, with no protocol work at either end.
+- ``http``: what a team would write instead: aiohttp, JSON bodies, images as base64.
+  ``POST /inspect/NAME`` with ``{"image": {"data", "width", "height", "encoding"}, "depth":
+  [...]}`` runs the same inspection object and answers ``{"inspection", "verdict", "data",
+  "timing"}``; ``GET /ping``. The inspection runs inline in the handler (no thread hop), the
+  fastest single-request path that design offers.
+
+``python -m bench.servers KIND [--config PATH]`` prints one JSON line (``port``, ...) when it
+listens and stops when its standard input closes. :class:`ServerProcess` runs one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import base64
+import json
+import logging
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from .common import ROOT, Skip
+
+HOST = "127.0.0.1"
+READ_LIMIT = 256 * 1024  # the cellvision server's read chunk
+
+
+class ServerProcess:
+    """A server subprocess: ``info`` is its announcement (``port``, ...). Stopped by closing
+    its standard input (it exits by itself); killed by its own pid only if it hangs."""
+
+    def __init__(self, kind: str, workdir: Path, *args: str) -> None:
+        self.kind = kind
+        self._log_path = workdir / f"server-{kind}.log"
+        self._log: IO[bytes] = self._log_path.open("wb")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "bench.servers", kind, *args],
+            cwd=ROOT,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=self._log,
+        )
+        self.info = self._announcement(timeout_s=60.0)
+        self.port = int(self.info["port"])
+
+    def _announcement(self, timeout_s: float) -> dict[str, Any]:
+        out = self.proc.stdout
+        assert out is not None
+        lines: list[bytes] = []
+        reader = threading.Thread(target=lambda: lines.append(out.readline()), daemon=True)
+        reader.start()
+        reader.join(timeout_s)
+        if not lines or not lines[0]:
+            self.stop()
+            tail = self._log_path.read_text(errors="replace")[-2000:]
+            raise Skip(f"the {self.kind} server did not start: {tail.strip() or 'no output'}")
+        info: dict[str, Any] = json.loads(lines[0])
+        return info
+
+    def cpu_seconds(self) -> float:
+        """User + system CPU time the server process has used so far."""
+        try:
+            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            return float("nan")
+        import os
+
+        ticks = os.sysconf("SC_CLK_TCK")
+        return (int(fields[11]) + int(fields[12])) / ticks
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            if self.proc.stdin is not None:
+                self.proc.stdin.close()
+            try:
+                self.proc.wait(timeout=20.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10.0)
+        self._log.close()
+
+
+# --- the processes ------------------------------------------------------------------------------
+
+
+def _announce(info: dict[str, Any]) -> None:
+    sys.stdout.write(json.dumps(info) + "\n")
+    sys.stdout.flush()
+
+
+def _stdin_closed(loop: asyncio.AbstractEventLoop) -> asyncio.Event:
+    done = asyncio.Event()
+
+    def wait() -> None:
+        sys.stdin.buffer.read()
+        loop.call_soon_threadsafe(done.set)
+
+    threading.Thread(target=wait, daemon=True).start()
+    return done
+
+
+async def _serve_cellvision(config: Path | None) -> None:
+    from vision_server import ServerSettings, VisionServer
+
+    from .cell import load_catalog
+
+    bench = load_catalog(config)
+    server = VisionServer(bench.catalog, ServerSettings(port=0))
+    await server.start()
+    done = _stdin_closed(asyncio.get_running_loop())
+    _announce(
+        {
+            "port": server.port,
+            "inspections": sorted(bench.catalog.inspections),
+            "problem": bench.problem,
+            "workers": server.settings.workers,
+            "queue_depth": server.settings.queue_depth,
+            "max_in_flight": server.settings.max_in_flight,
+        }
+    )
+    await done.wait()
+    await server.stop()
+
+
+async def _serve_echo() -> None:
+    replies: dict[int, bytes] = {}
+
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            while True:
+                header = await reader.readexactly(24)
+                body = int.from_bytes(header[20:24], "little")
+                size = int.from_bytes(header[12:16], "little")
+                if body:
+                    await reader.readexactly(body)
+                reply = replies.get(size)
+                if reply is None:
+                    reply = replies.setdefault(size, bytes(size))
+                writer.write(reply)
+                await writer.drain()
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+        finally:
+            writer.close()
+
+    server = await asyncio.start_server(handle, HOST, 0, limit=READ_LIMIT)
+    done = _stdin_closed(asyncio.get_running_loop())
+    _announce({"port": server.sockets[0].getsockname()[1]})
+    await done.wait()
+    server.close()
+
+
+def _array(spec: dict[str, Any]) -> Any:
+    raw = base64.b64decode(spec["data"])
+    width, height, encoding = int(spec["width"]), int(spec["height"]), spec["encoding"]
+    if encoding == "gray8":
+        return np.frombuffer(raw, np.uint8).reshape(height, width)
+    if encoding == "bgr8":
+        return np.frombuffer(raw, np.uint8).reshape(height, width, 3)
+    if encoding == "depth16":
+        return np.frombuffer(raw, "<u2").reshape(height, width)
+    raise ValueError(f"unknown encoding {encoding!r}")
+
+
+async def _serve_http(config: Path | None) -> None:
+    from aiohttp import web
+
+    from vision_server import InspectionInput
+
+    from .cell import load_catalog
+
+    catalog = load_catalog(config).catalog
+
+    async def ping(request: web.Request) -> web.Response:
+        return web.json_response({"ok": True})
+
+    async def inspect(request: web.Request) -> web.Response:
+        started = time.perf_counter()
+        name = request.match_info["name"]
+        if name not in catalog.inspections:
+            return web.json_response({"error": f"no inspection named {name!r}"}, status=404)
+        inspection = catalog.inspections[name]
+        camera = catalog.cameras[inspection.camera]
+        body = await request.json()
+        color = _array(body["image"])
+        depth = tuple(_array(d) for d in body.get("depth", ()))
+        t0 = time.perf_counter()
+        outcome = inspection.run(
+            InspectionInput(color, depth, getattr(camera, "intrinsics", None)), overlay=False
+        )
+        compute_ms = (time.perf_counter() - t0) * 1000.0
+        return web.json_response(
+            {
+                "inspection": name,
+                "verdict": "pass" if outcome.passed else "fail",
+                "data": outcome.data,
+                "timing": {
+                    "compute_ms": compute_ms,
+                    "total_ms": (time.perf_counter() - started) * 1000.0,
+                },
+            }
+        )
+
+    app = web.Application(client_max_size=64 * 1024 * 1024)
+    app.router.add_get("/ping", ping)
+    app.router.add_post("/inspect/{name}", inspect)
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, HOST, 0)
+    await site.start()
+    done = _stdin_closed(asyncio.get_running_loop())
+    _announce({"port": runner.addresses[0][1]})
+    await done.wait()
+    await runner.cleanup()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(prog="python -m bench.servers")
+    parser.add_argument("kind", choices=["cellvision", "echo", "http"])
+    parser.add_argument("--config", type=Path, default=None)
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    if args.kind == "cellvision":
+        asyncio.run(_serve_cellvision(args.config))
+    elif args.kind == "echo":
+        asyncio.run(_serve_echo())
+    else:
+        asyncio.run(_serve_http(args.config))
+
+
+if __name__ == "__main__":
+    main()
