@@ -19,9 +19,10 @@ and ``margin_m``), at the height and orientation of ``p_cam_start``, visited nea
 (a nearest-neighbour tour from the tool's position); a part is accepted when its grasp point
 lies inside the polygon.
 
-``refine`` (beyond the paper): before grasping, look again from straight above the chosen
-candidate (its image then sits at the image centre, where lens and perspective errors are
-smallest) and use that measurement.
+``refine`` (beyond the paper, default 0): before grasping, look again from straight above the
+chosen candidate (its image then sits at the image centre, where lens and perspective errors
+are smallest) and use that measurement. In the simulated cell Table 1 alone is accurate to
+~0.06 mm (p95) with the server's circle locator; a second look brings it to ~0.01 mm.
 
 Failure reasons: ``not_found`` (searched everything, saw nothing), ``out_of_region`` (saw parts,
 none in the acceptance region), ``grasp_failed`` (the gripper closed on nothing).
@@ -210,7 +211,7 @@ class VisionPick(Skill):
                 ParamType.INT,
                 "looks from straight above the candidate before grasping (0: Table 1 exactly)",
                 "",
-                default=1,
+                default=0,
                 minimum=0,
                 maximum=3,
             ),
