@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import latency
+from . import latency, throughput
 
-SECTIONS: tuple[ModuleType, ...] = (latency,)
+SECTIONS: tuple[ModuleType, ...] = (latency, throughput)
 
 __all__ = ["SECTIONS"]

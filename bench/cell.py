@@ -5,7 +5,7 @@ sample images rendered by the simulated cell.
 take their images in the request (a benchmark sends the images itself): the example's
 inspections unchanged, plus ``station_pose_corners`` (the paper's corner method beside the
 plane method), plus for section 3 a copy of each inspection at 1024x768 and at 640x480
-(``NAME@WxH``, on cameras ``CAMERA@WxH`` whose intrinsics are scaled; a circle locate's radius
+(``NAME-WxH``, on cameras ``CAMERA-WxH`` whose intrinsics are scaled; a circle locate's radius
 range in pixels is scaled with them). ``load_catalog`` builds the catalog the way the server's
 command line does (:class:`vision_server.runtime.CellRuntime`) and adds the built-in
 ``brightness`` inspection.
@@ -30,6 +30,7 @@ from .common import ROOT, SCENE, Skip
 EXAMPLE_CONFIG = ROOT / "examples" / "cell.yaml"
 SIZES: tuple[tuple[int, int], ...] = ((1024, 768), (640, 480))
 """(width, height) of section 3."""
+SIZE_NAMES = {f"{w}x{h}" for w, h in SIZES}
 DOWN = (np.pi, 0.0, 0.0)
 CONVEYOR_VIEW = transform_from_xyz_rpy([0.3, -0.55, 0.275], DOWN)
 """The tool camera above the conveyor, caps in view (simulation/benchmark.py's pose)."""
@@ -93,9 +94,9 @@ def config_dict() -> dict[str, Any]:
         inspections.append(dict(CORNERS_POSE))
     sized = []
     for width, height in SIZES:
-        suffix = f"@{width}x{height}"
+        suffix = f"-{width}x{height}"
         for name, cam in list(cameras.items()):
-            if "@" in name:
+            if "-" in name and name.rsplit("-", 1)[1] in SIZE_NAMES:
                 continue
             scaled = dict(cam, intrinsics=_scaled(cam["intrinsics"], width, height))
             cameras[name + suffix] = scaled
@@ -134,9 +135,31 @@ class BenchCatalog:
     problem: str | None
 
 
+@dataclass(frozen=True)
+class CircleLocate:
+    """Stand-in for the configured ``cap_locate`` while the configuration does not load: the
+    same analysis (:func:`vision_server.analysis.locate.locate`, circle method, the example's
+    radius range), without the configuration layer."""
+
+    name: str = "cap_locate"
+    camera: str = "tool"
+    type: str = "locate"
+    uses_depth: bool = False
+    frames: int = 1
+
+    def run(self, image: Any, *, overlay: bool) -> Any:
+        from vision_server import InspectionOutcome
+        from vision_server.analysis.locate import locate
+
+        found = locate(image.color, method="circle", radius_range=(60.0, 100.0), polarity="bright")
+        features = [{"u": f.u, "v": f.v, "score": f.score, "radius": f.radius} for f in found]
+        return InspectionOutcome(bool(found), {"count": len(found), "features": features})
+
+
 def load_catalog(config: Path | None) -> BenchCatalog:
-    """The configured inspections plus ``brightness``; only ``brightness`` (with the reason)
-    when the configuration does not load (the inspections are still being written)."""
+    """The configured inspections plus ``brightness``. When the configuration does not load
+    (the inspections are still being written): ``brightness`` and, if the analysis exists, a
+    stand-in ``cap_locate`` (:class:`CircleLocate`), with the reason."""
     from vision_server import Catalog, builtin_catalog
 
     builtin = builtin_catalog()
@@ -147,7 +170,15 @@ def load_catalog(config: Path | None) -> BenchCatalog:
 
         runtime = CellRuntime(config)
     except Exception as exc:  # noqa: BLE001 - any failure means: serve what works, say why
-        return BenchCatalog(builtin, f"{type(exc).__name__}: {exc}")
+        problem = f"the bench configuration does not load: {type(exc).__name__}: {exc}"
+        try:
+            import vision_server.analysis.locate  # noqa: F401
+        except ImportError:
+            return BenchCatalog(builtin, problem)
+        fallback = Catalog.build(
+            list(builtin.cameras.values()), [*builtin.inspections.values(), CircleLocate()]
+        )
+        return BenchCatalog(fallback, problem + "; cap_locate is a stand-in (CircleLocate)")
     cameras = list(runtime.catalog.cameras.values())
     inspections = list(runtime.catalog.inspections.values())
     for name, inspection in builtin.inspections.items():
