@@ -94,7 +94,9 @@ def _pyzbar(gray: GrayImage) -> list[_Raw]:
 def _zxing(gray: GrayImage) -> list[_Raw]:
     out = []
     for b in zxingcpp.read_barcodes(
-        gray, formats=zxingcpp.BarcodeFormats(zxingcpp.BarcodeFormat.QRCode)
+        gray,
+        formats=zxingcpp.BarcodeFormats(zxingcpp.BarcodeFormat.QRCode),
+        text_mode=zxingcpp.TextMode.Plain,  # the payload as is (HRI spells out <SOH> etc.)
     ):
         if not b.valid:
             continue
