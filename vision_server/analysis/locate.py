@@ -31,11 +31,13 @@ from numpy.typing import NDArray
 from .errors import BadImageError, NotFoundError, RoiError, TemplateError
 
 __all__ = [
+    "METHODS",
     "Feature",
     "crop_roi",
     "locate",
     "locate_blobs",
     "locate_circles",
+    "locate_one",
     "locate_template",
     "to_gray",
 ]
@@ -751,14 +753,15 @@ METHODS = ("template", "circle", "blob")
 def locate(
     image: Any,
     *,
-    method: Literal["template", "circle", "blob"],
+    method: str,
     roi: Sequence[int] | None = None,
     template: Any = None,
     **options: Any,
 ) -> list[Feature]:
     """Locate features by the named ``method`` (the server's configuration names it).
 
-    ``"template"`` calls :func:`locate_template` (needs ``template``), ``"circle"``
+    ``method`` is one of :data:`METHODS`: ``"template"`` calls :func:`locate_template` (needs
+    ``template``), ``"circle"``
     :func:`locate_circles`, ``"blob"`` :func:`locate_blobs`; ``roi`` and the remaining keyword
     options go to that function unchanged (an unknown option raises ``TypeError``).
 
