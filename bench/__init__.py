@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import latency, throughput
+from . import compute, latency, qr_real, render, throughput
 
-SECTIONS: tuple[ModuleType, ...] = (latency, throughput)
+SECTIONS: tuple[ModuleType, ...] = (latency, throughput, compute, qr_real, render)
 
 __all__ = ["SECTIONS"]

@@ -143,10 +143,14 @@ def fmt(value: float, digits: int = 3) -> str:
     return f"{value:.{digits}f}"
 
 
-def ratio(value: float, reference: float, digits: int = 2) -> str:
+def ratio(value: float, reference: float, digits: int | None = None) -> str:
+    """``value / reference`` as ``"1.23×"``; digits by magnitude unless given."""
     if reference != reference or value != value or reference == 0:
         return "n/a"
-    return f"{value / reference:.{digits}f}×"
+    r = value / reference
+    if digits is None:
+        digits = 0 if abs(r) >= 100 else 1 if abs(r) >= 10 else 2 if abs(r) >= 0.1 else 3
+    return f"{r:.{digits}f}×"
 
 
 def yardstick_ms(shape: tuple[int, int], *, repeat: int = 50) -> float:
