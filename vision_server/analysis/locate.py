@@ -238,6 +238,7 @@ def locate_template(
     angle_range: tuple[float, float] = (0.0, 0.0),
     angle_step: float = math.radians(5.0),
     min_distance: float | None = None,
+    pyramid_levels: int | None = None,
 ) -> list[Feature]:
     """Find instances of a gray template by normalised cross-correlation.
 
@@ -264,6 +265,12 @@ def locate_template(
         Rotation step in radians. The reported angle is interpolated between steps.
     min_distance : float, optional
         Closest two instances may be, in pixels (default: half the template's smaller side).
+    pyramid_levels : int, optional
+        Search first on the image halved this many times (over all angles), then only around
+        the coarse peaks at full size. None (default): 1 when the template's smaller side is at
+        least 32 px, 2 when at least 64 px, provided the search region holds at least 16
+        templates; else 0 (exhaustive). Much faster; a template with only very fine texture
+        may need 0.
 
     Returns
     -------
@@ -294,43 +301,31 @@ def locate_template(
     angles = _angles(angle_range, angle_step)
     rotating = len(angles) > 1 or angles[0] != 0.0
     mask = _disc_mask(tmpl.shape) if rotating else None
-
-    best: NDArray[np.float32] | None = None
-    best_index = np.zeros((1, 1), np.int32)
-    for k, angle in enumerate(angles):
-        scores = _match(search, _rotated(tmpl, angle) if rotating else tmpl, mask)
-        if best is None:
-            best = scores
-            best_index = np.zeros(scores.shape, np.int32)
-        else:
-            better = scores > best
-            best = np.where(better, scores, best)
-            best_index[better] = k
-    assert best is not None
-
-    # Candidates: local maxima above min_score, then greedy non-maximum suppression.
-    peaks = (best >= cv2.dilate(best, np.ones((3, 3), np.uint8))) & (best >= min_score)
-    ys, xs = np.nonzero(peaks)
-    order = np.argsort(-best[ys, xs], kind="stable")
     spacing = min(th, tw) / 2.0 if min_distance is None else float(min_distance)
-    accepted: list[tuple[int, int]] = []
-    for i in order:
-        x, y = int(xs[i]), int(ys[i])
-        if all((x - ax) ** 2 + (y - ay) ** 2 >= spacing**2 for ax, ay in accepted):
-            accepted.append((x, y))
-            if len(accepted) >= max_count:
-                break
+    levels = _auto_levels(tmpl.shape, search.shape) if pyramid_levels is None else pyramid_levels
+    if levels < 0:
+        raise ValueError(f"pyramid_levels must be >= 0, not {pyramid_levels}")
 
+    if levels == 0:
+        best, best_index = _best_over_angles(search, tmpl, mask, angles, rotating)
+        candidates = [
+            (x, y, int(best_index[y, x])) for x, y in _peaks(best, min_score, spacing, max_count)
+        ]
+    else:
+        candidates = _coarse_to_fine(
+            search, tmpl, mask, angles, rotating, levels, min_score, spacing, max_count
+        )
+
+    height, width = search.shape[0] - th + 1, search.shape[1] - tw + 1
     features = []
-    for x, y in accepted:
-        k = int(best_index[y, x])
+    for x, y, k in candidates:
         angle = float(angles[k])
         if rotating and len(angles) > 1:
             angle = _refine_angle(search, tmpl, mask, angles, k, x, y)
         local = _local_scores(search, _rotated(tmpl, angle) if rotating else tmpl, mask, x, y)
         dx, dy = _quadratic_peak(local)
-        dx = dx if 0 < x < best.shape[1] - 1 else 0.0
-        dy = dy if 0 < y < best.shape[0] - 1 else 0.0
+        dx = dx if 0 < x < width - 1 else 0.0
+        dy = dy if 0 < y < height - 1 else 0.0
         features.append(
             Feature(
                 u=u0 + x + dx + (tw - 1) / 2.0,
@@ -340,7 +335,105 @@ def locate_template(
             )
         )
     features.sort(key=lambda f: -f.score)
-    return [f for f in features if f.score >= min_score]
+    kept: list[Feature] = []
+    for f in features:  # the coarse level may have found one instance twice
+        if f.score >= min_score and all(
+            (f.u - g.u) ** 2 + (f.v - g.v) ** 2 >= spacing**2 for g in kept
+        ):
+            kept.append(f)
+    return kept[:max_count]
+
+
+def _auto_levels(template: tuple[int, int], search: tuple[int, int]) -> int:
+    """Coarse levels for a search: halve while the template keeps >= 16 px a side (at most
+    twice), and only when the search region is much larger than the template."""
+    if search[0] * search[1] < 16 * template[0] * template[1]:
+        return 0
+    levels = 0
+    while levels < 2 and min(template) / 2 ** (levels + 1) >= 16:
+        levels += 1
+    return levels
+
+
+def _best_over_angles(
+    search: Gray, tmpl: Gray, mask: Gray | None, angles: FloatArray, rotating: bool
+) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+    """Best NCC map over the angles, and the index of the angle giving it."""
+    best: NDArray[np.float32] | None = None
+    best_index = np.zeros((1, 1), np.int32)
+    for k, angle in enumerate(angles):
+        scores = _match(search, _rotated(tmpl, float(angle)) if rotating else tmpl, mask)
+        if best is None:
+            best = scores
+            best_index = np.zeros(scores.shape, np.int32)
+        else:
+            better = scores > best
+            best = np.where(better, scores, best)
+            best_index[better] = k
+    assert best is not None
+    return best, best_index
+
+
+def _peaks(
+    scores: NDArray[np.float32], min_score: float, spacing: float, count: int
+) -> list[tuple[int, int]]:
+    """Local maxima >= min_score, best first, greedily at least ``spacing`` px apart."""
+    peaks = (scores >= cv2.dilate(scores, np.ones((3, 3), np.uint8))) & (scores >= min_score)
+    ys, xs = np.nonzero(peaks)
+    order = np.argsort(-scores[ys, xs], kind="stable")
+    accepted: list[tuple[int, int]] = []
+    for i in order:
+        x, y = int(xs[i]), int(ys[i])
+        if all((x - ax) ** 2 + (y - ay) ** 2 >= spacing**2 for ax, ay in accepted):
+            accepted.append((x, y))
+            if len(accepted) >= count:
+                break
+    return accepted
+
+
+def _coarse_to_fine(
+    search: Gray,
+    tmpl: Gray,
+    mask: Gray | None,
+    angles: FloatArray,
+    rotating: bool,
+    levels: int,
+    min_score: float,
+    spacing: float,
+    max_count: int,
+) -> list[tuple[int, int, int]]:
+    """Candidates (x, y, angle index) found on a ``levels`` times halved image, then located
+    again at full size within ``2**levels + 2`` px and one angle step of the coarse peak."""
+    small_search, small_tmpl = search, tmpl
+    for _ in range(levels):
+        if min(small_tmpl.shape) < 16:
+            break
+        small_search = np.asarray(cv2.pyrDown(small_search), np.uint8)
+        small_tmpl = np.asarray(cv2.pyrDown(small_tmpl), np.uint8)
+    scale = search.shape[1] / small_search.shape[1]
+    small_mask = _disc_mask(small_tmpl.shape) if mask is not None else None
+    best, best_index = _best_over_angles(small_search, small_tmpl, small_mask, angles, rotating)
+    # Halving blurs the texture, which changes the scores: be generous, decide at full size.
+    coarse = _peaks(best, min_score - 0.25, spacing / scale, 2 * max_count + 4)
+    th, tw = tmpl.shape
+    sth, stw = small_tmpl.shape
+    reach = int(math.ceil(scale)) + 2
+    out = []
+    for cx, cy in coarse:
+        x = int(round(scale * (cx + (stw - 1) / 2.0) - (tw - 1) / 2.0))
+        y = int(round(scale * (cy + (sth - 1) / 2.0) - (th - 1) / 2.0))
+        x0, y0 = max(x - reach, 0), max(y - reach, 0)
+        x1 = min(x + reach, search.shape[1] - tw)
+        y1 = min(y + reach, search.shape[0] - th)
+        if x1 < x0 or y1 < y0:
+            continue
+        k = int(best_index[cy, cx])
+        ks = np.arange(max(k - 1, 0), min(k + 2, len(angles)))
+        window = search[y0 : y1 + th, x0 : x1 + tw]
+        local, local_index = _best_over_angles(window, tmpl, mask, angles[ks], rotating)
+        j, i = np.unravel_index(int(np.argmax(local)), local.shape)
+        out.append((x0 + int(i), y0 + int(j), int(ks[int(local_index[j, i])])))
+    return out
 
 
 def _local_scores(search: Gray, tmpl: Gray, mask: Gray | None, x: int, y: int) -> FloatArray:

@@ -290,6 +290,38 @@ def test_template_with_rotation(spots: NDArray[np.float64]) -> None:
     assert np.median(angle_errors) <= 0.01
 
 
+def test_template_full_turn_on_a_full_frame(spots: NDArray[np.float64]) -> None:
+    poses = [(400.3, 300.7, 2.0), (700.1, 500.2, -1.0)]
+    image = template_scene(spots, poses, size=(1024, 768), seed=1)
+    found = locate_template(
+        image,
+        make_template(spots),
+        angle_range=(-math.pi, math.pi),
+        angle_step=math.radians(5),
+        max_count=2,
+    )
+    assert len(found) == 2
+    for u, v, angle in poses:
+        feature, error = nearest(found, u, v)
+        assert error < 0.1
+        assert abs(feature.angle - angle) < 0.01
+
+
+@pytest.mark.parametrize("levels", [0, 1, 2])
+def test_template_pyramid_levels_agree(spots: NDArray[np.float64], levels: int) -> None:
+    image = template_scene(spots, [(150.6, 160.2, 0.3)], size=(300, 300), seed=2)
+    found = locate_template(
+        image,
+        make_template(spots),
+        angle_range=(0.0, 0.6),
+        angle_step=math.radians(6),
+        pyramid_levels=levels,
+    )
+    assert len(found) == 1
+    assert math.hypot(found[0].u - 150.6, found[0].v - 160.2) < 0.1
+    assert abs(found[0].angle - 0.3) < 0.01
+
+
 def test_template_several_instances_with_nms(spots: NDArray[np.float64]) -> None:
     poses = [(100.3, 120.6, 0.0), (300.8, 110.1, 0.0), (210.5, 290.25, 0.0)]
     image = template_scene(spots, poses, size=(420, 400), seed=4)
