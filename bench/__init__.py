@@ -11,8 +11,16 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import compute, latency, qr_real, render, throughput
+from . import calibration, compute, latency, pick, qr_real, render, throughput
 
-SECTIONS: tuple[ModuleType, ...] = (latency, throughput, compute, qr_real, render)
+SECTIONS: tuple[ModuleType, ...] = (
+    latency,
+    throughput,
+    compute,
+    calibration,
+    pick,
+    qr_real,
+    render,
+)
 
 __all__ = ["SECTIONS"]
