@@ -3,7 +3,7 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: bootstrap test lint typecheck pytest demo bench clean
+.PHONY: bootstrap test lint typecheck pytest wheel-check demo bench clean
 
 bootstrap:
 	@VENV=$(VENV) ./scripts/bootstrap.sh
@@ -18,7 +18,11 @@ typecheck: bootstrap
 pytest: bootstrap
 	$(PY) -m pytest
 
-test: lint typecheck pytest
+# The server as the Dockerfile runs it, from the built wheel (Docker itself is not available).
+wheel-check: bootstrap
+	PYTHON=$(PY) ./scripts/check_wheel.sh
+
+test: lint typecheck wheel-check pytest
 
 demo: bootstrap
 	$(PY) -m robot_client.demo

@@ -1,0 +1,328 @@
+"""The cell configuration: the example loads, every mistake is named with file, line and key
+path, and docs/configuration.md lists exactly the keys the validator accepts."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from vision_server.cameras import (
+    FolderCameraSettings,
+    OpenCVCameraSettings,
+    RequestCameraSettings,
+    SimCameraSettings,
+)
+from vision_server.config import ConfigError, load_config
+from vision_server.configfile import Node
+from vision_server.inspections import (
+    LocateInspection,
+    PresenceInspection,
+    QRInspection,
+    QRPoseInspection,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "cell.yaml"
+
+MINIMAL = """\
+cameras:
+  tool:
+    source: request
+inspections:
+  - name: bright
+    type: presence
+    camera: tool
+    measure: mean_intensity
+    min: 10
+"""
+
+
+def write(tmp_path: Path, text: str, name: str = "cell.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def error_of(tmp_path: Path, text: str) -> ConfigError:
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, text))
+    return info.value
+
+
+def test_the_example_cell_loads_with_every_inspection_type() -> None:
+    config = load_config(EXAMPLE)
+    kinds = {type(i) for i in config.inspections}
+    assert kinds == {LocateInspection, PresenceInspection, QRInspection, QRPoseInspection}
+    assert isinstance(config.cameras["tool"], RequestCameraSettings)
+    assert isinstance(config.cameras["qc"], SimCameraSettings)
+    assert config.server.port == 7878
+    assert config.results.store_images == "failures"
+    assert re.fullmatch(r"[0-9a-f]{16}", config.config_hash)
+
+
+def test_minimal_config_and_defaults(tmp_path: Path) -> None:
+    config = load_config(write(tmp_path, MINIMAL))
+    assert config.server.host == "127.0.0.1"
+    assert config.results.path == tmp_path / "results.sqlite3"
+    (inspection,) = config.inspections
+    assert inspection.name == "bright"
+    assert inspection.frames == 1
+
+
+def test_the_error_names_file_line_item_and_key(tmp_path: Path) -> None:
+    text = (
+        MINIMAL
+        + """\
+  - name: cap_check
+    type: presence
+    camera: tool
+    measure: dark_fraction
+    threshold: high
+    min: 0.2
+"""
+    )
+    error = error_of(tmp_path, text)
+    assert str(error) == (
+        "cell.yaml:14 inspections[1] (name='cap_check') -> threshold: expected a number, got 'high'"
+    )
+    assert error.line == 14
+
+
+@pytest.mark.parametrize(
+    ("snippet", "expected"),
+    [
+        ("colour: red\n", r"cell.yaml:10 colour: unknown key"),
+        ("server:\n  prot: 7000\n", r"cell.yaml:11 server -> prot: unknown key"),
+        ("server:\n  port: 70000\n", r"server -> port: expected a port in 0..65535"),
+        ("server:\n  tls: {cert: nope.pem, key: nope.key}\n", r"tls -> cert: no such file"),
+        ("results:\n  store_images: some\n", r"store_images: expected one of none, failures"),
+    ],
+)
+def test_top_level_and_server_mistakes(tmp_path: Path, snippet: str, expected: str) -> None:
+    assert re.search(expected, str(error_of(tmp_path, MINIMAL + snippet)))
+
+
+def test_duplicate_keys_are_refused(tmp_path: Path) -> None:
+    error = error_of(tmp_path, "server:\n  port: 1\n  port: 2\n")
+    assert "duplicate key 'port' (first on line 2)" in str(error)
+    assert error.line == 3
+
+
+def test_invalid_yaml_names_the_line(tmp_path: Path) -> None:
+    error = error_of(tmp_path, "server:\n  port: [1, 2\n")
+    assert str(error).startswith("cell.yaml:")
+    assert "invalid YAML" in str(error)
+
+
+@pytest.mark.parametrize(
+    ("camera", "expected"),
+    [
+        ("{source: usb}", r"cameras -> tool -> source: expected one of request, opencv"),
+        ("{source: request, dpeth: true}", r"cameras -> tool -> dpeth: unknown key"),
+        ("{source: opencv}", r"cameras -> tool: missing required key 'device'"),
+        ("{source: opencv, device: 0, fps: -3}", r"cameras -> tool: fps must be"),
+        (
+            "{source: request, intrinsics: {width: 640, height: 480, fx: 500, fy: 500, cx: 1}}",
+            r"intrinsics: missing required key 'cy'",
+        ),
+        (
+            "{source: request, intrinsics: {width: 640, height: 480, fx: -5, fy: 500, cx: 1, "
+            "cy: 2}}",
+            r"intrinsics: fx",
+        ),
+        ("{source: folder, path: /x, glob: ../../*.png}", r"glob"),
+    ],
+)
+def test_camera_mistakes(tmp_path: Path, camera: str, expected: str) -> None:
+    text = MINIMAL.replace("  tool:\n    source: request\n", f"  tool: {camera}\n")
+    assert re.search(expected, str(error_of(tmp_path, text)))
+
+
+def test_camera_sources_become_their_settings(tmp_path: Path) -> None:
+    text = (
+        MINIMAL
+        + """\
+  - {name: replay_check, type: presence, camera: replay, measure: mean_intensity, max: 200}
+"""
+        + """\
+""".join(["", ""])
+    )
+    text = text.replace(
+        "cameras:\n",
+        "cameras:\n  usb: {source: opencv, device: /dev/video0, width: 1024, height: 768, "
+        "fps: 30}\n  replay: {source: folder, path: images, glob: '*.png', mode: once}\n",
+    )
+    config = load_config(write(tmp_path, text))
+    usb = config.cameras["usb"]
+    assert isinstance(usb, OpenCVCameraSettings)
+    assert (usb.device, usb.width, usb.fps) == ("/dev/video0", 1024, 30.0)
+    replay = config.cameras["replay"]
+    assert isinstance(replay, FolderCameraSettings)
+    assert replay.path == Path("images")
+    assert replay.mode == "once"
+
+
+@pytest.mark.parametrize(
+    ("inspection", "expected"),
+    [
+        ("{name: a, type: locate, camera: nope, method: circle}", r"no camera named 'nope'"),
+        ("{name: a, type: scan, camera: tool}", r"type: expected one of locate, presence"),
+        ("{name: bright, type: qr, camera: tool}", r"name 'bright' is already used"),
+        ("{name: 'a b', type: qr, camera: tool}", r"bad name 'a b'"),
+        ("{name: a, type: qr, camera: tool, roi: [0, 0, -5, 10]}", r"roi: ROI"),
+        ("{name: a, type: qr, camera: tool, expect: {regex: '('}}", r"bad regular expression"),
+        ("{name: a, type: presence, camera: tool, measure: mean_intensity}", r"needs min, max"),
+        (
+            "{name: a, type: presence, camera: tool, measure: template_score, min: 0.5}",
+            r"needs a template image",
+        ),
+        (
+            "{name: a, type: presence, camera: tool, measure: mean_intensity, min: 5, max: 1}",
+            r"min \(5.0\) is above max",
+        ),
+        ("{name: a, type: locate, camera: tool, method: circle}", r"missing required key 'circle'"),
+        (
+            "{name: a, type: locate, camera: tool, method: circle, circle: {min_radius_px: 5}}",
+            r"missing required key 'max_radius_px'",
+        ),
+        (
+            "{name: a, type: locate, camera: tool, method: blob, blob: {}, circle: {}}",
+            r"'circle' options given, but method is 'blob'",
+        ),
+        (
+            "{name: a, type: locate, camera: tool, method: template, template: {image: no.png}}",
+            r"cannot read the template image",
+        ),
+        ("{name: a, type: qr_pose, camera: tool}", r"camera 'tool' gets no depth"),
+        ("{name: a, type: qr, camera: tool, thershold: 3}", r"thershold: unknown key"),
+    ],
+)
+def test_inspection_mistakes(tmp_path: Path, inspection: str, expected: str) -> None:
+    error = error_of(tmp_path, MINIMAL + f"  - {inspection}\n")
+    assert re.search(expected, str(error)), str(error)
+    assert error.line is not None
+
+
+def test_template_paths_resolve_against_the_config_file(tmp_path: Path) -> None:
+    (tmp_path / "templates").mkdir()
+    template = np.zeros((20, 20), np.uint8)
+    cv2.circle(template, (10, 10), 6, 255, -1)
+    cv2.imwrite(str(tmp_path / "templates" / "cap.png"), template)
+    text = MINIMAL + (
+        "  - {name: t, type: locate, camera: tool, method: template,\n"
+        "     template: {image: templates/cap.png, angle_min: -0.5, angle_max: 0.5}}\n"
+    )
+    config = load_config(write(tmp_path, text))
+    inspection = config.inspections[1]
+    assert isinstance(inspection, LocateInspection)
+    assert inspection.options["template"].shape == (20, 20)
+    assert inspection.options["angle_range"] == (-0.5, 0.5)
+
+
+# ----------------------------------------------------------------------------- the docs
+
+DOC = ROOT / "docs" / "configuration.md"
+
+
+def documented_keys() -> dict[str, set[str]]:
+    """Heading -> the keys in the first column of its table."""
+    sections: dict[str, set[str]] = {}
+    heading = ""
+    for line in DOC.read_text(encoding="utf-8").splitlines():
+        if line.startswith("#"):
+            heading = line.lstrip("#").strip()
+            continue
+        match = re.match(r"\| `([a-z_]+)` \|", line)
+        if match and heading:
+            sections.setdefault(heading, set()).add(match.group(1))
+    return sections
+
+
+def test_docs_list_exactly_the_keys_the_validator_reads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every branch of the validator is exercised; the keys it looks at (present or not) are
+    compared with the tables of docs/configuration.md."""
+    read: dict[str, set[str]] = {}
+    original_take = Node.take
+
+    def section(node: Node) -> str:
+        path = node.path
+        if path[:1] == ("server",):
+            return "server.tls" if path[1:] == ("tls",) else "server"
+        if path[:1] == ("results",):
+            return "results"
+        if path[:1] == ("cameras",) and len(path) == 2:
+            return f"source: {node.data.get('source')}"
+        if path[:1] == ("cameras",) and path[2:] == ("intrinsics",):
+            return "cameras.intrinsics"
+        if path[:1] == ("inspections",) and len(path) == 2:
+            return f"type: {node.data.get('type')}"
+        if path[:1] == ("inspections",) and len(path) == 3:
+            return f"locate.{path[2]}"
+        return "top"
+
+    def recording_take(self: Node, key: str, convert: Any, *default: Any) -> Any:
+        read.setdefault(section(self), set()).add(key)
+        return original_take(self, key, convert, *default)
+
+    def recording_sub(self: Node, key: str, *, required: bool = False) -> Node:
+        read.setdefault(section(self), set()).add(key)
+        return original_sub(self, key, required=required)
+
+    original_sub = Node.sub
+    monkeypatch.setattr(Node, "take", recording_take)
+    monkeypatch.setattr(Node, "sub", recording_sub)
+
+    template = tmp_path / "t.png"
+    cv2.imwrite(str(template), np.full((9, 9), 128, np.uint8))
+    (tmp_path / "token").write_text("secret")
+    text = f"""\
+server: {{host: 0.0.0.0, port: 0, name: x, max_frame_bytes: 1000000, max_image_pixels: 1000,
+         max_in_flight: 2, max_connections: 3, workers: 1, queue_depth: 0,
+         auth_token_file: token, shutdown_grace_s: 1, allow_reload: false}}
+results: {{enabled: true, path: r.db, store_images: all, max_image_mb: 5}}
+cameras:
+  req: {{source: request, depth: true,
+         intrinsics: {{width: 64, height: 48, fx: 50, fy: 50, cx: 32, cy: 24}}}}
+  cv: {{source: opencv, device: 0}}
+  dir: {{source: folder, path: d}}
+  sim: {{source: sim, scene: {EXAMPLE.parent / "scenes" / "grundfos_cell.yaml"}, camera: rgbd}}
+inspections:
+  - {{name: t, type: locate, camera: req, method: template, template: {{image: t.png}}}}
+  - {{name: c, type: locate, camera: req, method: circle,
+      circle: {{min_radius_px: 1, max_radius_px: 2}}}}
+  - {{name: b, type: locate, camera: req, method: blob, blob: {{}}}}
+  - {{name: p, type: presence, camera: req, measure: mean_intensity, min: 1}}
+  - {{name: q, type: qr, camera: req}}
+  - {{name: qp, type: qr_pose, camera: req}}
+"""
+    load_config(write(tmp_path, text))
+    docs = documented_keys()
+    expected_sections = {
+        "server": docs["server"],
+        "server.tls": docs["server.tls"],
+        "results": docs["results"],
+        "cameras.intrinsics": docs["cameras.intrinsics"],
+        **{
+            f"source: {s}": docs["cameras"] | docs.get(f"source: {s}", set())
+            for s in ("request", "opencv", "folder", "sim")
+        },
+        **{
+            f"type: {t}": docs["inspections"] | docs[f"type: {t}"]
+            for t in ("locate", "presence", "qr", "qr_pose")
+        },
+        **{f"locate.{m}": docs[f"locate.{m}"] for m in ("template", "circle", "blob")},
+    }
+    read.pop("top", None)
+    # The validator also accepts the top-level sections themselves.
+    for name, keys in expected_sections.items():
+        got = read.get(name, set())
+        if name.startswith("type: locate"):
+            got = got - {"template", "circle", "blob"} | (keys & {"template", "circle", "blob"})
+        assert got == keys, f"{name}: validator reads {sorted(got)}, docs list {sorted(keys)}"

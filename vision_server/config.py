@@ -1,0 +1,207 @@
+"""The cell configuration: one YAML file → validated, frozen dataclasses.
+
+::
+
+    server:   {host, port, name, auth_token | auth_token_file, tls: {cert, key}, limits...}
+    results:  {path, store_images: none|failures|all, max_image_mb}
+    cameras:  {NAME: {source: request|opencv|folder|sim, ...source settings, intrinsics}}
+    inspections: [{name, type: locate|presence|qr|qr_pose, camera, roi, ...}]
+
+Every error names the file, the line and the key path; unknown keys are errors. Relative paths
+resolve against the configuration file's directory. See docs/configuration.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .cameras import SOURCE_NAMES, CameraSettings, Intrinsics
+from .configfile import (
+    ConfigError,
+    Node,
+    boolean,
+    integer,
+    non_negative,
+    one_of,
+    positive,
+    positive_int,
+    read_document,
+    string,
+)
+from .inspections import InspectionSpec, parse_inspection
+from .server import ServerSettings
+
+
+@dataclass(frozen=True)
+class ResultsConfig:
+    """Where the result log is and which input images it keeps (sizes in bytes)."""
+
+    path: Path | None
+    store_images: str = "failures"
+    max_image_bytes: int = 1 << 30
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    """A whole, valid configuration. ``config_hash`` identifies its text."""
+
+    source: Path | None
+    base_dir: Path
+    config_hash: str
+    server: ServerSettings
+    results: ResultsConfig
+    cameras: Mapping[str, CameraSettings]
+    inspections: tuple[InspectionSpec, ...]
+
+
+def load_config(path: Path | str) -> CellConfig:
+    """Read and validate a configuration file; raises :class:`ConfigError`."""
+    file = Path(path)
+    root, text = read_document(file)
+    return parse_config(root, text=text, base_dir=file.resolve().parent, source=file)
+
+
+def parse_config(
+    root: Node, *, text: str, base_dir: Path, source: Path | None = None
+) -> CellConfig:
+    server = _server(root.sub("server"), base_dir)
+    results = _results(root.sub("results"), base_dir)
+    cameras = _cameras(root)
+    inspections: list[InspectionSpec] = []
+    seen: dict[str, int] = {}
+    for index, node in enumerate(root.items("inspections")):
+        spec = parse_inspection(node, base_dir=base_dir, cameras=cameras)
+        if spec.name in seen:
+            raise node.error(
+                f"inspection name {spec.name!r} is already used by inspections[{seen[spec.name]}]",
+                "name",
+            )
+        seen[spec.name] = index
+        inspections.append(spec)
+    root.finish()
+    digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+    return CellConfig(source, base_dir, digest, server, results, cameras, tuple(inspections))
+
+
+def _server(node: Node, base_dir: Path) -> ServerSettings:
+    defaults = ServerSettings()
+    token = node.take("auth_token", string, None)
+    token_file = node.take("auth_token_file", string, None)
+    if token is not None and token_file is not None:
+        raise node.error("give auth_token or auth_token_file, not both")
+    if token_file is not None:
+        token_path = _resolve(base_dir, token_file)
+        try:
+            token = token_path.read_text(encoding="utf-8").strip()
+        except OSError as exc:
+            raise node.error(
+                f"cannot read the token file {token_path}: {exc}", "auth_token_file"
+            ) from None
+        if not token:
+            raise node.error(f"the token file {token_path} is empty", "auth_token_file")
+    tls = node.sub("tls")
+    cert = tls.take("cert", string, None)
+    key = tls.take("key", string, None)
+    if (cert is None) != (key is None):
+        raise tls.error("tls needs both cert and key")
+    for name, value in (("cert", cert), ("key", key)):
+        if value is not None and not _resolve(base_dir, value).is_file():
+            raise tls.error(f"no such file: {_resolve(base_dir, value)}", name)
+    tls.finish()
+    port = node.take("port", integer, defaults.port)
+    if not 0 <= port < 65536:
+        raise node.error(f"expected a port in 0..65535, got {port}", "port")
+    settings = ServerSettings(
+        host=node.take("host", string, defaults.host),
+        port=port,
+        name=node.take("name", string, defaults.name),
+        max_frame_bytes=node.take("max_frame_bytes", positive_int, defaults.max_frame_bytes),
+        max_image_pixels=node.take("max_image_pixels", positive_int, defaults.max_image_pixels),
+        max_in_flight=node.take("max_in_flight", positive_int, defaults.max_in_flight),
+        max_connections=node.take("max_connections", positive_int, defaults.max_connections),
+        workers=node.take("workers", positive_int, defaults.workers),
+        queue_depth=node.take("queue_depth", integer, defaults.queue_depth),
+        auth_token=token,
+        shutdown_grace_s=node.take("shutdown_grace_s", non_negative, defaults.shutdown_grace_s),
+        tls_cert=None if cert is None else str(_resolve(base_dir, cert)),
+        tls_key=None if key is None else str(_resolve(base_dir, key)),
+        allow_reload=node.take("allow_reload", boolean, defaults.allow_reload),
+    )
+    if settings.queue_depth < 0:
+        raise node.error(f"expected an integer >= 0, got {settings.queue_depth}", "queue_depth")
+    node.finish()
+    return settings
+
+
+def _results(node: Node, base_dir: Path) -> ResultsConfig:
+    enabled = node.take("enabled", boolean, True)
+    path = node.take("path", string, "results.sqlite3")
+    store = node.take("store_images", one_of("none", "failures", "all"), "failures")
+    max_mb = node.take("max_image_mb", positive, 1024.0)
+    node.finish()
+    return ResultsConfig(
+        _resolve(base_dir, path) if enabled else None, store, int(max_mb * 1024 * 1024)
+    )
+
+
+def _cameras(root: Node) -> dict[str, CameraSettings]:
+    cameras: dict[str, CameraSettings] = {}
+    for name, node in root.named("cameras"):
+        source = node.take("source", one_of(*SOURCE_NAMES))
+        cameras[name] = _settings(node, SOURCE_NAMES[source])
+    return cameras
+
+
+def _settings(node: Node, cls: type[Any]) -> Any:
+    """Build a settings dataclass from a mapping: the dataclass's fields are the schema (a
+    field without a default is required), its ``__post_init__`` the validation."""
+    hints = typing.get_type_hints(cls)
+    kwargs: dict[str, Any] = {}
+    for field in dataclasses.fields(cls):
+        required = (
+            field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING
+        )
+        if field.name == "intrinsics" and node.has("intrinsics"):
+            kwargs["intrinsics"] = _settings(node.sub("intrinsics"), Intrinsics)
+            continue
+        if not required and not node.has(field.name):
+            node.take(field.name, _any, None)  # an allowed key, even when absent
+            continue
+        value = node.take(field.name, _any)
+        if _accepts_path(hints[field.name]) and isinstance(value, str):
+            value = Path(value)
+        if isinstance(value, list):
+            value = tuple(value)
+        kwargs[field.name] = value
+    node.finish()
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as exc:
+        raise node.error(str(exc)) from None
+
+
+def _any(value: Any) -> Any:
+    return value
+
+
+def _accepts_path(hint: Any) -> bool:
+    if hint is Path:
+        return True
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        return Path in typing.get_args(hint)
+    return False
+
+
+def _resolve(base_dir: Path, value: str) -> Path:
+    path = Path(value).expanduser()
+    return path if path.is_absolute() else (base_dir / path)
+
+
+__all__ = ["CellConfig", "ConfigError", "ResultsConfig", "load_config", "parse_config"]

@@ -1,0 +1,161 @@
+"""``locate``: feature locate (template, circle, blob) → sub-pixel features, best first; passes
+when at least ``min_count`` are found (the paper's vision pick, Table 1, steps 2-3)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..analysis import AnalysisError
+from ..analysis.locate import Feature, locate
+from ..cameras import CameraSettings
+from ..catalog import InspectionInput, InspectionOutcome
+from ..configfile import Node, fraction, number, one_of, positive, positive_int
+from .base import (
+    Common,
+    Configured,
+    analysis_failed,
+    draw_verdict,
+    load_template,
+    overlay_base,
+    parse_common,
+)
+
+RED = (0, 0, 255)
+
+
+@dataclass(frozen=True)
+class LocateInspection(Configured):
+    common: Common
+    method: str
+    min_count: int
+    max_count: int
+    min_score: float | None
+    options: Mapping[str, Any] = field(default_factory=dict)
+
+    type = "locate"
+    uses_depth = False
+
+    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
+        kwargs: dict[str, Any] = dict(self.options)
+        if self.min_score is not None:
+            kwargs["min_score"] = self.min_score
+        try:
+            features = locate(
+                image.color,
+                method=self.method,
+                roi=self.common.roi,
+                max_count=self.max_count,
+                **kwargs,
+            )
+        except AnalysisError as exc:
+            raise analysis_failed(self.common.name, exc) from None
+        passed = len(features) >= self.min_count
+        data = {
+            "method": self.method,
+            "count": len(features),
+            "min_count": self.min_count,
+            "features": [_feature_dict(f) for f in features],
+        }
+        picture = None
+        if overlay:
+            picture = overlay_base(image.color, self.common.roi)
+            for rank, feature in enumerate(features):
+                _draw_feature(picture, feature, rank)
+            draw_verdict(picture, passed, f"{len(features)} found")
+        return InspectionOutcome(passed, data, picture)
+
+
+def _feature_dict(feature: Feature) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "u": float(feature.u),
+        "v": float(feature.v),
+        "angle": float(feature.angle),
+        "score": float(feature.score),
+    }
+    if feature.radius is not None:
+        out["radius"] = float(feature.radius)
+    if feature.area is not None:
+        out["area"] = float(feature.area)
+    return out
+
+
+def _draw_feature(picture: Any, feature: Feature, rank: int) -> None:
+    centre = (int(round(feature.u)), int(round(feature.v)))
+    if feature.radius is not None:
+        cv2.circle(picture, centre, int(round(feature.radius)), RED, 2, cv2.LINE_AA)
+    cv2.drawMarker(picture, centre, RED, cv2.MARKER_CROSS, 16, 2)
+    tip = (
+        int(round(feature.u + 25 * np.cos(feature.angle))),
+        int(round(feature.v + 25 * np.sin(feature.angle))),
+    )
+    if feature.angle:
+        cv2.line(picture, centre, tip, RED, 1, cv2.LINE_AA)
+    cv2.putText(
+        picture,
+        str(rank + 1),
+        (centre[0] + 6, centre[1] - 6),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.6,
+        RED,
+        2,
+        cv2.LINE_AA,
+    )
+
+
+def _threshold(value: Any) -> float | str:
+    if value == "otsu":
+        return "otsu"
+    out = number(value)
+    if not 0 <= out <= 255:
+        raise ValueError(f"expected a grey level in 0..255 or 'otsu', got {value!r}")
+    return out
+
+
+def parse_locate(
+    node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]
+) -> LocateInspection:
+    common = parse_common(node, "locate", cameras)
+    method = node.take("method", one_of("template", "circle", "blob"))
+    min_count = node.take("min_count", positive_int, 1)
+    max_count = node.take("max_count", positive_int, 10)
+    if max_count < min_count:
+        raise node.error(f"max_count ({max_count}) is below min_count ({min_count})", "max_count")
+    min_score = node.take("min_score", number, None)
+    options: dict[str, Any] = {}
+    for other in ("template", "circle", "blob"):
+        if other != method and other in node:
+            raise node.error(f"{other!r} options given, but method is {method!r}", other)
+        node.take(other, lambda v: v, None)
+    sub = node.sub(method, required=True)
+    if method == "template":
+        options["template"] = load_template(sub, "image", base_dir)
+        low = sub.take("angle_min", number, 0.0)
+        high = sub.take("angle_max", number, 0.0)
+        step = sub.take("angle_step", positive, 0.0175)
+        if high < low:
+            raise sub.error(f"angle_max ({high}) is below angle_min ({low})", "angle_max")
+        options["angle_range"] = (low, high)
+        options["angle_step"] = step
+    elif method == "circle":
+        low_r = sub.take("min_radius_px", positive)
+        high_r = sub.take("max_radius_px", positive)
+        if high_r < low_r:
+            raise sub.error(
+                f"max_radius_px ({high_r}) is below min_radius_px ({low_r})", "max_radius_px"
+            )
+        options["radius_range"] = (low_r, high_r)
+        options["polarity"] = sub.take("polarity", one_of("bright", "dark"), "bright")
+    else:
+        options["threshold"] = sub.take("threshold", _threshold, "otsu")
+        options["polarity"] = sub.take("polarity", one_of("dark", "bright"), "dark")
+        options["min_area"] = sub.take("min_area_px", positive, 20.0)
+        options["max_area"] = sub.take("max_area_px", positive, None)
+        options["min_circularity"] = sub.take("min_circularity", fraction, 0.0)
+    sub.finish()
+    return LocateInspection(common, method, min_count, max_count, min_score, options)

@@ -1,0 +1,97 @@
+"""``presence``: an ROI presence check (the paper's magnet check, Table 2): one measure over
+the ROI, pass when it lies in [min, max]."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+
+from ..analysis import AnalysisError
+from ..analysis.presence import MEASURES, measure_presence
+from ..cameras import CameraSettings
+from ..catalog import InspectionInput, InspectionOutcome
+from ..configfile import Node, non_negative_int, number, one_of, string
+from .base import (
+    Common,
+    Configured,
+    Image,
+    analysis_failed,
+    draw_verdict,
+    load_template,
+    overlay_base,
+    parse_common,
+)
+
+
+@dataclass(frozen=True)
+class PresenceInspection(Configured):
+    common: Common
+    measure: str
+    low: float | None
+    high: float | None
+    threshold: float | None
+    template: Image | None
+    min_blob_area: int
+
+    type = "presence"
+    uses_depth = False
+
+    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
+        try:
+            value = measure_presence(
+                image.color,
+                measure=self.measure,
+                roi=self.common.roi,
+                threshold=self.threshold,
+                template=self.template,
+                min_blob_area=self.min_blob_area,
+            )
+        except AnalysisError as exc:
+            raise analysis_failed(self.common.name, exc) from None
+        passed = (self.low is None or value >= self.low) and (
+            self.high is None or value <= self.high
+        )
+        data = {"measure": self.measure, "value": value, "min": self.low, "max": self.high}
+        picture = None
+        if overlay:
+            picture = overlay_base(image.color, self.common.roi)
+            draw_verdict(picture, passed, f"{self.measure} = {value:.3f}")
+            if not passed and self.common.roi is not None:
+                u, v, w, h = self.common.roi
+                cv2.rectangle(picture, (u, v), (u + w - 1, v + h - 1), (0, 0, 255), 2)
+        return InspectionOutcome(passed, data, picture)
+
+
+def parse_presence(
+    node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]
+) -> PresenceInspection:
+    common = parse_common(node, "presence", cameras)
+    measure = node.take("measure", one_of(*MEASURES))
+    low = node.take("min", number, None)
+    high = node.take("max", number, None)
+    if low is None and high is None:
+        raise node.error("a presence check needs min, max or both (the pass range)")
+    if low is not None and high is not None and low > high:
+        raise node.error(f"min ({low}) is above max ({high})", "min")
+    template = (
+        load_template(node, "template", base_dir)
+        if node.has("template")
+        else node.take("template", string, None)
+    )
+    if measure == "template_score" and template is None:
+        raise node.error("measure template_score needs a template image", "measure")
+    threshold = node.take("threshold", number, None)
+    if threshold is not None and not 0 <= threshold <= 255:
+        raise node.error(f"expected a grey level in 0..255, got {threshold}", "threshold")
+    return PresenceInspection(
+        common,
+        measure,
+        low,
+        high,
+        threshold,
+        template,
+        node.take("min_blob_area", non_negative_int, 20),
+    )

@@ -1,0 +1,90 @@
+"""``qr``: read a QR code (text and the four corners c0..c3), optionally expecting a text."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..analysis import AnalysisError, NotFoundError
+from ..analysis.qr import read_qr
+from ..cameras import CameraSettings
+from ..catalog import InspectionInput, InspectionOutcome
+from ..configfile import Node, string
+from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
+
+RED = (0, 0, 255)
+
+
+@dataclass(frozen=True)
+class QRInspection(Configured):
+    common: Common
+    expect: str | re.Pattern[str] | None
+
+    type = "qr"
+    uses_depth = False
+
+    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
+        try:
+            codes = read_qr(image.color, roi=self.common.roi, expect=self.expect)
+        except NotFoundError as exc:
+            codes, reason = [], str(exc)
+        except AnalysisError as exc:
+            raise analysis_failed(self.common.name, exc) from None
+        data: dict[str, object]
+        if codes:
+            best = codes[0]
+            data = {
+                "found": True,
+                "text": best.text,
+                "corners": [[float(u), float(v)] for u, v in best.corners],
+                "decoder": best.decoder,
+                "codes": [{"text": c.text, "corners": c.corners.tolist()} for c in codes],
+            }
+        else:
+            data = {"found": False, "reason": reason}
+        picture = None
+        if overlay:
+            picture = overlay_base(image.color, self.common.roi)
+            for code in codes:
+                pts = np.round(code.corners).astype(np.int32)
+                cv2.polylines(picture, [pts], True, RED, 2)
+                for index, (u, v) in enumerate(pts):
+                    cv2.putText(
+                        picture,
+                        f"c{index}",
+                        (int(u) + 4, int(v) - 4),
+                        cv2.FONT_HERSHEY_SIMPLEX,
+                        0.5,
+                        RED,
+                        1,
+                        cv2.LINE_AA,
+                    )
+            draw_verdict(picture, bool(codes), codes[0].text if codes else "no code")
+        return InspectionOutcome(bool(codes), data, picture)
+
+
+def parse_expect(node: Node) -> str | re.Pattern[str] | None:
+    """``expect: TEXT`` (exact) or ``expect: {regex: PATTERN}`` (full match)."""
+    if "expect" not in node:
+        node.take("expect", string, None)
+        return None
+    raw = node.data["expect"]
+    if isinstance(raw, dict):
+        sub = node.sub("expect")
+        pattern = sub.take("regex", string)
+        sub.finish()
+        try:
+            return re.compile(pattern)
+        except re.error as exc:
+            raise sub.error(f"bad regular expression: {exc}", "regex") from None
+    return node.take("expect", string)
+
+
+def parse_qr(node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]) -> QRInspection:
+    common = parse_common(node, "qr", cameras)
+    return QRInspection(common, parse_expect(node))

@@ -1,0 +1,160 @@
+"""``qr_pose``: the pose of a QR code, camera_from_qr, from one colour frame and N depth frames
+(the paper's fast calibration, Table 3 and equations 1-4), with a quality report."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from protocol import BadImage
+
+from ..analysis import AnalysisError, DepthError, NotFoundError
+from ..analysis.qr_pose import QRPoseQuality, qr_pose
+from ..cameras import CameraSettings
+from ..catalog import InspectionInput, InspectionOutcome
+from ..configfile import Node, fraction, one_of, positive
+from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
+from .qr import parse_expect
+
+RED = (0, 0, 255)
+AXIS_COLOURS = ((0, 0, 255), (0, 200, 0), (255, 0, 0))  # x red, y green, z blue (BGR)
+
+
+@dataclass(frozen=True)
+class QRPoseInspection(Configured):
+    common: Common
+    method: str
+    expect: Any
+    side_m: float | None
+    max_plane_rms_m: float | None
+    min_valid_fraction: float | None
+
+    type = "qr_pose"
+    uses_depth = True
+
+    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
+        name = self.common.name
+        if image.intrinsics is None:
+            raise BadImage(
+                f"inspection {name!r}: camera {self.common.camera!r} has no intrinsics; "
+                "configure them (fx, fy, cx, cy, distortion)"
+            )
+        if not image.depth:
+            raise BadImage(f"inspection {name!r} needs at least one depth frame")
+        try:
+            pose = qr_pose(
+                image.color,
+                list(image.depth),
+                image.intrinsics.to_geometry(),
+                method="corners" if self.method == "corners" else "plane",
+                roi=self.common.roi,
+                expect=self.expect,
+                side_m=self.side_m,
+            )
+        except (NotFoundError, DepthError) as exc:
+            picture = None
+            if overlay:
+                picture = draw_verdict(overlay_base(image.color, self.common.roi), False, str(exc))
+            return InspectionOutcome(False, {"found": False, "reason": str(exc)}, picture)
+        except AnalysisError as exc:
+            raise analysis_failed(name, exc) from None
+        quality = _quality(pose.quality)
+        reasons = []
+        rms = quality.get("plane_rms_m")
+        if self.max_plane_rms_m is not None and rms is not None and rms > self.max_plane_rms_m:
+            reasons.append(f"plane RMS {rms * 1000:.2f} mm above {self.max_plane_rms_m * 1000} mm")
+        valid = quality.get("valid_depth_fraction")
+        if (
+            self.min_valid_fraction is not None
+            and valid is not None
+            and valid < self.min_valid_fraction
+        ):
+            reasons.append(f"valid depth fraction {valid:.2f} below {self.min_valid_fraction}")
+        passed = not reasons
+        data: dict[str, Any] = {
+            "found": True,
+            "text": pose.text,
+            "method": pose.method,
+            "camera_from_qr": [[float(x) for x in row] for row in pose.camera_from_qr],
+            "corners": [[float(u), float(v)] for u, v in pose.corners_uv],
+            "corners_camera": [[float(c) for c in p] for p in pose.corners_camera],
+            "quality": quality,
+        }
+        if reasons:
+            data["reason"] = "; ".join(reasons)
+        picture = None
+        if overlay:
+            picture = overlay_base(image.color, self.common.roi)
+            pts = np.round(np.asarray(pose.corners_uv)).astype(np.int32)
+            cv2.polylines(picture, [pts], True, RED, 2)
+            self._draw_axes(picture, pose.camera_from_qr, image)
+            t = pose.camera_from_qr[:3, 3]
+            draw_verdict(picture, passed, f"{pose.text}  z = {t[2]:.3f} m")
+        return InspectionOutcome(passed, data, picture)
+
+    def _draw_axes(self, picture: Any, camera_from_qr: Any, image: InspectionInput) -> None:
+        assert image.intrinsics is not None
+        camera = image.intrinsics.to_geometry()
+        length = self.side_m or 0.05
+        origin = camera_from_qr[:3, 3]
+        points = np.array([origin] + [origin + camera_from_qr[:3, i] * length for i in range(3)])
+        uv = np.round(camera.project(points)).astype(int)
+        for i in range(3):
+            cv2.arrowedLine(picture, tuple(uv[0]), tuple(uv[i + 1]), AXIS_COLOURS[i], 2)
+
+
+def _quality(quality: QRPoseQuality) -> dict[str, Any]:
+    """The quality report as JSON (metres, radians)."""
+    out: dict[str, Any] = {}
+    for name in (
+        "valid_depth_fraction",
+        "plane_rms_m",
+        "inlier_fraction",
+        "orthogonality_rad",
+        "side_m",
+        "scale",
+        "frames",
+    ):
+        value = getattr(quality, name, None)
+        if value is None or isinstance(value, str):
+            out[name] = value
+        elif isinstance(value, int | np.integer) and not isinstance(value, bool):
+            out[name] = int(value)
+        else:
+            number = float(value)
+            out[name] = number if math.isfinite(number) else None  # NaN: not measured
+    for name in ("corner_depth_std_m", "side_lengths_m"):
+        values = np.asarray(getattr(quality, name), dtype=float)
+        out[name] = [float(x) if math.isfinite(x) else None for x in values]
+    return out
+
+
+def parse_qr_pose(
+    node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]
+) -> QRPoseInspection:
+    common = parse_common(node, "qr_pose", cameras, default_frames=5)
+    settings = cameras[common.camera]
+    if type(settings).__name__ == "RequestCameraSettings" and not getattr(settings, "depth", False):
+        raise node.error(
+            f"camera {common.camera!r} gets no depth (set depth: true on a request camera, or "
+            "use an RGB-D camera)",
+            "camera",
+        )
+    if type(settings).__name__ in ("FolderCameraSettings", "OpenCVCameraSettings") and not (
+        getattr(settings, "depth_glob", None)
+    ):
+        raise node.error(f"camera {common.camera!r} delivers no depth frames", "camera")
+    return QRPoseInspection(
+        common,
+        node.take("method", one_of("plane", "corners"), "plane"),
+        parse_expect(node),
+        node.take("side_m", positive, None),
+        node.take("max_plane_rms_m", positive, None),
+        node.take("min_valid_fraction", fraction, None),
+    )

@@ -1,0 +1,103 @@
+"""A running cell configuration: the cameras it opened, the catalog it serves, its result log.
+
+``reload`` re-reads the file. A valid new configuration becomes the catalog for new requests;
+cameras whose settings did not change are kept open (no reconnect, no gap in frames), changed
+ones are opened anew and the old ones closed. An invalid configuration changes nothing: the
+error is raised (and logged by the caller) and the old catalog keeps serving.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from pathlib import Path
+
+from .cameras import Camera, CameraSettings, make_camera
+from .catalog import Catalog
+from .config import CellConfig, ConfigError, load_config
+from .results import ResultLog
+
+log = logging.getLogger("vision_server")
+
+
+class CellRuntime:
+    """Owns the cameras and the result log of the configuration at ``path``."""
+
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path)
+        self._lock = threading.Lock()
+        self.config = load_config(self.path)
+        self._cameras: dict[str, tuple[CameraSettings, Camera]] = {}
+        self.catalog = self._build(self.config)
+        self.results = self._open_results(self.config)
+
+    def _open_results(self, config: CellConfig) -> ResultLog | None:
+        if config.results.path is None:
+            return None
+        return ResultLog(
+            config.results.path,
+            store_images=config.results.store_images,  # type: ignore[arg-type]
+            max_image_bytes=config.results.max_image_bytes,
+        )
+
+    def _build(self, config: CellConfig) -> Catalog:
+        """Cameras for ``config`` (reusing unchanged ones), then the catalog."""
+        kept: dict[str, tuple[CameraSettings, Camera]] = {}
+        opened: list[Camera] = []
+        try:
+            for name, settings in config.cameras.items():
+                previous = self._cameras.get(name)
+                if previous is not None and previous[0] == settings:
+                    kept[name] = previous
+                    continue
+                try:
+                    camera = make_camera(name, settings, base_dir=config.base_dir)
+                except ValueError as exc:
+                    raise ConfigError(f"camera {name!r}: {exc}", source=str(self.path)) from None
+                camera.open()
+                opened.append(camera)
+                kept[name] = (settings, camera)
+            catalog = Catalog.build(
+                [camera for _, camera in kept.values()],
+                list(config.inspections),
+                config_hash=config.config_hash,
+            )
+        except BaseException:
+            for camera in opened:
+                camera.close()
+            raise
+        retired = [
+            cam
+            for name, (_, cam) in self._cameras.items()
+            if kept.get(name, (None, None))[1] is not cam
+        ]
+        self._cameras = kept
+        for camera in retired:
+            camera.close()
+        return catalog
+
+    def reload(self) -> Catalog:
+        """Re-read the file; returns the new catalog or raises ConfigError (nothing changed)."""
+        with self._lock:
+            config = load_config(self.path)
+            if config.server != self.config.server:
+                log.warning(
+                    "%s: changes under 'server:' take effect after a restart", self.path.name
+                )
+            if config.results != self.config.results:
+                log.warning(
+                    "%s: changes under 'results:' take effect after a restart", self.path.name
+                )
+            self.catalog = self._build(config)
+            self.config = config
+            return self.catalog
+
+    def close(self) -> None:
+        for _, camera in self._cameras.values():
+            camera.close()
+        self._cameras = {}
+        if self.results is not None:
+            self.results.close()
+
+
+__all__ = ["CellRuntime"]
