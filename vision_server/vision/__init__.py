@@ -1,0 +1,42 @@
+"""vision_server.vision: the image analysis behind the inspections, as pure functions.
+
+No knowledge of the protocol or of YAML. Conventions: docs/conventions.md (pixels ``(u, v)`` =
+OpenCV ``(x, y)``, ROI ``[u, v, width, height]``, metres, depth uint16 mm with 0 = no depth,
+transforms ``b_from_a`` 4x4 float64, QR corners c0..c3 clockwise from the top-left as printed).
+
+Public API:
+
+- QR: ``read_qr(image, *, roi, expect, decoders, preprocess, refine) -> tuple[QrCode, ...]``.
+- Errors (``errors``): ``VisionError`` > ``BadImageError``, ``RoiError``, ``ParameterError``,
+  ``TemplateError``, ``InspectionFailed`` > ``DepthError``; each has a protocol ``code``.
+- Validation: ``check_image``, ``as_gray``, ``check_depth``, ``check_roi``.
+"""
+
+from vision_server.vision._checks import as_gray, check_depth, check_image, check_roi
+from vision_server.vision.errors import (
+    BadImageError,
+    DepthError,
+    InspectionFailed,
+    ParameterError,
+    RoiError,
+    TemplateError,
+    VisionError,
+)
+from vision_server.vision.qr import DECODERS, QrCode, read_qr
+
+__all__ = [
+    "DECODERS",
+    "BadImageError",
+    "DepthError",
+    "InspectionFailed",
+    "ParameterError",
+    "QrCode",
+    "RoiError",
+    "TemplateError",
+    "VisionError",
+    "as_gray",
+    "check_depth",
+    "check_image",
+    "check_roi",
+    "read_qr",
+]
