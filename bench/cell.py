@@ -3,8 +3,9 @@ sample images rendered by the simulated cell.
 
 ``write_config(workdir)`` turns ``examples/cell.yaml`` into a configuration whose cameras all
 take their images in the request (a benchmark sends the images itself): the example's
-inspections unchanged, plus ``station_pose_corners`` (the paper's corner method beside the
-plane method), plus for section 3 a copy of each inspection at 1024x768 and at 640x480
+inspections unchanged, plus ``station_pose_corners`` (the corner method, rescaled to the code's
+printed side like the plane method) and ``station_pose_paper`` (the paper's corner method
+exactly: depth only), plus for section 3 a copy of each inspection at 1024x768 and at 640x480
 (``NAME-WxH``, on cameras ``CAMERA-WxH`` whose intrinsics are scaled; a circle locate's radius
 range in pixels is scaled with them). ``load_catalog`` builds the catalog the way the server's
 command line does (:class:`vision_server.runtime.CellRuntime`) and adds the built-in
@@ -45,6 +46,14 @@ CORNERS_POSE = {
     "expect": QR_TEXT,
     "side_m": 0.16,
 }
+PAPER_POSE = {
+    "name": "station_pose_paper",
+    "type": "qr_pose",
+    "camera": "rgbd",
+    "method": "corners",
+    "expect": QR_TEXT,
+}
+"""The paper's method exactly: the corners' depths, without rescaling to the printed side."""
 # Intrinsics of the scene's cameras, for the example's cameras that are not request cameras.
 SCENE_CAMERA = {"qc": "qc_camera", "tool": "tool_camera", "rgbd": "rgbd"}
 
@@ -90,8 +99,9 @@ def config_dict() -> dict[str, Any]:
         if cam.get("depth"):
             cameras[name]["depth"] = True
     inspections = list(example["inspections"])
-    if not any(i.get("name") == CORNERS_POSE["name"] for i in inspections):
-        inspections.append(dict(CORNERS_POSE))
+    for extra in (CORNERS_POSE, PAPER_POSE):
+        if not any(i.get("name") == extra["name"] for i in inspections):
+            inspections.append(dict(extra))
     sized = []
     for width, height in SIZES:
         suffix = f"-{width}x{height}"

@@ -11,6 +11,7 @@ Gaussian blur of an image of the same size, measured in the same run.
 
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
 from typing import Any
@@ -79,7 +80,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
             first_ms = (time.perf_counter() - t0) * 1000.0
             repeat = cfg.n(_budget_repeat(first_ms, 1500.0, 5, 200), 2)
             times = time_calls(
-                lambda i=inspection, im=image: i.run(im, overlay=False),
+                functools.partial(inspection.run, image, overlay=False),
                 repeat=repeat,
                 warmup=cfg.n(2, 0),
             )

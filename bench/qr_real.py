@@ -146,7 +146,9 @@ def run(cfg: RunConfig, env: Env) -> Section:
         section.value(f"{key}_p50_ms", s.p50)
         section.value(f"{key}_mean_ms", s.mean)
     section.value("images", len(images))
-    best_single = max((d for d in DECODERS if d != "read_qr (qr inspection)"), key=totals.get)
+    best_single = max(
+        (d for d in DECODERS if d != "read_qr (qr inspection)"), key=lambda d: totals[d]
+    )
     section.intro = (
         f"{len(images)} photographs from {root} (ZXing's black-box test images: phone and "
         "webcam pictures with perspective, blur, glare, rotation), read as grayscale, upright. "
