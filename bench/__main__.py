@@ -75,7 +75,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                     if pyplot() is None:
                         section.skipped.append("plots: matplotlib is not installed")
                     else:
-                        section.images = section.plot(args.plots_dir)
+                        try:
+                            section.images = section.plot(args.plots_dir)
+                        except Exception:  # noqa: BLE001 - the figures are lost, not the run
+                            crashed = True
+                            trace = traceback.format_exc()
+                            print(trace, file=sys.stderr)
+                            section.skipped.append(f"plot crashed: {trace.splitlines()[-1]}")
                 for reason in section.skipped:
                     print(f"[bench]   skipped: {reason}", flush=True)
                 print(f"[bench]   done in {section.seconds:.1f} s", flush=True)

@@ -40,7 +40,7 @@ from geometry import (
 from .cell import QR_TEXT, QR_VIEW, require
 from .common import SCENE, Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
 from .env import Env
-from .plots import pyplot, save
+from .plots import log_scale_if_positive, pyplot, save
 from .servers import HOST
 from .skills import FPS, ReplayCamera, TimedCamera, TimedVision
 
@@ -374,7 +374,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
         for ax, what in zip(
             axes[:2], ("base_from_qr translation", "switch 0.5 m away"), strict=True
         ):
-            ax.set_yscale("log")
+            log_scale_if_positive(ax)
             ax.set_xlabel("distance to the code [m]")
             ax.set_ylabel(f"{what} error [mm]")
             ax.grid(True, which="both", alpha=0.3)

@@ -19,7 +19,7 @@ from typing import Any
 from .cell import SIZES, require, resized
 from .common import RunConfig, Section, Stats, Table, fmt, ratio, time_calls, yardstick_ms
 from .env import Env
-from .plots import pyplot, save
+from .plots import log_scale_if_positive, pyplot, save
 
 NAME = "compute"
 TITLE = "3. Compute time per inspection type"
@@ -123,7 +123,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
             ax.bar(xs, p50, width_bar, label=f"{size[0]}x{size[1]}")
         ax.set_xticks(range(len(names)), names, rotation=15)
         ax.set_ylabel("compute p50 [ms]")
-        ax.set_yscale("log")
+        log_scale_if_positive(ax)
         ax.grid(True, axis="y", alpha=0.3)
         ax.legend(fontsize=8)
         return [save(fig, directory / "compute.png")]

@@ -29,13 +29,24 @@ class Env:
     def samples(self) -> Samples:
         return render_samples(depth_frames=5)
 
+    def start(self, *kinds: str) -> None:
+        """Launch the servers of ``kinds`` that are not running yet, all at once."""
+        for kind in kinds:
+            if kind not in self._servers:
+                args = [] if kind == "echo" else ["--config", str(self.config_path)]
+                self._servers[kind] = ServerProcess(kind, self.cfg.workdir, *args)
+
     def server(self, kind: str) -> ServerProcess:
-        """The running server of ``kind`` (cellvision, echo, http); raises Skip if it cannot
-        start."""
-        if kind not in self._servers:
-            args = [] if kind == "echo" else ["--config", str(self.config_path)]
-            self._servers[kind] = ServerProcess(kind, self.cfg.workdir, *args)
-        return self._servers[kind]
+        """The running server of ``kind`` (cellvision, echo, http), once it listens; raises
+        Skip if it cannot start."""
+        self.start(kind)
+        server = self._servers[kind]
+        try:
+            server.info  # noqa: B018 - waits for the announcement
+        except BaseException:
+            self._servers.pop(kind, None)
+            raise
+        return server
 
     def stop_server(self, kind: str) -> None:
         server = self._servers.pop(kind, None)

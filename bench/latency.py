@@ -29,7 +29,7 @@ from robot_client import VisionClient
 
 from .common import Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
 from .env import Env
-from .plots import cdf, pyplot, save
+from .plots import cdf, log_scale_if_positive, pyplot, save
 from .servers import HOST, READ_LIMIT
 
 NAME = "latency"
@@ -199,6 +199,7 @@ async def _sizes(port: int, image: Any) -> tuple[int, int, int, int]:
 
 def run(cfg: RunConfig, env: Env) -> Section:
     section = Section(NAME, TITLE)
+    env.start("cellvision", "echo", "http")  # in parallel, while the images render
     image = np.ascontiguousarray(env.samples.tool)  # 1024x768 gray, the tool camera
     assert image.shape == (768, 1024)
     cellvision = env.server("cellvision")
@@ -326,7 +327,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
         ):
             for path, samples in measured.samples.items():
                 cdf(ax, samples, path)
-            ax.set_xscale("log")
+            log_scale_if_positive(ax, "x")
             ax.set_xlabel("round-trip latency [ms]")
             ax.set_ylabel("fraction of requests")
             ax.set_title(label)

@@ -36,3 +36,16 @@ def cdf(ax: Any, samples: Sequence[float], label: str) -> None:
     a = np.sort(np.asarray(samples, np.float64))
     if a.size:
         ax.step(a, np.arange(1, a.size + 1) / a.size, where="post", label=label)
+
+
+def log_scale_if_positive(ax: Any, axis: str = "y") -> None:
+    """Log scale on ``axis`` when the plotted data have a positive finite value (a log axis
+    with none cannot be drawn)."""
+    values: list[float] = []
+    for line in ax.get_lines():
+        data = line.get_ydata() if axis == "y" else line.get_xdata()
+        values += [float(v) for v in np.asarray(data, np.float64).ravel()]
+    for patch in ax.patches:
+        values.append(float(patch.get_height() if axis == "y" else patch.get_width()))
+    if any(np.isfinite(v) and v > 0 for v in values):
+        (ax.set_yscale if axis == "y" else ax.set_xscale)("log")

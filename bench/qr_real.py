@@ -18,7 +18,7 @@ import numpy as np
 
 from .common import ROOT, RunConfig, Section, Skip, Stats, Table, fmt, ratio
 from .env import Env
-from .plots import pyplot, save
+from .plots import log_scale_if_positive, pyplot, save
 
 NAME = "qr_real"
 TITLE = "6. Real QR photographs"
@@ -181,7 +181,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
         axes[0].legend(fontsize=7)
         axes[1].boxplot([times[n] for n in names], showfliers=True)
         axes[1].set_xticks(range(1, len(names) + 1), [n.split()[0] for n in names])
-        axes[1].set_yscale("log")
+        log_scale_if_positive(axes[1])
         axes[1].set_ylabel("time per image [ms]")
         for ax in axes:
             ax.grid(True, axis="y", alpha=0.3)

@@ -53,8 +53,18 @@ class ServerProcess:
             stdout=subprocess.PIPE,
             stderr=self._log,
         )
-        self.info = self._announcement(timeout_s=60.0)
-        self.port = int(self.info["port"])
+        self._info: dict[str, Any] | None = None
+
+    @property
+    def info(self) -> dict[str, Any]:
+        """The server's announcement; waits for it (up to a minute) the first time."""
+        if self._info is None:
+            self._info = self._announcement(timeout_s=60.0)
+        return self._info
+
+    @property
+    def port(self) -> int:
+        return int(self.info["port"])
 
     def _announcement(self, timeout_s: float) -> dict[str, Any]:
         out = self.proc.stdout

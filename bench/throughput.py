@@ -28,7 +28,7 @@ from robot_client import VisionClient
 
 from .common import Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
 from .env import Env
-from .plots import pyplot, save
+from .plots import log_scale_if_positive, pyplot, save
 from .servers import HOST, ServerProcess
 
 NAME = "throughput"
@@ -112,17 +112,18 @@ def run(cfg: RunConfig, env: Env) -> Section:
     section = Section(NAME, TITLE)
     server = env.server("cellvision")
     image = np.ascontiguousarray(env.samples.tool)
-    inspections = [("brightness", cfg.f(2.0, 0.3), cfg.f(0.5, 0.1))]
+    inspections = [("brightness", cfg.f(2.0, 0.15), cfg.f(0.5, 0.05))]
     if "cap_locate" in server.info["inspections"]:
-        inspections.append(("cap_locate", cfg.f(5.0, 0.5), cfg.f(1.0, 0.2)))
+        inspections.append(("cap_locate", cfg.f(5.0, 0.3), cfg.f(1.0, 0.1)))
     else:
         section.skipped.append(f"cap_locate (CPU-bound): not served ({server.info['problem']})")
     if server.info.get("problem"):
         section.notes.append(f"Catalog: {server.info['problem']}.")
-    clients = CLIENTS if not cfg.quick else (1, 4)
+    clients = CLIENTS if not cfg.quick else (1, 2)
+    depths = (1, PIPELINE) if not cfg.quick else (1, 2)
     cells: list[Cell] = []
     for name, window_s, warmup_s in inspections:
-        for depth in (1, PIPELINE):
+        for depth in depths:
             for n in clients:
                 cell = Cell(name, n, depth, window_s)
                 asyncio.run(_run_cell(server, cell, image, warmup_s, max_requests=100_000))
@@ -206,7 +207,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
         names = [n for n, _, _ in inspections]
         fig, axes = plt.subplots(2, len(names), figsize=(5.5 * len(names), 7), squeeze=False)
         for col, name in enumerate(names):
-            for depth in (1, PIPELINE):
+            for depth in depths:
                 row_cells = [c for c in cells if c.inspection == name and c.depth == depth]
                 xs = [c.clients for c in row_cells]
                 label = row_cells[0].mode if row_cells else ""
@@ -222,7 +223,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
                 ax.set_title(name)
                 ax.grid(True, alpha=0.3)
                 ax.legend(fontsize=8)
-            axes[1][col].set_yscale("log")
+            log_scale_if_positive(axes[1][col])
         return [save(fig, directory / "throughput.png")]
 
     section.plot = plot
