@@ -109,7 +109,9 @@ def test_a_port_in_use_is_a_clear_error() -> None:
 
 
 def test_parser_defaults() -> None:
+    """Options left out come from the configuration file (or ServerSettings' defaults:
+    127.0.0.1:7878), so the parser itself leaves them unset."""
     args = build_parser().parse_args(["serve"])
-    assert (args.host, args.port, args.auth_token) == ("127.0.0.1", 7878, None)
+    assert (args.host, args.port, args.auth_token, args.config) == (None, None, None, None)
     with pytest.raises(SystemExit):
         build_parser().parse_args([])

@@ -76,11 +76,11 @@ def parse_presence(
         raise node.error("a presence check needs min, max or both (the pass range)")
     if low is not None and high is not None and low > high:
         raise node.error(f"min ({low}) is above max ({high})", "min")
-    template = (
-        load_template(node, "template", base_dir)
-        if node.has("template")
-        else node.take("template", string, None)
-    )
+    template = None
+    if node.has("template"):
+        template = load_template(node, "template", base_dir)
+    else:
+        node.take("template", string, None)  # an allowed key
     if measure == "template_score" and template is None:
         raise node.error("measure template_score needs a template image", "measure")
     threshold = node.take("threshold", number, None)
