@@ -7,6 +7,8 @@ transforms ``b_from_a`` 4x4 float64, QR corners c0..c3 clockwise from the top-le
 Public API:
 
 - QR: ``read_qr(image, *, roi, expect, decoders, preprocess, refine) -> tuple[QrCode, ...]``.
+- QR pose: ``qr_pose(depth_frames, corners, intrinsics, *, method, side_m, ...) -> QrPose``
+  (``camera_from_qr`` + ``QrPoseQuality``).
 - Errors (``errors``): ``VisionError`` > ``BadImageError``, ``RoiError``, ``ParameterError``,
   ``TemplateError``, ``InspectionFailed`` > ``DepthError``; each has a protocol ``code``.
 - Validation: ``check_image``, ``as_gray``, ``check_depth``, ``check_roi``.
@@ -23,6 +25,7 @@ from vision_server.vision.errors import (
     VisionError,
 )
 from vision_server.vision.qr import DECODERS, QrCode, read_qr
+from vision_server.vision.qr_pose import QrPose, QrPoseQuality, qr_pose
 
 __all__ = [
     "DECODERS",
@@ -31,6 +34,8 @@ __all__ = [
     "InspectionFailed",
     "ParameterError",
     "QrCode",
+    "QrPose",
+    "QrPoseQuality",
     "RoiError",
     "TemplateError",
     "VisionError",
@@ -38,5 +43,6 @@ __all__ = [
     "check_depth",
     "check_image",
     "check_roi",
+    "qr_pose",
     "read_qr",
 ]

@@ -110,3 +110,44 @@ def render_discs(
         mask = (gu - cu) ** 2 + (gv - cv) ** 2 <= r * r
         fine[v0 * s : v1 * s, u0 * s : u1 * s][mask] = fg
     return downsample(fine, width, height)
+
+
+def kinect_depth_frames(
+    normal: NDArray[np.float64],
+    d: float,
+    *,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    height: int,
+    n_frames: int,
+    rng: np.random.Generator,
+    fb_px_m: float = 43.5,
+    disparity_sigma_px: float = 0.06,
+    disparity_step_px: float = 1.0 / 8.0,
+    region: tuple[int, int, int, int] | None = None,
+) -> list[NDArray[np.uint16]]:
+    """Depth frames (uint16 mm) of the plane ``normal . p + d = 0`` seen by an undistorted camera.
+
+    Kinect-like noise: disparity ``f*b / z`` plus Gaussian noise (``disparity_sigma_px``),
+    quantised to ``disparity_step_px``, converted back to z and rounded to millimetres. At 1 m
+    this gives a z sigma of about 1.4 mm (plus the quantisation steps, ~2.9 mm at 1 m).
+    Only ``region`` ``(u0, v0, u1, v1)`` is rendered (0 = no depth elsewhere), to save time.
+    """
+    u0, v0, u1, v1 = (0, 0, width, height) if region is None else region
+    full = np.zeros((height, width), np.uint16)
+    uu, vv = np.meshgrid(np.arange(u0, u1, dtype=np.float64), np.arange(v0, v1, dtype=np.float64))
+    x, y = (uu - cx) / fx, (vv - cy) / fy
+    denom = normal[0] * x + normal[1] * y + normal[2]
+    z = -d / denom
+    frames = []
+    for _ in range(n_frames):
+        disparity = fb_px_m / z + rng.normal(0.0, disparity_sigma_px, z.shape)
+        disparity = np.round(disparity / disparity_step_px) * disparity_step_px
+        z_noisy = fb_px_m / disparity
+        frame = full.copy()
+        frame[v0:v1, u0:u1] = np.clip(np.round(z_noisy * 1000.0), 0, 65535).astype(np.uint16)
+        frames.append(frame)
+    return frames
