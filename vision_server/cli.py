@@ -4,6 +4,7 @@ image files, list logged results, and check or reload a running server.
     vision-server serve --config cell.yaml          # SIGHUP or `vision-server reload` re-reads it
     vision-server check-config cell.yaml
     vision-server run --config cell.yaml cap_locate --image cap.png [--json] [--overlay out.png]
+    vision-server test-inspections [PATH ...] [--json] [--update]   # golden cases
     vision-server results --config cell.yaml --since 1h [--inspection NAME] [--json]
     vision-server ping --server 127.0.0.1:7878
 """
@@ -42,7 +43,7 @@ from protocol import (
 from .admin import AdminError, call
 from .builtin import builtin_catalog
 from .cameras import RequestCamera, RequestCameraSettings
-from .catalog import Catalog
+from .catalog import Catalog, Inspection
 from .config import CellConfig, ConfigError, load_config
 from .results_cli import results_command
 from .server import ServerSettings, VisionServer
@@ -218,23 +219,18 @@ def _run(args: argparse.Namespace) -> int:
             f"{', '.join(i.name for i in config.inspections)}"
         )
         return 2
-    # Offline, the inspection's camera is replaced by one whose images come with the request,
-    # with the same intrinsics: everything after that is the serving code path.
-    settings = config.cameras[inspection.camera]
-    camera = RequestCamera(
-        inspection.camera,
-        RequestCameraSettings(getattr(settings, "intrinsics", None), depth=inspection.uses_depth),
+    server = offline_server(
+        inspection,
+        config.cameras[inspection.camera],
+        config.base_dir,
+        config_hash=config.config_hash,
     )
-    if camera.intrinsics is None and inspection.uses_depth:
-        camera = _with_scene_intrinsics(inspection.camera, settings, config.base_dir) or camera
-    catalog = Catalog.build([camera], [inspection], config_hash=config.config_hash)
     try:
-        images = [_payload(Path(args.image), ImageRole.COLOR)]
-        images += [_payload(Path(p), ImageRole.DEPTH) for p in args.depth]
+        images = [image_payload(Path(args.image), ImageRole.COLOR)]
+        images += [image_payload(Path(p), ImageRole.DEPTH) for p in args.depth]
     except ValueError as exc:
         err.print(f"[red]error:[/] {exc}")
         return 2
-    server = VisionServer(catalog, ServerSettings(workers=1))
     request = Inspect(1, inspection.name, tuple(images), overlay=args.overlay is not None)
 
     async def once() -> Any:
@@ -272,6 +268,23 @@ def _run(args: argparse.Namespace) -> int:
     return 0 if result.passed else 3
 
 
+def offline_server(
+    inspection: Inspection, settings: Any, base_dir: Path, *, config_hash: str = ""
+) -> VisionServer:
+    """A VisionServer that does not listen, serving ``inspection`` offline: its camera is
+    replaced by one whose images come with the request, with the same intrinsics; everything
+    after that (``run_inspection``) is the serving code path. Used by ``run`` and
+    ``test-inspections``."""
+    camera = RequestCamera(
+        inspection.camera,
+        RequestCameraSettings(getattr(settings, "intrinsics", None), depth=inspection.uses_depth),
+    )
+    if camera.intrinsics is None and inspection.uses_depth:
+        camera = _with_scene_intrinsics(inspection.camera, settings, base_dir) or camera
+    catalog = Catalog.build([camera], [inspection], config_hash=config_hash)
+    return VisionServer(catalog, ServerSettings(workers=1))
+
+
 def _with_scene_intrinsics(name: str, settings: Any, base_dir: Path) -> RequestCamera | None:
     """For a sim camera without configured intrinsics, the scene camera's own."""
     from .cameras import SimCameraSettings, make_camera
@@ -285,7 +298,7 @@ def _with_scene_intrinsics(name: str, settings: Any, base_dir: Path) -> RequestC
         sim.close()
 
 
-def _payload(path: Path, role: ImageRole) -> ImagePayload:
+def image_payload(path: Path, role: ImageRole) -> ImagePayload:
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -296,6 +309,16 @@ def _payload(path: Path, role: ImageRole) -> ImagePayload:
     if suffix in (".jpg", ".jpeg"):
         return ImagePayload(ImageEncoding.JPEG, 0, 0, data, role)
     raise ValueError(f"{path}: only .png and .jpg/.jpeg images are read")
+
+
+# ----------------------------------------------------------------------------- test-inspections
+
+
+def _test_inspections(args: argparse.Namespace) -> int:
+    """Golden cases (inspection + images + expected results) through the serving code path."""
+    from .golden import golden_command
+
+    return golden_command(args.paths, json_out=args.json, update=args.update)
 
 
 # ----------------------------------------------------------------------------- results, admin
@@ -389,6 +412,20 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--json", action="store_true")
     run.add_argument("--overlay", type=Path, help="write the overlay image here (PNG)")
     run.set_defaults(func=_run)
+
+    golden = sub.add_parser(
+        "test-inspections", help="check inspections against known images (golden cases)"
+    )
+    golden.add_argument(
+        "paths", nargs="*", help="case folders or folders of cases (default: test_inspections)"
+    )
+    golden.add_argument("--json", action="store_true", help="one JSON report")
+    golden.add_argument(
+        "--update",
+        action="store_true",
+        help="rewrite expected.yaml from the results, show the diff",
+    )
+    golden.set_defaults(func=_test_inspections)
 
     results = sub.add_parser("results", help="list logged inspection results")
     results.add_argument("--config", help="find the log through the configuration")

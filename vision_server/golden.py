@@ -1,0 +1,813 @@
+"""Golden inspection cases: configured inspections checked against known images.
+
+A case is a folder (see test_inspections/README.md)::
+
+    my_case/
+      inspection.yaml   # the inspection, in the server configuration's schema
+      expected.yaml     # per image: verdict, features, QR text/corners, pose, value (+ tolerances)
+      images/           # colour images; NAME.depth0.png, NAME.depth1.png ... are NAME's depth
+
+``inspection.yaml`` is either an inline inspection (and optionally the camera it uses)::
+
+    camera: {source: request, depth: true, intrinsics: {width: 640, ...}}   # optional
+    inspection: {name: cap_locate, type: locate, camera: tool, method: circle, ...}
+
+or a reference to an inspection of a cell configuration, so that the file the server runs is
+the file under test::
+
+    config: ../../examples/cell.yaml
+    inspection: magnet_check
+
+Both are read with the server configuration's parser (unknown keys are errors; errors name the
+file, the line and the key path). ``images: PATH`` points the case at a directory outside the
+case (for instance shared photographs); a missing directory skips the case with the reason.
+
+Every image runs through :func:`vision_server.cli.offline_server`, the serving code path that
+``vision-server run`` uses: a VisionServer that does not listen, ``run_inspection`` with the
+images in the request, the inspection's camera replaced by a request camera with the same
+intrinsics. :func:`run_cases` compares the RESULTs with the expectations and, with
+``update=True``, rewrites ``expected.yaml`` from them (keeping tolerances and notes).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import difflib
+import hashlib
+import json
+import math
+import re
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from protocol import CellvisionError, ImageRole, Inspect
+
+from .cameras import SOURCE_NAMES, CameraSettings, RequestCameraSettings
+from .catalog import Inspection
+from .config import _settings, load_config
+from .configfile import (
+    ConfigError,
+    Node,
+    non_negative,
+    non_negative_int,
+    number,
+    one_of,
+    parse_document,
+    read_document,
+    string,
+)
+from .inspections import parse_inspection
+
+CASE_FILE = "inspection.yaml"
+EXPECTED_FILE = "expected.yaml"
+COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
+VERDICTS = ("pass", "fail", "error")
+TOLERANCE_KEYS = ("tolerance_px", "tolerance_value", "tolerance_m", "tolerance_rad")
+# Which expectation keys each inspection type can have (besides verdict, error, tolerances).
+RESULT_KEYS: dict[str, tuple[str, ...]] = {
+    "locate": ("count", "features"),
+    "presence": ("value",),
+    "qr": ("text", "corners"),
+    "qr_pose": ("text", "corners", "camera_from_qr"),
+}
+EXIT_OK, EXIT_REGRESSION, EXIT_BAD_CASE = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """How far a result may be from the expectation: pixels (features, corners), the presence
+    value, the pose's translation (m) and rotation (rad)."""
+
+    px: float = 1.0
+    value: float = 0.02
+    m: float = 0.005
+    rad: float = 0.01
+
+    def read(self, node: Node) -> Tolerances:
+        return Tolerances(
+            node.take("tolerance_px", non_negative, self.px),
+            node.take("tolerance_value", non_negative, self.value),
+            node.take("tolerance_m", non_negative, self.m),
+            node.take("tolerance_rad", non_negative, self.rad),
+        )
+
+
+@dataclass(frozen=True)
+class Expectation:
+    """What one image should give. ``None``: not checked."""
+
+    image: str
+    verdict: str
+    error: str | None = None
+    count: int | None = None
+    features: tuple[tuple[float, float], ...] | None = None
+    text: str | None = None
+    corners: tuple[tuple[float, float], ...] | None = None
+    camera_from_qr: tuple[tuple[float, ...], ...] | None = None
+    value: float | None = None
+    tolerances: Tolerances = Tolerances()
+    raw: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Case:
+    """A loaded, valid case."""
+
+    name: str
+    directory: Path
+    inspection: Inspection
+    camera: CameraSettings
+    base_dir: Path
+    config_hash: str
+    images_dir: Path
+    skip: str | None
+    expectations: dict[str, Expectation]
+    defaults: dict[str, Any]
+    header: str
+    expected_text: str
+
+
+@dataclass(frozen=True)
+class Got:
+    """What the serving code path answered for one image."""
+
+    verdict: str
+    data: dict[str, Any]
+    error: str | None = None
+    message: str = ""
+
+
+@dataclass
+class ImageReport:
+    image: str
+    status: str  # pass | regression | new
+    expected: str
+    got: str
+    problems: list[str] = field(default_factory=list)
+    result: Got | None = None
+
+
+@dataclass
+class CaseReport:
+    name: str
+    path: Path
+    type: str = ""
+    error: str | None = None  # a bad case file
+    skipped: str | None = None
+    images: list[ImageReport] = field(default_factory=list)
+    diff: str = ""
+
+
+@dataclass
+class Report:
+    cases: list[CaseReport]
+    updated: bool = False
+
+    @property
+    def exit_code(self) -> int:
+        if any(c.error for c in self.cases):
+            return EXIT_BAD_CASE
+        if not self.updated and any(i.status != "pass" for c in self.cases for i in c.images):
+            return EXIT_REGRESSION
+        return EXIT_OK
+
+    def counts(self) -> dict[str, int]:
+        images = [i for c in self.cases for i in c.images]
+        return {
+            "cases": len(self.cases),
+            "images": len(images),
+            "passed": sum(i.status == "pass" for i in images),
+            "regressions": sum(i.status == "regression" for i in images),
+            "new": sum(i.status == "new" for i in images),
+            "skipped_cases": sum(c.skipped is not None for c in self.cases),
+            "bad_cases": sum(c.error is not None for c in self.cases),
+        }
+
+
+# ----------------------------------------------------------------------------- finding cases
+
+
+def find_cases(paths: Iterable[Path]) -> list[Path]:
+    """Case folders under ``paths`` (a case folder, a folder of cases, or an inspection.yaml);
+    a path that is none of these is returned as it is, to be reported as a bad case."""
+    found: list[Path] = []
+    for path in paths:
+        if path.is_file() and path.name == CASE_FILE:
+            found.append(path.parent)
+        elif (path / CASE_FILE).is_file():
+            found.append(path)
+        elif path.is_dir():
+            found.extend(sorted(p.parent for p in path.rglob(CASE_FILE)))
+        else:
+            found.append(path)
+    unique: dict[Path, None] = {}
+    for path in found:
+        unique.setdefault(path, None)
+    return list(unique)
+
+
+def default_paths() -> list[Path]:
+    """``test_inspections`` in the working directory, else the repository's."""
+    here = Path("test_inspections")
+    if here.is_dir():
+        return [here]
+    return [Path(__file__).resolve().parent.parent / "test_inspections"]
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def load_case(directory: Path) -> Case:
+    """Read and validate a case folder; raises :class:`ConfigError` naming file/line/key."""
+    case_file = directory / CASE_FILE
+    if not case_file.is_file():
+        raise ConfigError(f"not a case: no {CASE_FILE} here", source=str(directory))
+    root, text = read_document(case_file)
+    root.source = str(case_file)
+    root.take("description", string, None)
+    base_dir = directory.resolve()
+    inspection, camera, config_base = _inspection(root, base_dir)
+    images = root.take("images", string, None)
+    root.finish()
+    images_dir = base_dir / (images or "images")
+    skip = None
+    if images is not None and not images_dir.is_dir():
+        skip = f"images directory {images_dir} not found"
+    expected_path = directory / EXPECTED_FILE
+    if expected_path.is_file():
+        exp_root, expected_text = read_document(expected_path)
+    else:
+        expected_text = ""
+        exp_root = parse_document("", source=str(expected_path))
+    exp_root.source = str(expected_path)
+    defaults_node = exp_root.sub("defaults")
+    tolerances = Tolerances().read(defaults_node)
+    defaults_node.finish()
+    expectations: dict[str, Expectation] = {}
+    images_node = exp_root.sub("images")
+    for key in list(images_node.data):
+        if not isinstance(key, str) or not key:
+            raise images_node.error(f"image names must be strings, got {key!r}")
+        node = images_node.sub(key)
+        expectations[key] = _expectation(node, key, inspection.type, tolerances)
+        if skip is None and not (images_dir / key).is_file():
+            raise node.error(f"no such image: {images_dir / key}")
+    images_node.finish()
+    exp_root.finish()
+    header = "".join(_leading_comments(expected_text))
+    return Case(
+        name=_case_name(directory),
+        directory=directory,
+        inspection=inspection,
+        camera=camera,
+        base_dir=config_base,
+        config_hash=hashlib.sha256(text.encode()).hexdigest()[:16],
+        images_dir=images_dir,
+        skip=skip,
+        expectations=expectations,
+        defaults=dict(defaults_node.data),
+        header=header,
+        expected_text=expected_text,
+    )
+
+
+def _case_name(directory: Path) -> str:
+    return directory.resolve().name
+
+
+def _inspection(root: Node, base_dir: Path) -> tuple[Inspection, CameraSettings, Path]:
+    if root.has("config"):
+        config_path = base_dir / root.take("config", string)
+        name = root.take("inspection", string)
+        if root.has("camera"):
+            raise root.error("with config, the camera comes from the configuration", "camera")
+        root.take("camera", string, None)
+        if not config_path.is_file():
+            raise root.error(f"no such configuration file: {config_path}", "config")
+        config = load_config(config_path)
+        found = next((i for i in config.inspections if i.name == name), None)
+        if found is None:
+            names = ", ".join(i.name for i in config.inspections) or "none"
+            raise root.error(
+                f"{config_path.name} has no inspection {name!r} ({names})", "inspection"
+            )
+        return found, config.cameras[found.camera], config.base_dir
+    root.take("config", string, None)
+    if "inspection" not in root or not isinstance(root.data["inspection"], dict):
+        root.sub("inspection", required=True)  # the error: missing, or not a mapping
+    camera_name = root.data["inspection"].get("camera")
+    camera_name = camera_name if isinstance(camera_name, str) else "camera"
+    if root.has("camera"):
+        node = root.sub("camera")
+        source = node.take("source", one_of(*SOURCE_NAMES), "request")
+        camera: CameraSettings = _settings(node, SOURCE_NAMES[source])
+    else:
+        root.take("camera", string, None)
+        camera = RequestCameraSettings(None, depth=True)
+    inspection = parse_inspection(
+        root.sub("inspection"), base_dir=base_dir, cameras={camera_name: camera}
+    )
+    return inspection, camera, base_dir
+
+
+def _points(count: int | None) -> Any:
+    def convert(value: Any) -> tuple[tuple[float, float], ...]:
+        want = "a list of [u, v]" if count is None else f"a list of {count} [u, v]"
+        if not isinstance(value, list) or (count is not None and len(value) != count):
+            raise ValueError(f"expected {want}, got {value!r}")
+        out = []
+        for item in value:
+            if not isinstance(item, list) or len(item) != 2:
+                raise ValueError(f"expected {want}, got the item {item!r}")
+            out.append((number(item[0]), number(item[1])))
+        return tuple(out)
+
+    return convert
+
+
+def _matrix(value: Any) -> tuple[tuple[float, ...], ...]:
+    if not isinstance(value, list) or len(value) not in (3, 4):
+        raise ValueError(f"expected a 4x4 matrix (rows), got {value!r}")
+    rows = []
+    for row in value:
+        if not isinstance(row, list) or len(row) != 4:
+            raise ValueError(f"expected rows of 4 numbers, got {row!r}")
+        rows.append(tuple(number(x) for x in row))
+    m = np.array(rows[:3])
+    if not np.allclose(m[:, :3] @ m[:, :3].T, np.eye(3), atol=1e-4):
+        raise ValueError("the rotation part is not orthonormal")
+    return tuple(rows)
+
+
+def _expectation(node: Node, key: str, kind: str, defaults: Tolerances) -> Expectation:
+    allowed = RESULT_KEYS[kind]
+    for other in ("count", "features", "text", "corners", "camera_from_qr", "value"):
+        if other in node and other not in allowed:
+            raise node.error(f"{other!r} is not a result of a {kind} inspection", other)
+    verdict = node.take("verdict", one_of(*VERDICTS))
+    node.take("note", string, None)
+    expectation = Expectation(
+        image=key,
+        verdict=verdict,
+        error=node.take("error", string, None),
+        count=node.take("count", non_negative_int, None),
+        features=node.take("features", _points(None), None),
+        text=node.take("text", string, None),
+        corners=node.take("corners", _points(4), None),
+        camera_from_qr=node.take("camera_from_qr", _matrix, None),
+        value=node.take("value", number, None),
+        tolerances=defaults.read(node),
+        raw=dict(node.data),
+    )
+    if expectation.error is not None and verdict != "error":
+        raise node.error("error is only for verdict: error", "error")
+    node.finish()
+    return expectation
+
+
+def _leading_comments(text: str) -> list[str]:
+    out = []
+    for line in text.splitlines(keepends=True):
+        if not line.startswith("#"):
+            break
+        out.append(line)
+    return out
+
+
+# ----------------------------------------------------------------------------- running
+
+
+def color_images(case: Case) -> list[str]:
+    """The case's images: those with expectations, then new colour images in the folder."""
+    names = list(case.expectations)
+    if case.images_dir.is_dir():
+        for path in sorted(case.images_dir.iterdir()):
+            if (
+                path.suffix.lower() in COLOR_SUFFIXES
+                and ".depth" not in path.name
+                and path.name not in case.expectations
+            ):
+                names.append(path.name)
+    return names
+
+
+def depth_frames(color: Path) -> list[Path]:
+    """NAME.depth.png, NAME.depth0.png, NAME.depth1.png ... beside NAME.png."""
+    return sorted(color.parent.glob(f"{color.stem}.depth*.png"), key=_natural)
+
+
+def _natural(path: Path) -> list[Any]:
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
+
+
+def run_images(case: Case, names: Sequence[str]) -> list[Got]:
+    """Run the case's inspection on each image through the serving code path."""
+    from .cli import image_payload, offline_server
+
+    server = offline_server(
+        case.inspection, case.camera, case.base_dir, config_hash=case.config_hash
+    )
+
+    async def run_all() -> list[Got]:
+        out = []
+        try:
+            for index, name in enumerate(names, start=1):
+                color = case.images_dir / name
+                payloads = [image_payload(color, ImageRole.COLOR)]
+                if case.inspection.uses_depth:
+                    payloads += [image_payload(p, ImageRole.DEPTH) for p in depth_frames(color)]
+                request = Inspect(index, case.inspection.name, tuple(payloads), overlay=False)
+                try:
+                    result = await server.run_inspection(request, peer="golden")
+                except CellvisionError as exc:
+                    out.append(Got("error", {}, exc.code.name, exc.message))
+                    continue
+                out.append(Got("pass" if result.passed else "fail", dict(result.data)))
+        finally:
+            await server.stop()
+        return out
+
+    return asyncio.run(run_all())
+
+
+def compare(expected: Expectation, got: Got) -> list[str]:
+    """What differs, as sentences (empty: the image passes)."""
+    problems = []
+    tol = expected.tolerances
+    if got.verdict != expected.verdict:
+        extra = f" ({got.error}: {got.message})" if got.error else ""
+        problems.append(f"verdict {got.verdict}, expected {expected.verdict}{extra}")
+    if expected.error is not None and got.error != expected.error:
+        problems.append(f"error {got.error}, expected {expected.error}")
+    if got.error is not None:
+        return problems
+    data = got.data
+    if expected.count is not None and data.get("count") != expected.count:
+        problems.append(f"count {data.get('count')}, expected {expected.count}")
+    if expected.features is not None:
+        found = [(float(f["u"]), float(f["v"])) for f in data.get("features", [])]
+        problems += _match_features(expected.features, found, tol.px)
+    if expected.text is not None and data.get("text") != expected.text:
+        problems.append(f"text {data.get('text')!r}, expected {expected.text!r}")
+    if expected.corners is not None:
+        corners = data.get("corners")
+        if not corners:
+            problems.append("no corners, expected 4")
+        else:
+            errors = np.hypot(*(np.asarray(corners) - np.asarray(expected.corners)).T)
+            worst = int(np.argmax(errors))
+            if errors[worst] > tol.px:
+                problems.append(
+                    f"corner c{worst} off by {errors[worst]:.2f} px (tolerance {tol.px} px)"
+                )
+    if expected.camera_from_qr is not None:
+        pose = data.get("camera_from_qr")
+        if pose is None:
+            problems.append("no pose, expected camera_from_qr")
+        else:
+            dt, dr = pose_error(np.asarray(expected.camera_from_qr), np.asarray(pose))
+            if dt > tol.m:
+                problems.append(f"translation off by {dt * 1000:.2f} mm (tolerance {tol.m} m)")
+            if dr > tol.rad:
+                problems.append(f"rotation off by {dr:.4f} rad (tolerance {tol.rad} rad)")
+    if expected.value is not None:
+        value = data.get("value")
+        if value is None or abs(float(value) - expected.value) > tol.value:
+            problems.append(
+                f"value {value}, expected {expected.value} ± {tol.value} ({data.get('measure')})"
+            )
+    return problems
+
+
+def pose_error(expected: Any, got: Any) -> tuple[float, float]:
+    """Translation distance (m) and rotation angle (rad) between two 4x4 poses."""
+    dt = float(np.linalg.norm(got[:3, 3] - expected[:3, 3]))
+    relative = expected[:3, :3].T @ got[:3, :3]
+    cos = float(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0))
+    return dt, math.acos(cos)
+
+
+def _match_features(
+    expected: Sequence[tuple[float, float]], found: Sequence[tuple[float, float]], tol: float
+) -> list[str]:
+    """Each expected feature must be matched by its own found feature within ``tol`` px
+    (closest pairs first)."""
+    pairs = sorted(
+        (math.hypot(e[0] - f[0], e[1] - f[1]), i, j)
+        for i, e in enumerate(expected)
+        for j, f in enumerate(found)
+    )
+    matched: dict[int, float] = {}
+    used: set[int] = set()
+    for distance, i, j in pairs:
+        if distance > tol:
+            break
+        if i not in matched and j not in used:
+            matched[i] = distance
+            used.add(j)
+    problems = []
+    for i, (u, v) in enumerate(expected):
+        if i in matched:
+            continue
+        nearest = min((math.hypot(u - f[0], v - f[1]) for f in found), default=math.inf)
+        near = "none found" if math.isinf(nearest) else f"nearest {nearest:.2f} px"
+        problems.append(f"feature ({u:.1f}, {v:.1f}) not found within {tol} px ({near})")
+    return problems
+
+
+def describe_expected(e: Expectation) -> str:
+    parts = [e.verdict + (f" {e.error}" if e.error else "")]
+    if e.count is not None:
+        parts.append(f"{e.count} found")
+    if e.features is not None:
+        parts.append(f"{len(e.features)} features ±{e.tolerances.px} px")
+    if e.text is not None:
+        parts.append(repr(e.text))
+    if e.corners is not None:
+        parts.append(f"corners ±{e.tolerances.px} px")
+    if e.camera_from_qr is not None:
+        t = np.asarray(e.camera_from_qr)[:3, 3]
+        parts.append(f"t=({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m ±{e.tolerances.m} m")
+    if e.value is not None:
+        parts.append(f"value {e.value:.3f} ±{e.tolerances.value}")
+    return ", ".join(parts)
+
+
+def describe_got(got: Got) -> str:
+    if got.error:
+        return f"error {got.error}"
+    data = got.data
+    parts = [got.verdict]
+    if "count" in data:
+        parts.append(f"{data['count']} found")
+    if data.get("text") is not None:
+        parts.append(repr(data["text"]))
+    if data.get("camera_from_qr") is not None:
+        t = np.asarray(data["camera_from_qr"])[:3, 3]
+        parts.append(f"t=({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m")
+    if data.get("value") is not None:
+        parts.append(f"value {float(data['value']):.3f}")
+    if data.get("found") is False:
+        parts.append("nothing found")
+    return ", ".join(parts)
+
+
+def run_case(directory: Path, *, update: bool = False) -> CaseReport:
+    """Load one case, run every image, compare; with ``update`` rewrite expected.yaml."""
+    report = CaseReport(_case_name(directory), directory)
+    try:
+        case = load_case(directory)
+        report.type = case.inspection.type
+        if case.skip is not None:
+            report.skipped = case.skip
+            return report
+        names = color_images(case)
+        results = run_images(case, names)
+    except ConfigError as exc:
+        report.error = str(exc)
+        return report
+    except ValueError as exc:  # an unreadable image
+        report.error = f"{directory}: {exc}"
+        return report
+    for name, got in zip(names, results, strict=True):
+        expectation = case.expectations.get(name)
+        if expectation is None:
+            report.images.append(
+                ImageReport(
+                    name, "new", "—", describe_got(got), ["no expected result (--update)"], got
+                )
+            )
+            continue
+        problems = compare(expectation, got)
+        report.images.append(
+            ImageReport(
+                name,
+                "pass" if not problems else "regression",
+                describe_expected(expectation),
+                describe_got(got),
+                problems,
+                got,
+            )
+        )
+    if update:
+        new_text = expected_yaml(
+            case.header or DEFAULT_HEADER,
+            case.defaults,
+            {
+                i.image: updated_entry(case.expectations.get(i.image), i.result, case)
+                for i in report.images
+                if i.result is not None
+            },
+        )
+        if new_text != case.expected_text:
+            path = directory / EXPECTED_FILE
+            report.diff = "".join(
+                difflib.unified_diff(
+                    case.expected_text.splitlines(keepends=True),
+                    new_text.splitlines(keepends=True),
+                    f"{path} (before)",
+                    f"{path} (updated)",
+                )
+            )
+            path.write_text(new_text, encoding="utf-8")
+    return report
+
+
+def run_cases(paths: Sequence[Path] | None = None, *, update: bool = False) -> Report:
+    cases = find_cases(paths or default_paths())
+    return Report([run_case(path, update=update) for path in cases], updated=update)
+
+
+# ----------------------------------------------------------------------------- updating
+
+DEFAULT_HEADER = (
+    "# Expected results of this case's inspection, per image (see test_inspections/README.md).\n"
+    "# `vision-server test-inspections --update` rewrites it and keeps tolerances and notes.\n"
+)
+
+
+def updated_entry(old: Expectation | None, got: Got, case: Case) -> dict[str, Any]:
+    """The expectation an updated file holds for ``got``: an old entry keeps its keys (the
+    checks it had), tolerances and note; a new one gets every result of its type."""
+    fresh = result_entry(got, case.inspection.type)
+    if old is None:
+        return fresh
+    out: dict[str, Any] = {"verdict": fresh["verdict"]}
+    if "error" in fresh:
+        out["error"] = fresh["error"]
+    for key in RESULT_KEYS[case.inspection.type]:
+        if key in old.raw and key in fresh:
+            out[key] = fresh[key]
+    for key in ("note", *TOLERANCE_KEYS):
+        if key in old.raw:
+            out[key] = old.raw[key]
+    return out
+
+
+def result_entry(got: Got, kind: str) -> dict[str, Any]:
+    out: dict[str, Any] = {"verdict": got.verdict}
+    if got.error is not None:
+        out["error"] = got.error
+        return out
+    data = got.data
+    if kind == "locate":
+        out["count"] = int(data["count"])
+        out["features"] = [[round(f["u"], 2), round(f["v"], 2)] for f in data["features"]]
+    elif kind == "presence":
+        out["value"] = round(float(data["value"]), 4)
+    elif data.get("found"):
+        out["text"] = data["text"]
+        out["corners"] = [[round(u, 2), round(v, 2)] for u, v in data["corners"]]
+        if kind == "qr_pose":
+            out["camera_from_qr"] = [[round(x, 6) for x in row] for row in data["camera_from_qr"]]
+    return out
+
+
+_PLAIN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_./-]*")
+
+
+def _scalar(value: Any) -> str:
+    if isinstance(value, str):
+        if _PLAIN.fullmatch(value) and value.lower() not in ("true", "false", "null", "yes", "no"):
+            try:
+                float(value)
+            except ValueError:
+                return value
+        return json.dumps(value, ensure_ascii=False)
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float) and value == int(value) and abs(value) < 1e15:
+        return f"{value:.1f}"
+    if isinstance(value, list):
+        return "[" + ", ".join(_scalar(v) for v in value) + "]"
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def expected_yaml(header: str, defaults: dict[str, Any], entries: dict[str, dict[str, Any]]) -> str:
+    """The text of an expected.yaml: lists of points one per line, numbers as given."""
+    lines = [header.rstrip("\n")] if header.strip() else []
+    if defaults:
+        lines.append("defaults:")
+        lines += [f"  {k}: {_scalar(v)}" for k, v in defaults.items()]
+    lines.append("images:" if entries else "images: {}")
+    for name, entry in entries.items():
+        lines.append(f"  {_scalar(name)}:")
+        for key, value in entry.items():
+            if isinstance(value, list) and value and isinstance(value[0], list):
+                lines.append(f"    {key}:")
+                lines += [f"      - {_scalar(item)}" for item in value]
+            else:
+                lines.append(f"    {key}: {_scalar(value)}")
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------- reporting
+
+
+def report_json(report: Report) -> dict[str, Any]:
+    return {
+        "ok": report.exit_code == EXIT_OK,
+        "exit_code": report.exit_code,
+        "updated": report.updated,
+        "summary": report.counts(),
+        "cases": [
+            {
+                "case": c.name,
+                "path": str(c.path),
+                "type": c.type,
+                "error": c.error,
+                "skipped": c.skipped,
+                "diff": c.diff or None,
+                "images": [
+                    {
+                        "image": i.image,
+                        "status": i.status,
+                        "expected": i.expected,
+                        "got": i.got,
+                        "problems": i.problems,
+                        "verdict": None if i.result is None else i.result.verdict,
+                        "data": None if i.result is None else i.result.data,
+                    }
+                    for i in c.images
+                ],
+            }
+            for c in report.cases
+        ],
+    }
+
+
+def print_report(report: Report, console: Console) -> None:
+    table = Table(title="test-inspections" + (" (--update)" if report.updated else ""))
+    for column in ("case", "image", "expected", "got", "pass"):
+        table.add_column(column, overflow="fold")
+    for case in report.cases:
+        if case.error is not None:
+            table.add_row(case.name, "—", "—", "—", "[red]BAD CASE[/]")
+            continue
+        if case.skipped is not None:
+            table.add_row(case.name, "—", "—", "—", f"[yellow]skipped[/]: {case.skipped}")
+            continue
+        for image in case.images:
+            mark = {
+                "pass": "[green]✓[/]",
+                "regression": "[red]✗ " + "; ".join(image.problems) + "[/]",
+                "new": "[yellow]new[/]: no expected result",
+            }[image.status]
+            table.add_row(case.name, image.image, image.expected, image.got, mark)
+    console.print(table)
+    for case in report.cases:
+        if case.error is not None:
+            console.print(f"[red]bad case {case.name}:[/] {case.error}", highlight=False)
+        if case.diff:
+            console.print(f"[bold]{case.name}: expected.yaml updated[/]")
+            for line in case.diff.splitlines():
+                style = "green" if line.startswith("+") else "red" if line.startswith("-") else ""
+                console.print(line, style=style or None, highlight=False, markup=False)
+    n = report.counts()
+    summary = (
+        f"{n['cases']} cases, {n['images']} images: {n['passed']} passed, "
+        f"{n['regressions']} regressions, {n['new']} new, {n['skipped_cases']} cases skipped, "
+        f"{n['bad_cases']} bad cases"
+    )
+    if report.updated:
+        changed = sum(bool(c.diff) for c in report.cases)
+        summary += f"; expected.yaml rewritten in {changed} cases"
+    console.print(summary, highlight=False)
+
+
+def golden_command(paths: Sequence[str], *, json_out: bool = False, update: bool = False) -> int:
+    """``vision-server test-inspections``: 0 all pass, 1 a regression, 2 a bad case file."""
+    report = run_cases([Path(p) for p in paths] or None, update=update)
+    if json_out:
+        print(json.dumps(report_json(report)))
+    else:
+        print_report(report, Console())
+    return report.exit_code
+
+
+__all__ = [
+    "Case",
+    "CaseReport",
+    "Expectation",
+    "Got",
+    "ImageReport",
+    "Report",
+    "Tolerances",
+    "compare",
+    "expected_yaml",
+    "find_cases",
+    "golden_command",
+    "load_case",
+    "pose_error",
+    "result_entry",
+    "run_case",
+    "run_cases",
+]
