@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 import yaml
 from numpy.typing import NDArray
+from rich import box
 from rich.console import Console
 from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn
 from rich.table import Table
@@ -187,10 +188,13 @@ class OverlayRecorder:
         self.vision, self.output = vision, output
         self.last: dict[str, tuple[Any, dict[str, Any]]] = {}
         self.written: list[Path] = []
+        self.request_s = 0.0  # wall time in the skills' requests
         self._failed_live: set[str] = set()
 
     def inspect(self, inspection: str, image: Any = None, **kwargs: Any) -> Any:
+        start = time.perf_counter()
         result = self.vision.inspect(inspection, image, **kwargs)
+        self.request_s += time.perf_counter() - start
         self.last[inspection] = (image, kwargs)
         if image is None and not result.passed and inspection not in self._failed_live:
             self._failed_live.add(inspection)
@@ -258,19 +262,23 @@ def press_error_m(cell: SimCell, approach_m: float) -> tuple[str, float]:
 @dataclass(frozen=True)
 class Check:
     """One thing the demo verifies: a measured ``value`` (text) against a ``bound`` (text),
-    the paper's figure for it, and whether it held."""
+    the paper's figure for it, and whether it held (None: shown, not judged)."""
 
     what: str
     value: str
     bound: str
     paper: str
-    ok: bool
+    ok: bool | None  # None: for information, not a pass criterion
 
 
 @dataclass
 class StepRow:
+    """A finished step: the runner's report, wall time, of which waiting for the vision
+    server (requests only, without the demo's overlay requests), and what it did."""
+
     report: StepReport
     wall_s: float
+    vision_s: float
     detail: str
 
 
@@ -291,7 +299,7 @@ class DemoResult:
             self.error is None
             and self.task is not None
             and self.task.ok
-            and all(c.ok for c in self.checks)
+            and all(c.ok is not False for c in self.checks)
             and self.server_exit == 0
         )
 
@@ -304,7 +312,7 @@ class DemoObserver:
     ) -> None:
         self.ctx, self.cell, self.recorder, self.result = ctx, cell, recorder, result
 
-    def measure(self, step: StepReport) -> str:
+    def measure(self, step: StepReport, vision_s: float) -> str:
         """Checks for one finished step; returns a one-line detail for the summary."""
         out = step.outcome
         if not out.ok:
@@ -319,48 +327,57 @@ class DemoObserver:
             self.result.errors.update(calibration_m=t_err, calibration_rad=r_err)
             checks.append(
                 Check(
-                    f"calibration {out.data['frame']}: base_from_qr position",
-                    f"{t_err * 1e3:.2f} mm, {np.degrees(r_err):.3f}°",
+                    f"calibration {out.data['frame']}",
+                    f"{t_err * 1e3:.2f} mm {np.degrees(r_err):.2f}°",
                     "≤ 10 mm",
-                    "±10 mm, < 1 s",
+                    "±10 mm",
                     t_err <= PAPER_CALIBRATION_M,
                 )
             )
-            return f"{out.data['frame']} moved {float(out.data.get('shift_m', 0)) * 1e3:.1f} mm"
+            checks.append(
+                Check(
+                    "calibration time (vision)",
+                    f"{vision_s:.2f} s",
+                    "",
+                    "< 1 s",
+                    None,
+                )
+            )
+            return f"moved {float(out.data.get('shift_m', 0)) * 1e3:.1f} mm"
         if step.skill == "vision_pick":
             self.recorder.save("cap_locate", str(out.data["part"]))
             error = grasp_error_m(self.cell)
             self.result.errors[f"pick_{out.data['part']}_m"] = error
             checks.append(
                 Check(
-                    f"vision pick {out.record}: {out.data['part']} grasp point",
+                    f"pick {out.data['part']} ({out.record})",
                     f"{error * 1e3:.2f} mm",
                     "≤ 5 mm",
                     "±5 mm",
                     error <= PAPER_PICK_M,
                 )
             )
-            return f"picked {out.data['part']} (view {out.data['view'] + 1} of {out.data['views']})"
+            return f"{out.data['part']}, view {out.data['view'] + 1}/{out.data['views']}"
         if step.skill == "place":
             part = str(out.data["part"])
             where = self.cell.world.parts[part].location
             bins = {b.name for b in self.cell.scene.bins}
-            checks.append(Check(f"{part} placed", where or "-", "in a bin", "", where in bins))
-            return f"{part} in {where}"
+            checks.append(Check(f"place {part}", where or "-", "a bin", "", where in bins))
+            return f"{part} → {where}"
         if step.skill == "quality_control":
             self.recorder.save(str(out.data["inspection"]), "pass")
             verdicts = [a["verdict"] for a in out.data["attempts"]]
             checks.append(
                 Check(
-                    "quality control: the late magnet",
+                    "quality control magnet",
                     " → ".join(verdicts),
                     "fail → pass",
-                    "detected (Fig. 4b)",
+                    "Fig. 4b",
                     verdicts == ["fail", "pass"],
                 )
             )
             values = ", ".join(f"{a.get('value', 0):.2f}" for a in out.data["attempts"])
-            return f"{' → '.join(verdicts)} (dark fraction {values})"
+            return f"{' → '.join(verdicts)} ({values})"
         if step.skill == "press":
             assert self.ctx.store is not None
             approach = float(self.ctx.store.get("press", step.record).params["approach_m"])
@@ -368,14 +385,16 @@ class DemoObserver:
             self.result.errors["switch_m"] = error
             checks.append(
                 Check(
-                    f"press {step.record}: {switch} position",
+                    f"press {switch}",
                     f"{error * 1e3:.2f} mm",
                     "≤ 10 mm",
-                    "±10 mm (Fig. 5)",
+                    "±10 mm",
                     error <= PAPER_CALIBRATION_M,
                 )
             )
-            return f"touched {switch}"
+            return "switch touched"
+        if step.skill == "move_to":
+            return "arrived"
         return ""
 
 
@@ -392,9 +411,10 @@ def step_line(row: StepRow) -> str:
     r = row.report
     mark = "[green]✓[/]" if r.outcome.ok else f"[red]✗ {r.outcome.reason}[/]"
     it = "".join(f" #{i}" for i in r.iteration)
+    name = f"{r.skill}/{r.record}{it}"
     return (
-        f"{mark} {r.skill}/{r.record}{it}  [dim]{r.duration_s:5.2f} s sim, "
-        f"{row.wall_s:5.2f} s wall[/]  {row.detail}"
+        f"{mark} {name:<28} [dim]{r.duration_s:5.2f} s sim {row.wall_s:5.2f} s wall[/]  "
+        f"{row.detail}"
     )
 
 
@@ -461,7 +481,7 @@ def run_task(
     )
     overall = bar.add_task(f"task {task.name}", total=step_count(task))
     current = bar.add_task("", total=1.0)
-    last = time.perf_counter()
+    last, vision_before = time.perf_counter(), 0.0
 
     def on_progress(event: SkillProgress) -> None:
         if event.skill == "quality_control":
@@ -470,10 +490,12 @@ def run_task(
         bar.update(current, description=text, completed=event.fraction or 0.0)
 
     def on_step(step: StepReport) -> None:
-        nonlocal last
+        nonlocal last, vision_before
         now = time.perf_counter()
-        row = StepRow(step, now - last, observer.measure(step))
+        vision_s = observer.recorder.request_s - vision_before
+        row = StepRow(step, now - last, vision_s, observer.measure(step, vision_s))
         last = time.perf_counter()  # measuring (and the overlays) is not the next step's time
+        vision_before = observer.recorder.request_s
         observer.result.steps.append(row)
         bar.console.print(step_line(row))
         bar.advance(overall)
@@ -487,26 +509,29 @@ def run_task(
 
 
 def print_summary(result: DemoResult, console: Console) -> None:
-    steps = Table(title="Steps")
-    for column in ("step", "skill / record", "outcome", "attempts", "sim s", "wall s"):
-        steps.add_column(column, justify="right" if column.endswith(("s", "attempts")) else "left")
+    steps = Table(title="Steps", box=box.SIMPLE_HEAD)
+    steps.add_column("step", no_wrap=True)
+    steps.add_column("outcome", no_wrap=True)
+    for column in ("sim s", "wall s", "vision s"):
+        steps.add_column(column, justify="right")
     for row in result.steps:
         r = row.report
-        it = "".join(f"#{i}" for i in r.iteration)
+        it = "".join(f" #{i}" for i in r.iteration)
+        tries = "" if r.attempts == 1 else f" ({r.attempts} tries)"
         steps.add_row(
-            r.path + it,
-            f"{r.skill} / {r.record}",
-            "[green]ok[/]" if r.outcome.ok else f"[red]{r.outcome.reason}[/]",
-            str(r.attempts),
+            f"{r.skill} {r.record}{it}",
+            ("[green]ok[/]" if r.outcome.ok else f"[red]{r.outcome.reason}[/]") + tries,
             f"{r.duration_s:.2f}",
             f"{row.wall_s:.2f}",
+            f"{row.vision_s:.2f}",
         )
     console.print(steps)
-    checks = Table(title="Against the ground truth and the paper")
-    for column in ("check", "measured", "bound", "paper", "ok"):
+    checks = Table(title="Against the ground truth and the paper", box=box.SIMPLE_HEAD)
+    for column in ("check", "measured", "pass if", "paper", "ok"):
         checks.add_column(column)
     for c in result.checks:
-        checks.add_row(c.what, c.value, c.bound, c.paper, "[green]yes[/]" if c.ok else "[red]NO[/]")
+        ok = "—" if c.ok is None else "[green]yes[/]" if c.ok else "[red]NO[/]"
+        checks.add_row(c.what, c.value, c.bound, c.paper, ok)
     console.print(checks)
     if result.overlays:
         console.print("overlays: " + ", ".join(str(p.name) for p in result.overlays))
