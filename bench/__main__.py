@@ -12,7 +12,6 @@ Exit status 1 when a benchmark crashed (a skipped one, with its reason, is not a
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
 import time
@@ -21,7 +20,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from . import SECTIONS
-from .common import ROOT, RunConfig, Section, Skip, machine
+from .common import ROOT, RunConfig, Section, Skip, load_average, machine
 from .env import Env
 from .plots import pyplot
 from .report import markdown, results_json
@@ -59,6 +58,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             for module in selected:
                 print(f"[bench] {module.TITLE} ...", flush=True)
                 t0 = time.perf_counter()
+                load0 = load_average()
                 try:
                     section = module.run(cfg, env)
                 except Skip as exc:
@@ -71,6 +71,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         module.NAME, module.TITLE, skipped=[f"crashed: {trace.splitlines()[-1]}"]
                     )
                 section.seconds = time.perf_counter() - t0
+                section.load = (load0, load_average())
                 if cfg.plots and section.plot is not None:
                     if pyplot() is None:
                         section.skipped.append("plots: matplotlib is not installed")
@@ -88,7 +89,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 sections.append(section)
         finally:
             env.close()
-    load_end = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load_end = load_average()
     command = "python -m bench" + (" " + " ".join(argv) if argv else "")
     if argv is None:
         command = "python -m bench" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")

@@ -82,6 +82,8 @@ class Section:
     plot: PlotFn | None = None
     images: list[Path] = field(default_factory=list)
     seconds: float = 0.0
+    load: tuple[float, float] = (float("nan"), float("nan"))
+    """The machine's 1-minute load average when the section started and ended."""
 
     def value(self, key: str, number: float) -> float:
         self.values[key] = float(number)
@@ -222,3 +224,11 @@ def machine() -> dict[str, str]:
         "commit": _git_commit(),
         "load average (1 min) at start": f"{load[0]:.2f}",
     }
+
+
+def load_average() -> float:
+    """The 1-minute load average (NaN where the system does not tell)."""
+    try:
+        return os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return float("nan")

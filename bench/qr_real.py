@@ -43,8 +43,9 @@ def _pyzbar(gray: Any) -> list[str]:
 
 
 def _opencv(gray: Any) -> list[str]:
-    text, _, _ = cv2.QRCodeDetector().detectAndDecode(gray)
-    return [text] if text else []
+    # the bytes API: detectAndDecode raises on a payload that is not UTF-8
+    data, _, _ = cv2.QRCodeDetector().detectAndDecodeBytes(gray)
+    return [_text(bytes(data))] if data else []
 
 
 def _zxing(gray: Any) -> list[str]:

@@ -94,7 +94,12 @@ def markdown(
         for image in section.images:
             rel = os.path.relpath(image, report.parent)
             out += [f"![{section.name}]({rel})", ""]
-        out += [f"<sub>section time {section.seconds:.1f} s</sub>", ""]
+        start, end = section.load
+        out += [
+            f"<sub>section time {section.seconds:.1f} s; load average (1 min) "
+            f"{start:.2f} at its start, {end:.2f} at its end</sub>",
+            "",
+        ]
     return "\n".join(out).rstrip() + "\n"
 
 
@@ -115,6 +120,7 @@ def results_json(sections: Sequence[Section], machine: dict[str, str], *, quick:
                 "skipped": list(s.skipped),
                 "plots": [p.name for p in s.images],
                 "seconds": round(s.seconds, 2),
+                "load_average": [_finite(v) for v in s.load],
             }
             for s in sections
         },
