@@ -47,7 +47,7 @@ def test_subpixel_corners_on_perspective_renders() -> None:
     rng = np.random.default_rng(7)
     modules = render.qr_modules(TEXT)
     errors = []
-    for _ in range(12):
+    for _ in range(8):
         truth = _square(
             (rng.uniform(220, 420), rng.uniform(180, 300)),
             rng.uniform(90, 200),
