@@ -13,7 +13,7 @@ import argparse
 import json
 import os
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -84,6 +84,8 @@ def _context(args: argparse.Namespace, console: Console) -> Iterator[SkillContex
         except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{world_file}: cannot read the world model: {exc}") from None
     ctx = SkillContext(devices, world, store)
+    if not args.json and sys.stdin.isatty():
+        ctx.operator = _ask_operator(console)  # e.g. quality_control after its retries
     try:
         if args.json:
             yield ctx
@@ -97,6 +99,17 @@ def _context(args: argparse.Namespace, console: Console) -> Iterator[SkillContex
         tmp.write_text(yaml.safe_dump(world.to_dict(), sort_keys=False), encoding="utf-8")
         os.replace(tmp, world_file)
         devices.close()
+
+
+def _ask_operator(console: Console) -> Callable[[str, Mapping[str, Any]], str]:
+    """The operator at the terminal: a skill that cannot go on asks retry/continue/abort."""
+
+    def ask(message: str, data: Mapping[str, Any]) -> str:
+        console.print(f"[yellow]operator needed:[/] {message}")
+        answer = console.input("retry, continue or abort? [abort] ").strip().lower()
+        return answer if answer in ("retry", "continue", "abort") else "abort"
+
+    return ask
 
 
 @contextmanager
