@@ -126,6 +126,7 @@ class Case:
     base_dir: Path
     config_hash: str
     images_dir: Path
+    scan: bool  # new images in images_dir count (the case's own images/ folder)
     skip: str | None
     expectations: dict[str, Expectation]
     defaults: dict[str, Any]
@@ -269,6 +270,7 @@ def load_case(directory: Path) -> Case:
         base_dir=config_base,
         config_hash=hashlib.sha256(text.encode()).hexdigest()[:16],
         images_dir=images_dir,
+        scan=images is None,
         skip=skip,
         expectations=expectations,
         defaults=dict(defaults_node.data),
@@ -384,9 +386,10 @@ def _leading_comments(text: str) -> list[str]:
 
 
 def color_images(case: Case) -> list[str]:
-    """The case's images: those with expectations, then new colour images in the folder."""
+    """The case's images: those with expectations, then new colour images in its own images/
+    folder (a folder named by ``images:`` is a pool the case picks from)."""
     names = list(case.expectations)
-    if case.images_dir.is_dir():
+    if case.scan and case.images_dir.is_dir():
         for path in sorted(case.images_dir.iterdir()):
             if (
                 path.suffix.lower() in COLOR_SUFFIXES
@@ -528,7 +531,7 @@ def describe_expected(e: Expectation) -> str:
     if e.features is not None:
         parts.append(f"{len(e.features)} features ±{e.tolerances.px} px")
     if e.text is not None:
-        parts.append(repr(e.text))
+        parts.append(_short(e.text))
     if e.corners is not None:
         parts.append(f"corners ±{e.tolerances.px} px")
     if e.camera_from_qr is not None:
@@ -539,6 +542,10 @@ def describe_expected(e: Expectation) -> str:
     return ", ".join(parts)
 
 
+def _short(text: str, limit: int = 32) -> str:
+    return repr(text if len(text) <= limit else text[: limit - 1] + "…")
+
+
 def describe_got(got: Got) -> str:
     if got.error:
         return f"error {got.error}"
@@ -547,7 +554,7 @@ def describe_got(got: Got) -> str:
     if "count" in data:
         parts.append(f"{data['count']} found")
     if data.get("text") is not None:
-        parts.append(repr(data["text"]))
+        parts.append(_short(str(data["text"])))
     if data.get("camera_from_qr") is not None:
         t = np.asarray(data["camera_from_qr"])[:3, 3]
         parts.append(f"t=({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m")
