@@ -410,11 +410,19 @@ class VisionClient:
         return answer
 
     async def capture(
-        self, camera: str, *, count: int = 1, depth: bool = False, timeout_s: float | None = None
+        self,
+        camera: str,
+        *,
+        count: int = 1,
+        depth: bool = False,
+        encoding: ImageEncoding | None = None,
+        timeout_s: float | None = None,
     ) -> Frames:
-        """``count`` frames from a server camera (colour, plus depth when asked)."""
+        """``count`` distinct frames from a server camera (colour, plus depth when asked);
+        colour raw, or PNG/JPEG with ``encoding``."""
+        wire = None if encoding is None else ImageEncoding(encoding).value
         answer = await self.request(
-            lambda rid: Capture(rid, camera, count, depth), timeout_s=timeout_s
+            lambda rid: Capture(rid, camera, count, depth, wire), timeout_s=timeout_s
         )
         assert isinstance(answer, Frames)
         return answer

@@ -15,7 +15,15 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol import ConfigInvalid, InvalidArgument, Reload, Reloaded, UnknownInspection
+from protocol import (
+    ConfigInvalid,
+    ImageEncoding,
+    InvalidArgument,
+    Reload,
+    Reloaded,
+    UnknownInspection,
+    array_from_payload,
+)
 from robot_client import VisionClient
 from vision_server.admin import call
 from vision_server.config import ConfigError
@@ -228,3 +236,46 @@ def test_ping_cli_fails_cleanly_when_nothing_listens() -> None:
     done = vision_server("ping", "--server", "127.0.0.1:9", "--timeout", "1")
     assert done.returncode == 1
     assert "127.0.0.1:9" in done.stderr
+
+
+def test_capture_returns_distinct_frames_from_a_server_camera(tmp_path: Path) -> None:
+    runtime = CellRuntime(write_config(tmp_path))
+
+    async def body() -> None:
+        server = VisionServer(runtime.catalog, ServerSettings(port=0))
+        async with server, VisionClient("127.0.0.1", server.port) as client:
+            frames = await client.capture("replay", count=3)
+            values = [int(array_from_payload(p).mean()) for p in frames.images]
+            assert values == [50, 100, 150]  # three distinct files, in order
+            assert len(frames.timestamps) == 3
+            png = await client.capture("replay", count=1, encoding=ImageEncoding.PNG)
+            assert png.images[0].encoding is ImageEncoding.PNG
+            with pytest.raises(InvalidArgument, match="has no depth"):
+                await client.capture("replay", depth=True)
+
+    try:
+        run(body())
+    finally:
+        runtime.close()
+
+
+def test_results_cli_lists_what_was_served(tmp_path: Path) -> None:
+    path = write_config(tmp_path)
+    runtime = CellRuntime(path)
+
+    async def body() -> None:
+        server = VisionServer(runtime.catalog, ServerSettings(port=0), results=runtime.results)
+        async with server, VisionClient("127.0.0.1", server.port) as client:
+            await client.inspect("bright", np.full((16, 16), 200, np.uint8))
+            await client.inspect("bright", np.full((16, 16), 10, np.uint8))
+
+    try:
+        run(body())
+    finally:
+        runtime.close()
+    done = vision_server("results", "--config", str(path), "--json")
+    assert done.returncode == 0, done.stderr
+    rows = [json.loads(line) for line in done.stdout.splitlines()]
+    assert [r["verdict"] for r in rows] == ["fail", "pass"]  # newest first
+    failed = vision_server("results", "--config", str(path), "--failed", "--json")
+    assert len(failed.stdout.splitlines()) == 1
