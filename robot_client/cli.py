@@ -20,6 +20,7 @@ from typing import Any
 import cv2
 import numpy.typing as npt
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from protocol import CellvisionError
@@ -164,16 +165,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             return result
         return asyncio.run(_run(args, args.func, console))
     except (ValueError, LookupError) as exc:
-        err.print(f"[red]error:[/] {exc.args[0] if isinstance(exc, KeyError) else exc}")
+        err.print(
+            f"[red]error:[/] {escape(str(exc.args[0] if isinstance(exc, KeyError) else exc))}"
+        )
         return 2
     except DeviceError as exc:
-        err.print(f"[red]device error:[/] {exc}")
+        err.print(f"[red]device error:[/] {escape(str(exc))}")
         return 1
     except CellvisionError as exc:
-        err.print(f"[red]{exc.code.name}:[/] {exc.message}")
+        err.print(f"[red]{exc.code.name}:[/] {escape(exc.message)}")
         return 1
     except ClientError as exc:
-        err.print(f"[red]error:[/] {exc}")
+        err.print(f"[red]error:[/] {escape(str(exc))}")
         return 1
 
 
