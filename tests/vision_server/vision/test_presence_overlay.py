@@ -26,7 +26,7 @@ def _case(present: bool, rng: np.random.Generator) -> np.ndarray:
     uu, vv = np.meshgrid(np.arange(w), np.arange(h))
     img = np.full((h, w), 150.0)
     du, dv = rng.uniform(-6, 6, 2)
-    core = render.disc_coverage((150 + du, 170 + dv), 70.0, width=w, height=h)
+    core = render.disc_coverage((150 + du, 170 + dv), 70.0, width=w, height=h, s=2)
     img = img * (1 - core) + 210 * core
     if present:
         magnet = np.zeros((h, w))

@@ -28,11 +28,11 @@ def _square(centre: tuple[float, float], side: float, angle: float) -> np.ndarra
 def test_corner_order_follows_the_printed_code(quarter: int, mirrored: bool) -> None:
     rng = np.random.default_rng(quarter + 10 * mirrored)
     modules = render.qr_modules(TEXT)
-    truth = _square((320.3, 240.7), 180.0, quarter * np.pi / 2 + 0.05)
+    truth = _square((180.3, 150.7), 150.0, quarter * np.pi / 2 + 0.05)
     truth = truth + rng.normal(0.0, 6.0, truth.shape)  # some perspective
     if mirrored:  # seen in a mirror: same labels, counter-clockwise on the screen
-        truth[:, 0] = 639.0 - truth[:, 0]
-    image = render.to_uint8(render.render_qr(modules, truth, width=640, height=480), rng, 2.0)
+        truth[:, 0] = 359.0 - truth[:, 0]
+    image = render.to_uint8(render.render_qr(modules, truth, width=360, height=300), rng, 2.0)
     codes = read_qr(image)
     assert len(codes) == 1
     code = codes[0]
@@ -49,12 +49,12 @@ def test_subpixel_corners_on_perspective_renders() -> None:
     errors = []
     for _ in range(8):
         truth = _square(
-            (rng.uniform(220, 420), rng.uniform(180, 300)),
-            rng.uniform(90, 200),
+            (rng.uniform(170, 230), rng.uniform(170, 230)),
+            rng.uniform(90, 160),
             rng.uniform(0, 2 * np.pi),
         )
         truth = truth + rng.normal(0.0, 5.0, truth.shape)
-        img = render.render_qr(modules, truth, width=640, height=480)
+        img = render.render_qr(modules, truth, width=400, height=400)
         image = render.to_uint8(img, rng, 2.5)
         (code,) = read_qr(image)
         errors.extend(np.linalg.norm(code.corners - truth, axis=1))
