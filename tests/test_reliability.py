@@ -1,0 +1,80 @@
+"""Quick runs of the reliability scripts (issue #8, items 1 and 2) against a live server process.
+
+The full runs (100,000 hostile frames; 64 clients x 500 requests) are measured by hand for
+docs/bench/reliability.md. Here the scripts run small and without the 1 s answer bound (a test
+makes no wall-clock assertions on a shared machine); hangs are still failures (10 s).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script(name: str, *args: str, out: Path) -> dict:
+    done = subprocess.run(
+        [sys.executable, str(REPO_ROOT / "scripts" / name), *args, "--json", str(out)],
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    summary: dict = json.loads(out.read_text())
+    assert summary["passed"], summary["problems"]
+    return summary
+
+
+def test_quick_soak_hostile_frames_and_good_clients(tmp_path: Path) -> None:
+    frames = 1000
+    s = _script(
+        "soak.py",
+        "--frames",
+        str(frames),
+        "--hostile",
+        "3",
+        "--good",
+        "1",
+        "--no-timing",
+        out=tmp_path / "soak.json",
+    )
+    assert s["hostile_frames"] == frames
+    assert s["hangs"] == 0
+    assert s["untyped_errors"] == 0
+    assert set(s["units_by_kind"]) >= {"bitflip", "truncate", "wrong_length", "huge_length"}
+    assert set(s["units_by_kind"]) >= {"bad_json", "bad_blob", "bad_header", "garbage"}
+    # Fatal framing errors and recoverable ones both happened, and were typed.
+    assert {"MALFORMED_FRAME", "FRAME_TOO_LARGE", "BAD_METADATA", "BAD_IMAGE"} <= set(
+        s["error_codes"]
+    )
+    good = s["good"]
+    assert good["correct"] > 0
+    assert (good["wrong"], good["errors"]) == (0, {})
+    server = s["server"]
+    assert (server["crashed"], server["exit_code"], server["tracebacks"]) == (False, 0, 0)
+    assert s["alive_after"]
+
+
+def test_quick_load_pipelined_clients_busy_and_a_slow_reader(tmp_path: Path) -> None:
+    clients, requests = 8, 60
+    s = _script(
+        "load.py",
+        "--clients",
+        str(clients),
+        "--requests",
+        str(requests),
+        out=tmp_path / "load.json",
+    )
+    assert s["answered_correctly"] == clients * requests
+    assert (s["lost"], s["mismatched"]) == (0, 0)
+    probe = s["busy_probe"]
+    assert probe["answered"] == probe["sent"]
+    assert probe["busy"] >= probe["sent"] - 2 * probe["max_in_flight"]
+    assert s["slow_reader"]["stopped_by_backpressure"]
+    assert s["slow_reader"]["accepted_bytes"] < s["slow_reader"]["offered_bytes"]
+    assert s["server"]["exit_code"] == 0
