@@ -39,6 +39,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def _last_line(trace: str) -> str:
+    lines = [line.strip() for line in trace.splitlines() if line.strip()]
+    return lines[-1] if lines else "unknown error"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     if args.report is None:
@@ -68,7 +73,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     trace = traceback.format_exc()
                     print(trace, file=sys.stderr)
                     section = Section(
-                        module.NAME, module.TITLE, skipped=[f"crashed: {trace.splitlines()[-1]}"]
+                        module.NAME, module.TITLE, skipped=[f"crashed: {_last_line(trace)}"]
                     )
                 section.seconds = time.perf_counter() - t0
                 section.load = (load0, load_average())
@@ -82,7 +87,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                             crashed = True
                             trace = traceback.format_exc()
                             print(trace, file=sys.stderr)
-                            section.skipped.append(f"plot crashed: {trace.splitlines()[-1]}")
+                            section.skipped.append(f"plot crashed: {_last_line(trace)}")
                 for reason in section.skipped:
                     print(f"[bench]   skipped: {reason}", flush=True)
                 print(f"[bench]   done in {section.seconds:.1f} s", flush=True)

@@ -43,8 +43,12 @@ def _pyzbar(gray: Any) -> list[str]:
 
 
 def _opencv(gray: Any) -> list[str]:
-    # the bytes API: detectAndDecode raises on a payload that is not UTF-8
-    data, _, _ = cv2.QRCodeDetector().detectAndDecodeBytes(gray)
+    # the bytes API: detectAndDecode raises on a payload that is not UTF-8; a symbol whose
+    # encoding mode OpenCV does not implement raises cv2.error: not decoded, as in read_qr
+    try:
+        data, _, _ = cv2.QRCodeDetector().detectAndDecodeBytes(gray)
+    except cv2.error:
+        return []
     return [_text(bytes(data))] if data else []
 
 
