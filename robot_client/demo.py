@@ -534,7 +534,10 @@ def print_summary(result: DemoResult, console: Console) -> None:
         checks.add_row(c.what, c.value, c.bound, c.paper, ok)
     console.print(checks)
     if result.overlays:
-        console.print("overlays: " + ", ".join(str(p.name) for p in result.overlays))
+        folder = result.overlays[0].parent
+        shown = folder.relative_to(REPO) if folder.is_relative_to(REPO) else folder
+        names = ", ".join(p.name for p in result.overlays)
+        console.print(f"overlay images in {shown}/: {names}")
     if result.task is not None:
         console.print(
             f"task {result.task.task}: {result.task.duration_s:.1f} s simulated, "
