@@ -104,6 +104,9 @@ class ServerSettings:
     """How long a server camera may take for the frames of one request (without a deadline)."""
     allow_reload: bool = True
     """Whether a client may ask for a configuration reload (RELOAD)."""
+    handshake_timeout_s: float = 10.0
+    """How long a new connection may take to complete its HELLO; then it is closed, so that
+    silent connections cannot hold every one of the ``max_connections`` slots."""
 
     def limits(self) -> Limits:
         return Limits(max_frame_bytes=self.max_frame_bytes, max_image_pixels=self.max_image_pixels)
@@ -607,16 +610,29 @@ class _ClientSession:
 
     async def _read_loop(self, group: asyncio.TaskGroup) -> bool:
         """Read and dispatch until the peer closes (True) or broke the protocol (False)."""
+        handshake_deadline = time.monotonic() + self.server.settings.handshake_timeout_s
         while True:
             # Backpressure: do not read more while the peer is not reading our answers.
             await self._drain()
             read = asyncio.ensure_future(self.reader.read(READ_CHUNK))
             stop = asyncio.ensure_future(self._shutdown.wait())
-            done, _ = await asyncio.wait({read, stop}, return_when=asyncio.FIRST_COMPLETED)
+            timeout = None
+            if self.conn.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
+                timeout = max(handshake_deadline - time.monotonic(), 0.0)
+            done, _ = await asyncio.wait(
+                {read, stop}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED
+            )
             if read not in done:
                 read.cancel()
                 with contextlib.suppress(asyncio.CancelledError, ConnectionError):
                     await read
+                if stop not in done:  # no HELLO in time
+                    stop.cancel()
+                    limit = self.server.settings.handshake_timeout_s
+                    log.info("%s: no HELLO within %g s; closing", self.peer, limit)
+                    self._write(Close(reason=f"no HELLO within {limit:g} s"))
+                    await self._drain()
+                    return False
                 await self._shutdown_session()
                 return True
             stop.cancel()

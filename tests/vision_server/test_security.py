@@ -20,6 +20,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import ssl
 import subprocess
 import sys
@@ -37,6 +38,7 @@ import yaml
 from protocol import (
     Capture,
     ErrorCode,
+    FrameDecoder,
     Hello,
     ImageEncoding,
     ImagePayload,
@@ -491,3 +493,30 @@ def test_yaml_tags_that_run_code_are_refused(tmp_path: Path) -> None:
         with pytest.raises(Exception):  # noqa: B017, PT011 - each reader has its own error class
             loader(f"!!python/object/apply:os.mkdir [{marker}]\n")
     assert not marker.exists()
+
+
+def test_silent_connections_cannot_hold_every_connection_slot() -> None:
+    """Connections that never send HELLO are closed after ``handshake_timeout_s``; otherwise
+    ``max_connections`` of them would lock every robot out of the cell."""
+    with server_in_thread(max_connections=3, handshake_timeout_s=0.5) as server:
+        silent = [socket.create_connection(("127.0.0.1", server.port)) for _ in range(3)]
+        try:
+            for sock in silent:
+                sock.settimeout(20.0)
+                decoder = FrameDecoder()
+                data = sock.recv(65536)
+                while data:
+                    decoder.feed(data)
+                    data = sock.recv(65536)
+                decoder.feed(b"")
+                close = decoder.next_frame()
+                assert close is not None
+                assert close.type == MessageType.CLOSE
+                assert "HELLO" in close.metadata["reason"]
+            with peer_for(server) as peer:
+                peer.handshake()
+                peer.send(Ping(2))
+                peer.expect(MessageType.PONG, request_id=2)
+        finally:
+            for sock in silent:
+                sock.close()
