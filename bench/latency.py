@@ -30,13 +30,16 @@ from robot_client import VisionClient
 from .common import Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
 from .env import Env
 from .plots import cdf, log_scale_if_positive, pyplot, save
-from .servers import HOST, READ_LIMIT
+from .servers import HOST, READ_LIMIT, ServerProcess
 
 NAME = "latency"
 TITLE = "1. Protocol and server overhead: round-trip latency"
 INSPECTION = "brightness"
 VERSION = (1, 0)
 OVERHEAD_GOAL_MS = 0.3
+FLOOR = "floor (bare asyncio socket)"
+HTTP_PING = "HTTP/JSON (aiohttp)"
+HTTP_INSPECT = "HTTP/JSON + base64 (aiohttp)"
 HTTP_GOAL = 3.0
 
 
@@ -162,13 +165,31 @@ class InProcess:
 @dataclass
 class Measured:
     samples: dict[str, list[float]] = field(default_factory=dict)
+    server_cpu_s: dict[str, float] = field(default_factory=dict)
+    client_cpu_s: dict[str, float] = field(default_factory=dict)
 
     def stats(self, label: str) -> Stats:
         return Stats.of(self.samples.get(label, []))
 
+    def cpu_ms(self, label: str) -> tuple[float, float]:
+        """CPU milliseconds per request of (the path's server process, this client)."""
+        n = len(self.samples.get(label, [])) or 1
+        return (
+            1000.0 * self.server_cpu_s.get(label, float("nan")) / n,
+            1000.0 * self.client_cpu_s.get(label, float("nan")) / n,
+        )
 
-async def _measure(paths: list[RoundTrip], rounds: int, per_round: int, warmup: int) -> Measured:
-    """``rounds`` rounds; in each, ``per_round`` requests of each path in turn."""
+
+async def _measure(
+    paths: list[RoundTrip],
+    rounds: int,
+    per_round: int,
+    warmup: int,
+    servers: dict[str, ServerProcess],
+) -> Measured:
+    """``rounds`` rounds; in each, ``per_round`` requests of each path in turn. CPU time is
+    counted around each path's block: of its server process (``servers[label]``; only that
+    server works then) and of this process."""
     out = Measured({p.label: [] for p in paths})
     for p in paths:
         await p.open()
@@ -179,10 +200,20 @@ async def _measure(paths: list[RoundTrip], rounds: int, per_round: int, warmup: 
         for _ in range(rounds):
             for p in paths:
                 samples = out.samples[p.label]
+                server = servers.get(p.label)
+                server0 = server.cpu_seconds() if server is not None else 0.0
+                client0 = time.process_time()
                 for _ in range(per_round):
                     t0 = time.perf_counter_ns()
                     await p.once()
                     samples.append((time.perf_counter_ns() - t0) / 1e6)
+                out.client_cpu_s[p.label] = (
+                    out.client_cpu_s.get(p.label, 0.0) + time.process_time() - client0
+                )
+                if server is not None:
+                    out.server_cpu_s[p.label] = (
+                        out.server_cpu_s.get(p.label, 0.0) + server.cpu_seconds() - server0
+                    )
     finally:
         for p in paths:
             await p.close()
@@ -224,22 +255,25 @@ def run(cfg: RunConfig, env: Env) -> Section:
         Inspect(1, INSPECTION, (payload_from_array(image),)).to_frame(VERSION).serialize()
     )
     ping_paths: list[RoundTrip] = [
-        Echo("floor (bare asyncio socket)", echo.port, ping_bytes, pong_size),
+        Echo(FLOOR, echo.port, ping_bytes, pong_size),
         Cellvision("cellvision", cellvision.port, None),
     ]
     server_side = Cellvision("cellvision", cellvision.port, image)
     inspect_paths: list[RoundTrip] = [
-        Echo("floor (bare asyncio socket)", echo.port, inspect_bytes, result_size),
+        Echo(FLOOR, echo.port, inspect_bytes, result_size),
         InProcess("in-process compute", in_process),
         server_side,
     ]
     if http is not None:
-        ping_paths.append(Http("HTTP/JSON (aiohttp)", http.port, None))
-        inspect_paths.append(Http("HTTP/JSON + base64 (aiohttp)", http.port, image))
+        ping_paths.append(Http(HTTP_PING, http.port, None))
+        inspect_paths.append(Http(HTTP_INSPECT, http.port, image))
     rounds = cfg.n(5, 1)
     warmup = cfg.n(100, 3)
-    pings = asyncio.run(_measure(ping_paths, rounds, cfg.n(400, 10), warmup))
-    inspects = asyncio.run(_measure(inspect_paths, rounds, cfg.n(150, 5), warmup))
+    servers = {FLOOR: echo, "cellvision": cellvision}
+    if http is not None:
+        servers[HTTP_PING] = servers[HTTP_INSPECT] = http
+    pings = asyncio.run(_measure(ping_paths, rounds, cfg.n(400, 10), warmup, servers))
+    inspects = asyncio.run(_measure(inspect_paths, rounds, cfg.n(150, 5), warmup, servers))
 
     section.intro = (
         f"One client (robot_client.VisionClient), one request at a time, over 127.0.0.1; "
@@ -251,11 +285,24 @@ def run(cfg: RunConfig, env: Env) -> Section:
         f"sends the same bytes through a bare asyncio socket and gets as many bytes back. "
         f"{rounds} interleaved rounds after {warmup} warm-up requests per path."
     )
-    table = Table(["request", "path", "n", "p50 ms", "p99 ms", "p50 ÷ floor", "p99 ÷ floor"])
+    table = Table(
+        [
+            "request",
+            "path",
+            "n",
+            "p50 ms",
+            "p99 ms",
+            "p50 ÷ floor",
+            "p99 ÷ floor",
+            "server CPU ms / request",
+            "client CPU ms / request",
+        ]
+    )
     for label, measured in (("PING", pings), ("INSPECT 1024x768 gray", inspects)):
-        floor = measured.stats("floor (bare asyncio socket)")
+        floor = measured.stats(FLOOR)
         for path, samples in measured.samples.items():
             s = Stats.of(samples)
+            server_cpu, client_cpu = measured.cpu_ms(path)
             table.add(
                 label,
                 path,
@@ -264,13 +311,15 @@ def run(cfg: RunConfig, env: Env) -> Section:
                 fmt(s.p99),
                 ratio(s.p50, floor.p50),
                 ratio(s.p99, floor.p99),
+                fmt(server_cpu),
+                fmt(client_cpu),
             )
     section.tables.append(table)
 
-    floor_i = inspects.stats("floor (bare asyncio socket)")
+    floor_i = inspects.stats(FLOOR)
     comp = inspects.stats("in-process compute")
     cv_i = inspects.stats("cellvision")
-    floor_p = pings.stats("floor (bare asyncio socket)")
+    floor_p = pings.stats(FLOOR)
     cv_p = pings.stats("cellvision")
     overhead_p50 = cv_i.p50 - floor_i.p50 - comp.p50
     overhead_p99 = cv_i.p99 - floor_i.p99 - comp.p99
@@ -290,6 +339,18 @@ def run(cfg: RunConfig, env: Env) -> Section:
     }
     for key, number in values.items():
         section.value(key, number)
+    cv_cpu = sum(inspects.cpu_ms("cellvision"))
+    floor_cpu = sum(inspects.cpu_ms(FLOOR))
+    compute_cpu = inspects.cpu_ms("in-process compute")[1]  # no server: this process only
+    cpu_overhead = cv_cpu - floor_cpu - compute_cpu
+    section.value("inspect_overhead_cpu_ms", cpu_overhead)
+    section.notes.append(
+        f"In CPU time, which other processes' load disturbs much less than wall time: a "
+        f"cellvision INSPECT costs {fmt(cv_cpu)} ms of CPU (server + client process) per "
+        f"request, the floor {fmt(floor_cpu)} ms and the in-process compute "
+        f"{fmt(compute_cpu)} ms, an overhead of {fmt(cpu_overhead)} ms of CPU per request "
+        "(from /proc CPU counters at 10 ms resolution, summed over each path's blocks)."
+    )
     section.goals.append(
         Goal(
             f"INSPECT overhead beyond floor + compute <= {OVERHEAD_GOAL_MS} ms at p50",
@@ -300,8 +361,8 @@ def run(cfg: RunConfig, env: Env) -> Section:
         )
     )
     if http is not None:
-        http_i = inspects.stats("HTTP/JSON + base64 (aiohttp)")
-        http_p = pings.stats("HTTP/JSON (aiohttp)")
+        http_i = inspects.stats(HTTP_INSPECT)
+        http_p = pings.stats(HTTP_PING)
         section.value("inspect_http_p50_ms", http_i.p50)
         section.value("inspect_http_p99_ms", http_i.p99)
         section.value("ping_http_p50_ms", http_p.p50)
