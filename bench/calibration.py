@@ -141,7 +141,7 @@ def _accuracy(
     p_switch_base = transform_points(base_from_world, switch_world).reshape(3)
     p_switch_qr = transform_points(invert_transform(truth), p_switch_base).reshape(3)
     out: dict[str, dict[str, list[float]]] = {
-        m: {"t": [], "r": [], "poi": [], "d": [], "missed": []} for m in METHODS
+        m: {"t": [], "r": [], "poi": [], "d": [], "missed": [], "rescaled": []} for m in METHODS
     }
     rng = np.random.default_rng(77)  # the same views for both sensors
     with _client(port) as client:
@@ -178,6 +178,7 @@ def _accuracy(
                         f"INSPECT {inspection} fails on the server: {exc.code.name}: {exc.message}"
                     ) from exc
                 est = m.base_from_qr
+                s["rescaled"].append(float(abs(m.quality.get("scale", 1.0) - 1.0) > 1e-9))
                 s["t"].append(float(np.linalg.norm(est[:3, 3] - truth[:3, 3])) * 1e3)
                 s["r"].append(float(np.degrees(rotation_error_rad(est, truth))))
                 poi = transform_points(est, p_switch_qr).reshape(3)
@@ -220,6 +221,8 @@ def _durations(port: int, frames: tuple[int, ...], runs: int) -> dict[int, dict[
                 rows["camera"].append(camera_ms)
                 rows["vision"].append(vision_ms)
                 rows["compute"].append(sum(c.compute_ms for c in vision.calls))
+                for call in vision.calls:
+                    rows.setdefault(f"compute {call.inspection}", []).append(call.compute_ms)
                 rows["client"].append(rest)
                 rows["total"].append(camera_ms + vision_ms + rest)
             out[n] = rows
@@ -249,6 +252,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
             "switch (0.5 m) p50 / p95 / max mm",
             "switch p95 ÷ paper ±10 mm",
             "switch p95 ÷ paper's method",
+            "rescaled to the side",
         ]
     )
     for label, by_method in results.items():
@@ -265,6 +269,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
                 f"{fmt(poi.p50)} / {fmt(poi.p95)} / {fmt(poi.max)}",
                 ratio(poi.p95, PAPER_MM),
                 ratio(poi.p95, paper_poi),
+                f"{int(sum(s['rescaled']))} of {len(s['rescaled'])}",
             )
             short = {"plane": "plane", "corners + side": "corners_side"}.get(method, "paper")
             key = f"{'systematic' if CONDITIONS[label] else 'noise'}_{short}"
@@ -334,12 +339,25 @@ def run(cfg: RunConfig, env: Env) -> Section:
     n_goal = 5 if 5 in durations else frames[0]
     total = float(np.median(durations[n_goal]["total"]))
     compute = float(np.median(durations[n_goal]["compute"]))
+    parts = ", ".join(
+        f"{k.split(' ', 1)[1]} {fmt(float(np.median(v)), 1)} ms"
+        for k, v in durations[n_goal].items()
+        if k.startswith("compute ")
+    )
     section.goals.append(
         Goal(
-            f"calibration <= {GOAL_S} s end to end with <= {GOAL_COMPUTE_MS:g} ms compute "
-            f"(N = {n_goal}; paper < {PAPER_S:g} s)",
-            f"{fmt(total / 1000.0, 3)} s, compute {fmt(compute, 1)} ms",
-            total <= GOAL_S * 1000.0 and compute <= GOAL_COMPUTE_MS,
+            f"calibration <= {GOAL_S} s end to end (N = {n_goal} depth frames; paper "
+            f"< {PAPER_S:g} s)",
+            f"{fmt(total / 1000.0, 3)} s = {ratio(total, PAPER_S * 1000.0)} the paper's bar",
+            total <= GOAL_S * 1000.0,
+        )
+    )
+    section.goals.append(
+        Goal(
+            f"calibration compute <= {GOAL_COMPUTE_MS:g} ms (server compute_ms of both "
+            f"INSPECTs, N = {n_goal})",
+            f"{fmt(compute, 1)} ms ({parts})",
+            compute <= GOAL_COMPUTE_MS,
         )
     )
     section.intro = (
@@ -347,7 +365,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
         "`measure_qr_frame` through three `qr_pose` inspections on the same frames: "
         "`station_pose` (plane method with the printed side of 0.16 m, as configured in "
         "examples/cell.yaml: the corners are rescaled to that side when the measured side "
-        "disagrees by more than the analysis's tolerance, which a depth bias triggers), "
+        "disagrees with it by more than `side_tolerance` of vision_server/analysis/qr_pose.py), "
         "`station_pose_corners` (the corner method with the same side) "
         "and `station_pose_paper` (the paper's equations 1-4 exactly: the corners' depths, no "
         "rescaling; the reference). Ground truth from the simulation. "
@@ -357,7 +375,11 @@ def run(cfg: RunConfig, env: Env) -> Section:
     section.tables += [table, bands, timing]
     section.notes.append(
         "Compute is the server's `compute_ms` of both INSPECTs (`station_qr` to find the "
-        "code, `station_pose` for its pose), as reported in their RESULTs."
+        'code, `station_pose` for its pose), as reported in their RESULTs. "Rescaled to the '
+        "side\" counts the views where the analysis replaced the depth's distance by the one "
+        "the printed side implies (its `quality.scale` is not 1): without a depth bias it "
+        "never needs to; with one, the views it leaves unscaled keep the bias's error, which "
+        "grows with the distance."
     )
 
     def plot(directory: Path) -> list[Path]:

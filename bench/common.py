@@ -151,7 +151,9 @@ def ratio(value: float, reference: float, digits: int | None = None) -> str:
         return "n/a"
     r = value / reference
     if digits is None:
-        digits = 0 if abs(r) >= 100 else 1 if abs(r) >= 10 else 2 if abs(r) >= 0.1 else 3
+        if 0 < abs(r) < 0.1:
+            return f"{r:.2g}×"
+        digits = 0 if abs(r) >= 100 else 1 if abs(r) >= 10 else 2
     return f"{r:.{digits}f}×"
 
 

@@ -196,7 +196,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
                 Goal(
                     f"CPU-bound inspection (cap_locate) reaches >= {SCALING_GOAL}x the "
                     "single-client throughput",
-                    f"{fmt(best.rps, 2)} req/s at {best.clients} clients {best.mode} vs "
+                    f"{fmt(best.rps, 2)} req/s at {best.clients} client(s) {best.mode} vs "
                     f"{fmt(reference.rps, 2)} req/s for 1 client = {fmt(scaling, 2)}×",
                     scaling >= SCALING_GOAL,
                 )
