@@ -202,6 +202,16 @@ def run(cfg: RunConfig, env: Env) -> Section:
                 )
             )
     section.tables.append(table)
+    for name, _, _ in inspections:
+        peak = max(
+            (100 * c.server_cpu_s / c.window_s for c in cells if c.inspection == name),
+            default=float("nan"),
+        )
+        section.value(f"{name}_peak_server_cpu_pct", peak)
+        section.notes.append(
+            f"{name}: the server process used at most {peak:.0f} % CPU in any cell "
+            f"(the machine has {_cores()} cores = {100 * _cores()} %)."
+        )
     section.notes.append(
         "CPU is the process's user + system time over the window divided by the window "
         "(100 % = one core). With 2 cores shared by server and clients, what the clients use "
@@ -242,3 +252,12 @@ def _cv_threads() -> int:
     import cv2
 
     return int(cv2.getNumThreads())
+
+
+def _cores() -> int:
+    import os
+
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
