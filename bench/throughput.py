@@ -213,6 +213,10 @@ def run(cfg: RunConfig, env: Env) -> Section:
             f"(the machine has {_cores()} cores = {100 * _cores()} %)."
         )
     section.notes.append(
+        "Latency counts the requests that started and got their answer inside the window; "
+        "n/a means none did (every one took longer than the window, BUSY retries included)."
+    )
+    section.notes.append(
         "CPU is the process's user + system time over the window divided by the window "
         "(100 % = one core). With 2 cores shared by server and clients, what the clients use "
         "is not available to the server."
