@@ -4,7 +4,7 @@ figures of a smoke run mean nothing). The report and plots go to a temporary dir
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import json
 import math
 from pathlib import Path
@@ -18,8 +18,17 @@ from bench.qr_real import data_dir
 
 pytestmark = pytest.mark.slow
 
-HAVE_AIOHTTP = importlib.util.find_spec("aiohttp") is not None
-HAVE_MATPLOTLIB = importlib.util.find_spec("matplotlib") is not None
+
+def _importable(name: str) -> bool:
+    try:
+        importlib.import_module(name)
+    except ImportError:
+        return False
+    return True
+
+
+HAVE_AIOHTTP = _importable("aiohttp")
+HAVE_MATPLOTLIB = _importable("matplotlib")
 PLOTTED = {m.NAME for m in SECTIONS}  # every section draws one figure
 
 
