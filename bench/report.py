@@ -100,7 +100,21 @@ def markdown(
             f"{start:.2f} at its start, {end:.2f} at its end</sub>",
             "",
         ]
+    out += reliability_section(report)
     return "\n".join(out).rstrip() + "\n"
+
+
+def reliability_section(report: Path) -> list[str]:
+    """The reliability figures (soak, load, faults, security, durability) are measured by
+    scripts/soak.py and scripts/load.py, not by this run: their write-up, docs/bench/
+    reliability.md, is included as it is (its headings start at level 2, like the sections)."""
+    source = report.parent / "bench" / "reliability.md"
+    if not source.is_file():
+        return []
+    lines = source.read_text(encoding="utf-8").splitlines()
+    out = ["", f"<!-- included from {os.path.relpath(source, report.parent)} -->"]
+    out += lines
+    return out
 
 
 def _finite(value: float) -> float | None:
