@@ -4,9 +4,6 @@ real server (accuracy of the corner and the plane method side by side)."""
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
@@ -245,7 +242,6 @@ def test_rotation_error_rad() -> None:
 
 # --- end to end: a real vision server on loopback ---------------------------------------------
 
-EXAMPLE_CONFIG = Path(__file__).resolve().parents[2] / "examples/cell.yaml"
 CORNERS_INSPECTION = """
   # the paper's method (equations 1-4 on the four corners' mean depths), for comparison
   - name: station_pose_corners
@@ -258,44 +254,10 @@ CORNERS_INSPECTION = """
 METHODS = {"plane": "station_pose", "corners": "station_pose_corners"}
 
 
-def cell_config(tmp: Path, state_path: Path, extra: str = "") -> Path:
-    """A copy of examples/cell.yaml writing into ``tmp`` (results) and reading ``state_path``
-    (the qc camera's world), with ``extra`` YAML appended to its inspections."""
-    text = EXAMPLE_CONFIG.read_text()
-    text = text.replace("../demo-output/results.sqlite3", str(tmp / "results.sqlite3"))
-    text = text.replace("../demo-output/world-state.json", str(state_path))
-    text = text.replace("scene: scenes/grundfos_cell.yaml", f"scene: {SCENE}")
-    path = tmp / "cell.yaml"
-    path.write_text(text + extra)
-    return path
-
-
-@contextlib.contextmanager
-def live_server(config: Path) -> Iterator[int]:
-    """A VisionServer with the configuration's catalog, in a thread; yields its port."""
-    runtime_mod = pytest.importorskip("vision_server.runtime")
-    server_mod = pytest.importorskip("vision_server.server")
-    try:
-        runtime = runtime_mod.CellRuntime(config)
-    except Exception as exc:  # the inspections are still being written
-        pytest.skip(f"the example configuration does not load yet: {exc}")
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_forever, name="vision-server", daemon=True)
-    thread.start()
-    settings = server_mod.ServerSettings(port=0, workers=2)
-    server = server_mod.VisionServer(runtime.catalog, settings, results=runtime.results)
-    try:
-        asyncio.run_coroutine_threadsafe(server.start(), loop).result(10.0)
-        yield int(server.port)
-    finally:
-        asyncio.run_coroutine_threadsafe(server.stop(), loop).result(30.0)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(10.0)
-        loop.close()
-
-
 @pytest.fixture(scope="module")
-def vision(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SyncVisionClient]:
+def vision(
+    tmp_path_factory: pytest.TempPathFactory, cell_config: Any, live_server: Any
+) -> Iterator[SyncVisionClient]:
     tmp = tmp_path_factory.mktemp("qr-server")
     config = cell_config(tmp, tmp / "world.json", CORNERS_INSPECTION)
     with live_server(config) as port, SyncVisionClient("127.0.0.1", port) as client:

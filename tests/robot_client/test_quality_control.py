@@ -3,10 +3,7 @@ the operator callback; end to end against a real server's magnet_check at the en
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
-import threading
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -162,42 +159,7 @@ def test_quality_control_bad_policy_is_a_bad_record() -> None:
 
 # --- end to end: magnet_check on the server's qc camera, which renders the world we write -----
 
-EXAMPLE_CONFIG = Path(__file__).resolve().parents[2] / "examples/cell.yaml"
 MAGNET_SLOT_WORLD = (0.20, 0.65)  # 0.05 m along +x from the rotor core (the scene's header)
-
-
-def cell_config(tmp: Path, state_path: Path) -> Path:
-    """A copy of examples/cell.yaml writing into ``tmp`` and reading ``state_path``."""
-    text = EXAMPLE_CONFIG.read_text()
-    text = text.replace("../demo-output/results.sqlite3", str(tmp / "results.sqlite3"))
-    text = text.replace("../demo-output/world-state.json", str(state_path))
-    text = text.replace("scene: scenes/grundfos_cell.yaml", f"scene: {SCENE}")
-    path = tmp / "cell.yaml"
-    path.write_text(text)
-    return path
-
-
-@contextlib.contextmanager
-def live_server(config: Path) -> Iterator[int]:
-    runtime_mod = pytest.importorskip("vision_server.runtime")
-    server_mod = pytest.importorskip("vision_server.server")
-    try:
-        runtime = runtime_mod.CellRuntime(config)
-    except Exception as exc:  # the inspections are still being written
-        pytest.skip(f"the example configuration does not load yet: {exc}")
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_forever, name="vision-server", daemon=True)
-    thread.start()
-    settings = server_mod.ServerSettings(port=0, workers=2)
-    server = server_mod.VisionServer(runtime.catalog, settings, results=runtime.results)
-    try:
-        asyncio.run_coroutine_threadsafe(server.start(), loop).result(10.0)
-        yield int(server.port)
-    finally:
-        asyncio.run_coroutine_threadsafe(server.stop(), loop).result(30.0)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(10.0)
-        loop.close()
 
 
 def _move_part(cell: SimCell, part: str, xy: tuple[float, float]) -> None:
@@ -207,7 +169,9 @@ def _move_part(cell: SimCell, part: str, xy: tuple[float, float]) -> None:
     cell.publish()
 
 
-def test_live_magnet_check_retries_then_the_operator_places_the_magnet(tmp_path: Path) -> None:
+def test_live_magnet_check_retries_then_the_operator_places_the_magnet(
+    tmp_path: Path, cell_config: Any, live_server: Any
+) -> None:
     state = tmp_path / "world.json"
     with (
         live_server(cell_config(tmp_path, state)) as port,

@@ -1,0 +1,63 @@
+"""A real vision server on loopback with a copy of examples/cell.yaml, for the skills'
+end-to-end tests."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from vision_server.runtime import CellRuntime
+from vision_server.server import ServerSettings, VisionServer
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE_CONFIG = ROOT / "examples" / "cell.yaml"
+SCENE = ROOT / "examples" / "scenes" / "grundfos_cell.yaml"
+
+
+def _cell_config(tmp: Path, state_path: Path, extra: str = "") -> Path:
+    """A copy of examples/cell.yaml writing into ``tmp`` (results) and reading ``state_path``
+    (the qc camera's world), with ``extra`` YAML appended to its inspections."""
+    text = EXAMPLE_CONFIG.read_text()
+    text = text.replace("../demo-output/results.sqlite3", str(tmp / "results.sqlite3"))
+    text = text.replace("../demo-output/world-state.json", str(state_path))
+    text = text.replace("scene: scenes/grundfos_cell.yaml", f"scene: {SCENE}")
+    path = tmp / "cell.yaml"
+    path.write_text(text + extra)
+    return path
+
+
+@contextlib.contextmanager
+def _live_server(config: Path) -> Iterator[int]:
+    """A VisionServer with the configuration's catalog, in a thread; yields its port."""
+    runtime = CellRuntime(config)
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, name="vision-server", daemon=True)
+    thread.start()
+    settings = ServerSettings(port=0, workers=2)
+    server = VisionServer(runtime.catalog, settings, results=runtime.results)
+    try:
+        asyncio.run_coroutine_threadsafe(server.start(), loop).result(10.0)
+        yield int(server.port)
+    finally:
+        asyncio.run_coroutine_threadsafe(server.stop(), loop).result(30.0)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(10.0)
+        loop.close()
+        runtime.close()
+
+
+@pytest.fixture(scope="session")
+def cell_config() -> Callable[..., Path]:
+    """``cell_config(tmp, state_path, extra="")``: a copy of the example cell's configuration."""
+    return _cell_config
+
+
+@pytest.fixture(scope="session")
+def live_server() -> Callable[[Path], contextlib.AbstractContextManager[int]]:
+    """``with live_server(config) as port``: a real server on 127.0.0.1."""
+    return _live_server
