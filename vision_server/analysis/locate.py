@@ -548,44 +548,55 @@ def _edge_points(
     ).astype(np.float64)
     if polarity == "dark":
         profiles = -profiles
-    points: list[tuple[float, float]] = []
-    contrasts: list[float] = []
     n3 = int(round(_LEVEL_FAR / step))
     n2 = int(round(_LEVEL_NEAR / step))
     n4 = int(round(_FLAT_FAR / step))
     window = (radii >= radius - half_width) & (radii <= radius + half_width)
     idx_window = np.nonzero(window)[0]
-    for i in range(rays):
-        prof = profiles[i]
-        if np.isnan(prof).any():
-            continue
-        # Steepest fall going outwards, over a 1 px baseline to resist noise.
-        fall = prof[idx_window - 2] - prof[idx_window + 2]
-        j = int(idx_window[int(np.argmax(fall))])
-        if j - n4 < 0 or j + n4 >= len(prof):
-            continue
-        inner = float(prof[j - n3 : j - n2 + 1].mean())
-        outer = float(prof[j + n2 : j + n3 + 1].mean())
-        contrast = inner - outer
-        if contrast < min_contrast:
-            continue
-        inner_far = float(prof[j - n4 : j - n4 + (n3 - n2) + 1].mean())
-        outer_far = float(prof[j + n4 - (n3 - n2) : j + n4 + 1].mean())
-        tolerance = _FLATNESS * contrast + 4.0
-        if abs(inner_far - inner) > tolerance or abs(outer_far - outer) > tolerance:
-            continue
-        level = 0.5 * (inner + outer)
-        # The crossing of `level` nearest to j, between j - n2 and j + n2.
-        seg = prof[j - n2 : j + n2 + 1] - level
-        crossings = np.nonzero((seg[:-1] >= 0) & (seg[1:] < 0))[0]
-        if len(crossings) == 0:
-            continue
-        c = int(crossings[np.argmin(np.abs(crossings - n2))])
-        frac = seg[c] / (seg[c] - seg[c + 1])
-        r_edge = radii[j - n2 + c] + frac * step
-        points.append((centre[0] + cos[i, 0] * r_edge, centre[1] + sin[i, 0] * r_edge))
-        contrasts.append(contrast)
-    return np.array(points, dtype=np.float64).reshape(-1, 2), np.array(contrasts)
+    length = profiles.shape[1]
+    # All rays at once (this runs for every candidate of every request: a Python loop over the
+    # rays held the GIL for most of a circle locate). Means over index ranges come from
+    # cumulative sums; rays whose ranges leave the profile are masked out.
+    ok: NDArray[np.bool_] = np.asarray(~np.isnan(profiles).any(axis=1), dtype=bool)
+    prof = np.where(ok[:, None], profiles, 0.0)
+    # Steepest fall going outwards, over a 1 px baseline to resist noise.
+    fall = prof[:, idx_window - 2] - prof[:, idx_window + 2]
+    j = idx_window[np.argmax(fall, axis=1)]
+    ok &= (j - n4 >= 0) & (j + n4 < length)
+    jj = np.clip(j, n4, length - 1 - n4)
+    csum = np.concatenate([np.zeros((rays, 1)), np.cumsum(prof, axis=1)], axis=1)
+    rows = np.arange(rays)
+
+    def mean(first: NDArray[np.intp], last: NDArray[np.intp]) -> FloatArray:
+        """Mean of prof[ray, first..last] (inclusive) for every ray."""
+        total = csum[rows, last + 1] - csum[rows, first]
+        return np.asarray(total / (last - first + 1), dtype=np.float64)
+
+    inner = mean(jj - n3, jj - n2)
+    outer = mean(jj + n2, jj + n3)
+    contrast = inner - outer
+    inner_far = mean(jj - n4, jj - n4 + (n3 - n2))
+    outer_far = mean(jj + n4 - (n3 - n2), jj + n4)
+    tolerance = _FLATNESS * contrast + 4.0
+    ok &= contrast >= min_contrast
+    ok &= (np.abs(inner_far - inner) <= tolerance) & (np.abs(outer_far - outer) <= tolerance)
+    level = 0.5 * (inner + outer)
+    # The crossing of `level` nearest to j, between j - n2 and j + n2.
+    offsets = np.arange(-n2, n2 + 1)
+    seg = prof[rows[:, None], jj[:, None] + offsets[None, :]] - level[:, None]
+    crossing = (seg[:, :-1] >= 0) & (seg[:, 1:] < 0)
+    ok &= crossing.any(axis=1)
+    distance = np.where(crossing, np.abs(np.arange(2 * n2) - n2)[None, :], 2 * n2 + 1)
+    c = np.argmin(distance, axis=1)
+    a, b = seg[rows, c], seg[rows, c + 1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = a / (a - b)
+    r_edge = radii[np.clip(jj - n2 + c, 0, length - 1)] + frac * step
+    keep = np.nonzero(ok)[0]
+    points = np.column_stack(
+        [centre[0] + cos[keep, 0] * r_edge[keep], centre[1] + sin[keep, 0] * r_edge[keep]]
+    )
+    return points.reshape(-1, 2), contrast[keep].astype(np.float64)
 
 
 def _refine_circle(
