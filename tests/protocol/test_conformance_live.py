@@ -6,7 +6,6 @@ The real server runs in a background thread (the suite uses blocking sockets) or
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import json
 import re
@@ -21,31 +20,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from loopback import server_in_thread
 
 from protocol import FrameDecoder, MessageType, Welcome
 from protocol.conformance import CHECKS, Target, run_checks
 from protocol.conformance.__main__ import _address
 from protocol.conformance.__main__ import main as conformance_main
-from vision_server.builtin import builtin_catalog
-from vision_server.server import ServerSettings, VisionServer
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-
-
-@contextlib.contextmanager
-def server_in_thread(**settings: Any) -> Iterator[VisionServer]:
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_forever, name="test-server", daemon=True)
-    thread.start()
-    server = VisionServer(builtin_catalog(), ServerSettings(port=0, **settings))
-    try:
-        asyncio.run_coroutine_threadsafe(server.start(), loop).result(10.0)
-        yield server
-    finally:
-        asyncio.run_coroutine_threadsafe(server.stop(), loop).result(30.0)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(10.0)
-        loop.close()
 
 
 @pytest.mark.parametrize("auth_token", [None, "cell-7"])

@@ -3,16 +3,14 @@ end-to-end tests."""
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
-import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from loopback import server_in_thread
 
 from vision_server.runtime import CellRuntime
-from vision_server.server import ServerSettings, VisionServer
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE_CONFIG = ROOT / "examples" / "cell.yaml"
@@ -35,19 +33,10 @@ def _cell_config(tmp: Path, state_path: Path, extra: str = "") -> Path:
 def _live_server(config: Path) -> Iterator[int]:
     """A VisionServer with the configuration's catalog, in a thread; yields its port."""
     runtime = CellRuntime(config)
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_forever, name="vision-server", daemon=True)
-    thread.start()
-    settings = ServerSettings(port=0, workers=2)
-    server = VisionServer(runtime.catalog, settings, results=runtime.results)
     try:
-        asyncio.run_coroutine_threadsafe(server.start(), loop).result(10.0)
-        yield int(server.port)
+        with server_in_thread(runtime.catalog, results=runtime.results, workers=2) as server:
+            yield server.port
     finally:
-        asyncio.run_coroutine_threadsafe(server.stop(), loop).result(30.0)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(10.0)
-        loop.close()
         runtime.close()
 
 

@@ -2,41 +2,20 @@
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import json
 import socket
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
+from loopback import server_in_thread
 
 from robot_client.address import ENV_VAR
 from robot_client.cli import main
-from vision_server.builtin import builtin_catalog
-from vision_server.server import ServerSettings, VisionServer
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-
-
-@contextlib.contextmanager
-def server_in_thread(**settings: Any) -> Iterator[VisionServer]:
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_forever, name="test-server", daemon=True)
-    thread.start()
-    server = VisionServer(builtin_catalog(), ServerSettings(port=0, **settings))
-    try:
-        asyncio.run_coroutine_threadsafe(server.start(), loop).result(10.0)
-        yield server
-    finally:
-        asyncio.run_coroutine_threadsafe(server.stop(), loop).result(30.0)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(10.0)
-        loop.close()
 
 
 @pytest.fixture(scope="module")

@@ -11,13 +11,14 @@ import socket
 import subprocess
 import sys
 import threading
-from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Iterator
-from dataclasses import dataclass, field
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
 import pytest
+from loopback import Gate, client_for, run, wait_until
 
 from protocol import (
     BadImage,
@@ -62,49 +63,6 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 GRAY = np.full((48, 64), 200, np.uint8)
 
 
-def run(coro: Coroutine[Any, Any, T], timeout_s: float = 30.0) -> T:
-    """Run one async test body with an overall deadline (no pytest-asyncio here)."""
-
-    async def guarded() -> T:
-        async with asyncio.timeout(timeout_s):
-            return await coro
-
-    return asyncio.run(guarded())
-
-
-async def wait_until(predicate: Callable[[], bool], what: str, timeout_s: float = 10.0) -> None:
-    async with asyncio.timeout(timeout_s):
-        # Polling: what we wait for happens in worker threads, which set no asyncio.Event.
-        while not predicate():  # noqa: ASYNC110
-            await asyncio.sleep(0.005)
-    assert predicate(), what
-
-
-@dataclass(eq=False)
-class Gate:
-    """An inspection whose runs block their worker thread until ``release`` is set."""
-
-    name: str = "gate"
-    camera: str = "tool"
-    type: str = "presence"
-    uses_depth: bool = False
-    frames: int = 1
-    release: threading.Event = field(default_factory=threading.Event)
-    entered: int = 0
-    finished: int = 0
-    _lock: threading.Lock = field(default_factory=threading.Lock)
-
-    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
-        with self._lock:
-            self.entered += 1
-        released = self.release.wait(20.0)
-        with self._lock:
-            self.finished += 1
-        if not released:
-            raise RuntimeError("the test never released the gate")
-        return InspectionOutcome(True, {"gate": True})
-
-
 @dataclass(eq=False)
 class Counting:
     """Counts its runs: tells whether a request reached the server (once, or twice)."""
@@ -133,11 +91,6 @@ def gate() -> Iterator[Gate]:
     g = Gate()
     yield g
     g.release.set()
-
-
-def client_for(server: VisionServer, **kwargs: Any) -> VisionClient:
-    kwargs.setdefault("request_timeout_s", 10.0)
-    return VisionClient("127.0.0.1", server.port, **kwargs)
 
 
 def free_port_nobody_listens_on() -> tuple[socket.socket, int]:

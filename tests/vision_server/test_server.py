@@ -7,18 +7,18 @@ sockets run it on an event loop in a background thread; the others run it on the
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import select
 import socket
 import threading
-from collections.abc import Callable, Coroutine, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
 import pytest
+from loopback import Gate, client_for, run, server_in_thread, wait_until
 
 from protocol import (
     Busy,
@@ -39,7 +39,7 @@ from protocol import (
 )
 from protocol.conformance import Target
 from protocol.conformance.peer import CLOSED, Peer
-from robot_client.client import ReconnectPolicy, VisionClient
+from robot_client.client import ReconnectPolicy
 from robot_client.errors import ConnectionLost
 from vision_server import server as server_module
 from vision_server.builtin import MeanIntensityPresence, builtin_catalog
@@ -54,45 +54,6 @@ from vision_server.server import ResultRecord, ServerSettings, VisionServer
 
 T = TypeVar("T")
 GRAY = np.full((48, 64), 200, np.uint8)
-
-
-def run(coro: Coroutine[Any, Any, T], timeout_s: float = 30.0) -> T:
-    """Run one async test body with an overall deadline (no pytest-asyncio here)."""
-
-    async def guarded() -> T:
-        async with asyncio.timeout(timeout_s):
-            return await coro
-
-    return asyncio.run(guarded())
-
-
-async def wait_until(predicate: Callable[[], bool], what: str, timeout_s: float = 10.0) -> None:
-    async with asyncio.timeout(timeout_s):
-        # Polling: what we wait for happens in worker threads, which set no asyncio.Event.
-        while not predicate():  # noqa: ASYNC110
-            await asyncio.sleep(0.005)
-    assert predicate(), what
-
-
-@dataclass(eq=False)
-class Gate:
-    """An inspection whose runs block their worker thread until ``release`` is set."""
-
-    name: str = "gate"
-    camera: str = "tool"
-    type: str = "presence"
-    uses_depth: bool = False
-    frames: int = 1
-    release: threading.Event = field(default_factory=threading.Event)
-    entered: int = 0
-    _lock: threading.Lock = field(default_factory=threading.Lock)
-
-    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
-        with self._lock:
-            self.entered += 1
-        if not self.release.wait(20.0):
-            raise RuntimeError("the test never released the gate")
-        return InspectionOutcome(True, {"shape": list(image.color.shape)})
 
 
 @dataclass(frozen=True)
@@ -135,38 +96,15 @@ def make_catalog(*extra: Any) -> Catalog:
 
 @pytest.fixture
 def gate() -> Iterator[Gate]:
-    g = Gate()
+    g = Gate(report_shape=True)
     yield g
     g.release.set()  # never leave a worker thread blocked behind a failed test
-
-
-@contextlib.contextmanager
-def server_in_thread(catalog: Catalog, **settings: Any) -> Iterator[VisionServer]:
-    """A server on its own event loop in a background thread, for blocking-socket tests."""
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_forever, name="test-server", daemon=True)
-    thread.start()
-    server = VisionServer(catalog, ServerSettings(port=0, **settings))
-    try:
-        asyncio.run_coroutine_threadsafe(server.start(), loop).result(10.0)
-        yield server
-    finally:
-        with contextlib.suppress(RuntimeError):  # not started
-            asyncio.run_coroutine_threadsafe(server.stop(), loop).result(30.0)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(10.0)
-        loop.close()
 
 
 def open_peer(server: VisionServer) -> Peer:
     peer = Peer(Target("127.0.0.1", server.port, timeout_s=10.0))
     peer.handshake()
     return peer
-
-
-def client_for(server: VisionServer, **kwargs: Any) -> VisionClient:
-    kwargs.setdefault("request_timeout_s", 10.0)
-    return VisionClient("127.0.0.1", server.port, **kwargs)
 
 
 # ----------------------------------------------------------------------------- admission
