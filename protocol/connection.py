@@ -23,7 +23,7 @@ from .errors import (
     UnknownMessageType,
     UnsupportedVersion,
 )
-from .frames import FrameDecoder, Limits
+from .frames import FrameDecoder, Header, HeaderCheck, Limits
 from .messages import DecodeContext, Error, Message, Version, Welcome, message_from_frame
 
 
@@ -134,13 +134,20 @@ class Connection:
         *,
         limits: Limits | None = None,
         versions: tuple[Version, ...] = SUPPORTED_VERSIONS,
+        admit: HeaderCheck | None = None,
     ) -> None:
+        """``admit`` (server side) is called with the header of every frame that the state
+        machine accepts, before any of its body is buffered; it raises a CellvisionError to
+        refuse the frame (e.g. BUSY: the body is then skipped, not kept in memory)."""
         self.role = role
         self.limits = limits or Limits()
         self.versions = tuple(sorted(versions, reverse=True))
         self.state = State.HANDSHAKE
         self.version: Version | None = None
         self._decoder = FrameDecoder(self.limits)
+        self._decoder.check_header = self._check_header
+        self._admit = admit
+        self._refused_at_header = False
         self._ctx = DecodeContext(max_image_pixels=self.limits.max_image_pixels)
         # request id -> request type: ids the client sent and awaits, or the server owes.
         self._pending: dict[int, MessageType] = {}
@@ -158,6 +165,11 @@ class Connection:
     def speaks(self, version: Version) -> bool:
         """True when this side speaks ``version`` (same major, minor not above ours)."""
         return any(version[0] == major and version[1] <= minor for major, minor in self.versions)
+
+    @property
+    def receiving_frame(self) -> bool:
+        """True while part of a frame has arrived and the rest has not (also a skipped body)."""
+        return self._decoder.in_frame
 
     @property
     def wire_version(self) -> Version:
@@ -184,11 +196,19 @@ class Connection:
             if self._fatal is not None:
                 raise self._fatal
             return ConnectionClosed()
+        if self.role is Role.SERVER and self.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
+            # SPEC §3.4: before the handshake only a HELLO-sized frame is buffered.
+            self._decoder.max_frame_bytes = min(
+                self.limits.max_frame_bytes, self.limits.max_handshake_frame_bytes
+            )
+        else:
+            self._decoder.max_frame_bytes = None
+        self._refused_at_header = False
         try:
             frame = self._decoder.next_frame()
         except CellvisionError as exc:
             header = self._decoder.last_header
-            if not exc.fatal and header is not None:
+            if not exc.fatal and header is not None and not self._refused_at_header:
                 # Bad metadata JSON (the frame is consumed): the header still goes through the
                 # state machine first, so a bad frame before HELLO is NOT_AUTHENTICATED, etc.
                 try:
@@ -219,6 +239,17 @@ class Connection:
             self._on_error(exc)
             raise
         return message
+
+    def _check_header(self, header: Header) -> None:
+        """The decoder's header hook: the state machine and the owner's admission, before the
+        body is read (SPEC §3.1: no memory for a body that will be refused)."""
+        try:
+            self._check_frame(header.type, (header.major, header.minor), header.request_id)
+            if self._admit is not None:
+                self._admit(header)
+        except CellvisionError:
+            self._refused_at_header = True
+            raise
 
     def _on_error(self, exc: CellvisionError) -> None:
         if exc.fatal:

@@ -9,11 +9,12 @@ from __future__ import annotations
 import json
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from .constants import BLOB_LENGTH, HEADER, HEADER_SIZE, MAGIC, MAX_U32
-from .errors import BadMetadata, FrameTooLarge, MalformedFrame
+from .errors import BadMetadata, CellvisionError, FrameTooLarge, MalformedFrame
 
 
 @dataclass(frozen=True)
@@ -24,9 +25,18 @@ class Limits:
     max_metadata_bytes: int = 1024 * 1024
     max_blobs: int = 64
     max_image_pixels: int = 4096 * 4096
+    max_handshake_frame_bytes: int = 64 * 1024
+    """A server's limit for frames before the handshake is complete (SPEC §3.4): a HELLO is a
+    few hundred bytes, so nobody who has not authenticated can make the server buffer more."""
 
     def __post_init__(self) -> None:
-        for name in ("max_frame_bytes", "max_metadata_bytes", "max_blobs", "max_image_pixels"):
+        for name in (
+            "max_frame_bytes",
+            "max_metadata_bytes",
+            "max_blobs",
+            "max_image_pixels",
+            "max_handshake_frame_bytes",
+        ):
             value = getattr(self, name)
             if not isinstance(value, int) or value <= 0:
                 raise ValueError(f"Limits.{name} must be a positive integer, got {value!r}")
@@ -126,18 +136,23 @@ class Header:
         return HEADER_SIZE + self.body_length
 
 
-def parse_header(data: bytes | bytearray | memoryview, limits: Limits) -> Header:
-    """Parse and check the first 24 bytes of a frame (``data`` may be longer)."""
+def parse_header(
+    data: bytes | bytearray | memoryview, limits: Limits, *, max_frame_bytes: int | None = None
+) -> Header:
+    """Parse and check the first 24 bytes of a frame (``data`` may be longer).
+
+    ``max_frame_bytes`` overrides ``limits.max_frame_bytes`` (a server before the handshake).
+    """
     magic, major, minor, mtype, flags, blobs, rid, meta_len, body_len = HEADER.unpack_from(data)
     if magic != MAGIC:
         raise MalformedFrame(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
     header = Header(major, minor, mtype, flags, blobs, rid, meta_len, body_len)
-    if header.frame_length > limits.max_frame_bytes:
+    limit = limits.max_frame_bytes if max_frame_bytes is None else max_frame_bytes
+    if header.frame_length > limit:
         raise FrameTooLarge(
-            f"frame of {header.frame_length} bytes exceeds the limit of "
-            f"{limits.max_frame_bytes} bytes",
+            f"frame of {header.frame_length} bytes exceeds the limit of {limit} bytes",
             request_id=rid,
-            details={"size": header.frame_length, "max_size": limits.max_frame_bytes},
+            details={"size": header.frame_length, "max_size": limit},
         )
     if blobs > limits.max_blobs:
         raise MalformedFrame(
@@ -183,36 +198,62 @@ def parse_body(
     return metadata, tuple(blobs)
 
 
+HeaderCheck = Callable[[Header], None]
+"""Called with each frame's header as soon as it has arrived, before any of its body is kept.
+
+It raises a :class:`~protocol.errors.CellvisionError` to refuse the frame: a fatal one breaks
+the stream; a non-fatal one makes the decoder skip the body without buffering it (the frame is
+consumed) and is raised from :meth:`FrameDecoder.next_frame`.
+"""
+
+
 class FrameDecoder:
     """Incremental frame parser: feed bytes, take complete frames.
 
     A fatal error (bad magic, too large, inconsistent lengths) leaves the decoder broken: every
     later call raises the same error. A BadMetadata error consumes its frame and the stream goes on.
+    A frame refused by ``check_header`` with a non-fatal error is skipped: its body is read and
+    dropped as it arrives, never held in memory.
     """
 
     def __init__(self, limits: Limits | None = None) -> None:
         self.limits = limits or Limits()
+        self.max_frame_bytes: int | None = None
+        """When set, overrides ``limits.max_frame_bytes`` for the next headers."""
+        self.check_header: HeaderCheck | None = None
         self._buffer = bytearray()
         self._header: Header | None = None
-        self._broken: MalformedFrame | FrameTooLarge | None = None
+        self._skip = 0
+        self._broken: MalformedFrame | FrameTooLarge | CellvisionError | None = None
         self._eof = False
         self.last_header: Header | None = None
         """The header of the latest frame parsed, also when its body was bad."""
 
     @property
     def buffered(self) -> int:
-        """Bytes received but not yet returned as frames."""
+        """Bytes received but not yet returned as frames (a skipped body is not kept)."""
         return len(self._buffer)
+
+    @property
+    def in_frame(self) -> bool:
+        """True between the first byte of a frame and the frame's last byte."""
+        return bool(self._buffer) or self._header is not None or self._skip > 0
 
     @property
     def eof(self) -> bool:
         return self._eof
 
     def feed(self, data: bytes) -> None:
-        if data:
-            self._buffer += data
-        else:
+        if not data:
             self._eof = True
+        elif self._skip and not self._buffer:
+            # Drop the body of a refused frame as it arrives; keep only what follows it.
+            dropped = min(self._skip, len(data))
+            self._skip -= dropped
+            if dropped < len(data):
+                self._buffer += data[dropped:]
+        else:
+            self._buffer += data
 
     def next_frame(self) -> Frame | None:
         """The next complete frame, or None when more bytes are needed."""
@@ -220,12 +261,23 @@ class FrameDecoder:
             raise self._broken
         try:
             return self._next_frame()
-        except (MalformedFrame, FrameTooLarge) as exc:
-            self._broken = exc
-            self._buffer.clear()
+        except CellvisionError as exc:
+            if exc.fatal:
+                self._broken = exc
+                self._buffer.clear()
             raise
 
     def _next_frame(self) -> Frame | None:
+        if self._skip:
+            dropped = min(self._skip, len(self._buffer))
+            del self._buffer[:dropped]
+            self._skip -= dropped
+            if self._skip:
+                if self._eof:
+                    raise MalformedFrame(
+                        f"connection closed {self._skip} bytes before the end of a frame"
+                    )
+                return None
         if self._header is None:
             if len(self._buffer) < HEADER_SIZE:
                 if self._eof and self._buffer:
@@ -233,8 +285,17 @@ class FrameDecoder:
                         f"connection closed after {len(self._buffer)} bytes of a 24-byte header"
                     )
                 return None
-            self._header = parse_header(self._buffer, self.limits)
-            self.last_header = self._header
+            header = parse_header(self._buffer, self.limits, max_frame_bytes=self.max_frame_bytes)
+            self.last_header = header
+            if self.check_header is not None:
+                try:
+                    self.check_header(header)
+                except CellvisionError as exc:
+                    if not exc.fatal:
+                        del self._buffer[:HEADER_SIZE]
+                        self._skip = header.body_length
+                    raise
+            self._header = header
         header = self._header
         if len(self._buffer) < header.frame_length:
             if self._eof:

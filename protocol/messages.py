@@ -11,7 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-from .constants import NO_REQUEST, MessageType
+from .constants import MAX_U32, NO_REQUEST, MessageType
 from .errors import (
     BadMetadata,
     CellvisionError,
@@ -152,11 +152,15 @@ class Hello(Message):
     versions: tuple[Version, ...] = ((1, 0),)
     client: str = ""
     auth_token: str | None = None
+    max_frame_bytes: int | None = None
+    """The largest frame the client accepts from the server (SPEC §5.1); None = the default."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if not self.versions:
             raise ValueError("HELLO must list at least one version")
+        if self.max_frame_bytes is not None and not 24 <= self.max_frame_bytes <= MAX_U32:
+            raise ValueError(f"max_frame_bytes must be in 24..2**32-1, got {self.max_frame_bytes}")
 
     def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
         meta: dict[str, Any] = {"versions": [list(v) for v in self.versions]}
@@ -164,6 +168,8 @@ class Hello(Message):
             meta["client"] = self.client
         if self.auth_token is not None:
             meta["auth_token"] = self.auth_token
+        if self.max_frame_bytes is not None:
+            meta["max_frame_bytes"] = self.max_frame_bytes
         return meta, ()
 
     @classmethod
@@ -173,11 +179,18 @@ class Hello(Message):
         versions = tuple(_version(v, rid, f"versions[{i}]") for i, v in enumerate(raw))
         if not versions:
             raise BadMetadata("field 'versions' must list at least one version", request_id=rid)
+        max_frame = _get(m, "max_frame_bytes", int, rid, default=None)
+        if max_frame is not None and not 24 <= max_frame <= MAX_U32:
+            raise BadMetadata(
+                f"field 'max_frame_bytes' must be in 24..{MAX_U32}, got {max_frame}",
+                request_id=rid,
+            )
         return cls(
             rid,
             versions,
             _get(m, "client", str, rid, default=""),
             _get(m, "auth_token", str, rid, default=None),
+            max_frame,
         )
 
 

@@ -39,6 +39,7 @@ from protocol import (
     ImageRole,
     Inspect,
     Inspections,
+    Limits,
     ListInspections,
     Message,
     Ping,
@@ -60,6 +61,9 @@ _T = TypeVar("_T")
 _M = TypeVar("_M", bound=Message)
 
 READ_CHUNK = 256 * 1024
+DEFAULT_MAX_FRAME_BYTES = 256 * 1024 * 1024
+"""The largest answer the client accepts by default: room for a CAPTURE of 30 1024x768 colour
+frames (70.8 MB), more than the protocol's 64 MiB default."""
 ImageLike = npt.NDArray[Any] | ImagePayload
 
 
@@ -93,7 +97,13 @@ class VisionClient:
         request_timeout_s: float = 30.0,
         reconnect: ReconnectPolicy | None = None,
         ssl: ssl_module.SSLContext | None = None,
+        max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES,
+        keepalive: bool = True,
     ) -> None:
+        """``max_frame_bytes`` is the largest answer this client accepts; it is announced in
+        HELLO, and the server answers a request whose reply would be larger with an ERROR.
+        With ``keepalive``, an idle connection sends PING before the server's announced idle
+        timeout closes it."""
         self.host = host
         self.port = port
         self.auth_token = auth_token
@@ -102,6 +112,9 @@ class VisionClient:
         self.request_timeout_s = request_timeout_s
         self.reconnect = reconnect if reconnect is not None else ReconnectPolicy()
         self.ssl = ssl
+        self.max_frame_bytes = max_frame_bytes
+        self.keepalive = keepalive
+        self._keepalive_task: asyncio.Task[None] | None = None
         self.welcome: Welcome | None = None
         self._conn: Connection | None = None
         self._writer: asyncio.StreamWriter | None = None
@@ -138,14 +151,26 @@ class VisionClient:
             raise ConnectionLost(
                 f"cannot connect to {self.host}:{self.port}: {exc or type(exc).__name__}"
             ) from exc
-        conn = Connection(Role.CLIENT, versions=SUPPORTED_VERSIONS)
+        conn = Connection(
+            Role.CLIENT,
+            limits=Limits(max_frame_bytes=self.max_frame_bytes),
+            versions=SUPPORTED_VERSIONS,
+        )
         self._conn, self._writer = conn, writer
         hello_id = self._new_id()
         future: asyncio.Future[Message] = asyncio.get_running_loop().create_future()
         self._pending[hello_id] = future
         self._reader_task = asyncio.create_task(self._read_loop(conn, reader, writer))
         writer.write(
-            conn.send(Hello(hello_id, SUPPORTED_VERSIONS, self.client_name, self.auth_token))
+            conn.send(
+                Hello(
+                    hello_id,
+                    SUPPORTED_VERSIONS,
+                    self.client_name,
+                    self.auth_token,
+                    self.max_frame_bytes,
+                )
+            )
         )
         try:
             async with asyncio.timeout(self.connect_timeout_s):
@@ -161,7 +186,20 @@ class VisionClient:
             raise
         assert isinstance(answer, Welcome)
         self.welcome = answer
+        idle_ms = answer.limits.get("idle_timeout_ms", 0)
+        if self.keepalive and isinstance(idle_ms, int) and idle_ms > 0:
+            self._keepalive_task = asyncio.create_task(self._keep_alive(conn, idle_ms / 1000.0))
         return answer
+
+    async def _keep_alive(self, conn: Connection, idle_timeout_s: float) -> None:
+        """PING when nothing else has been sent for a third of the server's idle timeout, so
+        that the server does not close a connection a robot holds between tasks (SPEC §5.5)."""
+        interval = idle_timeout_s / 3.0
+        while self._conn is conn and conn.state is State.OPEN:
+            await asyncio.sleep(interval)
+            if self._conn is conn and conn.state is State.OPEN and not conn.pending:
+                with contextlib.suppress(CellvisionError, ConnectionLost, RequestTimeout):
+                    await self.request(lambda rid: Ping(rid, "keepalive"), timeout_s=interval)
 
     async def close(self) -> None:
         """Graceful close: CLOSE, wait for the answers in flight and the server's CLOSE."""
@@ -185,6 +223,9 @@ class VisionClient:
         await self.close()
 
     async def _drop_connection(self, reason: Exception) -> None:
+        keepalive, self._keepalive_task = self._keepalive_task, None
+        if keepalive is not None and keepalive is not asyncio.current_task():
+            keepalive.cancel()
         task, writer = self._reader_task, self._writer
         self._reader_task = None
         self._writer = None

@@ -15,10 +15,8 @@ import hmac
 import logging
 import os
 import ssl
-import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -64,8 +62,10 @@ from protocol import (
     negotiate_version,
     payload_from_array,
 )
-from protocol.constants import SUPPORTED_VERSIONS
+from protocol.constants import HEADER_SIZE, SUPPORTED_VERSIONS, MessageType
+from protocol.frames import Header, encode_metadata
 
+from .admission import Admission, ByteBudget, WorkPool
 from .cameras import Camera, CameraFrame
 from .catalog import Catalog, Image, InspectionInput, InspectionOutcome
 from .results import ResultEntry, ResultLog
@@ -75,7 +75,8 @@ log = logging.getLogger("vision_server")
 _T = TypeVar("_T")
 
 READ_CHUNK = 256 * 1024
-MAX_CAPTURE_FRAMES = 64
+DEFAULT_MAX_FRAME_BYTES = Limits().max_frame_bytes
+"""What a client accepts when its HELLO does not say (SPEC §3.4 default)."""
 REFUSE_HELLO_TIMEOUT_S = 2.0
 """How long a refused connection may take to send its HELLO before it is closed anyway."""
 
@@ -105,11 +106,36 @@ class ServerSettings:
     allow_reload: bool = True
     """Whether a client may ask for a configuration reload (RELOAD)."""
     handshake_timeout_s: float = 10.0
-    """How long a new connection may take to complete its HELLO; then it is closed, so that
-    silent connections cannot hold every one of the ``max_connections`` slots."""
+    """How long a new connection may take to complete its TLS handshake (if any) and HELLO; then
+    it is closed, so that silent connections cannot hold every one of the ``max_connections``
+    slots."""
+    idle_timeout_s: float = 60.0
+    """How long an open connection may stay silent with nothing in flight before the server
+    closes it (CLOSE). Announced in WELCOME; clients keep a connection alive with PING."""
+    frame_timeout_s: float = 30.0
+    """How long one frame may take to arrive, from its first byte to its last."""
+    write_timeout_s: float = 30.0
+    """How long the server waits for a client that does not read its answers before it drops
+    the connection (a slow reader must not hold the server's memory)."""
+    max_buffered_bytes: int = 256 * 1024 * 1024
+    """Server-wide budget for request bodies and replies held in memory; a frame or a reply that
+    does not fit is answered BUSY instead of being read or built."""
 
     def limits(self) -> Limits:
         return Limits(max_frame_bytes=self.max_frame_bytes, max_image_pixels=self.max_image_pixels)
+
+    def welcome_limits(self) -> dict[str, int]:
+        """The limits announced in WELCOME (SPEC §3.4, §5.2); durations in milliseconds."""
+        limits = self.limits()
+        return {
+            "max_frame_bytes": self.max_frame_bytes,
+            "max_metadata_bytes": limits.max_metadata_bytes,
+            "max_blobs": limits.max_blobs,
+            "max_image_pixels": self.max_image_pixels,
+            "max_in_flight": self.max_in_flight,
+            "idle_timeout_ms": round(self.idle_timeout_s * 1000),
+            "frame_timeout_ms": round(self.frame_timeout_s * 1000),
+        }
 
     def ssl_context(self) -> ssl.SSLContext | None:
         if not self.tls_cert:
@@ -117,40 +143,6 @@ class ServerSettings:
         context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
         context.load_cert_chain(self.tls_cert, self.tls_key)
         return context
-
-
-class WorkPool:
-    """A thread pool with bounded admission: ``try_submit`` refuses instead of queueing."""
-
-    def __init__(self, workers: int, queue_depth: int) -> None:
-        self.capacity = workers + queue_depth
-        self._executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="inspect")
-        self._lock = threading.Lock()
-        self._admitted = 0
-
-    @property
-    def admitted(self) -> int:
-        return self._admitted
-
-    def try_submit(self, fn: Callable[[], _T]) -> asyncio.Future[_T] | None:
-        """Run ``fn`` in the pool; None when the pool is full. The slot is held until ``fn``
-        returns, even if the awaiting request gave up (its deadline passed)."""
-        with self._lock:
-            if self._admitted >= self.capacity:
-                return None
-            self._admitted += 1
-
-        def job() -> _T:
-            try:
-                return fn()
-            finally:
-                with self._lock:
-                    self._admitted -= 1
-
-        return asyncio.get_running_loop().run_in_executor(self._executor, job)
-
-    def shutdown(self) -> None:
-        self._executor.shutdown(wait=False, cancel_futures=True)
 
 
 class VisionServer:
@@ -174,6 +166,8 @@ class VisionServer:
         self.reloader = reloader
         """Builds the catalog of a re-read configuration (raises ConfigError when invalid)."""
         self._pool = WorkPool(self.settings.workers, self.settings.queue_depth)
+        self._budget = ByteBudget(self.settings.max_buffered_bytes)
+        self._refusing = 0
         self._server: asyncio.Server | None = None
         self._connections: set[_ClientSession] = set()
         self._stopping = asyncio.Event()
@@ -189,12 +183,11 @@ class VisionServer:
         return int(self._server.sockets[0].getsockname()[1])
 
     async def start(self) -> None:
+        # TLS is started per connection in _accept, after the connection is counted, so that
+        # connections still in the TLS handshake count towards max_connections and time out.
+        self._ssl = self.settings.ssl_context()
         self._server = await asyncio.start_server(
-            self._accept,
-            self.settings.host,
-            self.settings.port,
-            ssl=self.settings.ssl_context(),
-            limit=READ_CHUNK,
+            self._accept, self.settings.host, self.settings.port, limit=READ_CHUNK
         )
         log.info("listening on %s:%d", self.settings.host, self.port)
 
@@ -237,14 +230,38 @@ class VisionServer:
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if len(self._connections) >= self.settings.max_connections or self._stopping.is_set():
             reason = "too many connections" if not self._stopping.is_set() else "stopping"
-            await self._refuse(reader, writer, reason)
+            # Refusing politely costs a read (and a TLS handshake); never more of them at once
+            # than connections: past that, a flood is just closed.
+            if self._refusing >= self.settings.max_connections:
+                writer.transport.abort()
+                return
+            self._refusing += 1
+            try:
+                if await self._start_tls(writer, REFUSE_HELLO_TIMEOUT_S):
+                    await self._refuse(reader, writer, reason)
+            finally:
+                self._refusing -= 1
             return
         session = _ClientSession(self, reader, writer)
         self._connections.add(session)
         try:
-            await session.run()
+            if await self._start_tls(writer, self.settings.handshake_timeout_s):
+                await session.run()
         finally:
             self._connections.discard(session)
+            session.admission_cleanup()
+
+    async def _start_tls(self, writer: asyncio.StreamWriter, timeout_s: float) -> bool:
+        """Wrap the connection in TLS when the server has TLS; False (and closed) on failure."""
+        if self._ssl is None:
+            return True
+        try:
+            await writer.start_tls(self._ssl, ssl_handshake_timeout=timeout_s)
+        except Exception as exc:  # noqa: BLE001 - whatever the peer did, only it is dropped
+            log.info("TLS handshake failed: %s", exc or type(exc).__name__)
+            writer.transport.abort()
+            return False
+        return True
 
     async def _refuse(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, reason: str
@@ -279,7 +296,9 @@ class VisionServer:
 
     # ------------------------------------------------------------------ request work
 
-    async def run_inspection(self, request: Inspect, *, peer: str = "") -> Result:
+    async def run_inspection(
+        self, request: Inspect, *, peer: str = "", admission: Admission | None = None
+    ) -> Result:
         """Get the images (from the request or the camera), run the named inspection in the
         pool, record it in the result log, build the RESULT."""
         started = time.perf_counter()
@@ -364,7 +383,7 @@ class VisionServer:
                 )
             return outcome, compute_ms, images
 
-        outcome, compute_ms, images = await self._in_pool(work, rid, request.deadline_ms)
+        outcome, compute_ms, images = await self._in_pool(work, rid, request.deadline_ms, admission)
         total_ms = (time.perf_counter() - started) * 1000.0
         result = Result(
             rid,
@@ -419,18 +438,23 @@ class VisionServer:
             return self.settings.capture_timeout_s
         return min(self.settings.capture_timeout_s, deadline_ms / 1000.0)
 
-    async def run_capture(self, request: Capture) -> Frames:
-        """CAPTURE: ``count`` distinct frames from a server camera."""
+    async def run_capture(
+        self,
+        request: Capture,
+        *,
+        admission: Admission | None = None,
+        max_reply_bytes: int = DEFAULT_MAX_FRAME_BYTES,
+    ) -> Frames:
+        """CAPTURE: ``count`` distinct frames from a server camera.
+
+        The reply is bounded in bytes, not in frames: it must fit ``max_reply_bytes`` (what the
+        client said it accepts, SPEC §5.1) and the server's byte budget, checked before the
+        frames are taken (from the camera's declared size, or its first frame)."""
         rid = request.request_id
         camera = self.catalog.camera(request.camera, request_id=rid)
         if camera.source == "request":
             raise InvalidArgument(
                 f"camera {camera.name!r} gets its images from the request: it cannot capture",
-                request_id=rid,
-            )
-        if request.count > MAX_CAPTURE_FRAMES:
-            raise InvalidArgument(
-                f"count {request.count} is above the limit of {MAX_CAPTURE_FRAMES} frames",
                 request_id=rid,
             )
         if request.depth and not camera.has_depth:
@@ -452,7 +476,13 @@ class VisionServer:
         timeout_s = self._capture_timeout(request.deadline_ms)
 
         def work() -> tuple[list[ImagePayload], list[float]]:
-            frames = _grab(camera, request.count, timeout_s, rid)
+            frames = _capture_frames(
+                camera,
+                request.count,
+                timeout_s,
+                rid,
+                lambda first: self._admit_reply(request, first, admission, max_reply_bytes),
+            )
             payloads: list[ImagePayload] = []
             for frame in frames:
                 payloads.append(payload_from_array(frame.color, encoding=encoding))
@@ -460,7 +490,7 @@ class VisionServer:
                     payloads.append(payload_from_array(frame.depth, role=ImageRole.DEPTH))
             return payloads, [f.timestamp for f in frames]
 
-        payloads, stamps = await self._in_pool(work, rid, request.deadline_ms)
+        payloads, stamps = await self._in_pool(work, rid, request.deadline_ms, admission)
         intrinsics = None if camera.intrinsics is None else camera.intrinsics.to_dict()
         return Frames(rid, camera.name, tuple(payloads), tuple(stamps), intrinsics)
 
@@ -474,10 +504,66 @@ class VisionServer:
         log.info("configuration reloaded (config hash %s)", catalog.config_hash)
         return catalog
 
+    def _admit_reply(
+        self,
+        request: Capture,
+        first: CameraFrame,
+        admission: Admission | None,
+        max_reply_bytes: int,
+    ) -> None:
+        """Refuse a CAPTURE whose reply could not be received or held, before grabbing the rest
+        of its frames. Raw sizes bound the encoded ones (checked again when sent)."""
+        rid = request.request_id
+        per_frame = first.color.nbytes
+        if request.depth and first.depth is not None:
+            per_frame += first.depth.nbytes
+        estimate = per_frame * request.count + _REPLY_OVERHEAD
+        limit = min(max_reply_bytes, self.settings.max_buffered_bytes)
+        if estimate > limit:
+            who = (
+                "the client accepts (HELLO max_frame_bytes)"
+                if limit == max_reply_bytes
+                else "the server may hold for replies (max_buffered_bytes)"
+            )
+            raise InvalidArgument(
+                f"{request.count} frames of about {per_frame} bytes each make a reply of about "
+                f"{estimate} bytes, more than the {limit} bytes {who}; ask for fewer frames "
+                "or a compressed encoding",
+                request_id=rid,
+                details={"size": estimate, "max_size": limit},
+            )
+        if admission is not None and not admission.take_bytes(estimate):
+            raise Busy(
+                f"the server's memory for replies is taken ({self._budget.used} of "
+                f"{self._budget.limit} bytes); try again",
+                request_id=rid,
+            )
+
+    def health(self) -> dict[str, Any]:
+        """Counters of the admission limits (for health output and tests)."""
+        return {
+            "connections": len(self._connections),
+            "pool": {"admitted": self._pool.admitted, "capacity": self._pool.capacity},
+            "buffered_bytes": {
+                "used": self._budget.used,
+                "peak": self._budget.peak,
+                "limit": self._budget.limit,
+                "refused": self._budget.refused,
+            },
+        }
+
     async def _in_pool(
-        self, fn: Callable[[], _T], request_id: int, deadline_ms: float | None
+        self,
+        fn: Callable[[], _T],
+        request_id: int,
+        deadline_ms: float | None,
+        admission: Admission | None = None,
     ) -> _T:
-        future = self._pool.try_submit(fn)
+        future: asyncio.Future[_T] | None
+        if admission is not None and admission.hand_slot_to_pool():
+            future = self._pool.submit_reserved(fn)
+        else:
+            future = self._pool.try_submit(fn)
         if future is None:
             raise Busy(
                 f"all {self._pool.capacity} inspection slots are taken; try again",
@@ -493,6 +579,34 @@ class VisionServer:
                 f"not done within the request's deadline of {deadline_ms:g} ms",
                 request_id=request_id,
             ) from None
+
+
+_REPLY_OVERHEAD = 64 * 1024
+"""Bytes of a FRAMES reply besides the pixels (header, metadata, blob table), generously."""
+
+
+def _capture_frames(
+    camera: Camera,
+    count: int,
+    timeout_s: float,
+    request_id: int,
+    admit: Callable[[CameraFrame], None],
+) -> list[CameraFrame]:
+    """``count`` distinct successive frames; ``admit(first frame)`` may refuse the rest (a reply
+    too large) before they are taken."""
+    deadline = time.monotonic() + timeout_s
+    first = _grab(camera, 1, timeout_s, request_id)[0]
+    admit(first)
+    frames = [first]
+    try:
+        while len(frames) < count:
+            remaining = max(deadline - time.monotonic(), 0.0)
+            frames.append(camera.grab(timeout_s=remaining, newer_than=frames[-1].index))
+    except CellvisionError as exc:
+        exc.request_id = request_id
+        exc.message = f"got {len(frames)} of {count} frames within {timeout_s:.3g} s: {exc.message}"
+        raise
+    return frames
 
 
 def _grab(camera: Camera, count: int, timeout_s: float, request_id: int) -> list[CameraFrame]:
@@ -565,7 +679,13 @@ def _late_error(conn: Connection, exc: CellvisionError) -> bytes:
 
 
 class _ClientSession:
-    """One accepted connection."""
+    """One accepted connection.
+
+    Every frame is admitted when its header arrives (:meth:`_admit`): the state machine, the
+    connection's in-flight limit, a pool slot for INSPECT/CAPTURE and the bytes of a large body
+    from the server's budget; a refused frame is answered (BUSY …) and its body skipped unread.
+    What a request holds is released once its answer has been handed to the socket and drained.
+    """
 
     def __init__(
         self, server: VisionServer, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
@@ -574,16 +694,79 @@ class _ClientSession:
         self.reader = reader
         self.writer = writer
         self.conn = Connection(
-            Role.SERVER, limits=server.settings.limits(), versions=SUPPORTED_VERSIONS
+            Role.SERVER,
+            limits=server.settings.limits(),
+            versions=SUPPORTED_VERSIONS,
+            admit=self._admit,
         )
         self.finished = asyncio.Event()
+        self.handshake_deadline = time.monotonic() + server.settings.handshake_timeout_s
+        """The TLS handshake and HELLO must be done by then (monotonic seconds)."""
+        self.max_reply_bytes = DEFAULT_MAX_FRAME_BYTES
+        """The largest frame the client accepts (its HELLO's max_frame_bytes)."""
         self._shutdown = asyncio.Event()
         self._tasks: set[asyncio.Task[None]] = set()
+        self._frame_admission: Admission | None = None
+        self._held: set[Admission] = set()
+        self._last_activity = time.monotonic()
+        self._frame_started: float | None = None
         peer = writer.get_extra_info("peername")
         self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
 
     def begin_shutdown(self) -> None:
         self._shutdown.set()
+
+    # ------------------------------------------------------------------ admission
+
+    def _admit(self, header: Header) -> None:
+        """Called by the connection with each header the state machine accepts, before the
+        body is kept. Raises BUSY to refuse; the body is then skipped."""
+        settings = self.server.settings
+        admission = Admission(self.server._pool, self.server._budget)
+        rid = header.request_id
+        mtype = header.type
+        if mtype in (MessageType.INSPECT, MessageType.CAPTURE):
+            if len(self.conn.pending) >= settings.max_in_flight:
+                raise Busy(
+                    f"more than {settings.max_in_flight} requests in flight on this connection",
+                    request_id=rid,
+                )
+            if not admission.take_slot():
+                raise Busy(
+                    f"all {self.server._pool.capacity} inspection slots are taken; try again",
+                    request_id=rid,
+                )
+        # Small frames are bounded per connection (one frame at a time); a larger body is
+        # only read when the server-wide budget can hold it.
+        large = header.frame_length > self.conn.limits.max_handshake_frame_bytes
+        if large and not admission.take_bytes(header.frame_length):
+            admission.release()
+            budget = self.server._budget
+            raise Busy(
+                f"the server's memory for request bodies is taken ({budget.used} of "
+                f"{budget.limit} bytes); try again",
+                request_id=rid,
+                details={"size": header.frame_length},
+            )
+        self._frame_admission = admission
+        self._held.add(admission)
+
+    def _take_frame_admission(self) -> Admission | None:
+        admission, self._frame_admission = self._frame_admission, None
+        return admission
+
+    def _release(self, admission: Admission | None) -> None:
+        if admission is not None:
+            admission.release()
+            self._held.discard(admission)
+
+    def admission_cleanup(self) -> None:
+        """Give back everything this connection still holds (it is gone)."""
+        for admission in list(self._held):
+            self._release(admission)
+        self._frame_admission = None
+
+    # ------------------------------------------------------------------ the connection
 
     async def run(self) -> None:
         try:
@@ -606,19 +789,38 @@ class _ClientSession:
             self.writer.close()
             with contextlib.suppress(Exception):
                 await self.writer.wait_closed()
+            self.admission_cleanup()
             self.finished.set()
+
+    def _read_timeout(self) -> tuple[float | None, str]:
+        """Seconds until the connection has been silent too long, and what it then says."""
+        settings = self.server.settings
+        now = time.monotonic()
+        if self.conn.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
+            limit = settings.handshake_timeout_s
+            return max(self.handshake_deadline - now, 0.0), f"no HELLO within {limit:g} s"
+        if self._frame_started is not None:
+            limit = settings.frame_timeout_s
+            return (
+                max(self._frame_started + limit - now, 0.0),
+                f"a frame was not complete within {limit:g} s",
+            )
+        if not self.conn.pending and not self._tasks:
+            limit = settings.idle_timeout_s
+            return (
+                max(self._last_activity + limit - now, 0.0),
+                f"idle for {limit:g} s (send PING to keep a connection open)",
+            )
+        return None, ""
 
     async def _read_loop(self, group: asyncio.TaskGroup) -> bool:
         """Read and dispatch until the peer closes (True) or broke the protocol (False)."""
-        handshake_deadline = time.monotonic() + self.server.settings.handshake_timeout_s
         while True:
             # Backpressure: do not read more while the peer is not reading our answers.
             await self._drain()
             read = asyncio.ensure_future(self.reader.read(READ_CHUNK))
             stop = asyncio.ensure_future(self._shutdown.wait())
-            timeout = None
-            if self.conn.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
-                timeout = max(handshake_deadline - time.monotonic(), 0.0)
+            timeout, why = self._read_timeout()
             done, _ = await asyncio.wait(
                 {read, stop}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED
             )
@@ -626,22 +828,24 @@ class _ClientSession:
                 read.cancel()
                 with contextlib.suppress(asyncio.CancelledError, ConnectionError):
                     await read
-                if stop not in done:  # no HELLO in time
+                if stop not in done:  # silent for too long
                     stop.cancel()
-                    limit = self.server.settings.handshake_timeout_s
-                    log.info("%s: no HELLO within %g s; closing", self.peer, limit)
-                    self._write(Close(reason=f"no HELLO within {limit:g} s"))
+                    log.info("%s: %s; closing", self.peer, why)
+                    self._write(Close(reason=why))
                     await self._drain()
                     return False
                 await self._shutdown_session()
                 return True
             stop.cancel()
             data = read.result()
+            if data and self._frame_started is None:
+                self._frame_started = time.monotonic()
             self.conn.receive_data(data)
             while True:
                 try:
                     event = self.conn.next_event()
                 except CellvisionError as exc:
+                    self._release(self._take_frame_admission())
                     log.info("%s: %s: %s", self.peer, exc.code.name, exc.message)
                     if exc.fatal:
                         self.writer.write(_late_error(self.conn, exc))
@@ -656,11 +860,26 @@ class _ClientSession:
                 if isinstance(event, ConnectionClosed):
                     return True
                 assert isinstance(event, Message)
-                if not self._dispatch(event, group):
+                self._last_activity = time.monotonic()
+                admission = self._take_frame_admission()
+                try:
+                    keep_going = self._dispatch(event, group, admission)
+                except BaseException:
+                    self._release(admission)
+                    raise
+                if not keep_going:
                     return self.conn.state is not State.CLOSED
+            self._frame_started = time.monotonic() if self.conn.receiving_frame else None
 
-    def _dispatch(self, message: Message, group: asyncio.TaskGroup) -> bool:
-        """Answer or start one request; False when the connection is to close."""
+    def _dispatch(
+        self, message: Message, group: asyncio.TaskGroup, admission: Admission | None
+    ) -> bool:
+        """Answer or start one request; False when the connection is to close. A request task
+        takes over ``admission``; for everything else it is released here."""
+        if isinstance(message, Inspect | Capture):
+            self._start(group, self._answer(message, admission))
+            return True
+        self._release(admission)
         if isinstance(message, Hello):
             return self._handshake(message)
         if isinstance(message, Ping):
@@ -674,25 +893,7 @@ class _ClientSession:
         if isinstance(message, Close):
             return False  # the TaskGroup finishes what is in flight, then CLOSE goes out
         if isinstance(message, Reload):
-            task = group.create_task(self._reload(message))
-            self._tasks.add(task)
-            task.add_done_callback(self._tasks.discard)
-            return True
-        if isinstance(message, Inspect | Capture):
-            if len(self.conn.pending) > self.server.settings.max_in_flight:
-                self._write(
-                    Error.from_exception(
-                        Busy(
-                            f"more than {self.server.settings.max_in_flight} requests in flight on "
-                            "this connection",
-                            request_id=message.request_id,
-                        )
-                    )
-                )
-                return True
-            task = group.create_task(self._answer(message))
-            self._tasks.add(task)
-            task.add_done_callback(self._tasks.discard)
+            self._start(group, self._reload(message))
             return True
         self._write(
             Error.from_exception(
@@ -703,6 +904,11 @@ class _ClientSession:
             )
         )
         return True
+
+    def _start(self, group: asyncio.TaskGroup, work: Coroutine[Any, Any, None]) -> None:
+        task = group.create_task(work)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     def _handshake(self, hello: Hello) -> bool:
         version = negotiate_version(hello.versions, self.conn.versions)
@@ -728,6 +934,8 @@ class _ClientSession:
                     )
                 )
                 return False
+        if hello.max_frame_bytes is not None:
+            self.max_reply_bytes = hello.max_frame_bytes
         settings = self.server.settings
         catalog = self.server.catalog
         self._write(
@@ -736,11 +944,7 @@ class _ClientSession:
                 version,
                 settings.name,
                 __version__,
-                {
-                    "max_frame_bytes": settings.max_frame_bytes,
-                    "max_image_pixels": settings.max_image_pixels,
-                    "max_in_flight": settings.max_in_flight,
-                },
+                settings.welcome_limits(),
                 catalog.inspection_descriptors(),
                 catalog.camera_descriptors(),
             )
@@ -748,37 +952,30 @@ class _ClientSession:
         log.info("%s: handshake done (version %d.%d, client %r)", self.peer, *version, hello.client)
         return True
 
-    async def _answer(self, request: Inspect | Capture) -> None:
+    async def _answer(self, request: Inspect | Capture, admission: Admission | None) -> None:
         try:
-            if isinstance(request, Inspect):
-                response: Message = await self.server.run_inspection(request, peer=self.peer)
-            else:
-                response = await self.server.run_capture(request)
-        except CellvisionError as exc:
-            response = Error.from_exception(exc, request_id=request.request_id)
-        except Exception as exc:  # a bug in an inspection must not take the server down
-            log.exception("%s: request %d failed", self.peer, request.request_id)
-            response = Error.from_exception(
-                InternalError(f"{type(exc).__name__}: {exc}", request_id=request.request_id)
-            )
-        if request.request_id in self.conn.pending:
             try:
-                self._write(response)
-            except (TypeError, ValueError) as exc:
-                # Data JSON cannot carry (numpy scalars, NaN): fail this request, not the
-                # connection (the state machine is unchanged when serializing fails).
-                log.error(
-                    "%s: answer to request %d not sendable: %s", self.peer, request.request_id, exc
-                )
-                self._write(
-                    Error.from_exception(
-                        InternalError(
-                            f"the server could not encode its answer: {exc}",
-                            request_id=request.request_id,
-                        )
+                if isinstance(request, Inspect):
+                    response: Message = await self.server.run_inspection(
+                        request, peer=self.peer, admission=admission
                     )
+                else:
+                    response = await self.server.run_capture(
+                        request, admission=admission, max_reply_bytes=self.max_reply_bytes
+                    )
+            except CellvisionError as exc:
+                response = Error.from_exception(exc, request_id=request.request_id)
+            except Exception as exc:  # a bug in an inspection must not take the server down
+                log.exception("%s: request %d failed", self.peer, request.request_id)
+                response = Error.from_exception(
+                    InternalError(f"{type(exc).__name__}: {exc}", request_id=request.request_id)
                 )
-            await self._drain()
+            if request.request_id in self.conn.pending:
+                self._write(response)
+                await self._drain()
+        finally:
+            # The reply is in the socket (or the connection is gone): its memory is free.
+            self._release(admission)
 
     async def _reload(self, request: Reload) -> None:
         rid = request.request_id
@@ -824,8 +1021,10 @@ class _ClientSession:
         await self._drain()
 
     def _write(self, message: Message) -> None:
+        """Send ``message``. An answer the client could not receive (larger than its HELLO's
+        max_frame_bytes) or cannot be encoded is replaced by an ERROR for its request."""
         try:
-            data = self.conn.send(message)
+            data = self._encode(message)
         except LocalProtocolError:
             log.warning(
                 "%s: dropped %s that the state machine refused", self.peer, message.TYPE.name
@@ -833,7 +1032,53 @@ class _ClientSession:
             return
         if not self.writer.is_closing():
             self.writer.write(data)
+            self._last_activity = time.monotonic()
+
+    def _encode(self, message: Message) -> bytes:
+        rid = message.request_id
+        try:
+            frame = message.to_frame(self.conn.wire_version)
+            size = HEADER_SIZE + len(encode_metadata(frame.metadata))
+            size += sum(4 + len(blob) for blob in frame.blobs)
+        except (TypeError, ValueError) as exc:
+            # Data JSON cannot carry (numpy scalars, NaN): fail this request, not the
+            # connection (the state machine is unchanged when serializing fails).
+            log.error("%s: answer to request %d not sendable: %s", self.peer, rid, exc)
+            return self.conn.send(
+                Error.from_exception(
+                    InternalError(f"the server could not encode its answer: {exc}", request_id=rid)
+                )
+            )
+        if size > self.max_reply_bytes and not isinstance(message, Error):
+            log.warning(
+                "%s: %s of %d bytes exceeds the client's limit", self.peer, message.TYPE.name, size
+            )
+            return self.conn.send(
+                Error.from_exception(
+                    InvalidArgument(
+                        f"the answer ({message.TYPE.name}) is {size} bytes, more than the "
+                        f"{self.max_reply_bytes} bytes the client accepts (HELLO "
+                        "max_frame_bytes); ask for less (fewer frames, a compressed encoding, "
+                        "no overlay)",
+                        request_id=rid,
+                        details={"size": size, "max_size": self.max_reply_bytes},
+                    )
+                )
+            )
+        return self.conn.send(message)
 
     async def _drain(self) -> None:
-        if not self.writer.is_closing():
-            await self.writer.drain()
+        """Wait until the client has taken our answers; drop a client that does not read."""
+        if self.writer.is_closing():
+            return
+        try:
+            async with asyncio.timeout(self.server.settings.write_timeout_s):
+                await self.writer.drain()
+        except TimeoutError:
+            log.warning(
+                "%s: the client has not read its answers for %g s; dropping it",
+                self.peer,
+                self.server.settings.write_timeout_s,
+            )
+            self.writer.transport.abort()
+            raise ConnectionAbortedError("slow reader dropped") from None

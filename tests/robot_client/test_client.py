@@ -390,7 +390,12 @@ def test_hello_offers_the_versions_the_client_speaks() -> None:
     assert hello.type == MessageType.HELLO
     assert hello.version == (1, 0)
     assert hello.request_id != 0
-    assert hello.metadata == {"versions": [[1, 0]], "client": "tester/1"}
+    assert hello.metadata == {
+        "versions": [[1, 0]],
+        "client": "tester/1",
+        # What the client can receive (SPEC §5.1): the server bounds its answers by it.
+        "max_frame_bytes": 256 * 1024 * 1024,
+    }
 
 
 @pytest.mark.parametrize("version", [(2, 0), (1, 7)])
