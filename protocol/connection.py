@@ -16,6 +16,7 @@ from .constants import NO_REQUEST, SUPPORTED_VERSIONS, MessageType
 from .errors import (
     CellvisionError,
     DuplicateRequestId,
+    FrameTooLarge,
     LocalProtocolError,
     MalformedFrame,
     NotAuthenticated,
@@ -196,13 +197,6 @@ class Connection:
             if self._fatal is not None:
                 raise self._fatal
             return ConnectionClosed()
-        if self.role is Role.SERVER and self.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
-            # SPEC §3.4: before the handshake only a HELLO-sized frame is buffered.
-            self._decoder.max_frame_bytes = min(
-                self.limits.max_frame_bytes, self.limits.max_handshake_frame_bytes
-            )
-        else:
-            self._decoder.max_frame_bytes = None
         self._refused_at_header = False
         try:
             frame = self._decoder.next_frame()
@@ -245,6 +239,16 @@ class Connection:
         body is read (SPEC §3.1: no memory for a body that will be refused)."""
         try:
             self._check_frame(header.type, (header.major, header.minor), header.request_id)
+            limit = self.limits.max_handshake_frame_bytes
+            handshaking = self.state in (State.HANDSHAKE, State.HELLO_RECEIVED)
+            if self.role is Role.SERVER and handshaking and header.frame_length > limit:
+                # SPEC §3.4: before the handshake only a HELLO-sized frame is buffered.
+                raise FrameTooLarge(
+                    f"frame of {header.frame_length} bytes before the handshake completed; "
+                    f"the limit until WELCOME is {limit} bytes",
+                    request_id=header.request_id,
+                    details={"size": header.frame_length, "max_size": limit},
+                )
             if self._admit is not None:
                 self._admit(header)
         except CellvisionError:

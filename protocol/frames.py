@@ -136,18 +136,13 @@ class Header:
         return HEADER_SIZE + self.body_length
 
 
-def parse_header(
-    data: bytes | bytearray | memoryview, limits: Limits, *, max_frame_bytes: int | None = None
-) -> Header:
-    """Parse and check the first 24 bytes of a frame (``data`` may be longer).
-
-    ``max_frame_bytes`` overrides ``limits.max_frame_bytes`` (a server before the handshake).
-    """
+def parse_header(data: bytes | bytearray | memoryview, limits: Limits) -> Header:
+    """Parse and check the first 24 bytes of a frame (``data`` may be longer)."""
     magic, major, minor, mtype, flags, blobs, rid, meta_len, body_len = HEADER.unpack_from(data)
     if magic != MAGIC:
         raise MalformedFrame(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
     header = Header(major, minor, mtype, flags, blobs, rid, meta_len, body_len)
-    limit = limits.max_frame_bytes if max_frame_bytes is None else max_frame_bytes
+    limit = limits.max_frame_bytes
     if header.frame_length > limit:
         raise FrameTooLarge(
             f"frame of {header.frame_length} bytes exceeds the limit of {limit} bytes",
@@ -218,8 +213,6 @@ class FrameDecoder:
 
     def __init__(self, limits: Limits | None = None) -> None:
         self.limits = limits or Limits()
-        self.max_frame_bytes: int | None = None
-        """When set, overrides ``limits.max_frame_bytes`` for the next headers."""
         self.check_header: HeaderCheck | None = None
         self._buffer = bytearray()
         self._header: Header | None = None
@@ -285,7 +278,7 @@ class FrameDecoder:
                         f"connection closed after {len(self._buffer)} bytes of a 24-byte header"
                     )
                 return None
-            header = parse_header(self._buffer, self.limits, max_frame_bytes=self.max_frame_bytes)
+            header = parse_header(self._buffer, self.limits)
             self.last_header = header
             if self.check_header is not None:
                 try:

@@ -481,7 +481,9 @@ class VisionServer:
                 request.count,
                 timeout_s,
                 rid,
-                lambda first: self._admit_reply(request, first, admission, max_reply_bytes),
+                lambda first: self._admit_reply(
+                    request, first, encoding, admission, max_reply_bytes
+                ),
             )
             payloads: list[ImagePayload] = []
             for frame in frames:
@@ -508,6 +510,7 @@ class VisionServer:
         self,
         request: Capture,
         first: CameraFrame,
+        encoding: ImageEncoding | None,
         admission: Admission | None,
         max_reply_bytes: int,
     ) -> None:
@@ -515,6 +518,11 @@ class VisionServer:
         of its frames. Raw sizes bound the encoded ones (checked again when sent)."""
         rid = request.request_id
         per_frame = first.color.nbytes
+        if encoding is not None:
+            # Compressed frames of one scene have similar sizes; twice the first one's, at most
+            # raw, bounds them (and the encoded reply is checked again before it is sent).
+            encoded = len(payload_from_array(first.color, encoding=encoding).data)
+            per_frame = min(per_frame, 2 * encoded)
         if request.depth and first.depth is not None:
             per_frame += first.depth.nbytes
         estimate = per_frame * request.count + _REPLY_OVERHEAD
@@ -821,9 +829,14 @@ class _ClientSession:
             read = asyncio.ensure_future(self.reader.read(READ_CHUNK))
             stop = asyncio.ensure_future(self._shutdown.wait())
             timeout, why = self._read_timeout()
-            done, _ = await asyncio.wait(
-                {read, stop}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED
-            )
+            try:
+                done, _ = await asyncio.wait(
+                    {read, stop}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED
+                )
+            except asyncio.CancelledError:  # a request task failed: leave nothing pending
+                read.cancel()
+                stop.cancel()
+                raise
             if read not in done:
                 read.cancel()
                 with contextlib.suppress(asyncio.CancelledError, ConnectionError):

@@ -18,7 +18,6 @@ import contextlib
 import importlib
 import json
 import os
-import shutil
 import signal
 import socket
 import ssl
@@ -34,6 +33,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from loopback import self_signed
 
 from protocol import (
     Capture,
@@ -112,28 +112,8 @@ def test_the_server_listens_on_loopback_unless_told_otherwise(tmp_path: Path) ->
 # ----------------------------------------------------------------------------- TLS
 
 
-def _self_signed(directory: Path) -> tuple[Path, Path]:
-    """A self-signed certificate for 127.0.0.1 (with the openssl command line tool)."""
-    openssl = shutil.which("openssl")
-    if openssl is None:
-        pytest.skip("no openssl command to make a test certificate (cryptography not installed)")
-    cert, key = directory / "cert.pem", directory / "key.pem"
-    made = subprocess.run(
-        [openssl, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1"]
-        + ["-keyout", str(key), "-out", str(cert), "-subj", "/CN=127.0.0.1"]
-        + ["-addext", "subjectAltName=IP:127.0.0.1"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-    if made.returncode != 0:
-        pytest.skip(f"openssl could not make a certificate: {made.stderr.strip()[:200]}")
-    return cert, key
-
-
 def test_tls_from_the_configuration_file(tmp_path: Path) -> None:
-    cert, key = _self_signed(tmp_path)
+    cert, key = self_signed(tmp_path)
     config = tmp_path / "cell.yaml"
     config.write_text(
         "server: {port: 0, tls: {cert: cert.pem, key: key.pem}}\n"
