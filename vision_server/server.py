@@ -322,7 +322,7 @@ class VisionServer:
                     frames[0].color, depth if inspection.uses_depth else (), camera.intrinsics
                 )
 
-        def work() -> tuple[InspectionOutcome, float, tuple[ImagePayload, ...]]:
+        def work() -> tuple[InspectionOutcome, float, tuple[ImagePayload, ...], bool | None]:
             image = acquire()
             t0 = time.perf_counter()
             try:
@@ -343,7 +343,7 @@ class VisionServer:
                 )
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
-            self._record(
+            stored = self._record(
                 inspection.name,
                 camera.name,
                 outcome.passed,
@@ -362,9 +362,9 @@ class VisionServer:
                         outcome.overlay, role=ImageRole.OVERLAY, encoding=ImageEncoding.PNG
                     ),
                 )
-            return outcome, compute_ms, images
+            return outcome, compute_ms, images, stored
 
-        outcome, compute_ms, images = await self._in_pool(work, rid, request.deadline_ms)
+        outcome, compute_ms, images, stored = await self._in_pool(work, rid, request.deadline_ms)
         total_ms = (time.perf_counter() - started) * 1000.0
         result = Result(
             rid,
@@ -375,6 +375,7 @@ class VisionServer:
             camera.name,
             catalog.config_hash,
             images,
+            stored,
         )
         if self.on_result is not None:
             self.on_result(ResultRecord(result, request, compute_ms))
@@ -393,12 +394,14 @@ class VisionServer:
         image: Image,
         *,
         error: str | None = None,
-    ) -> None:
-        """Log one run before its answer is sent, so that an acknowledged result is on disk.
-        The log never raises: a full disk is counted and logged, the answer still goes out."""
+    ) -> bool | None:
+        """Log one run before its answer is sent; return whether the row was written (None
+        without a result log). The log never raises: a full disk is counted and logged, the
+        answer still goes out, with ``stored: false`` (SPEC §6.3), and :meth:`health` turns
+        not ok. An error row that fails is counted the same way (its ERROR carries no flag)."""
         if self.results is None:
-            return
-        self.results.record(
+            return None
+        row_id = self.results.record(
             ResultEntry(
                 time=time.time(),
                 inspection=inspection,
@@ -413,6 +416,15 @@ class VisionServer:
                 error=error,
             )
         )
+        return row_id is not None
+
+    def health(self) -> dict[str, Any]:
+        """The health report a PONG carries (SPEC §5.5): ``ok`` false once the result log lost
+        a row since start (see :meth:`ResultLog.health`), and the log's counters."""
+        if self.results is None:
+            return {"ok": True}
+        result_log = self.results.health()
+        return {"ok": bool(result_log["ok"]), "result_log": result_log}
 
     def _capture_timeout(self, deadline_ms: float | None) -> float:
         if deadline_ms is None:
@@ -664,7 +676,7 @@ class _ClientSession:
         if isinstance(message, Hello):
             return self._handshake(message)
         if isinstance(message, Ping):
-            self._write(Pong(message.request_id, message.data))
+            self._write(Pong(message.request_id, message.data, self.server.health()))
             return True
         if isinstance(message, ListInspections):
             self._write(
