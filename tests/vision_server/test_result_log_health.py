@@ -22,13 +22,20 @@ import sqlite3
 import subprocess
 import sys
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
+from loopback import client_for, run, server_in_thread
 
-from protocol import Inspect, Ping, Pong, Result, payload_from_array
+from protocol import Inspect, InspectionFailed, Ping, Pong, Result, payload_from_array
 from robot_client.client import ReconnectPolicy, VisionClient
+from vision_server.builtin import MeanIntensityPresence
+from vision_server.cameras import RequestCamera, RequestCameraSettings
+from vision_server.catalog import Catalog, InspectionInput, InspectionOutcome
+from vision_server.results import ResultLog
+from vision_server.server import VisionServer
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 CONFIG = """\
@@ -178,6 +185,65 @@ def test_a_healthy_server_pings_healthy_with_its_counters(tmp_path: Path) -> Non
     assert [a.stored for a in answers] == [True] * 3
     assert ping.returncode == 0, ping
     assert "healthy: result log: 3 written, 0 failed" in ping.stdout
+
+
+# ----------------------------------------------------------------------------- in process
+
+
+@dataclass(frozen=True)
+class AlwaysFails:
+    """An inspection that cannot run: its request is answered ERROR and logged as an error row."""
+
+    name: str = "broken"
+    camera: str = "tool"
+    type: str = "presence"
+    uses_depth: bool = False
+    frames: int = 1
+
+    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
+        raise InspectionFailed("no part in view")
+
+
+def test_a_lost_error_row_counts_too_and_no_log_means_no_stored_field(tmp_path: Path) -> None:
+    catalog = Catalog.build(
+        [RequestCamera("tool", RequestCameraSettings())],
+        [MeanIntensityPresence("brightness", "tool", 0.0, 255.0), AlwaysFails()],
+    )
+    image = np.full((8, 8), 200, np.uint8)
+
+    async def exchange(server: VisionServer) -> tuple[Result, Pong]:
+        async with client_for(server) as client:
+            with pytest.raises(InspectionFailed):
+                await client.inspect("broken", image)
+            result = await client.inspect("brightness", image)
+            pong = await client.request(lambda rid: Ping(rid))
+            assert isinstance(pong, Pong)
+            return result, pong
+
+    log = ResultLog(tmp_path / "results.sqlite3")
+    with server_in_thread(catalog, results=log) as server:
+        result, pong = run(exchange(server))
+    assert result.stored is True
+    assert pong.health is not None
+    assert pong.health["ok"] is True
+    assert pong.health["result_log"]["written"] == 2  # the error row and the result
+    assert [r.error for r in log.query(newest_first=False)] == [
+        "INSPECTION_FAILED: no part in view",
+        None,
+    ]
+
+    log.close()  # every write fails from now on, error rows included
+    with server_in_thread(catalog, results=log) as server:
+        result, pong = run(exchange(server))
+    assert result.stored is False
+    assert pong.health is not None
+    assert pong.health["ok"] is False
+    assert pong.health["result_log"]["failed"] == 2
+
+    with server_in_thread(catalog) as server:  # no result log: nothing to promise
+        result, pong = run(exchange(server))
+    assert result.stored is None
+    assert pong.health == {"ok": True}
 
 
 # ----------------------------------------------------------------------------- at start
