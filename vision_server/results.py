@@ -409,8 +409,11 @@ class ResultLog:
         self.store_images: ImagePolicy = store_images
         self.max_image_bytes = max_image_bytes
         self.readonly = _readonly
-        # Re-entrant: a fault is counted both from inside a record and from the image writer.
+        # Serialises the use of the connection (writes, queries, close).
         self._lock = threading.RLock()
+        # The counters have their own lock, never held during I/O: the server reads them on its
+        # event loop (PING), which must not wait for a write stuck on a locked database.
+        self._stats = threading.Lock()
         self._closed = False
         self._recorded = 0
         self._failed = 0  # rows lost: their results went out with stored: false
@@ -573,17 +576,18 @@ class ResultLog:
                     self._unlink(image_name)
                 self._fault(f"result of {entry.inspection!r} not recorded", exc, row_lost=True)
                 return None
-            self._recorded += 1
-            self._failing = False
-            if image_name is not None:
-                self._images_stored += 1
-                self._image_bytes += image_bytes
-            for _, size in pruned:
-                self._image_bytes -= size
-            self._images_deleted += len(pruned)
-            if self._streak:
-                logger.warning("result log %s recovered after %d faults", self.path, self._streak)
-                self._streak = 0
+            with self._stats:
+                self._recorded += 1
+                self._failing = False
+                if image_name is not None:
+                    self._images_stored += 1
+                    self._image_bytes += image_bytes
+                for _, size in pruned:
+                    self._image_bytes -= size
+                self._images_deleted += len(pruned)
+                streak, self._streak = self._streak, 0
+            if streak:
+                logger.warning("result log %s recovered after %d faults", self.path, streak)
         for name, _ in pruned:
             self._unlink(name)
         return new_id
@@ -600,7 +604,7 @@ class ResultLog:
         assert entry.image is not None
         payload = _encode_png(entry.image)
         if len(payload) > self.max_image_bytes:
-            with self._lock:
+            with self._stats:
                 self._images_skipped += 1
             logger.debug("image of %d bytes is larger than the whole cap", len(payload))
             return None, 0
@@ -680,7 +684,7 @@ class ResultLog:
         elif isinstance(exc, sqlite3.Error) and getattr(exc, "sqlite_errorname", None):
             # "disk I/O error" alone does not tell a full disk (EFBIG, ENOSPC) from a bad one.
             message += f" ({exc.sqlite_errorname})"
-        with self._lock:
+        with self._stats:
             if row_lost:
                 self._failed += 1
                 self._failing = True
@@ -767,7 +771,8 @@ class ResultLog:
         return self._errors
 
     def status(self) -> LogStatus:
-        with self._lock:
+        """The counters; never waits for a write in progress."""
+        with self._stats:
             return LogStatus(
                 path=self.path,
                 image_dir=self.image_dir,

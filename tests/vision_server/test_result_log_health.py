@@ -21,13 +21,15 @@ import signal
 import sqlite3
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
-from loopback import client_for, run, server_in_thread
+from loopback import client_for, run, server_in_thread, wait_until
 
 from protocol import Inspect, InspectionFailed, Ping, Pong, Result, payload_from_array
 from robot_client.client import ReconnectPolicy, VisionClient
@@ -244,6 +246,48 @@ def test_a_lost_error_row_counts_too_and_no_log_means_no_stored_field(tmp_path: 
         result, pong = run(exchange(server))
     assert result.stored is None
     assert pong.health == {"ok": True}
+
+
+def test_ping_answers_while_a_write_waits_for_a_locked_database(tmp_path: Path) -> None:
+    """The health report is read on the event loop: it must not wait for a write in progress
+    (a locked database holds the writer for up to ``busy_timeout_s``, here longer than the
+    test's whole deadline)."""
+    db = tmp_path / "results.sqlite3"
+    log = ResultLog(db, busy_timeout_s=30.0)
+    inside = threading.Event()
+    real_insert = log._insert
+
+    def insert(*args: Any) -> Any:
+        inside.set()
+        return real_insert(*args)
+
+    log._insert = insert  # type: ignore[method-assign]
+    other = sqlite3.connect(db, isolation_level=None)
+    other.execute("BEGIN EXCLUSIVE")  # another process holds the write lock
+
+    async def exchange(server: VisionServer) -> tuple[Pong, Result]:
+        async with client_for(server, request_timeout_s=20.0) as client:
+            pending = asyncio.ensure_future(
+                client.inspect("brightness", np.full((8, 8), 200, np.uint8))
+            )
+            await wait_until(inside.is_set, "the write is waiting for the lock")
+            pong = await client.request(lambda rid: Ping(rid))
+            assert isinstance(pong, Pong)
+            assert not pending.done()
+            other.execute("COMMIT")
+            return pong, await pending
+
+    try:
+        with server_in_thread(results=log) as server:
+            pong, result = run(exchange(server), timeout_s=15.0)
+    finally:
+        if other.in_transaction:
+            other.execute("ROLLBACK")
+        other.close()
+        log.close()
+    assert pong.health is not None
+    assert pong.health["result_log"]["written"] == 0
+    assert result.stored is True
 
 
 # ----------------------------------------------------------------------------- at start
