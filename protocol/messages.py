@@ -265,19 +265,41 @@ class Ping(Message):
 
 @dataclass(frozen=True)
 class Pong(Message):
-    """The answer to PING, echoing its ``data``."""
+    """The answer to PING, echoing its ``data``.
+
+    ``health`` is the server's health report (SPEC §5.5), or None when the server sent none: an
+    object with at least ``ok`` (boolean: false when the server cannot do all it promises, e.g.
+    results it acknowledged were not logged) and, when the server has a result log,
+    ``result_log`` with its counters.
+    """
 
     TYPE: ClassVar[MessageType] = MessageType.PONG
     data: str = ""
+    health: dict[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.health is not None and not isinstance(self.health.get("ok"), bool):
+            raise ValueError("PONG health must have a boolean 'ok'")
+
+    @property
+    def healthy(self) -> bool:
+        """False only when the server reported itself unhealthy (no report counts as healthy)."""
+        return self.health is None or self.health["ok"] is True
 
     def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
-        return ({"data": self.data} if self.data else {}), ()
+        meta: dict[str, Any] = {"data": self.data} if self.data else {}
+        if self.health is not None:
+            meta["health"] = dict(self.health)
+        return meta, ()
 
     @classmethod
     def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Pong:
-        return cls(
-            frame.request_id, _get(frame.metadata, "data", str, frame.request_id, default="")
-        )
+        m, rid = frame.metadata, frame.request_id
+        health = _get(m, "health", dict, rid, default=None)
+        if health is not None:
+            _get(health, "ok", bool, rid, what=" of 'health'")
+        return cls(rid, _get(m, "data", str, rid, default=""), health)
 
 
 @dataclass(frozen=True)
@@ -382,7 +404,9 @@ class Result(Message):
     """The answer to INSPECT.
 
     ``passed`` is the verdict. ``data`` holds what the inspection measured or found (SPEC §6.2);
-    ``timing`` durations in milliseconds; ``images`` an optional overlay PNG.
+    ``timing`` durations in milliseconds; ``images`` an optional overlay PNG. ``stored`` says
+    whether the server wrote the result to its result log before answering: None when the
+    server has no result log (or did not say), False when the entry could not be written.
     """
 
     TYPE: ClassVar[MessageType] = MessageType.RESULT
@@ -393,6 +417,7 @@ class Result(Message):
     camera: str = ""
     config_hash: str = ""
     images: tuple[ImagePayload, ...] = ()
+    stored: bool | None = None
 
     def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
         descs, blobs = _images_to_wire(self.images)
@@ -408,6 +433,8 @@ class Result(Message):
             meta["config_hash"] = self.config_hash
         if descs:
             meta["images"] = descs
+        if self.stored is not None:
+            meta["stored"] = self.stored
         return meta, blobs
 
     @classmethod
@@ -431,6 +458,7 @@ class Result(Message):
             _get(m, "camera", str, rid, default=""),
             _get(m, "config_hash", str, rid, default=""),
             _images_from_wire(m, frame.blobs, rid, ctx),
+            _get(m, "stored", bool, rid, default=None),
         )
 
 

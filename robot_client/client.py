@@ -435,7 +435,11 @@ class VisionClient:
         timeout_s: float | None = None,
     ) -> Result:
         """Run a named inspection, on ``image`` (and ``depth`` frames) if given, else on the
-        server's camera. numpy images are sent raw unless ``encoding`` asks for PNG/JPEG."""
+        server's camera. numpy images are sent raw unless ``encoding`` asks for PNG/JPEG.
+
+        The verdict stands whatever ``result.stored`` says; ``stored`` is False when the server
+        could not write the result to its log (SPEC §6.3), None when it keeps none. A program
+        that must not go on without traceability checks it: no exception is raised for it."""
         images: list[ImagePayload] = []
         if image is not None:
             images.append(_payload(image, ImageRole.COLOR, encoding))

@@ -35,6 +35,7 @@ from protocol import (
     ImageRole,
     Inspect,
     Ping,
+    Pong,
     Reload,
     Reloaded,
     array_from_payload,
@@ -45,7 +46,7 @@ from .builtin import builtin_catalog
 from .cameras import RequestCamera, RequestCameraSettings
 from .catalog import Catalog, Inspection
 from .config import CellConfig, ConfigError, load_config
-from .results_cli import results_command
+from .results_cli import describe_health, results_command
 from .server import ServerSettings, VisionServer
 
 log = logging.getLogger("vision_server")
@@ -150,7 +151,10 @@ def _serve(args: argparse.Namespace) -> int:
 def _check_config(args: argparse.Namespace) -> int:
     console = Console()
     try:
+        from .runtime import check_result_log
+
         config = load_config(args.file)
+        check_result_log(config)  # a log that cannot be created would stop `serve`
     except ConfigError as exc:
         if args.json:
             print(
@@ -354,7 +358,7 @@ def _results(args: argparse.Namespace) -> int:
 def _ping(args: argparse.Namespace) -> int:
     host, port = _address(args.server)
     try:
-        call(
+        answer = call(
             host,
             port,
             lambda rid: Ping(rid, "health"),
@@ -364,7 +368,15 @@ def _ping(args: argparse.Namespace) -> int:
     except (AdminError, CellvisionError) as exc:
         print(f"vision-server ping: {host}:{port}: {exc}", file=sys.stderr)
         return 1
-    print(f"{host}:{port} answers")
+    assert isinstance(answer, Pong)
+    if not answer.healthy:  # exit 1: Docker's HEALTHCHECK code for unhealthy
+        print(
+            f"vision-server ping: {host}:{port} answers but is UNHEALTHY: "
+            + describe_health(answer.health),
+            file=sys.stderr,
+        )
+        return 1
+    print(f"{host}:{port} answers; healthy: {describe_health(answer.health)}")
     return 0
 
 

@@ -3,7 +3,8 @@
 One row per inspection (time, inspection, camera, verdict, measures or features as JSON, duration,
 config hash, request id, peer, error) and, depending on the policy, the input image as a PNG file
 beside the database. The server calls :meth:`ResultLog.record` from its worker threads and sends
-the response only after it returned, so an acknowledged result is in the log.
+the response only after it returned, and the response says whether the row was written (RESULT's
+``stored``, SPEC §6.3): a result acknowledged with ``stored: true`` is in the log.
 
 Choices, and why:
 
@@ -13,11 +14,17 @@ Choices, and why:
   can lose the last transactions before a checkpoint syncs them, and never corrupts the database.
   ``FULL`` would add an ``fsync`` per inspection (milliseconds on a cell PC's SSD) to protect
   against power loss alone; the cell's UPS is the better answer to that.
-- **Faults never stop inspections.** A full disk, an I/O error, a locked or read-only database:
-  :meth:`~ResultLog.record` logs the error (``vision_server.results``), counts it and returns
-  ``None``; the next call tries again, so the log recovers by itself when the fault clears. If
-  only the image cannot be written, the row is still recorded (without an image) and the error is
-  counted: the verdict matters more than the picture.
+- **Faults never stop inspections, and are never silent.** A full disk, an I/O error, a locked
+  or read-only database: :meth:`~ResultLog.record` logs the error (``vision_server.results``),
+  counts the lost row in ``failed`` and returns ``None``; the server answers with ``stored:
+  false`` and reports itself unhealthy (:meth:`ResultLog.health`). The next call tries again, so
+  the log takes rows again by itself when the fault clears. If only the image cannot be written,
+  the row is still recorded (without an image) and the fault is counted in ``images_failed``:
+  the verdict matters more than the picture.
+- **Health is sticky.** Once a row was lost, :meth:`~ResultLog.health` says ``ok: false`` until
+  the log is reopened (a server restart), even after writes succeed again: the health check is
+  polled, and a fault that cleared between two polls would otherwise never be seen, while the
+  lost rows stay lost. ``failing`` tells whether the latest write failed (the fault is ongoing).
 - **Disk cap for images.** When the stored images exceed ``max_image_bytes``, the *oldest* images
   are deleted and their rows keep everything but the image reference (set to NULL). The newest
   failures are what an operator looks at; stopping at the cap would keep last month's instead.
@@ -60,6 +67,7 @@ __all__ = [
     "ResultLog",
     "ResultLogError",
     "StoredResult",
+    "check_creatable",
 ]
 
 logger = logging.getLogger("vision_server.results")
@@ -171,8 +179,11 @@ class StoredResult:
 class LogStatus:
     """Counters since the log was opened, for health reports.
 
-    ``errors`` counts every fault (a result not recorded, or recorded without its image);
-    ``last_error`` is the latest fault's message and ``last_error_time`` its Unix time.
+    ``recorded`` counts rows written; ``failed`` rows that could not be written (their results
+    were answered with ``stored: false``); ``failing`` whether the latest write failed.
+    ``images_failed`` counts rows written without the image their policy asked for. ``errors``
+    counts every fault (``failed`` + ``images_failed``); ``last_error`` is the latest fault's
+    message and ``last_error_time`` its Unix time.
     """
 
     path: Path
@@ -182,11 +193,91 @@ class LogStatus:
     errors: int
     last_error: str | None
     last_error_time: float | None
+    failed: int
+    failing: bool
+    images_failed: int
     images_stored: int
     images_deleted: int
     images_skipped: int
     image_bytes: int
     max_image_bytes: int
+
+
+def _access_error(path: Path, mode: int) -> OSError | None:
+    """The error writing into (``mode`` with ``os.W_OK``) ``path`` would meet, or None.
+
+    ``os.access`` answers for the real user, as the server will run; a read-only mount is told
+    apart from missing permission so that the message names the true cause.
+    """
+    if os.access(path, mode):
+        return None
+    code = errno.EACCES
+    with contextlib.suppress(OSError):
+        if os.statvfs(path).f_flag & os.ST_RDONLY:
+            code = errno.EROFS
+    return OSError(code, os.strerror(code), str(path))
+
+
+def _creatable_error(path: Path, *, directory: bool) -> OSError | None:
+    """Why ``path`` (a file, or a ``directory``) could not be created or written, or None.
+
+    Creates nothing: for ``check-config``, which must not leave files behind. SQLite also
+    creates ``-wal`` and ``-shm`` files beside the database, so its directory must be writable
+    even when the database file exists.
+    """
+    path = Path(os.path.abspath(path))
+    if path.exists():
+        if directory != path.is_dir():
+            code = errno.ENOTDIR if directory else errno.EISDIR
+            return OSError(code, os.strerror(code), str(path))
+        if directory:
+            return _access_error(path, os.W_OK | os.X_OK)
+        return _access_error(path, os.R_OK | os.W_OK) or _access_error(
+            path.parent, os.W_OK | os.X_OK
+        )
+    ancestor = path.parent
+    # exists() is False both for a missing path and for one that runs through a file.
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        return OSError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(ancestor))
+    return _access_error(ancestor, os.W_OK | os.X_OK)
+
+
+def check_creatable(
+    path: Path, *, store_images: ImagePolicy = "failures", image_dir: Path | None = None
+) -> None:
+    """Check, without creating anything, that a writer could open the log at ``path``.
+
+    The database file (or the directories it needs) must be creatable and writable, and so must
+    the image directory (default ``<db stem>-images/`` beside it) unless no images are stored.
+    What is found is checked too: a directory where the database should be is refused, a file
+    in the way of a directory as well.
+
+    Raises
+    ------
+    ResultLogError
+        Naming the path and the operating system's error, e.g. ``cannot create the result log
+        /config/results.sqlite3: [Errno 30] Read-only file system: '/config'``.
+    """
+    path = Path(path)
+    problem = _creatable_error(path, directory=False)
+    if problem is None and store_images != "none":
+        images = image_dir if image_dir is not None else path.with_name(f"{path.stem}-images")
+        problem = _creatable_error(images, directory=True)
+    if problem is not None:
+        raise ResultLogError(f"cannot create the result log {path}: {problem}")
+
+
+def _open_for_writing(path: Path) -> None:
+    """Create the database file (and its directory) if needed, failing with the operating
+    system's error: SQLite would only say "unable to open database file", and ``mkdir`` says
+    "File exists" for a file in the way of a directory."""
+    problem = _creatable_error(path, directory=False)
+    if problem is not None:
+        raise problem
+    path.parent.mkdir(parents=True, exist_ok=True)
+    os.close(os.open(path, os.O_RDWR | os.O_CREAT, 0o644))
 
 
 def _connect(path: Path, *, readonly: bool, busy_timeout_s: float) -> sqlite3.Connection:
@@ -318,12 +409,18 @@ class ResultLog:
         self.store_images: ImagePolicy = store_images
         self.max_image_bytes = max_image_bytes
         self.readonly = _readonly
-        # Re-entrant: a fault is counted both from inside a record and from the image writer.
+        # Serialises the use of the connection (writes, queries, close).
         self._lock = threading.RLock()
+        # The counters have their own lock, never held during I/O: the server reads them on its
+        # event loop (PING), which must not wait for a write stuck on a locked database.
+        self._stats = threading.Lock()
         self._closed = False
         self._recorded = 0
+        self._failed = 0  # rows lost: their results went out with stored: false
+        self._images_failed = 0
         self._errors = 0
         self._streak = 0  # consecutive failed records: log the first loudly, then quietly
+        self._failing = False  # the latest record failed
         self._last_error: str | None = None
         self._last_error_time: float | None = None
         self._images_stored = 0
@@ -337,7 +434,7 @@ class ResultLog:
                 self._conn = _connect(self.path, readonly=True, busy_timeout_s=busy_timeout_s)
                 self._check_schema_readable()
             else:
-                self.path.parent.mkdir(parents=True, exist_ok=True)
+                _open_for_writing(self.path)
                 self._conn = _connect(self.path, readonly=False, busy_timeout_s=busy_timeout_s)
                 self._prepare_for_writing()
             self.image_dir = self._resolve_image_dir(image_dir)
@@ -448,8 +545,10 @@ class ResultLog:
         """Store one result; return its id once it is committed, or ``None`` after a fault.
 
         Thread-safe. Never raises for runtime faults (full disk, I/O error, locked or read-only
-        database, closed log): they are logged, counted in :attr:`errors`, and the next call
-        tries again. Raises :class:`ResultLogError` only on a read-only view (a programming error).
+        database, closed log): they are logged, counted (``failed`` in :meth:`status`, which
+        turns :meth:`health` not ok), and the next call tries again. ``None`` means the row is
+        not in the log: the caller must say so to whoever gets the result (``stored: false``).
+        Raises :class:`ResultLogError` only on a read-only view (a programming error).
         """
         if self.readonly:
             raise ResultLogError(f"{self.path} was opened read-only: it cannot record results")
@@ -460,12 +559,12 @@ class ResultLog:
                 raise ResultLogError("the result log is closed")
             values = _row_values(entry)
         except Exception as exc:
-            self._fault(f"result of {entry.inspection!r} not recorded", exc)
+            self._fault(f"result of {entry.inspection!r} not recorded", exc, row_lost=True)
             return None
         try:
             image_name, image_bytes = self._store_image(entry)
         except Exception as exc:
-            self._fault(f"image of {entry.inspection!r} not stored", exc)
+            self._fault(f"image of {entry.inspection!r} not stored", exc, row_lost=False)
             image_name, image_bytes = None, 0
         with self._lock:
             try:
@@ -475,18 +574,20 @@ class ResultLog:
             except Exception as exc:
                 if image_name is not None:
                     self._unlink(image_name)
-                self._fault(f"result of {entry.inspection!r} not recorded", exc)
+                self._fault(f"result of {entry.inspection!r} not recorded", exc, row_lost=True)
                 return None
-            self._recorded += 1
-            if image_name is not None:
-                self._images_stored += 1
-                self._image_bytes += image_bytes
-            for _, size in pruned:
-                self._image_bytes -= size
-            self._images_deleted += len(pruned)
-            if self._streak:
-                logger.warning("result log %s recovered after %d faults", self.path, self._streak)
-                self._streak = 0
+            with self._stats:
+                self._recorded += 1
+                self._failing = False
+                if image_name is not None:
+                    self._images_stored += 1
+                    self._image_bytes += image_bytes
+                for _, size in pruned:
+                    self._image_bytes -= size
+                self._images_deleted += len(pruned)
+                streak, self._streak = self._streak, 0
+            if streak:
+                logger.warning("result log %s recovered after %d faults", self.path, streak)
         for name, _ in pruned:
             self._unlink(name)
         return new_id
@@ -503,7 +604,7 @@ class ResultLog:
         assert entry.image is not None
         payload = _encode_png(entry.image)
         if len(payload) > self.max_image_bytes:
-            with self._lock:
+            with self._stats:
                 self._images_skipped += 1
             logger.debug("image of %d bytes is larger than the whole cap", len(payload))
             return None, 0
@@ -576,11 +677,19 @@ class ResultLog:
             return None
         return self.image_dir / name
 
-    def _fault(self, what: str, exc: BaseException) -> None:
+    def _fault(self, what: str, exc: BaseException, *, row_lost: bool) -> None:
         message = f"{what}: {exc}"
         if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
             message += " (disk full)"
-        with self._lock:
+        elif isinstance(exc, sqlite3.Error) and getattr(exc, "sqlite_errorname", None):
+            # "disk I/O error" alone does not tell a full disk (EFBIG, ENOSPC) from a bad one.
+            message += f" ({exc.sqlite_errorname})"
+        with self._stats:
+            if row_lost:
+                self._failed += 1
+                self._failing = True
+            else:
+                self._images_failed += 1
             self._errors += 1
             self._streak += 1
             first = self._streak == 1
@@ -662,7 +771,8 @@ class ResultLog:
         return self._errors
 
     def status(self) -> LogStatus:
-        with self._lock:
+        """The counters; never waits for a write in progress."""
+        with self._stats:
             return LogStatus(
                 path=self.path,
                 image_dir=self.image_dir,
@@ -671,12 +781,34 @@ class ResultLog:
                 errors=self._errors,
                 last_error=self._last_error,
                 last_error_time=self._last_error_time,
+                failed=self._failed,
+                failing=self._failing,
+                images_failed=self._images_failed,
                 images_stored=self._images_stored,
                 images_deleted=self._images_deleted,
                 images_skipped=self._images_skipped,
                 image_bytes=self._image_bytes,
                 max_image_bytes=self.max_image_bytes,
             )
+
+    def health(self) -> dict[str, Any]:
+        """The log's part of the server's health report (PONG ``health.result_log``, SPEC §5.5).
+
+        ``ok`` is false once a row could not be written since the log was opened (sticky, see
+        the module doc); ``written`` and ``failed`` count rows, ``failing`` says whether the
+        latest write failed, ``images_failed`` counts rows written without their image, and
+        ``last_error``/``last_error_time`` (Unix seconds) describe the latest fault.
+        """
+        status = self.status()
+        return {
+            "ok": status.failed == 0,
+            "written": status.recorded,
+            "failed": status.failed,
+            "failing": status.failing,
+            "images_failed": status.images_failed,
+            "last_error": status.last_error,
+            "last_error_time": status.last_error_time,
+        }
 
     def close(self) -> None:
         """Close the database; later :meth:`record` calls return ``None``. Idempotent."""

@@ -10,6 +10,7 @@ import json
 import math
 import re
 import time
+from collections.abc import Mapping
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,7 @@ from rich.text import Text
 
 from .results import ResultLog, ResultLogError, StoredResult
 
-__all__ = ["parse_since", "results_command"]
+__all__ = ["describe_health", "parse_since", "results_command"]
 
 _UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0, "w": 7 * 86400.0}
 _RELATIVE = re.compile(r"(?:\d+(?:\.\d+)?[smhdw])+")
@@ -53,6 +54,32 @@ def parse_since(text: str, *, now: float | None = None) -> float:
         ) from None
     # A naive datetime is local time: .timestamp() interprets it so.
     return moment.timestamp()
+
+
+def describe_health(health: Mapping[str, Any] | None) -> str:
+    """One line for a PONG's health report (SPEC §5.5), for ``vision-server ping``.
+
+    ``result log: 14 written, 286 failed (failing now); last error 2024-05-01 08:30:12: ...``
+    """
+    if health is None:
+        return "the server sent no health report"
+    log = health.get("result_log")
+    if not isinstance(log, Mapping):
+        return "no result log" if health.get("ok") is True else "not ok"
+    text = f"result log: {log.get('written', '?')} written, {log.get('failed', '?')} failed"
+    if log.get("failing") is True:
+        text += " (failing now)"
+    elif log.get("ok") is False:
+        text += " (writing again; restart the server to clear)"
+    if log.get("images_failed"):
+        text += f", {log['images_failed']} without their image"
+    if log.get("last_error"):
+        when = log.get("last_error_time")
+        at = ""
+        if isinstance(when, int | float) and math.isfinite(when):
+            at = " " + datetime.fromtimestamp(when).isoformat(sep=" ", timespec="seconds")
+        text += f"; last error{at}: {log['last_error']}"
+    return text
 
 
 def results_command(

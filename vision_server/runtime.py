@@ -15,7 +15,8 @@ from pathlib import Path
 from .cameras import Camera, CameraSettings, make_camera
 from .catalog import Catalog
 from .config import CellConfig, ConfigError, load_config
-from .results import ResultLog
+from .configfile import read_document
+from .results import ResultLog, ResultLogError, check_creatable
 
 log = logging.getLogger("vision_server")
 
@@ -28,17 +29,24 @@ class CellRuntime:
         self._lock = threading.Lock()
         self.config = load_config(self.path)
         self._cameras: dict[str, tuple[CameraSettings, Camera]] = {}
+        self.results: ResultLog | None = None
         self.catalog = self._build(self.config)
         self.results = self._open_results(self.config)
 
     def _open_results(self, config: CellConfig) -> ResultLog | None:
+        """The configured log, opened for writing; a log that cannot be opened is a
+        configuration error (one line naming the file, the key and the cause), not a crash."""
         if config.results.path is None:
             return None
-        return ResultLog(
-            config.results.path,
-            store_images=config.results.store_images,  # type: ignore[arg-type]
-            max_image_bytes=config.results.max_image_bytes,
-        )
+        try:
+            return ResultLog(
+                config.results.path,
+                store_images=config.results.store_images,  # type: ignore[arg-type]
+                max_image_bytes=config.results.max_image_bytes,
+            )
+        except ResultLogError as exc:
+            self.close()  # the cameras opened by _build
+            raise result_log_error(config, str(exc)) from None
 
     def _build(self, config: CellConfig) -> Catalog:
         """Cameras for ``config`` (reusing unchanged ones), then the catalog."""
@@ -100,4 +108,30 @@ class CellRuntime:
             self.results.close()
 
 
-__all__ = ["CellRuntime"]
+def check_result_log(config: CellConfig) -> None:
+    """Raise :class:`ConfigError` when the configured result log could not be created or
+    written (``check-config``: creates nothing)."""
+    if config.results.path is None:
+        return
+    try:
+        check_creatable(
+            config.results.path,
+            store_images=config.results.store_images,  # type: ignore[arg-type]
+        )
+    except ResultLogError as exc:
+        raise result_log_error(config, str(exc)) from None
+
+
+def result_log_error(config: CellConfig, message: str) -> ConfigError:
+    """``message`` as an error at ``results -> path`` of the configuration file, with the
+    key's line (the line of the top level when the path is the default)."""
+    if config.source is None:
+        return ConfigError(message, path="results -> path")
+    try:
+        root, _ = read_document(config.source)
+        return root.sub("results").error(message, "path")
+    except ConfigError:  # the file changed or vanished since it was loaded
+        return ConfigError(message, source=config.source.name, path="results -> path")
+
+
+__all__ = ["CellRuntime", "check_result_log", "result_log_error"]

@@ -341,7 +341,7 @@ class VisionServer:
                     frames[0].color, depth if inspection.uses_depth else (), camera.intrinsics
                 )
 
-        def work() -> tuple[InspectionOutcome, float, tuple[ImagePayload, ...]]:
+        def work() -> tuple[InspectionOutcome, float, tuple[ImagePayload, ...], bool | None]:
             image = acquire()
             t0 = time.perf_counter()
             try:
@@ -362,7 +362,7 @@ class VisionServer:
                 )
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
-            self._record(
+            stored = self._record(
                 inspection.name,
                 camera.name,
                 outcome.passed,
@@ -381,9 +381,11 @@ class VisionServer:
                         outcome.overlay, role=ImageRole.OVERLAY, encoding=ImageEncoding.PNG
                     ),
                 )
-            return outcome, compute_ms, images
+            return outcome, compute_ms, images, stored
 
-        outcome, compute_ms, images = await self._in_pool(work, rid, request.deadline_ms, admission)
+        outcome, compute_ms, images, stored = await self._in_pool(
+            work, rid, request.deadline_ms, admission
+        )
         total_ms = (time.perf_counter() - started) * 1000.0
         result = Result(
             rid,
@@ -394,6 +396,7 @@ class VisionServer:
             camera.name,
             catalog.config_hash,
             images,
+            stored,
         )
         if self.on_result is not None:
             self.on_result(ResultRecord(result, request, compute_ms))
@@ -412,12 +415,14 @@ class VisionServer:
         image: Image,
         *,
         error: str | None = None,
-    ) -> None:
-        """Log one run before its answer is sent, so that an acknowledged result is on disk.
-        The log never raises: a full disk is counted and logged, the answer still goes out."""
+    ) -> bool | None:
+        """Log one run before its answer is sent; return whether the row was written (None
+        without a result log). The log never raises: a full disk is counted and logged, the
+        answer still goes out, with ``stored: false`` (SPEC §6.3), and :meth:`health` turns
+        not ok. An error row that fails is counted the same way (its ERROR carries no flag)."""
         if self.results is None:
-            return
-        self.results.record(
+            return None
+        row_id = self.results.record(
             ResultEntry(
                 time=time.time(),
                 inspection=inspection,
@@ -432,6 +437,30 @@ class VisionServer:
                 error=error,
             )
         )
+        return row_id is not None
+
+    def health(self) -> dict[str, Any]:
+        """The health report a PONG carries (SPEC §5.5): ``ok`` false once the result log lost
+        a row since start (see :meth:`ResultLog.health`), and the log's counters."""
+        report: dict[str, Any] = {"ok": True, "admission": self.admission_counters()}
+        if self.results is not None:
+            result_log = self.results.health()
+            report["ok"] = bool(result_log["ok"])
+            report["result_log"] = result_log
+        return report
+
+    def admission_counters(self) -> dict[str, Any]:
+        """What bounds the server now: connections, worker slots, the byte budget."""
+        return {
+            "connections": len(self._connections),
+            "max_connections": self.settings.max_connections,
+            "pool_admitted": self._pool.admitted,
+            "pool_capacity": self._pool.capacity,
+            "buffered_bytes": self._budget.used,
+            "buffered_bytes_peak": self._budget.peak,
+            "max_buffered_bytes": self._budget.limit,
+            "buffer_refusals": self._budget.refused,
+        }
 
     def _capture_timeout(self, deadline_ms: float | None) -> float:
         if deadline_ms is None:
@@ -546,19 +575,6 @@ class VisionServer:
                 f"{self._budget.limit} bytes); try again",
                 request_id=rid,
             )
-
-    def health(self) -> dict[str, Any]:
-        """Counters of the admission limits (for health output and tests)."""
-        return {
-            "connections": len(self._connections),
-            "pool": {"admitted": self._pool.admitted, "capacity": self._pool.capacity},
-            "buffered_bytes": {
-                "used": self._budget.used,
-                "peak": self._budget.peak,
-                "limit": self._budget.limit,
-                "refused": self._budget.refused,
-            },
-        }
 
     async def _in_pool(
         self,
@@ -896,7 +912,7 @@ class _ClientSession:
         if isinstance(message, Hello):
             return self._handshake(message)
         if isinstance(message, Ping):
-            self._write(Pong(message.request_id, message.data))
+            self._write(Pong(message.request_id, message.data, self.server.health()))
             return True
         if isinstance(message, ListInspections):
             self._write(

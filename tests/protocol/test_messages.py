@@ -91,7 +91,12 @@ MESSAGES: dict[type[Message], st.SearchStrategy[Message]] = {
         st.lists(descriptors, max_size=2).map(tuple),
     ),
     Ping: st.builds(Ping, ids, texts),
-    Pong: st.builds(Pong, ids, texts),
+    Pong: st.builds(
+        Pong,
+        ids,
+        texts,
+        st.none() | st.builds(lambda extra, ok: {**extra, "ok": ok}, json_objects, st.booleans()),
+    ),
     Close: st.builds(Close, st.just(0), texts),
     ListInspections: st.builds(ListInspections, ids),
     Inspections: st.builds(Inspections, ids, st.lists(descriptors, max_size=3).map(tuple)),
@@ -108,6 +113,7 @@ MESSAGES: dict[type[Message], st.SearchStrategy[Message]] = {
         texts,
         texts,
         image_lists,
+        st.none() | st.booleans(),
     ),
     Capture: st.builds(
         Capture,
@@ -227,6 +233,10 @@ BAD_METADATA = [
     (MessageType.WELCOME, {"version": [1, 0], "server": "cellvision"}),
     (MessageType.PING, {"data": 1}),
     (MessageType.PONG, {"data": {}}),
+    (MessageType.PONG, {"health": "ok"}),
+    (MessageType.PONG, {"health": {}}),
+    (MessageType.PONG, {"health": {"ok": "yes"}}),
+    (MessageType.PONG, {"health": {"ok": 1}}),
     (MessageType.CLOSE, {"reason": False}),
     (MessageType.INSPECTIONS, {"inspections": {}}),
     (MessageType.INSPECT, {}),
@@ -246,6 +256,8 @@ BAD_METADATA = [
     (MessageType.RESULT, {"verdict": "pass"}),
     (MessageType.RESULT, {"inspection": "x", "verdict": "pass", "data": []}),
     (MessageType.RESULT, {"inspection": "x", "verdict": "pass", "timing": {"total_ms": "1"}}),
+    (MessageType.RESULT, {"inspection": "x", "verdict": "pass", "stored": "yes"}),
+    (MessageType.RESULT, {"inspection": "x", "verdict": "pass", "stored": 0}),
     (MessageType.CAPTURE, {}),
     (MessageType.CAPTURE, {"camera": ""}),
     (MessageType.CAPTURE, {"camera": "c", "count": 0}),
@@ -292,6 +304,20 @@ def test_constructors_validate() -> None:
         Ping(2**32)
     with pytest.raises(ValueError, match="u32"):
         Ping(-1)
+    with pytest.raises(ValueError, match="boolean 'ok'"):
+        Pong(1, health={"result_log": {}})
+
+
+def test_stored_and_health_are_optional_on_the_wire() -> None:
+    """SPEC §5.5, §6.3: absent without a result log or a report, so older peers see no change."""
+    result = Result(4, "x", True)
+    assert "stored" not in result.to_frame((1, 0)).metadata
+    assert result.stored is None
+    assert Result(4, "x", True, stored=False).to_frame((1, 0)).metadata["stored"] is False
+    assert "health" not in Pong(5).to_frame((1, 0)).metadata
+    assert Pong(5).healthy
+    assert not Pong(5, health={"ok": False, "result_log": {"failed": 3}}).healthy
+    assert Pong(5, health={"ok": True}).healthy
 
 
 # --------------------------------------------------------------------------- images

@@ -428,6 +428,97 @@ def test_locked_database_returns_none_then_recovers(db: Path) -> None:
         assert log.count() == 1
 
 
+def test_health_turns_not_ok_on_a_lost_row_and_stays_so_until_reopened(
+    db: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    connections: list[sqlite3.Connection] = []
+    real_connect = results._connect
+
+    def connect(path: Path, *, readonly: bool, busy_timeout_s: float) -> sqlite3.Connection:
+        conn = real_connect(path, readonly=readonly, busy_timeout_s=busy_timeout_s)
+        connections.append(conn)
+        return conn
+
+    monkeypatch.setattr(results, "_connect", connect)
+    big = {"features": "x" * 3000}
+    with ResultLog(db, store_images="all") as log:
+        (conn,) = connections
+        assert log.health() == {
+            "ok": True,
+            "written": 0,
+            "failed": 0,
+            "failing": False,
+            "images_failed": 0,
+            "last_error": None,
+            "last_error_time": None,
+        }
+        # An image lost, the row written: the result is in the log, health stays ok.
+        assert log.record(entry(1, image=np.zeros((2, 2), np.float64))) is not None
+        health = log.health()
+        assert (health["ok"], health["written"], health["images_failed"]) == (True, 1, 1)
+
+        pages = conn.execute("PRAGMA page_count").fetchone()[0]
+        conn.execute(f"PRAGMA max_page_count = {pages + 2}")  # SQLITE_FULL, as on a full disk
+        got = [log.record(entry(n, data=big)) for n in range(2, 14)]
+        lost = got.count(None)
+        assert lost
+        health = log.health()
+        assert health["ok"] is False
+        assert health["failed"] == lost
+        assert health["written"] == 1 + len(got) - lost
+        assert health["failing"] is True
+        assert "SQLITE_FULL" in health["last_error"]
+        assert isinstance(health["last_error_time"], float)
+
+        conn.execute("PRAGMA max_page_count = 1073741823")  # room again
+        assert log.record(entry(20)) is not None
+        health = log.health()
+        assert health["failing"] is False
+        assert health["ok"] is False  # sticky: the lost rows stay lost
+        assert health["failed"] == lost
+    with ResultLog(db) as reopened:  # a restart starts afresh
+        assert reopened.health()["ok"] is True
+
+
+@pytest.mark.parametrize(
+    ("setup", "target", "store_images", "reason"),
+    [
+        ("file:plain", "plain/results.db", "none", "Not a directory"),
+        ("file:plain", "plain/deeper/results.db", "none", "Not a directory"),
+        ("dir:results.db", "results.db", "none", "Is a directory"),
+        ("file:results-images", "results.db", "failures", "Not a directory"),
+        ("", "new/dirs/results.db", "all", None),
+        ("file:results-images", "results.db", "none", None),  # no images: no image directory
+        ("file:results.db", "results.db", "failures", None),  # an existing (empty) database
+    ],
+)
+def test_check_creatable_names_the_os_error_and_creates_nothing(
+    tmp_path: Path, setup: str, target: str, store_images: str, reason: str | None
+) -> None:
+    kind, _, name = setup.partition(":")
+    if kind == "file":
+        (tmp_path / name).write_text("")
+    elif kind == "dir":
+        (tmp_path / name).mkdir()
+    before = sorted(tmp_path.rglob("*"))
+    if reason is None:
+        results.check_creatable(tmp_path / target, store_images=store_images)  # type: ignore[arg-type]
+    else:
+        with pytest.raises(ResultLogError, match=reason) as info:
+            results.check_creatable(tmp_path / target, store_images=store_images)  # type: ignore[arg-type]
+        assert str(tmp_path / target) in str(info.value)
+    assert sorted(tmp_path.rglob("*")) == before
+
+
+def test_open_names_the_os_error_not_sqlites(tmp_path: Path) -> None:
+    (tmp_path / "results.db").mkdir()
+    with pytest.raises(ResultLogError, match=r"\[Errno 21\] Is a directory"):
+        ResultLog(tmp_path / "results.db")
+    (tmp_path / "plain").write_text("")
+    with pytest.raises(ResultLogError, match=r"\[Errno 20\] Not a directory"):
+        ResultLog(tmp_path / "plain" / "results.db")
+
+
 def test_strange_entries_are_faults_not_exceptions(db: Path) -> None:
     circular: dict[str, Any] = {}
     circular["self"] = circular
