@@ -45,7 +45,8 @@ RUN pip install --no-cache-dir --no-deps --no-build-isolation . \
     && rm -rf /opt/cellvision/build
 
 # In the group `video` so that a camera passed with --device can be opened.
-RUN useradd --system --uid 10001 --groups video --create-home cellvision \
+RUN useradd --uid 10001 --user-group --groups video --create-home --shell /usr/sbin/nologin \
+        cellvision \
     && mkdir -p /config /data && chown cellvision /data
 USER cellvision
 VOLUME ["/data"]
