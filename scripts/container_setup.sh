@@ -67,7 +67,7 @@ fi
 [ -n "$mirror" ] || skip "no apt source for the suite $suite (apt-get indextargets lists none)"
 
 ca_dir=/usr/local/share/ca-certificates
-ca_sum=$(find "$ca_dir" -type f -name '*.crt' -print0 2>/dev/null | sort -z |
+ca_sum=$({ find "$ca_dir" -type f -name '*.crt' -print0 2>/dev/null || true; } | sort -z |
     xargs -0 -r cat | sha256sum | cut -c1-12)
 key=$(printf '%s\n' "$RECIPE" "$suite" "$mirror" "$PACKAGES" "$ca_sum" | sha256sum | cut -c1-12)
 image="localhost/cellvision-base:$suite-$key"
@@ -84,8 +84,8 @@ if ! podman image exists "$image"; then
     chroot "$rootfs" python3 -c 'import sys; sys.exit(sys.version_info < (3, 11))' ||
         skip "the suite $suite ships python3 older than 3.11, which cellvision needs"
     # This machine's extra CA certificates, for apt and pip inside the build.
-    if compgen -G "$ca_dir/*.crt" >/dev/null; then
-        cp "$ca_dir"/*.crt "$rootfs/usr/local/share/ca-certificates/"
+    if [ -d "$ca_dir" ]; then
+        cp -r "$ca_dir"/. "$rootfs/usr/local/share/ca-certificates/"
         chroot "$rootfs" update-ca-certificates >/dev/null 2>&1
     fi
     printf '[global]\ncert = /etc/ssl/certs/ca-certificates.crt\n' >"$rootfs/etc/pip.conf"
