@@ -1,25 +1,52 @@
-# cellvision vision server, for the cell PC.
+# cellvision on the cell PC: the vision server (the entrypoint) and, in the same image, the
+# robot client (`robot-client`) and the protocol's conformance suite, for checks from inside.
 #   docker build -t cellvision .
-#   docker run -d --name vision -p 7878:7878 -v /srv/cell:/config:ro -v vision-data:/data \
-#       --device /dev/video0 cellvision
-# The configuration is read from /config/cell.yaml; results and stored images go to /data.
+#   podman build --format docker -t cellvision .   # podman drops HEALTHCHECK without --format docker
+#   docker run -d --name vision -p 127.0.0.1:7878:7878 \
+#       -v "$PWD/examples/container:/config:ro" -v vision-data:/data cellvision
+# The configuration is read from /config/cell.yaml; the result log, stored images and any other
+# state go to /data (examples/container/cell.yaml is a ready one, with simulated cameras).
+# Add --device /dev/video0 only for a real camera attached to the cell PC.
 # Reload the configuration without dropping connections: docker kill -s HUP vision
-FROM python:3.11-slim
+# DEFAULTS ARE OPEN: no token, plaintext, every interface inside the container, RELOAD allowed;
+# see the README, "On the cell PC: the server in a container", to secure it.
+
+# The base image, pinned by exact tag (pin a digest as well with
+# --build-arg BASE_IMAGE=python:3.11.13-slim-bookworm@sha256:...). Any Debian-like image with
+# python3 >= 3.11 and its venv module works: the tests build one with debootstrap.
+ARG BASE_IMAGE=python:3.11.13-slim-bookworm
+FROM ${BASE_IMAGE}
 
 RUN apt-get update \
     && apt-get install -y --no-install-recommends libzbar0 \
     && rm -rf /var/lib/apt/lists/*
 
+# A virtual environment: a distribution's python3 refuses system-wide pip installs (PEP 668).
+RUN python3 -m venv /opt/venv
+ENV PATH=/opt/venv/bin:$PATH
+
+# The dependencies in their own layer, rebuilt only when pyproject.toml changes; with them the
+# build backend, so that installing the sources below needs no network.
 WORKDIR /opt/cellvision
-COPY pyproject.toml README.md ./
+COPY pyproject.toml ./
+RUN python3 -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb')); \
+print('\n'.join(p['project']['dependencies'] + p['build-system']['requires']))" \
+        > /tmp/requirements.txt \
+    && pip install --no-cache-dir -r /tmp/requirements.txt \
+    && rm /tmp/requirements.txt
+
+COPY README.md ./
 COPY protocol ./protocol
 COPY vision_server ./vision_server
 COPY robot_client ./robot_client
 COPY simulation ./simulation
 COPY geometry ./geometry
-RUN pip install --no-cache-dir . && rm -rf /opt/cellvision/build
+RUN pip install --no-cache-dir --no-deps --no-build-isolation . \
+    && rm -rf /opt/cellvision/build
 
-RUN useradd --system --uid 10001 --create-home cellvision \
+# In the group `video` so that a camera passed with --device can be opened.
+RUN useradd --uid 10001 --user-group --groups video --create-home --shell /usr/sbin/nologin \
+        cellvision \
     && mkdir -p /config /data && chown cellvision /data
 USER cellvision
 VOLUME ["/data"]

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Docker cannot run on our machines, so CI checks what the Dockerfile does without it:
+# What the Dockerfile does, without a container (tests/test_container.py runs the image itself):
 # build the wheel, install it (not editable) into a clean venv, start the server from it with
 # the Dockerfile's command line (a config mounted as a file, the health check's PING), and run
 # the conformance suite against it.
