@@ -248,11 +248,6 @@ def test_hup_reloads_a_changed_configuration(running: Running) -> None:
     assert json.loads(done.stdout)["data"]["min"] == 0.3
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the result log's error escapes as a traceback until the one-line startup error "
-    "(issue 14) is merged: then remove this marker",
-)
 def test_a_configuration_outside_config_and_data_fails_in_one_line(image: str) -> None:
     # The issue's case: examples/cell.yaml mounted as is puts its result log in ../demo-output,
     # which is /config/../demo-output in the container.
