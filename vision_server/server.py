@@ -108,6 +108,11 @@ class ServerSettings:
     """How long a new connection may take to complete its HELLO; then it is closed, so that
     silent connections cannot hold every one of the ``max_connections`` slots."""
 
+    def __post_init__(self) -> None:
+        # "" would read as "a token is required" and let in every client that sends none.
+        if self.auth_token is not None and not self.auth_token.strip():
+            raise ValueError("auth_token is empty: give a token, or None for no authentication")
+
     def limits(self) -> Limits:
         return Limits(max_frame_bytes=self.max_frame_bytes, max_image_pixels=self.max_image_pixels)
 
