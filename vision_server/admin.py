@@ -18,6 +18,7 @@ from pathlib import Path
 from protocol import (
     NEED_DATA,
     SUPPORTED_VERSIONS,
+    CellvisionError,
     Connection,
     ConnectionClosed,
     Error,
@@ -156,7 +157,12 @@ def call(
 
 def _answer(sock: socket.socket, conn: Connection, deadline: float) -> Message:
     while True:
-        event = conn.next_event()
+        try:
+            event = conn.next_event()
+        except CellvisionError as exc:
+            # Raised here, not answered by the server: bytes that are no cellvision frames, or
+            # a connection closed midway (e.g. a TLS server spoken to in plain TCP).
+            raise AdminError(f"no valid answer: {exc.message}") from None
         if isinstance(event, Error):
             raise event.to_exception()
         if isinstance(event, Message):
@@ -172,7 +178,10 @@ def _answer(sock: socket.socket, conn: Connection, deadline: float) -> Message:
             data = sock.recv(1 << 20)
         except TimeoutError:
             raise AdminError("no answer in time") from None
-        conn.receive_data(data)
+        try:
+            conn.receive_data(data)
+        except CellvisionError as exc:
+            raise AdminError(f"no valid answer: {exc.message}") from None
 
 
 __all__ = ["AdminError", "call", "call_endpoint", "config_layer", "resolve", "ssl_context"]
