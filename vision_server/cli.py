@@ -29,7 +29,7 @@ import logging
 import os
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +43,7 @@ from protocol import (
     ImagePayload,
     ImageRole,
     Inspect,
+    Message,
     Ping,
     Reload,
     Reloaded,
@@ -50,6 +51,7 @@ from protocol import (
 )
 from protocol.cli import (
     CONFIG_ENV,
+    Endpoint,
     ErrorKind,
     ExitCode,
     Layer,
@@ -439,7 +441,7 @@ def _results(args: argparse.Namespace) -> int:
     )
 
 
-def _endpoint(args: argparse.Namespace) -> Any:
+def _endpoint(args: argparse.Namespace) -> Endpoint:
     cli = Layer(
         "command line",
         server=args.server,
@@ -451,8 +453,11 @@ def _endpoint(args: argparse.Namespace) -> Any:
     return resolve(cli, _config_path(args))
 
 
-def _admin(args: argparse.Namespace, build: Any, default_timeout_s: float) -> Any:
-    """Send one request to the server; (its answer, "host:port") or an exit code."""
+def _admin(
+    args: argparse.Namespace, build: Callable[[int], Message], default_timeout_s: float
+) -> tuple[Message, str] | int:
+    """Send one request to the server: (its answer, "host:port"), or the exit code of an error
+    already reported."""
     try:
         endpoint = _endpoint(args)
     except UsageError as exc:

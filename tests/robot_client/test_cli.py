@@ -143,3 +143,13 @@ def test_inspect_an_image_file(
         == 2
     )
     assert "cannot read the image" in _flat(capsys.readouterr().err)
+
+
+def test_a_token_on_the_command_line_is_deprecated(
+    address: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--auth-token`` shows the token in ps: it still works, and says it is deprecated."""
+    assert main(["--server", address, "--auth-token", "x", "ping"]) == 0
+    err = _flat(capsys.readouterr().err)
+    assert "--auth-token is deprecated" in err
+    assert "--token-file" in err
