@@ -23,7 +23,9 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from .address import resolve_server
+from protocol.cli import ExitCode
+
+from .address import endpoint_from_args, ssl_context
 from .devices import Devices
 from .devices.vision import LazyVision
 from .skills import Outcome, SkillContext, default_registry, execute
@@ -50,13 +52,15 @@ def _world_file(args: argparse.Namespace, store: TeachStore) -> Path:
 
 
 def _devices(args: argparse.Namespace) -> Devices:
-    host, port = resolve_server(args.server)
+    endpoint = endpoint_from_args(args)
+    timeout_s = args.timeout if args.timeout is not None else 10.0
     vision = LazyVision(
-        host,
-        port,
-        auth_token=args.auth_token,
-        request_timeout_s=args.timeout,
-        connect_timeout_s=args.timeout,
+        endpoint.host,
+        endpoint.port,
+        auth_token=endpoint.token,
+        ssl=ssl_context(endpoint),
+        request_timeout_s=timeout_s,
+        connect_timeout_s=timeout_s,
     )
     if args.backend == "ur":
         if not args.robot_host:
@@ -202,7 +206,7 @@ def cmd_run(args: argparse.Namespace, console: Console) -> int:
         print(json.dumps(outcome.to_dict()))
     else:
         _print_outcome(outcome, console)
-    return 0 if outcome.ok else 1
+    return ExitCode.OK if outcome.ok else ExitCode.FAILED
 
 
 def _operator(mode: str, console: Console) -> Callable[[Step, Outcome], OperatorDecision]:
@@ -251,7 +255,7 @@ def cmd_task_run(args: argparse.Namespace, console: Console) -> int:
             f"{len(report.failures)} failed, {report.duration_s:.2f} s"
             + (f", stopped at {report.stopped_at}" if report.stopped_at else "")
         )
-    return 0 if report.ok else 1
+    return ExitCode.OK if report.ok else ExitCode.FAILED
 
 
 def cmd_taught_list(args: argparse.Namespace, console: Console) -> int:
@@ -334,15 +338,17 @@ def _device_options() -> argparse.ArgumentParser:
 def _store_options() -> argparse.ArgumentParser:
     parent = argparse.ArgumentParser(add_help=False)
     parent.add_argument("--store", default=None, help=f"teach store (default ${STORE_ENV})")
-    parent.add_argument("--json", action="store_true", help="machine-readable output")
     return parent
 
 
-def add_skill_commands(sub: Any) -> None:
-    """Add teach, run, task, taught and skills to the ``robot-client`` subparsers."""
+def add_skill_commands(sub: Any, common: argparse.ArgumentParser) -> None:
+    """Add teach, run, task, taught and skills to the ``robot-client`` subparsers; ``common``
+    holds the options every command takes (server, ``--json``)."""
     dev, st = _device_options(), _store_options()
 
-    teach = sub.add_parser("teach", parents=[dev, st], help="teach a skill and store the record")
+    teach = sub.add_parser(
+        "teach", parents=[common, dev, st], help="teach a skill and store the record"
+    )
     teach.add_argument("skill")
     teach.add_argument("name")
     teach.add_argument(
@@ -357,14 +363,14 @@ def add_skill_commands(sub: Any) -> None:
     teach.add_argument("--notes", default="")
     teach.set_defaults(func=cmd_teach, sync=True)
 
-    run = sub.add_parser("run", parents=[dev, st], help="execute a taught skill")
+    run = sub.add_parser("run", parents=[common, dev, st], help="execute a taught skill")
     run.add_argument("skill")
     run.add_argument("name")
     run.set_defaults(func=cmd_run, sync=True)
 
     task = sub.add_parser("task", help="tasks composed of skills")
     task_sub = task.add_subparsers(dest="task_command", required=True)
-    task_run = task_sub.add_parser("run", parents=[dev, st], help="run a task file")
+    task_run = task_sub.add_parser("run", parents=[common, dev, st], help="run a task file")
     task_run.add_argument("file")
     task_run.add_argument(
         "--operator",
@@ -376,13 +382,14 @@ def add_skill_commands(sub: Any) -> None:
 
     taught = sub.add_parser("taught", help="the taught records")
     taught_sub = taught.add_subparsers(dest="taught_command", required=True)
-    tl = taught_sub.add_parser("list", parents=[st], help="list taught records")
+    tl = taught_sub.add_parser("list", parents=[common, st], help="list taught records")
     tl.add_argument("--skill", default=None)
     tl.set_defaults(func=cmd_taught_list, sync=True)
-    ts = taught_sub.add_parser("show", parents=[st], help="show one record (NAME or SKILL/NAME)")
+    ts = taught_sub.add_parser(
+        "show", parents=[common, st], help="show one record (NAME or SKILL/NAME)"
+    )
     ts.add_argument("name")
     ts.set_defaults(func=cmd_taught_show, sync=True)
 
-    skills = sub.add_parser("skills", help="the skills this robot knows")
-    skills.add_argument("--json", action="store_true")
+    skills = sub.add_parser("skills", parents=[common], help="the skills this robot knows")
     skills.set_defaults(func=cmd_skills, sync=True)

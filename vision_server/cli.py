@@ -6,7 +6,17 @@ image files, list logged results, and check or reload a running server.
     vision-server run --config cell.yaml cap_locate --image cap.png [--json] [--overlay out.png]
     vision-server test-inspections [PATH ...] [--json] [--update]   # golden cases
     vision-server results --config cell.yaml --since 1h [--inspection NAME] [--json]
-    vision-server ping --server 127.0.0.1:7878
+    vision-server ping [--server HOST:PORT] [--token-file PATH] [--tls] [--ca FILE]
+    vision-server reload [...the same options]
+
+Reaching a server (ping, reload): the command line, else $CELLVISION_SERVER, $CELLVISION_TOKEN
+or $CELLVISION_TOKEN_FILE, $CELLVISION_TLS, $CELLVISION_CA, else the server section of --config
+or $CELLVISION_CONFIG (its port, token and certificate), else 127.0.0.1:7878. Options may come
+before or after the command.
+
+Exit codes (both tools): 0 ok/pass, 1 fail verdict, 2 usage or configuration error,
+3 connection error (or serve cannot listen), 4 error answered by the server (or, offline, by the
+inspection). With --json an error is printed on stdout as {"error": {"kind", "message", "code"}}.
 """
 
 from __future__ import annotations
@@ -19,7 +29,7 @@ import logging
 import os
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,20 +38,34 @@ from rich.console import Console
 from rich.table import Table
 
 from protocol import (
-    DEFAULT_PORT,
     CellvisionError,
     ImageEncoding,
     ImagePayload,
     ImageRole,
     Inspect,
+    Message,
     Ping,
     Pong,
     Reload,
     Reloaded,
     array_from_payload,
 )
+from protocol.cli import (
+    CONFIG_ENV,
+    Endpoint,
+    ErrorKind,
+    ExitCode,
+    Layer,
+    Parser,
+    ParserError,
+    UsageError,
+    env_token_layer,
+    is_loopback,
+    json_error,
+    resolve_token,
+)
 
-from .admin import AdminError, call
+from .admin import AdminError, call_endpoint, resolve
 from .builtin import builtin_catalog
 from .cameras import RequestCamera, RequestCameraSettings
 from .catalog import Catalog, Inspection
@@ -50,23 +74,45 @@ from .results_cli import describe_health, results_command
 from .server import ServerSettings, VisionServer
 
 log = logging.getLogger("vision_server")
-CONFIG_ENV = "CELLVISION_CONFIG"
+PROG = "vision-server"
 
 
-def _address(text: str | None) -> tuple[str, int]:
-    if not text:
-        return "127.0.0.1", DEFAULT_PORT
-    host, sep, port = text.rpartition(":")
-    if not sep:
-        return text, DEFAULT_PORT
-    return host.strip("[]") or "127.0.0.1", int(port)
+def _config_path(args: argparse.Namespace) -> str | None:
+    """--config, else $CELLVISION_CONFIG (set but empty: none)."""
+    return getattr(args, "config", None) or os.environ.get(CONFIG_ENV) or None
+
+
+def _fail(args: argparse.Namespace, kind: ErrorKind, message: str, code: str | None = None) -> int:
+    """Report an error (JSON on stdout with --json, else one line on stderr); its exit code."""
+    if getattr(args, "json", False):
+        print(json.dumps(json_error(kind, message, code)))
+    else:
+        label = f"{code}: " if code else ""
+        print(f"{PROG} {args.command}: {label}{message}", file=sys.stderr, flush=True)
+    return int(kind.exit_code)
+
+
+def _read_text(path: str) -> str:
+    return Path(path).read_text(encoding="utf-8")
+
+
+def _deprecated_token(args: argparse.Namespace) -> str | None:
+    literal: str | None = getattr(args, "auth_token", None)
+    if literal is not None:
+        print(
+            f"{PROG}: warning: --auth-token is deprecated (the token shows in ps); "
+            "use --token-file PATH or $CELLVISION_TOKEN_FILE",
+            file=sys.stderr,
+            flush=True,
+        )
+    return literal
 
 
 # ----------------------------------------------------------------------------- serve
 
 
 def _serve(args: argparse.Namespace) -> int:
-    config_path = args.config or os.environ.get(CONFIG_ENV)
+    config_path = _config_path(args)
     runtime = None
     if config_path:
         from .runtime import CellRuntime
@@ -74,21 +120,18 @@ def _serve(args: argparse.Namespace) -> int:
         try:
             runtime = CellRuntime(config_path)
         except ConfigError as exc:
-            print(f"vision-server: invalid configuration: {exc}", file=sys.stderr)
-            return 2
+            return _fail(args, ErrorKind.USAGE, f"invalid configuration: {exc}")
         base = runtime.config.server
         catalog = runtime.catalog
     else:
         base = ServerSettings()
         catalog = builtin_catalog()
-    overrides: dict[str, Any] = {}
-    if args.host is not None:
-        overrides["host"] = args.host
-    if args.port is not None:
-        overrides["port"] = args.port
-    if args.auth_token is not None:
-        overrides["auth_token"] = args.auth_token
-    settings = ServerSettings(**{**base.__dict__, **overrides})
+    try:
+        settings = _serve_settings(args, base)
+    except UsageError as exc:
+        if runtime is not None:
+            runtime.close()
+        return _fail(args, ErrorKind.USAGE, str(exc))
 
     def reload() -> Catalog:
         assert runtime is not None
@@ -108,8 +151,8 @@ def _serve(args: argparse.Namespace) -> int:
                 f"vision-server: cannot listen on {settings.host}:{settings.port}: {exc}",
                 file=sys.stderr,
             )
-            return 1
-        print(f"vision-server listening on {settings.host}:{server.port}", flush=True)
+            return int(ExitCode.CONNECTION)
+        _warn_if_exposed(settings)
         loop = asyncio.get_running_loop()
         stop = asyncio.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -134,6 +177,8 @@ def _serve(args: argparse.Namespace) -> int:
         if runtime is not None:
             with contextlib.suppress(NotImplementedError):
                 loop.add_signal_handler(signal.SIGHUP, on_hup)
+        # Only now: whoever waits for this line may signal the server at once.
+        print(f"vision-server listening on {settings.host}:{server.port}", flush=True)
         await stop.wait()
         await server.stop()
         return 0
@@ -145,11 +190,59 @@ def _serve(args: argparse.Namespace) -> int:
             runtime.close()
 
 
+def _serve_settings(args: argparse.Namespace, base: ServerSettings) -> ServerSettings:
+    """The configuration's settings with the command line's and the environment's on top.
+    The token: --token-file, else $CELLVISION_TOKEN / $CELLVISION_TOKEN_FILE, else the
+    configuration; one that is empty is an error (raises :class:`UsageError`), never "none"."""
+    overrides: dict[str, Any] = {}
+    if args.host is not None:
+        overrides["host"] = args.host
+    if args.port is not None:
+        overrides["port"] = args.port
+    cli = Layer("command line", token=_deprecated_token(args), token_file=args.token_file)
+    token, source = resolve_token(
+        cli,
+        env_token_layer(os.environ),
+        Layer("configuration", token=base.auth_token),
+        read_text=_read_text,
+    )
+    overrides["auth_token"] = token
+    if source is not None:
+        log.info("clients must present the token from %s", source)
+    return ServerSettings(**{**base.__dict__, **overrides})
+
+
+def _warn_if_exposed(settings: ServerSettings) -> None:
+    """One warning line each when the server is reachable from the network without a token
+    or without TLS (the container's default is both)."""
+    if is_loopback(settings.host):
+        return
+    where = f"{settings.host or '*'}:{settings.port}"
+    if settings.auth_token is None:
+        log.warning(
+            "listening on %s beyond loopback WITHOUT A TOKEN: anyone on the network may "
+            "inspect%s; set server.auth_token_file or $CELLVISION_TOKEN_FILE",
+            where,
+            " and reload" if settings.allow_reload else "",
+        )
+    if settings.tls_cert is None:
+        log.warning(
+            "listening on %s beyond loopback WITHOUT TLS: images, results and the token "
+            "cross the network in clear; set server.tls",
+            where,
+        )
+
+
 # ----------------------------------------------------------------------------- check-config
 
 
 def _check_config(args: argparse.Namespace) -> int:
     console = Console()
+    args.file = args.file or _config_path(args)
+    if not args.file:
+        return _fail(args, ErrorKind.USAGE, f"give the configuration FILE (or ${CONFIG_ENV})")
+    if not Path(args.file).is_file():
+        return _fail(args, ErrorKind.USAGE, f"no such file: {args.file}")
     try:
         from .runtime import check_result_log
 
@@ -210,19 +303,21 @@ def _summary(config: CellConfig) -> dict[str, Any]:
 
 def _run(args: argparse.Namespace) -> int:
     """One inspection on image files, through the server's own request path."""
-    err = Console(stderr=True)
+    config_path = _config_path(args)
+    if not config_path:
+        return _fail(args, ErrorKind.USAGE, f"give --config FILE (or ${CONFIG_ENV})")
     try:
-        config = load_config(args.config)
+        config = load_config(config_path)
     except ConfigError as exc:
-        err.print(f"[red]invalid configuration:[/] {exc}", highlight=False)
-        return 2
+        return _fail(args, ErrorKind.USAGE, f"invalid configuration: {exc}")
     inspection = next((i for i in config.inspections if i.name == args.inspection), None)
     if inspection is None:
-        err.print(
-            f"[red]no inspection named {args.inspection!r}[/]; configured: "
-            f"{', '.join(i.name for i in config.inspections)}"
+        return _fail(
+            args,
+            ErrorKind.USAGE,
+            f"no inspection named {args.inspection!r}; configured: "
+            f"{', '.join(i.name for i in config.inspections)}",
         )
-        return 2
     server = offline_server(
         inspection,
         config.cameras[inspection.camera],
@@ -233,8 +328,7 @@ def _run(args: argparse.Namespace) -> int:
         images = [image_payload(Path(args.image), ImageRole.COLOR)]
         images += [image_payload(Path(p), ImageRole.DEPTH) for p in args.depth]
     except ValueError as exc:
-        err.print(f"[red]error:[/] {exc}")
-        return 2
+        return _fail(args, ErrorKind.USAGE, str(exc))
     request = Inspect(1, inspection.name, tuple(images), overlay=args.overlay is not None)
 
     async def once() -> Any:
@@ -243,11 +337,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         result = asyncio.run(once())
     except CellvisionError as exc:
-        if args.json:
-            print(json.dumps({"error": exc.code.name, "message": exc.message}))
-        else:
-            err.print(f"[red]{exc.code.name}:[/] {exc.message}", highlight=False)
-        return 1
+        return _fail(args, ErrorKind.SERVER, exc.message, exc.code.name)
     if args.overlay is not None and result.images:
         overlay = array_from_payload(result.images[0])
         cv2.imwrite(str(args.overlay), overlay)
@@ -257,6 +347,7 @@ def _run(args: argparse.Namespace) -> int:
                 {
                     "inspection": result.inspection,
                     "verdict": "pass" if result.passed else "fail",
+                    "camera": result.camera,
                     "data": result.data,
                     "timing": result.timing,
                 }
@@ -269,7 +360,7 @@ def _run(args: argparse.Namespace) -> int:
         console.print_json(json.dumps(result.data))
         if args.overlay is not None:
             console.print(f"overlay written to {args.overlay}")
-    return 0 if result.passed else 3
+    return int(ExitCode.OK if result.passed else ExitCode.FAILED)
 
 
 def offline_server(
@@ -331,18 +422,17 @@ def _test_inspections(args: argparse.Namespace) -> int:
 def _results(args: argparse.Namespace) -> int:
     db = args.db
     if db is None:
-        config_path = args.config or os.environ.get(CONFIG_ENV)
+        config_path = _config_path(args)
         if not config_path:
-            Console(stderr=True).print("[red]error:[/] give --db PATH or --config FILE")
-            return 2
+            return _fail(
+                args, ErrorKind.USAGE, f"give --db PATH or --config FILE (or ${CONFIG_ENV})"
+            )
         try:
             config = load_config(config_path)
         except ConfigError as exc:
-            Console(stderr=True).print(f"[red]invalid configuration:[/] {exc}", highlight=False)
-            return 2
+            return _fail(args, ErrorKind.USAGE, f"invalid configuration: {exc}")
         if config.results.path is None:
-            Console(stderr=True).print("[red]error:[/] the result log is disabled in the config")
-            return 1
+            return _fail(args, ErrorKind.USAGE, "the result log is disabled in the configuration")
         db = config.results.path
     return results_command(
         Path(db),
@@ -355,83 +445,178 @@ def _results(args: argparse.Namespace) -> int:
     )
 
 
-def _ping(args: argparse.Namespace) -> int:
-    host, port = _address(args.server)
+def _endpoint(args: argparse.Namespace) -> Endpoint:
+    cli = Layer(
+        "command line",
+        server=args.server,
+        token=_deprecated_token(args),
+        token_file=args.token_file,
+        tls=args.tls,
+        ca_file=args.ca,
+    )
+    return resolve(cli, _config_path(args))
+
+
+def _admin(
+    args: argparse.Namespace, build: Callable[[int], Message], default_timeout_s: float
+) -> tuple[Message, str] | int:
+    """Send one request to the server: (its answer, "host:port"), or the exit code of an error
+    already reported."""
     try:
-        answer = call(
-            host,
-            port,
-            lambda rid: Ping(rid, "health"),
-            auth_token=args.auth_token,
-            timeout_s=args.timeout,
-        )
-    except (AdminError, CellvisionError) as exc:
-        print(f"vision-server ping: {host}:{port}: {exc}", file=sys.stderr)
-        return 1
+        endpoint = _endpoint(args)
+    except UsageError as exc:
+        return _fail(args, ErrorKind.USAGE, str(exc))
+    where = f"{endpoint.host}:{endpoint.port}"
+    timeout_s = args.timeout if args.timeout is not None else default_timeout_s
+    try:
+        return call_endpoint(endpoint, build, timeout_s=timeout_s), where
+    except UsageError as exc:
+        return _fail(args, ErrorKind.USAGE, str(exc))
+    except AdminError as exc:
+        return _fail(args, ErrorKind.CONNECTION, f"{where}: {exc}")
+    except CellvisionError as exc:
+        return _fail(args, ErrorKind.SERVER, f"{where}: {exc.message}", exc.code.name)
+
+
+def _ping(args: argparse.Namespace) -> int:
+    done = _admin(args, lambda rid: Ping(rid, "health"), 3.0)
+    if isinstance(done, int):
+        return done
+    answer, where = done
     assert isinstance(answer, Pong)
-    if not answer.healthy:  # exit 1: Docker's HEALTHCHECK code for unhealthy
+    healthy = answer.healthy
+    if args.json:
         print(
-            f"vision-server ping: {host}:{port} answers but is UNHEALTHY: "
+            json.dumps(
+                {"server": where, "answers": True, "healthy": healthy, "health": answer.health}
+            )
+        )
+    elif healthy:
+        print(f"{where} answers; healthy: {describe_health(answer.health)}")
+    else:
+        print(
+            f"vision-server ping: {where} answers but is UNHEALTHY: "
             + describe_health(answer.health),
             file=sys.stderr,
         )
-        return 1
-    print(f"{host}:{port} answers; healthy: {describe_health(answer.health)}")
-    return 0
+    # Exit 1 (the fail verdict) is also Docker's HEALTHCHECK code for unhealthy.
+    return int(ExitCode.OK if healthy else ExitCode.FAILED)
 
 
 def _reload(args: argparse.Namespace) -> int:
-    host, port = _address(args.server)
-    try:
-        answer = call(host, port, Reload, auth_token=args.auth_token, timeout_s=args.timeout)
-    except (AdminError, CellvisionError) as exc:
-        print(f"vision-server reload: {host}:{port}: {exc}", file=sys.stderr)
-        return 1
+    done = _admin(args, Reload, 10.0)
+    if isinstance(done, int):
+        return done
+    answer, where = done
     assert isinstance(answer, Reloaded)
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "server": where,
+                    "config_hash": answer.config_hash,
+                    "inspections": [i.get("name") for i in answer.inspections],
+                }
+            )
+        )
+        return int(ExitCode.OK)
     names = ", ".join(str(i.get("name")) for i in answer.inspections)
-    print(f"{host}:{port} reloaded: config hash {answer.config_hash}; inspections: {names}")
-    return 0
+    print(f"{where} reloaded: config hash {answer.config_hash}; inspections: {names}")
+    return int(ExitCode.OK)
+
+
+def _options(*, top: bool, server: bool = True) -> Parser:
+    """Options accepted before and after the command: on the main parser (``top``) with their
+    defaults, on a command without, so that a value given before the command is kept."""
+    unset = None if top else argparse.SUPPRESS
+    parent = Parser(add_help=False)
+    parent.add_argument(
+        "--config", default=unset, help=f"cell configuration (default ${CONFIG_ENV})"
+    )
+    parent.add_argument(
+        "--json",
+        action="store_true",
+        default=False if top else argparse.SUPPRESS,
+        help="machine-readable output (errors too)",
+    )
+    if not server:
+        return parent
+    group = parent.add_argument_group("reaching the server (ping, reload)")
+    group.add_argument(
+        "--server", default=unset, help="HOST:PORT (default $CELLVISION_SERVER, the config)"
+    )
+    group.add_argument(
+        "--token-file",
+        default=unset,
+        metavar="PATH",
+        help="file holding the token (default $CELLVISION_TOKEN(_FILE), the config)",
+    )
+    group.add_argument(
+        "--tls",
+        action="store_true",
+        default=None if top else argparse.SUPPRESS,
+        help="connect with TLS (default $CELLVISION_TLS, the config)",
+    )
+    group.add_argument(
+        "--ca",
+        metavar="FILE",
+        default=unset,
+        help="trust this CA or certificate (PEM); implies --tls (default $CELLVISION_CA)",
+    )
+    group.add_argument("--timeout", type=float, default=unset, help="seconds (ping 3, reload 10)")
+    # Deprecated: a token on the command line is visible to every user through ps.
+    group.add_argument("--auth-token", default=unset, help=argparse.SUPPRESS)
+    return parent
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="vision-server", description=__doc__, formatter_class=argparse.RawTextHelpFormatter
+    parser = Parser(
+        prog=PROG,
+        description=__doc__,
+        formatter_class=argparse.RawTextHelpFormatter,
+        parents=[_options(top=True)],
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log each connection")
+    common = _options(top=False)
+    local = _options(top=False, server=False)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    serve = sub.add_parser("serve", help="serve inspections over TCP")
-    serve.add_argument(
-        "--config",
-        help=f"cell configuration (default: ${CONFIG_ENV}; "
-        "without one, a built-in demo inspection)",
+    serve = sub.add_parser(
+        "serve",
+        parents=[local],
+        help="serve inspections over TCP",
+        description="Without --config or $CELLVISION_CONFIG: a built-in demo inspection. "
+        "The token clients must present: --token-file, else $CELLVISION_TOKEN or "
+        "$CELLVISION_TOKEN_FILE, else the configuration's server.auth_token(_file).",
     )
     serve.add_argument("--host", default=None, help="address to listen on (default 127.0.0.1)")
     serve.add_argument("--port", type=int, default=None, help="TCP port (0: any)")
-    serve.add_argument("--auth-token", default=None, help="require this token in HELLO")
+    serve.add_argument(
+        "--token-file", metavar="PATH", default=None, help="require the token in this file"
+    )
+    # Deprecated: a token on the command line is visible to every user through ps.
+    serve.add_argument("--auth-token", default=None, help=argparse.SUPPRESS)
     serve.set_defaults(func=_serve)
 
-    check = sub.add_parser("check-config", help="validate a configuration file")
-    check.add_argument("file")
-    check.add_argument("--json", action="store_true")
+    check = sub.add_parser("check-config", parents=[local], help="validate a configuration file")
+    check.add_argument("file", nargs="?", help=f"the configuration (default ${CONFIG_ENV})")
     check.set_defaults(func=_check_config)
 
-    run = sub.add_parser("run", help="run one inspection offline on image files")
-    run.add_argument("--config", required=True)
+    run = sub.add_parser("run", parents=[local], help="run one inspection offline on image files")
     run.add_argument("inspection")
     run.add_argument("--image", required=True, help="colour image (PNG or JPEG)")
     run.add_argument("--depth", action="append", default=[], help="depth PNG (uint16 mm)")
-    run.add_argument("--json", action="store_true")
     run.add_argument("--overlay", type=Path, help="write the overlay image here (PNG)")
     run.set_defaults(func=_run)
 
     golden = sub.add_parser(
-        "test-inspections", help="check inspections against known images (golden cases)"
+        "test-inspections",
+        parents=[local],
+        help="check inspections against known images (golden cases)",
     )
     golden.add_argument(
         "paths", nargs="*", help="case folders or folders of cases (default: test_inspections)"
     )
-    golden.add_argument("--json", action="store_true", help="one JSON report")
     golden.add_argument(
         "--update",
         action="store_true",
@@ -439,32 +624,37 @@ def build_parser() -> argparse.ArgumentParser:
     )
     golden.set_defaults(func=_test_inspections)
 
-    results = sub.add_parser("results", help="list logged inspection results")
-    results.add_argument("--config", help="find the log through the configuration")
+    results = sub.add_parser("results", parents=[local], help="list logged inspection results")
     results.add_argument("--db", type=Path, help="the result log (SQLite file)")
     results.add_argument("--since", help="e.g. 10m, 2h, 1d or an ISO date/time")
     results.add_argument("--inspection")
     results.add_argument("--failed", action="store_true", help="only failed inspections")
     results.add_argument("--limit", type=int, default=100)
-    results.add_argument("--json", action="store_true", help="JSON lines")
     results.set_defaults(func=_results)
 
-    ping = sub.add_parser("ping", help="check that a server answers (the container health check)")
-    ping.add_argument("--server", help="HOST:PORT (default 127.0.0.1:7878)")
-    ping.add_argument("--auth-token")
-    ping.add_argument("--timeout", type=float, default=3.0)
+    ping = sub.add_parser(
+        "ping", parents=[common], help="check that a server answers (the container health check)"
+    )
     ping.set_defaults(func=_ping)
 
-    reload = sub.add_parser("reload", help="ask a running server to re-read its configuration")
-    reload.add_argument("--server", help="HOST:PORT (default 127.0.0.1:7878)")
-    reload.add_argument("--auth-token")
-    reload.add_argument("--timeout", type=float, default=10.0)
+    reload = sub.add_parser(
+        "reload", parents=[common], help="ask a running server to re-read its configuration"
+    )
     reload.set_defaults(func=_reload)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except ParserError as exc:
+        if "--json" in argv:
+            print(json.dumps(json_error(ErrorKind.USAGE, str(exc))))
+        else:
+            exc.parser.print_usage(sys.stderr)
+            print(f"{exc.parser.prog}: error: {exc}", file=sys.stderr)
+        return int(ExitCode.USAGE)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",

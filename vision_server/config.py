@@ -68,6 +68,15 @@ def load_config(path: Path | str) -> CellConfig:
     return parse_config(root, text=text, base_dir=file.resolve().parent, source=file)
 
 
+def load_server_settings(path: Path | str) -> ServerSettings:
+    """Only the ``server`` section of a configuration file (the rest is not validated): how
+    ``vision-server ping`` and ``reload`` find and reach the server that serves this file, even
+    after someone saved a broken inspection in it. Raises :class:`ConfigError`."""
+    file = Path(path)
+    root, _ = read_document(file)
+    return _server(root.sub("server"), file.resolve().parent)
+
+
 def parse_config(
     root: Node, *, text: str, base_dir: Path, source: Path | None = None
 ) -> CellConfig:
@@ -96,6 +105,12 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
     token_file = node.take("auth_token_file", string, None)
     if token is not None and token_file is not None:
         raise node.error("give auth_token or auth_token_file, not both")
+    if token is not None:
+        # Surrounding whitespace is never part of a token (as for a token file); a blank one
+        # would otherwise be "a token is required" that any client meets by sending none.
+        token = token.strip()
+        if not token:
+            raise node.error("auth_token is blank", "auth_token")
     if token_file is not None:
         token_path = _resolve(base_dir, token_file)
         try:
@@ -204,4 +219,11 @@ def _resolve(base_dir: Path, value: str) -> Path:
     return path if path.is_absolute() else (base_dir / path)
 
 
-__all__ = ["CellConfig", "ConfigError", "ResultsConfig", "load_config", "parse_config"]
+__all__ = [
+    "CellConfig",
+    "ConfigError",
+    "ResultsConfig",
+    "load_config",
+    "load_server_settings",
+    "parse_config",
+]

@@ -121,6 +121,11 @@ class ServerSettings:
     """Server-wide budget for request bodies and replies held in memory; a frame or a reply that
     does not fit is answered BUSY instead of being read or built."""
 
+    def __post_init__(self) -> None:
+        # "" would read as "a token is required" and let in every client that sends none.
+        if self.auth_token is not None and not self.auth_token.strip():
+            raise ValueError("auth_token is empty: give a token, or None for no authentication")
+
     def limits(self) -> Limits:
         return Limits(max_frame_bytes=self.max_frame_bytes, max_image_pixels=self.max_image_pixels)
 

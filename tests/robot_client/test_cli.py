@@ -87,7 +87,7 @@ def test_no_server_is_a_clear_error(capsys: pytest.CaptureFixture[str]) -> None:
         port = holder.getsockname()[1]
         code = main(["--server", f"127.0.0.1:{port}", "--timeout", "2", "ping"])
     captured = capsys.readouterr()
-    assert code == 1
+    assert code == 3  # a connection error
     assert captured.out == ""
     err = _flat(captured.err)
     assert err.startswith(f"error: cannot connect to 127.0.0.1:{port}")
@@ -99,14 +99,17 @@ def test_bad_address_is_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert "bad port 'port'" in _flat(capsys.readouterr().err)
 
 
-def test_auth_token(capsys: pytest.CaptureFixture[str]) -> None:
+def test_auth_token(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    good, bad = tmp_path / "good", tmp_path / "bad"
+    good.write_text("s3cret\n")
+    bad.write_text("nope\n")
     with server_in_thread(auth_token="s3cret") as server:
         address = f"127.0.0.1:{server.port}"
-        assert main(["--server", address, "--auth-token", "s3cret", "ping", "--json"]) == 0
+        assert main(["--server", address, "--token-file", str(good), "ping", "--json"]) == 0
         capsys.readouterr()
-        assert main(["--server", address, "--auth-token", "nope", "ping"]) == 1
+        assert main(["--server", address, "--token-file", str(bad), "ping"]) == 4
         assert _flat(capsys.readouterr().err).startswith("NOT_AUTHENTICATED:")
-        assert main(["--server", address, "ping"]) == 1
+        assert main(["--server", address, "ping"]) == 4
         assert _flat(capsys.readouterr().err).startswith("NOT_AUTHENTICATED:")
 
 
@@ -133,9 +136,20 @@ def test_inspect_an_image_file(
     code = main(["--server", address, "inspect", "brightness", "--image", str(image), "--json"])
     report = json.loads(capsys.readouterr().out)
     assert report["inspection"] == "brightness"
-    assert code == (0 if report["passed"] else 1)
+    assert report["verdict"] in ("pass", "fail")
+    assert code == (0 if report["verdict"] == "pass" else 1)
     assert (
         main(["--server", address, "inspect", "brightness", "--image", str(tmp_path / "x.png")])
         == 2
     )
     assert "cannot read the image" in _flat(capsys.readouterr().err)
+
+
+def test_a_token_on_the_command_line_is_deprecated(
+    address: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--auth-token`` shows the token in ps: it still works, and says it is deprecated."""
+    assert main(["--server", address, "--auth-token", "x", "ping"]) == 0
+    err = _flat(capsys.readouterr().err)
+    assert "--auth-token is deprecated" in err
+    assert "--token-file" in err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import os
 import re
 import signal
 import socket
@@ -14,20 +15,29 @@ from pathlib import Path
 import pytest
 
 from protocol import NotAuthenticated
+from protocol.cli import UsageError
 from robot_client.client import ReconnectPolicy, VisionClient
 from vision_server.cli import build_parser
+from vision_server.server import ServerSettings
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 LISTENING = re.compile(r"vision-server listening on (\S+):(\d+)\n")
 
 
-def _serve(*args: str) -> subprocess.Popen[str]:
+def _env(**extra: str) -> dict[str, str]:
+    """The environment without the caller's CELLVISION_* settings, plus ``extra``."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CELLVISION_")}
+    return {**env, "PYTHONPATH": str(REPO_ROOT), **extra}
+
+
+def _serve(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "vision_server", "serve", "--port", "0", *args],
         cwd=REPO_ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        env=_env() if env is None else env,
     )
 
 
@@ -72,8 +82,32 @@ def test_serve_answers_then_stops_on_a_signal(
     assert out == ""  # nothing after the listening line
 
 
-def test_serve_with_an_auth_token(serve_process: list[subprocess.Popen[str]]) -> None:
-    proc = _serve("--auth-token", "t0k")
+def _token_file(tmp_path: Path, text: str) -> str:
+    path = tmp_path / "token"
+    path.write_text(text, encoding="utf-8")
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    "source",
+    ["--token-file", "CELLVISION_TOKEN", "CELLVISION_TOKEN_FILE", "--auth-token (deprecated)"],
+)
+def test_serve_with_an_auth_token(
+    source: str, tmp_path: Path, serve_process: list[subprocess.Popen[str]]
+) -> None:
+    """The token comes from a file or the environment (a file's newline is not part of it);
+    a literal on the command line still works, with a warning."""
+    args: tuple[str, ...] = ()
+    env = _env()
+    if source == "--token-file":
+        args = ("--token-file", _token_file(tmp_path, "t0k\n"))
+    elif source == "CELLVISION_TOKEN":
+        env = _env(CELLVISION_TOKEN="t0k")
+    elif source == "CELLVISION_TOKEN_FILE":
+        env = _env(CELLVISION_TOKEN_FILE=_token_file(tmp_path, "  t0k\n\n"))
+    else:
+        args = ("--auth-token", "t0k")
+    proc = _serve(*args, env=env)
     serve_process.append(proc)
     port = _port(proc)
 
@@ -86,8 +120,92 @@ def test_serve_with_an_auth_token(serve_process: list[subprocess.Popen[str]]) ->
 
     asyncio.run(use_it())
     proc.send_signal(signal.SIGTERM)
-    proc.communicate(timeout=30)
+    _, err = proc.communicate(timeout=30)
     assert proc.returncode == 0
+    assert ("--auth-token is deprecated" in err) == source.startswith("--auth-token")
+    assert "t0k" not in err
+
+
+def _start_or_exit(proc: subprocess.Popen[str]) -> tuple[int | None, str]:
+    """(exit code, stderr) of a ``serve`` that must refuse to start; if it listens instead,
+    (None, its first line): the test fails without waiting for a timeout."""
+    assert proc.stdout is not None
+    line = proc.stdout.readline()  # "" once the process has exited
+    if line:
+        return None, line
+    _, err = proc.communicate(timeout=30)
+    return proc.returncode, err
+
+
+@pytest.mark.parametrize(
+    "how",
+    [
+        "--auth-token ''",
+        "--token-file (empty)",
+        "CELLVISION_TOKEN=''",
+        "CELLVISION_TOKEN_FILE (whitespace)",
+        "auth_token: '  ' in the configuration",
+    ],
+)
+def test_an_empty_token_never_starts_a_server(
+    how: str, tmp_path: Path, serve_process: list[subprocess.Popen[str]]
+) -> None:
+    """Issue 13, hole 5: ``serve --auth-token "$UNSET"`` used to serve every client."""
+    args: tuple[str, ...] = ()
+    env = _env()
+    if how.startswith("--auth-token"):
+        args = ("--auth-token", "")
+    elif how.startswith("--token-file"):
+        args = ("--token-file", _token_file(tmp_path, ""))
+    elif how.startswith("CELLVISION_TOKEN="):
+        env = _env(CELLVISION_TOKEN="")
+    elif how.startswith("CELLVISION_TOKEN_FILE"):
+        env = _env(CELLVISION_TOKEN_FILE=_token_file(tmp_path, " \n\t\n"))
+    else:
+        config = tmp_path / "cell.yaml"
+        config.write_text(
+            "server: {auth_token: '  '}\nresults: {enabled: false}\n"
+            "cameras: {tool: {source: request}}\n"
+            "inspections:\n"
+            "  - {name: bright, type: presence, camera: tool, measure: mean_intensity, min: 0}\n"
+        )
+        args = ("--config", str(config))
+    proc = _serve(*args, env=env)
+    serve_process.append(proc)
+    code, err = _start_or_exit(proc)
+    assert code == 2, f"the server started: {err!r}"
+    lines = [line for line in err.strip().splitlines() if "deprecated" not in line]
+    assert len(lines) == 1, err
+    assert "empty" in lines[0] or "blank" in lines[0]
+
+
+def test_settings_never_hold_an_empty_token() -> None:
+    with pytest.raises(ValueError, match="auth_token is empty"):
+        ServerSettings(auth_token="")
+    with pytest.raises(ValueError, match="auth_token is empty"):
+        ServerSettings(auth_token=" \n")
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "127.0.0.1"])
+def test_serve_warns_when_it_listens_beyond_loopback_unprotected(
+    host: str, serve_process: list[subprocess.Popen[str]]
+) -> None:
+    """Issue 13, hole 8: the container's default (all interfaces, no token, no TLS) says so."""
+    proc = _serve("--host", host)
+    serve_process.append(proc)
+    assert proc.stdout is not None
+    assert proc.stdout.readline().startswith(f"vision-server listening on {host}:")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0
+    warnings = [line for line in err.splitlines() if "WARNING" in line]
+    if host == "127.0.0.1":
+        assert warnings == []
+    else:
+        assert len(warnings) == 2, err
+        assert "WITHOUT A TOKEN" in warnings[0]
+        assert "reload" in warnings[0]  # RELOAD is allowed without a configuration too
+        assert "WITHOUT TLS" in warnings[1]
 
 
 def test_a_port_in_use_is_a_clear_error() -> None:
@@ -102,7 +220,7 @@ def test_a_port_in_use_is_a_clear_error() -> None:
             text=True,
             timeout=60,
         )
-    assert done.returncode == 1
+    assert done.returncode == 3  # the connection-error code
     assert done.stdout == ""
     assert done.stderr.startswith(f"vision-server: cannot listen on 127.0.0.1:{port}: ")
     assert "Traceback" not in done.stderr
@@ -112,6 +230,6 @@ def test_parser_defaults() -> None:
     """Options left out come from the configuration file (or ServerSettings' defaults:
     127.0.0.1:7878), so the parser itself leaves them unset."""
     args = build_parser().parse_args(["serve"])
-    assert (args.host, args.port, args.auth_token, args.config) == (None, None, None, None)
-    with pytest.raises(SystemExit):
+    assert (args.host, args.port, args.token_file, args.config) == (None, None, None, None)
+    with pytest.raises(UsageError, match="required: command"):
         build_parser().parse_args([])

@@ -226,7 +226,7 @@ def test_run_cli_offline_with_overlay_and_results_cli(tmp_path: Path) -> None:
     dark = tmp_path / "dark.png"
     cv2.imwrite(str(dark), np.full((40, 40), 10, np.uint8))
     failed = vision_server("run", "--config", str(path), "bright", "--image", str(dark))
-    assert failed.returncode == 3
+    assert failed.returncode == 1  # the fail verdict
     missing = vision_server("run", "--config", str(path), "nope", "--image", str(dark))
     assert missing.returncode == 2
     assert "no inspection named 'nope'" in missing.stderr
@@ -234,7 +234,7 @@ def test_run_cli_offline_with_overlay_and_results_cli(tmp_path: Path) -> None:
 
 def test_ping_cli_fails_cleanly_when_nothing_listens() -> None:
     done = vision_server("ping", "--server", "127.0.0.1:9", "--timeout", "1")
-    assert done.returncode == 1
+    assert done.returncode == 3  # a connection error
     assert "127.0.0.1:9" in done.stderr
 
 
