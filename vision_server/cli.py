@@ -40,6 +40,7 @@ from protocol import (
     array_from_payload,
 )
 
+from . import decoder_limits
 from .admin import AdminError, call
 from .builtin import builtin_catalog
 from .cameras import RequestCamera, RequestCameraSettings
@@ -71,6 +72,10 @@ def _serve(args: argparse.Namespace) -> int:
         from .runtime import CellRuntime
 
         try:
+            # OpenCV fixes its image-size limits when it loads: settle them (perhaps by
+            # re-executing) before the runtime opens cameras and the result log.
+            limit = load_config(config_path).server.max_image_pixels
+            decoder_limits.ensure(limit, argv=args.reexec_argv)
             runtime = CellRuntime(config_path)
         except ConfigError as exc:
             print(f"vision-server: invalid configuration: {exc}", file=sys.stderr)
@@ -88,6 +93,7 @@ def _serve(args: argparse.Namespace) -> int:
     if args.auth_token is not None:
         overrides["auth_token"] = args.auth_token
     settings = ServerSettings(**{**base.__dict__, **overrides})
+    decoder_limits.ensure(settings.max_image_pixels, argv=args.reexec_argv)
 
     def reload() -> Catalog:
         assert runtime is not None
@@ -453,6 +459,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    # Run as a program (not called from Python), serve may re-execute itself: decoder_limits.
+    args.reexec_argv = list(sys.orig_argv) if argv is None else None
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
