@@ -164,17 +164,29 @@ def payload_from_array(
     return ImagePayload(chosen, width, height, buf.tobytes(), role)
 
 
-def compressed_header(payload: ImagePayload, *, request_id: int = 0) -> ImageHeader:
+def compressed_header(
+    payload: ImagePayload, *, request_id: int = 0, max_pixels: int | None = None
+) -> ImageHeader:
     """What decoding a PNG/JPEG blob will produce, read from its header without decoding it.
 
     BadImage (naming the cause) when the header does not establish the size the decoder would
     use: there is no "unknown" answer, so nothing is ever decoded unchecked (SPEC §4.3).
+    ImageTooLarge when it has more than ``max_pixels`` pixels.
     """
     if payload.encoding is ImageEncoding.PNG:
-        return png_header(payload.data, request_id=request_id)
-    if payload.encoding is ImageEncoding.JPEG:
-        return jpeg_header(payload.data, request_id=request_id)
-    raise ValueError(f"{payload.encoding} is not a compressed encoding")
+        header = png_header(payload.data, request_id=request_id)
+    elif payload.encoding is ImageEncoding.JPEG:
+        header = jpeg_header(payload.data, request_id=request_id)
+    else:
+        raise ValueError(f"{payload.encoding} is not a compressed encoding")
+    if max_pixels is not None and header.pixels > max_pixels:
+        raise ImageTooLarge(
+            f"{payload.encoding} image of {header.width}x{header.height} = {header.pixels} "
+            f"pixels exceeds the limit of {max_pixels}",
+            request_id=request_id,
+            details={"pixels": header.pixels, "max_pixels": max_pixels},
+        )
+    return header
 
 
 def compressed_size(payload: ImagePayload, *, request_id: int = 0) -> tuple[int, int]:
@@ -203,14 +215,7 @@ def array_from_payload(
             .reshape(payload.height, payload.width)
             .astype(np.uint16)
         )
-    header = compressed_header(payload, request_id=request_id)
-    if max_pixels is not None and header.pixels > max_pixels:
-        raise ImageTooLarge(
-            f"{payload.encoding} image of {header.width}x{header.height} = {header.pixels} "
-            f"pixels exceeds the limit of {max_pixels}",
-            request_id=request_id,
-            details={"pixels": header.pixels, "max_pixels": max_pixels},
-        )
+    header = compressed_header(payload, request_id=request_id, max_pixels=max_pixels)
     _check_size(payload, (header.width, header.height), request_id)
     decoded = _decode(payload, header, request_id)
     expected: tuple[int, ...] = (header.height, header.width)
