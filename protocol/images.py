@@ -14,6 +14,7 @@ import numpy.typing as npt
 
 from .constants import ImageEncoding, ImageRole
 from .errors import BadImage, ImageTooLarge
+from .image_headers import ImageHeader, jpeg_header, png_header
 
 
 @dataclass(frozen=True)
@@ -163,57 +164,35 @@ def payload_from_array(
     return ImagePayload(chosen, width, height, buf.tobytes(), role)
 
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_JPEG_SOI = b"\xff\xd8"
-# Start-of-frame markers carry the image size; C4 (DHT), C8 (JPG) and CC (DAC) are not SOFs.
-_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+def compressed_header(
+    payload: ImagePayload, *, request_id: int = 0, max_pixels: int | None = None
+) -> ImageHeader:
+    """What decoding a PNG/JPEG blob will produce, read from its header without decoding it.
 
-
-def _jpeg_size(data: bytes) -> tuple[int, int] | None:
-    position = 2
-    while position + 4 <= len(data):
-        if data[position] != 0xFF:
-            return None
-        marker = data[position + 1]
-        if marker == 0xFF:  # fill byte
-            position += 1
-            continue
-        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
-            position += 2
-            continue
-        if marker in (0xD9, 0xDA):  # end of image, start of scan: no SOF before them
-            return None
-        length = int.from_bytes(data[position + 2 : position + 4], "big")
-        if marker in _JPEG_SOF and position + 9 <= len(data):
-            height = int.from_bytes(data[position + 5 : position + 7], "big")
-            width = int.from_bytes(data[position + 7 : position + 9], "big")
-            return width, height
-        position += 2 + length
-    return None
-
-
-def compressed_size(payload: ImagePayload, *, request_id: int = 0) -> tuple[int, int] | None:
-    """(width, height) read from a PNG/JPEG blob's header without decoding it.
-
-    None when the header does not say (the decoder then decides). BadImage when the blob does
-    not start with the signature of its encoding.
+    BadImage (naming the cause) when the header does not establish the size the decoder would
+    use: there is no "unknown" answer, so nothing is ever decoded unchecked (SPEC §4.3).
+    ImageTooLarge when it has more than ``max_pixels`` pixels.
     """
-    data = payload.data
     if payload.encoding is ImageEncoding.PNG:
-        if not data.startswith(_PNG_SIGNATURE):
-            raise BadImage(
-                f"png blob of {len(data)} bytes has no PNG signature", request_id=request_id
-            )
-        if len(data) >= 24 and data[12:16] == b"IHDR":
-            return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
-        return None
-    if payload.encoding is ImageEncoding.JPEG:
-        if not data.startswith(_JPEG_SOI):
-            raise BadImage(
-                f"jpeg blob of {len(data)} bytes has no JPEG signature", request_id=request_id
-            )
-        return _jpeg_size(data)
-    return payload.width, payload.height
+        header = png_header(payload.data, request_id=request_id)
+    elif payload.encoding is ImageEncoding.JPEG:
+        header = jpeg_header(payload.data, request_id=request_id)
+    else:
+        raise ValueError(f"{payload.encoding} is not a compressed encoding")
+    if max_pixels is not None and header.pixels > max_pixels:
+        raise ImageTooLarge(
+            f"{payload.encoding} image of {header.width}x{header.height} = {header.pixels} "
+            f"pixels exceeds the limit of {max_pixels}",
+            request_id=request_id,
+            details={"pixels": header.pixels, "max_pixels": max_pixels},
+        )
+    return header
+
+
+def compressed_size(payload: ImagePayload, *, request_id: int = 0) -> tuple[int, int]:
+    """(width, height) of a PNG/JPEG blob from its header; see :func:`compressed_header`."""
+    header = compressed_header(payload, request_id=request_id)
+    return header.width, header.height
 
 
 def array_from_payload(
@@ -221,8 +200,10 @@ def array_from_payload(
 ) -> npt.NDArray[Any]:
     """Decode an ImagePayload into a numpy array; BadImage names what is wrong.
 
-    With ``max_pixels``, a PNG/JPEG whose header announces more pixels raises ImageTooLarge
-    before anything is decompressed (the descriptor may say 0x0 for compressed images).
+    PNG/JPEG: the size is read from the file's header first (:func:`compressed_header`); with
+    ``max_pixels``, more pixels raise ImageTooLarge before anything is decompressed (the
+    descriptor may say 0x0 for compressed images). The result is (H, W) for gray files and
+    (H, W, 3) BGR for colour ones, uint8 or (16-bit PNG) uint16; alpha is dropped.
     """
     if payload.encoding is ImageEncoding.GRAY8:
         return np.frombuffer(payload.data, np.uint8).reshape(payload.height, payload.width)
@@ -234,37 +215,52 @@ def array_from_payload(
             .reshape(payload.height, payload.width)
             .astype(np.uint16)
         )
+    header = compressed_header(payload, request_id=request_id, max_pixels=max_pixels)
+    _check_size(payload, (header.width, header.height), request_id)
+    decoded = _decode(payload, header, request_id)
+    expected: tuple[int, ...] = (header.height, header.width)
+    if header.channels > 1:
+        expected += (header.channels,)
+    if decoded.shape != expected or decoded.dtype.itemsize * 8 != header.bits:
+        # The decoder read the file otherwise than its header says: never hand that on.
+        raise BadImage(
+            f"{payload.encoding} decoder produced {decoded.shape} {decoded.dtype}, the header "
+            f"says {header.width}x{header.height}, {header.channels} channel(s) of "
+            f"{header.bits} bits",
+            request_id=request_id,
+        )
+    return decoded
+
+
+def _decode(payload: ImagePayload, header: ImageHeader, request_id: int) -> npt.NDArray[Any]:
     import cv2
 
-    size = compressed_size(payload, request_id=request_id)
-    if size is not None:
-        _check_size(payload, size, request_id)
-        if max_pixels is not None and size[0] * size[1] > max_pixels:
-            raise ImageTooLarge(
-                f"{payload.encoding} image of {size[0]}x{size[1]} = {size[0] * size[1]} pixels "
-                f"exceeds the limit of {max_pixels}",
-                request_id=request_id,
-                details={"pixels": size[0] * size[1], "max_pixels": max_pixels},
-            )
-    buf = np.frombuffer(payload.data, np.uint8)
+    # The mode follows the header, so the decoder allocates only the array we return: gray
+    # stays one channel, alpha is stripped while decoding (no BGRA copy), 16 bits stay 16.
+    # EXIF orientation is ignored, as the size check assumed the stored orientation.
+    mode = cv2.IMREAD_GRAYSCALE if header.channels == 1 else cv2.IMREAD_COLOR
+    flags = mode | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION
     try:
-        decoded = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
-    except cv2.error:
-        decoded = None
+        decoded = cv2.imdecode(np.frombuffer(payload.data, np.uint8), flags)
+    except cv2.error as exc:
+        # OpenCV's own size limits (vision_server.decoder_limits) end up here, as do its
+        # decoders' hard errors.
+        raise BadImage(
+            f"{payload.encoding} blob of {len(payload.data)} bytes cannot be decoded: "
+            f"{_first_line(str(exc))}",
+            request_id=request_id,
+        ) from None
     if decoded is None:
         raise BadImage(
             f"{payload.encoding} blob of {len(payload.data)} bytes cannot be decoded",
             request_id=request_id,
         )
-    if decoded.ndim == 3 and decoded.shape[2] == 4:
-        decoded = cv2.cvtColor(decoded, cv2.COLOR_BGRA2BGR)
-    h, w = decoded.shape[:2]
-    _check_size(payload, (w, h), request_id)
-    if decoded.dtype not in (np.uint8, np.uint16):
-        raise BadImage(
-            f"{payload.encoding} image has unsupported depth {decoded.dtype}", request_id=request_id
-        )
     return np.asarray(decoded)
+
+
+def _first_line(text: str) -> str:
+    lines = [line.strip() for line in text.strip().splitlines() if line.strip()]
+    return lines[-1] if lines else "decoder error"
 
 
 def _check_size(payload: ImagePayload, size: tuple[int, int], request_id: int) -> None:

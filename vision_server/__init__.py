@@ -11,9 +11,15 @@ Public API:
 The command line is ``vision-server`` (:mod:`vision_server.cli`).
 """
 
-from .builtin import builtin_catalog
-from .catalog import Catalog, Inspection, InspectionInput, InspectionOutcome
-from .server import ServerSettings, VisionServer
+# First, before anything imports cv2: OpenCV reads its image-size limits when it loads.
+from . import decoder_limits
+
+decoder_limits.install_default()
+
+# The imports below load cv2, so they come after the limits (hence E402).
+from .builtin import builtin_catalog  # noqa: E402
+from .catalog import Catalog, Inspection, InspectionInput, InspectionOutcome  # noqa: E402
+from .server import ServerSettings, VisionServer  # noqa: E402
 
 __all__ = [
     "Catalog",

@@ -65,6 +65,7 @@ from protocol.cli import (
     resolve_token,
 )
 
+from . import decoder_limits
 from .admin import AdminError, call_endpoint, resolve
 from .builtin import builtin_catalog
 from .cameras import RequestCamera, RequestCameraSettings
@@ -118,6 +119,10 @@ def _serve(args: argparse.Namespace) -> int:
         from .runtime import CellRuntime
 
         try:
+            # OpenCV fixes its image-size limits when it loads: settle them (perhaps by
+            # re-executing) before the runtime opens cameras and the result log.
+            limit = load_config(config_path).server.max_image_pixels
+            decoder_limits.ensure(limit, argv=args.reexec_argv)
             runtime = CellRuntime(config_path)
         except ConfigError as exc:
             return _fail(args, ErrorKind.USAGE, f"invalid configuration: {exc}")
@@ -132,6 +137,7 @@ def _serve(args: argparse.Namespace) -> int:
         if runtime is not None:
             runtime.close()
         return _fail(args, ErrorKind.USAGE, str(exc))
+    decoder_limits.ensure(settings.max_image_pixels, argv=args.reexec_argv)
 
     def reload() -> Catalog:
         assert runtime is not None
@@ -645,6 +651,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # Run as a program (not called from Python), serve may re-execute itself: decoder_limits.
+    reexec_argv = list(sys.orig_argv) if argv is None else None
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         args = build_parser().parse_args(argv)
@@ -655,6 +663,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             exc.parser.print_usage(sys.stderr)
             print(f"{exc.parser.prog}: error: {exc}", file=sys.stderr)
         return int(ExitCode.USAGE)
+    args.reexec_argv = reexec_argv
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",

@@ -64,6 +64,7 @@ from protocol import (
 )
 from protocol.constants import HEADER_SIZE, SUPPORTED_VERSIONS, MessageType
 from protocol.frames import Header, encode_metadata
+from protocol.images import compressed_header
 
 from .admission import Admission, ByteBudget, WorkPool
 from .cameras import Camera, CameraFrame
@@ -674,6 +675,23 @@ def _decode_input(
             f"inspection {name!r} takes no depth image, the request has {len(depths)}",
             request_id=request_id,
         )
+    # Every header is read before anything is decoded: a 16-bit colour PNG, or a colour depth
+    # image, is refused without decompressing it (the decoded array is checked again below).
+    for payload in (colors[0], *depths):
+        if payload.encoding.is_raw:
+            continue
+        header = compressed_header(payload, request_id=request_id, max_pixels=max_pixels)
+        if payload.role is ImageRole.COLOR and header.bits != 8:
+            raise BadImage(
+                f"the colour image is a {header.bits}-bit {payload.encoding}; it must be 8-bit",
+                request_id=request_id,
+            )
+        if payload.role is ImageRole.DEPTH and (header.bits, header.channels) != (16, 1):
+            raise BadImage(
+                f"a depth image must be 16-bit gray (millimetres); this {payload.encoding} has "
+                f"{header.channels} channel(s) of {header.bits} bits",
+                request_id=request_id,
+            )
     color = array_from_payload(colors[0], request_id=request_id, max_pixels=max_pixels)
     if color.dtype != "uint8":
         raise BadImage(

@@ -447,10 +447,14 @@ def test_compressed_size_mismatch_and_limits() -> None:
 
 
 def test_decompression_bomb_is_refused_before_decoding() -> None:
-    # A PNG header announcing 100000 x 100000 pixels, and nothing behind it.
-    header = b"\x89PNG\r\n\x1a\n\x00\x00\x00\x0dIHDR" + (100000).to_bytes(4, "big") * 2
+    # A PNG header announcing 100000 x 100000 pixels, and one empty IDAT behind it.
+    ihdr = b"IHDR" + (100000).to_bytes(4, "big") * 2 + bytes([8, 0, 0, 0, 0])
+    bomb = b"\x89PNG\r\n\x1a\n\x00\x00\x00\x0d" + ihdr + bytes(4) + bytes(4) + b"IDAT" + bytes(4)
     with pytest.raises(ImageTooLarge):
-        array_from_payload(ImagePayload("png", 0, 0, header + bytes(5)), max_pixels=4096**2)
+        array_from_payload(ImagePayload("png", 0, 0, bomb), max_pixels=4096**2)
+    # Cut inside IHDR, the size is not established: refused all the same, as BAD_IMAGE.
+    with pytest.raises(BadImage, match="truncated"):
+        array_from_payload(ImagePayload("png", 0, 0, bomb[:29]), max_pixels=4096**2)
 
 
 @pytest.mark.parametrize(

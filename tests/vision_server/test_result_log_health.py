@@ -343,7 +343,9 @@ def test_serve_with_a_result_log_that_cannot_be_created_is_one_line_and_exit_2(
     assert "Traceback" not in done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1, done.stderr
-    assert lines[0].startswith("vision-server serve: invalid configuration: cell.yaml:2 results -> path")
+    assert lines[0].startswith(
+        "vision-server serve: invalid configuration: cell.yaml:2 results -> path"
+    )
     assert reason in lines[0]
     assert str(tmp_path / path) in lines[0]
     assert done.stdout == ""
