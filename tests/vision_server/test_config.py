@@ -113,6 +113,79 @@ def test_duplicate_keys_are_refused(tmp_path: Path) -> None:
     assert error.line == 3
 
 
+MERGED = """\
+cameras:
+  tool: &camera
+    source: request
+    intrinsics: {width: 640, height: 480, fx: 500, fy: 500, cx: 320, cy: 240}
+  tool2:
+    <<: *camera
+    depth: true
+inspections:
+  - &check
+    name: left
+    type: presence
+    camera: tool
+    measure: dark_fraction
+    threshold: 60
+    min: 0.2
+  - <<: *check
+    name: right
+    roi: [300, 0, 40, 40]
+"""
+
+
+def test_merge_keys_are_accepted_and_override(tmp_path: Path) -> None:
+    config = load_config(write(tmp_path, MERGED))
+    left, right = config.inspections
+    assert isinstance(right, PresenceInspection)
+    assert (right.name, right.measure, right.threshold, right.low) == (
+        "right",
+        "dark_fraction",
+        60,
+        0.2,
+    )
+    assert right.common.roi == (300, 0, 40, 40)
+    assert left.common.roi is None
+    tool2 = config.cameras["tool2"]
+    assert isinstance(tool2, RequestCameraSettings)
+    assert tool2.depth is True
+    assert tool2.intrinsics is not None
+    assert tool2.intrinsics.width == 640
+
+
+def test_an_error_in_a_merged_value_names_the_line_it_is_written_on(tmp_path: Path) -> None:
+    # The anchored entry's threshold is bad: the error is on its line, for both entries.
+    error = error_of(tmp_path, MERGED.replace("threshold: 60", "threshold: high"))
+    assert error.line == 14
+    assert "inspections[0] (name='left') -> threshold" in str(error)
+    # A bad key written beside the merge key is on its own line.
+    error = error_of(tmp_path, MERGED.replace("    name: right\n", "    name: right\n    mn: 1\n"))
+    assert error.line == 18
+    assert "inspections[1] (name='right') -> mn: unknown key" in str(error)
+    # A merged camera's bad value is reported where it is written, under the merging name.
+    text = MERGED.replace("    depth: true\n", "    depth: true\n    fps: 3\n")
+    error = error_of(tmp_path, text)
+    assert "cameras -> tool2 -> fps: unknown key" in str(error)
+    assert error.line == 8
+
+
+@pytest.mark.parametrize(
+    "text",
+    ["a: &x [*x]\n", "a: &x\n  <<: *x\n", "a: &x {b: *x}\n"],
+)
+def test_recursive_aliases_are_refused(tmp_path: Path, text: str) -> None:
+    assert "recursive" in str(error_of(tmp_path, text))
+
+
+def test_aliases_that_expand_without_end_are_refused(tmp_path: Path) -> None:
+    lines = ["a0: &a0 [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"]
+    for i in range(1, 7):
+        lines.append(f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]")
+    error = error_of(tmp_path, "\n".join(lines) + "\n")
+    assert "once aliases are expanded" in str(error)
+
+
 def test_invalid_yaml_names_the_line(tmp_path: Path) -> None:
     error = error_of(tmp_path, "server:\n  port: [1, 2\n")
     assert str(error).startswith("cell.yaml:")
