@@ -291,6 +291,10 @@ def test_a_case_without_images_or_expected_results_is_an_error(tmp_path: Path) -
     assert "BAD CASE" in out  # listed, not silently passed
     assert "caps/expected.yaml: no expected.yaml" in out
     assert "1 bad case" in out
+    # --update is how a new case gets its expected.yaml (to be checked, then committed).
+    done = cli(str(case), "--update", cwd=tmp_path)
+    assert done.returncode == 0, done.stdout
+    assert len(load_case(case).expectations) == 6
 
     shutil.rmtree(case / "images")
     (case / "images").mkdir()
