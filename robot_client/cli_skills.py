@@ -32,6 +32,7 @@ from .skills import Outcome, SkillContext, default_registry, execute
 from .skills import Progress as SkillProgress
 from .skills.world import WorldModel
 from .tasks import OperatorDecision, Step, StepReport, TaskRunner, load_task
+from .teach_check import check_inspection_names
 from .teach_store import TeachStore
 
 __all__ = ["add_skill_commands"]
@@ -184,6 +185,7 @@ def cmd_teach(args: argparse.Namespace, console: Console) -> int:
             from_current_pose=args.from_current_pose,
             notes=args.notes,
         )
+        check_inspection_names(record.skill, record.params, ctx.devices.vision)
         assert ctx.store is not None
         stored = ctx.store.put(record)
     if args.json:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .cameras import SOURCE_NAMES, CameraSettings, Intrinsics
+from .cameras import SOURCE_NAMES, CameraSettings, FolderCameraSettings, Intrinsics
 from .configfile import (
     ConfigError,
     Node,
@@ -82,7 +82,7 @@ def parse_config(
 ) -> CellConfig:
     server = _server(root.sub("server"), base_dir)
     results = _results(root.sub("results"), base_dir)
-    cameras = _cameras(root)
+    cameras = _cameras(root, base_dir)
     inspections: list[InspectionSpec] = []
     seen: dict[str, int] = {}
     for index, node in enumerate(root.items("inspections")):
@@ -166,12 +166,32 @@ def _results(node: Node, base_dir: Path) -> ResultsConfig:
     )
 
 
-def _cameras(root: Node) -> dict[str, CameraSettings]:
+def _cameras(root: Node, base_dir: Path) -> dict[str, CameraSettings]:
     cameras: dict[str, CameraSettings] = {}
     for name, node in root.named("cameras"):
         source = node.take("source", one_of(*SOURCE_NAMES))
         cameras[name] = _settings(node, SOURCE_NAMES[source])
+        folder = cameras[name]
+        if isinstance(folder, FolderCameraSettings):
+            _check_folder(node, folder, base_dir)
     return cameras
+
+
+def _check_folder(node: Node, settings: FolderCameraSettings, base_dir: Path) -> None:
+    """A folder camera replays what is there when the configuration is loaded: its folder
+    must exist and its globs match at least one file each (a typo would otherwise only show as
+    CAMERA_UNAVAILABLE on the line). The camera rescans later, so the folder may change."""
+    folder = _resolve(base_dir, str(settings.path))
+    if not folder.is_dir():
+        what = "is not a directory" if folder.exists() else "does not exist"
+        raise node.error(f"the folder {folder} {what}", "path")
+    for key, pattern in (("glob", settings.glob), ("depth_glob", settings.depth_glob)):
+        if pattern is None:
+            continue
+        # The first match is enough: no need to list a large folder.
+        if next((p for p in folder.glob(pattern) if p.is_file()), None) is None:
+            default = " (the default)" if key == "glob" and "glob" not in node else ""
+            raise node.error(f"no file in {folder} matches {pattern!r}{default}", key)
 
 
 def _settings(node: Node, cls: type[Any]) -> Any:

@@ -20,7 +20,13 @@ the file under test::
 
 Both are read with the server configuration's parser (unknown keys are errors; errors name the
 file, the line and the key path). ``images: PATH`` points the case at a directory outside the
-case (for instance shared photographs); a missing directory skips the case with the reason.
+case (a pool of images shared by several cases); a missing directory is a bad case, unless the
+case says ``skip_if_absent: true`` (photographs that are not on every machine): it is then
+skipped with the reason.
+
+Green means tested: no case found, a case without images, without ``expected.yaml`` (unless
+``--update`` records it) or whose paths do not exist, and a run where every case was skipped
+are errors (exit 2) that name the file.
 
 Every image runs through :func:`vision_server.cli.offline_server`, the serving code path that
 ``vision-server run`` uses: a VisionServer that does not listen, ``run_inspection`` with the
@@ -54,6 +60,7 @@ from .config import _settings, load_config
 from .configfile import (
     ConfigError,
     Node,
+    boolean,
     non_negative,
     non_negative_int,
     number,
@@ -126,7 +133,9 @@ class Case:
     base_dir: Path
     config_hash: str
     images_dir: Path
-    scan: bool  # new images in images_dir count (the case's own images/ folder)
+    # New images in images_dir count: the case's own images/ folder, or a pool (images: PATH)
+    # while expected.yaml lists none of it.
+    scan: bool
     skip: str | None
     expectations: dict[str, Expectation]
     defaults: dict[str, Any]
@@ -169,10 +178,19 @@ class CaseReport:
 class Report:
     cases: list[CaseReport]
     updated: bool = False
+    errors: list[str] = field(default_factory=list)  # not about one case: nothing to test
+
+    def __post_init__(self) -> None:
+        if not self.errors and self.cases and all(c.skipped for c in self.cases):
+            self.errors.append(
+                "nothing was tested: every case was skipped ("
+                + "; ".join(f"{c.name}: {c.skipped}" for c in self.cases)
+                + ")"
+            )
 
     @property
     def exit_code(self) -> int:
-        if any(c.error for c in self.cases):
+        if self.errors or any(c.error for c in self.cases):
             return EXIT_BAD_CASE
         if not self.updated and any(i.status != "pass" for c in self.cases for i in c.images):
             return EXIT_REGRESSION
@@ -188,6 +206,7 @@ class Report:
             "new": sum(i.status == "new" for i in images),
             "skipped_cases": sum(c.skipped is not None for c in self.cases),
             "bad_cases": sum(c.error is not None for c in self.cases),
+            "errors": len(self.errors),
         }
 
 
@@ -196,7 +215,8 @@ class Report:
 
 def find_cases(paths: Iterable[Path]) -> list[Path]:
     """Case folders under ``paths`` (a case folder, a folder of cases, or an inspection.yaml);
-    a path that is none of these is returned as it is, to be reported as a bad case."""
+    a path that is none of these, or a folder with no case below it, is returned as it is, to
+    be reported as a bad case (a path that tests nothing is an error, never a pass)."""
     found: list[Path] = []
     for path in paths:
         if path.is_file() and path.name == CASE_FILE:
@@ -204,7 +224,8 @@ def find_cases(paths: Iterable[Path]) -> list[Path]:
         elif (path / CASE_FILE).is_file():
             found.append(path)
         elif path.is_dir():
-            found.extend(sorted(p.parent for p in path.rglob(CASE_FILE)))
+            below = sorted(p.parent for p in path.rglob(CASE_FILE))
+            found.extend(below or [path])
         else:
             found.append(path)
     unique: dict[Path, None] = {}
@@ -213,39 +234,57 @@ def find_cases(paths: Iterable[Path]) -> list[Path]:
     return list(unique)
 
 
-def default_paths() -> list[Path]:
-    """``test_inspections`` in the working directory, else the repository's."""
-    here = Path("test_inspections")
-    if here.is_dir():
-        return [here]
-    return [Path(__file__).resolve().parent.parent / "test_inspections"]
+DEFAULT_FOLDER = Path("test_inspections")
+"""The cases run without a PATH: this folder of the working directory (never another one: the
+cases of the project itself are run by naming them)."""
 
 
 # ----------------------------------------------------------------------------- loading
 
 
-def load_case(directory: Path) -> Case:
-    """Read and validate a case folder; raises :class:`ConfigError` naming file/line/key."""
+def load_case(directory: Path, *, update: bool = False) -> Case:
+    """Read and validate a case folder; raises :class:`ConfigError` naming file/line/key.
+    Without ``update``, a case must have its ``expected.yaml``."""
     case_file = directory / CASE_FILE
     if not case_file.is_file():
-        raise ConfigError(f"not a case: no {CASE_FILE} here", source=str(directory))
+        what = "no such folder" if not directory.exists() else f"no {CASE_FILE} here or below"
+        raise ConfigError(
+            f"not a case ({what}): a case is a folder with {CASE_FILE}, {EXPECTED_FILE} "
+            "and images (see test_inspections/README.md)",
+            source=str(directory),
+        )
     root, text = read_document(case_file)
     root.source = str(case_file)
     root.take("description", string, None)
     base_dir = directory.resolve()
     inspection, camera, config_base = _inspection(root, base_dir)
     images = root.take("images", string, None)
-    root.finish()
+    skip_if_absent = root.take("skip_if_absent", boolean, False)
+    if skip_if_absent and images is None:
+        raise root.error("skip_if_absent is for an images: folder outside the case", "images")
     images_dir = base_dir / (images or "images")
     skip = None
     if images is not None and not images_dir.is_dir():
+        if not skip_if_absent:
+            raise root.error(
+                f"no such images directory: {images_dir} (a folder that is not on every "
+                "machine needs skip_if_absent: true)",
+                "images",
+            )
         skip = f"images directory {images_dir} not found"
+    root.finish()
     expected_path = directory / EXPECTED_FILE
     if expected_path.is_file():
         exp_root, expected_text = read_document(expected_path)
-    else:
+    elif update or skip is not None:
         expected_text = ""
         exp_root = parse_document("", source=str(expected_path))
+    else:
+        raise ConfigError(
+            f"no {EXPECTED_FILE}: write what each image should give, or record what the "
+            "inspection gives now with --update (and check it)",
+            source=str(expected_path),
+        )
     exp_root.source = str(expected_path)
     defaults_node = exp_root.sub("defaults")
     tolerances = Tolerances().read(defaults_node)
@@ -270,7 +309,7 @@ def load_case(directory: Path) -> Case:
         base_dir=config_base,
         config_hash=hashlib.sha256(text.encode()).hexdigest()[:16],
         images_dir=images_dir,
-        scan=images is None,
+        scan=images is None or not expectations,
         skip=skip,
         expectations=expectations,
         defaults=dict(defaults_node.data),
@@ -387,7 +426,8 @@ def _leading_comments(text: str) -> list[str]:
 
 def color_images(case: Case) -> list[str]:
     """The case's images: those with expectations, then new colour images in its own images/
-    folder (a folder named by ``images:`` is a pool the case picks from)."""
+    folder (a folder named by ``images:`` is a pool the case picks from; while it has picked
+    none, every image of the pool is new)."""
     names = list(case.expectations)
     if case.scan and case.images_dir.is_dir():
         for path in sorted(case.images_dir.iterdir()):
@@ -569,12 +609,20 @@ def run_case(directory: Path, *, update: bool = False) -> CaseReport:
     """Load one case, run every image, compare; with ``update`` rewrite expected.yaml."""
     report = CaseReport(_case_name(directory), directory)
     try:
-        case = load_case(directory)
+        case = load_case(directory, update=update)
         report.type = case.inspection.type
         if case.skip is not None:
             report.skipped = case.skip
             return report
         names = color_images(case)
+        if not names:
+            raise ConfigError(
+                f"no images to test: {case.images_dir} "
+                + ("has no " if case.images_dir.is_dir() else "does not exist (nor any ")
+                + "/".join(COLOR_SUFFIXES)
+                + (" images" if case.images_dir.is_dir() else " images)"),
+                source=str(directory / CASE_FILE),
+            )
         results = run_images(case, names)
     except ConfigError as exc:
         report.error = str(exc)
@@ -627,7 +675,20 @@ def run_case(directory: Path, *, update: bool = False) -> CaseReport:
 
 
 def run_cases(paths: Sequence[Path] | None = None, *, update: bool = False) -> Report:
-    cases = find_cases(paths or default_paths())
+    """Run the cases under ``paths`` (none given: ./test_inspections, which must exist)."""
+    if not paths:
+        if not DEFAULT_FOLDER.is_dir():
+            where = DEFAULT_FOLDER.resolve()
+            return Report(
+                [],
+                updated=update,
+                errors=[
+                    f"{where}: no such folder; run in a folder that has test_inspections/, "
+                    "or name the cases: vision-server test-inspections PATH ..."
+                ],
+            )
+        paths = [DEFAULT_FOLDER]
+    cases = find_cases(paths)
     return Report([run_case(path, update=update) for path in cases], updated=update)
 
 
@@ -724,6 +785,7 @@ def report_json(report: Report) -> dict[str, Any]:
         "ok": report.exit_code == EXIT_OK,
         "exit_code": report.exit_code,
         "updated": report.updated,
+        "errors": report.errors,
         "summary": report.counts(),
         "cases": [
             {
@@ -752,6 +814,31 @@ def report_json(report: Report) -> dict[str, Any]:
 
 
 def print_report(report: Report, console: Console) -> None:
+    if report.cases:
+        _print_table(report, console)
+    for error in report.errors:
+        console.print(f"[red]error:[/] {error}", highlight=False)
+    for case in report.cases:
+        if case.error is not None:
+            console.print(f"[red]bad case {case.name}:[/] {case.error}", highlight=False)
+        if case.diff:
+            console.print(f"[bold]{case.name}: expected.yaml updated[/]")
+            for line in case.diff.splitlines():
+                style = "green" if line.startswith("+") else "red" if line.startswith("-") else ""
+                console.print(line, style=style or None, highlight=False, markup=False)
+    n = report.counts()
+    summary = (
+        f"{_count(n['cases'], 'case')}, {_count(n['images'], 'image')}: {n['passed']} passed, "
+        f"{_count(n['regressions'], 'regression')}, {n['new']} new, "
+        f"{_count(n['skipped_cases'], 'case')} skipped, {_count(n['bad_cases'], 'bad case')}"
+    )
+    if report.updated:
+        changed = sum(bool(c.diff) for c in report.cases)
+        summary += f"; expected.yaml rewritten in {_count(changed, 'case')}"
+    console.print(summary, highlight=False)
+
+
+def _print_table(report: Report, console: Console) -> None:
     table = Table(title="test-inspections" + (" (--update)" if report.updated else ""))
     for column in ("case", "image", "expected", "got", "pass"):
         table.add_column(column, overflow="fold")
@@ -770,24 +857,10 @@ def print_report(report: Report, console: Console) -> None:
             }[image.status]
             table.add_row(case.name, image.image, image.expected, image.got, mark)
     console.print(table)
-    for case in report.cases:
-        if case.error is not None:
-            console.print(f"[red]bad case {case.name}:[/] {case.error}", highlight=False)
-        if case.diff:
-            console.print(f"[bold]{case.name}: expected.yaml updated[/]")
-            for line in case.diff.splitlines():
-                style = "green" if line.startswith("+") else "red" if line.startswith("-") else ""
-                console.print(line, style=style or None, highlight=False, markup=False)
-    n = report.counts()
-    summary = (
-        f"{n['cases']} cases, {n['images']} images: {n['passed']} passed, "
-        f"{n['regressions']} regressions, {n['new']} new, {n['skipped_cases']} cases skipped, "
-        f"{n['bad_cases']} bad cases"
-    )
-    if report.updated:
-        changed = sum(bool(c.diff) for c in report.cases)
-        summary += f"; expected.yaml rewritten in {changed} cases"
-    console.print(summary, highlight=False)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
 def golden_command(paths: Sequence[str], *, json_out: bool = False, update: bool = False) -> int:

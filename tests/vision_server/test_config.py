@@ -3,7 +3,11 @@ path, and docs/configuration.md lists exactly the keys the validator accepts."""
 
 from __future__ import annotations
 
+import json
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -113,6 +117,79 @@ def test_duplicate_keys_are_refused(tmp_path: Path) -> None:
     assert error.line == 3
 
 
+MERGED = """\
+cameras:
+  tool: &camera
+    source: request
+    intrinsics: {width: 640, height: 480, fx: 500, fy: 500, cx: 320, cy: 240}
+  tool2:
+    <<: *camera
+    depth: true
+inspections:
+  - &check
+    name: left
+    type: presence
+    camera: tool
+    measure: dark_fraction
+    threshold: 60
+    min: 0.2
+  - <<: *check
+    name: right
+    roi: [300, 0, 40, 40]
+"""
+
+
+def test_merge_keys_are_accepted_and_override(tmp_path: Path) -> None:
+    config = load_config(write(tmp_path, MERGED))
+    left, right = config.inspections
+    assert isinstance(right, PresenceInspection)
+    assert (right.name, right.measure, right.threshold, right.low) == (
+        "right",
+        "dark_fraction",
+        60,
+        0.2,
+    )
+    assert right.common.roi == (300, 0, 40, 40)
+    assert left.common.roi is None
+    tool2 = config.cameras["tool2"]
+    assert isinstance(tool2, RequestCameraSettings)
+    assert tool2.depth is True
+    assert tool2.intrinsics is not None
+    assert tool2.intrinsics.width == 640
+
+
+def test_an_error_in_a_merged_value_names_the_line_it_is_written_on(tmp_path: Path) -> None:
+    # The anchored entry's threshold is bad: the error is on its line, for both entries.
+    error = error_of(tmp_path, MERGED.replace("threshold: 60", "threshold: high"))
+    assert error.line == 14
+    assert "inspections[0] (name='left') -> threshold" in str(error)
+    # A bad key written beside the merge key is on its own line.
+    error = error_of(tmp_path, MERGED.replace("    name: right\n", "    name: right\n    mn: 1\n"))
+    assert error.line == 18
+    assert "inspections[1] (name='right') -> mn: unknown key" in str(error)
+    # A merged camera's bad value is reported where it is written, under the merging name.
+    text = MERGED.replace("    depth: true\n", "    depth: true\n    fps: 3\n")
+    error = error_of(tmp_path, text)
+    assert "cameras -> tool2 -> fps: unknown key" in str(error)
+    assert error.line == 8
+
+
+@pytest.mark.parametrize(
+    "text",
+    ["a: &x [*x]\n", "a: &x\n  <<: *x\n", "a: &x {b: *x}\n"],
+)
+def test_recursive_aliases_are_refused(tmp_path: Path, text: str) -> None:
+    assert "recursive" in str(error_of(tmp_path, text))
+
+
+def test_aliases_that_expand_without_end_are_refused(tmp_path: Path) -> None:
+    lines = ["a0: &a0 [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"]
+    for i in range(1, 7):
+        lines.append(f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]")
+    error = error_of(tmp_path, "\n".join(lines) + "\n")
+    assert "once aliases are expanded" in str(error)
+
+
 def test_invalid_yaml_names_the_line(tmp_path: Path) -> None:
     error = error_of(tmp_path, "server:\n  port: [1, 2\n")
     assert str(error).startswith("cell.yaml:")
@@ -157,6 +234,8 @@ def test_camera_sources_become_their_settings(tmp_path: Path) -> None:
         "cameras:\n  usb: {source: opencv, device: /dev/video0, width: 1024, height: 768, "
         "fps: 30}\n  replay: {source: folder, path: images, glob: '*.png', mode: once}\n",
     )
+    (tmp_path / "images").mkdir()
+    cv2.imwrite(str(tmp_path / "images" / "f0.png"), np.zeros((8, 8), np.uint8))
     config = load_config(write(tmp_path, text))
     usb = config.cameras["usb"]
     assert isinstance(usb, OpenCVCameraSettings)
@@ -206,6 +285,255 @@ def test_inspection_mistakes(tmp_path: Path, inspection: str, expected: str) -> 
     error = error_of(tmp_path, MINIMAL + f"  - {inspection}\n")
     assert re.search(expected, str(error)), str(error)
     assert error.line is not None
+
+
+# ----------------------------------------------------------------- valid means it can work
+
+CELL = """\
+cameras:
+  tool:
+    source: request
+    intrinsics: {width: 640, height: 480, fx: 500, fy: 500, cx: 320, cy: 240}
+  replay: {source: folder, path: frames, glob: '*.png'}
+inspections:
+  - name: caps
+    type: locate
+    camera: tool
+    roi: [0, 0, 640, 480]
+    method: circle
+    min_score: 0.5
+    circle: {min_radius_px: 10, max_radius_px: 20}
+  - name: magnet
+    type: presence
+    camera: replay
+    measure: blob_count
+    threshold: 60
+    min: 1
+"""
+
+
+def check_config(path: Path) -> subprocess.CompletedProcess[str]:
+    """``vision-server check-config PATH --json`` as a user runs it."""
+    return subprocess.run(
+        [sys.executable, "-m", "vision_server", "check-config", str(path), "--json"],
+        cwd=path.parent,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+
+@pytest.fixture
+def cell_dir(tmp_path: Path) -> Path:
+    (tmp_path / "frames").mkdir()
+    cv2.imwrite(str(tmp_path / "frames" / "f0.png"), np.zeros((48, 64), np.uint8))
+    textured = np.zeros((30, 30), np.uint8)
+    cv2.circle(textured, (15, 15), 8, 255, -1)
+    cv2.imwrite(str(tmp_path / "cap.png"), textured)
+    cv2.imwrite(str(tmp_path / "flat.png"), np.full((30, 30), 128, np.uint8))
+    return tmp_path
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "line", "expected"),
+    [
+        # a folder camera whose folder does not exist, or whose glob matches nothing
+        (
+            "path: frames,",
+            "path: framez,",
+            5,
+            r"cameras -> replay -> path: the folder \S*framez does not exist",
+        ),
+        (
+            "glob: '*.png'",
+            "glob: '*.jpg'",
+            5,
+            r"cameras -> replay -> glob: no file in \S*frames matches '\*.jpg'",
+        ),
+        ("glob: '*.png'", "glob: '*.png', depth_glob: '*.depth.png'", 5, r"depth_glob: no file in"),
+        # an ROI outside the camera's declared size
+        (
+            "roi: [0, 0, 640, 480]",
+            "roi: [600, 0, 64, 48]",
+            10,
+            r"inspections\[0\] \(name='caps'\) -> roi: ROI \[u=600, v=0, width=64, height=48\] "
+            r"reaches past the 640x480 image of camera 'tool' \(its intrinsics\)",
+        ),
+        # a score outside its method's range (circle scores are fractions)
+        (
+            "min_score: 0.5",
+            "min_score: 20",
+            12,
+            r"min_score 20 is out of range for method circle: its score is the fraction",
+        ),
+        # presence ranges, and keys the measure does not use
+        (
+            "    min: 1\n",
+            "    min: 1\n    max: -1\n",
+            20,
+            r"max -1 is out of range for measure blob_count",
+        ),
+        (
+            "measure: blob_count\n    threshold: 60\n    min: 1\n",
+            "measure: dark_fraction\n    threshold: 60\n    min: 20\n",
+            19,
+            r"min 20 is out of range for measure dark_fraction: its value is a fraction",
+        ),
+        (
+            "measure: blob_count\n    threshold: 60",
+            "measure: mean_intensity\n    threshold: 60",
+            18,
+            r"threshold is not used by measure mean_intensity",
+        ),
+        (
+            "threshold: 60",
+            "threshold: 60\n    polarity: light",
+            19,
+            r"polarity: expected one of dark, bright",
+        ),
+    ],
+)
+def test_check_config_refuses_what_cannot_work(
+    cell_dir: Path, old: str, new: str, line: int, expected: str
+) -> None:
+    assert old in CELL
+    path = write(cell_dir, CELL.replace(old, new))
+    done = check_config(path)
+    assert done.returncode == 1, done.stdout
+    report = json.loads(done.stdout)
+    assert report["valid"] is False
+    assert re.search(expected, report["error"]), report["error"]
+    assert report["error"].startswith(f"cell.yaml:{line} "), report["error"]
+
+
+def test_check_config_accepts_the_working_cell_and_merge_keys(cell_dir: Path) -> None:
+    done = check_config(write(cell_dir, CELL))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert json.loads(done.stdout)["inspections"]
+    merged = CELL.replace("  - name: caps\n", "  - &caps\n    name: caps\n") + (
+        "  - <<: *caps\n    name: caps_right\n    roi: [320, 0, 320, 480]\n"
+    )
+    done = check_config(write(cell_dir, merged))
+    assert done.returncode == 0, done.stdout + done.stderr
+    names = [i["name"] for i in json.loads(done.stdout)["inspections"]]
+    assert names == ["caps", "magnet", "caps_right"]
+
+
+@pytest.mark.parametrize(
+    ("inspection", "expected"),
+    [
+        (
+            "{name: t, type: locate, camera: tool, method: template, template: {image: flat.png}}",
+            r"template -> image: the template image \S+flat.png is one flat grey",
+        ),
+        (
+            "{name: t, type: locate, camera: tool, method: template, roi: [0, 0, 20, 20], "
+            "template: {image: cap.png}}",
+            r"the 30x30 template \S+cap.png is larger than the 20x20 ROI",
+        ),
+        (
+            "{name: t, type: presence, camera: tool, measure: template_score, min: 0.5, "
+            "roi: [0, 0, 20, 40], template: cap.png}",
+            r"template: the 30x30 template \S+ is larger than the 20x40 ROI",
+        ),
+        (
+            "{name: t, type: presence, camera: tool, measure: template_score, min: 2, "
+            "template: cap.png}",
+            r"min 2 is out of range for measure template_score: its value is a normalised",
+        ),
+        (
+            "{name: t, type: locate, camera: tool, method: template, min_score: 1.5, "
+            "template: {image: cap.png}}",
+            r"min_score 1.5 is out of range for method template",
+        ),
+        (
+            "{name: t, type: locate, camera: tool, method: blob, min_score: -1, blob: {}}",
+            r"min_score -1 is out of range for method blob: its score is the blob's area",
+        ),
+        (
+            "{name: t, type: locate, camera: tool, method: blob, "
+            "blob: {min_area_px: 50, max_area_px: 10}}",
+            r"max_area_px \(10\) is below min_area_px \(50\)",
+        ),
+        (
+            "{name: t, type: locate, camera: tool, method: template, "
+            "template: {image: cap.png, angle_min: -4, angle_max: 4}}",
+            r"more than a full turn",
+        ),
+        (
+            "{name: t, type: locate, camera: tool, method: template, "
+            "template: {image: cap.png, angle_max: 1, angle_step: 0.0001}}",
+            r"10001 rotations per request",
+        ),
+        (
+            "{name: t, type: presence, camera: tool, measure: mean_intensity, min: 300}",
+            r"min 300 is out of range for measure mean_intensity: its value is a grey level",
+        ),
+        (
+            "{name: t, type: presence, camera: tool, measure: edge_density, max: 0.5, "
+            "min_blob_area: 3}",
+            r"min_blob_area is not used by measure edge_density",
+        ),
+        (
+            "{name: t, type: presence, camera: usb, measure: edge_density, max: 0.5, "
+            "roi: [0, 0, 400, 300]}",
+            r"reaches past the 320x240 image of camera 'usb' \(its width and height\)",
+        ),
+    ],
+)
+def test_parameters_outside_their_range_are_refused(
+    cell_dir: Path, inspection: str, expected: str
+) -> None:
+    text = CELL.replace(
+        "cameras:\n", "cameras:\n  usb: {source: opencv, device: 0, width: 320, height: 240}\n"
+    )
+    error = error_of(cell_dir, text + f"  - {inspection}\n")
+    assert re.search(expected, str(error)), str(error)
+    assert error.line == 21
+
+
+def test_blob_count_counts_bright_blobs_with_polarity_bright(cell_dir: Path) -> None:
+    # Three bright specks on a dark plate: `dark` (the default) counts the plate as one blob.
+    image = np.full((48, 64), 20, np.uint8)
+    for u in (10, 30, 50):
+        cv2.circle(image, (u, 24), 4, 230, -1)
+    cv2.imwrite(str(cell_dir / "specks.png"), image)
+    text = CELL.replace("min: 1\n", "min: 3\n    polarity: bright\n    min_blob_area: 10\n")
+    write(cell_dir, text)
+
+    def run() -> dict[str, Any]:
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "vision_server",
+                "run",
+                "--config",
+                "cell.yaml",
+                "magnet",
+                "--image",
+                "specks.png",
+                "--json",
+            ],
+            cwd=cell_dir,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+        result: dict[str, Any] = json.loads(done.stdout)
+        return result
+
+    bright = run()
+    assert bright["verdict"] == "pass"
+    assert bright["data"]["value"] == 3.0
+    write(cell_dir, text.replace("    polarity: bright\n", ""))
+    dark = run()
+    assert dark["verdict"] == "fail"
+    assert dark["data"]["value"] == 1.0
 
 
 def test_template_paths_resolve_against_the_config_file(tmp_path: Path) -> None:
@@ -280,7 +608,9 @@ def test_docs_list_exactly_the_keys_the_validator_reads(
     monkeypatch.setattr(Node, "sub", recording_sub)
 
     template = tmp_path / "t.png"
-    cv2.imwrite(str(template), np.full((9, 9), 128, np.uint8))
+    cv2.imwrite(str(template), np.arange(81, dtype=np.uint8).reshape(9, 9))
+    (tmp_path / "d").mkdir()
+    cv2.imwrite(str(tmp_path / "d" / "f0.png"), np.zeros((8, 8), np.uint8))
     (tmp_path / "token").write_text("secret")
     text = f"""\
 server: {{host: 0.0.0.0, port: 0, name: x, max_frame_bytes: 1000000, max_image_pixels: 1000,

@@ -5,7 +5,10 @@ difference, and names file, line and key of a bad case file (exit 2)."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +40,11 @@ def presence_copy(tmp_path: Path) -> Path:
     shutil.copytree(CORPUS / "qc_images", tmp_path / "qc_images")
     shutil.copytree(CORPUS / "magnet_presence", tmp_path / "magnet_presence")
     return tmp_path / "magnet_presence"
+
+
+def _flat(text: str) -> str:
+    """Console output with the terminal's line wrapping undone."""
+    return " ".join(text.split())
 
 
 def _edit(path: Path, old: str, new: str) -> None:
@@ -200,17 +208,129 @@ def test_bad_case_files_name_file_line_and_key(
     assert "'count' is not a result of a presence inspection" in report["cases"][0]["error"]
 
     assert main(["test-inspections", str(presence_copy.parent / "no_such_case")]) == 2
-    assert "no inspection.yaml" in capsys.readouterr().out
+    assert "not a case (no such folder)" in _flat(capsys.readouterr().out)
 
 
-def test_missing_shared_images_skip_the_case(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+def test_shared_images_marked_skip_if_absent_skip_the_case(
+    presence_copy: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     case = tmp_path / "elsewhere"
     shutil.copytree(CORPUS / "qr_real_photos", case)
-    code, report = _json_run(capsys, str(case))
+    code, report = _json_run(capsys, str(case), str(presence_copy))
     assert code == 0
-    assert "not found" in report["cases"][0]["skipped"]
+    skipped = {c["case"]: c["skipped"] for c in report["cases"]}
+    assert "not found" in skipped["elsewhere"]
+    assert skipped["magnet_presence"] is None
+    # Alone, it tests nothing: that is no pass.
+    code, report = _json_run(capsys, str(case))
+    assert code == 2
+    assert report["errors"][0].startswith("nothing was tested: every case was skipped")
+
+
+# --- green means tested: the command as a user runs it -----------------------------------------
+
+
+def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``vision-server test-inspections ARGS`` as a process in ``cwd``, with this checkout's
+    code."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "COLUMNS": "200"}
+    return subprocess.run(
+        [sys.executable, "-m", "vision_server", "test-inspections", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+
+
+def test_without_a_path_only_the_working_folder_s_cases_run(tmp_path: Path) -> None:
+    done = cli(cwd=tmp_path)  # no test_inspections/ here: never the project's own cases
+    assert done.returncode == 2, done.stdout
+    assert f"{tmp_path / 'test_inspections'}: no such folder" in _flat(done.stdout)
+    assert "cap_locate_circle" not in done.stdout
+    assert "0 cases, 0 images" in done.stdout
+
+    (tmp_path / "test_inspections").mkdir()
+    shutil.copytree(CORPUS / "qc_images", tmp_path / "test_inspections" / "qc_images")
+    shutil.copytree(CORPUS / "magnet_presence", tmp_path / "test_inspections" / "presence")
+    done = cli(cwd=tmp_path)
+    assert done.returncode == 0, done.stdout
+    assert "1 case, 9 images: 9 passed, 0 regressions, 0 new, 0 cases skipped, 0 bad cases" in (
+        done.stdout
+    )
+
+
+def test_a_folder_without_cases_is_an_error(tmp_path: Path) -> None:
+    (tmp_path / "cases").mkdir()
+    (tmp_path / "cases" / "notes.txt").write_text("no case here", encoding="utf-8")
+    done = cli("cases", "--json", cwd=tmp_path)
+    assert done.returncode == 2
+    report = json.loads(done.stdout)
+    (case,) = report["cases"]
+    assert case["error"].startswith("cases: not a case (no inspection.yaml here or below)")
+
+
+def test_a_typo_in_the_images_path_is_an_error(presence_copy: Path) -> None:
+    _edit(presence_copy / "inspection.yaml", "images: ../qc_images", "images: ../qc_imgaes")
+    done = cli(str(presence_copy), "--json", cwd=presence_copy.parent)
+    assert done.returncode == 2
+    error = json.loads(done.stdout)["cases"][0]["error"]
+    assert "magnet_presence/inspection.yaml:4 images: no such images directory" in error
+    assert "qc_imgaes" in error
+
+
+def test_a_case_without_images_or_expected_results_is_an_error(tmp_path: Path) -> None:
+    case = tmp_path / "caps"
+    shutil.copytree(CORPUS / "cap_locate_circle", case)
+    (case / "expected.yaml").unlink()
+    done = cli(str(case), cwd=tmp_path)
+    assert done.returncode == 2
+    out = _flat(done.stdout)
+    assert "BAD CASE" in out  # listed, not silently passed
+    assert "caps/expected.yaml: no expected.yaml" in out
+    assert "1 bad case" in out
+    # --update is how a new case gets its expected.yaml (to be checked, then committed).
+    done = cli(str(case), "--update", cwd=tmp_path)
+    assert done.returncode == 0, done.stdout
+    assert len(load_case(case).expectations) == 6
+
+    shutil.rmtree(case / "images")
+    (case / "images").mkdir()
+    (case / "expected.yaml").write_text("images: {}\n", encoding="utf-8")
+    done = cli(str(case), "--json", cwd=tmp_path)
+    assert done.returncode == 2
+    error = json.loads(done.stdout)["cases"][0]["error"]
+    assert error.startswith(f"{case / 'inspection.yaml'}: no images to test: {case / 'images'}")
+    # --update records nothing for a case with nothing to record.
+    done = cli(str(case), "--update", "--json", cwd=tmp_path)
+    assert done.returncode == 2
+    assert (case / "expected.yaml").read_text(encoding="utf-8") == "images: {}\n"
+
+
+def test_a_pool_case_without_expectations_runs_the_whole_pool(presence_copy: Path) -> None:
+    (presence_copy / "expected.yaml").write_text("images: {}\n", encoding="utf-8")
+    done = cli(str(presence_copy), "--json", cwd=presence_copy.parent)
+    assert done.returncode == 1  # new images, not a silent pass with 0 images
+    images = json.loads(done.stdout)["cases"][0]["images"]
+    assert len(images) == 9
+    assert {i["status"] for i in images} == {"new"}
+    done = cli(str(presence_copy), "--update", cwd=presence_copy.parent)
+    assert done.returncode == 0, done.stdout
+    written = load_case(presence_copy)
+    assert len(written.expectations) == 9
+    assert written.expectations["in_slot.png"].verdict == "pass"
+    assert cli(str(presence_copy), cwd=presence_copy.parent).returncode == 0
+
+    # A pool that is empty gives nothing to test: an error, and --update writes nothing.
+    for image in (presence_copy.parent / "qc_images").iterdir():
+        image.unlink()
+    (presence_copy / "expected.yaml").write_text("images: {}\n", encoding="utf-8")
+    done = cli(str(presence_copy), "--update", cwd=presence_copy.parent)
+    assert done.returncode == 2
+    assert "no images to test" in _flat(done.stdout)
+    assert (presence_copy / "expected.yaml").read_text(encoding="utf-8") == "images: {}\n"
 
 
 def test_a_case_may_name_an_inspection_of_a_cell_configuration(tmp_path: Path) -> None:

@@ -28,7 +28,9 @@ RED = (0, 0, 255)
 @dataclass(frozen=True)
 class Common:
     """The keys every inspection has. ``roi`` is ``(u, v, width, height)`` in full-image
-    pixels (None: the whole image); ``frames`` is how many frames a server camera captures."""
+    pixels (None: the whole image); ``frames`` is how many frames a server camera captures;
+    ``image_size`` is the camera's declared ``(width, height)`` in pixels (None: not
+    declared, known only when images arrive)."""
 
     name: str
     type: str
@@ -38,6 +40,24 @@ class Common:
     description: str
     intrinsics: Intrinsics | None
     camera_has_depth: bool
+    image_size: tuple[int, int] | None = None
+
+    def region_size(self) -> tuple[int, int] | None:
+        """The ``(width, height)`` an analysis sees: the ROI's, else the declared image's."""
+        return (self.roi[2], self.roi[3]) if self.roi is not None else self.image_size
+
+
+def declared_size(settings: CameraSettings) -> tuple[int, int, str] | None:
+    """The image size a camera's settings promise, ``(width, height, where it is declared)``:
+    the intrinsics' size, or an OpenCV camera's requested width and height (its frames are
+    resized to them). None when the settings do not say."""
+    intrinsics = getattr(settings, "intrinsics", None)
+    if isinstance(intrinsics, Intrinsics):
+        return intrinsics.width, intrinsics.height, "its intrinsics"
+    width, height = getattr(settings, "width", None), getattr(settings, "height", None)
+    if isinstance(width, int) and isinstance(height, int):
+        return width, height, "its width and height"
+    return None
 
 
 def parse_common(
@@ -54,15 +74,28 @@ def parse_common(
     has_depth = bool(getattr(settings, "depth", False)) or type(settings).__name__ == (
         "SimCameraSettings"
     )
+    region = node.take("roi", roi, None)
+    size = declared_size(settings)
+    if region is not None and size is not None:
+        u, v, w, h = region
+        width, height, where = size
+        if u + w > width or v + h > height:
+            raise node.error(
+                f"ROI [u={u}, v={v}, width={w}, height={h}] reaches past the {width}x{height} "
+                f"image of camera {camera!r} ({where}): it must end by u + width <= {width} "
+                f"and v + height <= {height}",
+                "roi",
+            )
     return Common(
         inspection_name,
         kind,
         camera,
-        node.take("roi", roi, None),
+        region,
         node.take("frames", positive_int, default_frames),
         node.take("description", string, ""),
         getattr(settings, "intrinsics", None),
         has_depth,
+        None if size is None else (size[0], size[1]),
     )
 
 
@@ -141,12 +174,27 @@ def resolve(base_dir: Path, value: str) -> Path:
     return path if path.is_absolute() else base_dir / path
 
 
-def load_template(node: Node, key: str, base_dir: Path) -> Image:
-    """A template image named in the configuration, read as gray uint8 at load time."""
+def load_template(node: Node, key: str, base_dir: Path, common: Common | None = None) -> Image:
+    """A template image named in the configuration, read as gray uint8 at load time; refused
+    when it cannot be correlated (constant) or, with ``common``, cannot fit in the region
+    searched (the ROI, else the camera's declared image)."""
     path = resolve(base_dir, node.take(key, string))
     image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
     if image is None:
         raise node.error(f"cannot read the template image {path}", key)
     if image.shape[0] < 3 or image.shape[1] < 3:
         raise node.error(f"the template image {path} is smaller than 3x3 pixels", key)
+    if float(image.std()) == 0.0:
+        raise node.error(
+            f"the template image {path} is one flat grey: normalised correlation needs texture",
+            key,
+        )
+    region = None if common is None else common.region_size()
+    if region is not None and (image.shape[1] > region[0] or image.shape[0] > region[1]):
+        what = "ROI" if common is not None and common.roi is not None else "camera's image"
+        raise node.error(
+            f"the {image.shape[1]}x{image.shape[0]} template {path} is larger than the "
+            f"{region[0]}x{region[1]} {what} it is searched in",
+            key,
+        )
     return np.ascontiguousarray(image)

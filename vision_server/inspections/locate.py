@@ -3,6 +3,7 @@ when at least ``min_count`` are found (the paper's vision pick, Table 1, steps 2
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -117,6 +118,28 @@ def _threshold(value: Any) -> float | str:
     return out
 
 
+SCORE_RANGES: dict[str, tuple[float, float, str]] = {
+    "template": (-1.0, 1.0, "a normalised correlation, -1..1"),
+    "circle": (0.0, 1.0, "the fraction of the outline's rays that found its edge, 0..1"),
+    "blob": (0.0, math.inf, "the blob's area in pixels², >= 0"),
+}
+"""What ``min_score`` means for each method, and its range (docs/configuration.md)."""
+
+MAX_ANGLES = 3600
+"""Most rotations a template search may try per request (2π in steps of 0.1°)."""
+
+
+def _min_score(node: Node, method: str) -> float | None:
+    value = node.take("min_score", number, None)
+    low, high, meaning = SCORE_RANGES[method]
+    if value is not None and not low <= value <= high:
+        raise node.error(
+            f"min_score {value:g} is out of range for method {method}: its score is {meaning}",
+            "min_score",
+        )
+    return value
+
+
 def parse_locate(
     node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]
 ) -> LocateInspection:
@@ -126,7 +149,7 @@ def parse_locate(
     max_count = node.take("max_count", positive_int, 10)
     if max_count < min_count:
         raise node.error(f"max_count ({max_count}) is below min_count ({min_count})", "max_count")
-    min_score = node.take("min_score", number, None)
+    min_score = _min_score(node, method)
     options: dict[str, Any] = {}
     for other in ("template", "circle", "blob"):
         if other != method and other in node:
@@ -134,12 +157,23 @@ def parse_locate(
         node.take(other, lambda v: v, None)
     sub = node.sub(method, required=True)
     if method == "template":
-        options["template"] = load_template(sub, "image", base_dir)
+        options["template"] = load_template(sub, "image", base_dir, common)
         low = sub.take("angle_min", number, 0.0)
         high = sub.take("angle_max", number, 0.0)
         step = sub.take("angle_step", positive, 0.0175)
         if high < low:
             raise sub.error(f"angle_max ({high}) is below angle_min ({low})", "angle_max")
+        if high - low > 2 * math.pi + 1e-9:
+            raise sub.error(
+                f"angle_max - angle_min is {high - low:.3f} rad, more than a full turn (2π)",
+                "angle_max",
+            )
+        if (high - low) / step + 1 > MAX_ANGLES:
+            raise sub.error(
+                f"{(high - low) / step + 1:.0f} rotations per request: more than {MAX_ANGLES} "
+                f"(make angle_step larger)",
+                "angle_step",
+            )
         options["angle_range"] = (low, high)
         options["angle_step"] = step
     elif method == "circle":
@@ -156,6 +190,12 @@ def parse_locate(
         options["polarity"] = sub.take("polarity", one_of("dark", "bright"), "dark")
         options["min_area"] = sub.take("min_area_px", positive, 20.0)
         options["max_area"] = sub.take("max_area_px", positive, None)
+        if options["max_area"] is not None and options["max_area"] < options["min_area"]:
+            raise sub.error(
+                f"max_area_px ({options['max_area']:g}) is below min_area_px "
+                f"({options['min_area']:g})",
+                "max_area_px",
+            )
         options["min_circularity"] = sub.take("min_circularity", fraction, 0.0)
     sub.finish()
     return LocateInspection(common, method, min_count, max_count, min_score, options)

@@ -3,6 +3,7 @@ the ROI, pass when it lies in [min, max]."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import cv2
 
 from ..analysis import AnalysisError
+from ..analysis.locate import Polarity
 from ..analysis.presence import MEASURES, measure_presence
 from ..cameras import CameraSettings
 from ..catalog import InspectionInput, InspectionOutcome
@@ -25,6 +27,25 @@ from .base import (
     parse_common,
 )
 
+MEASURE_RANGES: dict[str, tuple[float, float, str]] = {
+    "mean_intensity": (0.0, 255.0, "a grey level, 0..255"),
+    "dark_fraction": (0.0, 1.0, "a fraction of the ROI's pixels, 0..1"),
+    "bright_fraction": (0.0, 1.0, "a fraction of the ROI's pixels, 0..1"),
+    "edge_density": (0.0, 1.0, "edge pixels per ROI pixel, 0..1"),
+    "blob_count": (0.0, math.inf, "a number of blobs, >= 0"),
+    "template_score": (-1.0, 1.0, "a normalised correlation, -1..1"),
+}
+"""Each measure's values (what ``min`` and ``max`` compare with; docs/configuration.md)."""
+
+# The keys only some measures use: a key that a measure ignores is refused, not silently
+# dropped (the integrator meant something by it).
+USES: dict[str, tuple[str, ...]] = {
+    "threshold": ("dark_fraction", "bright_fraction", "blob_count"),
+    "template": ("template_score",),
+    "min_blob_area": ("blob_count",),
+    "polarity": ("blob_count",),
+}
+
 
 @dataclass(frozen=True)
 class PresenceInspection(Configured):
@@ -35,6 +56,7 @@ class PresenceInspection(Configured):
     threshold: float | None
     template: Image | None
     min_blob_area: int
+    polarity: Polarity = "dark"
 
     type = "presence"
     uses_depth = False
@@ -48,6 +70,7 @@ class PresenceInspection(Configured):
                 threshold=self.threshold,
                 template=self.template,
                 min_blob_area=self.min_blob_area,
+                polarity=self.polarity,
             )
         except AnalysisError as exc:
             raise analysis_failed(self.common.name, exc) from None
@@ -70,15 +93,27 @@ def parse_presence(
 ) -> PresenceInspection:
     common = parse_common(node, "presence", cameras)
     measure = node.take("measure", one_of(*MEASURES))
+    for key, measures in USES.items():
+        if node.has(key) and measure not in measures:
+            raise node.error(
+                f"{key} is not used by measure {measure} (only by {', '.join(measures)})", key
+            )
     low = node.take("min", number, None)
     high = node.take("max", number, None)
     if low is None and high is None:
         raise node.error("a presence check needs min, max or both (the pass range)")
+    bottom, top, meaning = MEASURE_RANGES[measure]
+    for key, value in (("min", low), ("max", high)):
+        if value is not None and not bottom <= value <= top:
+            raise node.error(
+                f"{key} {value:g} is out of range for measure {measure}: its value is {meaning}",
+                key,
+            )
     if low is not None and high is not None and low > high:
         raise node.error(f"min ({low}) is above max ({high})", "min")
     template = None
     if node.has("template"):
-        template = load_template(node, "template", base_dir)
+        template = load_template(node, "template", base_dir, common)
     else:
         node.take("template", string, None)  # an allowed key
     if measure == "template_score" and template is None:
@@ -94,4 +129,10 @@ def parse_presence(
         threshold,
         template,
         node.take("min_blob_area", non_negative_int, 20),
+        node.take("polarity", _polarity, "dark"),
     )
+
+
+def _polarity(value: object) -> Polarity:
+    """What ``blob_count`` counts: ``dark`` blobs (< threshold) or ``bright`` ones."""
+    return "bright" if one_of("dark", "bright")(value) == "bright" else "dark"
