@@ -4,6 +4,7 @@ have, when the server answers (and teaches offline when it cannot be reached).""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import socket
 import subprocess
@@ -66,7 +67,8 @@ def test_teach_refuses_an_inspection_the_server_does_not_have(
     with live_server(config) as port:
         refused = teach(tmp_path, f"127.0.0.1:{port}", "inspection=nosuch")
         assert refused.returncode == 2, refused.stdout + refused.stderr
-        message = " ".join(refused.stderr.split())
+        # With --json, errors are JSON on stdout too (docs/integrator-guide.md §6).
+        message = json.loads(refused.stdout)["error"]["message"]
         assert (
             "skill 'quality_control': inspection='nosuch' is not an inspection of the vision "
             "server (it has: cap_locate, magnet_check, station_pose, station_qr)" in message

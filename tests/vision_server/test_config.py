@@ -105,10 +105,28 @@ def test_the_error_names_file_line_item_and_key(tmp_path: Path) -> None:
         ("server:\n  port: 70000\n", r"server -> port: expected a port in 0..65535"),
         ("server:\n  tls: {cert: nope.pem, key: nope.key}\n", r"tls -> cert: no such file"),
         ("results:\n  store_images: some\n", r"store_images: expected one of none, failures"),
+        ("server:\n  idle_timeout_s: 0\n", r"server -> idle_timeout_s: expected a number > 0"),
+        (
+            "server:\n  max_buffered_bytes: 1000\n",
+            r"server -> max_buffered_bytes: max_buffered_bytes \(1000\) must be at least",
+        ),
     ],
 )
 def test_top_level_and_server_mistakes(tmp_path: Path, snippet: str, expected: str) -> None:
     assert re.search(expected, str(error_of(tmp_path, MINIMAL + snippet)))
+
+
+def test_the_servers_timeouts_and_byte_budget_are_configured(tmp_path: Path) -> None:
+    snippet = (
+        "server:\n  idle_timeout_s: 120\n  frame_timeout_s: 12.5\n  write_timeout_s: 9\n"
+        "  handshake_timeout_s: 4\n  capture_timeout_s: 2\n  max_buffered_bytes: 100000000\n"
+    )
+    (tmp_path / "cell.yaml").write_text(MINIMAL + snippet)
+    server = load_config(tmp_path / "cell.yaml").server
+    assert (server.idle_timeout_s, server.frame_timeout_s, server.write_timeout_s) == (120, 12.5, 9)
+    assert (server.handshake_timeout_s, server.capture_timeout_s) == (4, 2)
+    assert server.max_buffered_bytes == 100_000_000
+    assert server.welcome_limits()["idle_timeout_ms"] == 120_000
 
 
 def test_duplicate_keys_are_refused(tmp_path: Path) -> None:
