@@ -229,7 +229,8 @@ class VisionServer:
         await self.stop()
 
     def replace_catalog(self, catalog: Catalog) -> None:
-        """Serve new requests with ``catalog``; requests already running finish on the old."""
+        """Serve new requests with ``catalog``; requests already running finish on the old,
+        whose lease they hold (retiring it is its owner's job, see CellRuntime.reload)."""
         self.catalog = catalog
 
     # ------------------------------------------------------------------ connections
@@ -282,8 +283,12 @@ class VisionServer:
     async def run_inspection(self, request: Inspect, *, peer: str = "") -> Result:
         """Get the images (from the request or the camera), run the named inspection in the
         pool, record it in the result log, build the RESULT."""
+        # The lease keeps the catalog's cameras open until this request is done with them.
+        with self.catalog.lease_newest() as lease:
+            return await self._run_inspection(request, lease.catalog, peer)
+
+    async def _run_inspection(self, request: Inspect, catalog: Catalog, peer: str) -> Result:
         started = time.perf_counter()
-        catalog = self.catalog
         rid = request.request_id
         inspection = catalog.inspection(request.inspection, request_id=rid)
         camera = catalog.camera(inspection.camera, request_id=rid)
@@ -364,7 +369,9 @@ class VisionServer:
                 )
             return outcome, compute_ms, images
 
-        outcome, compute_ms, images = await self._in_pool(work, rid, request.deadline_ms)
+        outcome, compute_ms, images = await self._in_pool(
+            work, rid, request.deadline_ms, hold=catalog
+        )
         total_ms = (time.perf_counter() - started) * 1000.0
         result = Result(
             rid,
@@ -421,8 +428,12 @@ class VisionServer:
 
     async def run_capture(self, request: Capture) -> Frames:
         """CAPTURE: ``count`` distinct frames from a server camera."""
+        with self.catalog.lease_newest() as lease:
+            return await self._run_capture(request, lease.catalog)
+
+    async def _run_capture(self, request: Capture, catalog: Catalog) -> Frames:
         rid = request.request_id
-        camera = self.catalog.camera(request.camera, request_id=rid)
+        camera = catalog.camera(request.camera, request_id=rid)
         if camera.source == "request":
             raise InvalidArgument(
                 f"camera {camera.name!r} gets its images from the request: it cannot capture",
@@ -460,7 +471,7 @@ class VisionServer:
                     payloads.append(payload_from_array(frame.depth, role=ImageRole.DEPTH))
             return payloads, [f.timestamp for f in frames]
 
-        payloads, stamps = await self._in_pool(work, rid, request.deadline_ms)
+        payloads, stamps = await self._in_pool(work, rid, request.deadline_ms, hold=catalog)
         intrinsics = None if camera.intrinsics is None else camera.intrinsics.to_dict()
         return Frames(rid, camera.name, tuple(payloads), tuple(stamps), intrinsics)
 
@@ -475,9 +486,27 @@ class VisionServer:
         return catalog
 
     async def _in_pool(
-        self, fn: Callable[[], _T], request_id: int, deadline_ms: float | None
+        self,
+        fn: Callable[[], _T],
+        request_id: int,
+        deadline_ms: float | None,
+        *,
+        hold: Catalog | None = None,
     ) -> _T:
-        future = self._pool.try_submit(fn)
+        """Run ``fn`` in the pool. ``hold``: a catalog ``fn`` uses, leased until ``fn``
+        returns, which may be after the request gave up (its deadline passed)."""
+        if hold is not None:
+            lease = hold.acquire()
+
+            def leased() -> _T:
+                with lease:
+                    return fn()
+
+            future = self._pool.try_submit(leased)
+            if future is None:
+                lease.release()
+        else:
+            future = self._pool.try_submit(fn)
         if future is None:
             raise Busy(
                 f"all {self._pool.capacity} inspection slots are taken; try again",
