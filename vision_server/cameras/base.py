@@ -12,9 +12,11 @@ absolute paths on the server go to the server's log (see :meth:`Camera.unavailab
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -29,7 +31,7 @@ from protocol import CameraUnavailable, InvalidArgument
 from .clock import SYSTEM_CLOCK, Clock
 from .settings import Intrinsics
 
-__all__ = ["Camera", "CameraFrame", "color_image", "public_path"]
+__all__ = ["Camera", "CameraFrame", "color_image", "path_forms", "public_path", "replace_paths"]
 
 log = logging.getLogger("vision_server.cameras")
 
@@ -95,6 +97,22 @@ def color_image(image: NDArray[Any]) -> NDArray[np.uint8]:
     if image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3):
         return np.ascontiguousarray(image)
     raise ValueError(f"unsupported image shape {image.shape}")
+
+
+def path_forms(path: Path | str) -> list[str]:
+    """The spellings of ``path`` a message may contain: as given and resolved."""
+    forms = [str(path)]
+    with contextlib.suppress(OSError, RuntimeError):  # a symlink loop: keep the given form
+        forms.append(str(Path(path).resolve()))
+    return forms
+
+
+def replace_paths(text: str, shown: Mapping[str, str]) -> str:
+    """``text`` with each key of ``shown`` replaced by its value, longest key first (so that
+    a file inside a replaced folder keeps its name relative to the folder)."""
+    for private in sorted(shown, key=len, reverse=True):
+        text = text.replace(private, shown[private])
+    return text
 
 
 def public_path(configured: Path | str) -> str:
@@ -202,19 +220,12 @@ class Camera(ABC):
         Its resolved form (symlinks followed) is hidden too. Longer paths are replaced first,
         so that a file inside a hidden folder keeps its name relative to the folder.
         """
-        text = str(path)
-        self._private_paths[text] = shown_as
-        try:
-            resolved = str(Path(text).resolve())
-        except (OSError, RuntimeError):
-            return
-        self._private_paths.setdefault(resolved, shown_as)
+        for private in path_forms(path):
+            self._private_paths.setdefault(private, shown_as)
 
     def public_text(self, text: str) -> str:
         """``text`` with the camera's hidden paths replaced by how clients see them."""
-        for private in sorted(self._private_paths, key=len, reverse=True):
-            text = text.replace(private, self._private_paths[private])
-        return text
+        return replace_paths(text, self._private_paths)
 
     def unavailable(self, cause: str) -> CameraUnavailable:
         """The error for this camera giving no frame because of ``cause``.

@@ -14,7 +14,7 @@ from typing import Any
 
 from simulation import SimCell
 
-from .base import Camera, CameraFrame, color_image, public_path
+from .base import Camera, CameraFrame, color_image, log, path_forms, public_path, replace_paths
 from .clock import Clock
 from .settings import Intrinsics, SimCameraSettings
 
@@ -50,18 +50,33 @@ class SimCamera(Camera):
         self.state_path = (
             None if settings.state_file is None else _resolve(settings.state_file, base_dir)
         )
+        # Configuration errors reach a RELOAD's client too: paths as configured, full in the log.
+        shown = dict.fromkeys(path_forms(self.scene_path), public_path(settings.scene))
+        if self.state_path is not None and settings.state_file is not None:
+            shown.update(
+                dict.fromkeys(path_forms(self.state_path), public_path(settings.state_file))
+            )
+
+        def config_error(message: str) -> ValueError:
+            public = replace_paths(message, shown)
+            if public != message:
+                log.warning("camera %r: %s", name, message)
+            return ValueError(public)
+
         try:
             cell = SimCell.from_yaml(
                 self.scene_path, seed=settings.seed, state_path=self.state_path
             )
         except (OSError, ValueError) as exc:
-            raise ValueError(
+            raise config_error(
                 f"camera {name!r}: cannot load scene {self.scene_path}: {exc}"
             ) from exc
         try:
             spec = cell.scene.camera(settings.camera)
         except KeyError as exc:
-            raise ValueError(f"camera {name!r}: {exc.args[0]} in scene {self.scene_path}") from exc
+            raise config_error(
+                f"camera {name!r}: {exc.args[0]} in scene {self.scene_path}"
+            ) from exc
         intrinsics = settings.intrinsics or Intrinsics.from_geometry(spec.intrinsics)
         size = (spec.intrinsics.width, spec.intrinsics.height)
         if (intrinsics.width, intrinsics.height) != size:
@@ -70,9 +85,8 @@ class SimCamera(Camera):
                 f"but the scene camera {settings.camera!r} renders {size[0]}x{size[1]}"
             )
         super().__init__(name, intrinsics=intrinsics, has_depth=spec.depth is not None, clock=clock)
-        self.hide_path(self.scene_path, public_path(settings.scene))
-        if self.state_path is not None and settings.state_file is not None:
-            self.hide_path(self.state_path, public_path(settings.state_file))
+        for private, public in shown.items():
+            self.hide_path(private, public)
         self._cell = cell
         self._lock = threading.Lock()
         self._next_index = 0

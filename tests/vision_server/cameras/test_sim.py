@@ -152,8 +152,11 @@ def test_bad_scene_or_camera_is_a_configuration_error(scene: Path, tmp_path: Pat
     wrong = Intrinsics(320, 240, 300.0, 300.0, 159.5, 119.5)
     with pytest.raises(ValueError, match="renders 160x120"):
         make_camera("sim", SimCameraSettings(scene, "top", intrinsics=wrong), base_dir=tmp_path)
-    with pytest.raises(ValueError, match="cannot load scene"):
+    with pytest.raises(ValueError, match="cannot load scene") as excinfo:
         make_camera("sim", SimCameraSettings(Path("missing.yaml"), "top"), base_dir=tmp_path)
+    # Named as configured: a RELOAD's client gets this message (the log has the full path).
+    assert "missing.yaml" in str(excinfo.value)
+    assert str(tmp_path) not in str(excinfo.value)
 
 
 def test_a_broken_world_state_file_is_named_as_configured(
