@@ -135,6 +135,12 @@ class Inspection(Protocol):
 
 @dataclass(frozen=True)
 class Catalog:
+    """Cameras and inspections by name, and the hash of the configuration they came from.
+
+    The value is immutable; its lifetime (leases, retirement, release) is the one mutable part,
+    kept out of comparisons: see the module.
+    """
+
     cameras: Mapping[str, Camera]
     inspections: Mapping[str, Inspection]
     config_hash: str = ""
