@@ -43,7 +43,7 @@ def test_the_demo_succeeds_end_to_end(run: tuple[demo.DemoResult, Path, str]) ->
     assert [(s.report.skill, s.report.record) for s in result.steps] == EXPECTED_STEPS
     assert all(s.report.outcome.ok and s.report.attempts == 1 for s in result.steps)
     assert "qr_calibration/station-1" in log  # one line per finished step
-    assert result.wall_s < 60.0
+    # How long the demo takes is measured by the bench, not asserted on a shared machine.
 
 
 def test_caps_from_both_locations_end_in_the_bin(run: tuple[demo.DemoResult, Path, str]) -> None:

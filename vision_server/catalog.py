@@ -2,14 +2,25 @@
 
 A catalog is swapped whole on a configuration reload, so a request sees either the old or the
 new configuration, never a mix.
+
+Lifetime: a request *leases* the catalog it runs on (:meth:`Catalog.lease_newest`) and keeps
+the lease until its last use of the catalog's cameras and inspections, including work still
+running in a worker thread after the client was answered (a passed deadline). The owner of the
+resources (:class:`vision_server.runtime.CellRuntime`) *retires* a catalog when a reload
+replaces it; once it is retired and its last lease is released, the catalog is *released*: its
+``on_release`` callbacks run, and only then may the owner close what no newer catalog uses. So
+every resource of an old catalog outlives the requests that use it.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Mapping, Sequence
+import logging
+import threading
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from types import TracebackType
 from typing import Any, Protocol
 
 import numpy.typing as npt
@@ -19,6 +30,61 @@ from protocol import UnknownCamera, UnknownInspection
 from .cameras import Camera, Intrinsics
 
 Image = npt.NDArray[Any]
+log = logging.getLogger("vision_server")
+
+
+class CatalogReleased(RuntimeError):
+    """A lease was asked of a catalog whose resources are already released."""
+
+
+class _Leases:
+    """The mutable lifetime state of one catalog (not part of its value)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.count = 0
+        self.retired = False
+        self.released = False
+        self.successor: Catalog | None = None
+        self.callbacks: list[Callable[[], None]] = []
+
+
+def _run_callbacks(callbacks: list[Callable[[], None]]) -> None:
+    for callback in callbacks:
+        try:
+            callback()
+        except Exception:  # one owner's failure must not keep the others' resources
+            log.exception("a catalog release callback failed")
+
+
+class CatalogLease:
+    """One user's hold on a catalog: its resources stay until :meth:`release` (idempotent).
+
+    Also a context manager that releases on exit.
+    """
+
+    def __init__(self, catalog: Catalog) -> None:
+        self.catalog = catalog
+        self._lock = threading.Lock()
+        self._held = True
+
+    def release(self) -> None:
+        with self._lock:
+            if not self._held:
+                return
+            self._held = False
+        self.catalog._drop_lease()
+
+    def __enter__(self) -> CatalogLease:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.release()
 
 
 @dataclass(frozen=True)
@@ -69,9 +135,16 @@ class Inspection(Protocol):
 
 @dataclass(frozen=True)
 class Catalog:
+    """Cameras and inspections by name, and the hash of the configuration they came from.
+
+    The value is immutable; its lifetime (leases, retirement, release) is the one mutable part,
+    kept out of comparisons: see the module.
+    """
+
     cameras: Mapping[str, Camera]
     inspections: Mapping[str, Inspection]
     config_hash: str = ""
+    _leases: _Leases = field(default_factory=_Leases, compare=False, repr=False)
 
     @classmethod
     def build(
@@ -99,6 +172,85 @@ class Catalog:
             )
             config_hash = hashlib.sha256(summary.encode()).hexdigest()[:16]
         return cls(cams, insp, config_hash)
+
+    # ------------------------------------------------------------------ lifetime
+
+    def acquire(self) -> CatalogLease:
+        """A lease on this catalog. Raises :class:`CatalogReleased` when it is released
+        (retired and no lease left); a retired catalog that is still leased may lend more,
+        for work a lease holder hands on (its resources are alive anyway)."""
+        leases = self._leases
+        with leases.lock:
+            if leases.released:
+                raise CatalogReleased(f"catalog {self.config_hash or id(self)} is released")
+            leases.count += 1
+        return CatalogLease(self)
+
+    def lease_newest(self) -> CatalogLease:
+        """A lease on this catalog, or on its newest successor when this one is released
+        (a request that read the catalog just before a reload published the next one)."""
+        catalog: Catalog | None = self
+        while catalog is not None:
+            try:
+                return catalog.acquire()
+            except CatalogReleased:
+                catalog = catalog._leases.successor
+        raise CatalogReleased("the catalog was released and has no successor")
+
+    def retire(self, successor: Catalog | None = None) -> None:
+        """Take no new users from the server's next requests (they go to ``successor``); once
+        the last lease is released, run the ``on_release`` callbacks. Idempotent."""
+        leases = self._leases
+        with leases.lock:
+            if leases.retired:
+                return
+            leases.retired = True
+            leases.successor = successor
+            callbacks = self._release_if_idle()
+        _run_callbacks(callbacks)
+
+    def on_release(self, callback: Callable[[], None]) -> None:
+        """Call ``callback`` once, when the catalog is released (at once if it already is).
+        It runs in the thread that released the last lease, or that retired the catalog."""
+        leases = self._leases
+        with leases.lock:
+            if not leases.released:
+                leases.callbacks.append(callback)
+                return
+        _run_callbacks([callback])
+
+    @property
+    def leases(self) -> int:
+        """Leases held right now."""
+        with self._leases.lock:
+            return self._leases.count
+
+    @property
+    def retired(self) -> bool:
+        return self._leases.retired
+
+    @property
+    def released(self) -> bool:
+        return self._leases.released
+
+    def _drop_lease(self) -> None:
+        leases = self._leases
+        with leases.lock:
+            leases.count -= 1
+            callbacks = self._release_if_idle()
+        _run_callbacks(callbacks)
+
+    def _release_if_idle(self) -> list[Callable[[], None]]:
+        """Mark released when retired and idle; the callbacks to run (caller holds the lock
+        and runs them after letting it go)."""
+        leases = self._leases
+        if not leases.retired or leases.count > 0 or leases.released:
+            return []
+        leases.released = True
+        callbacks, leases.callbacks = leases.callbacks, []
+        return callbacks
+
+    # ------------------------------------------------------------------ lookup
 
     def inspection(self, name: str, *, request_id: int = 0) -> Inspection:
         try:

@@ -2,14 +2,21 @@
 
 ``reload`` re-reads the file. A valid new configuration becomes the catalog for new requests;
 cameras whose settings did not change are kept open (no reconnect, no gap in frames), changed
-ones are opened anew and the old ones closed. An invalid configuration changes nothing: the
-error is raised (and logged by the caller) and the old catalog keeps serving.
+ones are opened anew. An invalid configuration changes nothing: the error is raised (and logged
+by the caller) and the old catalog keeps serving.
+
+A camera that a reload replaced or removed is closed only when no catalog that holds it is in
+use any more: the old catalog is retired, and once the last request leasing it is done (see
+:mod:`vision_server.catalog`) the cameras that no newer catalog holds are closed, in a thread of
+their own, because closing a camera joins its reader (up to ``read_timeout_s`` + 5 s for a
+hung driver) and must neither block the event loop (SIGHUP) nor a worker thread.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from .cameras import Camera, CameraSettings, make_camera
@@ -20,13 +27,30 @@ from .results import ResultLog, ResultLogError, check_creatable
 
 log = logging.getLogger("vision_server")
 
+CameraFactory = Callable[[str, CameraSettings, Path], Camera]
+"""Builds a camera, not yet opened: ``(name, settings, base_dir) -> Camera``."""
+
+
+def _make_camera(name: str, settings: CameraSettings, base_dir: Path) -> Camera:
+    return make_camera(name, settings, base_dir=base_dir)
+
 
 class CellRuntime:
-    """Owns the cameras and the result log of the configuration at ``path``."""
+    """Owns the cameras and the result log of the configuration at ``path``.
 
-    def __init__(self, path: Path | str) -> None:
+    ``camera_factory`` builds the cameras (``make_camera`` unless a test wraps it).
+    """
+
+    def __init__(self, path: Path | str, *, camera_factory: CameraFactory | None = None) -> None:
         self.path = Path(path)
+        self._make_camera = camera_factory or _make_camera
         self._lock = threading.Lock()
+        """Serialises reload and close."""
+        self._owners_lock = threading.Lock()
+        self._owners: dict[Camera, int] = {}
+        """Each camera -> how many unreleased catalogs hold it; closed when it drops to 0."""
+        self._closers: list[threading.Thread] = []
+        self._closed = False
         self.config = load_config(self.path)
         self._cameras: dict[str, tuple[CameraSettings, Camera]] = {}
         self.results: ResultLog | None = None
@@ -49,7 +73,8 @@ class CellRuntime:
             raise result_log_error(config, str(exc)) from None
 
     def _build(self, config: CellConfig) -> Catalog:
-        """Cameras for ``config`` (reusing unchanged ones), then the catalog."""
+        """Cameras for ``config`` (reusing unchanged ones), then the catalog, whose cameras
+        this runtime closes once the catalog is released."""
         kept: dict[str, tuple[CameraSettings, Camera]] = {}
         opened: list[Camera] = []
         try:
@@ -59,7 +84,7 @@ class CellRuntime:
                     kept[name] = previous
                     continue
                 try:
-                    camera = make_camera(name, settings, base_dir=config.base_dir)
+                    camera = self._make_camera(name, settings, config.base_dir)
                 except ValueError as exc:
                     raise ConfigError(f"camera {name!r}: {exc}", source=str(self.path)) from None
                 camera.open()
@@ -71,22 +96,47 @@ class CellRuntime:
                 config_hash=config.config_hash,
             )
         except BaseException:
-            for camera in opened:
+            for camera in opened:  # never served: nobody can be using them
                 camera.close()
             raise
-        retired = [
-            cam
-            for name, (_, cam) in self._cameras.items()
-            if kept.get(name, (None, None))[1] is not cam
-        ]
         self._cameras = kept
-        for camera in retired:
-            camera.close()
+        cameras = list(catalog.cameras.values())
+        with self._owners_lock:
+            for camera in cameras:
+                self._owners[camera] = self._owners.get(camera, 0) + 1
+        catalog.on_release(lambda: self._disown(cameras))
         return catalog
 
+    def _disown(self, cameras: Iterable[Camera]) -> None:
+        """A catalog holding ``cameras`` is released: close those no other catalog holds."""
+        unused = []
+        with self._owners_lock:
+            for camera in cameras:
+                left = self._owners.get(camera, 0) - 1
+                if left > 0:
+                    self._owners[camera] = left
+                elif camera in self._owners:
+                    del self._owners[camera]
+                    unused.append(camera)
+            if not unused or self._closed:
+                return  # after close() every camera is closed already
+            closer = threading.Thread(
+                target=_close_all, args=(unused,), name="camera-closer", daemon=True
+            )
+            self._closers = [t for t in self._closers if t.is_alive()]
+            self._closers.append(closer)
+            closer.start()
+
     def reload(self) -> Catalog:
-        """Re-read the file; returns the new catalog or raises ConfigError (nothing changed)."""
+        """Re-read the file; returns the new catalog or raises ConfigError (nothing changed).
+
+        The previous catalog is retired with the new one as its successor: requests running
+        on it finish with its cameras, which are closed after the last of them if the new
+        catalog does not keep them. Never waits for a camera to close.
+        """
         with self._lock:
+            if self._closed:
+                raise RuntimeError("the cell runtime is closed")
             config = load_config(self.path)
             if config.server != self.config.server:
                 log.warning(
@@ -96,16 +146,38 @@ class CellRuntime:
                 log.warning(
                     "%s: changes under 'results:' take effect after a restart", self.path.name
                 )
+            previous = self.catalog
             self.catalog = self._build(config)
             self.config = config
+            previous.retire(successor=self.catalog)
             return self.catalog
 
     def close(self) -> None:
-        for _, camera in self._cameras.values():
+        """Close every camera, also those of catalogs still leased (the server has stopped),
+        wait for the closing of replaced ones, close the result log."""
+        with self._lock:
+            with self._owners_lock:
+                self._closed = True
+                cameras = list(self._owners)
+                self._owners.clear()
+                closers, self._closers = self._closers, []
+            self.catalog.retire()
+            _close_all(cameras)
+            for closer in closers:
+                closer.join()
+            self._cameras = {}
+            if self.results is not None:
+                self.results.close()
+
+
+def _close_all(cameras: Iterable[Camera]) -> None:
+    for camera in cameras:
+        try:
             camera.close()
-        self._cameras = {}
-        if self.results is not None:
-            self.results.close()
+        except Exception:  # one camera's failure must not leave the others open
+            log.exception("closing camera %r failed", camera.name)
+        else:
+            log.info("camera %r closed", camera.name)
 
 
 def check_result_log(config: CellConfig) -> None:
@@ -134,4 +206,4 @@ def result_log_error(config: CellConfig, message: str) -> ConfigError:
         return ConfigError(message, source=config.source.name, path="results -> path")
 
 
-__all__ = ["CellRuntime", "check_result_log", "result_log_error"]
+__all__ = ["CameraFactory", "CellRuntime", "check_result_log", "result_log_error"]

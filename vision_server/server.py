@@ -228,7 +228,8 @@ class VisionServer:
         await self.stop()
 
     def replace_catalog(self, catalog: Catalog) -> None:
-        """Serve new requests with ``catalog``; requests already running finish on the old."""
+        """Serve new requests with ``catalog``; requests already running finish on the old,
+        whose lease they hold (retiring it is its owner's job, see CellRuntime.reload)."""
         self.catalog = catalog
 
     # ------------------------------------------------------------------ connections
@@ -307,8 +308,14 @@ class VisionServer:
     ) -> Result:
         """Get the images (from the request or the camera), run the named inspection in the
         pool, record it in the result log, build the RESULT."""
+        # The lease keeps the catalog's cameras open until this request is done with them.
+        with self.catalog.lease_newest() as lease:
+            return await self._run_inspection(request, lease.catalog, peer, admission)
+
+    async def _run_inspection(
+        self, request: Inspect, catalog: Catalog, peer: str, admission: Admission | None
+    ) -> Result:
         started = time.perf_counter()
-        catalog = self.catalog
         rid = request.request_id
         inspection = catalog.inspection(request.inspection, request_id=rid)
         camera = catalog.camera(inspection.camera, request_id=rid)
@@ -390,7 +397,7 @@ class VisionServer:
             return outcome, compute_ms, images, stored
 
         outcome, compute_ms, images, stored = await self._in_pool(
-            work, rid, request.deadline_ms, admission
+            work, rid, request.deadline_ms, admission, hold=catalog
         )
         total_ms = (time.perf_counter() - started) * 1000.0
         result = Result(
@@ -485,8 +492,18 @@ class VisionServer:
         The reply is bounded in bytes, not in frames: it must fit ``max_reply_bytes`` (what the
         client said it accepts, SPEC §5.1) and the server's byte budget, checked before the
         frames are taken (from the camera's declared size, or its first frame)."""
+        with self.catalog.lease_newest() as lease:
+            return await self._run_capture(request, lease.catalog, admission, max_reply_bytes)
+
+    async def _run_capture(
+        self,
+        request: Capture,
+        catalog: Catalog,
+        admission: Admission | None,
+        max_reply_bytes: int,
+    ) -> Frames:
         rid = request.request_id
-        camera = self.catalog.camera(request.camera, request_id=rid)
+        camera = catalog.camera(request.camera, request_id=rid)
         if camera.source == "request":
             raise InvalidArgument(
                 f"camera {camera.name!r} gets its images from the request: it cannot capture",
@@ -527,7 +544,9 @@ class VisionServer:
                     payloads.append(payload_from_array(frame.depth, role=ImageRole.DEPTH))
             return payloads, [f.timestamp for f in frames]
 
-        payloads, stamps = await self._in_pool(work, rid, request.deadline_ms, admission)
+        payloads, stamps = await self._in_pool(
+            work, rid, request.deadline_ms, admission, hold=catalog
+        )
         intrinsics = None if camera.intrinsics is None else camera.intrinsics.to_dict()
         return Frames(rid, camera.name, tuple(payloads), tuple(stamps), intrinsics)
 
@@ -588,12 +607,29 @@ class VisionServer:
         request_id: int,
         deadline_ms: float | None,
         admission: Admission | None = None,
+        *,
+        hold: Catalog | None = None,
     ) -> _T:
+        """Run ``fn`` in the pool, on the slot ``admission`` reserved if it holds one.
+        ``hold``: a catalog ``fn`` uses, leased until ``fn`` returns, which may be after the
+        request gave up (its deadline passed)."""
+        work = fn
+        lease = None
+        if hold is not None:
+            lease = hold.acquire()
+
+            def leased() -> _T:
+                with lease:
+                    return fn()
+
+            work = leased
         future: asyncio.Future[_T] | None
         if admission is not None and admission.hand_slot_to_pool():
-            future = self._pool.submit_reserved(fn)
+            future = self._pool.submit_reserved(work)
         else:
-            future = self._pool.try_submit(fn)
+            future = self._pool.try_submit(work)
+        if future is None and lease is not None:
+            lease.release()
         if future is None:
             raise Busy(
                 f"all {self._pool.capacity} inspection slots are taken; try again",

@@ -14,12 +14,15 @@ Public API:
   (``name``, ``source``, ``has_depth``, ``intrinsics``, ``open()``,
   ``grab(*, timeout_s, newer_than=None)``, ``grab_many(n, *, timeout_s)``, ``status()``,
   ``close()``, ``descriptor()``).
-- :func:`make_camera` ``(name, settings, *, base_dir) -> Camera``.
+- :func:`make_camera` ``(name, settings, *, base_dir, clock=None) -> Camera``.
+- Time: :class:`Clock` (what a camera reads and waits on), ``SYSTEM_CLOCK`` (the default) and
+  :class:`ManualClock` (a clock a test advances by hand).
 - The implementations: :class:`RequestCamera`, :class:`OpenCVCamera`, :class:`FolderCamera`,
   :class:`SimCamera`.
 """
 
 from .base import Camera, CameraFrame
+from .clock import SYSTEM_CLOCK, Clock, ManualClock
 from .factory import make_camera
 from .folder import FolderCamera
 from .opencv import OpenCVCamera
@@ -37,12 +40,15 @@ from .sim import SimCamera
 
 __all__ = [
     "SOURCE_NAMES",
+    "SYSTEM_CLOCK",
     "Camera",
     "CameraFrame",
     "CameraSettings",
+    "Clock",
     "FolderCamera",
     "FolderCameraSettings",
     "Intrinsics",
+    "ManualClock",
     "OpenCVCamera",
     "OpenCVCameraSettings",
     "RequestCamera",

@@ -1,15 +1,24 @@
 """What every camera source offers: :class:`CameraFrame` and the :class:`Camera` base class.
 
 Threads: ``grab``/``grab_many``/``status`` may be called from several worker threads at once;
-``open`` and ``close`` from the thread that owns the camera (the server's configuration code).
+``open`` from the thread that owns the camera (the server's configuration code), ``close`` from
+any one thread (the configuration code closes a replaced camera in a thread of its own once the
+last request using it is done).
+
+Messages to clients: a :class:`protocol.CameraUnavailable` goes to the client, so its text names
+the camera and paths only as the configuration wrote them (relative) or by their file name; the
+absolute paths on the server go to the server's log (see :meth:`Camera.unavailable`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import threading
-import time
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from types import TracebackType
 from typing import Any, ClassVar
 
@@ -19,9 +28,12 @@ from numpy.typing import NDArray
 
 from protocol import CameraUnavailable, InvalidArgument
 
+from .clock import SYSTEM_CLOCK, Clock
 from .settings import Intrinsics
 
-__all__ = ["Camera", "CameraFrame", "color_image"]
+__all__ = ["Camera", "CameraFrame", "color_image", "path_forms", "public_path", "replace_paths"]
+
+log = logging.getLogger("vision_server.cameras")
 
 
 @dataclass(frozen=True)
@@ -29,10 +41,11 @@ class CameraFrame:
     """One capture.
 
     ``color``: (H, W) gray or (H, W, 3) BGR, uint8. ``depth``: (H, W) uint16 millimetres
-    (0 = no depth) registered to ``color``, or None. ``timestamp``: ``time.time()`` when the
-    frame was captured (read from the device, file or renderer). ``index``: the camera's frame
-    counter; it only increases, also across reconnects, so frames with different indices are
-    different captures. Both arrays are read-only because one frame may be handed to several
+    (0 = no depth) registered to ``color``, or None. ``timestamp``: seconds since the epoch
+    on the camera's clock (``time.time()`` unless a test gives another) when the frame was
+    captured (read from the device, file or renderer). ``index``: the camera's frame counter;
+    it only increases, also across reconnects, so frames with different indices are different
+    captures. Both arrays are read-only because one frame may be handed to several
     requests at once: copy before drawing on them.
     """
 
@@ -86,6 +99,32 @@ def color_image(image: NDArray[Any]) -> NDArray[np.uint8]:
     raise ValueError(f"unsupported image shape {image.shape}")
 
 
+def path_forms(path: Path | str) -> list[str]:
+    """The spellings of ``path`` a message may contain: as given and resolved."""
+    forms = [str(path)]
+    with contextlib.suppress(OSError, RuntimeError):  # a symlink loop: keep the given form
+        forms.append(str(Path(path).resolve()))
+    return forms
+
+
+def replace_paths(text: str, shown: Mapping[str, str]) -> str:
+    """``text`` with each key of ``shown`` replaced by its value, longest key first (so that
+    a file inside a replaced folder keeps its name relative to the folder)."""
+    for private in sorted(shown, key=len, reverse=True):
+        text = text.replace(private, shown[private])
+    return text
+
+
+def public_path(configured: Path | str) -> str:
+    """How a path from the configuration is shown to clients: as written when it is relative
+    (to the configuration file), by its last component when it is absolute."""
+    text = str(configured)
+    path = Path(text).expanduser()
+    if not path.is_absolute():
+        return text
+    return path.name or text
+
+
 class Camera(ABC):
     """A named camera of the server.
 
@@ -98,11 +137,21 @@ class Camera(ABC):
     source: ClassVar[str] = ""
     """The source kind: ``request``, ``opencv``, ``folder`` or ``sim``."""
 
-    def __init__(self, name: str, *, intrinsics: Intrinsics | None, has_depth: bool) -> None:
+    def __init__(
+        self,
+        name: str,
+        *,
+        intrinsics: Intrinsics | None,
+        has_depth: bool,
+        clock: Clock | None = None,
+    ) -> None:
         self._name = name
         self._intrinsics = intrinsics
         self._has_depth = has_depth
+        self._clock: Clock = clock or SYSTEM_CLOCK
         self._closed = threading.Event()
+        self._private_paths: dict[str, str] = {}
+        self._logged_cause: str | None = None
 
     @property
     def name(self) -> str:
@@ -140,10 +189,10 @@ class Camera(ABC):
         """``n`` distinct successive frames (for depth averaging); ``timeout_s`` covers all."""
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise InvalidArgument(f"camera {self.name!r}: frame count must be >= 1, got {n!r}")
-        deadline = time.monotonic() + timeout_s
+        deadline = self._clock.monotonic() + timeout_s
         frames = [self.grab(timeout_s=timeout_s)]
         while len(frames) < n:
-            remaining = deadline - time.monotonic()
+            remaining = deadline - self._clock.monotonic()
             try:
                 frames.append(self.grab(timeout_s=max(remaining, 0.0), newer_than=frames[-1].index))
             except CameraUnavailable as exc:
@@ -165,10 +214,31 @@ class Camera(ABC):
     def closed(self) -> bool:
         return self._closed.is_set()
 
+    def hide_path(self, path: Path | str, shown_as: str) -> None:
+        """Show ``path`` (an absolute path on the server) as ``shown_as`` in client messages.
+
+        Its resolved form (symlinks followed) is hidden too. Longer paths are replaced first,
+        so that a file inside a hidden folder keeps its name relative to the folder.
+        """
+        for private in path_forms(path):
+            self._private_paths.setdefault(private, shown_as)
+
+    def public_text(self, text: str) -> str:
+        """``text`` with the camera's hidden paths replaced by how clients see them."""
+        return replace_paths(text, self._private_paths)
+
     def unavailable(self, cause: str) -> CameraUnavailable:
-        """The error for this camera giving no frame because of ``cause``."""
+        """The error for this camera giving no frame because of ``cause``.
+
+        ``cause`` may name absolute paths: the client gets them as configured (see
+        :meth:`hide_path`); the full cause is logged once per distinct cause.
+        """
+        public = self.public_text(cause)
+        if public != cause and cause != self._logged_cause:
+            self._logged_cause = cause
+            log.warning("camera %r (%s): %s", self.name, self.source, cause)
         return CameraUnavailable(
-            f"camera {self.name!r} ({self.source}): {cause}",
+            f"camera {self.name!r} ({self.source}): {public}",
             details={"camera": self.name, "source": self.source},
         )
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .base import Camera
+from .clock import Clock
 from .folder import FolderCamera
 from .opencv import OpenCVCamera
 from .request import RequestCamera
@@ -20,8 +21,13 @@ from .sim import SimCamera
 __all__ = ["make_camera"]
 
 
-def make_camera(name: str, settings: CameraSettings, *, base_dir: Path) -> Camera:
+def make_camera(
+    name: str, settings: CameraSettings, *, base_dir: Path, clock: Clock | None = None
+) -> Camera:
     """The camera ``name`` for ``settings``, not yet opened (call ``open()``).
+
+    ``clock``: the time the camera reads and waits on (the system's unless given, see
+    :mod:`vision_server.cameras.clock`).
 
     Relative paths in the settings (a video file, a folder, a scene, a world-state file)
     resolve against ``base_dir``, the configuration file's directory. Raises ``ValueError`` for
@@ -31,11 +37,11 @@ def make_camera(name: str, settings: CameraSettings, *, base_dir: Path) -> Camer
     if not isinstance(name, str) or not name:
         raise ValueError(f"camera name must be a non-empty string, got {name!r}")
     if isinstance(settings, RequestCameraSettings):
-        return RequestCamera(name, settings)
+        return RequestCamera(name, settings, clock=clock)
     if isinstance(settings, OpenCVCameraSettings):
-        return OpenCVCamera(name, settings, base_dir=base_dir)
+        return OpenCVCamera(name, settings, base_dir=base_dir, clock=clock)
     if isinstance(settings, FolderCameraSettings):
-        return FolderCamera(name, settings, base_dir=base_dir)
+        return FolderCamera(name, settings, base_dir=base_dir, clock=clock)
     if isinstance(settings, SimCameraSettings):
-        return SimCamera(name, settings, base_dir=base_dir)
+        return SimCamera(name, settings, base_dir=base_dir, clock=clock)
     raise TypeError(f"camera {name!r}: unknown settings type {type(settings).__name__}")

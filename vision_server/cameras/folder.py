@@ -9,13 +9,15 @@ scanned again at the next grab.
 Confinement: a file is read only if its resolved path (symlinks followed) lies inside the
 resolved directory; a symlink that points outside is refused with ``CameraUnavailable`` naming
 it. The glob patterns cannot be absolute or contain ``..`` (checked in the settings).
+
+Messages to clients name the folder as configured (relative to the configuration file, or by
+its last component when absolute) and files relative to it; the log gets the full paths.
 """
 
 from __future__ import annotations
 
 import re
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +25,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .base import Camera, CameraFrame, color_image
+from .base import Camera, CameraFrame, color_image, public_path
+from .clock import Clock
 from .settings import FolderCameraSettings
 
 __all__ = ["FolderCamera", "natural_key"]
@@ -49,16 +52,25 @@ class FolderCamera(Camera):
     source = "folder"
 
     def __init__(
-        self, name: str, settings: FolderCameraSettings, *, base_dir: Path | None = None
+        self,
+        name: str,
+        settings: FolderCameraSettings,
+        *,
+        base_dir: Path | None = None,
+        clock: Clock | None = None,
     ) -> None:
         super().__init__(
-            name, intrinsics=settings.intrinsics, has_depth=settings.depth_glob is not None
+            name,
+            intrinsics=settings.intrinsics,
+            has_depth=settings.depth_glob is not None,
+            clock=clock,
         )
         self.settings = settings
         root = settings.path.expanduser()
         if not root.is_absolute() and base_dir is not None:
             root = base_dir / root
         self.root = root
+        self.hide_path(root, public_path(settings.path))
         self._lock = threading.Lock()
         self._files: list[Path] = []
         self._depth_files: list[Path | None] = []
@@ -175,7 +187,7 @@ class FolderCamera(Camera):
         depth_path = self._depth_files[self._position]
         self._position += 1
         color, depth = self._read(path, depth_path)
-        frame = CameraFrame(color, depth, time.time(), self._next_index)
+        frame = CameraFrame(color, depth, self._clock.time(), self._next_index)
         self._next_index += 1
         self._frames += 1
         return frame

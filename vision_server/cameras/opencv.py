@@ -13,6 +13,11 @@ it; 30 fps when the file gives none), so that a file behaves like a live camera:
 the frame "on air" at that moment, and frames that nobody grabbed are skipped, as with a
 camera. At the end the file starts again when ``loop_file`` is set; otherwise the camera
 *ends*: grabs raise ``CameraUnavailable`` ("ended after N frames") and it is not reopened.
+
+Time comes from the camera's clock (:mod:`vision_server.cameras.clock`): playback pacing, grab
+timeouts, stall detection, reconnect pauses and frame timestamps, so that a test can drive
+them with a manual clock. A video file is named to clients as configured (see
+:func:`vision_server.cameras.base.public_path`); the log gets its full path.
 """
 
 from __future__ import annotations
@@ -20,7 +25,6 @@ from __future__ import annotations
 import logging
 import sys
 import threading
-import time
 from pathlib import Path
 from typing import Any, Literal
 from urllib.parse import urlsplit, urlunsplit
@@ -29,7 +33,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .base import Camera, CameraFrame, color_image
+from .base import Camera, CameraFrame, color_image, public_path
+from .clock import Clock
 from .settings import OpenCVCameraSettings
 
 __all__ = ["OpenCVCamera", "SourceKind", "source_kind"]
@@ -87,9 +92,14 @@ class OpenCVCamera(Camera):
     source = "opencv"
 
     def __init__(
-        self, name: str, settings: OpenCVCameraSettings, *, base_dir: Path | None = None
+        self,
+        name: str,
+        settings: OpenCVCameraSettings,
+        *,
+        base_dir: Path | None = None,
+        clock: Clock | None = None,
     ) -> None:
-        super().__init__(name, intrinsics=settings.intrinsics, has_depth=False)
+        super().__init__(name, intrinsics=settings.intrinsics, has_depth=False, clock=clock)
         self.settings = settings
         self.kind: SourceKind = source_kind(settings.device, settings.backend)
         self._target: int | str = settings.device
@@ -98,12 +108,13 @@ class OpenCVCamera(Camera):
             if not path.is_absolute() and base_dir is not None:
                 path = base_dir / path
             self._target = str(path)
+            self.hide_path(path, public_path(str(settings.device)))
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._state: _State = "idle"
         self._latest: CameraFrame | None = None
-        self._last_frame_at: float | None = None  # monotonic time of the newest frame
+        self._last_frame_at: float | None = None  # clock.monotonic() of the newest frame
         self._next_index = 0
         self._frames = 0
         self._reconnects = 0
@@ -119,7 +130,8 @@ class OpenCVCamera(Camera):
         return self._target
 
     def describe_source(self) -> str:
-        """The source for messages, without credentials."""
+        """The source for messages and the log, without credentials (a file's full path:
+        :meth:`unavailable` shows it to clients as configured)."""
         if self.kind == "index":
             return f"device index {self._target}"
         if self.kind == "url":
@@ -163,7 +175,7 @@ class OpenCVCamera(Camera):
 
     def grab(self, *, timeout_s: float, newer_than: int | None = None) -> CameraFrame:
         self._check_open()
-        deadline = time.monotonic() + max(timeout_s, 0.0)
+        deadline = self._clock.monotonic() + max(timeout_s, 0.0)
         with self._cond:
             if self._thread is None:
                 raise self.unavailable("not opened")
@@ -184,10 +196,10 @@ class OpenCVCamera(Camera):
                     raise self.unavailable(str(self._error))
                 if self._state == "closed":
                     raise self.unavailable("the camera is closed")
-                now = time.monotonic()
-                wait_s = deadline - now
-                if wait_s <= 0:
+                now = self._clock.monotonic()
+                if now >= deadline:
                     raise self.unavailable(self._timeout_cause(timeout_s))
+                wake_at = deadline
                 stall_at = self._stall_deadline()
                 if stall_at is not None:
                     if now >= stall_at:
@@ -196,8 +208,8 @@ class OpenCVCamera(Camera):
                             f"no frame from {self.describe_source()} for {silent_s:.1f} s: "
                             f"the source stalled"
                         )
-                    wait_s = min(wait_s, stall_at - now)
-                self._cond.wait(wait_s)
+                    wake_at = min(wake_at, stall_at)
+                self._clock.wait_until(self._cond, wake_at)
 
     def _stall_deadline(self) -> float | None:
         """When a live source that is up counts as stalled (monotonic time), else None.
@@ -214,7 +226,7 @@ class OpenCVCamera(Camera):
         if self._state == "connecting":
             return f"{cause} (still connecting)"
         if self._latest is not None:
-            age = time.time() - self._latest.timestamp
+            age = self._clock.time() - self._latest.timestamp
             cause = f"{cause} (last frame {age:.1f} s ago)"
         return cause
 
@@ -233,11 +245,11 @@ class OpenCVCamera(Camera):
                 "backend": self._backend_name,
             }
             if latest is not None:
-                age = time.time() - latest.timestamp
+                age = self._clock.time() - latest.timestamp
                 out["width"], out["height"] = latest.width, latest.height
                 out["last_frame_age_s"] = round(age, 3)
                 stall_at = self._stall_deadline()
-                out["stalled"] = stall_at is not None and time.monotonic() >= stall_at
+                out["stalled"] = stall_at is not None and self._clock.monotonic() >= stall_at
             if self._native_size is not None:
                 out["native_width"], out["native_height"] = self._native_size
             if self._file_fps is not None:
@@ -254,7 +266,7 @@ class OpenCVCamera(Camera):
             except Exception as exc:  # a bug must not kill the reader and leave it "up"
                 log.exception("camera %r: reader failed", self.name)
                 self._mark_down(f"internal error in the reader: {exc!r}")
-                if self._stop.wait(self.settings.reconnect_interval_s):
+                if self._pause(self.settings.reconnect_interval_s):
                     return
 
     def _read_until_finished(self) -> None:
@@ -263,7 +275,7 @@ class OpenCVCamera(Camera):
             cap, error = self._open_capture()
             if cap is None:
                 self._mark_down(error or "cannot open")
-                if self._stop.wait(self.settings.reconnect_interval_s):
+                if self._pause(self.settings.reconnect_interval_s):
                     break
                 continue
             try:
@@ -273,8 +285,19 @@ class OpenCVCamera(Camera):
             if outcome in ("ended", "stopped"):
                 break
             # A source that opens but fails before its first frame would otherwise spin.
-            if outcome == "failed_at_once" and self._stop.wait(self.settings.reconnect_interval_s):
+            if outcome == "failed_at_once" and self._pause(self.settings.reconnect_interval_s):
                 break
+
+    def _pause(self, seconds: float) -> bool:
+        """Wait ``seconds`` on the camera's clock; True when close() came first."""
+        return self._pause_until(self._clock.monotonic() + seconds)
+
+    def _pause_until(self, deadline: float) -> bool:
+        """Wait until ``deadline`` (clock.monotonic()); True when close() came first."""
+        with self._cond:
+            while not self._stop.is_set() and self._clock.monotonic() < deadline:
+                self._clock.wait_until(self._cond, deadline)
+            return self._stop.is_set()
 
     def _open_capture(self) -> tuple[cv2.VideoCapture | None, str | None]:
         what = self.describe_source()
@@ -343,16 +366,16 @@ class OpenCVCamera(Camera):
     def _pump(self, cap: cv2.VideoCapture) -> _Outcome:
         """Read frames until a failure, the end of a file, or close()."""
         period = 1.0 / self._file_fps if self.kind == "file" and self._file_fps else 0.0
-        next_due = time.monotonic()
+        next_due = self._clock.monotonic()
         delivered = 0
         while not self._stop.is_set():
             if period:
-                delay = next_due - time.monotonic()
-                if delay > 0:
-                    if self._stop.wait(delay):
+                now = self._clock.monotonic()
+                if next_due > now:
+                    if self._pause_until(next_due):
                         return "stopped"
-                elif delay < -period:
-                    next_due = time.monotonic()  # decoding fell behind: do not rush to catch up
+                elif now - next_due > period:
+                    next_due = now  # decoding fell behind: do not rush to catch up
                 next_due += period
             try:
                 ok, image = cap.read()
@@ -372,7 +395,7 @@ class OpenCVCamera(Camera):
             except ValueError as exc:
                 self._mark_down(f"{self.describe_source()} gave an unusable frame: {exc}")
                 return "failed" if delivered else "failed_at_once"
-            self._publish(color, time.time())
+            self._publish(color, self._clock.time())
             delivered += 1
         return "stopped"
 
@@ -418,7 +441,7 @@ class OpenCVCamera(Camera):
                     log.info("camera %r: %s is back", self.name, self.describe_source())
                 self._state = "up"
             self._latest = CameraFrame(color, None, timestamp, self._next_index)
-            self._last_frame_at = time.monotonic()
+            self._last_frame_at = self._clock.monotonic()
             self._next_index += 1
             self._frames += 1
             self._cond.notify_all()

@@ -7,6 +7,7 @@ from typing import Any
 from protocol import InvalidArgument
 
 from .base import Camera, CameraFrame
+from .clock import Clock
 from .settings import RequestCameraSettings
 
 __all__ = ["RequestCamera"]
@@ -17,8 +18,12 @@ class RequestCamera(Camera):
 
     source = "request"
 
-    def __init__(self, name: str, settings: RequestCameraSettings) -> None:
-        super().__init__(name, intrinsics=settings.intrinsics, has_depth=settings.depth)
+    def __init__(
+        self, name: str, settings: RequestCameraSettings, *, clock: Clock | None = None
+    ) -> None:
+        super().__init__(
+            name, intrinsics=settings.intrinsics, has_depth=settings.depth, clock=clock
+        )
         self.settings = settings
 
     def grab(self, *, timeout_s: float, newer_than: int | None = None) -> CameraFrame:

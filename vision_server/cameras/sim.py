@@ -9,13 +9,13 @@ are distinct frames. ``SimCell`` is not thread-safe: renders are serialised by a
 from __future__ import annotations
 
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
 from simulation import SimCell
 
-from .base import Camera, CameraFrame, color_image
+from .base import Camera, CameraFrame, color_image, log, path_forms, public_path, replace_paths
+from .clock import Clock
 from .settings import Intrinsics, SimCameraSettings
 
 __all__ = ["SimCamera"]
@@ -38,25 +38,45 @@ class SimCamera(Camera):
     source = "sim"
 
     def __init__(
-        self, name: str, settings: SimCameraSettings, *, base_dir: Path | None = None
+        self,
+        name: str,
+        settings: SimCameraSettings,
+        *,
+        base_dir: Path | None = None,
+        clock: Clock | None = None,
     ) -> None:
         self.settings = settings
         self.scene_path = _resolve(settings.scene, base_dir)
         self.state_path = (
             None if settings.state_file is None else _resolve(settings.state_file, base_dir)
         )
+        # Configuration errors reach a RELOAD's client too: paths as configured, full in the log.
+        shown = dict.fromkeys(path_forms(self.scene_path), public_path(settings.scene))
+        if self.state_path is not None and settings.state_file is not None:
+            shown.update(
+                dict.fromkeys(path_forms(self.state_path), public_path(settings.state_file))
+            )
+
+        def config_error(message: str) -> ValueError:
+            public = replace_paths(message, shown)
+            if public != message:
+                log.warning("camera %r: %s", name, message)
+            return ValueError(public)
+
         try:
             cell = SimCell.from_yaml(
                 self.scene_path, seed=settings.seed, state_path=self.state_path
             )
         except (OSError, ValueError) as exc:
-            raise ValueError(
+            raise config_error(
                 f"camera {name!r}: cannot load scene {self.scene_path}: {exc}"
             ) from exc
         try:
             spec = cell.scene.camera(settings.camera)
         except KeyError as exc:
-            raise ValueError(f"camera {name!r}: {exc.args[0]} in scene {self.scene_path}") from exc
+            raise config_error(
+                f"camera {name!r}: {exc.args[0]} in scene {self.scene_path}"
+            ) from exc
         intrinsics = settings.intrinsics or Intrinsics.from_geometry(spec.intrinsics)
         size = (spec.intrinsics.width, spec.intrinsics.height)
         if (intrinsics.width, intrinsics.height) != size:
@@ -64,7 +84,9 @@ class SimCamera(Camera):
                 f"camera {name!r}: intrinsics are for {intrinsics.width}x{intrinsics.height} "
                 f"but the scene camera {settings.camera!r} renders {size[0]}x{size[1]}"
             )
-        super().__init__(name, intrinsics=intrinsics, has_depth=spec.depth is not None)
+        super().__init__(name, intrinsics=intrinsics, has_depth=spec.depth is not None, clock=clock)
+        for private, public in shown.items():
+            self.hide_path(private, public)
         self._cell = cell
         self._lock = threading.Lock()
         self._next_index = 0
@@ -78,9 +100,10 @@ class SimCamera(Camera):
                 frame = self._cell.render(self.settings.camera)
                 color = color_image(frame.color)
             except Exception as exc:  # the world-state file or the renderer failed
-                self._error = f"rendering {self.settings.camera!r} failed: {exc}"
-                raise self.unavailable(self._error) from exc
-            result = CameraFrame(color, frame.depth, time.time(), self._next_index)
+                error = self.unavailable(f"rendering {self.settings.camera!r} failed: {exc}")
+                self._error = error.message
+                raise error from exc
+            result = CameraFrame(color, frame.depth, self._clock.time(), self._next_index)
             self._next_index += 1
             return result
 

@@ -1,4 +1,9 @@
-"""The opencv source, for real: video files written by the test, read by cv2.VideoCapture."""
+"""The opencv source, for real: video files written by the test, read by cv2.VideoCapture.
+
+Where a verdict is about time (playback pacing, skipped frames, reconnect pauses, a grab that
+must not wait), the camera runs on a :class:`ManualClock` that only the test advances; the
+other tests wait for conditions, never for a duration.
+"""
 
 from __future__ import annotations
 
@@ -14,6 +19,7 @@ from protocol import CameraUnavailable
 from vision_server.cameras import (
     CameraFrame,
     Intrinsics,
+    ManualClock,
     OpenCVCamera,
     OpenCVCameraSettings,
     make_camera,
@@ -26,13 +32,42 @@ from .conftest import HEIGHT, WIDTH, frame_number, write_video
 GRAB_TIMEOUT_S = 5.0
 
 
-def wait_for(predicate: Callable[[], bool], *, timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.02)
-    raise AssertionError("condition not met in time")
+FPS = 32.0
+"""Playback rate of the paced tests: its period (1/32 s) is exact in binary, so the manual
+clock lands exactly on the reader's schedule."""
+PERIOD_S = 1.0 / FPS
+
+
+def wait_for(predicate: Callable[[], bool], what: str = "condition") -> None:
+    """Wait for a condition that worker threads bring about (real time only bounds a hang)."""
+    deadline = time.monotonic() + 30.0
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what}: not met")
+        time.sleep(0.002)
+
+
+def in_thread(fn: Callable[[], object]) -> tuple[threading.Thread, list[object]]:
+    """Run ``fn`` in a thread; its return value or exception lands in the list."""
+    out: list[object] = []
+
+    def target() -> None:
+        try:
+            out.append(fn())
+        except BaseException as exc:  # handed to the test
+            out.append(exc)
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    return thread, out
+
+
+def next_frame(camera: OpenCVCamera, clock: ManualClock) -> None:
+    """Let one playback period pass and wait until the reader has published its frame."""
+    wait_for(lambda: clock.waiters >= 1, "the reader waits for its next frame time")
+    frames = camera.status()["frames"]
+    clock.advance(PERIOD_S)
+    wait_for(lambda: camera.status()["frames"] == frames + 1, "the reader published a frame")
 
 
 @pytest.fixture
@@ -45,9 +80,12 @@ def opened() -> Iterator[list[OpenCVCamera]]:
 
 
 def open_camera(
-    opened: list[OpenCVCamera], settings: OpenCVCameraSettings, base_dir: Path
+    opened: list[OpenCVCamera],
+    settings: OpenCVCameraSettings,
+    base_dir: Path,
+    clock: ManualClock | None = None,
 ) -> OpenCVCamera:
-    camera = make_camera("cam", settings, base_dir=base_dir)
+    camera = make_camera("cam", settings, base_dir=base_dir, clock=clock)
     assert isinstance(camera, OpenCVCamera)
     opened.append(camera)
     camera.open()
@@ -73,16 +111,26 @@ def test_frames_are_bgr_uint8_with_increasing_indices(
 def test_a_grab_returns_a_frame_captured_after_the_call(
     video: Path, opened: list[OpenCVCamera]
 ) -> None:
-    camera = open_camera(opened, OpenCVCameraSettings(str(video)), video.parent)
-    first = camera.grab(timeout_s=GRAB_TIMEOUT_S)
-    time.sleep(0.5)  # 15 frames go by; none of them may be handed out later
-    called_at = time.time()
-    fresh = camera.grab(timeout_s=GRAB_TIMEOUT_S)
-    assert fresh.index > first.index
-    assert fresh.timestamp >= called_at
-    # Playback went on in real time while nobody grabbed: the content skipped ahead instead of
-    # continuing with the next buffered frame.
-    assert frame_number(fresh.color) > frame_number(first.color) + 1
+    clock = ManualClock()
+    camera = open_camera(opened, OpenCVCameraSettings(str(video), fps=FPS), video.parent, clock)
+    # The file's first frame, on air at once (newer_than=-1: the reader may have published it
+    # before this call, and the next one waits for the clock).
+    first = camera.grab(timeout_s=GRAB_TIMEOUT_S, newer_than=-1)
+    assert abs(frame_number(first.color) - 0) <= 1  # JPEG moves the grey level a little
+    for _ in range(15):  # 15 frames go by; none of them may be handed out later
+        next_frame(camera, clock)
+    called_at = clock.time()
+    thread, out = in_thread(lambda: camera.grab(timeout_s=GRAB_TIMEOUT_S))
+    wait_for(lambda: clock.waiters == 2, "the grab and the reader both wait")
+    clock.advance(PERIOD_S)
+    thread.join(30.0)
+    fresh = out[0]
+    assert isinstance(fresh, CameraFrame)
+    assert fresh.index == first.index + 16
+    assert fresh.timestamp == pytest.approx(called_at + PERIOD_S)
+    # Playback went on while nobody grabbed: the content skipped ahead instead of continuing
+    # with the next buffered frame.
+    assert abs(frame_number(fresh.color) - 16) <= 1
 
 
 def test_newer_than_and_grab_many_give_distinct_frames(
@@ -103,37 +151,35 @@ def test_newer_than_and_grab_many_give_distinct_frames(
 def test_missing_file_is_unavailable_at_once_then_reconnects_when_it_appears(
     tmp_path: Path, opened: list[OpenCVCamera]
 ) -> None:
-    settings = OpenCVCameraSettings("late.avi", reconnect_interval_s=0.1, loop_file=True)
-    camera = open_camera(opened, settings, tmp_path)
-    wait_for(lambda: camera.status()["state"] == "down")
-    started = time.monotonic()
-    with pytest.raises(CameraUnavailable) as excinfo:
-        camera.grab(timeout_s=30.0)
-    # Down means "raise now with the cause", not "wait out the timeout".
-    assert time.monotonic() - started < 10.0
-    message = excinfo.value.message
-    assert "'cam'" in message
-    assert str(tmp_path / "late.avi") in message
-    assert "does not exist" in message
-    assert excinfo.value.details["camera"] == "cam"
+    clock = ManualClock()
+    settings = OpenCVCameraSettings("late.avi", reconnect_interval_s=0.25, loop_file=True)
+    camera = open_camera(opened, settings, tmp_path, clock)
+    wait_for(lambda: camera.status()["state"] == "down", "the camera is down")
+    # Down means "raise now with the cause", not "wait out the timeout": the clock stands
+    # still, so a grab that waited would never return.
+    thread, out = in_thread(lambda: camera.grab(timeout_s=30.0))
+    thread.join(30.0)
+    assert not thread.is_alive(), "a grab from a down camera waits instead of raising"
+    error = out[0]
+    assert isinstance(error, CameraUnavailable)
+    assert error.message == (
+        "camera 'cam' (opencv): video file late.avi does not exist; retrying every 0.25 s"
+    )
+    assert error.details["camera"] == "cam"
     status = camera.status()
     assert status["connected"] is False
     assert "does not exist" in status["last_error"]
 
     write_video(tmp_path / "late.avi", 30)
-    frame: CameraFrame | None = None
-    deadline = time.monotonic() + 15.0
-    while frame is None and time.monotonic() < deadline:
-        try:
-            frame = camera.grab(timeout_s=GRAB_TIMEOUT_S)
-        except CameraUnavailable:
-            time.sleep(0.05)
-    assert frame is not None, "the camera did not reconnect by itself"
+    assert camera.status()["state"] == "down", "no retry before the reconnect interval"
+    wait_for(lambda: clock.waiters == 1, "the reader pauses before retrying")
+    clock.advance(0.25)
+    wait_for(lambda: camera.status()["state"] == "up", "the camera reconnected by itself")
+    frame = camera.grab(timeout_s=GRAB_TIMEOUT_S, newer_than=-1)
     assert frame.color.shape == (HEIGHT, WIDTH, 3)
     status = camera.status()
     assert status["connected"] is True
     assert status["reconnects"] == 1
-    assert status["state"] == "up"
 
 
 def test_requested_resolution_is_delivered(video: Path, opened: list[OpenCVCamera]) -> None:
@@ -169,10 +215,16 @@ def test_file_plays_at_fps_setting_and_ends_without_loop(
     tmp_path: Path, opened: list[OpenCVCamera]
 ) -> None:
     path = write_video(tmp_path / "short.avi", 10, fps=10.0)
-    camera = open_camera(opened, OpenCVCameraSettings(str(path), fps=100.0), tmp_path)
-    camera.grab(timeout_s=GRAB_TIMEOUT_S)
-    assert camera.status()["playback_fps"] == 100.0
-    wait_for(lambda: camera.status()["state"] == "ended")
+    clock = ManualClock()
+    camera = open_camera(opened, OpenCVCameraSettings(str(path), fps=FPS), tmp_path, clock)
+    camera.grab(timeout_s=GRAB_TIMEOUT_S, newer_than=-1)
+    assert camera.status()["playback_fps"] == FPS
+    for played in range(1, 10):  # one frame per period of the configured rate, not the file's
+        assert camera.status()["frames"] == played
+        next_frame(camera, clock)
+    wait_for(lambda: clock.waiters == 1, "the reader waits to read past the end")
+    clock.advance(PERIOD_S)
+    wait_for(lambda: camera.status()["state"] == "ended", "the file ended")
     with pytest.raises(CameraUnavailable, match="ended after 10 frames"):
         camera.grab(timeout_s=GRAB_TIMEOUT_S)
     assert camera.status()["frames"] == 10
@@ -235,25 +287,19 @@ def test_close_joins_the_reader_and_is_idempotent(video: Path) -> None:
 
 def test_close_wakes_a_waiting_grab(tmp_path: Path) -> None:
     path = write_video(tmp_path / "slow.avi", 3, fps=1.0)
-    camera = make_camera("cam", OpenCVCameraSettings(str(path)), base_dir=tmp_path)
+    clock = ManualClock()
+    camera = make_camera("cam", OpenCVCameraSettings(str(path)), base_dir=tmp_path, clock=clock)
     camera.open()
-    camera.grab(timeout_s=GRAB_TIMEOUT_S)
-    caught: list[CameraUnavailable] = []
-
-    def waiter() -> None:
-        try:
-            camera.grab(timeout_s=30.0)  # the next frame is a second away
-        except CameraUnavailable as exc:
-            caught.append(exc)
-
-    thread = threading.Thread(target=waiter)
-    thread.start()
-    time.sleep(0.1)
+    camera.grab(timeout_s=GRAB_TIMEOUT_S, newer_than=-1)
+    thread, out = in_thread(lambda: camera.grab(timeout_s=30.0))
+    # The clock stands still: only close() can end this grab.
+    wait_for(lambda: clock.waiters == 2, "the grab and the reader both wait")
     camera.close()
-    thread.join(timeout=10.0)
+    thread.join(30.0)
     assert not thread.is_alive()
-    assert len(caught) == 1
-    assert "closed" in caught[0].message
+    assert len(out) == 1
+    assert isinstance(out[0], CameraUnavailable)
+    assert "closed" in out[0].message
 
 
 @pytest.mark.parametrize(
@@ -284,6 +330,28 @@ def test_relative_file_resolves_against_base_dir(tmp_path: Path) -> None:
     camera = make_camera("cam", OpenCVCameraSettings("sub/clip.avi"), base_dir=tmp_path)
     assert isinstance(camera, OpenCVCamera)
     assert camera.target == str(tmp_path / "sub" / "clip.avi")
+
+
+@pytest.mark.parametrize(
+    ("device", "shown"),
+    [("sub/clip.avi", "video file sub/clip.avi"), ("{abs}/clips/clip.avi", "video file clip.avi")],
+)
+def test_clients_see_a_file_as_configured_and_the_log_its_full_path(
+    tmp_path: Path, device: str, shown: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    clock = ManualClock()
+    settings = OpenCVCameraSettings(device.format(abs=tmp_path), reconnect_interval_s=60.0)
+    camera = make_camera("cam", settings, base_dir=tmp_path, clock=clock)
+    with camera:
+        wait_for(lambda: camera.status()["state"] == "down", "the camera is down")
+        with (
+            caplog.at_level("WARNING", logger="vision_server.cameras"),
+            pytest.raises(CameraUnavailable) as excinfo,
+        ):
+            camera.grab(timeout_s=1.0)
+    assert f"{shown} does not exist" in excinfo.value.message
+    assert str(tmp_path) not in excinfo.value.message
+    assert str(tmp_path) in caplog.text
 
 
 def test_color_image_normalises_channels() -> None:

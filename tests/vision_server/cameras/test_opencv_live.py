@@ -2,7 +2,9 @@
 
 Video files cannot fail in the middle or hang; a live camera can. ``cv2.VideoCapture`` is
 replaced by :class:`FakeCapture`, driven by a :class:`FakeDevice` the test controls; everything
-else (reader thread, reconnects, stall detection, conversion) is the real code.
+else (reader thread, reconnects, stall detection, conversion) is the real code. The camera runs
+on a :class:`ManualClock`: reconnect pauses and stall detection move only when the test advances
+it, so no verdict depends on how fast the machine is.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import numpy as np
 import pytest
 
 from protocol import CameraUnavailable
-from vision_server.cameras import CameraFrame, OpenCVCamera, OpenCVCameraSettings
+from vision_server.cameras import CameraFrame, ManualClock, OpenCVCamera, OpenCVCameraSettings
 
 URL = "rtsp://viewer:secret@192.0.2.1/stream"
 
@@ -28,6 +30,8 @@ class FakeDevice:
     def __init__(self) -> None:
         self.present = True
         self.hang = threading.Event()
+        self.hanging = threading.Event()
+        """Set while a read() hangs."""
         self.opens = 0
         self.props: dict[int, float] = {}
         self.frames = 0
@@ -54,9 +58,11 @@ class FakeCapture:
         return self.device.props.get(prop, 0.0)
 
     def read(self) -> tuple[bool, Any]:
-        time.sleep(0.005)
+        time.sleep(0.005)  # a device's frame interval, in real time (no verdict depends on it)
         while self.device.hang.is_set():
+            self.device.hanging.set()
             time.sleep(0.005)
+        self.device.hanging.clear()
         if not self._open or not self.device.present:
             return False, None
         self.device.frames += 1
@@ -77,7 +83,12 @@ def device(monkeypatch: pytest.MonkeyPatch) -> FakeDevice:
 
 
 @pytest.fixture
-def camera(device: FakeDevice) -> Iterator[OpenCVCamera]:
+def clock() -> ManualClock:
+    return ManualClock()
+
+
+@pytest.fixture
+def camera(device: FakeDevice, clock: ManualClock) -> Iterator[OpenCVCamera]:
     settings = OpenCVCameraSettings(
         URL,
         width=40,
@@ -87,22 +98,43 @@ def camera(device: FakeDevice) -> Iterator[OpenCVCamera]:
         reconnect_interval_s=0.05,
         read_timeout_s=0.5,
     )
-    cam = OpenCVCamera("door", settings)
+    cam = OpenCVCamera("door", settings, clock=clock)
     cam.open()
     yield cam
     device.hang.clear()
     cam.close()
 
 
-def eventually(fn: Callable[[], CameraFrame], *, timeout_s: float = 10.0) -> CameraFrame:
-    deadline = time.monotonic() + timeout_s
+def wait_for(predicate: Callable[[], bool], what: str) -> None:
+    """Wait for a condition the reader brings about (real time only bounds a hang)."""
+    deadline = time.monotonic() + 30.0
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what}: not met")
+        time.sleep(0.002)
+
+
+def reader_paused(device: FakeDevice, clock: ManualClock) -> int:
+    """Wait until the reader pauses before reopening; how often it opened the device so far."""
+    wait_for(lambda: clock.waiters >= 1, "the reader pauses before reopening")
+    return device.opens
+
+
+def after_pause(camera: OpenCVCamera, clock: ManualClock) -> None:
+    """Let the reader's reconnect pause pass, once it is waiting in it."""
+    wait_for(lambda: clock.waiters >= 1, "the reader pauses before reopening")
+    clock.advance(camera.settings.reconnect_interval_s)
+
+
+def eventually(fn: Callable[[], CameraFrame]) -> CameraFrame:
+    deadline = time.monotonic() + 30.0
     while True:
         try:
             return fn()
         except CameraUnavailable:
             if time.monotonic() > deadline:
                 raise
-            time.sleep(0.02)
+            time.sleep(0.002)
 
 
 def first_failure(camera: OpenCVCamera, *, timeout_s: float) -> CameraUnavailable:
@@ -130,7 +162,7 @@ def test_device_settings_are_requested_and_frames_converted(
 
 
 def test_unplugged_device_fails_fast_and_comes_back(
-    camera: OpenCVCamera, device: FakeDevice
+    camera: OpenCVCamera, device: FakeDevice, clock: ManualClock
 ) -> None:
     before = camera.grab(timeout_s=5.0)
     device.present = False
@@ -138,12 +170,14 @@ def test_unplugged_device_fails_fast_and_comes_back(
     assert "'door'" in message
     assert "secret" not in message
     assert "retrying every 0.05 s" in message
-    opens = device.opens
-    time.sleep(0.3)
-    assert device.opens > opens, "the reader keeps trying to reopen the device"
+    for _ in range(3):  # the reader keeps trying to reopen the device, once per interval
+        opens = reader_paused(device, clock)
+        clock.advance(camera.settings.reconnect_interval_s)
+        wait_for(lambda n=opens: device.opens == n + 1, "the reader reopened the device")
     assert camera.status()["connected"] is False
 
     device.present = True
+    after_pause(camera, clock)
     after = eventually(lambda: camera.grab(timeout_s=5.0))
     assert after.index > before.index
     status = camera.status()
@@ -151,10 +185,28 @@ def test_unplugged_device_fails_fast_and_comes_back(
     assert status["reconnects"] == 1
 
 
-def test_a_hanging_driver_is_reported_as_stalled(camera: OpenCVCamera, device: FakeDevice) -> None:
+def test_a_hanging_driver_is_reported_as_stalled(
+    camera: OpenCVCamera, device: FakeDevice, clock: ManualClock
+) -> None:
     camera.grab(timeout_s=5.0)
     device.hang.set()
-    assert "stalled" in first_failure(camera, timeout_s=30.0).message
+    wait_for(device.hanging.is_set, "the driver hangs in read()")
+    assert camera.status()["stalled"] is False
+    caught: list[CameraUnavailable] = []
+
+    def grab() -> None:
+        try:
+            camera.grab(timeout_s=30.0)
+        except CameraUnavailable as exc:
+            caught.append(exc)
+
+    waiter = threading.Thread(target=grab)
+    waiter.start()
+    wait_for(lambda: clock.waiters == 1, "the grab waits for a frame")
+    clock.advance(camera.settings.read_timeout_s)  # read_timeout_s without a frame: stalled
+    waiter.join(30.0)
+    assert len(caught) == 1
+    assert "stalled" in caught[0].message
     assert camera.status()["stalled"] is True
     device.hang.clear()
     frame = eventually(lambda: camera.grab(timeout_s=5.0))
@@ -163,7 +215,7 @@ def test_a_hanging_driver_is_reported_as_stalled(camera: OpenCVCamera, device: F
 
 
 def test_a_bug_in_the_reader_marks_the_camera_down_and_it_recovers(
-    camera: OpenCVCamera, device: FakeDevice, monkeypatch: pytest.MonkeyPatch
+    camera: OpenCVCamera, device: FakeDevice, clock: ManualClock, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     camera.grab(timeout_s=5.0)
     original = camera._convert
@@ -178,6 +230,7 @@ def test_a_bug_in_the_reader_marks_the_camera_down_and_it_recovers(
     monkeypatch.setattr(camera, "_convert", convert)
     assert "internal error in the reader" in first_failure(camera, timeout_s=5.0).message
     broken.clear()
+    after_pause(camera, clock)
     frame = eventually(lambda: camera.grab(timeout_s=5.0))
     assert frame.color.shape == (30, 40, 3)
     assert camera.status()["reconnects"] >= 1

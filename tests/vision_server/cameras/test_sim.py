@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from protocol import CameraUnavailable
 from simulation import SimCell
 from vision_server.cameras import Intrinsics, SimCamera, SimCameraSettings, make_camera
 
@@ -151,5 +152,28 @@ def test_bad_scene_or_camera_is_a_configuration_error(scene: Path, tmp_path: Pat
     wrong = Intrinsics(320, 240, 300.0, 300.0, 159.5, 119.5)
     with pytest.raises(ValueError, match="renders 160x120"):
         make_camera("sim", SimCameraSettings(scene, "top", intrinsics=wrong), base_dir=tmp_path)
-    with pytest.raises(ValueError, match="cannot load scene"):
+    with pytest.raises(ValueError, match="cannot load scene") as excinfo:
         make_camera("sim", SimCameraSettings(Path("missing.yaml"), "top"), base_dir=tmp_path)
+    # Named as configured: a RELOAD's client gets this message (the log has the full path).
+    assert "missing.yaml" in str(excinfo.value)
+    assert str(tmp_path) not in str(excinfo.value)
+
+
+def test_a_broken_world_state_file_is_named_as_configured(
+    scene: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    state = tmp_path / "state" / "world.json"
+    SimCell.from_yaml(scene, state_path=state).publish()
+    settings = SimCameraSettings(scene, "top", state_file=Path("state/world.json"))
+    camera = sim_camera(settings, tmp_path)
+    state.write_text("[1, 2, 3, 4, 5, 6]", encoding="utf-8")  # another process broke it
+    with (
+        caplog.at_level("WARNING", logger="vision_server.cameras"),
+        pytest.raises(CameraUnavailable) as excinfo,
+    ):
+        camera.grab(timeout_s=T)
+    message = excinfo.value.message
+    assert "state/world.json: not a world-state document" in message
+    assert str(tmp_path) not in message
+    assert str(tmp_path / "state" / "world.json") in caplog.text
+    assert camera.status()["last_error"] == message
