@@ -29,7 +29,10 @@ BIN = Path(sys.executable).parent  # where the project's console scripts are ins
 COPIED = ("protocol", "vision_server", "robot_client", "simulation", "geometry", "examples")
 TIMEOUT_S = 300  # a hung process fails the test instead of blocking it; no verdict depends on it
 
-pytestmark = pytest.mark.slow
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(shutil.which("git") is None, reason="needs git (to copy the checkout)"),
+]
 
 
 def readme_commands() -> list[list[str]]:
