@@ -72,7 +72,9 @@ def _devices(args: argparse.Namespace) -> Devices:
     from .devices.sim import sim_devices
 
     state = args.state_file or os.environ.get(SIM_STATE_ENV) or "/tmp/cellvision/world.json"
-    return sim_devices(args.scene, seed=args.seed, state_path=state, vision=vision)
+    return sim_devices(
+        args.scene, seed=args.seed, state_path=state, vision=vision, fresh=args.fresh
+    )
 
 
 @contextmanager
@@ -83,7 +85,7 @@ def _context(args: argparse.Namespace, console: Console) -> Iterator[SkillContex
     devices = _devices(args)
     world = WorldModel(devices)
     world_file = _world_file(args, store)
-    if world_file.exists():
+    if world_file.exists() and not args.fresh:
         try:
             world.load_dict(yaml.safe_load(world_file.read_text(encoding="utf-8")) or {})
         except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
@@ -334,6 +336,12 @@ def _device_options() -> argparse.ArgumentParser:
     )
     group.add_argument("--robot-host", default=None, help="UR controller address (--backend ur)")
     group.add_argument("--world-file", default=None, help="calibrations kept between runs")
+    group.add_argument(
+        "--fresh",
+        action="store_true",
+        help="start again: forget the kept calibrations; the sim starts from the scene with "
+        "what the line delivers in place, not from --state-file",
+    )
     return parent
 
 

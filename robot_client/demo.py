@@ -7,8 +7,10 @@
    calibrate on the QR code, vision-pick rotor caps at L1 and L2 into the bin, check the
    magnet, press the conveyor switch.
 3. The injected failure: the upstream station is late. The magnet is not in its slot when
-   quality control first looks; the station puts it there 0.5 s later (simulated time), while
-   the skill waits before its retry. So the demo shows fail → wait → retry → pass.
+   quality control first looks; the station puts it there (the scene's ``delivered`` pose,
+   :meth:`SimCell.deliver`) 0.5 s later (simulated time), while the skill waits before its
+   retry. So the demo shows fail → wait → retry → pass. (By hand, ``robot-client task run
+   --fresh`` starts with the magnet delivered: nobody is late there.)
 4. Measures each skill against the simulation's ground truth (grasp error per cap, the
    calibrated QR frame, the switch press) beside the paper's figures, prints a summary, writes
    overlay images (the server's own drawings of what it found) to the output directory, stops
@@ -61,7 +63,6 @@ CONFIG = REPO / "examples" / "cell.yaml"
 TASK = REPO / "examples" / "robot" / "demo_task.yaml"
 TAUGHT = REPO / "examples" / "robot" / "taught.yaml"
 DEFAULT_OUTPUT = REPO / "demo-output"
-MAGNET_SLOT_XY = (0.20, 0.65)  # world; 0.05 m along +x from the rotor core (the scene's header)
 MAGNET_DELAY_S = 0.5  # how late the upstream station is, after quality control first looks
 
 # The paper's figures (section 3): pick within ±5 mm; calibration "at least ±10 mm at any
@@ -156,11 +157,9 @@ class UpstreamStation:
     def tick(self) -> None:
         if self.due is None or self.placed_at is not None or self.cell.clock.now() < self.due:
             return
-        magnet = self.cell.world.parts["magnet"]
-        pose = magnet.world_from_part.copy()
-        pose[:2, 3] = MAGNET_SLOT_XY
-        magnet.world_from_part = pose
-        self.cell.publish()  # the server's qc camera renders the new world from now on
+        # Into the slot the scene gives it; written to the world-state file, so the server's qc
+        # camera renders the magnet in place from now on.
+        self.cell.deliver("magnet")
         self.placed_at = self.cell.clock.now()
 
 

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from geometry import CameraIntrinsics, invert_transform, transform_from_xyz_rpy, transform_points
 from simulation.qr import BOARD_FROM_QR
 from simulation.render import Renderer, RenderResult
-from simulation.robot import Gripper, SimClock, SimRobot
+from simulation.robot import Gripper, SimClock, SimRobot, support_below
 from simulation.scene import Scene, load_scene
 from simulation.world import PartState, World, WorldStateFile
 
@@ -185,6 +185,40 @@ class SimCell:
         """Write the current world to the state file (after editing ``world`` directly)."""
         self.world.version += 1
         self._changed()
+
+    def restart(self) -> None:
+        """Start again from the scene (parts where it puts them, with the seed's jitter; the
+        robot at home on its nominal mount; time 0) and write that to the state file, even if
+        another run left a world there: the file's readers follow this writer from now on."""
+        fresh = self._initial_world()
+        self.world.parts = fresh.parts
+        self.world.world_from_base = fresh.world_from_base
+        self.world.base_from_tool = fresh.base_from_tool
+        self.world.base_from_user = fresh.base_from_user
+        self.world.time_s = fresh.time_s
+        self.publish()
+
+    def deliver(self, *names: str) -> list[str]:
+        """The line's other stations deliver parts: each named part (none named: every part the
+        scene gives a ``delivered`` pose) is put there, unless the gripper holds it. Returns the
+        parts moved; writes the state file. KeyError for a part without a delivery pose."""
+        wanted = names or tuple(
+            p.name for p in self.scene.parts if p.world_from_delivered is not None
+        )
+        moved: list[str] = []
+        for name in wanted:
+            pose = self.scene.part(name).world_from_delivered
+            if pose is None:
+                raise KeyError(f"part {name!r} has no delivered pose in the scene")
+            state = self.world.parts[name]
+            if state.held:
+                continue
+            where, _ = support_below(self.scene, pose[:3, 3])
+            self.world.parts[name] = PartState(world_from_part=pose.copy(), location=where)
+            moved.append(name)
+        if moved:
+            self.publish()
+        return moved
 
     def dock(self) -> FloatArray:
         """Simulate the mobile robot arriving at the cell again (random docking error)."""

@@ -86,6 +86,8 @@ class PartSpec:
     rotor_cap and rotor_core are cylinders (``radius``, ``height``); magnet is a box
     (``size`` = (x, y, z)). The grasp point is ``grasp_depth_m`` below the top centre.
     ``jitter_xy_m`` / ``jitter_yaw`` randomise the initial pose (drawn from the scene seed).
+    ``world_from_delivered``: where another station of the line puts the part (the magnet in its
+    slot beside the rotor core), exactly, when :meth:`SimCell.deliver` runs; None: nobody does.
     """
 
     name: str
@@ -98,6 +100,7 @@ class PartSpec:
     grasp_depth_m: float
     jitter_xy_m: float
     jitter_yaw: float
+    world_from_delivered: FloatArray | None = None
 
     @property
     def top_height(self) -> float:
@@ -391,6 +394,11 @@ def _part(r: ConfigReader, supports: _Supports) -> PartSpec:
         jxy = jitter.take("xy_m", y.non_negative, 0.0)
         jyaw = jitter.take("yaw", y.non_negative, 0.0)
         jitter.finish()
+    delivery = r.sub_optional("delivered")
+    world_from_delivered = None
+    if delivery is not None:
+        world_from_delivered = supports.place(delivery)
+        delivery.finish()
     spec = PartSpec(
         name=name,
         type=ptype,
@@ -402,6 +410,7 @@ def _part(r: ConfigReader, supports: _Supports) -> PartSpec:
         grasp_depth_m=r.take("grasp_depth_m", y.non_negative, 0.5 * height),
         jitter_xy_m=jxy,
         jitter_yaw=jyaw,
+        world_from_delivered=world_from_delivered,
     )
     r.finish()
     return spec

@@ -159,14 +159,22 @@ def sim_devices(
     seed: int | None = None,
     state_path: str | Path | None = None,
     vision: Vision | None = None,
+    fresh: bool = False,
 ) -> Devices:
     """Devices over a simulated cell (a scene file, or a ready :class:`SimCell`): the robot,
-    the gripper, every scene camera by name, and ``vision`` (None: no vision server)."""
+    the gripper, every scene camera by name, and ``vision`` (None: no vision server).
+
+    The cell continues the world in ``state_path`` if there is one; ``fresh``: it starts again
+    from the scene instead, with the parts the line's other stations deliver already in place
+    (:meth:`SimCell.restart`, :meth:`SimCell.deliver`), and overwrites the file."""
     cell = (
         scene
         if isinstance(scene, SimCell)
         else SimCell.from_yaml(scene, seed=seed, state_path=state_path)
     )
+    if fresh:
+        cell.restart()
+        cell.deliver()
     cameras = {spec.name: SimCamera(cell, spec.name) for spec in cell.scene.cameras}
     return Devices(
         robot=SimRobot(cell),
