@@ -85,6 +85,11 @@ def encode_metadata(metadata: dict[str, Any]) -> bytes:
     ).encode("utf-8")
 
 
+MAX_SAFE_INTEGER = 2**53 - 1
+"""I-JSON (RFC 7493): integers beyond +/-(2**53 - 1) are not exchanged exactly by every JSON
+implementation (JavaScript, .NET's double), so they are refused."""
+
+
 def _reject_constant(name: str) -> Any:
     raise ValueError(f"{name} is not valid JSON")
 
@@ -97,17 +102,49 @@ def _finite_float(text: str) -> float:
     return value
 
 
+def _safe_int(text: str) -> int:
+    value = int(text)
+    if abs(value) > MAX_SAFE_INTEGER:
+        raise ValueError(f"integer {text} is outside +/-(2**53 - 1) (I-JSON, RFC 7493)")
+    return value
+
+
+def _object_without_nulls(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """An object from its members: a duplicate name is an error (I-JSON), and a member whose
+    value is null is absent (SPEC §3.2), at every level of nesting."""
+    result: dict[str, Any] = {}
+    seen: set[str] = set()
+    for key, value in pairs:
+        if key in seen:
+            raise ValueError(f"duplicate member name {key!r} (I-JSON, RFC 7493)")
+        seen.add(key)
+        if value is not None:
+            result[key] = value
+    return result
+
+
 # A \uD800-\uDFFF escape may leave a lone surrogate, which no UTF-8 encoder can send back.
 _SURROGATE_ESCAPE = re.compile(r"\\u[dD][89a-fA-F]")
 
 
 def decode_metadata(data: bytes, *, request_id: int) -> dict[str, Any]:
-    """Parse a metadata section; zero bytes means ``{}``."""
+    """Parse a metadata section; zero bytes means ``{}``.
+
+    The JSON profile is I-JSON (RFC 7493): no duplicate member names, integers within
+    +/-(2**53 - 1), no NaN/Infinity, no lone surrogates; and a member whose value is ``null``
+    is dropped at every level (SPEC §3.2: null counts as absent).
+    """
     if not data:
         return {}
     try:
         text = data.decode("utf-8")
-        value = json.loads(text, parse_constant=_reject_constant, parse_float=_finite_float)
+        value = json.loads(
+            text,
+            parse_constant=_reject_constant,
+            parse_float=_finite_float,
+            parse_int=_safe_int,
+            object_pairs_hook=_object_without_nulls,
+        )
         if _SURROGATE_ESCAPE.search(text):
             # Cheap test first; only then the full check that every string encodes.
             json.dumps(value, ensure_ascii=False).encode("utf-8")
@@ -118,6 +155,18 @@ def decode_metadata(data: bytes, *, request_id: int) -> dict[str, Any]:
             f"metadata must be a JSON object, got {type(value).__name__}", request_id=request_id
         )
     return value
+
+
+def as_integer(value: Any) -> int | None:
+    """``value`` as an integer when it is a JSON number without a fractional part (``3`` or
+    ``3.0``: .NET and URScript serialisers write the latter); None otherwise (also for bools)."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float) and value.is_integer() and abs(value) <= MAX_SAFE_INTEGER:
+        return int(value)
+    return None
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ import numpy.typing as npt
 
 from .constants import ImageEncoding, ImageRole
 from .errors import BadImage, ImageTooLarge
+from .frames import as_integer
 from .image_headers import ImageHeader, jpeg_header, png_header
 
 
@@ -63,11 +64,12 @@ class ImagePayload:
 
 def _int_field(desc: dict[str, Any], key: str, where: str, request_id: int) -> int:
     value = desc.get(key, 0)
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+    number = as_integer(value)
+    if number is None or number < 0:
         raise BadImage(
             f"{where}.{key} must be a non-negative integer, got {value!r}", request_id=request_id
         )
-    return value
+    return number
 
 
 def payload_from_descriptor(

@@ -18,7 +18,7 @@ from .errors import (
     ErrorCode,
     error_from_code,
 )
-from .frames import Frame
+from .frames import Frame, as_integer
 from .images import ImagePayload, payload_from_descriptor
 
 Version = tuple[int, int]
@@ -50,6 +50,10 @@ def _get(
         return default
     value = meta[key]
     kinds = kind if isinstance(kind, tuple) else (kind,)
+    if int in kinds and float not in kinds and isinstance(value, float):
+        # SPEC §3.2: a number without a fractional part is an integer, also written as 3.0.
+        integral = as_integer(value)
+        value = value if integral is None else integral
     ok = isinstance(value, kinds) and not (isinstance(value, bool) and bool not in kinds)
     if not ok:
         names = "/".join(k.__name__ for k in kinds)
@@ -60,12 +64,10 @@ def _get(
 
 
 def _version(value: Any, rid: int, where: str) -> Version:
-    if (
-        isinstance(value, list)
-        and len(value) == 2
-        and all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in value)
-    ):
-        return (value[0], value[1])
+    if isinstance(value, list) and len(value) == 2:
+        numbers = [as_integer(v) for v in value]
+        if all(n is not None and 0 <= n <= 255 for n in numbers):
+            return (int(numbers[0] or 0), int(numbers[1] or 0))
     raise BadMetadata(
         f"{where} must be [major, minor] with 0..255 integers, got {value!r}", request_id=rid
     )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import struct
 
 import pytest
@@ -17,7 +18,7 @@ from protocol import (
     MalformedFrame,
     MessageType,
 )
-from protocol.frames import decode_metadata, encode_metadata
+from protocol.frames import as_integer, decode_metadata, encode_metadata
 
 # (frame, bytes written out by hand from the header table of SPEC.md §3.1)
 GOLDEN = [
@@ -191,7 +192,11 @@ def test_many_frames_in_one_chunk() -> None:
             Frame,
             st.integers(0, 0xFFFF),
             st.integers(0, 0xFFFFFFFF),
-            st.dictionaries(st.text(max_size=5), st.integers() | st.text(max_size=5), max_size=3),
+            st.dictionaries(
+                st.text(max_size=5),
+                st.integers(-(2**53 - 1), 2**53 - 1) | st.text(max_size=5),
+                max_size=3,
+            ),
             st.lists(st.binary(max_size=40), max_size=4).map(tuple),
         ),
         max_size=5,
@@ -262,3 +267,34 @@ def test_limits_validate() -> None:
         Limits(max_blobs=0)
     with pytest.raises(ValueError, match="2\\*\\*32"):
         Limits(max_frame_bytes=2**32)
+
+
+# --------------------------------------------------------------------------- JSON profile
+
+
+def test_null_members_are_absent_at_every_level() -> None:
+    meta = b'{"a": null, "b": {"c": null, "d": [null, {"e": null, "f": 1}]}}'
+    assert decode_metadata(meta, request_id=3) == {"b": {"d": [None, {"f": 1}]}}
+
+
+@pytest.mark.parametrize(
+    ("text", "why"),
+    [
+        (b'{"a": 1, "a": 2}', "duplicate member name 'a'"),
+        (b'{"x": {"b": 1, "b": null}}', "duplicate member name 'b'"),
+        (b'{"n": 9007199254740992}', "outside +/-(2**53 - 1)"),
+        (b'{"n": -9007199254740992}', "outside +/-(2**53 - 1)"),
+    ],
+)
+def test_the_i_json_profile_is_enforced(text: bytes, why: str) -> None:
+    with pytest.raises(BadMetadata, match=re.escape(why)) as excinfo:
+        decode_metadata(text, request_id=9)
+    assert excinfo.value.request_id == 9
+
+
+def test_an_integral_number_is_an_integer_also_when_written_with_a_fraction() -> None:
+    assert as_integer(3.0) == 3
+    assert as_integer(3) == 3
+    assert as_integer(3.5) is None
+    assert as_integer(True) is None
+    assert as_integer(float(2**60)) is None
