@@ -86,6 +86,8 @@ RESPONSES: dict[MessageType, frozenset[MessageType]] = {
 _OPEN_REQUESTS = (T.PING, T.LIST_INSPECTIONS, T.INSPECT, T.CAPTURE, T.RELOAD)
 _OPEN_RESPONSES = (T.PONG, T.INSPECTIONS, T.RESULT, T.FRAMES, T.RELOADED, T.ERROR)
 
+_SERVER_LIVE_STATES = (State.HANDSHAKE, State.HELLO_RECEIVED, State.OPEN, State.CLOSING)
+
 TRANSITIONS: dict[tuple[Role, State, Direction, MessageType], State] = {
     # client handshake
     (C, State.HANDSHAKE, S, T.HELLO): State.HANDSHAKE,
@@ -115,6 +117,8 @@ TRANSITIONS: dict[tuple[Role, State, Direction, MessageType], State] = {
     (C, State.HANDSHAKE, R, T.CLOSE): State.CLOSED,
     (V, State.HANDSHAKE, S, T.CLOSE): State.CLOSED,
     (V, State.HELLO_RECEIVED, S, T.CLOSE): State.CLOSED,
+    # a client's fatal ERROR (SPEC §7): the connection is over, in any state
+    **{(V, state, R, T.ERROR): State.CLOSED for state in _SERVER_LIVE_STATES},
 }
 """(role, state, direction, message type) → next state. A pair not listed is not allowed.
 
@@ -228,6 +232,9 @@ class Connection:
         try:
             key = self._check_frame(frame.type, frame.version, frame.request_id)
             message = message_from_frame(frame, self._ctx)
+            if self.role is Role.SERVER and isinstance(message, Error) and not message.fatal:
+                # A client may only end the connection with an ERROR (SPEC §7), not answer.
+                self._reject_unexpected(T.ERROR, frame.request_id, why="a non-fatal ERROR")
             self._apply(key, message)
         except CellvisionError as exc:
             self._on_error(exc)
@@ -313,10 +320,16 @@ class Connection:
                 request_id=rid,
             )
 
-    def _reject_unexpected(self, mtype: MessageType, rid: int) -> None:
+    def _reject_unexpected(self, mtype: MessageType, rid: int, *, why: str = "") -> None:
         if self.role is Role.SERVER and self.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
             raise NotAuthenticated(
-                f"{mtype.name} before the handshake completed: HELLO, then wait for WELCOME",
+                f"{why or mtype.name} before the handshake completed: HELLO, then wait for WELCOME",
+                request_id=rid,
+            )
+        if why:
+            raise UnexpectedMessage(
+                f"{why} from the client: a client sends ERROR only to end the connection "
+                "(fatal: true)",
                 request_id=rid,
             )
         if self.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
@@ -387,7 +400,8 @@ class Connection:
         requester = (role is Role.CLIENT and direction is S) or (role is V and direction is R)
         if mtype in REQUESTS and requester:
             self._pending[rid] = mtype
-        elif mtype not in REQUESTS and mtype is not T.CLOSE:
+        elif mtype not in REQUESTS and mtype is not T.CLOSE and not (role is V and direction is R):
+            # A response settles its request; a client's (fatal) ERROR answers nothing.
             self._pending.pop(rid, None)
         if isinstance(message, Welcome) and direction is R:
             if not self.speaks(message.version):

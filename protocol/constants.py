@@ -18,10 +18,10 @@ HEADER: Final = struct.Struct("<4sBBHHHIII")
 HEADER_SIZE: Final = HEADER.size  # 24 bytes
 BLOB_LENGTH: Final = struct.Struct("<I")
 
-PROTOCOL_VERSION: Final = (1, 0)
+PROTOCOL_VERSION: Final = (1, 1)
 """The newest (major, minor) this implementation speaks."""
 
-SUPPORTED_VERSIONS: Final = ((1, 0),)
+SUPPORTED_VERSIONS: Final = ((1, 1),)
 
 DEFAULT_PORT: Final = 7878
 """The documented default TCP port of a cellvision server."""

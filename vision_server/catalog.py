@@ -25,7 +25,7 @@ from typing import Any, Protocol
 
 import numpy.typing as npt
 
-from protocol import UnknownCamera, UnknownInspection
+from protocol import InvalidArgument, UnknownCamera, UnknownInspection
 
 from .cameras import Camera, Intrinsics
 
@@ -144,6 +144,11 @@ class Catalog:
     cameras: Mapping[str, Camera]
     inspections: Mapping[str, Inspection]
     config_hash: str = ""
+    tune: Callable[[str, Mapping[str, Any]], Inspection] | None = field(
+        default=None, compare=False, repr=False
+    )
+    """Rebuilds a configured inspection with request options (raises ConfigError); None when
+    the inspections do not come from a configuration file."""
     _leases: _Leases = field(default_factory=_Leases, compare=False, repr=False)
 
     @classmethod
@@ -153,6 +158,7 @@ class Catalog:
         inspections: Sequence[Inspection],
         *,
         config_hash: str | None = None,
+        tune: Callable[[str, Mapping[str, Any]], Inspection] | None = None,
     ) -> Catalog:
         cams = {c.name: c for c in cameras}
         insp = {i.name: i for i in inspections}
@@ -171,9 +177,33 @@ class Catalog:
                 sort_keys=True,
             )
             config_hash = hashlib.sha256(summary.encode()).hexdigest()[:16]
-        return cls(cams, insp, config_hash)
+        return cls(cams, insp, config_hash, tune)
 
     # ------------------------------------------------------------------ lifetime
+
+    def tuned(
+        self, inspection: Inspection, options: Mapping[str, Any], *, request_id: int
+    ) -> Inspection:
+        """``inspection`` with the request's ``options`` (SPEC §6.3), validated by the same
+        rules as the configuration file; INVALID_ARGUMENT names the option that is wrong."""
+        if not options:
+            return inspection
+        if self.tune is None:
+            raise InvalidArgument(
+                f"inspection {inspection.name!r} takes no options on this server (its "
+                "inspections do not come from a configuration file)",
+                request_id=request_id,
+            )
+        try:
+            return self.tune(inspection.name, options)
+        except ValueError as exc:  # ConfigError
+            where = getattr(exc, "path", "") or "options"
+            reason = getattr(exc, "reason", str(exc))
+            raise InvalidArgument(
+                f"inspection {inspection.name!r}: {where}: {reason}",
+                request_id=request_id,
+                details={"option": where.removeprefix("options -> ")},
+            ) from None
 
     def acquire(self) -> CatalogLease:
         """A lease on this catalog. Raises :class:`CatalogReleased` when it is released

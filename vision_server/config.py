@@ -59,6 +59,8 @@ class CellConfig:
     results: ResultsConfig
     cameras: Mapping[str, CameraSettings]
     inspections: tuple[InspectionSpec, ...]
+    tune: Tuner | None = dataclasses.field(default=None, compare=False, repr=False)
+    """Rebuilds an inspection with request options (SPEC §6.3), by the rules of this file."""
 
 
 def load_config(path: Path | str) -> CellConfig:
@@ -84,6 +86,7 @@ def parse_config(
     results = _results(root.sub("results"), base_dir)
     cameras = _cameras(root, base_dir)
     inspections: list[InspectionSpec] = []
+    written: dict[str, dict[str, Any]] = {}
     seen: dict[str, int] = {}
     for index, node in enumerate(root.items("inspections")):
         spec = parse_inspection(node, base_dir=base_dir, cameras=cameras)
@@ -94,9 +97,37 @@ def parse_config(
             )
         seen[spec.name] = index
         inspections.append(spec)
+        written[spec.name] = dict(node.data)
     root.finish()
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
-    return CellConfig(source, base_dir, digest, server, results, cameras, tuple(inspections))
+    tuner = Tuner(written, base_dir, cameras)
+    return CellConfig(source, base_dir, digest, server, results, cameras, tuple(inspections), tuner)
+
+
+FIXED_BY_THE_CONFIGURATION = frozenset({"name", "type", "camera", "template"})
+"""Keys of an inspection that a request's options cannot change: what it is, its camera, and
+the files it reads (a request must never make the server open a path it chose)."""
+
+
+@dataclass(frozen=True)
+class Tuner:
+    """An inspection as configured with some of its parameters replaced for one request: the
+    YAML mapping with the options laid over it, validated exactly as the file is."""
+
+    written: Mapping[str, Mapping[str, Any]]
+    base_dir: Path
+    cameras: Mapping[str, CameraSettings]
+
+    def __call__(self, name: str, options: Mapping[str, Any]) -> InspectionSpec:
+        """Raises ConfigError naming the option (``options -> KEY``) that is wrong."""
+        fixed = sorted(FIXED_BY_THE_CONFIGURATION & set(options))
+        if fixed:
+            raise ConfigError(
+                f"{', '.join(fixed)} cannot be changed by a request", path=f"options -> {fixed[0]}"
+            )
+        data = {**self.written[name], **options}
+        node = Node(data, ("options",), "INSPECT", {}, {})
+        return parse_inspection(node, base_dir=self.base_dir, cameras=self.cameras)
 
 
 def _server(node: Node, base_dir: Path) -> ServerSettings:

@@ -94,6 +94,7 @@ class CellRuntime:
                 [camera for _, camera in kept.values()],
                 list(config.inspections),
                 config_hash=config.config_hash,
+                tune=config.tune,
             )
         except BaseException:
             for camera in opened:  # never served: nobody can be using them

@@ -138,7 +138,11 @@ class ServerSettings:
             "max_metadata_bytes": limits.max_metadata_bytes,
             "max_blobs": limits.max_blobs,
             "max_image_pixels": self.max_image_pixels,
-            "max_in_flight": self.max_in_flight,
+            # What a client can count on: on an idle server, this many pipelined requests
+            # are all run (the pool's slots bound it too; others' requests share them).
+            "max_in_flight": min(self.max_in_flight, self.workers + self.queue_depth),
+            "max_connections": self.max_connections,
+            "handshake_timeout_ms": round(self.handshake_timeout_s * 1000),
             "idle_timeout_ms": round(self.idle_timeout_s * 1000),
             "frame_timeout_ms": round(self.frame_timeout_s * 1000),
         }
@@ -318,15 +322,12 @@ class VisionServer:
         started = time.perf_counter()
         rid = request.request_id
         inspection = catalog.inspection(request.inspection, request_id=rid)
+        inspection = catalog.tuned(inspection, request.options, request_id=rid)
         camera = catalog.camera(inspection.camera, request_id=rid)
         acquire: Callable[[], InspectionInput]
-        if camera.source == "request":
-            if not request.images:
-                raise BadImage(
-                    f"inspection {inspection.name!r} uses camera {camera.name!r}, whose images "
-                    "arrive in the request, and the request has none",
-                    request_id=rid,
-                )
+        if request.images:
+            # Images in the request are inspected whatever the camera: a tool camera's, or a
+            # stored image run through a fixed camera's inspection (SPEC §6.3).
 
             def acquire() -> InspectionInput:
                 decoded = _decode_input(
@@ -338,13 +339,13 @@ class VisionServer:
                 )
                 return InspectionInput(decoded.color, decoded.depth, camera.intrinsics)
 
+        elif camera.source == "request":
+            raise BadImage(
+                f"inspection {inspection.name!r} uses camera {camera.name!r}, whose images "
+                "arrive in the request, and the request has none",
+                request_id=rid,
+            )
         else:
-            if request.images:
-                raise InvalidArgument(
-                    f"inspection {inspection.name!r} takes its images from the server camera "
-                    f"{camera.name!r}; the request must not carry images",
-                    request_id=rid,
-                )
             timeout_s = self._capture_timeout(request.deadline_ms)
 
             def acquire() -> InspectionInput:
@@ -980,6 +981,9 @@ class _ClientSession:
             return True
         if isinstance(message, Close):
             return False  # the TaskGroup finishes what is in flight, then CLOSE goes out
+        if isinstance(message, Error):  # the client's fatal ERROR (SPEC §7): it is over
+            log.info("%s: the client ended the connection: %s", self.peer, message.message)
+            return False
         if isinstance(message, Reload):
             self._start(group, self._reload(message))
             return True

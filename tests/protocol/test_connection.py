@@ -91,20 +91,21 @@ def test_full_handshake() -> None:
     client, server = Connection(Role.CLIENT), Connection(Role.SERVER)
     assert client.state is server.state is State.HANDSHAKE
     hello = client.send(Hello(7, ((1, 3), (0, 9)), "robot/1", "secret"))
-    assert hello[4:6] == b"\x01\x00"  # the HELLO header carries the client's newest version
+    assert hello[4:6] == b"\x01\x01"  # the HELLO header carries the client's newest version
     assert client.pending == {7}
     received = one(server, hello)
     assert received == Hello(7, ((1, 3), (0, 9)), "robot/1", "secret")
     assert server.state is State.HELLO_RECEIVED
     assert server.pending == {7}
-    assert negotiate_version(received.versions, server.versions) == (1, 0)
-    welcome = server.send(Welcome(7, (1, 0), limits={"max_in_flight": 4}))
+    # Client 1.3, server 1.1: the smaller minor of the common major.
+    assert negotiate_version(received.versions, server.versions) == (1, 1)
+    welcome = server.send(Welcome(7, (1, 1), limits={"max_in_flight": 4}))
     assert server.state is State.OPEN
-    assert server.version == (1, 0)
+    assert server.version == (1, 1)
     assert server.pending == frozenset()
-    assert one(client, welcome) == Welcome(7, (1, 0), limits={"max_in_flight": 4})
+    assert one(client, welcome) == Welcome(7, (1, 1), limits={"max_in_flight": 4})
     assert client.state is State.OPEN
-    assert client.version == (1, 0)
+    assert client.version == (1, 1)
     assert client.pending == frozenset()
 
 
@@ -122,7 +123,7 @@ def test_requests_before_hello_are_not_authenticated(request_: Message) -> None:
     assert server.state is State.CLOSED
     # The late fatal ERROR may be sent (with the offending id), and nothing more is read.
     data = server.send(Error.from_exception(info.value))
-    assert data[4:6] == b"\x01\x00"
+    assert data[4:6] == b"\x01\x01"  # no version agreed: the server's newest
     with pytest.raises(NotAuthenticated):
         server.next_event()
 

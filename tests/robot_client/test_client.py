@@ -110,9 +110,13 @@ def test_handshake_ping_and_list() -> None:
             assert not client.connected
             welcome = await client.connect()
             assert client.connected
-            assert welcome.version == (1, 0)
+            assert welcome.version == (1, 1)
             assert welcome.server_name == "cellvision"
-            assert welcome.limits["max_in_flight"] == 32
+            # What a client can count on: the connection's limit, bounded by the pool's slots.
+            settings = server.settings
+            assert welcome.limits["max_in_flight"] == min(
+                settings.max_in_flight, settings.workers + settings.queue_depth
+            )
             assert [i["name"] for i in welcome.inspections] == ["brightness"]
             assert welcome.cameras == ({"name": "tool", "source": "request", "depth": False},)
             assert await client.connect() is welcome  # already connected: no new handshake
@@ -388,10 +392,10 @@ def test_hello_offers_the_versions_the_client_speaks() -> None:
     run(body())
     (hello,) = hellos
     assert hello.type == MessageType.HELLO
-    assert hello.version == (1, 0)
+    assert hello.version == (1, 1)
     assert hello.request_id != 0
     assert hello.metadata == {
-        "versions": [[1, 0]],
+        "versions": [[1, 1]],
         "client": "tester/1",
         # What the client can receive (SPEC §5.1): the server bounds its answers by it.
         "max_frame_bytes": 256 * 1024 * 1024,

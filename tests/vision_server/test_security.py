@@ -375,12 +375,19 @@ def test_no_message_makes_the_server_touch_a_path_outside_its_directories(
                 Capture(rid + 2, name),
                 Inspect(rid + 3, "bright", image, options=options),
                 Inspect(rid + 4, "dim", image, options=options),
+                Inspect(rid + 5, "dim", image),  # fails: its image goes to the result log
             ]
-            rid += 5
+            rid += 6
         answers = session(hostile)
         ended = time.time()
         codes = {code for _, code in answers}
-        assert codes <= {None, ErrorCode.UNKNOWN_INSPECTION, ErrorCode.UNKNOWN_CAMERA}
+        # Options that name files are refused (INVALID_ARGUMENT), never opened.
+        assert codes <= {
+            None,
+            ErrorCode.UNKNOWN_INSPECTION,
+            ErrorCode.UNKNOWN_CAMERA,
+            ErrorCode.INVALID_ARGUMENT,
+        }
         assert {t for t, _ in answers} <= {MessageType.RESULT, MessageType.ERROR}
         with Peer(Target("127.0.0.1", port, timeout_s=20.0)) as peer:
             peer.send_raw(Hello(1, ((1, 0),), "../../outside/evil").to_frame((1, 0)).serialize())

@@ -116,16 +116,20 @@ def test_full_pool_answers_busy_and_the_admitted_request_still_completes(gate: G
         async with (
             VisionServer(make_catalog(gate), settings) as server,
             client_for(server) as client,
+            client_for(server) as other,
         ):
+            # One slot in all: WELCOME says so, and this client keeps to it.
+            assert client.welcome is not None
+            assert client.welcome.limits["max_in_flight"] == 1
             first = asyncio.create_task(client.inspect("gate", GRAY))
             await wait_until(lambda: gate.entered == 1, "the gate inspection started")
-            with pytest.raises(Busy) as busy:
-                await client.inspect("brightness", GRAY)
+            with pytest.raises(Busy) as busy:  # another client finds the pool full
+                await other.inspect("brightness", GRAY)
             assert busy.value.code is ErrorCode.BUSY
             assert busy.value.fatal is False
             assert busy.value.request_id != 0
             # PING does not need a worker: it is answered while the pool is full.
-            assert await client.ping() >= 0.0
+            assert await other.ping() >= 0.0
             gate.release.set()
             result = await first
             assert result.passed
