@@ -329,9 +329,9 @@ def test_one_result_shape_and_the_fail_verdict_is_exit_1(
     for done in (online, offline):
         assert done.returncode == 1, done.stderr
         answers.append(json.loads(done.stdout))
-    assert (
-        set(answers[0]) == set(answers[1]) == {"inspection", "verdict", "camera", "data", "timing"}
-    )
+    shape = {"inspection", "verdict", "camera", "image", "data", "timing"}
+    assert set(answers[0]) == set(answers[1]) == shape
+    assert answers[0]["image"] == answers[1]["image"] == images["dark"]
     assert [a["verdict"] for a in answers] == ["fail", "fail"]
     unknown = tool("robot-client", "--server", plain.address, "inspect", "nope", "--json")
     assert unknown.returncode == 4

@@ -72,6 +72,9 @@ class Catalog:
     cameras: Mapping[str, Camera]
     inspections: Mapping[str, Inspection]
     config_hash: str = ""
+    notes: tuple[str, ...] = ()
+    """What the configuration's reader should know that serving it does not show, e.g. that
+    changed ``server:`` settings take effect after a restart (sent in RELOADED)."""
 
     @classmethod
     def build(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 from .cameras import Camera, CameraSettings, make_camera
@@ -28,6 +29,7 @@ class CellRuntime:
         self.path = Path(path)
         self._lock = threading.Lock()
         self.config = load_config(self.path)
+        self._started = self.config  # what `server:` and `results:` run with until a restart
         self._cameras: dict[str, tuple[CameraSettings, Camera]] = {}
         self.results: ResultLog | None = None
         self.catalog = self._build(self.config)
@@ -85,18 +87,20 @@ class CellRuntime:
         return catalog
 
     def reload(self) -> Catalog:
-        """Re-read the file; returns the new catalog or raises ConfigError (nothing changed)."""
+        """Re-read the file; returns the new catalog or raises ConfigError (nothing changed).
+
+        The catalog's ``notes`` name the sections whose changes wait for a restart, compared
+        with what the process started with (so a second reload still says so)."""
         with self._lock:
             config = load_config(self.path)
-            if config.server != self.config.server:
-                log.warning(
-                    "%s: changes under 'server:' take effect after a restart", self.path.name
-                )
-            if config.results != self.config.results:
-                log.warning(
-                    "%s: changes under 'results:' take effect after a restart", self.path.name
-                )
-            self.catalog = self._build(config)
+            notes = tuple(
+                f"{self.path.name}: changes under '{section}:' take effect after a restart"
+                for section in ("server", "results")
+                if getattr(config, section) != getattr(self._started, section)
+            )
+            for note in notes:
+                log.warning("%s", note)
+            self.catalog = replace(self._build(config), notes=notes)
             self.config = config
             return self.catalog
 

@@ -142,7 +142,9 @@ def test_inspect_an_image_file(
         main(["--server", address, "inspect", "brightness", "--image", str(tmp_path / "x.png")])
         == 2
     )
-    assert "cannot read the image" in _flat(capsys.readouterr().err)
+    err = _flat(capsys.readouterr().err)
+    assert "cannot read" in err
+    assert "x.png" in err
 
 
 def test_a_token_on_the_command_line_is_deprecated(
