@@ -31,6 +31,7 @@ from .messages import Result
 __all__ = ["ResultView", "TableView", "format_number", "label", "result_json", "result_view"]
 
 _PIXELS = frozenset({"u", "v", "x", "y", "radius", "width", "height"})
+_FIRST = ("u", "v", "angle", "score")
 
 
 @dataclass(frozen=True)
@@ -134,7 +135,9 @@ def _table(name: str, items: Sequence[Any]) -> TableView | None:
     if not items:
         return None
     if all(isinstance(item, Mapping) for item in items):
-        columns: list[str] = []
+        present = {k for item in items for k in item}
+        # Position and quality first, whatever order the keys arrived in.
+        columns = [k for k in _FIRST if k in present]
         for item in items:
             columns += [k for k in item if k not in columns]
         rows = tuple(

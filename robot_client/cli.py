@@ -299,11 +299,18 @@ def _report(kind: ErrorKind, message: str, code: str | None, *, as_json: bool) -
         print(json.dumps(json_error(kind, message, code)))
     else:
         label = code or {ErrorKind.DEVICE: "device error"}.get(kind, "error")
-        Console(stderr=True).print(f"[red]{label}:[/] {escape(message)}")
+        # One line, never wrapped: a path cut in two cannot be copied.
+        Console(stderr=True).print(f"[red]{label}:[/] {escape(message)}", soft_wrap=True)
     return kind.exit_code
 
 
+def _broken_pipe(console: Console) -> None:
+    raise BrokenPipeError
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    # Rich ends a closed pipe with exit 1 (our "fail"): let it reach the one handler below.
+    Console.on_broken_pipe = _broken_pipe  # type: ignore[method-assign,assignment]
     try:
         return _main(argv)
     except BrokenPipeError:

@@ -75,6 +75,7 @@ from protocol.image_files import (
     encode_overlay,
     payload_from_file,
 )
+from protocol.images import payload_from_descriptor
 from protocol.result_view import result_json, result_view
 
 from . import decoder_limits
@@ -275,7 +276,9 @@ def _check_config(args: argparse.Namespace) -> int:
                 json.dumps({"valid": False, "error": str(exc), "line": exc.line, "path": exc.path})
             )
         else:
-            Console(stderr=True).print(Text("invalid: ", style="red") + Text(str(exc)))
+            Console(stderr=True).print(
+                Text("invalid: ", style="red") + Text(str(exc)), soft_wrap=True
+            )
         return 1
     if args.json:
         print(json.dumps(_summary(config)))
@@ -344,8 +347,13 @@ def _run(args: argparse.Namespace) -> int:
         suffix = None
         if args.overlay is not None:
             suffix = check_overlay_path(args.overlay, folder_exists=os.path.isdir)
-        # OpenCV's decoders get the configured limit too, as in `serve` (may re-execute).
-        decoder_limits.ensure(limit, argv=args.reexec_argv)
+        # The configured limit is the server's own check (headers, descriptors), as served.
+        # OpenCV's decoders must not refuse below it (a larger limit may re-execute); not
+        # lowered to it either, so that a large BMP is IMAGE_TOO_LARGE like a PNG, not an
+        # undecodable file.
+        decoder_limits.ensure(
+            max(limit, decoder_limits.DEFAULT_MAX_IMAGE_PIXELS), argv=args.reexec_argv
+        )
         depth = tuple(image_payload(Path(p), ImageRole.DEPTH) for p in args.depth)
         colours = [(p, image_payload(Path(p), ImageRole.COLOR)) for p in args.image]
     except ValueError as exc:
@@ -363,8 +371,9 @@ def _run(args: argparse.Namespace) -> int:
         worst = ExitCode.OK
         try:
             for path, colour in colours:
-                request = Inspect(1, inspection.name, (colour, *depth), overlay=suffix is not None)
                 try:
+                    images = _as_received((colour, *depth), limit)
+                    request = Inspect(1, inspection.name, images, overlay=suffix is not None)
                     result = await server.run_inspection(request, peer="offline")
                 except CellvisionError as exc:
                     worst = max(worst, _image_error(args, path, exc))
@@ -378,6 +387,21 @@ def _run(args: argparse.Namespace) -> int:
         return worst
 
     return int(asyncio.run(each()))
+
+
+def _as_received(images: tuple[ImagePayload, ...], max_pixels: int) -> tuple[ImagePayload, ...]:
+    """The images as a server receives them: through the wire decoder's checks (the pixel
+    limit of raw images, SPEC §4.3), which a request built in-process would skip."""
+    return tuple(
+        payload_from_descriptor(
+            image.descriptor(0),
+            (image.data,),
+            where=f"images[{i}]",
+            request_id=1,
+            max_pixels=max_pixels,
+        )
+        for i, image in enumerate(images)
+    )
 
 
 def _image_error(args: argparse.Namespace, image: str, exc: CellvisionError) -> ExitCode:
@@ -419,7 +443,7 @@ def _write_overlay(args: argparse.Namespace, result: Result, suffix: str) -> Exi
         message = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
         return ExitCode(_fail(args, ErrorKind.USAGE, f"--overlay {path}: cannot write: {message}"))
     if not args.json:
-        print(f"overlay written to {path}", file=sys.stderr)
+        print(f"overlay written to {path}")
     return ExitCode.OK
 
 
@@ -756,10 +780,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # Rich ends a closed pipe with exit 1 (our "fail"): let it reach the one handler below.
+    Console.on_broken_pipe = _broken_pipe  # type: ignore[method-assign,assignment]
     try:
         return _main(argv)
     except BrokenPipeError:
         return quiet_broken_pipe()
+
+
+def _broken_pipe(console: Console) -> None:
+    raise BrokenPipeError
 
 
 def quiet_broken_pipe() -> int:

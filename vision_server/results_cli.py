@@ -105,10 +105,12 @@ def results_command(
     try:
         since_time = parse_since(since) if since is not None else None
     except ValueError as exc:
-        err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False)
+        err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         return 2
     if limit < 0:
-        err.print(f"[red]error:[/] --limit must be >= 0, got {limit}", highlight=False)
+        err.print(
+            f"[red]error:[/] --limit must be >= 0, got {limit}", highlight=False, soft_wrap=True
+        )
         return 2
     passed = False if failed_only else None
     try:
@@ -116,7 +118,7 @@ def results_command(
             rows = log.query(since=since_time, inspection=inspection, passed=passed, limit=limit)
             total = log.count(since=since_time, inspection=inspection, passed=passed)
     except ResultLogError as exc:
-        err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False)
+        err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         return 1
     if json_out:
         for row in rows:
