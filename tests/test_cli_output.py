@@ -263,19 +263,21 @@ def test_results_for_people_are_rounded_tables(cell: Server) -> None:
 
 
 @pytest.fixture
-def reloadable(tmp_path: Path) -> Iterator[tuple[Server, subprocess.Popen[str]]]:
+def reloadable(tmp_path: Path) -> Iterator[tuple[Server, subprocess.Popen[bytes]]]:
+    """A server and its process, whose pipes are unbuffered: a line read from them takes no
+    more than that line, so the rest is all in ``communicate()``."""
     config = _cell(tmp_path)
     proc = subprocess.Popen(
         [*TOOLS["vision-server"], "serve", "--config", str(config)],
         cwd=REPO_ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
-        text=True,
+        bufsize=0,
         env=_env(),
     )
     try:
         assert proc.stdout is not None
-        match = LISTENING.fullmatch(proc.stdout.readline())
+        match = LISTENING.fullmatch(proc.stdout.readline().decode())
         assert match, proc.communicate(timeout=30)
         yield Server(f"127.0.0.1:{match[2]}", config), proc
     finally:
@@ -284,14 +286,15 @@ def reloadable(tmp_path: Path) -> Iterator[tuple[Server, subprocess.Popen[str]]]
             proc.communicate(timeout=30)
 
 
-def _stop(proc: subprocess.Popen[str]) -> tuple[str, str]:
+def _stop(proc: subprocess.Popen[str] | subprocess.Popen[bytes]) -> tuple[str, str]:
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=60)
-    return out, err
+    decode = (lambda x: x.decode()) if isinstance(out, bytes) else (lambda x: x)
+    return decode(out), decode(err)
 
 
 def test_a_reload_is_said_by_the_server_and_its_notes_reach_the_client(
-    reloadable: tuple[Server, subprocess.Popen[str]],
+    reloadable: tuple[Server, subprocess.Popen[bytes]],
 ) -> None:
     server, proc = reloadable
     text = server.config.read_text()
@@ -309,7 +312,7 @@ def test_a_reload_is_said_by_the_server_and_its_notes_reach_the_client(
 
 
 def test_a_refused_sighup_reload_is_logged_once(
-    reloadable: tuple[Server, subprocess.Popen[str]],
+    reloadable: tuple[Server, subprocess.Popen[bytes]],
 ) -> None:
     server, proc = reloadable
     server.config.write_text(
@@ -317,9 +320,8 @@ def test_a_refused_sighup_reload_is_logged_once(
     )
     proc.send_signal(signal.SIGHUP)
     assert proc.stderr is not None
-    for line in proc.stderr:  # wait for it; anything else it says comes at once
-        if "reload refused" in line:
-            break
+    while b"reload refused" not in proc.stderr.readline():  # anything more comes at once
+        assert proc.poll() is None, "the server stopped"
     _, rest = _stop(proc)
     assert "reload refused" not in rest, rest
 
