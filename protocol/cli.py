@@ -25,11 +25,12 @@ from __future__ import annotations
 
 import argparse
 import enum
+import importlib.metadata
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any, NoReturn
 
-from .constants import DEFAULT_PORT
+from .constants import DEFAULT_PORT, PROTOCOL_VERSION
 
 SERVER_ENV = "CELLVISION_SERVER"
 TOKEN_ENV = "CELLVISION_TOKEN"
@@ -113,6 +114,15 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         raise ParserError(self, message)
+
+
+def version_text(prog: str) -> str:
+    """What ``--version`` prints: ``vision-server 0.1.0 (protocol 1.0)``."""
+    try:
+        version = importlib.metadata.version("cellvision")
+    except importlib.metadata.PackageNotFoundError:  # run from a source tree, not installed
+        version = "(not installed)"
+    return f"{prog} {version} (protocol {PROTOCOL_VERSION[0]}.{PROTOCOL_VERSION[1]})"
 
 
 # ----------------------------------------------------------------------------- addresses
@@ -313,4 +323,5 @@ __all__ = [
     "parse_address",
     "resolve_endpoint",
     "resolve_token",
+    "version_text",
 ]

@@ -567,28 +567,38 @@ class Reload(Message):
 
 @dataclass(frozen=True)
 class Reloaded(Message):
-    """The answer to RELOAD: the new configuration's hash and what it now offers."""
+    """The answer to RELOAD: the new configuration's hash and what it now offers; ``notes``:
+    sentences for the person who asked, e.g. that changed ``server:`` settings take effect only
+    after a restart (SPEC §6.5)."""
 
     TYPE: ClassVar[MessageType] = MessageType.RELOADED
     config_hash: str = ""
     inspections: tuple[dict[str, Any], ...] = ()
     cameras: tuple[dict[str, Any], ...] = ()
+    notes: tuple[str, ...] = ()
 
     def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
-        return {
+        meta: dict[str, Any] = {
             "config_hash": self.config_hash,
             "inspections": list(self.inspections),
             "cameras": list(self.cameras),
-        }, ()
+        }
+        if self.notes:  # optional: absent means none
+            meta["notes"] = list(self.notes)
+        return meta, ()
 
     @classmethod
     def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Reloaded:
         m, rid = frame.metadata, frame.request_id
+        notes = _get(m, "notes", list, rid, default=[])
+        if not all(isinstance(note, str) for note in notes):
+            raise BadMetadata("field 'notes' must be an array of strings", request_id=rid)
         return cls(
             rid,
             _get(m, "config_hash", str, rid, default=""),
             tuple(_descriptors(m, "inspections", rid)),
             tuple(_descriptors(m, "cameras", rid)),
+            tuple(notes),
         )
 
 

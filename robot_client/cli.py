@@ -19,18 +19,28 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
+import signal
 import sys
 from collections.abc import Awaitable, Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import cv2
-import numpy.typing as npt
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
+from rich.text import Text
 
-from protocol import CellvisionError
-from protocol.cli import ErrorKind, ExitCode, Parser, ParserError, json_error
+from protocol import CellvisionError, ImagePayload, ImageRole, Result
+from protocol.cli import ErrorKind, ExitCode, Parser, ParserError, json_error, version_text
+from protocol.image_files import (
+    ImageFileError,
+    check_overlay_path,
+    encode_overlay,
+    payload_from_file,
+)
+from protocol.result_view import result_json, result_view
 
 from .address import add_connection_options, endpoint_from_args, ssl_context
 from .cli_skills import add_skill_commands
@@ -39,6 +49,24 @@ from .devices import DeviceError
 from .errors import ClientError
 
 Command = Callable[[argparse.Namespace, VisionClient, Console], Awaitable[int]]
+
+DESCRIPTION = """\
+robot-client: talk to a vision server and run skills.
+
+  robot-client ping | inspections
+  robot-client inspect NAME [--image FILE] [--depth FILE ...] [--overlay out.png]
+  robot-client skills | teach SKILL NAME [KEY=VALUE ...] | run SKILL NAME
+  robot-client task run FILE | taught list | taught show NAME
+
+The server: --server HOST:PORT, --token-file PATH, --tls, --ca FILE (before or after the
+command), else $CELLVISION_SERVER, $CELLVISION_TOKEN or $CELLVISION_TOKEN_FILE,
+$CELLVISION_TLS, $CELLVISION_CA; else 127.0.0.1:7878 in plain TCP without a token.
+
+Exit codes (both tools): 0 ok/pass, 1 fail verdict, 2 usage or configuration error,
+3 connection error, 4 error answered by the server. With --json everything on stdout is JSON,
+errors as {"error": {"kind": ..., "message": ..., "code": ...}}. Output cut short by its
+reader (| head) ends quietly with 141, as a Unix tool killed by SIGPIPE.
+"""
 
 
 async def _ping(args: argparse.Namespace, client: VisionClient, console: Console) -> int:
@@ -84,44 +112,94 @@ async def _inspections(args: argparse.Namespace, client: VisionClient, console: 
     return 0
 
 
-def _read_image(path: str, what: str) -> npt.NDArray[Any]:
-    image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ValueError(f"{what} {path!r}: cannot read the image")
-    result: npt.NDArray[Any] = image
-    return result
+def _read_image(path: str, role: ImageRole) -> ImagePayload:
+    """The payload for an image file of any format OpenCV reads (:mod:`protocol.image_files`);
+    ValueError naming the file."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise ValueError(f"cannot read {path}: {exc.strerror or exc}") from None
+    return payload_from_file(data, name=path, role=role)
+
+
+def _prepare_inspect(args: argparse.Namespace) -> None:
+    """Before connecting: read the images and check --overlay's folder and extension, so that
+    a bad argument is a usage error and nothing is sent."""
+    args.overlay_suffix = None
+    if args.overlay:
+        args.overlay_suffix = check_overlay_path(args.overlay, folder_exists=os.path.isdir)
+    args.color_payload = _read_image(args.image, ImageRole.COLOR) if args.image else None
+    args.depth_payloads = [_read_image(d, ImageRole.DEPTH) for d in args.depth]
 
 
 async def _inspect(args: argparse.Namespace, client: VisionClient, console: Console) -> int:
-    image = _read_image(args.image, "--image") if args.image else None
-    depth = [_read_image(d, "--depth") for d in args.depth]
-    result = await client.inspect(args.name, image, depth=depth, overlay=bool(args.overlay))
-    if args.overlay:
-        picture = overlay_image(result)
-        if picture is not None:
-            cv2.imwrite(args.overlay, picture)
+    result = await client.inspect(
+        args.name,
+        args.color_payload,
+        depth=args.depth_payloads,
+        overlay=args.overlay_suffix is not None,
+    )
     if args.json:
-        print(
-            json.dumps(
-                {
-                    "inspection": result.inspection,
-                    "verdict": "pass" if result.passed else "fail",
-                    "camera": result.camera,
-                    "data": result.data,
-                    "timing": result.timing,
-                },
-                default=str,
-            )
-        )
+        print(json.dumps(result_json(result, image=args.image), default=str))
     else:
-        verdict = "[green]PASS[/]" if result.passed else "[red]FAIL[/]"
-        console.print(
-            f"{verdict} {result.inspection}" + (f" on {result.camera}" if result.camera else "")
+        title = Text(f"{args.image}: " if args.image else "")
+        title.append_text(
+            Text("PASS", style="bold green") if result.passed else Text("FAIL", style="bold red")
         )
-        for key, value in result.data.items():
-            console.print(f"  {key}: {value}")
-        console.print("  timing: " + ", ".join(f"{k} {v:.2f} ms" for k, v in result.timing.items()))
-    return ExitCode.OK if result.passed else ExitCode.FAILED
+        title.append(f" {result.inspection}" + (f" on {result.camera}" if result.camera else ""))
+        timing = ", ".join(f"{k} {v:.1f} ms" for k, v in result.timing.items())
+        title.append(f" ({timing})" if timing else "", style="dim")
+        console.print(title)
+        _print_data(console, result.data)
+    verdict = ExitCode.OK if result.passed else ExitCode.FAILED
+    if args.overlay_suffix is not None:
+        return max(verdict, _write_overlay(args, result))
+    return verdict
+
+
+def _print_data(console: Console, data: dict[str, Any]) -> None:
+    """Fields, then one table per list (features, corners, ...), rounded as
+    :mod:`protocol.result_view` says; every text goes in as Text, never as markup."""
+    view = result_view(data)
+    if view.fields:
+        fields = Table(box=None, show_header=False, padding=(0, 1, 0, 2))
+        fields.add_column(style="dim")
+        fields.add_column()
+        for name, value in view.fields:
+            fields.add_row(Text(name), Text(value))
+        console.print(fields)
+    for table in view.tables:
+        grid = Table(title=Text(table.title), title_justify="left", show_header=table.show_header)
+        for column in table.columns:
+            grid.add_column(Text(column), justify="right")
+        for row in table.rows:
+            grid.add_row(*(Text(cell) for cell in row))
+        console.print(grid)
+
+
+def _write_overlay(args: argparse.Namespace, result: Result) -> ExitCode:
+    """Write the overlay (folder and extension were checked before connecting)."""
+    picture = overlay_image(result)
+    if picture is None:
+        print(
+            f"robot-client inspect: {result.inspection} drew no overlay; nothing written to "
+            f"{args.overlay}",
+            file=sys.stderr,
+        )
+        return ExitCode.OK
+    try:
+        Path(args.overlay).write_bytes(encode_overlay(picture, args.overlay_suffix))
+    except (OSError, ImageFileError) as exc:
+        message = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        return _report(
+            ErrorKind.USAGE,
+            f"--overlay {args.overlay}: cannot write: {message}",
+            None,
+            as_json=bool(args.json),
+        )
+    if not args.json:
+        print(f"overlay written to {args.overlay}")
+    return ExitCode.OK
 
 
 DEFAULT_TIMEOUT_S = 10.0
@@ -141,7 +219,13 @@ def _common(*, top: bool) -> Parser:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(prog="robot-client", description=__doc__, parents=[_common(top=True)])
+    parser = Parser(
+        prog="robot-client",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        parents=[_common(top=True)],
+    )
+    parser.add_argument("--version", action="version", version=version_text("robot-client"))
     common = _common(top=False)
     sub = parser.add_subparsers(dest="command", required=True)
     ping = sub.add_parser("ping", parents=[common], help="check that the server answers")
@@ -153,16 +237,34 @@ def build_parser() -> argparse.ArgumentParser:
         "inspect", parents=[common], help="run an inspection (on an image file, else its camera)"
     )
     one.add_argument("name")
-    one.add_argument("--image", default=None, help="colour image file to send")
-    one.add_argument("--depth", action="append", default=[], help="depth PNG (uint16 mm); repeat")
-    one.add_argument("--overlay", default=None, metavar="PNG", help="save the overlay image here")
-    one.set_defaults(func=_inspect)
+    one.add_argument(
+        "--image",
+        default=None,
+        help="colour or gray image to send, 8-bit, any format OpenCV reads (PNG, JPEG, BMP, "
+        "TIFF, WebP, PGM, ...)",
+    )
+    one.add_argument(
+        "--depth",
+        action="append",
+        default=[],
+        help="depth image, 16-bit gray in mm (PNG, TIFF, PGM, ...); repeat",
+    )
+    one.add_argument(
+        "--overlay",
+        default=None,
+        metavar="PATH",
+        help="save the overlay image here (.png, .jpg, ...; the folder must exist)",
+    )
+    one.set_defaults(func=_inspect, prepare=_prepare_inspect)
     add_skill_commands(sub, common)
     return parser
 
 
 async def _run(args: argparse.Namespace, func: Command, console: Console) -> int:
     endpoint = endpoint_from_args(args)
+    prepare = getattr(args, "prepare", None)
+    if prepare is not None:  # read the command's files before connecting
+        prepare(args)
     timeout_s = args.timeout if args.timeout is not None else DEFAULT_TIMEOUT_S
     client = VisionClient(
         endpoint.host,
@@ -192,16 +294,36 @@ def _classify(exc: BaseException) -> tuple[ErrorKind, str, str | None] | None:
     return None
 
 
-def _report(kind: ErrorKind, message: str, code: str | None, *, as_json: bool) -> int:
+def _report(kind: ErrorKind, message: str, code: str | None, *, as_json: bool) -> ExitCode:
     if as_json:
         print(json.dumps(json_error(kind, message, code)))
     else:
         label = code or {ErrorKind.DEVICE: "device error"}.get(kind, "error")
-        Console(stderr=True).print(f"[red]{label}:[/] {escape(message)}")
+        # One line, never wrapped: a path cut in two cannot be copied.
+        Console(stderr=True).print(f"[red]{label}:[/] {escape(message)}", soft_wrap=True)
     return kind.exit_code
 
 
+def _broken_pipe(console: Console) -> None:
+    raise BrokenPipeError
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    # Rich ends a closed pipe with exit 1 (our "fail"): let it reach the one handler below.
+    Console.on_broken_pipe = _broken_pipe  # type: ignore[method-assign,assignment]
+    try:
+        return _main(argv)
+    except BrokenPipeError:
+        # The reader of stdout went away (`| head`): no traceback. stdout now points at
+        # /dev/null so that Python's flush at exit does not fail again; the exit code is a
+        # shell's for a command killed by SIGPIPE.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        return 128 + signal.SIGPIPE
+
+
+def _main(argv: Sequence[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         args = build_parser().parse_args(argv)
@@ -212,6 +334,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             exc.parser.print_usage(sys.stderr)
             print(f"{exc.parser.prog}: error: {exc}", file=sys.stderr)
         return ExitCode.USAGE
+    if "OPENCV_LOG_LEVEL" not in os.environ:
+        # OpenCV's own [ WARN:...] lines: every failure they announce reaches the user as
+        # our own error. $OPENCV_LOG_LEVEL set keeps them, for debugging.
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     console = Console(stderr=False)
     try:
         if getattr(args, "sync", False):

@@ -20,6 +20,7 @@ from typing import Any
 
 import yaml
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
@@ -112,8 +113,8 @@ def _ask_operator(console: Console) -> Callable[[str, Mapping[str, Any]], str]:
     """The operator at the terminal: a skill that cannot go on asks retry/continue/abort."""
 
     def ask(message: str, data: Mapping[str, Any]) -> str:
-        console.print(f"[yellow]operator needed:[/] {message}")
-        answer = console.input("retry, continue or abort? [abort] ").strip().lower()
+        console.print(f"[yellow]operator needed:[/] {escape(message)}")
+        answer = console.input("retry, continue or abort? \\[abort] ").strip().lower()
         return answer if answer in ("retry", "continue", "abort") else "abort"
 
     return ask
@@ -125,7 +126,7 @@ def _progress(console: Console) -> Iterator[Callable[[SkillProgress], None]]:
         SpinnerColumn(),
         TextColumn("[bold]{task.fields[skill]}[/]"),
         BarColumn(),
-        TextColumn("{task.description}"),
+        TextColumn("{task.description}", markup=False),  # skill messages quote user text
         TimeElapsedColumn(),
     )
     with Progress(*columns, console=console, transient=True) as bar:
@@ -145,17 +146,23 @@ def _progress(console: Console) -> Iterator[Callable[[SkillProgress], None]]:
 def _print_outcome(outcome: Outcome, console: Console) -> None:
     if outcome.ok:
         console.print(
-            f"[green]OK[/] {outcome.skill}/{outcome.record} in {outcome.duration_s:.2f} s"
+            "[green]OK[/] "
+            + escape(f"{outcome.skill}/{outcome.record} in {outcome.duration_s:.2f} s")
         )
         for key, value in outcome.data.items():
-            console.print(f"  {key}: {value}")
+            console.print(f"  {key}: {value}", markup=False)
     else:
         assert outcome.reason is not None
         console.print(
-            f"[red]FAILED[/] {outcome.skill}/{outcome.record}: [bold]{outcome.reason.value}[/] "
-            f"({outcome.phase}) — {outcome.reason.explanation}"
+            f"[red]FAILED[/] {escape(f'{outcome.skill}/{outcome.record}')}: "
+            f"[bold]{escape(outcome.reason.value)}[/] "
+            + escape(f"({outcome.phase}) — {outcome.reason.explanation}")
         )
-        console.print(f"  {outcome.message}")
+        console.print(f"  {outcome.message}", markup=False)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
 def _parse_values(args: argparse.Namespace, spec_param: Callable[[str], Any]) -> dict[str, Any]:
@@ -194,8 +201,11 @@ def cmd_teach(args: argparse.Namespace, console: Console) -> int:
         print(json.dumps(stored.to_dict()))
     else:
         console.print(
-            f"[green]taught[/] {stored.key} (revision {stored.revision}, frame {stored.frame}) "
-            f"in {ctx.store.path}"
+            "[green]taught[/] "
+            + escape(
+                f"{stored.key} (revision {stored.revision}, frame {stored.frame}) "
+                f"in {ctx.store.path}"
+            )
         )
     return 0
 
@@ -217,10 +227,13 @@ def _operator(mode: str, console: Console) -> Callable[[Step, Outcome], Operator
     def decide(step: Step, outcome: Outcome) -> OperatorDecision:
         if mode != "ask":
             return OperatorDecision(mode)
-        console.print(f"[yellow]operator:[/] {step.skill}/{step.record} failed: {outcome.message}")
+        console.print(
+            f"[yellow]operator:[/] {escape(f'{step.skill}/{step.record}')} failed: "
+            + escape(outcome.message)
+        )
         if not sys.stdin.isatty():
             return OperatorDecision.ABORT
-        answer = console.input("retry, skip or abort? [abort] ").strip().lower() or "abort"
+        answer = console.input("retry, skip or abort? \\[abort] ").strip().lower() or "abort"
         try:
             return OperatorDecision(answer)
         except ValueError:
@@ -237,11 +250,12 @@ def cmd_task_run(args: argparse.Namespace, console: Console) -> int:
     def on_step(step: StepReport) -> None:
         if args.json:
             return
-        mark = "[green]ok[/]" if step.outcome.ok else f"[red]{step.outcome.reason}[/]"
+        mark = "[green]ok[/]" if step.outcome.ok else f"[red]{escape(str(step.outcome.reason))}[/]"
         it = "".join(f"#{i}" for i in step.iteration)
-        extra = "" if step.outcome.ok else f" — {step.outcome.message} [{step.decision}]"
+        extra = "" if step.outcome.ok else escape(f" — {step.outcome.message} [{step.decision}]")
+        where = escape(f"{step.path}{it} {step.skill}/{step.record}")
         console.print(
-            f"{step.path}{it} {step.skill}/{step.record}: {mark} "
+            f"{where}: {mark} "
             f"({step.attempts} attempt{'s' * (step.attempts > 1)}, {step.duration_s:.2f} s){extra}"
         )
 
@@ -255,9 +269,9 @@ def cmd_task_run(args: argparse.Namespace, console: Console) -> int:
     else:
         verdict = "[green]done[/]" if report.ok else "[red]failed[/]"
         console.print(
-            f"task {report.task}: {verdict}, {len(report.steps)} steps, "
+            f"task {escape(report.task)}: {verdict}, {_count(len(report.steps), 'step')}, "
             f"{len(report.failures)} failed, {report.duration_s:.2f} s"
-            + (f", stopped at {report.stopped_at}" if report.stopped_at else "")
+            + (escape(f", stopped at {report.stopped_at}") if report.stopped_at else "")
         )
     return ExitCode.OK if report.ok else ExitCode.FAILED
 
@@ -272,7 +286,8 @@ def cmd_taught_list(args: argparse.Namespace, console: Console) -> int:
     for column in ("skill", "name", "rev", "frame", "taught at", "notes"):
         table.add_column(column)
     for r in records:
-        table.add_row(r.skill, r.name, str(r.revision), r.frame, r.taught_at, r.notes)
+        cells = (r.skill, r.name, str(r.revision), r.frame, r.taught_at, r.notes)
+        table.add_row(*(escape(cell) for cell in cells))
     console.print(table)
     return 0
 

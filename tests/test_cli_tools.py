@@ -6,85 +6,16 @@ and one JSON shape for results and errors (point 6)."""
 from __future__ import annotations
 
 import json
-import os
 import re
 import shlex
-import signal
 import socket
-import subprocess
-import sys
 from collections.abc import Iterator
-from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 from certs import self_signed
-
-REPO_ROOT = Path(__file__).resolve().parent.parent
-LISTENING = re.compile(r"vision-server listening on (\S+):(\d+)\n")
-TOOLS = {
-    "vision-server": [sys.executable, "-m", "vision_server"],
-    "robot-client": [sys.executable, "-m", "robot_client.cli"],
-}
-INSPECTIONS = (
-    "cameras: {tool: {source: request}}\n"
-    "inspections:\n"
-    "  - {name: bright, type: presence, camera: tool, measure: mean_intensity, min: 100}\n"
-)
-
-
-def _env(**extra: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("CELLVISION_")}
-    return {**env, "PYTHONPATH": str(REPO_ROOT), **extra}
-
-
-def tool(name: str, *args: str, **env: str) -> subprocess.CompletedProcess[str]:
-    """Run ``vision-server`` or ``robot-client`` with ``args`` and only the given CELLVISION_*
-    environment variables."""
-    return subprocess.run(
-        [*TOOLS[name], *args],
-        cwd=REPO_ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env=_env(**env),
-        check=False,
-    )
-
-
-@dataclass(frozen=True)
-class Server:
-    address: str
-    config: Path
-    token_file: Path | None = None
-    cert: Path | None = None
-
-
-def _serve(config: Path) -> Iterator[Server]:
-    proc = subprocess.Popen(
-        [*TOOLS["vision-server"], "serve", "--config", str(config)],
-        cwd=REPO_ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=_env(),
-    )
-    try:
-        assert proc.stdout is not None
-        line = proc.stdout.readline()
-        match = LISTENING.fullmatch(line)
-        assert match, f"the server did not start: {line!r} {proc.communicate(timeout=30)}"
-        yield Server(f"127.0.0.1:{match[2]}", config)
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.communicate(timeout=30)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate(timeout=30)
+from cli_tools import INSPECTIONS, REPO_ROOT, TOOLS, Server, _serve, tool
 
 
 @pytest.fixture(scope="module")
@@ -329,9 +260,9 @@ def test_one_result_shape_and_the_fail_verdict_is_exit_1(
     for done in (online, offline):
         assert done.returncode == 1, done.stderr
         answers.append(json.loads(done.stdout))
-    assert (
-        set(answers[0]) == set(answers[1]) == {"inspection", "verdict", "camera", "data", "timing"}
-    )
+    shape = {"inspection", "verdict", "camera", "image", "data", "timing"}
+    assert set(answers[0]) == set(answers[1]) == shape
+    assert answers[0]["image"] == answers[1]["image"] == images["dark"]
     assert [a["verdict"] for a in answers] == ["fail", "fail"]
     unknown = tool("robot-client", "--server", plain.address, "inspect", "nope", "--json")
     assert unknown.returncode == 4

@@ -239,7 +239,7 @@ def test_hup_reloads_a_changed_configuration(running: Running) -> None:
     assert new_hash not in _logs(running.name)
 
     _podman("kill", "-s", "HUP", running.name)
-    line = f"configuration reloaded ({new_hash})"
+    line = f"configuration reloaded (config hash {new_hash})"
     _wait_for(lambda: line in _logs(running.name), f"{line!r} in the container's log")
     done = _client(
         "--server", running.address, "inspect", "magnet_check", "--json",

@@ -149,6 +149,9 @@ class Catalog:
     )
     """Rebuilds a configured inspection with request options (raises ConfigError); None when
     the inspections do not come from a configuration file."""
+    notes: tuple[str, ...] = ()
+    """What the configuration's reader should know that serving it does not show, e.g. that
+    changed ``server:`` settings take effect after a restart (sent in RELOADED)."""
     _leases: _Leases = field(default_factory=_Leases, compare=False, repr=False)
 
     @classmethod
@@ -159,6 +162,7 @@ class Catalog:
         *,
         config_hash: str | None = None,
         tune: Callable[[str, Mapping[str, Any]], Inspection] | None = None,
+        notes: tuple[str, ...] = (),
     ) -> Catalog:
         cams = {c.name: c for c in cameras}
         insp = {i.name: i for i in inspections}
@@ -177,7 +181,7 @@ class Catalog:
                 sort_keys=True,
             )
             config_hash = hashlib.sha256(summary.encode()).hexdigest()[:16]
-        return cls(cams, insp, config_hash, tune)
+        return cls(cams, insp, config_hash, tune=tune, notes=notes)
 
     # ------------------------------------------------------------------ lifetime
 

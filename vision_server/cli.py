@@ -1,9 +1,10 @@
-"""``vision-server``: serve inspections, check a configuration, run an inspection offline on
+"""vision-server: serve inspections, check a configuration, run an inspection offline on
 image files, list logged results, and check or reload a running server.
 
-    vision-server serve --config cell.yaml          # SIGHUP or `vision-server reload` re-reads it
+    vision-server serve --config cell.yaml          # SIGHUP or "vision-server reload" re-reads it
     vision-server check-config cell.yaml
-    vision-server run --config cell.yaml cap_locate --image cap.png [--json] [--overlay out.png]
+    vision-server run --config cell.yaml cap_locate --image cap.png [--image more.bmp ...]
+                      [--json] [--overlay out.png]
     vision-server test-inspections [PATH ...] [--json] [--update]   # golden cases
     vision-server results --config cell.yaml --since 1h [--inspection NAME] [--json]
     vision-server ping [--server HOST:PORT] [--token-file PATH] [--tls] [--ca FILE]
@@ -17,6 +18,7 @@ before or after the command.
 Exit codes (both tools): 0 ok/pass, 1 fail verdict, 2 usage or configuration error,
 3 connection error (or serve cannot listen), 4 error answered by the server (or, offline, by the
 inspection). With --json an error is printed on stdout as {"error": {"kind", "message", "code"}}.
+Output cut short by its reader (| head) ends quietly with 141, as a Unix tool killed by SIGPIPE.
 """
 
 from __future__ import annotations
@@ -30,16 +32,17 @@ import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import cv2
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
 from protocol import (
     CellvisionError,
-    ImageEncoding,
     ImagePayload,
     ImageRole,
     Inspect,
@@ -48,6 +51,7 @@ from protocol import (
     Pong,
     Reload,
     Reloaded,
+    Result,
     array_from_payload,
 )
 from protocol.cli import (
@@ -63,7 +67,16 @@ from protocol.cli import (
     is_loopback,
     json_error,
     resolve_token,
+    version_text,
 )
+from protocol.image_files import (
+    ImageFileError,
+    check_overlay_path,
+    encode_overlay,
+    payload_from_file,
+)
+from protocol.images import payload_from_descriptor
+from protocol.result_view import result_json, result_view
 
 from . import decoder_limits
 from .admin import AdminError, call_endpoint, resolve
@@ -140,8 +153,12 @@ def _serve(args: argparse.Namespace) -> int:
     decoder_limits.ensure(settings.max_image_pixels, argv=args.reexec_argv)
 
     def reload() -> Catalog:
+        """Both ways in (SIGHUP and RELOAD) come here: a reload done is said once, on stdout.
+        A refused one is logged by whoever asked (on_hup below, or the session's RELOAD)."""
         assert runtime is not None
-        return runtime.reload()
+        catalog = runtime.reload()  # its notes (restart needed) are logged as warnings
+        print(f"{PROG}: configuration reloaded (config hash {catalog.config_hash})", flush=True)
+        return catalog
 
     async def main() -> int:
         server = VisionServer(
@@ -159,6 +176,14 @@ def _serve(args: argparse.Namespace) -> int:
             )
             return int(ExitCode.CONNECTION)
         _warn_if_exposed(settings)
+        if runtime is None:
+            names = ", ".join(sorted(catalog.inspections))
+            print(
+                f"{PROG}: no --config or ${CONFIG_ENV}: serving the built-in demo inspection "
+                f"({names}: mean brightness of an image sent with the request); reload is off",
+                file=sys.stderr,
+                flush=True,
+            )
         loop = asyncio.get_running_loop()
         stop = asyncio.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -168,17 +193,8 @@ def _serve(args: argparse.Namespace) -> int:
         def on_hup() -> None:
             try:
                 server.reload()
-                print(
-                    f"vision-server: configuration reloaded ({server.catalog.config_hash})",
-                    flush=True,
-                )
             except (ConfigError, CellvisionError) as exc:
-                log.error("reload refused, the old configuration stays: %s", exc)
-                print(
-                    f"vision-server: reload refused, old configuration kept: {exc}",
-                    file=sys.stderr,
-                    flush=True,
-                )
+                log.error("SIGHUP: reload refused, the old configuration stays: %s", exc)
 
         if runtime is not None:
             with contextlib.suppress(NotImplementedError):
@@ -260,25 +276,22 @@ def _check_config(args: argparse.Namespace) -> int:
                 json.dumps({"valid": False, "error": str(exc), "line": exc.line, "path": exc.path})
             )
         else:
-            Console(stderr=True).print(f"[red]invalid:[/] {exc}", highlight=False)
+            Console(stderr=True).print(
+                Text("invalid: ", style="red") + Text(str(exc)), soft_wrap=True
+            )
         return 1
     if args.json:
         print(json.dumps(_summary(config)))
         return 0
-    table = Table(title=f"{args.file}: valid (config hash {config.config_hash})")
+    table = Table(title=Text(f"{args.file}: valid (config hash {config.config_hash})"))
     for column in ("inspection", "type", "camera", "source", "roi"):
         table.add_column(column)
     for inspection in config.inspections:
         settings = config.cameras[inspection.camera]
         source = next(k for k, v in _sources().items() if isinstance(settings, v))
         roi = getattr(getattr(inspection, "common", None), "roi", None)
-        table.add_row(
-            inspection.name,
-            inspection.type,
-            inspection.camera,
-            source,
-            "whole image" if roi is None else str(list(roi)),
-        )
+        cells = (inspection.name, inspection.type, inspection.camera, source)
+        table.add_row(*map(Text, cells), Text("whole image" if roi is None else str(list(roi))))
     console.print(table)
     return 0
 
@@ -308,7 +321,8 @@ def _summary(config: CellConfig) -> dict[str, Any]:
 
 
 def _run(args: argparse.Namespace) -> int:
-    """One inspection on image files, through the server's own request path."""
+    """The inspection offline on each ``--image`` in turn, through the server's own request
+    path; the exit code is the worst of theirs (an error, then a fail verdict, then pass)."""
     config_path = _config_path(args)
     if not config_path:
         return _fail(args, ErrorKind.USAGE, f"give --config FILE (or ${CONFIG_ENV})")
@@ -324,58 +338,152 @@ def _run(args: argparse.Namespace) -> int:
             f"no inspection named {args.inspection!r}; configured: "
             f"{', '.join(i.name for i in config.inspections)}",
         )
+    if len(args.image) > 1 and args.depth:
+        return _fail(args, ErrorKind.USAGE, "--depth frames go with one --image, not several")
+    if len(args.image) > 1 and args.overlay is not None:
+        return _fail(args, ErrorKind.USAGE, "--overlay takes one --image (one file, one overlay)")
+    limit = config.server.max_image_pixels
+    try:
+        suffix = None
+        if args.overlay is not None:
+            suffix = check_overlay_path(args.overlay, folder_exists=os.path.isdir)
+        # The configured limit is the server's own check (headers, descriptors), as served.
+        # OpenCV's decoders must not refuse below it (a larger limit may re-execute); not
+        # lowered to it either, so that a large BMP is IMAGE_TOO_LARGE like a PNG, not an
+        # undecodable file.
+        decoder_limits.ensure(
+            max(limit, decoder_limits.DEFAULT_MAX_IMAGE_PIXELS), argv=args.reexec_argv
+        )
+        depth = tuple(image_payload(Path(p), ImageRole.DEPTH) for p in args.depth)
+        colours = [(p, image_payload(Path(p), ImageRole.COLOR)) for p in args.image]
+    except ValueError as exc:
+        return _fail(args, ErrorKind.USAGE, str(exc))
     server = offline_server(
         inspection,
         config.cameras[inspection.camera],
         config.base_dir,
         config_hash=config.config_hash,
+        max_image_pixels=limit,
     )
-    try:
-        images = [image_payload(Path(args.image), ImageRole.COLOR)]
-        images += [image_payload(Path(p), ImageRole.DEPTH) for p in args.depth]
-    except ValueError as exc:
-        return _fail(args, ErrorKind.USAGE, str(exc))
-    request = Inspect(1, inspection.name, tuple(images), overlay=args.overlay is not None)
+    console = Console()
 
-    async def once() -> Any:
-        return await server.run_inspection(request, peer="offline")
+    async def each() -> ExitCode:
+        worst = ExitCode.OK
+        try:
+            for path, colour in colours:
+                try:
+                    images = _as_received((colour, *depth), limit)
+                    request = Inspect(1, inspection.name, images, overlay=suffix is not None)
+                    result = await server.run_inspection(request, peer="offline")
+                except CellvisionError as exc:
+                    worst = max(worst, _image_error(args, path, exc))
+                    continue
+                _show_result(args, console, result, path)
+                worst = max(worst, ExitCode.OK if result.passed else ExitCode.FAILED)
+                if suffix is not None:
+                    worst = max(worst, _write_overlay(args, result, suffix))
+        finally:
+            await server.stop()
+        return worst
 
-    try:
-        result = asyncio.run(once())
-    except CellvisionError as exc:
-        return _fail(args, ErrorKind.SERVER, exc.message, exc.code.name)
-    if args.overlay is not None and result.images:
-        overlay = array_from_payload(result.images[0])
-        cv2.imwrite(str(args.overlay), overlay)
+    return int(asyncio.run(each()))
+
+
+def _as_received(images: tuple[ImagePayload, ...], max_pixels: int) -> tuple[ImagePayload, ...]:
+    """The images as a server receives them: through the wire decoder's checks (the pixel
+    limit of raw images, SPEC §4.3), which a request built in-process would skip."""
+    return tuple(
+        payload_from_descriptor(
+            image.descriptor(0),
+            (image.data,),
+            where=f"images[{i}]",
+            request_id=1,
+            max_pixels=max_pixels,
+        )
+        for i, image in enumerate(images)
+    )
+
+
+def _image_error(args: argparse.Namespace, image: str, exc: CellvisionError) -> ExitCode:
+    """Report the error of one image's run; its exit code."""
     if args.json:
         print(
-            json.dumps(
-                {
-                    "inspection": result.inspection,
-                    "verdict": "pass" if result.passed else "fail",
-                    "camera": result.camera,
-                    "data": result.data,
-                    "timing": result.timing,
-                }
-            )
+            json.dumps({"image": image, **json_error(ErrorKind.SERVER, exc.message, exc.code.name)})
         )
     else:
-        console = Console()
-        verdict = "[green]PASS[/]" if result.passed else "[red]FAIL[/]"
-        console.print(f"{result.inspection}: {verdict} ({result.timing['compute_ms']:.1f} ms)")
-        console.print_json(json.dumps(result.data))
-        if args.overlay is not None:
-            console.print(f"overlay written to {args.overlay}")
-    return int(ExitCode.OK if result.passed else ExitCode.FAILED)
+        print(f"{PROG} run: {image}: {exc.code.name}: {exc.message}", file=sys.stderr, flush=True)
+    return ExitCode.SERVER
+
+
+def _show_result(args: argparse.Namespace, console: Console, result: Result, image: str) -> None:
+    if args.json:  # one object per image, one per line; full precision
+        print(json.dumps(result_json(result, image=image)))
+        return
+    title = Text(f"{image}: ")
+    title.append_text(_verdict_text(result))
+    title.append(f" {result.inspection} on {result.camera}")
+    title.append(f" ({result.timing.get('compute_ms', 0.0):.1f} ms)", style="dim")
+    console.print(title)
+    print_result_data(console, result.data)
+
+
+def _write_overlay(args: argparse.Namespace, result: Result, suffix: str) -> ExitCode:
+    """Write the overlay to --overlay (its folder and extension were checked before the run)."""
+    path = str(args.overlay)
+    picture = next((p for p in result.images if p.role is ImageRole.OVERLAY), None)
+    if picture is None:
+        print(
+            f"{PROG} run: {result.inspection} drew no overlay; nothing written to {path}",
+            file=sys.stderr,
+        )
+        return ExitCode.OK
+    try:
+        Path(path).write_bytes(encode_overlay(array_from_payload(picture), suffix))
+    except (OSError, ImageFileError) as exc:
+        message = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        return ExitCode(_fail(args, ErrorKind.USAGE, f"--overlay {path}: cannot write: {message}"))
+    if not args.json:
+        print(f"overlay written to {path}")
+    return ExitCode.OK
+
+
+def _verdict_text(result: Result) -> Text:
+    return Text("PASS", style="bold green") if result.passed else Text("FAIL", style="bold red")
+
+
+def print_result_data(console: Console, data: dict[str, Any]) -> None:
+    """A result's data for people: fields, then one table per list (features, corners, ...),
+    rounded (see :mod:`protocol.result_view`). Every text goes in as Text, never as markup."""
+    view = result_view(data)
+    if view.fields:
+        fields = Table(box=None, show_header=False, padding=(0, 1, 0, 2))
+        fields.add_column(style="dim")
+        fields.add_column()
+        for name, value in view.fields:
+            fields.add_row(Text(name), Text(value))
+        console.print(fields)
+    for table in view.tables:
+        grid = Table(title=Text(table.title), title_justify="left", show_header=table.show_header)
+        for column in table.columns:
+            grid.add_column(Text(column), justify="right")
+        for row in table.rows:
+            grid.add_row(*(Text(cell) for cell in row))
+        console.print(grid)
 
 
 def offline_server(
-    inspection: Inspection, settings: Any, base_dir: Path, *, config_hash: str = ""
+    inspection: Inspection,
+    settings: Any,
+    base_dir: Path,
+    *,
+    config_hash: str = "",
+    max_image_pixels: int | None = None,
 ) -> VisionServer:
     """A VisionServer that does not listen, serving ``inspection`` offline: its camera is
     replaced by one whose images come with the request, with the same intrinsics; everything
     after that (``run_inspection``) is the serving code path. Used by ``run`` and
-    ``test-inspections``."""
+    ``test-inspections``. ``max_image_pixels``: the configuration's ``server`` limit (default:
+    the server's default)."""
     camera = RequestCamera(
         inspection.camera,
         RequestCameraSettings(getattr(settings, "intrinsics", None), depth=inspection.uses_depth),
@@ -383,7 +491,10 @@ def offline_server(
     if camera.intrinsics is None and inspection.uses_depth:
         camera = _with_scene_intrinsics(inspection.camera, settings, base_dir) or camera
     catalog = Catalog.build([camera], [inspection], config_hash=config_hash)
-    return VisionServer(catalog, ServerSettings(workers=1))
+    served = ServerSettings(workers=1)
+    if max_image_pixels is not None:
+        served = replace(served, max_image_pixels=max_image_pixels)
+    return VisionServer(catalog, served)
 
 
 def _with_scene_intrinsics(name: str, settings: Any, base_dir: Path) -> RequestCamera | None:
@@ -400,16 +511,13 @@ def _with_scene_intrinsics(name: str, settings: Any, base_dir: Path) -> RequestC
 
 
 def image_payload(path: Path, role: ImageRole) -> ImagePayload:
+    """The payload for an image file of any format OpenCV reads (see
+    :mod:`protocol.image_files`); ValueError naming the file when it cannot be sent."""
     try:
         data = path.read_bytes()
     except OSError as exc:
-        raise ValueError(f"cannot read {path}: {exc}") from None
-    suffix = path.suffix.lower()
-    if suffix == ".png":
-        return ImagePayload(ImageEncoding.PNG, 0, 0, data, role)
-    if suffix in (".jpg", ".jpeg"):
-        return ImagePayload(ImageEncoding.JPEG, 0, 0, data, role)
-    raise ValueError(f"{path}: only .png and .jpg/.jpeg images are read")
+        raise ValueError(f"cannot read {path}: {exc.strerror or exc}") from None
+    return payload_from_file(data, name=str(path), role=role)
 
 
 # ----------------------------------------------------------------------------- test-inspections
@@ -522,12 +630,15 @@ def _reload(args: argparse.Namespace) -> int:
                     "server": where,
                     "config_hash": answer.config_hash,
                     "inspections": [i.get("name") for i in answer.inspections],
+                    "notes": list(answer.notes),
                 }
             )
         )
         return int(ExitCode.OK)
     names = ", ".join(str(i.get("name")) for i in answer.inspections)
     print(f"{where} reloaded: config hash {answer.config_hash}; inspections: {names}")
+    for note in answer.notes:  # what the reload did not do, e.g. a restart is needed
+        print(f"note: {note}")
     return int(ExitCode.OK)
 
 
@@ -582,7 +693,10 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawTextHelpFormatter,
         parents=[_options(top=True)],
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="log each connection")
+    parser.add_argument(
+        "-v", "--verbose", action="store_true", help="log each connection; OpenCV's own messages"
+    )
+    parser.add_argument("--version", action="version", version=version_text(PROG))
     common = _options(top=False)
     local = _options(top=False, server=False)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -610,9 +724,24 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", parents=[local], help="run one inspection offline on image files")
     run.add_argument("inspection")
-    run.add_argument("--image", required=True, help="colour image (PNG or JPEG)")
-    run.add_argument("--depth", action="append", default=[], help="depth PNG (uint16 mm)")
-    run.add_argument("--overlay", type=Path, help="write the overlay image here (PNG)")
+    run.add_argument(
+        "--image",
+        action="append",
+        required=True,
+        help="colour or gray image, 8-bit, any format OpenCV reads (PNG, JPEG, BMP, TIFF, "
+        "WebP, PGM, ...); repeat to run on each in turn (one result each; exit code: the worst)",
+    )
+    run.add_argument(
+        "--depth",
+        action="append",
+        default=[],
+        help="depth image, 16-bit gray in mm (PNG, TIFF, PGM, ...); repeat for more frames",
+    )
+    run.add_argument(
+        "--overlay",
+        metavar="PATH",
+        help="write the overlay image here (.png, .jpg, ...; the folder must exist)",
+    )
     run.set_defaults(func=_run)
 
     golden = sub.add_parser(
@@ -651,6 +780,37 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # Rich ends a closed pipe with exit 1 (our "fail"): let it reach the one handler below.
+    Console.on_broken_pipe = _broken_pipe  # type: ignore[method-assign,assignment]
+    try:
+        return _main(argv)
+    except BrokenPipeError:
+        return quiet_broken_pipe()
+
+
+def _broken_pipe(console: Console) -> None:
+    raise BrokenPipeError
+
+
+def quiet_broken_pipe() -> int:
+    """The reader of stdout went away (``| head``): end without a traceback. stdout now points
+    at /dev/null, so that Python's flush at exit does not fail again. The exit code is a shell's
+    for a command killed by SIGPIPE."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return 128 + signal.SIGPIPE
+
+
+def quiet_opencv(verbose: bool) -> None:
+    """Silence OpenCV's own ``[ WARN:...]`` and ``[ERROR:...]`` lines: every failure they
+    announce reaches the user as our own error. Kept with ``--verbose`` or a given
+    $OPENCV_LOG_LEVEL."""
+    if not verbose and "OPENCV_LOG_LEVEL" not in os.environ:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     # Run as a program (not called from Python), serve may re-execute itself: decoder_limits.
     reexec_argv = list(sys.orig_argv) if argv is None else None
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -664,6 +824,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{exc.parser.prog}: error: {exc}", file=sys.stderr)
         return int(ExitCode.USAGE)
     args.reexec_argv = reexec_argv
+    quiet_opencv(args.verbose)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",

@@ -50,6 +50,7 @@ from typing import Any
 
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from protocol import CellvisionError, ImageRole, Inspect
@@ -817,12 +818,14 @@ def print_report(report: Report, console: Console) -> None:
     if report.cases:
         _print_table(report, console)
     for error in report.errors:
-        console.print(f"[red]error:[/] {error}", highlight=False)
+        console.print(f"[red]error:[/] {escape(error)}", highlight=False)
     for case in report.cases:
         if case.error is not None:
-            console.print(f"[red]bad case {case.name}:[/] {case.error}", highlight=False)
+            console.print(
+                f"[red]bad case {escape(case.name)}:[/] {escape(case.error)}", highlight=False
+            )
         if case.diff:
-            console.print(f"[bold]{case.name}: expected.yaml updated[/]")
+            console.print(f"[bold]{escape(case.name)}: expected.yaml updated[/]")
             for line in case.diff.splitlines():
                 style = "green" if line.startswith("+") else "red" if line.startswith("-") else ""
                 console.print(line, style=style or None, highlight=False, markup=False)
@@ -844,18 +847,21 @@ def _print_table(report: Report, console: Console) -> None:
         table.add_column(column, overflow="fold")
     for case in report.cases:
         if case.error is not None:
-            table.add_row(case.name, "—", "—", "—", "[red]BAD CASE[/]")
+            table.add_row(escape(case.name), "—", "—", "—", "[red]BAD CASE[/]")
             continue
         if case.skipped is not None:
-            table.add_row(case.name, "—", "—", "—", f"[yellow]skipped[/]: {case.skipped}")
+            table.add_row(
+                escape(case.name), "—", "—", "—", f"[yellow]skipped[/]: {escape(case.skipped)}"
+            )
             continue
         for image in case.images:
             mark = {
                 "pass": "[green]✓[/]",
-                "regression": "[red]✗ " + "; ".join(image.problems) + "[/]",
+                "regression": "[red]✗ " + escape("; ".join(image.problems)) + "[/]",
                 "new": "[yellow]new[/]: no expected result",
             }[image.status]
-            table.add_row(case.name, image.image, image.expected, image.got, mark)
+            cells = (case.name, image.image, image.expected, image.got)
+            table.add_row(*(escape(cell) for cell in cells), mark)
     console.print(table)
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
@@ -104,10 +105,12 @@ def results_command(
     try:
         since_time = parse_since(since) if since is not None else None
     except ValueError as exc:
-        err.print(f"[red]error:[/] {exc}", highlight=False)
+        err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         return 2
     if limit < 0:
-        err.print(f"[red]error:[/] --limit must be >= 0, got {limit}", highlight=False)
+        err.print(
+            f"[red]error:[/] --limit must be >= 0, got {limit}", highlight=False, soft_wrap=True
+        )
         return 2
     passed = False if failed_only else None
     try:
@@ -115,7 +118,7 @@ def results_command(
             rows = log.query(since=since_time, inspection=inspection, passed=passed, limit=limit)
             total = log.count(since=since_time, inspection=inspection, passed=passed)
     except ResultLogError as exc:
-        err.print(f"[red]error:[/] {exc}", highlight=False)
+        err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         return 1
     if json_out:
         for row in rows:
@@ -128,7 +131,7 @@ def results_command(
 
 def _table(rows: list[StoredResult], total: int, db: Path) -> Table:
     table = Table(
-        title=f"Results in {db}",
+        title=Text(f"Results in {db}"),
         caption=f"{len(rows)} of {total} matching, newest first",
         header_style="bold",
     )
@@ -144,12 +147,12 @@ def _table(rows: list[StoredResult], total: int, db: Path) -> Table:
         table.add_row(
             str(row.id),
             datetime.fromtimestamp(row.time).isoformat(sep=" ", timespec="seconds"),
-            row.inspection,
-            row.camera,
+            Text(row.inspection),
+            Text(row.camera),
             _verdict(row),
             Text(_summarise(row.data)),
             f"{row.duration_ms:.1f}",
-            str(row.image_path) if row.image_path is not None else "",
+            Text(str(row.image_path) if row.image_path is not None else ""),
         )
     return table
 

@@ -52,6 +52,7 @@ class CellRuntime:
         self._closers: list[threading.Thread] = []
         self._closed = False
         self.config = load_config(self.path)
+        self._started = self.config  # what `server:` and `results:` run with until a restart
         self._cameras: dict[str, tuple[CameraSettings, Camera]] = {}
         self.results: ResultLog | None = None
         self.catalog = self._build(self.config)
@@ -72,7 +73,7 @@ class CellRuntime:
             self.close()  # the cameras opened by _build
             raise result_log_error(config, str(exc)) from None
 
-    def _build(self, config: CellConfig) -> Catalog:
+    def _build(self, config: CellConfig, notes: tuple[str, ...] = ()) -> Catalog:
         """Cameras for ``config`` (reusing unchanged ones), then the catalog, whose cameras
         this runtime closes once the catalog is released."""
         kept: dict[str, tuple[CameraSettings, Camera]] = {}
@@ -95,6 +96,7 @@ class CellRuntime:
                 list(config.inspections),
                 config_hash=config.config_hash,
                 tune=config.tune,
+                notes=notes,
             )
         except BaseException:
             for camera in opened:  # never served: nobody can be using them
@@ -134,21 +136,23 @@ class CellRuntime:
         The previous catalog is retired with the new one as its successor: requests running
         on it finish with its cameras, which are closed after the last of them if the new
         catalog does not keep them. Never waits for a camera to close.
+
+        The catalog's ``notes`` name the sections whose changes wait for a restart, compared
+        with what the process started with (so a second reload still says so).
         """
         with self._lock:
             if self._closed:
                 raise RuntimeError("the cell runtime is closed")
             config = load_config(self.path)
-            if config.server != self.config.server:
-                log.warning(
-                    "%s: changes under 'server:' take effect after a restart", self.path.name
-                )
-            if config.results != self.config.results:
-                log.warning(
-                    "%s: changes under 'results:' take effect after a restart", self.path.name
-                )
+            notes = tuple(
+                f"{self.path.name}: changes under '{section}:' take effect after a restart"
+                for section in ("server", "results")
+                if getattr(config, section) != getattr(self._started, section)
+            )
+            for note in notes:
+                log.warning("%s", note)
             previous = self.catalog
-            self.catalog = self._build(config)
+            self.catalog = self._build(config, notes)
             self.config = config
             previous.retire(successor=self.catalog)
             return self.catalog

@@ -17,7 +17,7 @@ import os
 import ssl
 import time
 from collections.abc import Callable, Coroutine
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, TypeVar
 
 from protocol import (
@@ -325,6 +325,7 @@ class VisionServer:
         inspection = catalog.tuned(inspection, request.options, request_id=rid)
         camera = catalog.camera(inspection.camera, request_id=rid)
         acquire: Callable[[], InspectionInput]
+        sources: list[str] = []  # the files a folder camera read: which images this is about
         if request.images:
             # Images in the request are inspected whatever the camera: a tool camera's, or a
             # stored image run through a fixed camera's inspection (SPEC §6.3).
@@ -350,6 +351,7 @@ class VisionServer:
 
             def acquire() -> InspectionInput:
                 frames = _grab(camera, inspection.frames, timeout_s, rid)
+                sources.extend(f.source for f in frames if f.source is not None)
                 depth = tuple(f.depth for f in frames if f.depth is not None)
                 return InspectionInput(
                     frames[0].color, depth if inspection.uses_depth else (), camera.intrinsics
@@ -376,6 +378,8 @@ class VisionServer:
                 )
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
+            if sources:
+                outcome = replace(outcome, data={**outcome.data, "source_files": sources})
             stored = self._record(
                 inspection.name,
                 camera.name,
@@ -1093,6 +1097,7 @@ class _ClientSession:
                     catalog.config_hash,
                     catalog.inspection_descriptors(),
                     catalog.camera_descriptors(),
+                    catalog.notes,
                 )
         if rid in self.conn.pending:
             self._write(response)

@@ -38,7 +38,7 @@ def test_ping_json(address: str, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--server", address, "ping", "--json", "-n", "3"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["server"] == {"name": "cellvision", "version": "0.1.0"}
-    assert report["protocol"] == [1, 0]
+    assert report["protocol"] == [1, 1]
     assert len(report["rtt_ms"]) == 3
     assert all(rtt >= 0.0 for rtt in report["rtt_ms"])
 
@@ -46,7 +46,7 @@ def test_ping_json(address: str, capsys: pytest.CaptureFixture[str]) -> None:
 def test_ping_text(address: str, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--server", address, "ping"]) == 0
     out = _flat(capsys.readouterr().out)
-    assert out.startswith(f"PONG from cellvision 0.1.0 at {address} (protocol 1.0):")
+    assert out.startswith(f"PONG from cellvision 0.1.0 at {address} (protocol 1.1):")
     assert out.endswith(" ms")
 
 
@@ -78,7 +78,7 @@ def test_server_address_from_the_environment(
 ) -> None:
     monkeypatch.setenv(ENV_VAR, address)
     assert main(["ping", "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["protocol"] == [1, 0]
+    assert json.loads(capsys.readouterr().out)["protocol"] == [1, 1]
 
 
 def test_no_server_is_a_clear_error(capsys: pytest.CaptureFixture[str]) -> None:
@@ -142,7 +142,9 @@ def test_inspect_an_image_file(
         main(["--server", address, "inspect", "brightness", "--image", str(tmp_path / "x.png")])
         == 2
     )
-    assert "cannot read the image" in _flat(capsys.readouterr().err)
+    err = _flat(capsys.readouterr().err)
+    assert "cannot read" in err
+    assert "x.png" in err
 
 
 def test_a_token_on_the_command_line_is_deprecated(

@@ -46,13 +46,15 @@ class CameraFrame:
     captured (read from the device, file or renderer). ``index``: the camera's frame counter;
     it only increases, also across reconnects, so frames with different indices are different
     captures. Both arrays are read-only because one frame may be handed to several
-    requests at once: copy before drawing on them.
+    requests at once: copy before drawing on them. ``source``: where the frame was
+    read from, for people (a folder camera's file, relative to its folder), or None.
     """
 
     color: NDArray[np.uint8]
     depth: NDArray[np.uint16] | None
     timestamp: float
     index: int
+    source: str | None = None
 
     def __post_init__(self) -> None:
         if self.color.dtype != np.uint8 or not (

@@ -187,7 +187,9 @@ class FolderCamera(Camera):
         depth_path = self._depth_files[self._position]
         self._position += 1
         color, depth = self._read(path, depth_path)
-        frame = CameraFrame(color, depth, self._clock.time(), self._next_index)
+        root = self.root.resolve()  # which file, for the result (relative: no host paths)
+        source = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
+        frame = CameraFrame(color, depth, self._clock.time(), self._next_index, source)
         self._next_index += 1
         self._frames += 1
         return frame
