@@ -148,6 +148,16 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
         tls_cert=None if cert is None else str(_resolve(base_dir, cert)),
         tls_key=None if key is None else str(_resolve(base_dir, key)),
         allow_reload=node.take("allow_reload", boolean, defaults.allow_reload),
+        capture_timeout_s=node.take("capture_timeout_s", positive, defaults.capture_timeout_s),
+        handshake_timeout_s=node.take(
+            "handshake_timeout_s", positive, defaults.handshake_timeout_s
+        ),
+        idle_timeout_s=node.take("idle_timeout_s", positive, defaults.idle_timeout_s),
+        frame_timeout_s=node.take("frame_timeout_s", positive, defaults.frame_timeout_s),
+        write_timeout_s=node.take("write_timeout_s", positive, defaults.write_timeout_s),
+        max_buffered_bytes=node.take(
+            "max_buffered_bytes", positive_int, defaults.max_buffered_bytes
+        ),
     )
     if settings.queue_depth < 0:
         raise node.error(f"expected an integer >= 0, got {settings.queue_depth}", "queue_depth")

@@ -97,6 +97,25 @@ def test_the_error_names_file_line_item_and_key(tmp_path: Path) -> None:
     assert error.line == 14
 
 
+def test_server_timeouts_and_byte_budget_are_configurable(tmp_path: Path) -> None:
+    """The attack soak (scripts/attack.py) sets them short in the YAML; defaults otherwise."""
+    text = (
+        "server:\n  idle_timeout_s: 1.5\n  frame_timeout_s: 2\n  handshake_timeout_s: 0.5\n"
+        "  write_timeout_s: 3\n  capture_timeout_s: 4\n  max_buffered_bytes: 1048576\n"
+    ) + MINIMAL
+    server = load_config(write(tmp_path, text)).server
+    assert (server.idle_timeout_s, server.frame_timeout_s, server.handshake_timeout_s) == (
+        1.5,
+        2.0,
+        0.5,
+    )
+    assert (server.write_timeout_s, server.capture_timeout_s) == (3.0, 4.0)
+    assert server.max_buffered_bytes == 1 << 20
+    assert server.welcome_limits()["idle_timeout_ms"] == 1500
+    error = error_of(tmp_path, "server:\n  idle_timeout_s: 0\n" + MINIMAL)
+    assert "idle_timeout_s" in str(error)
+
+
 @pytest.mark.parametrize(
     ("snippet", "expected"),
     [
@@ -615,7 +634,9 @@ def test_docs_list_exactly_the_keys_the_validator_reads(
     text = f"""\
 server: {{host: 0.0.0.0, port: 0, name: x, max_frame_bytes: 1000000, max_image_pixels: 1000,
          max_in_flight: 2, max_connections: 3, workers: 1, queue_depth: 0,
-         auth_token_file: token, shutdown_grace_s: 1, allow_reload: false}}
+         auth_token_file: token, shutdown_grace_s: 1, allow_reload: false,
+         capture_timeout_s: 2, handshake_timeout_s: 3, idle_timeout_s: 4, frame_timeout_s: 5,
+         write_timeout_s: 6, max_buffered_bytes: 7000000}}
 results: {{enabled: true, path: r.db, store_images: all, max_image_mb: 5}}
 cameras:
   req: {{source: request, depth: true,
