@@ -33,7 +33,8 @@ hangs, VmRSS before and after, VmHWM after. At the end the server must exit 0 on
 traceback on stderr, and its VmHWM must stay below the bound (:func:`memory_bound`)::
 
     workers x max_image_pixels x 12 B  +  constant
-    constant = baseline VmRSS (after a warm-up) + max_buffered_bytes
+    constant = baseline VmRSS (after a warm-up) + 2 x max_buffered_bytes (a body or reply is
+               held twice at its peak: bytes and parsed payload, payloads and serialized frame)
                + 2 x max_connections x 1 MiB (per-connection buffers) + 16 MiB (allocator)
 
 Exit status 0 when every promise held, 1 otherwise. Loopback only; bounded in time.
@@ -162,7 +163,9 @@ def memory_bound(limits: Limits, baseline_kib: int) -> dict[str, int]:
     parts = {
         "baseline": baseline_kib,
         "decoding": limits.workers * limits.max_pixels * DECODE_BYTES_PER_PIXEL // 1024,
-        "byte_budget": limits.max_buffered_bytes // 1024,
+        # Counted once in the budget, a body or reply exists twice at its peak: received
+        # bytes and the parsed payload; a FRAMES reply's payloads and its serialized frame.
+        "byte_budget": 2 * limits.max_buffered_bytes // 1024,
         "connections": 2 * limits.max_connections * PER_CONNECTION_BYTES // 1024,
         "allocator": ALLOCATOR_BYTES // 1024,
     }
