@@ -3,7 +3,7 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: bootstrap test lint typecheck pytest wheel-check container-test demo bench clean
+.PHONY: bootstrap test lint typecheck pytest wheel-check container-test demo bench soak clean
 
 bootstrap:
 	@VENV=$(VENV) ./scripts/bootstrap.sh
@@ -34,6 +34,12 @@ demo: bootstrap
 
 bench: bootstrap
 	$(PY) -m bench
+
+# The long attack soak (issue 13): every hole as a bounded phase against a `serve` process, 10
+# rounds; figures in soak-attack.json (docs/bench/reliability.md). `make test` runs the short
+# form through tests/test_reliability.py.
+soak: bootstrap
+	$(PY) scripts/attack.py --json soak-attack.json
 
 clean:
 	rm -rf $(VENV) build dist *.egg-info .mypy_cache .pytest_cache .ruff_cache

@@ -42,6 +42,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -102,14 +103,20 @@ inspections:
 # ----------------------------------------------------------------------------- the server
 
 
-def rss_kib(pid: int) -> int | None:
-    """Resident set size of process ``pid`` in KiB (VmRSS), None when it is gone."""
+def status_kib(pid: int, key: str) -> int | None:
+    """A size from ``/proc/PID/status`` in KiB (``VmRSS``: resident now, ``VmHWM``: the
+    resident peak since the process started), None when the process is gone."""
     try:
         text = Path(f"/proc/{pid}/status").read_text()
     except OSError:
         return None
-    match = re.search(r"^VmRSS:\s+(\d+) kB", text, re.MULTILINE)
+    match = re.search(rf"^{key}:\s+(\d+) kB", text, re.MULTILINE)
     return int(match[1]) if match else None
+
+
+def rss_kib(pid: int) -> int | None:
+    """Resident set size of process ``pid`` in KiB (VmRSS), None when it is gone."""
+    return status_kib(pid, "VmRSS")
 
 
 @dataclass
@@ -120,6 +127,8 @@ class ServerProcess:
     config_text: str = ""
     port: int = 0
     extra_args: tuple[str, ...] = ()
+    preexec_fn: Callable[[], None] | None = None
+    """Run in the child before exec (e.g. resource limits: a disk that fills up)."""
     proc: subprocess.Popen[str] | None = None
     stderr_path: Path = field(init=False)
 
@@ -145,7 +154,13 @@ class ServerProcess:
         stderr = self.stderr_path.open("a")
         env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
         self.proc = subprocess.Popen(
-            args, cwd=self.workdir, stdout=subprocess.PIPE, stderr=stderr, text=True, env=env
+            args,
+            cwd=self.workdir,
+            stdout=subprocess.PIPE,
+            stderr=stderr,
+            text=True,
+            env=env,
+            preexec_fn=self.preexec_fn,  # resource limits only: safe before exec
         )
         stderr.close()
         assert self.proc.stdout is not None

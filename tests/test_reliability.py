@@ -1,4 +1,5 @@
-"""Quick runs of the reliability scripts (issue #8, items 1 and 2) against a live server process.
+"""Quick runs of the reliability scripts (issue #8, items 1 and 2; issue 13's attack soak)
+against a live server process.
 
 The full runs (100,000 hostile frames; 64 clients x 500 requests) are measured by hand for
 docs/bench/reliability.md. Here the scripts run small and without the 1 s answer bound (a test
@@ -78,3 +79,46 @@ def test_quick_load_pipelined_clients_busy_and_a_slow_reader(tmp_path: Path) -> 
     assert s["slow_reader"]["stopped_by_backpressure"]
     assert s["slow_reader"]["accepted_bytes"] < s["slow_reader"]["offered_bytes"]
     assert s["server"]["exit_code"] == 0
+
+
+def test_quick_attack_soak_every_hole_of_issue_13(tmp_path: Path) -> None:
+    """scripts/attack.py --quick: one bounded phase per attack against a `serve` process whose
+    limits are small; `make soak` runs the long form. Per-phase results are checked here; the
+    script itself fails on a wrong answer, a hang, a traceback, a bad exit or a VmHWM over the
+    memory bound."""
+    s = _script("attack.py", "--quick", out=tmp_path / "attack.json")
+    phases = s["phases"]
+    assert set(phases) >= {
+        "image_bombs",
+        "pre_hello_large",
+        "half_bodies",
+        "silent",
+        "slow_bodies",
+        "non_readers",
+        "flood",
+        "reload",
+        "disk_full",
+    }
+    for name, phase in phases.items():
+        assert (phase["wrong"], phase["hangs"]) == (0, 0), (name, phase["problems"])
+        assert phase["correct"] > 0, name
+        if name != "warmup":
+            assert phase["figures"].get("good_after", True), name
+    assert s["vm_hwm_kib"] <= s["memory_bound_kib"]["bound"]
+    # Hidden or misstated image sizes refused before decoding; valid images at the limit served.
+    assert {"IMAGE_TOO_LARGE", "BAD_IMAGE"} <= set(phases["image_bombs"]["errors"])
+    # Bodies beyond the byte budget were refused at their header, the budget never exceeded.
+    budget = s["limits"]["max_buffered_bytes"]
+    assert phases["half_bodies"]["busy"] > 0
+    assert phases["half_bodies"]["figures"]["buffered_bytes_peak"] <= budget
+    assert phases["non_readers"]["figures"]["buffered_bytes_peak"] <= budget
+    assert phases["non_readers"]["figures"]["dropped_all"]
+    # Slots held by silent clients: a good client was refused, then served after the timeout.
+    assert phases["silent"]["refused"] >= 1
+    assert phases["flood"]["refused"] > 0
+    assert phases["reload"]["figures"]["camera_unavailable"] == 0
+    disk = phases["disk_full"]["figures"]
+    assert disk["stored"]["false"] > 0
+    assert disk["health_ok"] is False
+    assert disk["rows_in_log"] == disk["stored"].get("true", 0)
+    assert (s["server"]["exit_code"], s["server"]["tracebacks"]) == (0, 0)

@@ -794,6 +794,8 @@ class _ClientSession:
         """The largest frame the client accepts (its HELLO's max_frame_bytes)."""
         self._shutdown = asyncio.Event()
         self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks_done = asyncio.Event()
+        """Set when the last request task of the connection has finished."""
         self._frame_admission: Admission | None = None
         self._held: set[Admission] = set()
         self._last_activity = time.monotonic()
@@ -909,14 +911,32 @@ class _ClientSession:
             read = asyncio.ensure_future(self.reader.read(READ_CHUNK))
             stop = asyncio.ensure_future(self._shutdown.wait())
             timeout, why = self._read_timeout()
+            waiters = {read, stop}
+            # With requests in flight there is no idle timeout; wake up when the last one is
+            # answered, so that a client that then goes silent is closed after idle_timeout_s.
+            woken: asyncio.Future[Any] | None = None
+            if timeout is None and self._tasks:
+                self._tasks_done.clear()
+                woken = asyncio.ensure_future(self._tasks_done.wait())
+                waiters.add(woken)
             try:
                 done, _ = await asyncio.wait(
-                    {read, stop}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED
+                    waiters, timeout=timeout, return_when=asyncio.FIRST_COMPLETED
                 )
             except asyncio.CancelledError:  # a request task failed: leave nothing pending
                 read.cancel()
                 stop.cancel()
+                if woken is not None:
+                    woken.cancel()
                 raise
+            if woken is not None:
+                woken.cancel()
+                if woken in done and read not in done and stop not in done:
+                    read.cancel()
+                    stop.cancel()
+                    with contextlib.suppress(asyncio.CancelledError, ConnectionError):
+                        await read
+                    continue
             if read not in done:
                 read.cancel()
                 with contextlib.suppress(asyncio.CancelledError, ConnectionError):
@@ -934,10 +954,12 @@ class _ClientSession:
             if data and self._frame_started is None:
                 self._frame_started = time.monotonic()
             self.conn.receive_data(data)
+            frame_ended = False
             while True:
                 try:
                     event = self.conn.next_event()
                 except CellvisionError as exc:
+                    frame_ended = True
                     self._release(self._take_frame_admission())
                     log.info("%s: %s: %s", self.peer, exc.code.name, exc.message)
                     if exc.fatal:
@@ -950,6 +972,7 @@ class _ClientSession:
                     continue
                 if event is NEED_DATA:
                     break
+                frame_ended = True
                 if isinstance(event, ConnectionClosed):
                     return True
                 assert isinstance(event, Message)
@@ -962,7 +985,13 @@ class _ClientSession:
                     raise
                 if not keep_going:
                     return self.conn.state is not State.CLOSED
-            self._frame_started = time.monotonic() if self.conn.receiving_frame else None
+            # The frame timeout counts from a frame's first byte: bytes that trickle in keep
+            # the same start (a slow sender must not hold the connection by dribbling), a new
+            # frame begun in this chunk starts now.
+            if not self.conn.receiving_frame:
+                self._frame_started = None
+            elif frame_ended:
+                self._frame_started = time.monotonic()
 
     def _dispatch(
         self, message: Message, group: asyncio.TaskGroup, admission: Admission | None
@@ -1004,7 +1033,12 @@ class _ClientSession:
     def _start(self, group: asyncio.TaskGroup, work: Coroutine[Any, Any, None]) -> None:
         task = group.create_task(work)
         self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        task.add_done_callback(self._task_done)
+
+    def _task_done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if not self._tasks:
+            self._tasks_done.set()
 
     def _handshake(self, hello: Hello) -> bool:
         version = negotiate_version(hello.versions, self.conn.versions)

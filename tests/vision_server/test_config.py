@@ -633,7 +633,9 @@ def test_docs_list_exactly_the_keys_the_validator_reads(
     text = f"""\
 server: {{host: 0.0.0.0, port: 0, name: x, max_frame_bytes: 1000000, max_image_pixels: 1000,
          max_in_flight: 2, max_connections: 3, workers: 1, queue_depth: 0,
-         auth_token_file: token, shutdown_grace_s: 1, allow_reload: false}}
+         auth_token_file: token, shutdown_grace_s: 1, allow_reload: false,
+         capture_timeout_s: 2, handshake_timeout_s: 3, idle_timeout_s: 4, frame_timeout_s: 5,
+         write_timeout_s: 6, max_buffered_bytes: 7000000}}
 results: {{enabled: true, path: r.db, store_images: all, max_image_mb: 5}}
 cameras:
   req: {{source: request, depth: true,
