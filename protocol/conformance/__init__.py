@@ -1,8 +1,10 @@
 """Conformance suite: checks any cellvision server over TCP against SPEC.md.
 
-``python -m protocol.conformance HOST:PORT [--json]`` runs every check and exits non-zero on a
-failure. From Python: :func:`run_checks`. Unlike the rest of ``protocol``, this tool does I/O
-(blocking sockets): it is a client, not part of the sans-IO core.
+``python -m protocol.conformance HOST:PORT [--json] [--profile minimal]`` runs every check and
+exits non-zero on a failure. From Python: :func:`run_checks`. A profile (``profiles``) names
+what a server need not offer; checks that need it are "not applicable", never passed. Unlike
+the rest of ``protocol``, this tool does I/O (blocking sockets): it is a client, not part of the
+sans-IO core.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from dataclasses import dataclass
 from ..constants import MessageType
 from .checks import CHECKS, Check, Context, Skip
 from .peer import CheckFailed, Peer, Target
+from .profiles import DEFAULT_PROFILE, PROFILES, Feature, Profile
 
 
 @dataclass(frozen=True)
@@ -22,7 +25,8 @@ class CheckResult:
     section: str
     description: str
     status: str
-    """"pass", "fail", "skip" or "error" (the check itself raised something unexpected)."""
+    """"pass", "fail", "skip" (the server offers nothing to check it on), "n/a" (the profile
+    leaves out a feature it needs: not run) or "error" (the check raised something unexpected)."""
     detail: str
     duration_s: float
 
@@ -42,11 +46,15 @@ def discover(target: Target) -> Context:
         )
 
 
-def run_check(check: Check, context: Context) -> CheckResult:
+def run_check(check: Check, context: Context, profile: Profile = DEFAULT_PROFILE) -> CheckResult:
     t0 = time.perf_counter()
+    left_out = sorted(f.value for f in check.needs & profile.omits)
+    if left_out:
+        detail = f"not applicable (profile {profile.name}: no {', no '.join(left_out)})"
+        return CheckResult(check.name, check.section, check.description, "n/a", detail, 0.0)
     try:
-        check.run(context)
-        status, detail = "pass", ""
+        note = check.run(context)
+        status, detail = "pass", note or ""
     except Skip as exc:
         status, detail = "skip", str(exc)
     except CheckFailed as exc:
@@ -61,11 +69,14 @@ def run_check(check: Check, context: Context) -> CheckResult:
     )
 
 
-def run_checks(target: Target, *, select: str | None = None) -> list[CheckResult]:
-    """Run every check (or those whose name contains ``select``) against ``target``."""
+def run_checks(
+    target: Target, *, select: str | None = None, profile: Profile = DEFAULT_PROFILE
+) -> list[CheckResult]:
+    """Run every check (or those whose name contains ``select``) against ``target``; those
+    that need a feature ``profile`` leaves out are reported "n/a" without being run."""
     context = discover(target)
     chosen = [c for c in CHECKS if select is None or select in c.name]
-    return [run_check(c, context) for c in chosen]
+    return [run_check(c, context, profile) for c in chosen]
 
 
 __all__ = [
@@ -73,6 +84,10 @@ __all__ = [
     "Check",
     "CheckFailed",
     "CheckResult",
+    "DEFAULT_PROFILE",
+    "Feature",
+    "PROFILES",
+    "Profile",
     "Target",
     "discover",
     "run_check",

@@ -1,4 +1,4 @@
-"""``python -m protocol.conformance HOST:PORT [--json]``."""
+"""``python -m protocol.conformance HOST:PORT [--json] [--profile NAME]``."""
 
 from __future__ import annotations
 
@@ -9,7 +9,20 @@ from collections.abc import Sequence
 from dataclasses import asdict
 
 from ..constants import DEFAULT_PORT
-from . import Target, run_checks
+from . import CHECKS, PROFILES, Profile, Target, run_checks
+
+_EPILOG = """\
+profiles (what the server under test need not offer):
+{profiles}
+A check that needs what the profile leaves out is not run and is reported N/A, "not applicable
+(profile ...)", never PASS. Under "full" a check is SKIPped, with the reason, when the server
+offers nothing to run it on (e.g. no server-side camera). The check "reload" sends RELOAD, which
+makes a server re-read its configuration file: against a cell in production, leave it out
+(--profile minimal, or -k to choose checks).
+
+exit status: 0 when no check failed, 1 when one failed, 2 when the server could not be reached
+or did not complete the handshake.
+"""
 
 
 def _address(text: str) -> tuple[str, int]:
@@ -32,7 +45,9 @@ def _address(text: str) -> tuple[str, int]:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m protocol.conformance",
-        description="Check a cellvision server against SPEC.md.",
+        description="Check a cellvision server against SPEC.md, section by section.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=_EPILOG.format(profiles="\n".join(map(_describe, PROFILES.values()))),
     )
     parser.add_argument("address", help="HOST:PORT of the server under test")
     parser.add_argument("--json", action="store_true", help="print results as JSON")
@@ -41,6 +56,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--tls", action="store_true", help="connect with TLS")
     parser.add_argument("--insecure", action="store_true", help="with --tls: skip verification")
     parser.add_argument("-k", dest="select", help="run only checks whose name contains this")
+    parser.add_argument(
+        "--profile",
+        choices=sorted(PROFILES),
+        default="full",
+        help="what the server need not offer (default: full, everything; below)",
+    )
     args = parser.parse_args(argv)
     try:
         host, port = _address(args.address)
@@ -48,7 +69,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"bad server address {args.address!r}: {exc}")
     target = Target(host, port, args.timeout, args.auth_token, args.tls, not args.insecure)
     try:
-        results = run_checks(target, select=args.select)
+        results = run_checks(target, select=args.select, profile=PROFILES[args.profile])
     except Exception as exc:  # the server cannot even be reached or handshaken
         print(f"conformance: cannot start: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 2
@@ -58,10 +79,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             json.dumps(
                 {
                     "target": f"{host}:{port}",
+                    "profile": args.profile,
                     "results": [asdict(r) for r in results],
                     "passed": sum(r.status == "pass" for r in results),
                     "failed": len(failed),
                     "skipped": sum(r.status == "skip" for r in results),
+                    "not_applicable": sum(r.status == "n/a" for r in results),
                 },
                 indent=1,
             )
@@ -72,11 +95,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         for r in results:
             detail = r.detail.splitlines()[0] if r.detail else ""
             print(f"{r.name:<{width}}  {r.section:<7}  {r.status.upper():<6}  {detail}")
+        not_applicable = sum(r.status == "n/a" for r in results)
         print(
             f"{sum(r.status == 'pass' for r in results)} passed, {len(failed)} failed, "
-            f"{sum(r.status == 'skip' for r in results)} skipped against {host}:{port}"
+            f"{sum(r.status == 'skip' for r in results)} skipped"
+            + (f", {not_applicable} not applicable" if not_applicable else "")
+            + f" against {host}:{port}"
+            + (f" (profile {args.profile})" if args.profile != "full" else "")
         )
     return 1 if failed else 0
+
+
+def _describe(profile: Profile) -> str:
+    text = f"  {profile.name:<8} {profile.description}"
+    left_out = [c.name for c in CHECKS if c.needs & profile.omits]
+    if left_out:
+        text += f"\n  {'':<8} (checks left out: {', '.join(left_out)})"
+    return text
 
 
 if __name__ == "__main__":

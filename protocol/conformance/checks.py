@@ -1,8 +1,10 @@
 """The conformance checks. Each is tagged with the SPEC.md section it verifies.
 
-A check passes by returning, fails by raising :class:`CheckFailed` (or any other exception,
-reported as an error), and is skipped by raising :class:`Skip` (the server offers nothing the
-check can use, e.g. no inspection that takes images in the request).
+A check passes by returning (optionally a note for the report), fails by raising
+:class:`CheckFailed` (or any other exception, reported as an error), and is skipped by raising
+:class:`Skip` (the server offers nothing the check can use, e.g. no inspection that takes images
+in the request). What a check sends is built from what the server announced in WELCOME: its
+inspections, their cameras and the image size a camera declares.
 """
 
 from __future__ import annotations
@@ -18,11 +20,12 @@ from typing import Any
 import numpy as np
 
 from ..constants import HEADER, MAGIC, ImageEncoding, ImageRole, MessageType
-from ..errors import ErrorCode
+from ..errors import CellvisionError, ErrorCode
 from ..frames import Frame
-from ..images import ImagePayload, payload_from_array
-from ..messages import Close, Hello, Inspect, ListInspections, Ping
+from ..images import ImagePayload, payload_from_array, payload_from_descriptor
+from ..messages import Capture, Close, Hello, Inspect, ListInspections, Ping, Reload
 from .peer import CLOSED, CheckFailed, Peer, Target
+from .profiles import Feature
 
 E = ErrorCode
 T = MessageType
@@ -34,7 +37,7 @@ class Skip(Exception):  # noqa: N818 - it is an outcome, not an error
 
 @dataclass(frozen=True)
 class Context:
-    """What the checks learn from one handshake: the server's limits and inspections."""
+    """What the checks learn from one handshake: the server's limits, inspections and cameras."""
 
     target: Target
     limits: dict[str, int]
@@ -51,6 +54,37 @@ class Context:
         want = "" if depth is None else (" with depth" if depth else " without depth")
         raise Skip(f"the server offers no inspection on a request camera{want}")
 
+    def server_inspection(self) -> dict[str, Any]:
+        """An inspection whose camera is on the server (it captures when INSPECT has no
+        images)."""
+        for item in self.inspections:
+            source = item.get("camera_source")
+            if isinstance(source, str) and source != "request":
+                return item
+        raise Skip("the server offers no inspection on a server-side camera")
+
+    def camera(self, name: object) -> dict[str, Any] | None:
+        """The WELCOME's descriptor of the camera ``name``, if it lists one."""
+        for item in self.cameras:
+            if item.get("name") == name:
+                return item
+        return None
+
+    def image_size(
+        self, item: dict[str, Any], default: tuple[int, int] = (320, 240)
+    ) -> tuple[int, int]:
+        """``(width, height)`` in pixels of the images the inspection's camera takes, as its
+        descriptor declares them (``width``/``height``, else those of its ``intrinsics``),
+        else ``default``. An inspection may refuse images of another size than its camera's
+        (a depth image must be registered to its colour image), so requests use this size."""
+        camera = self.camera(item.get("camera")) or {}
+        intrinsics = camera.get("intrinsics")
+        for source in (camera, intrinsics if isinstance(intrinsics, dict) else {}):
+            width, height = _positive_int(source.get("width")), _positive_int(source.get("height"))
+            if width and height:
+                return width, height
+        return default
+
     def peer(self) -> Peer:
         return Peer(self.target)
 
@@ -60,7 +94,13 @@ class Context:
         return peer
 
 
-CheckFn = Callable[[Context], None]
+def _positive_int(value: object) -> int:
+    """``value`` when it is a positive JSON integer, else 0."""
+    return value if isinstance(value, int) and not isinstance(value, bool) and value > 0 else 0
+
+
+CheckFn = Callable[[Context], "str | None"]
+"""Runs one check; returns nothing or a note for the report (e.g. which answer it accepted)."""
 
 
 @dataclass(frozen=True)
@@ -69,14 +109,18 @@ class Check:
     section: str
     description: str
     run: CheckFn
+    needs: frozenset[Feature] = frozenset()
+    """Optional server features the check exercises (see ``profiles``)."""
 
 
 CHECKS: list[Check] = []
 
 
-def check(name: str, section: str, description: str) -> Callable[[CheckFn], CheckFn]:
+def check(
+    name: str, section: str, description: str, *, needs: frozenset[Feature] = frozenset()
+) -> Callable[[CheckFn], CheckFn]:
     def register(fn: CheckFn) -> CheckFn:
-        CHECKS.append(Check(name, section, description, fn))
+        CHECKS.append(Check(name, section, description, fn, needs))
         return fn
 
     return register
@@ -279,35 +323,38 @@ def _unknown_flags(ctx: Context) -> None:
 
 @check("inspect_gray8", "§4.2", "INSPECT with a gray8 image gets a RESULT")
 def _gray8(ctx: Context) -> None:
-    name = ctx.request_inspection(depth=False)["name"]
+    item = ctx.request_inspection(depth=False)
+    image = _test_image(*ctx.image_size(item))
     with ctx.open() as peer:
-        peer.send(Inspect(20, name, (payload_from_array(_test_image()),)))
+        peer.send(Inspect(20, item["name"], (payload_from_array(image),)))
         _result_or_errors(peer, 20, set())
 
 
 @check("inspect_bgr8", "§4.2", "INSPECT with a bgr8 image gets a RESULT")
 def _bgr8(ctx: Context) -> None:
-    name = ctx.request_inspection(depth=False)["name"]
+    item = ctx.request_inspection(depth=False)
+    image = _test_image(*ctx.image_size(item), color=True)
     with ctx.open() as peer:
-        peer.send(Inspect(21, name, (payload_from_array(_test_image(color=True)),)))
+        peer.send(Inspect(21, item["name"], (payload_from_array(image),)))
         _result_or_errors(peer, 21, set())
 
 
 @check("inspect_png", "§4.2", "INSPECT with a PNG image gets a RESULT")
 def _png(ctx: Context) -> None:
-    name = ctx.request_inspection(depth=False)["name"]
-    payload = payload_from_array(_test_image(color=True), encoding=ImageEncoding.PNG)
+    item = ctx.request_inspection(depth=False)
+    image = _test_image(*ctx.image_size(item), color=True)
+    payload = payload_from_array(image, encoding=ImageEncoding.PNG)
     with ctx.open() as peer:
-        peer.send(Inspect(22, name, (payload,)))
+        peer.send(Inspect(22, item["name"], (payload,)))
         _result_or_errors(peer, 22, set())
 
 
 @check("inspect_jpeg", "§4.2", "INSPECT with a JPEG image (size not stated) gets a RESULT")
 def _jpeg(ctx: Context) -> None:
-    name = ctx.request_inspection(depth=False)["name"]
-    jpeg = payload_from_array(_test_image(), encoding=ImageEncoding.JPEG)
+    item = ctx.request_inspection(depth=False)
+    jpeg = payload_from_array(_test_image(*ctx.image_size(item)), encoding=ImageEncoding.JPEG)
     with ctx.open() as peer:
-        peer.send(Inspect(23, name, (ImagePayload(ImageEncoding.JPEG, 0, 0, jpeg.data),)))
+        peer.send(Inspect(23, item["name"], (ImagePayload(ImageEncoding.JPEG, 0, 0, jpeg.data),)))
         _result_or_errors(peer, 23, set())
 
 
@@ -322,13 +369,181 @@ def _depth16(ctx: Context) -> None:
         item = ctx.request_inspection(depth=True)
     except Skip:
         item = ctx.request_inspection()
-    depth = np.full((240, 320), 1000, np.uint16)
-    images = (payload_from_array(_test_image()), payload_from_array(depth, role=ImageRole.DEPTH))
+    # Colour and depth of the size the camera declares: a depth image must be registered to
+    # its colour image, so a server may refuse a pair of another size than its camera's.
+    width, height = ctx.image_size(item)
+    depth = np.full((height, width), 1000, np.uint16)
+    images = (
+        payload_from_array(_test_image(width, height)),
+        payload_from_array(depth, role=ImageRole.DEPTH),
+    )
     with ctx.open() as peer:
         peer.send(Inspect(24, item["name"], images))
         allowed = {E.INSPECTION_FAILED} if item.get("depth") else {E.BAD_IMAGE}
         _result_or_errors(peer, 24, allowed)
         _still_alive(peer)
+
+
+@check(
+    "inspect_without_images",
+    "§6.3",
+    "INSPECT without images for an inspection on a request camera: BAD_IMAGE, non-fatal",
+)
+def _without_images(ctx: Context) -> None:
+    item = ctx.request_inspection()
+    with ctx.open() as peer:
+        peer.send(Inspect(29, item["name"]))
+        peer.expect_error(E.BAD_IMAGE, request_id=29, fatal=False)
+        _still_alive(peer)
+
+
+@check(
+    "inspect_server_camera",
+    "§6.3",
+    "INSPECT without images for an inspection on a server camera: the server captures, RESULT",
+    needs=frozenset({Feature.SERVER_CAMERAS}),
+)
+def _server_camera_inspect(ctx: Context) -> str | None:
+    item = ctx.server_inspection()
+    with ctx.open() as peer:
+        peer.send(Inspect(45, item["name"]))
+        answer = _result_or_errors(peer, 45, {E.INSPECTION_FAILED, E.CAMERA_UNAVAILABLE})
+        _still_alive(peer)
+    if answer.type == T.ERROR and answer.metadata.get("code") == E.CAMERA_UNAVAILABLE:
+        raise Skip(f"camera {item.get('camera')!r} gives no frame now: {_message(answer)}")
+    if answer.type == T.RESULT and answer.metadata.get("inspection") != item["name"]:
+        raise CheckFailed(f"RESULT.inspection is {answer.metadata.get('inspection')!r}")
+    return f"{item['name']}: {_outcome(answer)}"
+
+
+@check(
+    "capture_request_camera",
+    "§6.4",
+    "CAPTURE from a camera whose source is the request: INVALID_ARGUMENT, non-fatal",
+)
+def _capture_request_camera(ctx: Context) -> None:
+    camera = next((c for c in ctx.cameras if c.get("source") == "request"), None)
+    if camera is None or not isinstance(camera.get("name"), str) or not camera["name"]:
+        raise Skip("the server lists no camera whose images arrive in the request")
+    with ctx.open() as peer:
+        peer.send(Capture(46, camera["name"]))
+        peer.expect_error(E.INVALID_ARGUMENT, request_id=46, fatal=False)
+        _still_alive(peer)
+
+
+@check(
+    "capture_server_camera",
+    "§6.4",
+    "CAPTURE from a server camera: FRAMES with a valid colour image (and depth16 when asked)",
+    needs=frozenset({Feature.SERVER_CAMERAS}),
+)
+def _capture_server_camera(ctx: Context) -> str:
+    camera = next(
+        (
+            c
+            for c in ctx.cameras
+            if isinstance(c.get("source"), str) and c["source"] != "request" and c.get("name")
+        ),
+        None,
+    )
+    if camera is None:
+        raise Skip("the server lists no server-side camera")
+    depth = camera.get("depth") is True
+    with ctx.open() as peer:
+        peer.send(Capture(47, camera["name"], depth=depth))
+        answer = peer.recv_frame()
+        if answer is CLOSED:
+            raise CheckFailed("the server closed the connection instead of answering CAPTURE")
+        assert isinstance(answer, Frame)
+        if answer.type == T.ERROR and answer.metadata.get("code") == E.CAMERA_UNAVAILABLE:
+            raise Skip(f"camera {camera['name']!r} gives no frame now: {_message(answer)}")
+        if answer.type != T.FRAMES or answer.request_id != 47:
+            raise CheckFailed(f"expected FRAMES for id 47, got {_summary(answer)}")
+        _still_alive(peer)
+    meta = answer.metadata
+    if meta.get("camera") != camera["name"]:
+        raise CheckFailed(f"FRAMES.camera is {meta.get('camera')!r}, expected {camera['name']!r}")
+    images = _frames_images(answer)
+    want = [ImageRole.COLOR, ImageRole.DEPTH] if depth else [ImageRole.COLOR]
+    if [i.role for i in images] != want:
+        raise CheckFailed(f"FRAMES images have roles {[i.role.value for i in images]}")
+    if depth and images[1].encoding is not ImageEncoding.DEPTH16:
+        raise CheckFailed(f"the depth image is {images[1].encoding.value}, expected depth16")
+    return ", ".join(f"{i.role.value} {i.encoding.value} {i.width}x{i.height}" for i in images)
+
+
+@check(
+    "reload",
+    "§6.5",
+    "RELOAD: RELOADED naming the configuration now served, or INVALID_ARGUMENT where reload "
+    "is off; the connection survives",
+    needs=frozenset({Feature.RELOAD}),
+)
+def _reload(ctx: Context) -> str:
+    with ctx.open() as peer:
+        peer.send(Reload(48))
+        answer = peer.recv_frame()
+        if answer is CLOSED:
+            raise CheckFailed("the server closed the connection instead of answering RELOAD")
+        assert isinstance(answer, Frame)
+        if answer.request_id != 48:
+            raise CheckFailed(f"answer for id {answer.request_id}, expected 48")
+        if answer.type == T.ERROR:
+            if answer.metadata.get("code") not in (E.INVALID_ARGUMENT, E.CONFIG_INVALID):
+                raise CheckFailed(f"RELOAD answered by {_summary(answer)}")
+            if answer.metadata.get("fatal"):
+                raise CheckFailed("the ERROR answering RELOAD must not be fatal")
+            _still_alive(peer)
+            return f"{answer.metadata.get('name')}: {_message(answer)}"
+        if answer.type != T.RELOADED:
+            raise CheckFailed(f"expected RELOADED, got {_summary(answer)}")
+        meta = answer.metadata
+        if not isinstance(meta.get("config_hash"), str) or not meta["config_hash"]:
+            raise CheckFailed(f"RELOADED.config_hash is {meta.get('config_hash')!r}")
+        for key in ("inspections", "cameras"):
+            items = meta.get(key, [])
+            if not isinstance(items, list) or not all(
+                isinstance(i, dict) and isinstance(i.get("name"), str) for i in items
+            ):
+                raise CheckFailed(f"RELOADED.{key} must be a list of objects with a name")
+        _still_alive(peer)
+    return f"RELOADED, config_hash {meta['config_hash']}"
+
+
+def _frames_images(answer: Frame) -> list[ImagePayload]:
+    descriptors = answer.metadata.get("images")
+    if not isinstance(descriptors, list) or not descriptors:
+        raise CheckFailed(f"FRAMES.images is {descriptors!r}")
+    try:
+        return [
+            payload_from_descriptor(
+                d,
+                answer.blobs,
+                where=f"FRAMES.images[{i}]",
+                request_id=answer.request_id,
+                # The server's max_image_pixels bounds what it receives, not what it sends.
+                max_pixels=1 << 40,
+            )
+            for i, d in enumerate(descriptors)
+        ]
+    except CellvisionError as exc:
+        raise CheckFailed(f"FRAMES carries an invalid image: {exc}") from exc
+
+
+def _message(frame: Frame) -> str:
+    return str(frame.metadata.get("message", ""))
+
+
+def _outcome(frame: Frame) -> str:
+    if frame.type == T.RESULT:
+        return f"verdict {frame.metadata.get('verdict')}"
+    return f"{frame.metadata.get('name')}: {_message(frame)}"
+
+
+def _summary(frame: Frame) -> str:
+    if frame.type == T.ERROR:
+        return f"ERROR {frame.metadata.get('code')} {frame.metadata.get('name')}: {_message(frame)}"
+    return f"type 0x{frame.type:04x} (id {frame.request_id})"
 
 
 @check(
@@ -461,10 +676,10 @@ def _bad_deadline(ctx: Context) -> None:
     "the server was that fast), never silence",
 )
 def _deadline(ctx: Context) -> None:
-    name = ctx.request_inspection(depth=False)["name"]
-    image = payload_from_array(_test_image(1024, 768))
+    item = ctx.request_inspection(depth=False)
+    image = payload_from_array(_test_image(*ctx.image_size(item, (1024, 768))))
     with ctx.open() as peer:
-        peer.send(Inspect(36, name, (image,), deadline_ms=0.001))
+        peer.send(Inspect(36, item["name"], (image,), deadline_ms=0.001))
         _result_or_errors(peer, 36, {E.DEADLINE_EXCEEDED})
         _still_alive(peer)
 
@@ -500,7 +715,7 @@ def _wrong_direction(ctx: Context) -> None:
 )
 def _pipelining(ctx: Context) -> None:
     item = ctx.request_inspection(depth=False)
-    big = payload_from_array(_test_image(1024, 768))
+    big = payload_from_array(_test_image(*ctx.image_size(item, (1024, 768))))
     with ctx.open() as peer:
         batch = b"".join(
             [Inspect(100, item["name"], (big,)).to_frame((1, 0)).serialize()]

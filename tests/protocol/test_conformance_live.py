@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import re
+import shutil
 import signal
 import socket
 import socketserver
@@ -23,11 +24,15 @@ import pytest
 from loopback import server_in_thread
 
 from protocol import FrameDecoder, MessageType, Welcome
-from protocol.conformance import CHECKS, Target, run_checks
+from protocol.conformance import CHECKS, PROFILES, Feature, Target, run_checks
 from protocol.conformance.__main__ import _address
 from protocol.conformance.__main__ import main as conformance_main
+from protocol.conformance.checks import Context
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
+
+SERVER_CAMERA_CHECKS = {"inspect_server_camera", "capture_server_camera"}
+"""The checks the built-in demo has nothing for: it has no server-side camera."""
 
 
 @pytest.mark.parametrize("auth_token", [None, "cell-7"])
@@ -37,9 +42,18 @@ def test_the_reference_server_passes_every_check(auth_token: str | None) -> None
     assert len(results) >= 25
     assert len(results) == len(CHECKS)
     assert len({r.name for r in results}) == len(results)
-    not_passed = [(r.name, r.status, r.detail) for r in results if r.status != "pass"]
-    assert not_passed == []
+    not_passed = {r.name: (r.status, r.detail) for r in results if r.status != "pass"}
+    assert not_passed == {
+        "inspect_server_camera": (
+            "skip",
+            "the server offers no inspection on a server-side camera",
+        ),
+        "capture_server_camera": ("skip", "the server lists no server-side camera"),
+    }
     assert all(r.section.startswith("§") for r in results)
+    # Without a configuration file the server refuses RELOAD, as §6.5 says it must.
+    reload = next(r for r in results if r.name == "reload")
+    assert reload.detail.startswith("INVALID_ARGUMENT: ")
 
 
 def test_cli_text_report_against_the_reference_server(capsys: pytest.CaptureFixture[str]) -> None:
@@ -54,9 +68,11 @@ def test_cli_text_report_against_the_reference_server(capsys: pytest.CaptureFixt
     assert lines[-1] == f"1 passed, 0 failed, 0 skipped against 127.0.0.1:{port}"
 
 
-def test_cli_json_against_the_vision_server_process() -> None:
+@contextlib.contextmanager
+def vision_server_process(*args: str) -> Iterator[str]:
+    """``vision-server serve --port 0 ARGS`` as a process; yields its ``HOST:PORT``."""
     serve = subprocess.Popen(
-        [sys.executable, "-m", "vision_server", "serve", "--port", "0"],
+        [sys.executable, "-m", "vision_server", "serve", "--port", "0", *args],
         cwd=REPO_ROOT,
         stdout=subprocess.PIPE,
         text=True,
@@ -66,34 +82,143 @@ def test_cli_json_against_the_vision_server_process() -> None:
         line = serve.stdout.readline()
         match = re.fullmatch(r"vision-server listening on (\S+):(\d+)\n", line)
         assert match, line
-        address = f"{match[1]}:{match[2]}"
-        checked = subprocess.run(
-            [sys.executable, "-m", "protocol.conformance", address, "--json"],
-            cwd=REPO_ROOT,
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
-        assert checked.returncode == 0, checked.stdout + checked.stderr
-        report = json.loads(checked.stdout)
-        assert report["target"] == address
-        assert report["failed"] == 0
-        assert report["skipped"] == 0
-        assert report["passed"] == len(report["results"]) >= 25
-        first = report["results"][0]
-        assert set(first) == {
-            "name",
-            "section",
-            "description",
-            "status",
-            "detail",
-            "duration_s",
-        }
+        yield f"{match[1]}:{match[2]}"
     finally:
         serve.send_signal(signal.SIGTERM)
         serve.wait(30)
         if serve.stdout is not None:
             serve.stdout.close()
+
+
+def example_cell(tmp_path: Path) -> Path:
+    """``examples/cell.yaml`` as shipped, with the scene it names, copied so that the result
+    log and world state it writes beside itself (``../demo-output``) land in ``tmp_path``."""
+    cell = tmp_path / "examples"
+    cell.mkdir()
+    shutil.copy(REPO_ROOT / "examples" / "cell.yaml", cell / "cell.yaml")
+    shutil.copytree(REPO_ROOT / "examples" / "scenes", cell / "scenes")
+    return cell / "cell.yaml"
+
+
+def _suite(address: str, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "protocol.conformance", address, *args],
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+
+
+@pytest.mark.parametrize("configuration", ["built-in demo", "examples/cell.yaml"])
+def test_cli_json_against_the_vision_server_process(configuration: str, tmp_path: Path) -> None:
+    """The suite passes against the server as shipped: the built-in demo and the example cell
+    (whose RGB-D camera declares 640x480, so depth must come in that size)."""
+    demo = configuration == "built-in demo"
+    args = () if demo else ("--config", str(example_cell(tmp_path)))
+    with vision_server_process(*args) as address:
+        checked = _suite(address, "--json")
+    assert checked.returncode == 0, checked.stdout + checked.stderr
+    report = json.loads(checked.stdout)
+    assert report["target"] == address
+    assert report["profile"] == "full"
+    failed = [(r["name"], r["detail"]) for r in report["results"] if r["status"] != "pass"]
+    assert report["failed"] == 0, failed
+    assert report["not_applicable"] == 0
+    skipped = {r["name"] for r in report["results"] if r["status"] == "skip"}
+    assert skipped == (SERVER_CAMERA_CHECKS if demo else set())
+    assert report["skipped"] == len(skipped)
+    assert report["passed"] == len(report["results"]) - len(skipped) >= 25
+    first = report["results"][0]
+    assert set(first) == {
+        "name",
+        "section",
+        "description",
+        "status",
+        "detail",
+        "duration_s",
+    }
+    if not demo:  # what the example cell offers was exercised, not skipped
+        details = {r["name"]: r["detail"] for r in report["results"]}
+        assert details["capture_server_camera"] == "color gray8 1024x768"
+        assert details["inspect_server_camera"].startswith("magnet_check: verdict ")
+        assert details["reload"].startswith("RELOADED, config_hash ")
+
+
+# ----------------------------------------------------------------------------- profiles
+
+
+def test_minimal_profile_reports_what_it_leaves_out_as_not_applicable(tmp_path: Path) -> None:
+    with vision_server_process("--config", str(example_cell(tmp_path))) as address:
+        checked = _suite(address, "--json", "--profile", "minimal")
+        text = _suite(address, "--profile", "minimal", "-k", "reload")
+    assert checked.returncode == 0, checked.stdout + checked.stderr
+    report = json.loads(checked.stdout)
+    assert report["profile"] == "minimal"
+    not_applicable = {r["name"]: r["detail"] for r in report["results"] if r["status"] == "n/a"}
+    assert not_applicable == {
+        "inspect_server_camera": "not applicable (profile minimal: no server cameras)",
+        "capture_server_camera": "not applicable (profile minimal: no server cameras)",
+        "reload": "not applicable (profile minimal: no reload)",
+    }
+    assert report["not_applicable"] == 3
+    assert report["failed"] == report["skipped"] == 0
+    assert report["passed"] == len(report["results"]) - 3
+    # The text report says so too, and its closing line counts them apart from the passes.
+    lines = text.stdout.strip().splitlines()
+    assert lines[1].split()[:3] == ["reload", "§6.5", "N/A"]
+    assert lines[-1] == f"0 passed, 0 failed, 0 skipped, 1 not applicable against {address} " + (
+        "(profile minimal)"
+    )
+
+
+def test_profiles_leave_out_only_the_checks_that_need_what_they_omit() -> None:
+    minimal = PROFILES["minimal"]
+    assert minimal.omits == {Feature.SERVER_CAMERAS, Feature.RELOAD}
+    assert PROFILES["full"].omits == frozenset()
+    left_out = {c.name for c in CHECKS if c.needs & minimal.omits}
+    assert left_out == SERVER_CAMERA_CHECKS | {"reload"}
+
+
+def test_cli_help_documents_the_profiles(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exited:
+        conformance_main(["--help"])
+    assert exited.value.code == 0
+    out = capsys.readouterr().out
+    assert "--profile {full,minimal}" in out
+    assert "minimal  no server-side cameras and no RELOAD" in out
+    assert "(checks left out: inspect_server_camera, capture_server_camera, reload)" in out
+    assert "not applicable" in out
+
+
+# ----------------------------------------------------------------------------- image sizes
+
+
+def _context(cameras: list[dict[str, Any]]) -> Context:
+    return Context(Target("127.0.0.1", 1), {}, (), tuple(cameras))
+
+
+@pytest.mark.parametrize(
+    ("camera", "expected"),
+    [
+        ({"name": "c", "width": 640, "height": 480}, (640, 480)),
+        ({"name": "c", "intrinsics": {"width": 1024, "height": 768}}, (1024, 768)),
+        (
+            {"name": "c", "width": 800, "height": 600, "intrinsics": {"width": 1, "height": 1}},
+            (800, 600),
+        ),
+        ({"name": "c"}, (320, 240)),
+        ({"name": "c", "width": True, "height": 480}, (320, 240)),
+        ({"name": "c", "width": -640, "height": 480}, (320, 240)),
+        ({"name": "c", "width": 640.0, "height": 480}, (320, 240)),
+        ({"name": "c", "intrinsics": [640, 480]}, (320, 240)),
+        ({"name": "other", "width": 640, "height": 480}, (320, 240)),
+    ],
+)
+def test_requests_use_the_image_size_the_camera_declares(
+    camera: dict[str, Any], expected: tuple[int, int]
+) -> None:
+    assert _context([camera]).image_size({"name": "i", "camera": "c"}) == expected
 
 
 # ----------------------------------------------------------------------------- broken servers
@@ -172,6 +297,28 @@ def test_cli_fails_when_the_handshake_fails(behaviour: Behaviour) -> None:
     assert checked.returncode == 2
     assert "cannot start" in checked.stderr
     assert checked.stdout == ""
+
+
+def test_a_profile_does_not_pass_a_check_it_leaves_out() -> None:
+    """The server only shakes hands: RELOAD gets no answer. Under the full profile that is a
+    failure; under minimal the check is not run and not counted as passed."""
+    with broken_server(_welcome_then_silent) as port:
+        full = _conformance(port, "--json", "--timeout", "0.3", "-k", "reload")
+        minimal = _conformance(port, "--json", "--profile", "minimal", "-k", "reload")
+    assert full.returncode == 1, full.stderr
+    assert [r["status"] for r in json.loads(full.stdout)["results"]] == ["fail"]
+    assert minimal.returncode == 0, minimal.stderr
+    report = json.loads(minimal.stdout)
+    assert [r["status"] for r in report["results"]] == ["n/a"]
+    assert report["passed"] == 0
+    assert report["not_applicable"] == 1
+
+
+def test_unknown_profile_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exited:
+        conformance_main(["127.0.0.1:7878", "--profile", "tiny"])
+    assert exited.value.code == 2
+    assert "--profile" in capsys.readouterr().err
 
 
 def test_cli_reports_failed_checks_of_a_server_that_only_shakes_hands() -> None:
