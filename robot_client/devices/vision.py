@@ -69,8 +69,26 @@ class LazyVision:
 
 
 def intrinsics_from_dict(data: dict[str, Any]) -> CameraIntrinsics:
-    """The ``intrinsics`` object of a FRAMES message (SPEC) as :class:`CameraIntrinsics`."""
+    """The ``intrinsics`` object of a FRAMES message (SPEC §6.4) as :class:`CameraIntrinsics`.
+
+    ``distortion`` is OpenCV's coefficient vector (4, 5, 8, 12 or 14 numbers, absent = none).
+    The client's camera model has five (k1, k2, p1, p2, k3): coefficients beyond them must be 0,
+    or the camera cannot be modelled here and DeviceError says so (never silently dropped).
+    """
     try:
+        coefficients = [float(d) for d in data.get("distortion", ())]
+        if coefficients and len(coefficients) not in (4, 5, 8, 12, 14):
+            raise ValueError(
+                f"distortion has {len(coefficients)} coefficients; OpenCV's model has 4, 5, 8, "
+                "12 or 14"
+            )
+        extra = coefficients[5:]
+        if any(extra):
+            raise ValueError(
+                "the camera's distortion has rational/thin-prism/tilt terms (k4 and on), which "
+                "this client's five-coefficient model cannot apply"
+            )
+        dist = (coefficients + [0.0] * 5)[:5]
         return CameraIntrinsics(
             width=int(data["width"]),
             height=int(data["height"]),
@@ -78,7 +96,7 @@ def intrinsics_from_dict(data: dict[str, Any]) -> CameraIntrinsics:
             fy=float(data["fy"]),
             cx=float(data["cx"]),
             cy=float(data["cy"]),
-            dist=tuple(float(d) for d in data.get("dist", (0.0,) * 5)),  # type: ignore[arg-type]
+            dist=(dist[0], dist[1], dist[2], dist[3], dist[4]),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise DeviceError(f"bad camera intrinsics from the server: {exc}") from exc

@@ -110,3 +110,28 @@ def test_moves_are_published_for_the_server_process(tmp_path: Path) -> None:
     assert server_side.sync()
     assert np.allclose(server_side.world.base_from_tool, target)
     assert np.allclose(server_side.robot.base_from_user[:3, 3], [0.0, 0.1, 0.0])
+
+
+def test_server_intrinsics_keep_their_distortion_on_the_client() -> None:
+    """The server's FRAMES intrinsics (``distortion``, SPEC §6.4) reach the client's camera model
+    whole; before, the client read another name and silently used no distortion."""
+    from robot_client.devices.vision import intrinsics_from_dict
+    from vision_server.cameras import Intrinsics
+
+    sent = Intrinsics(
+        fx=800.0, fy=810.0, cx=320.0, cy=240.0, width=640, height=480,
+        distortion=(0.1, -0.2, 0.001, 0.002, 0.05),
+    )  # fmt: skip
+    got = intrinsics_from_dict(sent.to_dict())
+    assert got.dist == (0.1, -0.2, 0.001, 0.002, 0.05)
+    assert (got.fx, got.fy, got.cx, got.cy, got.width, got.height) == (800, 810, 320, 240, 640, 480)
+    four = Intrinsics(
+        fx=1.0, fy=1.0, cx=0.0, cy=0.0, width=2, height=2, distortion=(0.1, 0.2, 0.0, 0.0)
+    )
+    assert intrinsics_from_dict(four.to_dict()).dist == (0.1, 0.2, 0.0, 0.0, 0.0)
+    rational = Intrinsics(
+        fx=1.0, fy=1.0, cx=0.0, cy=0.0, width=2, height=2,
+        distortion=(0.1, 0.2, 0.0, 0.0, 0.0, 0.3, 0.0, 0.0),
+    )  # fmt: skip
+    with pytest.raises(DeviceError, match="k4 and on"):
+        intrinsics_from_dict(rational.to_dict())
