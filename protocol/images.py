@@ -62,7 +62,9 @@ class ImagePayload:
 
 
 def _int_field(desc: dict[str, Any], key: str, where: str, request_id: int) -> int:
-    value = desc.get(key, 0)
+    value = desc.get(key)
+    if value is None:  # absent or null (SPEC §3.2): 0, "unknown" (a raw image then fails)
+        return 0
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
         raise BadImage(
             f"{where}.{key} must be a non-negative integer, got {value!r}", request_id=request_id
@@ -96,8 +98,9 @@ def payload_from_descriptor(
             f"{[e.value for e in ImageEncoding]}",
             request_id=request_id,
         ) from None
+    role_value = desc.get("role")
     try:
-        role = ImageRole(desc.get("role", "color"))
+        role = ImageRole("color" if role_value is None else role_value)  # null = absent
     except ValueError:
         raise BadImage(
             f"{where}.role {desc.get('role')!r} is not one of {[r.value for r in ImageRole]}",
