@@ -44,6 +44,8 @@ def _messages_match_the_schemas(
         except schema.SchemaViolation as exc:
             with lock:
                 violations.append(str(exc))
+        except schema.SchemaUnavailable:
+            pass  # a test that hides jsonschema on purpose (test_schema.py imports it)
         return frame
 
     monkeypatch.setattr(Message, "to_frame", checked)

@@ -120,7 +120,8 @@ class Intrinsics:
         object.__setattr__(self, "distortion", coeffs)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able form (as sent in WELCOME and with captured frames)."""
+        """The wire form (WELCOME's camera descriptors, FRAMES): SPEC §6.4's object, whose
+        coefficients are named ``dist`` (the configuration's ``distortion``)."""
         return {
             "width": self.width,
             "height": self.height,
@@ -128,7 +129,7 @@ class Intrinsics:
             "fy": self.fy,
             "cx": self.cx,
             "cy": self.cy,
-            "distortion": list(self.distortion),
+            "dist": list(self.distortion),
         }
 
     def to_geometry(self) -> CameraIntrinsics:
