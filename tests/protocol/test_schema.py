@@ -8,6 +8,7 @@ import json
 import re
 import sys
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -473,3 +474,16 @@ def test_without_jsonschema_validation_says_what_to_install(
         monkeypatch.undo()
         schema._validators.cache_clear()
     assert schema.available()
+
+
+def test_spec_names_the_schemas_as_they_are_shipped(repo_root: Path) -> None:
+    spec = (repo_root / "protocol" / "SPEC.md").read_text(encoding="utf-8")
+    section = spec.split("#### §6.3.1 Schemas", 1)[1].split("#### §6.3.2", 1)[0]
+    assert "`protocol/schema/`" in section
+    rows = {line.split("|")[1].strip(): line for line in section.splitlines() if "| `" in line}
+    assert f"`{schema.schema_id('common.json')}`" in rows["`common.json`"]
+    assert f"`{schema.ID_PREFIX}messages:<type>`" in rows["`messages/<type>.json`"]
+    data_row = rows["`data/<type>.json`"]
+    assert f"`{schema.ID_PREFIX}data:<type>`" in data_row
+    listed = set(re.findall(r"`(\w+)`", data_row.split("|")[3])) - {"data"}
+    assert listed == set(schema.DATA_TYPES)
