@@ -63,7 +63,9 @@ class ImagePayload:
 
 
 def _int_field(desc: dict[str, Any], key: str, where: str, request_id: int) -> int:
-    value = desc.get(key, 0)
+    value = desc.get(key)
+    if value is None:  # absent or null (SPEC §3.2): 0, "unknown" (a raw image then fails)
+        return 0
     number = as_integer(value)
     if number is None or number < 0:
         raise BadImage(
@@ -98,8 +100,9 @@ def payload_from_descriptor(
             f"{[e.value for e in ImageEncoding]}",
             request_id=request_id,
         ) from None
+    role_value = desc.get("role")
     try:
-        role = ImageRole(desc.get("role", "color"))
+        role = ImageRole("color" if role_value is None else role_value)  # null = absent
     except ValueError:
         raise BadImage(
             f"{where}.role {desc.get('role')!r} is not one of {[r.value for r in ImageRole]}",

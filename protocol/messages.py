@@ -225,19 +225,27 @@ class Welcome(Message):
     def from_frame(cls, frame: Frame, ctx: DecodeContext) -> Welcome:
         m, rid = frame.metadata, frame.request_id
         server = _get(m, "server", dict, rid, default={})
-        limits = _get(m, "limits", dict, rid, default={})
+        # A null field is an absent one (SPEC §3.2), inside objects too.
+        limits = {
+            k: v for k, v in _get(m, "limits", dict, rid, default={}).items() if v is not None
+        }
         for key, value in limits.items():
             if isinstance(value, bool) or not isinstance(value, int):
                 raise BadMetadata(f"limits.{key} must be an integer", request_id=rid)
         return cls(
             rid,
             _version(_get(m, "version", list, rid), rid, "version"),
-            str(server.get("name", "")),
-            str(server.get("version", "")),
+            _text(server.get("name")),
+            _text(server.get("version")),
             dict(limits),
             tuple(_descriptors(m, "inspections", rid)),
             tuple(_descriptors(m, "cameras", rid)),
         )
+
+
+def _text(value: Any) -> str:
+    """Free text for logs: "" when absent or null (SPEC §3.2), else as a string."""
+    return "" if value is None else str(value)
 
 
 def _descriptors(m: dict[str, Any], key: str, rid: int) -> list[dict[str, Any]]:
@@ -447,7 +455,9 @@ class Result(Message):
             raise BadMetadata(
                 f"field 'verdict' must be 'pass' or 'fail', got {verdict!r}", request_id=rid
             )
-        timing = _get(m, "timing", dict, rid, default={})
+        timing = {
+            k: v for k, v in _get(m, "timing", dict, rid, default={}).items() if v is not None
+        }
         for key, value in timing.items():
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise BadMetadata(f"timing.{key} must be a number of ms", request_id=rid)

@@ -43,6 +43,9 @@ YAML
 
 cd "$work"   # nothing from the source tree may be importable: only the installed wheel
 "$work/venv/bin/vision-server" check-config "$work/config/cell.yaml" >/dev/null
+# The JSON Schemas are package data (SPEC §6.3.1): one per message type, readable from the wheel.
+"$work/venv/bin/python" -c "from protocol import MessageType; from protocol.schema import \
+message_schema_path as path, schemas; assert all(path(t) in schemas() for t in MessageType)"
 # The Dockerfile's CMD, on loopback and a free port instead of 0.0.0.0:7878.
 "$work/venv/bin/vision-server" serve --config "$work/config/cell.yaml" \
     --host 127.0.0.1 --port 0 >"$work/server.out" 2>"$work/server.err" &

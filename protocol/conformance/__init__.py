@@ -14,6 +14,7 @@ import traceback
 from dataclasses import dataclass
 
 from ..constants import MessageType
+from . import schema_checks  # noqa: F401  (registers the metadata_schemas check, §6.3.1)
 from .checks import CHECKS, Check, Context, Skip
 from .peer import CheckFailed, Peer, Target
 from .profiles import DEFAULT_PROFILE, PROFILES, Feature, Profile

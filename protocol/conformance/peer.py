@@ -17,6 +17,7 @@ from ..constants import MessageType
 from ..errors import CellvisionError
 from ..frames import Frame, FrameDecoder, Limits
 from ..messages import Hello, Message
+from .validation import FrameValidator
 
 CLOSED = object()
 """Returned by recv_frame when the server closed the connection."""
@@ -53,6 +54,7 @@ class Peer:
         # Generous limits: the peer must be able to read whatever the server sends.
         self.decoder = FrameDecoder(Limits(max_frame_bytes=1 << 31, max_metadata_bytes=1 << 26))
         self.welcome: Frame | None = None
+        self.validator = FrameValidator()  # every received frame against protocol/schema
 
     def close(self) -> None:
         with contextlib.suppress(OSError):
@@ -87,6 +89,9 @@ class Peer:
                     f"the server sent bytes that are not a valid frame: {exc}"
                 ) from exc
             if frame is not None:
+                problem = self.validator.problem(frame)
+                if problem is not None:
+                    raise CheckFailed(problem)
                 return frame
             if self.decoder.eof:
                 return CLOSED

@@ -71,16 +71,16 @@ class LazyVision:
 def intrinsics_from_dict(data: dict[str, Any]) -> CameraIntrinsics:
     """The ``intrinsics`` object of a FRAMES message (SPEC §6.4) as :class:`CameraIntrinsics`.
 
-    ``distortion`` is OpenCV's coefficient vector (4, 5, 8, 12 or 14 numbers, absent = none).
+    ``dist`` is OpenCV's coefficient vector (5 to 14 numbers, k1, k2, p1, p2, k3 first; absent
+    = none).
     The client's camera model has five (k1, k2, p1, p2, k3): coefficients beyond them must be 0,
     or the camera cannot be modelled here and DeviceError says so (never silently dropped).
     """
     try:
-        coefficients = [float(d) for d in data.get("distortion", ())]
-        if coefficients and len(coefficients) not in (4, 5, 8, 12, 14):
+        coefficients = [float(d) for d in data.get("dist", ())]
+        if coefficients and not 4 <= len(coefficients) <= 14:
             raise ValueError(
-                f"distortion has {len(coefficients)} coefficients; OpenCV's model has 4, 5, 8, "
-                "12 or 14"
+                f"dist has {len(coefficients)} coefficients; OpenCV's model has 4 to 14"
             )
         extra = coefficients[5:]
         if any(extra):

@@ -113,8 +113,8 @@ def test_moves_are_published_for_the_server_process(tmp_path: Path) -> None:
 
 
 def test_server_intrinsics_keep_their_distortion_on_the_client() -> None:
-    """The server's FRAMES intrinsics (``distortion``, SPEC §6.4) reach the client's camera model
-    whole; before, the client read another name and silently used no distortion."""
+    """The server's FRAMES intrinsics (``dist``, SPEC §6.4) reach the client's camera model
+    whole; before, the server sent another name and the client silently used no distortion."""
     from robot_client.devices.vision import intrinsics_from_dict
     from vision_server.cameras import Intrinsics
 

@@ -120,7 +120,9 @@ class Intrinsics:
         object.__setattr__(self, "distortion", coeffs)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able form (as sent in WELCOME and with captured frames)."""
+        """The wire form (WELCOME's camera descriptors, FRAMES): SPEC §6.4's object, whose
+        coefficients are named ``dist`` (the configuration's ``distortion``), at least the five
+        ``k1, k2, p1, p2, k3`` (a four-coefficient model is sent with ``k3 = 0``)."""
         return {
             "width": self.width,
             "height": self.height,
@@ -128,7 +130,7 @@ class Intrinsics:
             "fy": self.fy,
             "cx": self.cx,
             "cy": self.cy,
-            "distortion": list(self.distortion),
+            "dist": [*self.distortion, *(0.0,) * (5 - len(self.distortion))],
         }
 
     def to_geometry(self) -> CameraIntrinsics:

@@ -24,7 +24,7 @@ K = {"width": 640, "height": 480, "fx": 570.0, "fy": 571.0, "cx": 319.5, "cy": 2
 def test_intrinsics_to_dict_is_json_and_round_trips_geometry() -> None:
     intrinsics = Intrinsics(**K, distortion=(0.1, -0.2, 0.001, 0.002, 0.05))
     doc = json.loads(json.dumps(intrinsics.to_dict()))
-    assert doc == {**K, "distortion": [0.1, -0.2, 0.001, 0.002, 0.05]}
+    assert doc == {**K, "dist": [0.1, -0.2, 0.001, 0.002, 0.05]}  # SPEC §6.4's name
     geometric = intrinsics.to_geometry()
     assert isinstance(geometric, CameraIntrinsics)
     assert geometric.dist == (0.1, -0.2, 0.001, 0.002, 0.05)
