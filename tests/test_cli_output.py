@@ -333,7 +333,7 @@ def test_a_refused_sighup_reload_is_logged_once(
 def test_version(name: str) -> None:
     done = tool(name, "--version")
     assert done.returncode == 0, done.stderr
-    assert re.fullmatch(rf"{name} \S+ \(protocol 1\.0\)\n", done.stdout), done.stdout
+    assert re.fullmatch(rf"{name} \S+ \(protocol 1\.1\)\n", done.stdout), done.stdout
 
 
 def test_opencv_says_nothing_of_its_own(cell: Server, files: dict[str, Path]) -> None:
