@@ -479,8 +479,10 @@ def test_broken_frames_are_protocol_errors(cvclient: Path, reply: bytes, reason:
         wire.welcome()
         wire.requests()
         wire.sock.sendall(reply)
-        wire.sock.shutdown(socket.SHUT_WR)
-        wire.read()  # the client's fatal ERROR MALFORMED_FRAME, or nothing
+        # The client may have seen the broken frame and closed already: not a failure.
+        with contextlib.suppress(OSError):
+            wire.sock.shutdown(socket.SHUT_WR)
+            wire.read()  # the client's fatal ERROR MALFORMED_FRAME, or nothing
 
     with scripted_server(script) as (address, _):
         code, lines = run_client(cvclient, address)

@@ -9,15 +9,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import shutil
-import subprocess
 import threading
 from collections.abc import Callable, Coroutine, Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, TypeVar
-
-import pytest
 
 from robot_client import VisionClient
 from vision_server.builtin import builtin_catalog
@@ -80,7 +75,7 @@ class Gate:
 
     name: str = "gate"
     camera: str = "tool"
-    type: str = "presence"
+    type: str = "test_gate"  # a type of its own: its data follows no real type's schema
     uses_depth: bool = False
     frames: int = 1
     release: threading.Event = field(default_factory=threading.Event)
@@ -101,23 +96,3 @@ class Gate:
         if self.report_shape:
             return InspectionOutcome(True, {"shape": list(image.color.shape)})
         return InspectionOutcome(True, {"gate": True})
-
-
-def self_signed(directory: Path) -> tuple[Path, Path]:
-    """A self-signed certificate for 127.0.0.1 (with the openssl command line tool)."""
-    openssl = shutil.which("openssl")
-    if openssl is None:
-        pytest.skip("no openssl command to make a test certificate (cryptography not installed)")
-    cert, key = directory / "cert.pem", directory / "key.pem"
-    made = subprocess.run(
-        [openssl, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1"]
-        + ["-keyout", str(key), "-out", str(cert), "-subj", "/CN=127.0.0.1"]
-        + ["-addext", "subjectAltName=IP:127.0.0.1"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-    if made.returncode != 0:
-        pytest.skip(f"openssl could not make a certificate: {made.stderr.strip()[:200]}")
-    return cert, key

@@ -24,7 +24,8 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from loopback import Gate, client_for, run, self_signed, server_in_thread, wait_until
+from certs import self_signed
+from loopback import Gate, client_for, run, server_in_thread, wait_until
 
 from protocol import (
     Capture,

@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-from loopback import self_signed
+from certs import self_signed
 
 from protocol import (
     Capture,
