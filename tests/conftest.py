@@ -5,6 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
+
+# The machines are shared and noisy: no verdict may depend on how fast examples are made or run
+# (Hypothesis's deadline and too_slow health check are timings). Tests' own settings add to this.
+settings.register_profile("cellvision", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("cellvision")
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
