@@ -415,16 +415,24 @@ def _version_1_0(ctx: Context) -> None:
 @check(
     "version_smaller_minor",
     "§5.3",
-    "an offer of 1.1 gets [1, 1]; an offer of 1.9 gets the smaller of the two minors "
-    "(the server's, at least 1)",
+    "an offer of 1.1 gets [1, 1]; an offer of 1.9 gets the smaller of 9 and the server's "
+    "minor (from UNSUPPORTED_VERSION's details.supported when it lists them)",
 )
 def _version_smaller_minor(ctx: Context) -> str:
     with ctx.peer() as peer:
         _agreed(_hello(peer, ctx, V1_1, request_id=17), V1_1)
     with ctx.peer() as peer:
         welcome = _hello(peer, ctx, (1, 9), request_id=18)
+    newest = _newest_minor(ctx)
     version = welcome.metadata.get("version")
-    if not (
+    if newest is not None:
+        expected = [1, min(9, newest)]
+        if version != expected:
+            raise CheckFailed(
+                f"WELCOME.version is {version!r} for an offer of 1.9 to a server of 1.{newest}, "
+                f"expected {expected}"
+            )
+    elif not (
         isinstance(version, list)
         and len(version) == 2
         and version[0] == 1
@@ -433,7 +441,29 @@ def _version_smaller_minor(ctx: Context) -> str:
     ):
         raise CheckFailed(f"WELCOME.version is {version!r} for an offer of 1.9, expected [1, 1..9]")
     _agreed(welcome, (1, version[1]))
-    return f"1.9 offered, 1.{version[1]} agreed"
+    return f"1.9 offered, 1.{version[1]} agreed" + (
+        f" (the server speaks 1.{newest})" if newest is not None else ""
+    )
+
+
+def _newest_minor(ctx: Context) -> int | None:
+    """The server's newest minor of major 1, as its refusal of major 99 lists it (a SHOULD of
+    §5.3), else None."""
+    with ctx.peer() as peer:
+        peer.send(Hello(20, ((99, 0),), "conformance", ctx.target.auth_token), version=(99, 0))
+        refusal = peer.expect_error(E.UNSUPPORTED_VERSION, request_id=20, fatal=True)
+    details = refusal.metadata.get("details")
+    supported = details.get("supported") if isinstance(details, dict) else None
+    minors = [
+        v[1]
+        for v in (supported if isinstance(supported, list) else [])
+        if isinstance(v, list)
+        and len(v) == 2
+        and v[0] == 1
+        and isinstance(v[1], int)
+        and not isinstance(v[1], bool)
+    ]
+    return max(minors) if minors else None
 
 
 @check(
@@ -653,7 +683,7 @@ UNKNOWN_OPTION = "conformance_no_such_option"
 )
 def _unknown_option(ctx: Context) -> str:
     item = ctx.request_inspection(depth=False)
-    image = payload_from_array(_test_image(*ctx.image_size(item)))
+    image = _flat_png(*ctx.image_size(item))
     peer, _ = _open_1_1(ctx)
     with peer:
         peer.send(Inspect(50, item["name"], (image,), options={UNKNOWN_OPTION: 1}), version=V1_1)
@@ -682,7 +712,7 @@ def _unknown_option(ctx: Context) -> str:
 )
 def _option_camera(ctx: Context) -> str:
     item = ctx.request_inspection(depth=False)
-    image = payload_from_array(_test_image(*ctx.image_size(item)))
+    image = _flat_png(*ctx.image_size(item))
     peer, _ = _open_1_1(ctx)
     with peer:
         peer.send(Inspect(52, item["name"], (image,), options={"camera": "x"}), version=V1_1)
@@ -993,8 +1023,8 @@ def _not_object(ctx: Context) -> None:
 def _null_is_absent(ctx: Context) -> None:
     item = ctx.request_inspection(depth=False)
     width, height = ctx.image_size(item)
-    gray = _test_image(width, height).tobytes()
-    png = payload_from_array(_test_image(width, height, color=True), encoding=ImageEncoding.PNG)
+    gray = np.full((height, width), 128, np.uint8).tobytes()
+    png = _flat_png(width, height)
     raw_meta = {
         "inspection": item["name"],
         "deadline_ms": None,
@@ -1066,7 +1096,7 @@ def _integral_number(ctx: Context) -> None:
     }
     peer, _ = _open_1_1(ctx)
     with peer:
-        blob = _test_image(width, height).tobytes()
+        blob = np.full((height, width), 128, np.uint8).tobytes()
         peer.send_frame(_frame(T.INSPECT, 58, meta, (blob,), version=V1_1))
         _result_or_errors(peer, 58, set())
 
@@ -1278,7 +1308,7 @@ def _graceful(ctx: Context) -> None:
 )
 def _request_after_close(ctx: Context) -> str:
     item = ctx.request_inspection(depth=False)
-    image = payload_from_array(_test_image(*ctx.image_size(item)))
+    image = _flat_png(*ctx.image_size(item))
     peer, _ = _open_1_1(ctx)
     with peer:
         peer.send_raw(

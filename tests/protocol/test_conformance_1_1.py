@@ -245,12 +245,21 @@ def _error(rid: int, code: int, message: str, **details: Any) -> Error:
     return Error(rid, code, message, False, details)
 
 
+Version = tuple[int, int]
+
+
+def speaks_1_1(offer: Version) -> Version | None:
+    """The version a server of 1.1 agrees on for a client's ``offer`` (None: refused)."""
+    return (1, min(offer[1], 1)) if offer[0] == 1 else None
+
+
 @contextlib.contextmanager
 def scripted_server(
-    script: Callable[[], Script], *, version: tuple[int, int] | None = None
+    script: Callable[[], Script], *, agree: Callable[[Version], Version | None] = speaks_1_1
 ) -> Iterator[int]:
-    """A server that shakes hands (``version``, else 1.1 or less as offered), then answers
-    each frame as a fresh ``script()`` for the connection says. Yields its port."""
+    """A server that shakes hands (the version ``agree`` picks for the HELLO's first offer;
+    None: UNSUPPORTED_VERSION listing 1.1), then answers each frame as a fresh ``script()``
+    for the connection says. Yields its port."""
 
     class Handler(socketserver.BaseRequestHandler):
         def handle(self) -> None:
@@ -264,8 +273,12 @@ def scripted_server(
             hello = _read_frame(sock, decoder)
             if hello is None:
                 return
-            offered = hello.metadata["versions"][0]
-            agreed = version or (1, min(offered[1], 1))
+            first = hello.metadata["versions"][0]
+            agreed = agree((first[0], first[1]))
+            if agreed is None:
+                refusal = Error(hello.request_id, 2, "no", True, {"supported": [[1, 1]]})
+                sock.sendall(refusal.to_frame(hello.version).serialize())
+                return
             welcome = Welcome(
                 hello.request_id,
                 agreed,
@@ -371,9 +384,19 @@ def test_client_fatal_error_fails_when_the_server_says_close() -> None:
         _fails(port, "client_fatal_error", "server sent type 0x0005")
 
 
-def test_version_smaller_minor_fails_when_the_server_takes_the_clients_minor() -> None:
-    with scripted_server(lambda: polite, version=(1, 9)) as port:
+def test_version_smaller_minor_fails_when_the_server_answers_its_own_minor() -> None:
+    with scripted_server(lambda: polite, agree=lambda offer: (1, 9)) as port:
         _fails(port, "version_smaller_minor", "WELCOME.version is [1, 9], expected [1, 1]")
+
+
+def test_version_smaller_minor_fails_when_the_server_takes_the_clients_minor() -> None:
+    """Right for 1.1, wrong for 1.9: the server lists 1.1 as what it speaks."""
+    with scripted_server(lambda: polite, agree=lambda o: o if o[0] == 1 else None) as port:
+        _fails(
+            port,
+            "version_smaller_minor",
+            "WELCOME.version is [1, 9] for an offer of 1.9 to a server of 1.1, expected [1, 1]",
+        )
 
 
 def _frames_of(size_bytes: int) -> Callable[[Frame], list[Reply]]:
