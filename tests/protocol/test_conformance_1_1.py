@@ -39,7 +39,8 @@ from protocol import (
 )
 from protocol.conformance import CHECKS, CheckResult, Target, run_checks
 from protocol.connection import TRANSITIONS, Connection, Role, State
-from protocol.errors import ErrorCode
+from protocol.errors import ErrorCode, NotAuthenticated
+from protocol.frames import Header
 from vision_server.catalog import Catalog
 from vision_server.server import ServerSettings
 
@@ -60,7 +61,7 @@ RULES_OF_1_1 = {
     "inspect_server_camera_images": "§6.3",
     "unknown_option": "§6.3",
     "option_camera": "§6.3",
-    "request_after_close": "§5.7",
+    "request_after_close": "§5.6",
     "refused_at_header": "§3.1",
 }
 """Every rule protocol 1.1 added or sharpened, by the check that tests it and its section."""
@@ -182,19 +183,36 @@ def test_options_fail_when_the_server_ignores_them(monkeypatch: pytest.MonkeyPat
         _fails(server.port, "option_camera", "expected ERROR, got RESULT")
 
 
-def test_unknown_option_fails_when_the_refusal_does_not_name_the_option(
-    monkeypatch: pytest.MonkeyPatch,
+@pytest.mark.parametrize(
+    ("message", "details", "verdict"),
+    [
+        ("options -> {key}: unknown key", {"option": "{key}"}, "pass"),
+        ("takes no options", {}, "pass"),  # the same refusal for any option
+        ("options -> {key}: unknown key", {}, "does not name the option"),
+        ("request {rid}: bad options", {}, "does not name the option"),
+        ("options -> {key}: unknown key", {"option": "roi"}, "details.option is 'roi'"),
+    ],
+    ids=["named", "no-options", "message-only", "unnamed", "wrong-name"],
+)
+def test_unknown_option_wants_the_key_in_details_option(
+    monkeypatch: pytest.MonkeyPatch, message: str, details: dict[str, str], verdict: str
 ) -> None:
     def refuse(self: Catalog, inspection: Any, options: Any, *, request_id: int) -> Any:
-        raise InvalidArgument(f"request {request_id}: bad options", request_id=request_id)
+        key = next(iter(options))
+        raise InvalidArgument(
+            message.format(key=key, rid=request_id),
+            request_id=request_id,
+            details={k: v.format(key=key) for k, v in details.items()},
+        )
 
     monkeypatch.setattr(Catalog, "tuned", refuse)
     with server_in_thread() as server:
-        _fails(
-            server.port,
-            "unknown_option",
-            "INVALID_ARGUMENT does not name the option 'conformance_no_such_option'",
-        )
+        result = _only(server.port, "unknown_option")
+    if verdict == "pass":
+        assert result.status == "pass", result
+    else:
+        assert result.status == "fail", result
+        assert verdict in result.detail, result.detail
 
 
 def test_refused_at_header_fails_when_the_server_waits_for_the_body(
@@ -202,6 +220,21 @@ def test_refused_at_header_fails_when_the_server_waits_for_the_body(
 ) -> None:
     """Without the check at the header, the server waits for a body that never comes."""
     monkeypatch.setattr(Connection, "_check_header", lambda self, header: None)
+    with server_in_thread() as server:
+        _fails(server.port, "refused_at_header", "no answer within 0.5 s", timeout_s=0.5)
+
+
+def test_refused_at_header_fails_when_only_large_bodies_are_refused_early(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A server that refuses at the header only what it would not buffer, and waits for a
+    small body before it applies the state machine."""
+
+    def too_large_only(self: Connection, header: Header) -> None:
+        if header.frame_length > self.limits.max_handshake_frame_bytes:
+            raise NotAuthenticated("not before HELLO", request_id=header.request_id)
+
+    monkeypatch.setattr(Connection, "_check_header", too_large_only)
     with server_in_thread() as server:
         _fails(server.port, "refused_at_header", "no answer within 0.5 s", timeout_s=0.5)
 
@@ -347,7 +380,31 @@ def test_request_after_close_fails_when_the_late_request_is_run() -> None:
         return answer
 
     with scripted_server(script) as port:
-        _fails(port, "request_after_close", "the request sent after CLOSE got type 0x0004")
+        _fails(
+            port, "request_after_close", "the request sent after CLOSE was answered: type 0x0004"
+        )
+
+
+def test_request_after_close_fails_when_the_late_request_is_refused() -> None:
+    """SPEC §5.6 (1.1): reading stops at CLOSE, so not even UNEXPECTED_MESSAGE comes back."""
+
+    def script() -> Script:
+        closing = False
+
+        def answer(frame: Frame) -> list[Reply]:
+            nonlocal closing
+            if frame.type == T.CLOSE:
+                closing = True
+                return []
+            if closing:
+                refusal = _error(frame.request_id, 6, "after CLOSE")
+                return [refusal, Close(reason="bye"), HANG_UP]
+            return polite(frame)
+
+        return answer
+
+    with scripted_server(script) as port:
+        _fails(port, "request_after_close", "answered: ERROR 6")
 
 
 def test_request_after_close_fails_when_close_comes_before_the_answer() -> None:
