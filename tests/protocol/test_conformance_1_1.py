@@ -89,8 +89,16 @@ def _fails(port: int, name: str, because: str, timeout_s: float = 5.0) -> None:
 # server, broken on purpose
 
 
-def _keep_nulls_and_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    return dict(pairs)  # protocol 1.0's parser: null kept as None, the last duplicate wins
+def _last_duplicate_wins(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    return dict(pairs)  # protocol 1.0's parser (Python's json): the last duplicate wins
+
+
+def _null_is_a_wrong_type(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A strict 1.0 reader: null is no string, number or object, so the field is wrong."""
+    nulls = [key for key, value in pairs if value is None]
+    if nulls:
+        raise ValueError(f"{nulls[0]} is null")
+    return dict(pairs)
 
 
 def _strict_integer(value: Any) -> int | None:
@@ -98,13 +106,13 @@ def _strict_integer(value: Any) -> int | None:
 
 
 def test_null_is_absent_fails_when_null_is_a_value(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(protocol.frames, "_object_without_nulls", _keep_nulls_and_duplicates)
+    monkeypatch.setattr(protocol.frames, "_object_without_nulls", _null_is_a_wrong_type)
     with server_in_thread() as server:
         _fails(server.port, "null_is_absent", "expected RESULT, got type 0x00ff")
 
 
 def test_duplicate_names_fails_when_the_last_one_wins(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(protocol.frames, "_object_without_nulls", _keep_nulls_and_duplicates)
+    monkeypatch.setattr(protocol.frames, "_object_without_nulls", _last_duplicate_wins)
     with server_in_thread() as server:
         _fails(server.port, "duplicate_member_names", "expected ERROR, got PONG")
 
@@ -249,9 +257,10 @@ Script = Callable[[Frame], list[Reply]]
 """Answers one frame after the handshake."""
 
 SERVER_CAMERA_WELCOME: dict[str, Any] = {
+    # A type of the server's own: its RESULT data is free-form (SPEC §6.3.1).
     "inspections": (
-        {"name": "fixed", "type": "presence", "camera": "qc", "camera_source": "sim"},
-        {"name": "tool_check", "type": "presence", "camera": "tool", "camera_source": "request"},
+        {"name": "fixed", "type": "scripted", "camera": "qc", "camera_source": "sim"},
+        {"name": "tool_check", "type": "scripted", "camera": "tool", "camera_source": "request"},
     ),
     "cameras": (
         {"name": "qc", "source": "sim", "depth": False, "width": 64, "height": 48},
