@@ -185,6 +185,63 @@ def _result_or_errors(peer: Peer, request_id: int, allowed: set[ErrorCode]) -> F
     raise CheckFailed(f"expected RESULT, got type 0x{frame.type:04x} {frame.metadata}")
 
 
+V1_1 = (1, 1)
+"""The protocol version whose rules the checks of protocol 1.1 test; they speak it."""
+
+
+def _hello(
+    peer: Peer,
+    ctx: Context,
+    offer: tuple[int, int] = V1_1,
+    *,
+    request_id: int = 1,
+    max_frame_bytes: int | None = None,
+) -> Frame:
+    """Shake hands offering the one version ``offer`` (the HELLO's header carries it too)."""
+    hello = Hello(
+        request_id, (offer,), "cellvision-conformance", ctx.target.auth_token, max_frame_bytes
+    )
+    peer.send(hello, version=offer)
+    return peer.expect(T.WELCOME, request_id=request_id)
+
+
+def _open_1_1(ctx: Context, *, max_frame_bytes: int | None = None) -> tuple[Peer, Frame]:
+    """A connection that agreed on 1.1, and its WELCOME (a server SHOULD NOT announce to a
+    1.0 client what 1.1 added, SPEC §8, so 1.1's rules are checked on a 1.1 connection)."""
+    peer = ctx.peer()
+    try:
+        welcome = _hello(peer, ctx, max_frame_bytes=max_frame_bytes)
+        _agreed(welcome, V1_1)
+    except BaseException:
+        peer.close()
+        raise
+    return peer, welcome
+
+
+def _agreed(welcome: Frame, version: tuple[int, int]) -> None:
+    """WELCOME states ``version`` in its metadata and in its header (SPEC §5.3)."""
+    stated = welcome.metadata.get("version")
+    if stated != list(version):
+        raise CheckFailed(f"WELCOME.version is {stated!r}, expected {list(version)}")
+    if welcome.version != version:
+        raise CheckFailed(
+            f"WELCOME's header carries version {welcome.version}, its metadata {stated!r}"
+        )
+
+
+def _last_frame_size(peer: Peer) -> int:
+    """Bytes on the wire (header included) of the frame ``peer`` received last."""
+    header = peer.decoder.last_header
+    assert header is not None, "no frame received yet"
+    return header.frame_length
+
+
+def _flat_png(width: int, height: int) -> ImagePayload:
+    """A uniform grey PNG: a few hundred bytes on the wire and quick to inspect, of any size."""
+    flat = np.full((height, width), 128, np.uint8)
+    return payload_from_array(flat, encoding=ImageEncoding.PNG)
+
+
 # ----------------------------------------------------------------------------- handshake
 
 
@@ -210,6 +267,69 @@ def _welcome_limits(ctx: Context) -> None:
         value = ctx.limits.get(key)
         if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
             raise CheckFailed(f"WELCOME.limits.{key} is {value!r}")
+
+
+@check(
+    "welcome_timeouts",
+    "§5.2",
+    "WELCOME of a 1.1 connection states idle_timeout_ms, frame_timeout_ms, "
+    "handshake_timeout_ms and max_in_flight as positive integers",
+)
+def _welcome_timeouts(ctx: Context) -> str:
+    peer, welcome = _open_1_1(ctx)
+    with peer:
+        limits = welcome.metadata.get("limits")
+    if not isinstance(limits, dict):
+        raise CheckFailed(f"WELCOME.limits is {limits!r}")
+    keys = ("idle_timeout_ms", "frame_timeout_ms", "handshake_timeout_ms", "max_in_flight")
+    for key in keys:
+        if not _positive_int(limits.get(key)):
+            raise CheckFailed(f"WELCOME.limits.{key} is {limits.get(key)!r}")
+    return ", ".join(f"{key} {limits[key]}" for key in keys)
+
+
+MAX_IN_FLIGHT_TRIED = 256
+"""The most pipelined requests ``max_in_flight_honoured`` sends (a server may announce more)."""
+
+
+@check(
+    "max_in_flight_honoured",
+    "§6.1",
+    "on an idle server, max_in_flight pipelined INSPECTs are all run (RESULT), none BUSY",
+)
+def _max_in_flight(ctx: Context) -> str:
+    item = ctx.request_inspection(depth=False)
+    image = _flat_png(*ctx.image_size(item, (64, 48)))
+    peer, welcome = _open_1_1(ctx)
+    with peer:
+        limits = welcome.metadata.get("limits")
+        announced = _positive_int(limits.get("max_in_flight") if isinstance(limits, dict) else 0)
+        if not announced:
+            raise CheckFailed("WELCOME.limits.max_in_flight is not a positive integer")
+        count = min(announced, MAX_IN_FLIGHT_TRIED)
+        ids = range(3000, 3000 + count)
+        peer.send_raw(
+            b"".join(Inspect(rid, item["name"], (image,)).to_frame(V1_1).serialize() for rid in ids)
+        )
+        waiting = set(ids)
+        while waiting:
+            frame = peer.recv_frame()
+            if frame is CLOSED:
+                raise CheckFailed(f"closed with {len(waiting)} of {count} requests unanswered")
+            assert isinstance(frame, Frame)
+            if frame.request_id not in waiting:
+                raise CheckFailed(f"unexpected answer {_summary(frame)}")
+            waiting.discard(frame.request_id)
+            if frame.type == T.RESULT:
+                continue
+            if frame.type == T.ERROR and frame.metadata.get("code") == E.BUSY:
+                raise CheckFailed(
+                    f"request {frame.request_id - 2999} of {count} was answered BUSY although "
+                    f"WELCOME announced max_in_flight {announced}: {_message(frame)}"
+                )
+            raise CheckFailed(f"expected RESULT, got {_summary(frame)}")
+    note = f"{count} INSPECTs in flight, all RESULT"
+    return note if count == announced else f"{note} (of max_in_flight {announced})"
 
 
 @check("welcome_inspections", "§5.2", "WELCOME lists inspections with name, type, camera")
@@ -273,6 +393,110 @@ def _wrong_major(ctx: Context) -> None:
         peer.send(Ping(9), version=(2, 0))
         peer.expect_error(E.UNSUPPORTED_VERSION, fatal=True)
         peer.expect_closed()
+
+
+@check(
+    "version_1_0_client",
+    "§5.3",
+    "a client offering only 1.0 gets version [1, 0] (WELCOME metadata and header) and a "
+    "working connection",
+)
+def _version_1_0(ctx: Context) -> None:
+    with ctx.peer() as peer:
+        _agreed(_hello(peer, ctx, (1, 0), request_id=14), (1, 0))
+        peer.send(Ping(15, "1.0"), version=(1, 0))
+        pong = peer.expect(T.PONG, request_id=15)
+        if pong.version[0] != 1:
+            raise CheckFailed(f"PONG carries version {pong.version} on a 1.0 connection")
+        peer.send(ListInspections(16), version=(1, 0))
+        peer.expect(T.INSPECTIONS, request_id=16)
+
+
+@check(
+    "version_smaller_minor",
+    "§5.3",
+    "an offer of 1.1 gets [1, 1]; an offer of 1.9 gets the smaller of 9 and the server's "
+    "minor (from UNSUPPORTED_VERSION's details.supported when it lists them)",
+)
+def _version_smaller_minor(ctx: Context) -> str:
+    with ctx.peer() as peer:
+        _agreed(_hello(peer, ctx, V1_1, request_id=17), V1_1)
+    with ctx.peer() as peer:
+        welcome = _hello(peer, ctx, (1, 9), request_id=18)
+    newest = _newest_minor(ctx)
+    version = welcome.metadata.get("version")
+    if newest is not None:
+        expected = [1, min(9, newest)]
+        if version != expected:
+            raise CheckFailed(
+                f"WELCOME.version is {version!r} for an offer of 1.9 to a server of 1.{newest}, "
+                f"expected {expected}"
+            )
+    elif not (
+        isinstance(version, list)
+        and len(version) == 2
+        and version[0] == 1
+        and _positive_int(version[1])
+        and version[1] <= 9
+    ):
+        raise CheckFailed(f"WELCOME.version is {version!r} for an offer of 1.9, expected [1, 1..9]")
+    _agreed(welcome, (1, version[1]))
+    return f"1.9 offered, 1.{version[1]} agreed" + (
+        f" (the server speaks 1.{newest})" if newest is not None else ""
+    )
+
+
+def _newest_minor(ctx: Context) -> int | None:
+    """The server's newest minor of major 1, as its refusal of major 99 lists it (a SHOULD of
+    §5.3), else None."""
+    with ctx.peer() as peer:
+        peer.send(Hello(20, ((99, 0),), "conformance", ctx.target.auth_token), version=(99, 0))
+        refusal = peer.expect_error(E.UNSUPPORTED_VERSION, request_id=20, fatal=True)
+    details = refusal.metadata.get("details")
+    supported = details.get("supported") if isinstance(details, dict) else None
+    minors = [
+        v[1]
+        for v in (supported if isinstance(supported, list) else [])
+        if isinstance(v, list)
+        and len(v) == 2
+        and v[0] == 1
+        and isinstance(v[1], int)
+        and not isinstance(v[1], bool)
+    ]
+    return max(minors) if minors else None
+
+
+@check(
+    "client_fatal_error",
+    "§7",
+    "a client's fatal ERROR after the handshake (any request id): the server sends nothing "
+    "more and closes the connection",
+)
+def _client_fatal_error(ctx: Context) -> None:
+    for rid in (0, 19):
+        peer, _ = _open_1_1(ctx)
+        with peer:
+            peer.send_frame(_frame(T.ERROR, rid, {"code": 1, "fatal": True}, version=V1_1))
+            answer = peer.recv_frame()
+            if answer is not CLOSED:
+                assert isinstance(answer, Frame)
+                raise CheckFailed(
+                    f"after the client's fatal ERROR (id {rid}) the server sent "
+                    f"{_summary(answer)}; it must send nothing and close"
+                )
+
+
+@check(
+    "client_nonfatal_error",
+    "§5.7",
+    "a client's non-fatal ERROR: UNEXPECTED_MESSAGE with its id; the connection survives",
+)
+def _client_nonfatal_error(ctx: Context) -> None:
+    peer, _ = _open_1_1(ctx)
+    with peer:
+        peer.send_frame(_frame(T.ERROR, 21, {"code": 1, "fatal": False}, version=V1_1))
+        peer.expect_error(E.UNEXPECTED_MESSAGE, request_id=21, fatal=False)
+        _still_alive(peer)
 
 
 # ----------------------------------------------------------------------------- keepalive, list
@@ -414,6 +638,149 @@ def _server_camera_inspect(ctx: Context) -> str | None:
     if answer.type == T.RESULT and answer.metadata.get("inspection") != item["name"]:
         raise CheckFailed(f"RESULT.inspection is {answer.metadata.get('inspection')!r}")
     return f"{item['name']}: {_outcome(answer)}"
+
+
+@check(
+    "inspect_server_camera_images",
+    "§6.3",
+    "INSPECT with images for an inspection on a server camera: the images are inspected "
+    "(RESULT, not INVALID_ARGUMENT)",
+    needs=frozenset({Feature.SERVER_CAMERAS}),
+)
+def _server_camera_images(ctx: Context) -> str:
+    item = next(
+        (
+            i
+            for i in ctx.inspections
+            if isinstance(i.get("camera_source"), str)
+            and i["camera_source"] != "request"
+            and not i.get("depth")
+        ),
+        None,
+    )
+    if item is None:
+        raise Skip("the server offers no inspection on a server-side camera that takes no depth")
+    image = payload_from_array(_test_image(*ctx.image_size(item)))
+    peer, _ = _open_1_1(ctx)
+    with peer:
+        peer.send(Inspect(49, item["name"], (image,)), version=V1_1)
+        answer = _result_or_errors(peer, 49, {E.INSPECTION_FAILED})
+        _still_alive(peer)
+    if answer.type == T.RESULT and answer.metadata.get("inspection") != item["name"]:
+        raise CheckFailed(f"RESULT.inspection is {answer.metadata.get('inspection')!r}")
+    return f"{item['name']}: {_outcome(answer)}"
+
+
+UNKNOWN_OPTION = "conformance_no_such_option"
+"""An option key no inspection has."""
+
+
+@check(
+    "unknown_option",
+    "§6.3",
+    "an unknown key in INSPECT options: INVALID_ARGUMENT naming it in details.option (a server "
+    "whose inspections take no options refuses every option alike), non-fatal",
+)
+def _unknown_option(ctx: Context) -> str:
+    item = ctx.request_inspection(depth=False)
+    image = _flat_png(*ctx.image_size(item))
+    peer, _ = _open_1_1(ctx)
+    with peer:
+        peer.send(Inspect(50, item["name"], (image,), options={UNKNOWN_OPTION: 1}), version=V1_1)
+        refusal = peer.expect_error(E.INVALID_ARGUMENT, request_id=50, fatal=False)
+        details = refusal.metadata.get("details")
+        named = details.get("option") if isinstance(details, dict) else None
+        if named == UNKNOWN_OPTION:
+            _still_alive(peer)
+            return _message(refusal)
+        if named is not None:
+            raise CheckFailed(f"INVALID_ARGUMENT.details.option is {named!r}, not the unknown key")
+        # Not named: right only when the inspection takes no options at all, so that the
+        # refusal does not depend on the option: another one must be refused in the same words.
+        other = {"conformance_other_option": True}
+        peer.send(Inspect(51, item["name"], (image,), options=other), version=V1_1)
+        second = peer.expect_error(E.INVALID_ARGUMENT, request_id=51, fatal=False)
+        _still_alive(peer)
+    if _message(second) != _message(refusal):
+        raise CheckFailed(
+            f"INVALID_ARGUMENT does not name the option {UNKNOWN_OPTION!r} in details.option: "
+            f"{_message(refusal)}"
+        )
+    return f"no options taken: {_message(refusal)}"
+
+
+@check(
+    "option_camera",
+    "§6.3",
+    'INSPECT options {"camera": …} (a request cannot change the camera): INVALID_ARGUMENT, '
+    "non-fatal",
+)
+def _option_camera(ctx: Context) -> str:
+    item = ctx.request_inspection(depth=False)
+    image = _flat_png(*ctx.image_size(item))
+    peer, _ = _open_1_1(ctx)
+    with peer:
+        peer.send(Inspect(52, item["name"], (image,), options={"camera": "x"}), version=V1_1)
+        refusal = peer.expect_error(E.INVALID_ARGUMENT, request_id=52, fatal=False)
+        _still_alive(peer)
+    return _message(refusal)
+
+
+CLIENT_MAX_FRAME_BYTES = 65536
+"""The HELLO max_frame_bytes of ``capture_within_client_limit``."""
+
+
+@check(
+    "capture_within_client_limit",
+    "§6.4",
+    "a client whose HELLO accepts frames of at most 64 KiB (§5.1): a larger CAPTURE reply is "
+    "INVALID_ARGUMENT with details.max_size, and no frame it receives is larger",
+    needs=frozenset({Feature.SERVER_CAMERAS}),
+)
+def _capture_within_client_limit(ctx: Context) -> str:
+    camera = next(
+        (
+            c
+            for c in ctx.cameras
+            if isinstance(c.get("source"), str) and c["source"] != "request" and c.get("name")
+        ),
+        None,
+    )
+    if camera is None:
+        raise Skip("the server lists no server-side camera")
+    limit = CLIENT_MAX_FRAME_BYTES
+    # Raw frames take at least a byte a pixel: enough of them cannot fit in the limit.
+    width, height = ctx.image_size({"camera": camera["name"]})
+    count = min(16, -(-2 * limit // (width * height)))
+    peer, _ = _open_1_1(ctx, max_frame_bytes=limit)
+    with peer:
+        sizes = [_last_frame_size(peer)]
+        peer.send(Capture(53, camera["name"], count=count), version=V1_1)
+        answer = peer.recv_frame()
+        if answer is CLOSED:
+            raise CheckFailed("the server closed the connection instead of answering CAPTURE")
+        assert isinstance(answer, Frame)
+        sizes.append(_last_frame_size(peer))
+        _still_alive(peer)
+        sizes.append(_last_frame_size(peer))
+    if max(sizes) > limit:
+        raise CheckFailed(
+            f"the server sent a frame of {max(sizes)} bytes to a client that accepts {limit}"
+        )
+    if answer.type == T.ERROR and answer.metadata.get("code") == E.CAMERA_UNAVAILABLE:
+        raise Skip(f"camera {camera['name']!r} gives no frame now: {_message(answer)}")
+    if answer.request_id != 53:
+        raise CheckFailed(f"answer for id {answer.request_id}, expected 53")
+    if answer.type == T.FRAMES:  # it fitted: nothing to refuse
+        return f"{count} frame(s) from {camera['name']!r} fit in {sizes[1]} bytes"
+    if answer.type != T.ERROR or answer.metadata.get("code") != E.INVALID_ARGUMENT:
+        raise CheckFailed(f"expected INVALID_ARGUMENT, got {_summary(answer)}")
+    if answer.metadata.get("fatal"):
+        raise CheckFailed("the INVALID_ARGUMENT for a reply too large must not be fatal")
+    details = answer.metadata.get("details")
+    if not isinstance(details, dict) or details.get("max_size") != limit:
+        raise CheckFailed(f"INVALID_ARGUMENT.details is {details!r}, expected max_size {limit}")
+    return f"{count} frame(s) from {camera['name']!r}: {_message(answer)}"
 
 
 @check(
@@ -652,6 +1019,93 @@ def _not_object(ctx: Context) -> None:
         _still_alive(peer)
 
 
+@check(
+    "null_is_absent",
+    "§3.2",
+    "null members are absent at every level: an image's role, a PNG's width and height, "
+    "deadline_ms, overlay, options; the INSPECTs get RESULTs",
+)
+def _null_is_absent(ctx: Context) -> None:
+    item = ctx.request_inspection(depth=False)
+    width, height = ctx.image_size(item)
+    gray = np.full((height, width), 128, np.uint8).tobytes()
+    png = _flat_png(width, height)
+    raw_meta = {
+        "inspection": item["name"],
+        "deadline_ms": None,
+        "overlay": None,
+        "options": None,
+        "images": [
+            {"blob": 0, "encoding": "gray8", "width": width, "height": height, "role": None}
+        ],
+    }
+    png_meta = {
+        "inspection": item["name"],
+        "images": [{"blob": 0, "encoding": "png", "width": None, "height": None, "role": "color"}],
+    }
+    peer, _ = _open_1_1(ctx)
+    with peer:
+        peer.send_frame(_frame(T.INSPECT, 54, raw_meta, (gray,), version=V1_1))
+        _result_or_errors(peer, 54, set())
+        peer.send_frame(_frame(T.INSPECT, 55, png_meta, (png.data,), version=V1_1))
+        _result_or_errors(peer, 55, set())
+
+
+@check(
+    "duplicate_member_names",
+    "§3.2",
+    "metadata with a member name twice (I-JSON): BAD_METADATA, the connection survives",
+)
+def _duplicate_names(ctx: Context) -> None:
+    peer, _ = _open_1_1(ctx)
+    with peer:
+        peer.send_raw(_raw_frame(T.PING, 56, b'{"data":"a","data":"b"}', version=V1_1))
+        peer.expect_error(E.BAD_METADATA, request_id=56, fatal=False)
+        _still_alive(peer)
+
+
+@check(
+    "integer_beyond_2_53",
+    "§3.2",
+    "an integer beyond 2^53-1 (I-JSON), even in an unknown field: BAD_METADATA, the "
+    "connection survives",
+)
+def _integer_beyond_2_53(ctx: Context) -> None:
+    meta = b'{"data":"a","conformance_count":9007199254740992}'
+    peer, _ = _open_1_1(ctx)
+    with peer:
+        peer.send_raw(_raw_frame(T.PING, 57, meta, version=V1_1))
+        peer.expect_error(E.BAD_METADATA, request_id=57, fatal=False)
+        _still_alive(peer)
+
+
+@check(
+    "integral_number_as_integer",
+    "§3.2",
+    "an integer written as 64.0 (an image's blob, width and height) is accepted: RESULT",
+)
+def _integral_number(ctx: Context) -> None:
+    item = ctx.request_inspection(depth=False)
+    width, height = ctx.image_size(item)
+    meta = {
+        "inspection": item["name"],
+        "images": [
+            {
+                "blob": 0.0,
+                "encoding": "gray8",
+                "width": float(width),
+                "height": float(height),
+                "role": "color",
+            }
+        ],
+    }
+    peer, _ = _open_1_1(ctx)
+    with peer:
+        blob = np.full((height, width), 128, np.uint8).tobytes()
+        peer.send_frame(_frame(T.INSPECT, 58, meta, (blob,), version=V1_1))
+        _result_or_errors(peer, 58, set())
+
+
 @check("missing_field", "§6.3", "INSPECT without its inspection name: BAD_METADATA")
 def _missing_field(ctx: Context) -> None:
     with ctx.open() as peer:
@@ -787,6 +1241,20 @@ def _oversize(ctx: Context) -> None:
         peer.expect_closed()
 
 
+@check(
+    "refused_at_header",
+    "§3.1",
+    "before HELLO, an INSPECT header announcing a body (60 MiB, and 60 KiB: below the "
+    "handshake's frame limit) that is never sent: NOT_AUTHENTICATED at once, then close",
+)
+def _refused_at_header(ctx: Context) -> None:
+    for rid, body_length in ((59, 60 << 20), (62, 60 << 10)):
+        with ctx.peer() as peer:
+            peer.send_raw(HEADER.pack(MAGIC, *V1_1, T.INSPECT, 0, 0, rid, 0, body_length))
+            peer.expect_error(E.NOT_AUTHENTICATED, request_id=rid, fatal=True)
+            peer.expect_closed()
+
+
 @check("garbage", "§3.1", "bytes without the magic: MALFORMED_FRAME, then close")
 def _garbage(ctx: Context) -> None:
     with ctx.open() as peer:
@@ -836,6 +1304,46 @@ def _graceful(ctx: Context) -> None:
         peer.expect(T.PONG, request_id=43)
         peer.expect(T.CLOSE)
         peer.expect_closed()
+
+
+@check(
+    "request_after_close",
+    "§5.6",
+    "a request after the client's CLOSE is neither run nor answered; what was in flight is "
+    "answered, then CLOSE, then end of stream",
+)
+def _request_after_close(ctx: Context) -> None:
+    item = ctx.request_inspection(depth=False)
+    image = _flat_png(*ctx.image_size(item))
+    peer, _ = _open_1_1(ctx)
+    with peer:
+        peer.send_raw(
+            Inspect(60, item["name"], (image,)).to_frame(V1_1).serialize()
+            + Close(0, "done").to_frame(V1_1).serialize()
+            + Ping(61, "late").to_frame(V1_1).serialize()
+        )
+        answered = False
+        while True:
+            frame = peer.recv_frame()
+            if frame is CLOSED:
+                raise CheckFailed("the server closed the connection without sending CLOSE")
+            assert isinstance(frame, Frame)
+            if frame.type == T.CLOSE:
+                break
+            if frame.request_id == 61:
+                raise CheckFailed(f"the request sent after CLOSE was answered: {_summary(frame)}")
+            if frame.request_id != 60 or answered:
+                raise CheckFailed(f"unexpected {_summary(frame)} after the client's CLOSE")
+            failed = frame.type == T.ERROR and frame.metadata.get("code") == E.INSPECTION_FAILED
+            if frame.type != T.RESULT and not failed:
+                raise CheckFailed(f"the INSPECT in flight was answered {_summary(frame)}")
+            answered = True
+        if not answered:
+            raise CheckFailed("the server sent CLOSE without answering the INSPECT in flight")
+        after = peer.recv_frame()
+        if after is not CLOSED:
+            assert isinstance(after, Frame)
+            raise CheckFailed(f"the server sent {_summary(after)} after its CLOSE")
 
 
 @check(

@@ -31,7 +31,12 @@ from protocol.conformance.checks import Context
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
-SERVER_CAMERA_CHECKS = {"inspect_server_camera", "capture_server_camera"}
+SERVER_CAMERA_CHECKS = {
+    "inspect_server_camera",
+    "inspect_server_camera_images",
+    "capture_server_camera",
+    "capture_within_client_limit",
+}
 """The checks the built-in demo has nothing for: it has no server-side camera."""
 
 
@@ -39,7 +44,7 @@ SERVER_CAMERA_CHECKS = {"inspect_server_camera", "capture_server_camera"}
 def test_the_reference_server_passes_every_check(auth_token: str | None) -> None:
     with server_in_thread(auth_token=auth_token) as server:
         results = run_checks(Target("127.0.0.1", server.port, 10.0, auth_token))
-    assert len(results) >= 25
+    assert len(results) >= 61
     assert len(results) == len(CHECKS)
     assert len({r.name for r in results}) == len(results)
     not_passed = {r.name: (r.status, r.detail) for r in results if r.status != "pass"}
@@ -48,7 +53,12 @@ def test_the_reference_server_passes_every_check(auth_token: str | None) -> None
             "skip",
             "the server offers no inspection on a server-side camera",
         ),
+        "inspect_server_camera_images": (
+            "skip",
+            "the server offers no inspection on a server-side camera that takes no depth",
+        ),
         "capture_server_camera": ("skip", "the server lists no server-side camera"),
+        "capture_within_client_limit": ("skip", "the server lists no server-side camera"),
     }
     assert all(r.section.startswith("§") for r in results)
     # Without a configuration file the server refuses RELOAD, as §6.5 says it must.
@@ -128,7 +138,7 @@ def test_cli_json_against_the_vision_server_process(configuration: str, tmp_path
     skipped = {r["name"] for r in report["results"] if r["status"] == "skip"}
     assert skipped == (SERVER_CAMERA_CHECKS if demo else set())
     assert report["skipped"] == len(skipped)
-    assert report["passed"] == len(report["results"]) - len(skipped) >= 25
+    assert report["passed"] == len(report["results"]) - len(skipped) >= 57
     first = report["results"][0]
     assert set(first) == {
         "name",
@@ -157,13 +167,15 @@ def test_minimal_profile_reports_what_it_leaves_out_as_not_applicable(tmp_path: 
     assert report["profile"] == "minimal"
     not_applicable = {r["name"]: r["detail"] for r in report["results"] if r["status"] == "n/a"}
     assert not_applicable == {
-        "inspect_server_camera": "not applicable (profile minimal: no server cameras)",
-        "capture_server_camera": "not applicable (profile minimal: no server cameras)",
+        **{
+            name: "not applicable (profile minimal: no server cameras)"
+            for name in SERVER_CAMERA_CHECKS
+        },
         "reload": "not applicable (profile minimal: no reload)",
     }
-    assert report["not_applicable"] == 3
+    assert report["not_applicable"] == 5
     assert report["failed"] == report["skipped"] == 0
-    assert report["passed"] == len(report["results"]) - 3
+    assert report["passed"] == len(report["results"]) - 5
     # The text report says so too, and its closing line counts them apart from the passes.
     lines = text.stdout.strip().splitlines()
     assert lines[1].split()[:3] == ["reload", "§6.5", "N/A"]
@@ -187,7 +199,11 @@ def test_cli_help_documents_the_profiles(capsys: pytest.CaptureFixture[str]) -> 
     out = capsys.readouterr().out
     assert "--profile {full,minimal}" in out
     assert "minimal  no server-side cameras and no RELOAD" in out
-    assert "(checks left out: inspect_server_camera, capture_server_camera, reload)" in out
+    left_out = (
+        "inspect_server_camera, inspect_server_camera_images, capture_within_client_limit, "
+        "capture_server_camera, reload"
+    )
+    assert f"(checks left out: {left_out})" in out
     assert "not applicable" in out
 
 
