@@ -1373,3 +1373,70 @@ def _tiny_png(width: int = 1, height: int = 1) -> bytes:
     ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
     rows = zlib.compress(b"\x00" + b"\x80" * min(width, 64))
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", rows) + chunk(b"IEND", b"")
+
+
+@check(
+    "two_colour_images",
+    "§4.1",
+    "INSPECT with two color-role images (a depth image sent without its role is one): "
+    "BAD_IMAGE, non-fatal",
+)
+def _two_colour_images(ctx: Context) -> str:
+    item = ctx.request_inspection(depth=False)
+    image = _flat_png(*ctx.image_size(item))
+    with ctx.open() as peer:
+        peer.send(Inspect(61, item["name"], (image, image)))
+        refusal = peer.expect_error(E.BAD_IMAGE, request_id=61, fatal=False)
+        _still_alive(peer)
+    return _message(refusal)
+
+
+@check(
+    "connection_limit_busy_is_fatal",
+    "§5.4",
+    "at its announced max_connections the server answers the next HELLO with BUSY, fatal, and "
+    "closes",
+)
+def _connection_limit_busy_is_fatal(ctx: Context) -> str:
+    limit = ctx.limits.get("max_connections")
+    if not isinstance(limit, int) or limit < 1:
+        raise Skip("the server does not announce max_connections")
+    if limit > 256:
+        raise Skip(f"max_connections is {limit}: too many connections to open for a check")
+    held: list[Peer] = []
+    try:
+        # This check's own connections, plus any the suite or others hold: open until refused.
+        for _ in range(limit + 1):
+            peer = ctx.peer()
+            held.append(peer)
+            peer.send(Hello(1, ((1, 0),), "cellvision-conformance", ctx.target.auth_token))
+            answer = peer.recv_frame()
+            if answer is CLOSED:
+                raise CheckFailed("the server closed a connection without answering its HELLO")
+            assert isinstance(answer, Frame)
+            if answer.type == MessageType.WELCOME:
+                continue
+            if answer.type != MessageType.ERROR or answer.metadata.get("code") != int(E.BUSY):
+                raise CheckFailed(f"expected WELCOME or BUSY, got {_message(answer)}")
+            if answer.metadata.get("fatal") is not True:
+                raise CheckFailed("the BUSY that refuses a connection must be fatal (§5.4)")
+            peer.expect_closed()
+            return f"connection {len(held)} refused: {_message(answer)}"
+        raise CheckFailed(f"{limit + 1} connections were all served; max_connections is {limit}")
+    finally:
+        for peer in held:
+            peer.close()
+        _wait_for_a_free_slot(ctx)
+
+
+def _wait_for_a_free_slot(ctx: Context, timeout_s: float = 15.0) -> None:
+    """After closing many connections, wait until the server serves a new one again, so that
+    the checks after this one do not meet the limit this one reached."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with ctx.peer() as peer:
+            peer.send(Hello(1, ((1, 0),), "cellvision-conformance", ctx.target.auth_token))
+            answer = peer.recv_frame()
+            if isinstance(answer, Frame) and answer.type == MessageType.WELCOME:
+                return
+        time.sleep(0.05)

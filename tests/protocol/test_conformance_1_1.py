@@ -509,3 +509,39 @@ def test_capture_within_client_limit_wants_the_clients_limit_in_details(
     assert result.status == verdict, result
     if verdict == "fail":
         assert "expected max_size 65536" in result.detail
+
+
+# ----------------------------------------------------------------------------- §4.1 and §5.4
+
+
+def test_the_role_and_connection_limit_checks_pass_against_the_reference_server() -> None:
+    with server_in_thread(max_connections=4) as server:
+        for name in ("two_colour_images", "connection_limit_busy_is_fatal"):
+            result = _only(server.port, name)
+            assert result.status == "pass", result
+
+
+def test_connection_limit_check_fails_on_a_non_fatal_busy(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The 1.0 prose: a non-fatal BUSY and a new HELLO on the same connection."""
+    original = vision_server.server.Busy
+
+    def non_fatal(message: str, **kwargs: Any) -> Any:
+        kwargs["fatal"] = False
+        return original(message, **kwargs)
+
+    monkeypatch.setattr(vision_server.server, "Busy", non_fatal)
+    with server_in_thread(max_connections=3) as server:
+        _fails(server.port, "connection_limit_busy_is_fatal", "must be fatal")
+
+
+def test_two_colour_images_check_fails_when_the_second_is_ignored(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    original = vision_server.server._decode_input
+
+    def first_colour_only(images: Any, *args: Any, **kwargs: Any) -> Any:
+        return original(images[:1], *args, **kwargs)
+
+    monkeypatch.setattr(vision_server.server, "_decode_input", first_colour_only)
+    with server_in_thread() as server:
+        _fails(server.port, "two_colour_images", "expected")
