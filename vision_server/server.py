@@ -145,6 +145,9 @@ class ServerSettings:
             "handshake_timeout_ms": round(self.handshake_timeout_s * 1000),
             "idle_timeout_ms": round(self.idle_timeout_s * 1000),
             "frame_timeout_ms": round(self.frame_timeout_s * 1000),
+            # The default deadline of a server camera's frames (INSPECT without images, CAPTURE)
+            # when the request sets none; work on a request's own images has no default.
+            "capture_timeout_ms": round(self.capture_timeout_s * 1000),
         }
 
     def ssl_context(self) -> ssl.SSLContext | None:
