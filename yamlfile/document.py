@@ -21,7 +21,18 @@ MERGE_TAG = "tag:yaml.org,2002:merge"
 
 
 class _StrictLoader(yaml.SafeLoader):
-    """safe_load that refuses duplicate keys (PyYAML silently keeps the last one)."""
+    """safe_load that refuses duplicate keys (PyYAML silently keeps the last one). ``paths``
+    gives the key path of each mapping node (by id) for the error."""
+
+    paths: dict[int, tuple[Key, ...]]
+
+
+class _DuplicateKey(Exception):
+    """``key`` written twice in the mapping at ``path``, first on line ``first``."""
+
+    def __init__(self, path: tuple[Key, ...], key: str, first: int) -> None:
+        super().__init__(path, key, first)
+        self.path, self.key, self.first = path, key, first
 
 
 def _no_duplicates(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> Any:
@@ -38,12 +49,7 @@ def _no_duplicates(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = F
                 None, None, "mapping keys must be scalars", key_node.start_mark
             )
         if key in seen:
-            raise yaml.constructor.ConstructorError(
-                None,
-                None,
-                f"duplicate key {key!r} (first on line {seen[key]})",
-                key_node.start_mark,
-            )
+            raise _DuplicateKey(loader.paths.get(id(node), ()), str(key), seen[key])
         seen[key] = key_node.start_mark.line + 1
     return loader.construct_mapping(node, deep=deep)
 
@@ -54,16 +60,24 @@ _StrictLoader.add_constructor(
 )
 
 
-def _lines(node: yaml.Node | None, path: tuple[Key, ...], out: dict[tuple[Key, ...], int]) -> None:
+def _lines(
+    node: yaml.Node | None,
+    path: tuple[Key, ...],
+    out: dict[tuple[Key, ...], int],
+    mappings: dict[int, tuple[Key, ...]],
+) -> None:
+    """Record in ``out`` the line of every key path below ``node`` (a key written twice: the
+    second), and in ``mappings`` the path of every mapping node (where it is first met)."""
     if node is None:
         return
     out.setdefault(path, node.start_mark.line + 1)
     if isinstance(node, yaml.MappingNode):
+        mappings.setdefault(id(node), path)
         own = [(k, v) for k, v in node.value if k.tag != MERGE_TAG]
         for key_node, value_node in own:
             child = (*path, str(key_node.value))
             out[child] = key_node.start_mark.line + 1
-            _lines(value_node, child, out)
+            _lines(value_node, child, out, mappings)
             out[child] = key_node.start_mark.line + 1
         # A merged key is reported at the line where its value is written (the anchored
         # mapping); the mapping's own keys win, and of several merged mappings the first.
@@ -74,11 +88,11 @@ def _lines(node: yaml.Node | None, path: tuple[Key, ...], out: dict[tuple[Key, .
                 if str(key_node.value) in written or key_node.tag == MERGE_TAG:
                     continue
                 written.add(str(key_node.value))
-                _lines(value_node, child, out)
+                _lines(value_node, child, out, mappings)
                 out[child] = key_node.start_mark.line + 1
     elif isinstance(node, yaml.SequenceNode):
         for index, item in enumerate(node.value):
-            _lines(item, (*path, index), out)
+            _lines(item, (*path, index), out, mappings)
 
 
 MAX_EXPANDED_NODES = 100_000
@@ -146,10 +160,22 @@ def parse_document(text: str, *, source: str, node_type: type[Node] = Node) -> N
     ``node_type`` (whose ``error_type`` every error of the file is raised as). ``source`` is
     the file's name as errors show it."""
     error = node_type.error_type
+    lines: dict[tuple[Key, ...], int] = {}
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        root = yaml.compose(text, Loader=_StrictLoader)
         _check_aliases(root)
-        data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+        mappings: dict[int, tuple[Key, ...]] = {}
+        _lines(root, (), lines, mappings)
+        # Construct from the nodes just walked, so that a duplicate key's mapping is known by
+        # its path (yaml.load would compose the text again).
+        constructor = _StrictLoader("")
+        constructor.paths = mappings
+        data = None if root is None else constructor.construct_document(root)
+    except _DuplicateKey as dup:
+        where = node_type({}, dup.path, source, lines, {})
+        raise where.error(
+            f"duplicate key {dup.key!r} (first on line {dup.first})", dup.key
+        ) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         problem = getattr(exc, "problem", None) or str(exc)
@@ -162,8 +188,6 @@ def parse_document(text: str, *, source: str, node_type: type[Node] = Node) -> N
         raise error(
             f"the top level must be a mapping, got {type(data).__name__}", source=source, line=1
         )
-    lines: dict[tuple[Key, ...], int] = {}
-    _lines(root, (), lines)
     return node_type(data, (), source, lines, {})
 
 
