@@ -1,7 +1,7 @@
 """Parsing a YAML file into a :class:`~yamlfile.node.Node`: ``yaml.safe_load`` semantics
 (anchors, aliases and merge keys ``<<: *base`` included) plus the line of every key, duplicate
 keys refused, and aliases that never end or expand beyond :data:`MAX_EXPANDED_NODES` refused.
-Nothing but PyYAML's SafeLoader ever constructs a value, so no tag can run code.
+Only a SafeLoader subclass ever constructs a value, so no tag can run code.
 """
 
 from __future__ import annotations

@@ -141,3 +141,13 @@ def test_a_version_1_file_is_upgraded(tmp_path: Path) -> None:
     assert doc["schema_version"] == SCHEMA_VERSION
     assert {r["name"] for r in doc["records"]} == {"bin_l2", "switch"}
     assert TeachStore(path).upgraded_from is None
+
+
+def test_an_error_in_a_version_1_file_names_the_line_of_its_entry(tmp_path: Path) -> None:
+    path = tmp_path / "t.yaml"
+    path.write_text("version: 1\nskills:\n  a:\n    skill: place\n  b:\n    params: {x: 1}\n")
+    with pytest.raises(TeachStoreError, match=r"t\.yaml:5 records\[1\] \(None/b\): missing"):
+        TeachStore(path).records()
+    path.write_text("version: 1\nskills:\n  a: 3\n")
+    with pytest.raises(TeachStoreError, match=r"t\.yaml:3 skills -> a: expected a mapping"):
+        TeachStore(path).records()
