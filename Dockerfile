@@ -41,6 +41,7 @@ COPY vision_server ./vision_server
 COPY robot_client ./robot_client
 COPY simulation ./simulation
 COPY geometry ./geometry
+COPY yamlfile ./yamlfile
 RUN pip install --no-cache-dir --no-deps --no-build-isolation . \
     && rm -rf /opt/cellvision/build
 

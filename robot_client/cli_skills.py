@@ -25,6 +25,7 @@ from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeEl
 from rich.table import Table
 
 from protocol.cli import ExitCode
+from yamlfile import read_document
 
 from .address import endpoint_from_args, ssl_context
 from .devices import Devices
@@ -87,9 +88,10 @@ def _context(args: argparse.Namespace, console: Console) -> Iterator[SkillContex
     world = WorldModel(devices)
     world_file = _world_file(args, store)
     if world_file.exists() and not args.fresh:
+        root, _ = read_document(world_file)  # the project's one YAML reader: file and line
         try:
-            world.load_dict(yaml.safe_load(world_file.read_text(encoding="utf-8")) or {})
-        except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
+            world.load_dict(root.data)
+        except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{world_file}: cannot read the world model: {exc}") from None
     ctx = SkillContext(devices, world, store)
     if not args.json and sys.stdin.isatty():

@@ -29,9 +29,20 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
-import yaml
+from yamlfile import (
+    DocumentError,
+    Key,
+    Node,
+    integer,
+    kind,
+    non_negative,
+    non_negative_int,
+    parse_document,
+    read_document,
+    string,
+)
 
 from .skills.base import SkillContext, SkillRegistry, UnknownSkill, execute
 from .skills.outcome import FailureReason, Outcome
@@ -53,8 +64,9 @@ __all__ = [
 ]
 
 
-class TaskError(ValueError):
-    """A task file that cannot be used; the message names the file and the key path."""
+class TaskError(DocumentError):
+    """A task file that cannot be used (the message names the file, the line and the key path),
+    or a task that names skills or records that do not exist."""
 
 
 class Policy(StrEnum):
@@ -131,102 +143,113 @@ class Task:
 
 # --- parsing ------------------------------------------------------------------------------
 
-_GROUP_KEYS = {"repeat", "sequence", "steps", "on_failure"}
+
+class _TaskNode(Node):
+    """A mapping of a task file; errors are TaskErrors naming file, line and key path."""
+
+    error_type = TaskError
+
+    def error(self, message: str, key: Key | None = None) -> TaskError:
+        return cast(TaskError, super().error(message, key))
 
 
-def _policy(value: Any, where: str) -> OnFailure:
-    if isinstance(value, str):
-        try:
-            return OnFailure(Policy(value))
-        except ValueError:
-            pass
-    elif isinstance(value, dict) and set(value) <= {"retry", "then"} and "retry" in value:
-        retry = value["retry"]
-        if not isinstance(retry, dict) or not set(retry) <= {"times", "wait_s"}:
-            raise TaskError(f"{where}.retry: expected {{times: N, wait_s: S}}, got {retry!r}")
-        times, wait = retry.get("times", 1), retry.get("wait_s", 0.0)
-        if isinstance(times, bool) or not isinstance(times, int) or times < 0:
-            raise TaskError(f"{where}.retry.times: expected an integer >= 0, got {times!r}")
-        if isinstance(wait, bool) or not isinstance(wait, int | float) or wait < 0:
-            raise TaskError(f"{where}.retry.wait_s: expected seconds >= 0, got {wait!r}")
-        then = _policy(value.get("then", "stop"), f"{where}.then")
-        if then.retries:
-            raise TaskError(f"{where}.then: expected stop, continue or operator")
-        return OnFailure(then.then, times, float(wait))
-    raise TaskError(
-        f"{where}: expected stop, continue, operator or {{retry: {{times, wait_s}}, then: ...}}, "
-        f"got {value!r}"
-    )
+_POLICY_HELP = "stop, continue, operator or {retry: {times: N, wait_s: S}, then: ...}"
 
 
-def _step(item: Any, where: str) -> Step | Group:
-    if not isinstance(item, dict) or not item:
-        raise TaskError(f"{where}: expected a mapping (a step or a group), got {item!r}")
-    on_failure = (
-        _policy(item["on_failure"], f"{where}.on_failure") if "on_failure" in item else None
-    )
-    if "repeat" in item or "sequence" in item or "steps" in item:
-        unknown = sorted(set(item) - _GROUP_KEYS)
-        if unknown:
-            raise TaskError(f"{where}: unknown key(s) {unknown} in a group")
-        repeat = item.get("repeat", 1)
-        if isinstance(repeat, bool) or not isinstance(repeat, int) or repeat < 1:
-            raise TaskError(f"{where}.repeat: expected an integer >= 1, got {repeat!r}")
-        key = "steps" if "steps" in item else "sequence"
-        if "steps" in item and "sequence" in item:
-            raise TaskError(f"{where}: give steps or sequence, not both")
-        return Group(_steps(item.get(key), f"{where}.{key}"), repeat, on_failure, where)
-    rest = {k: v for k, v in item.items() if k != "on_failure"}
-    if set(rest) == {"skill", "record"}:
-        skill, record = rest["skill"], rest["record"]
-    elif len(rest) == 1:
-        ((skill, record),) = rest.items()
+def _policy_name(value: Any) -> Policy:
+    try:
+        return Policy(value)
+    except ValueError:
+        raise ValueError(f"expected {_POLICY_HELP}, got {kind(value)}") from None
+
+
+def _then(value: Any) -> Policy:
+    if value not in tuple(Policy):
+        raise ValueError(f"expected stop, continue or operator, got {kind(value)}")
+    return Policy(value)
+
+
+def _at_least_one(value: Any) -> int:
+    out = integer(value)
+    if out < 1:
+        raise ValueError(f"expected an integer >= 1, got {value!r}")
+    return out
+
+
+def _policy(node: _TaskNode, key: str) -> OnFailure | None:
+    """The on-failure policy at ``key`` (None when absent)."""
+    if not isinstance(node.data.get(key), dict):
+        name = node.take(key, _policy_name, None)
+        return None if name is None else OnFailure(name)
+    spec = node.sub(key)
+    if "retry" not in spec:
+        raise spec.error(f"expected {_POLICY_HELP}")
+    retry = spec.sub("retry", required=True)
+    times = retry.take("times", non_negative_int, 1)
+    wait_s = retry.take("wait_s", non_negative, 0.0)
+    retry.finish()
+    then = spec.take("then", _then, Policy.STOP)
+    spec.finish()
+    return OnFailure(then, times, wait_s)
+
+
+def _where(node: _TaskNode) -> str:
+    """A step's place in the file as reports show it: ``steps[1].steps[0]``."""
+    out = ""
+    for part in node.path:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else part)
+    return out
+
+
+def _step(node: _TaskNode) -> Step | Group:
+    if not node.data:
+        raise node.error("expected a step or a group, got an empty mapping")
+    on_failure = _policy(node, "on_failure")
+    if "repeat" in node or "sequence" in node or "steps" in node:
+        if "steps" in node and "sequence" in node:
+            raise node.error("give steps or sequence, not both")
+        repeat = node.take("repeat", _at_least_one, 1)
+        body = _steps(node, "steps" if "steps" in node else "sequence")
+        node.finish()
+        return Group(body, repeat, on_failure, _where(node))
+    rest = [k for k in node.data if k != "on_failure"]
+    if sorted(rest) == ["record", "skill"]:
+        skill, record = node.take("skill", string), node.take("record", string)
+    elif len(rest) == 1 and isinstance(rest[0], str) and rest[0]:
+        skill, record = rest[0], node.take(rest[0], string)
     else:
-        raise TaskError(
-            f"{where}: a step is 'SKILL: RECORD' or {{skill: ..., record: ...}}, got keys "
-            f"{sorted(item)}"
+        raise node.error(
+            f"a step is 'SKILL: RECORD' or {{skill: ..., record: ...}}, got keys "
+            f"{sorted(map(str, node.data))}"
         )
-    if not isinstance(skill, str) or not isinstance(record, str) or not skill or not record:
-        raise TaskError(f"{where}: skill and record must be non-empty names, got {item!r}")
-    return Step(skill, record, on_failure, where)
+    node.finish()
+    return Step(skill, record, on_failure, _where(node))
 
 
-def _steps(items: Any, where: str) -> tuple[Step | Group, ...]:
-    if not isinstance(items, list) or not items:
-        raise TaskError(f"{where}: expected a non-empty list of steps")
-    return tuple(_step(item, f"{where}[{i}]") for i, item in enumerate(items))
+def _steps(node: _TaskNode, key: str) -> tuple[Step | Group, ...]:
+    value = node.data.get(key)
+    if not isinstance(value, list) or not value:
+        raise node.error(f"expected a non-empty list of steps, got {kind(value)}", key)
+    return tuple(_step(item) for item in node.items(key))
+
+
+def _task(root: _TaskNode) -> Task:
+    name = root.take("task", string, Path(root.source).stem)
+    on_failure = _policy(root, "on_failure") or OnFailure()
+    body = Group(_steps(root, "steps"), 1, None, "steps")
+    root.finish()
+    return Task(name, body, on_failure, root.source)
 
 
 def task_from_text(text: str, source: str = "<task>") -> Task:
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f" line {mark.line + 1}" if mark is not None else ""
-        raise TaskError(f"{source}: not valid YAML{line}: {getattr(exc, 'problem', exc)}") from None
-    try:
-        if not isinstance(doc, dict):
-            raise TaskError("expected a mapping with task, steps and optionally on_failure")
-        unknown = sorted(set(doc) - {"task", "steps", "on_failure"})
-        if unknown:
-            raise TaskError(f"unknown top-level key(s) {unknown}")
-        name = doc.get("task", Path(source).stem)
-        if not isinstance(name, str) or not name:
-            raise TaskError("task: expected a name")
-        on_failure = _policy(doc.get("on_failure", "stop"), "on_failure")
-        return Task(
-            name, Group(_steps(doc.get("steps"), "steps"), 1, None, "steps"), on_failure, source
-        )
-    except TaskError as exc:
-        raise TaskError(f"{source}: {exc}") from None
+    """Parse a task; errors (TaskError) name ``source``, the line and the key path."""
+    return _task(parse_document(text, source=source, node_type=_TaskNode))
 
 
 def load_task(path: str | Path) -> Task:
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except OSError as exc:
-        raise TaskError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    return task_from_text(text, str(path))
+    """Read and parse a task file; errors show the file as ``path`` is given."""
+    root, _ = read_document(Path(path), node_type=_TaskNode)
+    return _task(root)
 
 
 # --- running ------------------------------------------------------------------------------

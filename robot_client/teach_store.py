@@ -20,9 +20,11 @@ version N to N+1 for every N below :data:`SCHEMA_VERSION`); the next write saves
 version. Version 1 (``version: 1``, ``skills: {name: {skill, params, frame?}}``, poses as 4x4
 nested lists) is the only older one.
 
-Files are read with ``yaml.safe_load`` only and written atomically (a temporary file in the same
-directory, then ``os.replace``), so a reader sees the old or the new file, never half of one.
-Errors name the file, the record and the key.
+Files are read through the project's one YAML reader (:mod:`yamlfile`: safe loading only,
+duplicate keys refused) and written atomically (a temporary file in the same directory, then
+``os.replace``), so a reader sees the old or the new file, never half of one. Errors name the
+file, the line, the record and the key (``t.yaml:7 records[0] (place/a) -> revision: ...``); in a
+file of an older version, the line of the record as it is written there.
 """
 
 from __future__ import annotations
@@ -32,9 +34,11 @@ import os
 import tempfile
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import yaml
+
+from yamlfile import DocumentError, Key, Node, integer, kind, one_of, parse_document, string
 
 from .skills.record import TaughtRecord, pose_to_yaml
 
@@ -49,11 +53,11 @@ __all__ = [
 
 FORMAT = "cellvision-taught"
 SCHEMA_VERSION = 2
-RECORD_KEYS = {"skill", "name", "revision", "frame", "taught_at", "notes", "params"}
 
 
-class TeachStoreError(ValueError):
-    """A teach store file that cannot be read or written; the message names file, record, key."""
+class TeachStoreError(DocumentError):
+    """A teach store file that cannot be read or written; the message names file, line, record
+    and key."""
 
 
 class UnknownRecord(TeachStoreError, LookupError):
@@ -127,39 +131,88 @@ def upgrade(doc: dict[str, Any]) -> tuple[dict[str, Any], int]:
     return doc, original
 
 
-# --- records ------------------------------------------------------------------------------
+# --- reading ------------------------------------------------------------------------------
 
 
-def _record_from_dict(item: Any, index: int) -> TaughtRecord:
-    where = f"records[{index}]"
-    if not isinstance(item, dict):
-        raise TeachStoreError(f"{where}: expected a mapping, got {type(item).__name__}")
-    label = f"{where} ({item.get('skill')}/{item.get('name')})"
-    unknown = sorted(set(item) - RECORD_KEYS)
-    if unknown:
-        raise TeachStoreError(f"{label}: unknown key(s) {', '.join(map(repr, unknown))}")
+class _StoreNode(Node):
+    """A mapping of a teach store file; errors are TeachStoreErrors."""
 
-    def text(key: str, default: str | None = None) -> str:
-        value = item.get(key, default)
-        if not isinstance(value, str) or (default is None and not value):
-            raise TeachStoreError(f"{label}: key {key!r}: expected a non-empty string")
-        return value
+    error_type = TeachStoreError
 
-    revision = item.get("revision", 1)
-    if isinstance(revision, bool) or not isinstance(revision, int) or revision < 1:
-        raise TeachStoreError(f"{label}: key 'revision': expected a positive integer")
-    params = item.get("params") or {}
-    if not isinstance(params, dict) or not all(isinstance(k, str) for k in params):
-        raise TeachStoreError(f"{label}: key 'params': expected a mapping of parameter names")
-    return TaughtRecord(
-        skill=text("skill"),
-        name=text("name"),
-        params=params,
-        frame=text("frame", "base") or "base",
-        revision=revision,
-        taught_at=str(item.get("taught_at") or ""),
-        notes=text("notes", ""),
+    def error(self, message: str, key: Key | None = None) -> TeachStoreError:
+        return cast(TeachStoreError, super().error(message, key))
+
+
+def _version_key(root: _StoreNode) -> str:
+    return "schema_version" if "schema_version" in root or "version" not in root else "version"
+
+
+def _upgraded(root: _StoreNode) -> tuple[_StoreNode, int]:
+    """The document at :data:`SCHEMA_VERSION` and the version it was written in. An upgraded
+    document's records keep the lines their entries are written on (version 1: under
+    ``skills:``), so that its errors still point into the file."""
+    key = _version_key(root)
+    version = root.take(key, integer)
+    if version > SCHEMA_VERSION:
+        raise root.error(
+            f"schema_version {version} is newer than this program reads ({SCHEMA_VERSION}); "
+            f"update cellvision",
+            key,
+        )
+    if version == SCHEMA_VERSION:
+        return root, version
+    lines: dict[tuple[Key, ...], int] = {}
+    if version == 1:
+        skills = root.sub("skills")
+        for index, (name, entry) in enumerate(skills.data.items()):
+            if not isinstance(entry, dict):
+                raise skills.error(f"expected a mapping, got {kind(entry)}", str(name))
+            line = skills.line(str(name))
+            if line is not None:
+                lines[("records", index)] = line
+    try:
+        doc, _ = upgrade(dict(root.data))
+    except TeachStoreError as exc:
+        raise root.error(str(exc)) from None
+    return _StoreNode(doc, (), root.source, lines, {}), version
+
+
+def _positive_int(value: Any) -> int:
+    out = integer(value)
+    if out < 1:
+        raise ValueError(f"expected an integer >= 1, got {value!r}")
+    return out
+
+
+def _params(value: Any) -> dict[str, Any]:
+    if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+        raise ValueError(f"expected a mapping of parameter names, got {kind(value)}")
+    return value
+
+
+def _record(node: _StoreNode) -> TaughtRecord:
+    node.label(f"{node.data.get('skill')}/{node.data.get('name')}")
+    record = TaughtRecord(
+        skill=node.take("skill", string),
+        name=node.take("name", string),
+        params=node.take("params", _params, {}),
+        frame=node.take("frame", _text, "base") or "base",
+        revision=node.take("revision", _positive_int, 1),
+        taught_at=str(node.take("taught_at", _any, "")),
+        notes=node.take("notes", _text, ""),
     )
+    node.finish()
+    return record
+
+
+def _any(value: Any) -> Any:
+    return value
+
+
+def _text(value: Any) -> str:
+    if not isinstance(value, str):
+        raise ValueError(f"expected a string, got {kind(value)}")
+    return value
 
 
 class TeachStore:
@@ -174,46 +227,33 @@ class TeachStore:
         self.upgraded_from: int | None = None
 
     def _error(self, message: str) -> TeachStoreError:
-        return TeachStoreError(f"{self.path}: {message}")
+        return TeachStoreError(message, source=str(self.path))
 
     def _read(self) -> list[TaughtRecord]:
         try:
             text = self.path.read_text(encoding="utf-8")
         except FileNotFoundError:
             return []
-        except OSError as exc:
-            raise self._error(f"cannot read: {exc.strerror or exc}") from exc
-        try:
-            doc = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            line = f" line {mark.line + 1}" if mark is not None else ""
-            raise self._error(f"not valid YAML{line}: {getattr(exc, 'problem', exc)}") from None
-        if doc is None:
-            return []
-        if not isinstance(doc, dict):
-            raise self._error("expected a mapping at the top level")
-        try:
-            doc, version = upgrade(doc)
-            self.upgraded_from = version if version < SCHEMA_VERSION else None
-            if doc.get("format") != FORMAT:
-                raise TeachStoreError(
-                    f"key 'format': expected {FORMAT!r}, got {doc.get('format')!r}"
-                )
-            unknown = sorted(set(doc) - {"format", "schema_version", "records"})
-            if unknown:
-                raise TeachStoreError(f"unknown top-level key(s) {', '.join(map(repr, unknown))}")
-            items = doc.get("records") or []
-            if not isinstance(items, list):
-                raise TeachStoreError("key 'records': expected a list")
-            records = [_record_from_dict(item, i) for i, item in enumerate(items)]
-        except TeachStoreError as exc:
-            raise self._error(str(exc)) from None
-        seen: set[str] = set()
-        for r in records:
-            if r.key in seen:
-                raise self._error(f"record {r.key} appears twice")
-            seen.add(r.key)
+        except (OSError, UnicodeDecodeError) as exc:
+            raise self._error(f"cannot read: {getattr(exc, 'strerror', None) or exc}") from None
+        root = parse_document(text, source=str(self.path), node_type=_StoreNode)
+        if not root.data:
+            return []  # an empty file: nothing taught yet
+        root, version = _upgraded(root)
+        self.upgraded_from = version if version < SCHEMA_VERSION else None
+        root.take("format", one_of(FORMAT))
+        root.take("schema_version", integer)
+        nodes = root.items("records")
+        root.finish()
+        records: list[TaughtRecord] = []
+        first: dict[str, int] = {}
+        for index, node in enumerate(nodes):
+            record = _record(node)
+            if record.key in first:
+                where = f"records[{first[record.key]}]"
+                raise node.error(f"record {record.key} appears twice (first as {where})")
+            first[record.key] = index
+            records.append(record)
         return records
 
     def _write(self, records: list[TaughtRecord]) -> None:

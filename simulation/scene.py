@@ -10,6 +10,7 @@ The scene never changes while the cell runs; what moves (parts, the robot) is in
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -19,7 +20,7 @@ from numpy.typing import NDArray
 
 from geometry import CameraIntrinsics, make_transform, transform_from_xyz_rpy
 from simulation import _yaml as y
-from simulation._yaml import ConfigReader, SceneError
+from simulation._yaml import SceneError, SceneNode
 
 __all__ = [
     "BinSpec",
@@ -288,7 +289,7 @@ def camera_preset(model: str) -> tuple[CameraIntrinsics, int, DepthSpec | None]:
 # --- parsing -------------------------------------------------------------------------------
 
 
-def _pose(reader: ConfigReader, *, allow_look_at: bool = False) -> FloatArray:
+def _pose(reader: SceneNode, *, allow_look_at: bool = False) -> FloatArray:
     if reader.has("eye"):
         if not allow_look_at:
             raise reader.error("look-at poses (eye/target) are only allowed for fixed cameras")
@@ -317,15 +318,15 @@ class _Supports:
     def __init__(self) -> None:
         self.tops: dict[str, float] = {}
 
-    def place(self, reader: ConfigReader, yaw_key: str = "yaw") -> FloatArray:
+    def place(self, reader: SceneNode, yaw_key: str = "yaw") -> FloatArray:
         """A pose from ``at`` + ``support`` (+ ``yaw``), or from ``pose``.
 
         (Not ``on``: YAML 1.1 reads the key ``on`` as the boolean true.)
         """
         if reader.has("pose"):
-            return _pose(reader.sub("pose"))
+            return _pose(reader.sub("pose", required=True))
         at = reader.take("at", y.vec2)
-        name = reader.take("support", y.text)
+        name = reader.take("support", y.string)
         if name not in self.tops:
             known = ", ".join(self.tops)
             raise reader.error(f"unknown support {name!r} (known: {known})", "support")
@@ -333,28 +334,28 @@ class _Supports:
         return transform_from_xyz_rpy([at[0], at[1], self.tops[name]], [0.0, 0.0, yaw])
 
 
-def _unique(name: str, seen: set[str], reader: ConfigReader) -> str:
+def _unique(name: str, seen: set[str], reader: SceneNode) -> str:
     if name in seen:
         raise reader.error(f"duplicate name {name!r}", "name")
     seen.add(name)
     return name
 
 
-def _surface(r: ConfigReader) -> SurfaceSpec:
+def _surface(r: SceneNode) -> SurfaceSpec:
     tex_reader = r.sub_optional("texture")
     texture = None
     if tex_reader is not None:
         texture = TextureSpec(
             kind=tex_reader.take("kind", y.one_of("stripes", "noise")),
             period_m=tex_reader.take("period_m", y.positive, 0.02),
-            contrast=tex_reader.take("contrast", y.probability, 0.05),
+            contrast=tex_reader.take("contrast", y.fraction, 0.05),
         )
         tex_reader.finish()
     size = r.take("size", y.vec2)
     if min(size) <= 0:
         raise r.error("sizes must be positive", "size")
     spec = SurfaceSpec(
-        name=r.take("name", y.text),
+        name=r.take("name", y.string),
         kind=r.take("kind", y.one_of("floor", "table", "conveyor", "station"), "table"),
         center=r.take("center", y.vec2),
         height=r.take("height", y.number),
@@ -374,8 +375,8 @@ _PART_DEFAULTS: dict[str, dict[str, Any]] = {
 }
 
 
-def _part(r: ConfigReader, supports: _Supports) -> PartSpec:
-    name = r.take("name", y.text)
+def _part(r: SceneNode, supports: _Supports) -> PartSpec:
+    name = r.take("name", y.string)
     ptype = r.take("type", y.one_of(*PART_TYPES))
     defaults = _PART_DEFAULTS[ptype]
     world_from_part = supports.place(r)
@@ -416,14 +417,14 @@ def _part(r: ConfigReader, supports: _Supports) -> PartSpec:
     return spec
 
 
-def _box_size(r: ConfigReader) -> tuple[float, float, float]:
+def _box_size(r: SceneNode) -> tuple[float, float, float]:
     size = r.take("size", y.vec3)
     if min(size) <= 0:
         raise r.error("sizes must be positive", "size")
     return size
 
 
-def _depth(r: ConfigReader, base: DepthSpec) -> DepthSpec:
+def _depth(r: SceneNode, base: DepthSpec) -> DepthSpec:
     rng = r.take("range_m", y.vec2, base.range_m)
     if not 0 < rng[0] < rng[1]:
         raise r.error("expected 0 < near < far", "range_m")
@@ -435,7 +436,7 @@ def _depth(r: ConfigReader, base: DepthSpec) -> DepthSpec:
         disparity_sigma_px=r.take("disparity_sigma_px", y.non_negative, base.disparity_sigma_px),
         subpixel_steps=steps,
         range_m=rng,
-        dropout=r.take("dropout", y.probability, base.dropout),
+        dropout=r.take("dropout", y.fraction, base.dropout),
         edge_jump_m=r.take("edge_jump_m", y.positive, base.edge_jump_m),
         edge_jump_rel=r.take("edge_jump_rel", y.non_negative, base.edge_jump_rel),
         misregistration_px=r.take("misregistration_px", y.vec2, base.misregistration_px),
@@ -445,23 +446,34 @@ def _depth(r: ConfigReader, base: DepthSpec) -> DepthSpec:
     return spec
 
 
-def _camera(r: ConfigReader) -> CameraSpec:
-    name = r.take("name", y.text)
-    model = r.take_optional("model", y.one_of("dmk31bf03", "xtion"))
+_INTRINSICS: tuple[tuple[str, Callable[[Any], float]], ...] = (
+    ("width", y.integer),
+    ("height", y.integer),
+    ("fx", y.number),
+    ("fy", y.number),
+    ("cx", y.number),
+    ("cy", y.number),
+)
+
+
+def _camera(r: SceneNode) -> CameraSpec:
+    name = r.take("name", y.string)
+    model = r.take("model", y.one_of("dmk31bf03", "xtion"), None)
     if model is not None:
         intr, channels, depth = camera_preset(model)
     else:
         intr, channels, depth = None, 3, None
     mount = r.take("mount", y.one_of("tool", "fixed"))
-    pose = _pose(r.sub("pose"), allow_look_at=mount == "fixed")
+    pose = _pose(r.sub("pose", required=True), allow_look_at=mount == "fixed")
     ir = r.sub_optional("intrinsics")
     if ir is not None:
         base = intr
         fields: dict[str, Any] = {}
-        for key in ("width", "height"):
-            fields[key] = ir.take(key, y.integer, getattr(base, key) if base else None)
-        for key in ("fx", "fy", "cx", "cy"):
-            fields[key] = ir.take(key, y.number, getattr(base, key) if base else None)
+        # Without a model every intrinsic is required; with one, each defaults to the model's.
+        for key, convert in _INTRINSICS:
+            fields[key] = (
+                ir.take(key, convert) if base is None else ir.take(key, convert, getattr(base, key))
+            )
         fields["dist"] = ir.take("dist", y.vec5, base.dist if base else (0.0,) * 5)
         try:
             intr = CameraIntrinsics(**fields)
@@ -473,11 +485,9 @@ def _camera(r: ConfigReader) -> CameraSpec:
     channels = r.take("channels", y.integer, channels)
     if channels not in (1, 3):
         raise r.error("expected 1 or 3", "channels")
-    if r.has("depth"):
-        if r.take("depth", lambda v: v) is None:
-            depth = None
-        else:
-            depth = _depth(r.sub("depth"), depth or DepthSpec())
+    if "depth" in r:  # a mapping of depth settings, or null for a colour-only camera
+        dr = r.sub_optional("depth")
+        depth = None if dr is None else _depth(dr, depth or DepthSpec())
     spec = CameraSpec(
         name=name,
         mount=mount,
@@ -486,15 +496,15 @@ def _camera(r: ConfigReader) -> CameraSpec:
         channels=channels,
         noise_sigma=r.take("noise_sigma", y.non_negative, 1.5),
         blur_sigma_px=r.take("blur_sigma_px", y.non_negative, 0.0),
-        vignetting=r.take("vignetting", y.probability, 0.15),
+        vignetting=r.take("vignetting", y.fraction, 0.15),
         depth=depth,
     )
     r.finish()
     return spec
 
 
-def _robot(r: ConfigReader) -> RobotSpec:
-    ws = r.sub("workspace")
+def _robot(r: SceneNode) -> RobotSpec:
+    ws = r.sub("workspace", required=True)
     wmin = ws.take("min", y.vec3)
     wmax = ws.take("max", y.vec3)
     ws.finish()
@@ -515,8 +525,8 @@ def _robot(r: ConfigReader) -> RobotSpec:
         dyaw = dock.take("yaw", y.non_negative, 0.0)
         dock.finish()
     spec = RobotSpec(
-        world_from_base=_pose(r.sub("world_from_base")),
-        home=_pose(r.sub("home")),
+        world_from_base=_pose(r.sub("world_from_base", required=True)),
+        home=_pose(r.sub("home", required=True)),
         speed_m_s=r.take("speed_m_s", y.positive, 0.25),
         angular_speed_rad_s=r.take("angular_speed_rad_s", y.positive, 1.0),
         workspace_min=wmin,
@@ -530,7 +540,7 @@ def _robot(r: ConfigReader) -> RobotSpec:
     return spec
 
 
-def parse_scene(reader: ConfigReader) -> Scene:
+def parse_scene(reader: SceneNode) -> Scene:
     """Validate a parsed scene document (see :func:`load_scene`)."""
     names: set[str] = set()
     supports = _Supports()
@@ -544,7 +554,7 @@ def parse_scene(reader: ConfigReader) -> Scene:
 
     boxes = []
     for br in reader.items("boxes"):
-        name = _unique(br.take("name", y.text), names, br)
+        name = _unique(br.take("name", y.string), names, br)
         pose = supports.place(br)
         b = BoxSpec(name, pose, _box_size(br), br.take("color", y.color, (150.0, 150.0, 150.0)))
         br.finish()
@@ -553,7 +563,7 @@ def parse_scene(reader: ConfigReader) -> Scene:
 
     bins = []
     for br in reader.items("bins"):
-        name = _unique(br.take("name", y.text), names, br)
+        name = _unique(br.take("name", y.string), names, br)
         pose = supports.place(br)
         size = _box_size(br)
         wall = br.take("wall_m", y.positive, 0.005)
@@ -571,15 +581,15 @@ def parse_scene(reader: ConfigReader) -> Scene:
 
     boards = []
     for qr in reader.items("qr_boards"):
-        name = _unique(qr.take("name", y.text), names, qr)
+        name = _unique(qr.take("name", y.string), names, qr)
         side = qr.take("side_m", y.positive)
         boards.append(
             QRBoardSpec(
                 name=name,
-                text=qr.take("text", y.text),
+                text=qr.take("text", y.string),
                 side_m=side,
                 margin_m=qr.take("margin_m", y.non_negative, side * 0.2),
-                world_from_board=_pose(qr.sub("pose")),
+                world_from_board=_pose(qr.sub("pose", required=True)),
                 dark=qr.take("dark", y.color, (20.0, 20.0, 20.0)),
                 light=qr.take("light", y.color, (235.0, 235.0, 235.0)),
             )
@@ -588,11 +598,11 @@ def parse_scene(reader: ConfigReader) -> Scene:
 
     switches = []
     for sw in reader.items("switches"):
-        name = _unique(sw.take("name", y.text), names, sw)
+        name = _unique(sw.take("name", y.string), names, sw)
         switches.append(
             SwitchSpec(
                 name,
-                _pose(sw.sub("pose")),
+                _pose(sw.sub("pose", required=True)),
                 sw.take("size", y.vec3, (0.03, 0.05, 0.02)),
                 sw.take("color", y.color, (40.0, 40.0, 200.0)),
             )
@@ -615,13 +625,13 @@ def parse_scene(reader: ConfigReader) -> Scene:
             raise lr.error("must be non-zero", "direction")
         light = LightSpec(
             direction=direction,
-            ambient=lr.take("ambient", y.probability, light.ambient),
-            diffuse=lr.take("diffuse", y.probability, light.diffuse),
+            ambient=lr.take("ambient", y.fraction, light.ambient),
+            diffuse=lr.take("diffuse", y.fraction, light.diffuse),
         )
         lr.finish()
 
     scene = Scene(
-        name=reader.take("name", y.text),
+        name=reader.take("name", y.string),
         seed=reader.take("seed", y.integer, 0),
         source=reader.source,
         light=light,
@@ -632,7 +642,7 @@ def parse_scene(reader: ConfigReader) -> Scene:
         boxes=tuple(boxes),
         qr_boards=tuple(boards),
         switches=tuple(switches),
-        robot=_robot(reader.sub("robot")),
+        robot=_robot(reader.sub("robot", required=True)),
         cameras=tuple(cameras),
     )
     reader.finish()

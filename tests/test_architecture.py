@@ -10,12 +10,19 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-OURS = {"protocol", "vision_server", "robot_client", "simulation", "geometry"}
+OURS = {"protocol", "vision_server", "robot_client", "simulation", "geometry", "yamlfile"}
 IO_FRAMEWORKS = {"asyncio", "socket", "ssl", "selectors", "socketserver", "trio", "anyio"}
 THIRD_PARTY_ALLOWED = {
-    # simulation: numpy/OpenCV, and PyYAML for its scene files
-    "simulation": {"numpy", "cv2", "yaml"},
+    # simulation: numpy/OpenCV; it reads its scene files through yamlfile, not PyYAML itself
+    "simulation": {"numpy", "cv2"},
     "geometry": {"numpy", "cv2"},
+    # the one YAML reader: PyYAML only, so that every package may use it
+    "yamlfile": {"yaml"},
+}
+OURS_ALLOWED = {
+    "simulation": {"simulation", "geometry", "yamlfile"},
+    "geometry": {"geometry"},
+    "yamlfile": {"yamlfile"},
 }
 
 
@@ -67,12 +74,13 @@ def test_server_and_client_never_import_each_other(package: str, forbidden: str)
         assert forbidden not in _imports(path), f"{path} imports {forbidden}"
 
 
-@pytest.mark.parametrize("package", ["simulation", "geometry"])
-def test_simulation_and_geometry_import_only_what_design_allows(package: str) -> None:
+@pytest.mark.parametrize("package", ["simulation", "geometry", "yamlfile"])
+def test_simulation_geometry_and_yamlfile_import_only_what_design_allows(package: str) -> None:
+    """simulation: numpy, OpenCV, geometry and yamlfile; geometry: numpy and OpenCV;
+    yamlfile: PyYAML and nothing of ours (every package reads its files through it)."""
     stdlib = set(sys.stdlib_module_names) | {"__future__"}
-    ours_allowed = {package} | ({"geometry"} if package == "simulation" else set())
     for path in _files(package):
-        extra = _imports(path) - stdlib - ours_allowed - THIRD_PARTY_ALLOWED[package]
+        extra = _imports(path) - stdlib - OURS_ALLOWED[package] - THIRD_PARTY_ALLOWED[package]
         assert not extra, f"{path} imports {extra}"
 
 

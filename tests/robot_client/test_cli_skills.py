@@ -95,6 +95,17 @@ def test_usage_errors_exit_2(
     assert main(["run", "move_to", "x", "--backend", "ur", *opts]) == 2
 
 
+def test_a_broken_world_file_names_its_line_and_key(
+    opts: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["teach", "move_to", "x", "pose=0.68,0.3,0.3,3.14159265,0,0", *opts]) == 0
+    world = tmp_path / "taught.world.yaml"  # beside the store, written by teach
+    assert world.exists()
+    world.write_text("held_part: null\ncalibrations: []\nheld_part: cap_1\n")
+    assert main(["run", "move_to", "x", *opts]) == 2
+    assert f"{world}:3 held_part: duplicate key 'held_part' (first on line 1)" in _err(capsys)
+
+
 def test_skills_lists_specs(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["skills", "--json"]) == 0
     names = {s["name"]: s for s in _json(capsys)["skills"]}

@@ -181,20 +181,20 @@ def test_unknown_skills_and_records_are_found_before_anything_moves(setup) -> No
         ("steps: []\n", "steps: expected a non-empty list"),
         (
             "steps:\n  - count: ok\n    on_failure: shrug\n",
-            r"steps\[0\]\.on_failure: expected stop",
+            r"demo.yaml:3 steps\[0\] -> on_failure: expected stop",
         ),
-        ("steps:\n  - repeat: 0\n    steps: [{count: ok}]\n", r"steps\[0\]\.repeat"),
+        ("steps:\n  - repeat: 0\n    steps: [{count: ok}]\n", r"demo.yaml:2 steps\[0\] -> repeat"),
         ("steps:\n  - {a: b, c: d}\n", r"steps\[0\]: a step is"),
         (
             "steps:\n  - repeat: 2\n    steps:\n      - 7\n",
-            r"steps\[0\]\.steps\[0\]: expected a mapping",
+            r"demo.yaml:4 steps\[0\] -> steps\[0\]: expected a mapping",
         ),
         (
             "steps:\n  - count: ok\n    on_failure: {retry: {times: -1}}\n",
-            r"steps\[0\]\.on_failure\.retry\.times",
+            r"demo.yaml:3 steps\[0\] -> on_failure -> retry -> times",
         ),
-        ("colour: red\nsteps: [{count: ok}]\n", "unknown top-level key"),
-        ("steps: [\n", "not valid YAML line"),
+        ("colour: red\nsteps: [{count: ok}]\n", "demo.yaml:1 colour: unknown key"),
+        ("steps: [\n", "demo.yaml:2: invalid YAML"),
     ],
 )
 def test_parse_errors_name_the_key_path(text: str, match: str) -> None:

@@ -68,27 +68,27 @@ def test_a_failed_write_leaves_the_old_file(
 @pytest.mark.parametrize(
     ("text", "match"),
     [
-        ("records: [\n  - {skill: a\n", r"t\.yaml: not valid YAML line"),
-        ("- 1\n", "mapping at the top level"),
+        ("records: [\n  - {skill: a\n", r"t\.yaml:2: invalid YAML"),
+        ("- 1\n", "t.yaml:1: the top level must be a mapping"),
         ("format: cellvision-taught\nschema_version: 99\n", "newer than this program"),
-        ("format: other\nschema_version: 2\n", "key 'format'"),
+        ("format: other\nschema_version: 2\n", "t.yaml:1 format: expected one of"),
         (
             HEAD + "  - {skill: place, name: a, colour: red}\n",
-            r"records\[0\] \(place/a\): unknown key\(s\) 'colour'",
+            r"t\.yaml:4 records\[0\] \(place/a\) -> colour: unknown key",
         ),
         (
             HEAD + "  - {skill: place, name: a, revision: 0}\n",
-            r"records\[0\] \(place/a\): key 'revision'",
+            r"t\.yaml:4 records\[0\] \(place/a\) -> revision: expected an integer >= 1",
         ),
         (
             HEAD + "  - {skill: place}\n",
-            r"records\[0\] \(place/None\): key 'name'",
+            r"t\.yaml:4 records\[0\] \(place/None\): missing required key 'name'",
         ),
         (
             HEAD + "  - {skill: p, name: a}\n  - {skill: p, name: a}\n",
             "p/a appears twice",
         ),
-        ("format: cellvision-taught\nschema_version: 2\nextra: 1\n", "unknown top-level key"),
+        ("format: cellvision-taught\nschema_version: 2\nextra: 1\n", "t.yaml:3 extra: unknown key"),
     ],
 )
 def test_errors_name_file_record_and_key(tmp_path: Path, text: str, match: str) -> None:
@@ -101,7 +101,7 @@ def test_errors_name_file_record_and_key(tmp_path: Path, text: str, match: str) 
 def test_yaml_tags_are_not_executed(tmp_path: Path) -> None:
     path = tmp_path / "t.yaml"
     path.write_text("!!python/object/apply:os.system ['echo hacked']\n")
-    with pytest.raises(TeachStoreError, match="not valid YAML"):
+    with pytest.raises(TeachStoreError, match="invalid YAML"):
         TeachStore(path).records()
 
 
@@ -141,3 +141,13 @@ def test_a_version_1_file_is_upgraded(tmp_path: Path) -> None:
     assert doc["schema_version"] == SCHEMA_VERSION
     assert {r["name"] for r in doc["records"]} == {"bin_l2", "switch"}
     assert TeachStore(path).upgraded_from is None
+
+
+def test_an_error_in_a_version_1_file_names_the_line_of_its_entry(tmp_path: Path) -> None:
+    path = tmp_path / "t.yaml"
+    path.write_text("version: 1\nskills:\n  a:\n    skill: place\n  b:\n    params: {x: 1}\n")
+    with pytest.raises(TeachStoreError, match=r"t\.yaml:5 records\[1\] \(None/b\): missing"):
+        TeachStore(path).records()
+    path.write_text("version: 1\nskills:\n  a: 3\n")
+    with pytest.raises(TeachStoreError, match=r"t\.yaml:3 skills -> a: expected a mapping"):
+        TeachStore(path).records()

@@ -11,9 +11,9 @@ from .conftest import BOARD_SCENE
 
 
 def _cell(depth: str = "", seed: int = 5) -> SimCell:
-    text = BOARD_SCENE.replace(
-        "noise_sigma: 1.0}", "noise_sigma: 1.0, depth: {dropout: 0.0" + depth + "}}"
-    )
+    # No dropout unless ``depth`` sets it (scene files refuse a key written twice).
+    settings = depth.removeprefix(", ") if "dropout:" in depth else "dropout: 0.0" + depth
+    text = BOARD_SCENE.replace("noise_sigma: 1.0}", "noise_sigma: 1.0, depth: {" + settings + "}}")
     return SimCell(scene_from_text(text), seed=seed)
 
 

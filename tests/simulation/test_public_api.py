@@ -1,5 +1,5 @@
-"""Public names and import rules: geometry and simulation import only numpy, OpenCV, PyYAML
-and (for simulation) geometry; nothing of ours imports the servers."""
+"""Public names and import rules: geometry and simulation import only numpy and OpenCV, and (for
+simulation) geometry and yamlfile, the one YAML reader; nothing of ours imports the servers."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import simulation
 REPO = Path(__file__).resolve().parents[2]
 ALLOWED = {
     "geometry": {"numpy", "cv2", "geometry"},
-    "simulation": {"numpy", "cv2", "yaml", "geometry", "simulation"},
+    "simulation": {"numpy", "cv2", "geometry", "yamlfile", "simulation"},
 }
 STDLIB_OK = {
     "__future__",

@@ -28,8 +28,14 @@ def test_the_example_scene_delivers_the_magnet_into_its_slot() -> None:
 def test_a_delivery_names_an_unknown_support_or_key() -> None:
     part = "  - {name: c, type: rotor_cap, at: [0, 0], support: wall, delivered: %s}\n"
     for delivered, expected in [
-        ("{at: [0, 0], support: nowhere}", r"parts\[0\].delivered.support: unknown support"),
-        ("{at: [0, 0], support: wall, spin: 1}", r"parts\[0\].delivered.spin: unknown key"),
+        (
+            "{at: [0, 0], support: nowhere}",
+            r"parts\[0\] \(name='c'\) -> delivered -> support: unknown support",
+        ),
+        (
+            "{at: [0, 0], support: wall, spin: 1}",
+            r"parts\[0\] \(name='c'\) -> delivered -> spin: unknown key",
+        ),
     ]:
         text = BOARD_SCENE.replace("qr_boards:", "parts:\n" + part % delivered + "qr_boards:")
         with pytest.raises(SceneError, match=expected):

@@ -33,16 +33,24 @@ def test_example_scene_loads() -> None:
         (
             "side_m: 0.16",
             "side_m: 0.16\n    sise_m: 1",
-            r"board_test.yaml:\d+: qr_boards\[0\].sise_m: unknown key",
+            r"board_test.yaml:\d+ qr_boards\[0\] \(name='qr'\) -> sise_m: unknown key",
         ),
         (
             "side_m: 0.16",
             "side_m: -0.16",
-            r"board_test.yaml:\d+: qr_boards\[0\].side_m: expected a positive",
+            r"board_test.yaml:\d+ qr_boards\[0\] \(name='qr'\) -> side_m: expected a number > 0",
         ),
-        ("color: 150}", "color: [1, 2]}", r"boxes\[0\].color: expected a BGR colour"),
-        ("model: xtion", "model: kinect9", r"cameras\[0\].model: expected one of"),
-        ("max: [1, 1, 2]", "max: [1, 1, -2]", r"robot.workspace: expected min < max"),
+        (
+            "color: 150}",
+            "color: [1, 2]}",
+            r"boxes\[0\] \(name='wall'\) -> color: expected a BGR colour",
+        ),
+        (
+            "model: xtion",
+            "model: kinect9",
+            r"cameras\[0\] \(name='rgbd'\) -> model: expected one of",
+        ),
+        ("max: [1, 1, 2]", "max: [1, 1, -2]", r"robot -> workspace: expected min < max"),
     ],
 )
 def test_errors_name_file_line_and_path(old: str, new: str, expected: str) -> None:
@@ -54,7 +62,9 @@ def test_errors_name_file_line_and_path(old: str, new: str, expected: str) -> No
 def test_error_line_number_is_the_offending_line() -> None:
     text = BOARD_SCENE.replace("side_m: 0.16", "side_m: zero")
     line = text.splitlines().index("    side_m: zero") + 1
-    with pytest.raises(SceneError, match=rf"board_test.yaml:{line}: qr_boards\[0\].side_m"):
+    with pytest.raises(
+        SceneError, match=rf"board_test.yaml:{line} qr_boards\[0\] \(name='qr'\) -> side_m"
+    ):
         scene_from_text(text, source="board_test.yaml")
 
 
@@ -63,7 +73,9 @@ def test_unknown_support_and_duplicate_names() -> None:
         "qr_boards:",
         "parts:\n  - {name: c, type: rotor_cap, at: [0, 0], support: nowhere}\nqr_boards:",
     )
-    with pytest.raises(SceneError, match=r"parts\[0\].support: unknown support 'nowhere'"):
+    with pytest.raises(
+        SceneError, match=r"parts\[0\] \(name='c'\) -> support: unknown support 'nowhere'"
+    ):
         scene_from_text(bad)
     dup = BOARD_SCENE.replace("name: qr\n", "name: wall\n")
     with pytest.raises(SceneError, match="duplicate name 'wall'"):

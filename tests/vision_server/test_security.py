@@ -423,7 +423,14 @@ UNSAFE_LOADERS = {"Loader", "UnsafeLoader", "FullLoader"}
 
 
 def _python_files() -> Iterator[Path]:
-    for package in ("protocol", "vision_server", "robot_client", "simulation", "geometry"):
+    for package in (
+        "protocol",
+        "vision_server",
+        "robot_client",
+        "simulation",
+        "geometry",
+        "yamlfile",
+    ):
         yield from (REPO_ROOT / package).rglob("*.py")
     yield from (REPO_ROOT / "bench").rglob("*.py")
     yield from (REPO_ROOT / "scripts").rglob("*.py")
