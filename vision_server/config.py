@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import ssl
 import types
 import typing
 from collections.abc import Mapping
@@ -160,6 +161,18 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
     for name, value in (("cert", cert), ("key", key)):
         if value is not None and not _resolve(base_dir, value).is_file():
             raise tls.error(f"no such file: {_resolve(base_dir, value)}", name)
+    if cert is not None and key is not None:
+        # What serve would do with them: a key that is not the certificate's, or a file that is
+        # not PEM, is a configuration error here, not a failure to listen later.
+        try:
+            context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+            context.load_cert_chain(_resolve(base_dir, cert), _resolve(base_dir, key))
+        except (ssl.SSLError, OSError) as exc:
+            raise tls.error(
+                f"the certificate and key cannot serve TLS ({exc.strerror or exc}): the key must "
+                "be the certificate's private key, both in PEM",
+                "key",
+            ) from None
     tls.finish()
     port = node.take("port", integer, defaults.port)
     if not 0 <= port < 65536:

@@ -676,3 +676,26 @@ inspections:
         if name.startswith("type: locate"):
             got = got - {"template", "circle", "blob"} | (keys & {"template", "circle", "blob"})
         assert got == keys, f"{name}: validator reads {sorted(got)}, docs list {sorted(keys)}"
+
+
+def test_a_tls_key_that_is_not_the_certificates_is_a_configuration_error(tmp_path: Path) -> None:
+    """check-config said valid and serve then failed to listen (exit 3): now both refuse it as
+    a configuration error with file, line and key."""
+    from certs import self_signed
+
+    first, second = tmp_path / "a", tmp_path / "b"
+    first.mkdir()
+    second.mkdir()
+    cert, _ = self_signed(first)
+    _, other_key = self_signed(second)
+    for key in (other_key, cert):  # another certificate's key; the certificate as its own key
+        text = MINIMAL + f"server:\n  tls: {{cert: {cert}, key: {key}}}\n"
+        error = error_of(tmp_path, text)
+        assert "server -> tls -> key: the certificate and key cannot serve TLS" in str(error)
+        config = str(tmp_path / "cell.yaml")
+        done = subprocess.run(
+            [sys.executable, "-m", "vision_server", "serve", "--config", config],
+            capture_output=True, text=True, timeout=60, check=False,
+        )  # fmt: skip
+        assert done.returncode == 2, done.stderr
+        assert "cannot serve TLS" in done.stderr
