@@ -20,6 +20,8 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
+from protocol.cli import ErrorKind, json_error
+
 from .results import ResultLog, ResultLogError, StoredResult
 
 __all__ = ["describe_health", "parse_since", "results_command"]
@@ -94,32 +96,36 @@ def results_command(
     console: Console,
     err_console: Console | None = None,
 ) -> int:
-    """List results, newest first; return the exit status (0 ok, 1 no readable log, 2 bad
-    argument).
+    """List results, newest first; return the exit status (0 ok; 2 a bad argument or no
+    readable log: the table of docs/integrator-guide.md §6, where 1 means a fail verdict).
 
     ``json_out`` writes one JSON object per line (see :meth:`StoredResult.to_json`) to
-    ``console.file`` and nothing else; otherwise a table. Errors go to ``err_console`` (default:
-    standard error).
+    ``console.file`` and nothing else, and an error as the one JSON error shape; otherwise a
+    table, and errors go to ``err_console`` (default: standard error).
     """
     err = err_console if err_console is not None else Console(stderr=True)
+
+    def fail(message: str) -> int:
+        if json_out:
+            console.file.write(json.dumps(json_error(ErrorKind.USAGE, message)) + "\n")
+            console.file.flush()
+        else:
+            err.print(f"[red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+        return int(ErrorKind.USAGE.exit_code)
+
     try:
         since_time = parse_since(since) if since is not None else None
     except ValueError as exc:
-        err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
-        return 2
+        return fail(str(exc))
     if limit < 0:
-        err.print(
-            f"[red]error:[/] --limit must be >= 0, got {limit}", highlight=False, soft_wrap=True
-        )
-        return 2
+        return fail(f"--limit must be >= 0, got {limit}")
     passed = False if failed_only else None
     try:
         with ResultLog.open_readonly(db) as log:
             rows = log.query(since=since_time, inspection=inspection, passed=passed, limit=limit)
             total = log.count(since=since_time, inspection=inspection, passed=passed)
     except ResultLogError as exc:
-        err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
-        return 1
+        return fail(str(exc))
     if json_out:
         for row in rows:
             console.file.write(json.dumps(row.to_json(), separators=(",", ":")) + "\n")

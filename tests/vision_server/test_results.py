@@ -787,11 +787,20 @@ def test_results_command_errors(db: Path, tmp_path: Path) -> None:
         "console": console,
         "err_console": err_console,
     }
+    # With --json, errors are the one JSON error shape on stdout; a missing log is a usage
+    # error (exit 2: exit 1 means a fail verdict, docs/integrator-guide.md §6).
     missing = tmp_path / "missing.db"
-    assert results_command(missing, since=None, **common) == 1
+    assert results_command(missing, since=None, **common) == 2
     assert not missing.exists()
-    assert "no result log" in err.getvalue()
+    error = json.loads(out.getvalue())["error"]
+    assert error["kind"] == "usage"
+    assert "no result log" in error["message"]
     _filled(db)
+    out.truncate(0)
+    out.seek(0)
     assert results_command(db, since="last tuesday", **common) == 2
-    assert "--since" in err.getvalue()
-    assert out.getvalue() == ""
+    assert "--since" in json.loads(out.getvalue())["error"]["message"]
+    assert err.getvalue() == ""
+    # Without --json they go to standard error as text.
+    assert results_command(missing, since=None, **{**common, "json_out": False}) == 2
+    assert "no result log" in err.getvalue()
