@@ -8,6 +8,7 @@ name the file, the line and the key path::
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Callable, Iterator
 from typing import Any, ClassVar, Self, TypeVar, overload
 
@@ -115,7 +116,7 @@ class Node:
         self._taken.add(key)
         if key not in self.data or self.data[key] is None:
             if default is _REQUIRED:
-                raise self.error(f"missing required key {key!r}")
+                raise self.error(f"missing required key {key!r}{self._typo_of(key)}")
             return default
         try:
             return convert(self.data[key])
@@ -130,7 +131,7 @@ class Node:
         value = self.data.get(key)
         if value is None:
             if required:
-                raise self.error(f"missing required key {key!r}")
+                raise self.error(f"missing required key {key!r}{self._typo_of(key)}")
             value = {}
         if not isinstance(value, dict):
             raise self.error(f"expected a mapping, got {kind(value)}", key)
@@ -177,6 +178,13 @@ class Node:
             if not isinstance(value, dict):
                 raise sub.error(f"expected a mapping, got {kind(value)}", name)
             yield name, sub._child(value, (*sub.path, name))
+
+    def _typo_of(self, key: str) -> str:
+        """``" (is 'mesure' a typo of it?)"`` when a key not read yet looks like ``key``: a
+        misspelt required key is reported where it is missing, so name the misspelling too."""
+        others = [str(k) for k in self.data if str(k) not in self._taken and str(k) != key]
+        close = difflib.get_close_matches(key, others, n=1, cutoff=0.75)
+        return f" (is {close[0]!r} a typo of it?)" if close else ""
 
     def finish(self) -> None:
         """Refuse the first key that was not taken (a typo, or a key of another version)."""

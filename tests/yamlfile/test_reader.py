@@ -68,3 +68,18 @@ def test_a_label_shows_after_the_item_s_index() -> None:
     item.label("place/a")
     assert item.describe("x") == "records[0] (place/a) -> x"
     assert item.line("x") == 2
+
+
+def test_a_misspelt_required_key_is_named_where_the_key_is_missing(tmp_path: Path) -> None:
+    """The integrator wrote ``mesure:``; before, the error said only that ``measure`` was
+    missing and never named the line's misspelling."""
+    path = tmp_path / "cell.yaml"
+    path.write_text("inspection:\n  mesure: dark_fraction\n  min: 0.2\n", encoding="utf-8")
+    root, _ = read_document(path)
+    node = root.sub("inspection")
+    with pytest.raises(DocumentError, match=r"missing required key 'measure' \(is 'mesure' a typo"):
+        node.take("measure", str)
+    unrelated = root.sub("inspection")
+    with pytest.raises(DocumentError) as excinfo:
+        unrelated.take("template", str)
+    assert "typo" not in str(excinfo.value)  # no guess when nothing is alike
