@@ -181,6 +181,15 @@ class VisionClient:
             raise ConnectionLost(
                 f"{self.host}:{self.port} did not answer HELLO within {self.connect_timeout_s} s"
             ) from None
+        except ConnectionLost as exc:
+            await self._drop_connection(ConnectionLost("handshake failed"))
+            if self.ssl is None:
+                # A TLS server drops a plain-TCP HELLO without a word: say what it may mean.
+                raise ConnectionLost(
+                    f"{exc} before answering HELLO (if {self.host}:{self.port} requires TLS, "
+                    "connect with TLS: --tls)"
+                ) from exc
+            raise
         except BaseException:
             await self._drop_connection(ConnectionLost("handshake failed"))
             raise

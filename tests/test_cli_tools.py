@@ -190,6 +190,7 @@ def test_a_secured_server_refuses_plain_tcp_and_clients_without_the_token(
     base = ["ping", "--server", secured.address, "--timeout", "10"]
     plain_tcp = tool(name, *base, "--token-file", str(secured.token_file))
     assert plain_tcp.returncode == 3, plain_tcp.stderr
+    assert "requires TLS" in plain_tcp.stderr  # the message says what it may mean
     untrusted = tool(name, *base, "--tls", "--token-file", str(secured.token_file))
     assert untrusted.returncode == 3, untrusted.stderr  # the system CAs do not know the cert
     no_token = tool(name, *base, "--ca", str(secured.cert), "--json")

@@ -144,7 +144,16 @@ def call(
                 raise AdminError(f"{host}:{port} shows another certificate than the configured one")
         with sock:
             sock.sendall(conn.send(Hello(1, SUPPORTED_VERSIONS, "vision-server-admin", auth_token)))
-            _answer(sock, conn, deadline)
+            try:
+                _answer(sock, conn, deadline)
+            except AdminError as exc:
+                if context is None and "closed" in str(exc):
+                    # A TLS server drops a plain-TCP HELLO without a word.
+                    raise AdminError(
+                        f"{exc} (before answering HELLO: if {host}:{port} requires TLS, "
+                        "connect with --tls)"
+                    ) from None
+                raise
             sock.sendall(conn.send(build(2)))
             return _answer(sock, conn, deadline)
     except ssl.SSLError as exc:
