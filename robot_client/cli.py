@@ -32,7 +32,7 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from protocol import CellvisionError, ImagePayload, ImageRole, Result
+from protocol import CellvisionError, ImagePayload, ImageRole, Result, array_from_payload
 from protocol.cli import ErrorKind, ExitCode, Parser, ParserError, json_error, version_text
 from protocol.image_files import (
     ImageFileError,
@@ -202,6 +202,42 @@ def _write_overlay(args: argparse.Namespace, result: Result) -> ExitCode:
     return ExitCode.OK
 
 
+def _prepare_capture(args: argparse.Namespace) -> None:
+    """Before connecting: the output folder must exist (no folder is created unasked)."""
+    if not os.path.isdir(args.out):
+        raise ValueError(f"--out {args.out}: no such folder")
+    if args.count < 1:
+        raise ValueError(f"--count must be >= 1, got {args.count}")
+
+
+async def _capture(args: argparse.Namespace, client: VisionClient, console: Console) -> int:
+    """CAPTURE raw frames from a server camera and write each as a lossless PNG (depth as
+    16-bit PNG in millimetres), for golden cases and offline tuning."""
+    frames = await client.capture(args.camera, count=args.count, depth=args.depth)
+    written: list[dict[str, Any]] = []
+    frame = -1
+    for payload in frames.images:
+        if payload.role is ImageRole.COLOR:
+            frame += 1
+        suffix = "depth" if payload.role is ImageRole.DEPTH else "color"
+        path = Path(args.out) / f"{args.camera}-{frame:03d}-{suffix}.png"
+        array = array_from_payload(payload)
+        try:
+            path.write_bytes(encode_overlay(array, ".png"))
+        except (OSError, ImageFileError) as exc:
+            message = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            return _report(
+                ErrorKind.USAGE, f"cannot write {path}: {message}", None, as_json=bool(args.json)
+            )
+        written.append({"file": str(path), "role": payload.role.value, "frame": frame})
+    if args.json:
+        print(json.dumps({"camera": frames.camera, "files": written}))
+    else:
+        for item in written:
+            console.print(Text(f"wrote {item['file']}"))
+    return ExitCode.OK
+
+
 DEFAULT_TIMEOUT_S = 10.0
 
 
@@ -256,6 +292,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="save the overlay image here (.png, .jpg, ...; the folder must exist)",
     )
     one.set_defaults(func=_inspect, prepare=_prepare_inspect)
+    grab = sub.add_parser(
+        "capture",
+        parents=[common],
+        help="take raw frames from a server camera and save them as PNG files",
+    )
+    grab.add_argument("camera")
+    grab.add_argument("-n", "--count", type=int, default=1, help="distinct frames to take")
+    grab.add_argument("--depth", action="store_true", help="also the depth image of each frame")
+    grab.add_argument(
+        "--out", default=".", metavar="DIR", help="folder to write into (must exist; default .)"
+    )
+    grab.set_defaults(func=_capture, prepare=_prepare_capture)
     add_skill_commands(sub, common)
     return parser
 
