@@ -28,10 +28,10 @@ Green means tested: no case found, a case without images, without ``expected.yam
 ``--update`` records it) or whose paths do not exist, and a run where every case was skipped
 are errors (exit 2) that name the file.
 
-Every image runs through :func:`vision_server.cli.offline_server`, the serving code path that
-``vision-server run`` uses: a VisionServer that does not listen, ``run_inspection`` with the
-images in the request, the inspection's camera replaced by a request camera with the same
-intrinsics. :func:`run_cases` compares the RESULTs with the expectations and, with
+Every image runs through the inspection service, as ``vision-server run`` does
+(:func:`vision_server.offline.offline_service`: one worker, the images in the request, the
+inspection's camera replaced by a request camera with the same intrinsics).
+:func:`run_cases` compares the replies with the expectations and, with
 ``update=True``, rewrites ``expected.yaml`` from them (keeping tolerances and notes).
 """
 
@@ -53,7 +53,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from protocol import CellvisionError, ImageRole, Inspect
+from protocol import CellvisionError, ImageRole
 
 from .cameras import SOURCE_NAMES, CameraSettings, RequestCameraSettings
 from .catalog import Inspection
@@ -71,6 +71,7 @@ from .configfile import (
     string,
 )
 from .inspections import parse_inspection
+from .offline import file_request, image_payload, offline_service
 
 CASE_FILE = "inspection.yaml"
 EXPECTED_FILE = "expected.yaml"
@@ -451,10 +452,8 @@ def _natural(path: Path) -> list[Any]:
 
 
 def run_images(case: Case, names: Sequence[str]) -> list[Got]:
-    """Run the case's inspection on each image through the serving code path."""
-    from .cli import image_payload, offline_server
-
-    server = offline_server(
+    """Run the case's inspection on each image through the inspection service."""
+    service = offline_service(
         case.inspection, case.camera, case.base_dir, config_hash=case.config_hash
     )
 
@@ -463,18 +462,24 @@ def run_images(case: Case, names: Sequence[str]) -> list[Got]:
         try:
             for index, name in enumerate(names, start=1):
                 color = case.images_dir / name
-                payloads = [image_payload(color, ImageRole.COLOR)]
+                depth = []
                 if case.inspection.uses_depth:
-                    payloads += [image_payload(p, ImageRole.DEPTH) for p in depth_frames(color)]
-                request = Inspect(index, case.inspection.name, tuple(payloads), overlay=False)
+                    depth = [image_payload(p, ImageRole.DEPTH) for p in depth_frames(color)]
+                request = file_request(
+                    case.inspection.name,
+                    image_payload(color, ImageRole.COLOR),
+                    depth,
+                    peer="golden",
+                    request_id=index,
+                )
                 try:
-                    result = await server.run_inspection(request, peer="golden")
+                    reply = await service.inspect(request)
                 except CellvisionError as exc:
                     out.append(Got("error", {}, exc.code.name, exc.message))
                     continue
-                out.append(Got("pass" if result.passed else "fail", dict(result.data)))
+                out.append(Got("pass" if reply.passed else "fail", dict(reply.data)))
         finally:
-            await server.stop()
+            service.close()
         return out
 
     return asyncio.run(run_all())
