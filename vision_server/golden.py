@@ -70,7 +70,7 @@ from .configfile import (
     read_document,
     string,
 )
-from .inspections import parse_inspection
+from .inspections import RESULT_KINDS, parse_inspection
 from .offline import file_request, image_payload, offline_service
 
 CASE_FILE = "inspection.yaml"
@@ -78,12 +78,10 @@ EXPECTED_FILE = "expected.yaml"
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
 VERDICTS = ("pass", "fail", "error")
 TOLERANCE_KEYS = ("tolerance_px", "tolerance_value", "tolerance_m", "tolerance_rad")
-# Which expectation keys each inspection type can have (besides verdict, error, tolerances).
+# Which expectation keys each inspection type can have (besides verdict, error, tolerances):
+# declared by the type (vision_server.inspections.kinds).
 RESULT_KEYS: dict[str, tuple[str, ...]] = {
-    "locate": ("count", "features"),
-    "presence": ("value",),
-    "qr": ("text", "corners"),
-    "qr_pose": ("text", "corners", "camera_from_qr"),
+    kind: results.expected_keys for kind, results in RESULT_KINDS.items()
 }
 EXIT_OK, EXIT_REGRESSION, EXIT_BAD_CASE = 0, 1, 2
 
@@ -725,22 +723,12 @@ def updated_entry(old: Expectation | None, got: Got, case: Case) -> dict[str, An
 
 
 def result_entry(got: Got, kind: str) -> dict[str, Any]:
+    """The expected entry for ``got``: its verdict, and the error or the type's own entry."""
     out: dict[str, Any] = {"verdict": got.verdict}
     if got.error is not None:
         out["error"] = got.error
         return out
-    data = got.data
-    if kind == "locate":
-        out["count"] = int(data["count"])
-        out["features"] = [[round(f["u"], 2), round(f["v"], 2)] for f in data["features"]]
-    elif kind == "presence":
-        out["value"] = round(float(data["value"]), 4)
-    elif data.get("found"):
-        out["text"] = data["text"]
-        out["corners"] = [[round(u, 2), round(v, 2)] for u, v in data["corners"]]
-        if kind == "qr_pose":
-            out["camera_from_qr"] = [[round(x, 6) for x in row] for row in data["camera_from_qr"]]
-    return out
+    return {**out, **RESULT_KINDS[kind].expected(got.data)}
 
 
 _PLAIN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_./-]*")
