@@ -126,6 +126,8 @@ class App:
             await self.service.reload()
         except CellvisionError as exc:
             log.error("SIGHUP: reload refused, the old configuration stays: %s", exc.message)
+        except Exception:  # a signal has nobody to answer: say it in the log, keep serving
+            log.exception("SIGHUP: reload failed, the old configuration stays")
 
 
 __all__ = ["App"]

@@ -3,15 +3,22 @@ arrival stamp, the absolute deadline, the images as a loader), and its one error
 
 from __future__ import annotations
 
+import asyncio
+import os
+import signal
+import threading
 import time
 from typing import Any
 
 import numpy as np
 import pytest
-from loopback import client_for, run
+from loopback import client_for, run, wait_until
 
 from protocol import Busy, Error, ErrorCode, payload_from_array
-from vision_server.builtin import builtin_catalog
+from vision_server.app import App
+from vision_server.builtin import MeanIntensityPresence, builtin_catalog
+from vision_server.cameras import RequestCamera, RequestCameraSettings
+from vision_server.catalog import Catalog
 from vision_server.frontends.tcp import TcpFrontend, error_frame
 from vision_server.service import (
     ImageNeeds,
@@ -19,7 +26,7 @@ from vision_server.service import (
     InspectReply,
     InspectRequest,
 )
-from vision_server.settings import TcpSettings
+from vision_server.settings import ServerSettings, TcpSettings
 
 GRAY = np.full((48, 64), 200, np.uint8)
 
@@ -70,3 +77,35 @@ def test_the_error_table_gives_the_code_to_the_request_that_failed() -> None:
     frame = error_frame(Busy("all 2 inspection slots are taken"), 42)
     assert frame == Error(42, int(ErrorCode.BUSY), "all 2 inspection slots are taken", False, {})
     assert payload_from_array(GRAY)  # the payload codec the front-end uses is importable
+
+
+def test_sighup_reloads_in_a_thread_while_the_connections_are_served() -> None:
+    """SIGHUP went to the reloader on the event loop (a camera's open or close could stall
+    every connection); now it takes the service's path, in a thread, as RELOAD does."""
+    threads: list[threading.Thread] = []
+    entered, release = threading.Event(), threading.Event()
+    fresh = Catalog.build(
+        [RequestCamera("tool", RequestCameraSettings())],
+        [MeanIntensityPresence("second", "tool", 0.0, 255.0)],
+    )
+
+    def reloader() -> Catalog:
+        threads.append(threading.current_thread())
+        entered.set()
+        release.wait(20.0)
+        return fresh
+
+    async def body() -> None:
+        async with App(builtin_catalog(), ServerSettings(port=0), reloader=reloader) as app:
+            app.install_signals(asyncio.Event(), reload=True)
+            os.kill(os.getpid(), signal.SIGHUP)
+            assert await asyncio.to_thread(entered.wait, 10.0)
+            async with client_for(app) as client:  # served while the reload is under way
+                await client.ping()
+                release.set()
+                await wait_until(lambda: app.catalog is fresh, "the new catalog serves")
+                assert {i["name"] for i in await client.list_inspections()} == {"second"}
+
+    run(body())
+    assert threads
+    assert threading.main_thread() not in threads

@@ -32,6 +32,7 @@ from protocol import (
     Capture,
     CellvisionError,
     Close,
+    ConfigInvalid,
     Connection,
     ConnectionClosed,
     Error,
@@ -613,7 +614,7 @@ class TcpSession:
             try:
                 catalog = await self.service.reload()
             except CellvisionError as exc:
-                if exc.code.name == "CONFIG_INVALID":
+                if isinstance(exc, ConfigInvalid):
                     log.error(
                         "%s: reload refused, the old configuration stays: %s",
                         self.peer,
