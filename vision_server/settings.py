@@ -180,6 +180,9 @@ def welcome_limits(tcp: TcpSettings, service: ServiceSettings) -> dict[str, int]
         "handshake_timeout_ms": round(tcp.handshake_timeout_s * 1000),
         "idle_timeout_ms": round(tcp.idle_timeout_s * 1000),
         "frame_timeout_ms": round(tcp.frame_timeout_s * 1000),
+        # The default deadline of a server camera's frames (INSPECT without images, CAPTURE)
+        # when the request sets none; work on a request's own images has no default.
+        "capture_timeout_ms": round(service.capture_timeout_s * 1000),
     }
 
 
