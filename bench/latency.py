@@ -7,7 +7,8 @@ References, measured in the same run and interleaved round by round with the ser
 - floor: the same request bytes through a bare asyncio socket (bench/servers.py ``echo``),
   answered with as many bytes as the real answer;
 - in-process: the same inspection object called on the same numpy image in this process;
-- HTTP/JSON: aiohttp with the image as base64 in a JSON body, the same inspection inline.
+- HTTP/JSON: aiohttp with the image as base64 in a JSON body, a front-end over the same
+  inspection service (worker pool, BUSY, deadlines) as cellvision.
 
 Overhead = p50(cellvision) - p50(floor) - p50(in-process). Goals: overhead <= 0.3 ms at p50;
 HTTP/JSON p50 >= 3x cellvision's.
@@ -404,9 +405,9 @@ def run(cfg: RunConfig, env: Env) -> Section:
     breakdown.add("the floor's round trip (the same bytes, bare socket)", fmt(floor_i.p50))
     section.tables.append(breakdown)
     section.notes.append(
-        "The HTTP reference runs the inspection inline in its handler (no thread-pool hop), "
-        "its fastest single-request path; cellvision runs every inspection in its worker pool "
-        "so that a long inspection never blocks the connection's PINGs."
+        "The HTTP reference is a front-end over the same inspection service as cellvision "
+        "(the same worker pool, admission and deadlines), so the two differ only in their "
+        "wire format and I/O."
     )
 
     def plot(directory: Path) -> list[Path]:

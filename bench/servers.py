@@ -8,9 +8,11 @@
   the socket in both directions, with no protocol work at either end.
 - ``http``: what a team would write instead: aiohttp, JSON bodies, images as base64.
   ``POST /inspect/NAME`` with ``{"image": {"data", "width", "height", "encoding"}, "depth":
-  [...]}`` runs the same inspection object and answers ``{"inspection", "verdict", "data",
-  "timing"}``; ``GET /ping``. The inspection runs inline in the handler (no thread hop), the
-  fastest single-request path that design offers.
+  [...], "deadline_ms": ...}`` answers ``{"inspection", "verdict", "data", "timing"}``;
+  ``GET /ping``. It is a front-end of its own over the same inspection service as the
+  cellvision server (admission and BUSY, deadlines from arrival, image checks, the worker
+  pool): parse JSON, call the service, render JSON, and map error codes to HTTP statuses in
+  one table (:data:`HTTP_STATUS`).
 
 ``python -m bench.servers KIND [--config PATH]`` prints one JSON line (``port``, ...) when it
 listens and stops when its standard input closes. :class:`ServerProcess` runs one.
@@ -185,42 +187,60 @@ def _array(spec: dict[str, Any]) -> Any:
     raise ValueError(f"unknown encoding {encoding!r}")
 
 
+HTTP_STATUS = {
+    "BUSY": 503,
+    "DEADLINE_EXCEEDED": 504,
+    "UNKNOWN_INSPECTION": 404,
+    "UNKNOWN_CAMERA": 404,
+    "BAD_IMAGE": 400,
+    "IMAGE_TOO_LARGE": 413,
+    "INVALID_ARGUMENT": 400,
+    "CAMERA_UNAVAILABLE": 503,
+    "INSPECTION_FAILED": 422,
+}
+"""The HTTP front-end's one table from the service's error codes to statuses (else 500)."""
+
+
 async def _serve_http(config: Path | None) -> None:
     from aiohttp import web
 
-    from vision_server import InspectionInput
+    from protocol import CellvisionError
+    from vision_server.service import Images, InspectionService, InspectRequest, deadline_after
 
     from .cell import load_catalog
 
-    catalog = load_catalog(config).catalog
+    service = InspectionService(load_catalog(config).catalog)
 
     async def ping(request: web.Request) -> web.Response:
         return web.json_response({"ok": True})
 
     async def inspect(request: web.Request) -> web.Response:
-        started = time.perf_counter()
-        name = request.match_info["name"]
-        if name not in catalog.inspections:
-            return web.json_response({"error": f"no inspection named {name!r}"}, status=404)
-        inspection = catalog.inspections[name]
-        camera = catalog.cameras[inspection.camera]
         body = await request.json()
-        color = _array(body["image"])
-        depth = tuple(_array(d) for d in body.get("depth", ()))
-        t0 = time.perf_counter()
-        outcome = inspection.run(
-            InspectionInput(color, depth, getattr(camera, "intrinsics", None)), overlay=False
+        arrived = time.monotonic()  # the whole request is in (SPEC §6.1's rule, kept here)
+        try:
+            images = Images(_array(body["image"]), tuple(_array(d) for d in body.get("depth", ())))
+        except (KeyError, ValueError, TypeError) as exc:
+            return web.json_response(
+                {"error": {"code": "BAD_IMAGE", "message": str(exc)}}, status=400
+            )
+        wanted = InspectRequest(
+            request.match_info["name"],
+            images,
+            arrived=arrived,
+            deadline=deadline_after(arrived, body.get("deadline_ms")),
+            peer=str(request.remote),
         )
-        compute_ms = (time.perf_counter() - t0) * 1000.0
+        try:
+            reply = await service.inspect(wanted)
+        except CellvisionError as exc:
+            error = {"code": exc.code.name, "message": exc.message}
+            return web.json_response({"error": error}, status=HTTP_STATUS.get(exc.code.name, 500))
         return web.json_response(
             {
-                "inspection": name,
-                "verdict": "pass" if outcome.passed else "fail",
-                "data": outcome.data,
-                "timing": {
-                    "compute_ms": compute_ms,
-                    "total_ms": (time.perf_counter() - started) * 1000.0,
-                },
+                "inspection": reply.inspection,
+                "verdict": "pass" if reply.passed else "fail",
+                "data": reply.data,
+                "timing": reply.timing,
             }
         )
 
@@ -235,6 +255,7 @@ async def _serve_http(config: Path | None) -> None:
     _announce({"port": runner.addresses[0][1]})
     await done.wait()
     await runner.cleanup()
+    service.close()
 
 
 def main() -> None:

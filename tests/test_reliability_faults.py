@@ -83,7 +83,7 @@ def test_clients_gone_in_the_middle_of_a_frame_leave_the_server_serving(
             if abort:  # reset instead of an orderly close
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
             sock.close()
-        wait_until(lambda: not server._connections, "the server to drop the broken connections")
+        wait_until(lambda: not server.tcp.connections, "the server to drop the broken connections")
         with SyncVisionClient("127.0.0.1", server.port) as client:
             assert client.ping("still here") >= 0.0
             assert client.inspect("brightness", GRAY).data["value"] == 200.0

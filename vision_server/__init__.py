@@ -2,8 +2,11 @@
 
 Public API:
 
-- :class:`VisionServer` (``start``, ``serve_forever``, ``stop``, ``replace_catalog``, ``port``),
-  :class:`ServerSettings`.
+- :class:`InspectionService` (``inspect``, ``capture``, ``admit``, ``reload``, ``subscribe``),
+  the one path to an inspection, with its records :class:`InspectRequest`, :class:`Images`,
+  :class:`InspectReply`.
+- :class:`VisionServer` (the service with the TCP front-end: ``start``, ``serve_forever``,
+  ``stop``, ``replace_catalog``, ``port``, ``service``, ``tcp``), :class:`ServerSettings`.
 - :class:`Catalog`, :class:`Inspection` (the protocol an inspection
   implements), :class:`InspectionInput`, :class:`InspectionOutcome`.
 - :func:`builtin_catalog`: what ``vision-server serve`` offers without a configuration file.
@@ -20,12 +23,17 @@ decoder_limits.install_default()
 from .builtin import builtin_catalog  # noqa: E402
 from .catalog import Catalog, Inspection, InspectionInput, InspectionOutcome  # noqa: E402
 from .server import ServerSettings, VisionServer  # noqa: E402
+from .service import Images, InspectionService, InspectReply, InspectRequest  # noqa: E402
 
 __all__ = [
     "Catalog",
+    "Images",
     "Inspection",
     "InspectionInput",
     "InspectionOutcome",
+    "InspectionService",
+    "InspectReply",
+    "InspectRequest",
     "ServerSettings",
     "VisionServer",
     "builtin_catalog",

@@ -185,9 +185,7 @@ class Catalog:
 
     # ------------------------------------------------------------------ lifetime
 
-    def tuned(
-        self, inspection: Inspection, options: Mapping[str, Any], *, request_id: int
-    ) -> Inspection:
+    def tuned(self, inspection: Inspection, options: Mapping[str, Any]) -> Inspection:
         """``inspection`` with the request's ``options`` (SPEC §6.3), validated by the same
         rules as the configuration file; INVALID_ARGUMENT names the option that is wrong."""
         if not options:
@@ -195,8 +193,7 @@ class Catalog:
         if self.tune is None:
             raise InvalidArgument(
                 f"inspection {inspection.name!r} takes no options on this server (its "
-                "inspections do not come from a configuration file)",
-                request_id=request_id,
+                "inspections do not come from a configuration file)"
             )
         try:
             return self.tune(inspection.name, options)
@@ -205,7 +202,6 @@ class Catalog:
             reason = getattr(exc, "reason", str(exc))
             raise InvalidArgument(
                 f"inspection {inspection.name!r}: {where}: {reason}",
-                request_id=request_id,
                 details={"option": where.removeprefix("options -> ")},
             ) from None
 
@@ -286,22 +282,20 @@ class Catalog:
 
     # ------------------------------------------------------------------ lookup
 
-    def inspection(self, name: str, *, request_id: int = 0) -> Inspection:
+    def inspection(self, name: str) -> Inspection:
         try:
             return self.inspections[name]
         except KeyError:
             raise UnknownInspection(
-                f"no inspection named {name!r}; configured: {sorted(self.inspections)}",
-                request_id=request_id,
+                f"no inspection named {name!r}; configured: {sorted(self.inspections)}"
             ) from None
 
-    def camera(self, name: str, *, request_id: int = 0) -> Camera:
+    def camera(self, name: str) -> Camera:
         try:
             return self.cameras[name]
         except KeyError:
             raise UnknownCamera(
-                f"no camera named {name!r}; configured: {sorted(self.cameras)}",
-                request_id=request_id,
+                f"no camera named {name!r}; configured: {sorted(self.cameras)}"
             ) from None
 
     def inspection_descriptors(self) -> tuple[dict[str, Any], ...]:

@@ -25,14 +25,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
 import logging
 import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -43,16 +41,13 @@ from rich.text import Text
 
 from protocol import (
     CellvisionError,
-    ImagePayload,
     ImageRole,
-    Inspect,
     Message,
     Ping,
     Pong,
     Reload,
     Reloaded,
     Result,
-    array_from_payload,
 )
 from protocol.cli import (
     CONFIG_ENV,
@@ -70,22 +65,20 @@ from protocol.cli import (
     version_text,
 )
 from protocol.image_files import (
-    ImageFileError,
     check_overlay_path,
-    encode_overlay,
-    payload_from_file,
 )
-from protocol.images import payload_from_descriptor
 from protocol.result_view import result_json, result_view
 
 from . import decoder_limits
 from .admin import AdminError, call_endpoint, resolve
+from .app import App
 from .builtin import builtin_catalog
-from .cameras import RequestCamera, RequestCameraSettings
-from .catalog import Catalog, Inspection
+from .catalog import Catalog
 from .config import CellConfig, ConfigError, load_config
+from .offline import file_request, image_payload, offline_service
 from .results_cli import describe_health, results_command
-from .server import ServerSettings, VisionServer
+from .service import InspectReply
+from .settings import ServerSettings
 
 log = logging.getLogger("vision_server")
 PROG = "vision-server"
@@ -153,22 +146,22 @@ def _serve(args: argparse.Namespace) -> int:
     decoder_limits.ensure(settings.max_image_pixels, argv=args.reexec_argv)
 
     def reload() -> Catalog:
-        """Both ways in (SIGHUP and RELOAD) come here: a reload done is said once, on stdout.
-        A refused one is logged by whoever asked (on_hup below, or the session's RELOAD)."""
+        """Every way in (SIGHUP, RELOAD) comes here, in a thread of the service: a reload done
+        is said once, on stdout. A refused one is logged by whoever asked."""
         assert runtime is not None
         catalog = runtime.reload()  # its notes (restart needed) are logged as warnings
         print(f"{PROG}: configuration reloaded (config hash {catalog.config_hash})", flush=True)
         return catalog
 
     async def main() -> int:
-        server = VisionServer(
+        app = App(
             catalog,
             settings,
             results=None if runtime is None else runtime.results,
             reloader=None if runtime is None else reload,
         )
         try:
-            await server.start()
+            await app.start()
         except OSError as exc:  # port in use, address not on this machine, no permission
             print(
                 f"vision-server: cannot listen on {settings.host}:{settings.port}: {exc}",
@@ -184,25 +177,13 @@ def _serve(args: argparse.Namespace) -> int:
                 file=sys.stderr,
                 flush=True,
             )
-        loop = asyncio.get_running_loop()
         stop = asyncio.Event()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            with contextlib.suppress(NotImplementedError):
-                loop.add_signal_handler(sig, stop.set)
-
-        def on_hup() -> None:
-            try:
-                server.reload()
-            except (ConfigError, CellvisionError) as exc:
-                log.error("SIGHUP: reload refused, the old configuration stays: %s", exc)
-
-        if runtime is not None:
-            with contextlib.suppress(NotImplementedError):
-                loop.add_signal_handler(signal.SIGHUP, on_hup)
+        # SIGHUP reloads through the service, the path of RELOAD (in a thread).
+        app.install_signals(stop, reload=runtime is not None)
         # Only now: whoever waits for this line may signal the server at once.
-        print(f"vision-server listening on {settings.host}:{server.port}", flush=True)
+        print(f"vision-server listening on {settings.host}:{app.port}", flush=True)
         await stop.wait()
-        await server.stop()
+        await app.stop()
         return 0
 
     try:
@@ -358,7 +339,7 @@ def _run(args: argparse.Namespace) -> int:
         colours = [(p, image_payload(Path(p), ImageRole.COLOR)) for p in args.image]
     except ValueError as exc:
         return _fail(args, ErrorKind.USAGE, str(exc))
-    server = offline_server(
+    service = offline_service(
         inspection,
         config.cameras[inspection.camera],
         config.base_dir,
@@ -371,37 +352,21 @@ def _run(args: argparse.Namespace) -> int:
         worst = ExitCode.OK
         try:
             for path, colour in colours:
+                request = file_request(inspection.name, colour, depth, overlay=suffix)
                 try:
-                    images = _as_received((colour, *depth), limit)
-                    request = Inspect(1, inspection.name, images, overlay=suffix is not None)
-                    result = await server.run_inspection(request, peer="offline")
+                    reply = await service.inspect(request)
                 except CellvisionError as exc:
                     worst = max(worst, _image_error(args, path, exc))
                     continue
-                _show_result(args, console, result, path)
-                worst = max(worst, ExitCode.OK if result.passed else ExitCode.FAILED)
+                _show_result(args, console, reply, path)
+                worst = max(worst, ExitCode.OK if reply.passed else ExitCode.FAILED)
                 if suffix is not None:
-                    worst = max(worst, _write_overlay(args, result, suffix))
+                    worst = max(worst, _write_overlay(args, reply))
         finally:
-            await server.stop()
+            service.close()
         return worst
 
     return int(asyncio.run(each()))
-
-
-def _as_received(images: tuple[ImagePayload, ...], max_pixels: int) -> tuple[ImagePayload, ...]:
-    """The images as a server receives them: through the wire decoder's checks (the pixel
-    limit of raw images, SPEC §4.3), which a request built in-process would skip."""
-    return tuple(
-        payload_from_descriptor(
-            image.descriptor(0),
-            (image.data,),
-            where=f"images[{i}]",
-            request_id=1,
-            max_pixels=max_pixels,
-        )
-        for i, image in enumerate(images)
-    )
 
 
 def _image_error(args: argparse.Namespace, image: str, exc: CellvisionError) -> ExitCode:
@@ -415,40 +380,45 @@ def _image_error(args: argparse.Namespace, image: str, exc: CellvisionError) -> 
     return ExitCode.SERVER
 
 
-def _show_result(args: argparse.Namespace, console: Console, result: Result, image: str) -> None:
+def _show_result(
+    args: argparse.Namespace, console: Console, reply: InspectReply, image: str
+) -> None:
     if args.json:  # one object per image, one per line; full precision
-        print(json.dumps(result_json(result, image=image)))
+        shown = Result(
+            0, reply.inspection, reply.passed, reply.data, reply.timing, reply.camera
+        )  # the one --json shape of both tools (protocol.result_view)
+        print(json.dumps(result_json(shown, image=image)))
         return
     title = Text(f"{image}: ")
-    title.append_text(_verdict_text(result))
-    title.append(f" {result.inspection} on {result.camera}")
-    title.append(f" ({result.timing.get('compute_ms', 0.0):.1f} ms)", style="dim")
+    title.append_text(_verdict_text(reply.passed))
+    title.append(f" {reply.inspection} on {reply.camera}")
+    title.append(f" ({reply.compute_ms:.1f} ms)", style="dim")
     console.print(title)
-    print_result_data(console, result.data)
+    print_result_data(console, reply.data)
 
 
-def _write_overlay(args: argparse.Namespace, result: Result, suffix: str) -> ExitCode:
-    """Write the overlay to --overlay (its folder and extension were checked before the run)."""
+def _write_overlay(args: argparse.Namespace, reply: InspectReply) -> ExitCode:
+    """Write the overlay to --overlay (its folder and extension were checked before the run;
+    the service encoded it in that format)."""
     path = str(args.overlay)
-    picture = next((p for p in result.images if p.role is ImageRole.OVERLAY), None)
-    if picture is None:
+    if reply.overlay is None or reply.overlay.encoded is None:
         print(
-            f"{PROG} run: {result.inspection} drew no overlay; nothing written to {path}",
+            f"{PROG} run: {reply.inspection} drew no overlay; nothing written to {path}",
             file=sys.stderr,
         )
         return ExitCode.OK
     try:
-        Path(path).write_bytes(encode_overlay(array_from_payload(picture), suffix))
-    except (OSError, ImageFileError) as exc:
-        message = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        Path(path).write_bytes(reply.overlay.encoded)
+    except OSError as exc:
+        message = exc.strerror or str(exc)
         return ExitCode(_fail(args, ErrorKind.USAGE, f"--overlay {path}: cannot write: {message}"))
     if not args.json:
         print(f"overlay written to {path}")
     return ExitCode.OK
 
 
-def _verdict_text(result: Result) -> Text:
-    return Text("PASS", style="bold green") if result.passed else Text("FAIL", style="bold red")
+def _verdict_text(passed: bool) -> Text:
+    return Text("PASS", style="bold green") if passed else Text("FAIL", style="bold red")
 
 
 def print_result_data(console: Console, data: dict[str, Any]) -> None:
@@ -469,55 +439,6 @@ def print_result_data(console: Console, data: dict[str, Any]) -> None:
         for row in table.rows:
             grid.add_row(*(Text(cell) for cell in row))
         console.print(grid)
-
-
-def offline_server(
-    inspection: Inspection,
-    settings: Any,
-    base_dir: Path,
-    *,
-    config_hash: str = "",
-    max_image_pixels: int | None = None,
-) -> VisionServer:
-    """A VisionServer that does not listen, serving ``inspection`` offline: its camera is
-    replaced by one whose images come with the request, with the same intrinsics; everything
-    after that (``run_inspection``) is the serving code path. Used by ``run`` and
-    ``test-inspections``. ``max_image_pixels``: the configuration's ``server`` limit (default:
-    the server's default)."""
-    camera = RequestCamera(
-        inspection.camera,
-        RequestCameraSettings(getattr(settings, "intrinsics", None), depth=inspection.uses_depth),
-    )
-    if camera.intrinsics is None and inspection.uses_depth:
-        camera = _with_scene_intrinsics(inspection.camera, settings, base_dir) or camera
-    catalog = Catalog.build([camera], [inspection], config_hash=config_hash)
-    served = ServerSettings(workers=1)
-    if max_image_pixels is not None:
-        served = replace(served, max_image_pixels=max_image_pixels)
-    return VisionServer(catalog, served)
-
-
-def _with_scene_intrinsics(name: str, settings: Any, base_dir: Path) -> RequestCamera | None:
-    """For a sim camera without configured intrinsics, the scene camera's own."""
-    from .cameras import SimCameraSettings, make_camera
-
-    if not isinstance(settings, SimCameraSettings):
-        return None
-    sim = make_camera(name, settings, base_dir=base_dir)
-    try:
-        return RequestCamera(name, RequestCameraSettings(sim.intrinsics, depth=True))
-    finally:
-        sim.close()
-
-
-def image_payload(path: Path, role: ImageRole) -> ImagePayload:
-    """The payload for an image file of any format OpenCV reads (see
-    :mod:`protocol.image_files`); ValueError naming the file when it cannot be sent."""
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise ValueError(f"cannot read {path}: {exc.strerror or exc}") from None
-    return payload_from_file(data, name=str(path), role=role)
 
 
 # ----------------------------------------------------------------------------- test-inspections

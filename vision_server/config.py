@@ -37,7 +37,7 @@ from .configfile import (
     string,
 )
 from .inspections import InspectionSpec, parse_inspection
-from .server import ServerSettings
+from .settings import ServerSettings
 
 
 @dataclass(frozen=True)

@@ -28,10 +28,10 @@ Green means tested: no case found, a case without images, without ``expected.yam
 ``--update`` records it) or whose paths do not exist, and a run where every case was skipped
 are errors (exit 2) that name the file.
 
-Every image runs through :func:`vision_server.cli.offline_server`, the serving code path that
-``vision-server run`` uses: a VisionServer that does not listen, ``run_inspection`` with the
-images in the request, the inspection's camera replaced by a request camera with the same
-intrinsics. :func:`run_cases` compares the RESULTs with the expectations and, with
+Every image runs through the inspection service, as ``vision-server run`` does
+(:func:`vision_server.offline.offline_service`: one worker, the images in the request, the
+inspection's camera replaced by a request camera with the same intrinsics).
+:func:`run_cases` compares the replies with the expectations and, with
 ``update=True``, rewrites ``expected.yaml`` from them (keeping tolerances and notes).
 """
 
@@ -53,7 +53,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from protocol import CellvisionError, ImageRole, Inspect
+from protocol import CellvisionError, ImageRole
 
 from .cameras import SOURCE_NAMES, CameraSettings, RequestCameraSettings
 from .catalog import Inspection
@@ -70,19 +70,18 @@ from .configfile import (
     read_document,
     string,
 )
-from .inspections import parse_inspection
+from .inspections import RESULT_KINDS, parse_inspection
+from .offline import file_request, image_payload, offline_service
 
 CASE_FILE = "inspection.yaml"
 EXPECTED_FILE = "expected.yaml"
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
 VERDICTS = ("pass", "fail", "error")
 TOLERANCE_KEYS = ("tolerance_px", "tolerance_value", "tolerance_m", "tolerance_rad")
-# Which expectation keys each inspection type can have (besides verdict, error, tolerances).
+# Which expectation keys each inspection type can have (besides verdict, error, tolerances):
+# declared by the type (vision_server.inspections.kinds).
 RESULT_KEYS: dict[str, tuple[str, ...]] = {
-    "locate": ("count", "features"),
-    "presence": ("value",),
-    "qr": ("text", "corners"),
-    "qr_pose": ("text", "corners", "camera_from_qr"),
+    kind: results.expected_keys for kind, results in RESULT_KINDS.items()
 }
 EXIT_OK, EXIT_REGRESSION, EXIT_BAD_CASE = 0, 1, 2
 
@@ -451,10 +450,8 @@ def _natural(path: Path) -> list[Any]:
 
 
 def run_images(case: Case, names: Sequence[str]) -> list[Got]:
-    """Run the case's inspection on each image through the serving code path."""
-    from .cli import image_payload, offline_server
-
-    server = offline_server(
+    """Run the case's inspection on each image through the inspection service."""
+    service = offline_service(
         case.inspection, case.camera, case.base_dir, config_hash=case.config_hash
     )
 
@@ -463,18 +460,24 @@ def run_images(case: Case, names: Sequence[str]) -> list[Got]:
         try:
             for index, name in enumerate(names, start=1):
                 color = case.images_dir / name
-                payloads = [image_payload(color, ImageRole.COLOR)]
+                depth = []
                 if case.inspection.uses_depth:
-                    payloads += [image_payload(p, ImageRole.DEPTH) for p in depth_frames(color)]
-                request = Inspect(index, case.inspection.name, tuple(payloads), overlay=False)
+                    depth = [image_payload(p, ImageRole.DEPTH) for p in depth_frames(color)]
+                request = file_request(
+                    case.inspection.name,
+                    image_payload(color, ImageRole.COLOR),
+                    depth,
+                    peer="golden",
+                    request_id=index,
+                )
                 try:
-                    result = await server.run_inspection(request, peer="golden")
+                    reply = await service.inspect(request)
                 except CellvisionError as exc:
                     out.append(Got("error", {}, exc.code.name, exc.message))
                     continue
-                out.append(Got("pass" if result.passed else "fail", dict(result.data)))
+                out.append(Got("pass" if reply.passed else "fail", dict(reply.data)))
         finally:
-            await server.stop()
+            service.close()
         return out
 
     return asyncio.run(run_all())
@@ -720,22 +723,12 @@ def updated_entry(old: Expectation | None, got: Got, case: Case) -> dict[str, An
 
 
 def result_entry(got: Got, kind: str) -> dict[str, Any]:
+    """The expected entry for ``got``: its verdict, and the error or the type's own entry."""
     out: dict[str, Any] = {"verdict": got.verdict}
     if got.error is not None:
         out["error"] = got.error
         return out
-    data = got.data
-    if kind == "locate":
-        out["count"] = int(data["count"])
-        out["features"] = [[round(f["u"], 2), round(f["v"], 2)] for f in data["features"]]
-    elif kind == "presence":
-        out["value"] = round(float(data["value"]), 4)
-    elif data.get("found"):
-        out["text"] = data["text"]
-        out["corners"] = [[round(u, 2), round(v, 2)] for u, v in data["corners"]]
-        if kind == "qr_pose":
-            out["camera_from_qr"] = [[round(x, 6) for x in row] for row in data["camera_from_qr"]]
-    return out
+    return {**out, **RESULT_KINDS[kind].expected(got.data)}
 
 
 _PLAIN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_./-]*")

@@ -9,6 +9,7 @@ by frame. That the reference server as shipped passes every check is tested in
 from __future__ import annotations
 
 import contextlib
+import itertools
 import socket
 import socketserver
 import threading
@@ -22,6 +23,8 @@ from loopback import server_in_thread
 import protocol.connection
 import protocol.frames
 import protocol.images
+import vision_server.frontends.images
+import vision_server.frontends.tcp
 import vision_server.server
 from protocol import (
     Close,
@@ -42,7 +45,7 @@ from protocol.connection import TRANSITIONS, Connection, Role, State
 from protocol.errors import ErrorCode, NotAuthenticated
 from protocol.frames import Header
 from vision_server.catalog import Catalog
-from vision_server.server import ServerSettings
+from vision_server.frontends.tcp import TcpFrontend
 
 T = MessageType
 
@@ -134,7 +137,7 @@ def test_integral_numbers_fail_when_only_integer_literals_pass(
 def test_a_1_0_client_fails_when_the_server_insists_on_1_1(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    monkeypatch.setattr(vision_server.server, "negotiate_version", lambda *_: (1, 1))
+    monkeypatch.setattr(vision_server.frontends.tcp, "negotiate_version", lambda *_: (1, 1))
     with server_in_thread() as server:
         _fails(server.port, "version_1_0_client", "WELCOME.version is [1, 1], expected [1, 0]")
 
@@ -142,14 +145,14 @@ def test_a_1_0_client_fails_when_the_server_insists_on_1_1(
 def test_welcome_timeouts_fails_without_the_handshake_timeout(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    announced = ServerSettings.welcome_limits
+    announced = TcpFrontend.welcome_limits
 
-    def without(settings: ServerSettings) -> dict[str, int]:
-        limits = announced(settings)
+    def without(frontend: TcpFrontend) -> dict[str, int]:
+        limits = announced(frontend)
         del limits["handshake_timeout_ms"]
         return limits
 
-    monkeypatch.setattr(ServerSettings, "welcome_limits", without)
+    monkeypatch.setattr(TcpFrontend, "welcome_limits", without)
     with server_in_thread() as server:
         _fails(server.port, "welcome_timeouts", "WELCOME.limits.handshake_timeout_ms is None")
 
@@ -157,9 +160,9 @@ def test_welcome_timeouts_fails_without_the_handshake_timeout(
 def test_max_in_flight_fails_when_the_server_announces_more_than_it_runs(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    announced = ServerSettings.welcome_limits
+    announced = TcpFrontend.welcome_limits
     monkeypatch.setattr(
-        ServerSettings, "welcome_limits", lambda s: announced(s) | {"max_in_flight": 8}
+        TcpFrontend, "welcome_limits", lambda f: announced(f) | {"max_in_flight": 8}
     )
     # It runs one at a time on a connection: the second of eight pipelined requests is BUSY.
     with server_in_thread(max_in_flight=1) as server:
@@ -205,11 +208,12 @@ def test_options_fail_when_the_server_ignores_them(monkeypatch: pytest.MonkeyPat
 def test_unknown_option_wants_the_key_in_details_option(
     monkeypatch: pytest.MonkeyPatch, message: str, details: dict[str, str], verdict: str
 ) -> None:
-    def refuse(self: Catalog, inspection: Any, options: Any, *, request_id: int) -> Any:
+    requests = itertools.count(50)  # a message that differs per request names no option
+
+    def refuse(self: Catalog, inspection: Any, options: Any) -> Any:
         key = next(iter(options))
         raise InvalidArgument(
-            message.format(key=key, rid=request_id),
-            request_id=request_id,
+            message.format(key=key, rid=next(requests)),
             details={k: v.format(key=key) for k, v in details.items()},
         )
 
@@ -523,13 +527,13 @@ def test_the_role_and_connection_limit_checks_pass_against_the_reference_server(
 
 def test_connection_limit_check_fails_on_a_non_fatal_busy(monkeypatch: pytest.MonkeyPatch) -> None:
     """The 1.0 prose: a non-fatal BUSY and a new HELLO on the same connection."""
-    original = vision_server.server.Busy
+    original = vision_server.frontends.tcp.Busy
 
     def non_fatal(message: str, **kwargs: Any) -> Any:
         kwargs["fatal"] = False
         return original(message, **kwargs)
 
-    monkeypatch.setattr(vision_server.server, "Busy", non_fatal)
+    monkeypatch.setattr(vision_server.frontends.tcp, "Busy", non_fatal)
     with server_in_thread(max_connections=3) as server:
         _fails(server.port, "connection_limit_busy_is_fatal", "must be fatal")
 
@@ -537,11 +541,11 @@ def test_connection_limit_check_fails_on_a_non_fatal_busy(monkeypatch: pytest.Mo
 def test_two_colour_images_check_fails_when_the_second_is_ignored(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    original = vision_server.server._decode_input
+    original = vision_server.frontends.images.decode_payloads
 
-    def first_colour_only(images: Any, *args: Any, **kwargs: Any) -> Any:
-        return original(images[:1], *args, **kwargs)
+    def first_colour_only(payloads: Any, *args: Any, **kwargs: Any) -> Any:
+        return original(payloads[:1], *args, **kwargs)
 
-    monkeypatch.setattr(vision_server.server, "_decode_input", first_colour_only)
+    monkeypatch.setattr(vision_server.frontends.images, "decode_payloads", first_colour_only)
     with server_in_thread() as server:
         _fails(server.port, "two_colour_images", "expected")

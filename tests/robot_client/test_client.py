@@ -571,7 +571,7 @@ def test_graceful_close_answers_what_is_in_flight_first(gate: Gate) -> None:
             in_flight = asyncio.create_task(client.inspect("gate", GRAY))
             await wait_until(lambda: gate.entered == 1, "the inspection started")
             closing = asyncio.create_task(client.close())
-            sessions = server._connections  # white-box: wait until the server read our CLOSE
+            sessions = server.tcp.connections  # white-box: wait until the server read our CLOSE
             await wait_until(
                 lambda: all(s.conn.state is State.CLOSING for s in sessions) and bool(sessions),
                 "the server got CLOSE",

@@ -385,3 +385,23 @@ def test_run_shares_the_offline_serving_path(capsys: pytest.CaptureFixture[str])
     result = json.loads(capsys.readouterr().out)
     assert result["verdict"] == "pass"
     assert result["data"]["measure"] == "dark_fraction"
+
+
+# ----------------------------------------------------------------------------- per-type shapes
+
+
+def test_each_inspection_type_declares_its_result_shape() -> None:
+    """The golden runner and the summary readers (a PLC, a line protocol) take what a type's
+    results hold from the type itself, for every configurable type."""
+    from vision_server.inspections import INSPECTION_TYPES, RESULT_KINDS
+
+    assert set(RESULT_KINDS) == set(INSPECTION_TYPES)
+    located = {"count": 1, "features": [{"u": 10.123, "v": 20.0, "score": 0.9}]}
+    assert RESULT_KINDS["locate"].expected(located) == {"count": 1, "features": [[10.12, 20.0]]}
+    assert RESULT_KINDS["locate"].summary(located) == {"count": 1.0, "u": 10.123, "v": 20.0}
+    assert RESULT_KINDS["presence"].summary({"value": 0.5}) == {"value": 0.5}
+    assert RESULT_KINDS["qr"].expected({"found": False, "reason": "none"}) == {}
+    pose = [[1.0, 0.0, 0.0, 0.1], [0.0, 1.0, 0.0, 0.2], [0.0, 0.0, 1.0, 0.3], [0, 0, 0, 1]]
+    found = {"found": True, "text": "A", "corners": [[1, 2]] * 4, "camera_from_qr": pose}
+    assert RESULT_KINDS["qr_pose"].summary(found) == {"found": 1.0, "x": 0.1, "y": 0.2, "z": 0.3}
+    assert set(RESULT_KINDS["qr_pose"].expected(found)) == {"text", "corners", "camera_from_qr"}

@@ -1,8 +1,8 @@
 """Every RESULT the golden corpus (test_inspections/) produces matches protocol/schema: its
 metadata ``messages/result.json`` and its ``data`` the schema of its inspection type
-(SPEC §6.3.1). The cases run in-process through the serving code path, as
-``vision-server test-inspections`` runs them, with an overlay asked for, and each RESULT is
-taken as a client receives it: encoded, framed and decoded again."""
+(SPEC §6.3.1). The cases run in-process through the inspection service, as
+``vision-server test-inspections`` runs them, with an overlay asked for; each reply is rendered
+by the TCP front-end and taken as a client receives it: encoded, framed and decoded again."""
 
 from __future__ import annotations
 
@@ -15,14 +15,14 @@ from protocol import (
     CellvisionError,
     FrameDecoder,
     ImageRole,
-    Inspect,
     MessageType,
     Result,
     schema,
 )
-from vision_server.cli import image_payload, offline_server
+from vision_server.frontends.tcp import result_message
 from vision_server.golden import Case, color_images, depth_frames, find_cases, load_case
 from vision_server.inspections import INSPECTION_TYPES
+from vision_server.offline import file_request, image_payload, offline_service
 
 CORPUS = Path(__file__).resolve().parents[2] / "test_inspections"
 
@@ -39,9 +39,10 @@ def _wire_metadata(result: Result) -> dict[str, Any]:
 
 
 def _results(case: Case) -> list[Result]:
-    """Each image of the case through ``run_inspection``; images that end in ERROR are left
-    out (an ERROR has no data; the golden runner checks those expectations)."""
-    server = offline_server(
+    """Each image of the case through the service, rendered as the TCP front-end's RESULT;
+    images that end in ERROR are left out (an ERROR has no data; the golden runner checks
+    those expectations)."""
+    service = offline_service(
         case.inspection, case.camera, case.base_dir, config_hash=case.config_hash
     )
 
@@ -50,16 +51,18 @@ def _results(case: Case) -> list[Result]:
         try:
             for request_id, name in enumerate(color_images(case), start=1):
                 color = case.images_dir / name
-                payloads = [image_payload(color, ImageRole.COLOR)]
+                depth = []
                 if case.inspection.uses_depth:
-                    payloads += [image_payload(p, ImageRole.DEPTH) for p in depth_frames(color)]
-                request = Inspect(request_id, case.inspection.name, tuple(payloads), overlay=True)
+                    depth = [image_payload(p, ImageRole.DEPTH) for p in depth_frames(color)]
+                colour = image_payload(color, ImageRole.COLOR)
+                request = file_request(case.inspection.name, colour, depth, overlay=".png")
                 try:
-                    out.append(await server.run_inspection(request, peer="schema-test"))
+                    reply = await service.inspect(request)
                 except CellvisionError:
                     continue
+                out.append(result_message(request_id, reply))
         finally:
-            await server.stop()
+            service.close()
         return out
 
     return asyncio.run(run_all())

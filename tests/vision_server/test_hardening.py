@@ -128,7 +128,7 @@ def test_a_body_beyond_the_servers_byte_budget_is_busy_at_its_header_and_skipped
         # A frame that fits is served, and what it held is given back.
         peer.send_raw(inspect_frame(4, 1000))
         peer.expect(MessageType.RESULT, request_id=4)
-        budget = server._budget
+        budget = server.service.budget
         assert budget.peak <= budget.limit
         run(wait_until(lambda: budget.used == 0, "the budget is given back"))
 
@@ -145,12 +145,12 @@ def test_the_byte_budget_is_shared_by_all_connections() -> None:
         second.handshake()
         frame_a, frame_b = inspect_frame(2, 1800), inspect_frame(2, 1800)  # 3.2 MB each
         first.send_raw(frame_a[: len(frame_a) // 2])
-        run(wait_until(lambda: server._budget.used > 0, "the first body is admitted"))
+        run(wait_until(lambda: server.service.budget.used > 0, "the first body is admitted"))
         second.send_raw(frame_b[:HEADER_SIZE])
         second.expect_error(ErrorCode.BUSY, request_id=2)
         first.send_raw(frame_a[len(frame_a) // 2 :])
         first.expect(MessageType.RESULT, request_id=2)
-        assert server._budget.peak <= 4 * MiB
+        assert server.service.budget.peak <= 4 * MiB
 
 
 def test_an_inspect_is_busy_at_its_header_when_no_worker_slot_is_free(gate: Gate) -> None:
@@ -169,7 +169,7 @@ def test_an_inspect_is_busy_at_its_header_when_no_worker_slot_is_free(gate: Gate
         peer.send_raw(second[HEADER_SIZE:])
         gate.release.set()
         peer.expect(MessageType.RESULT, request_id=2)
-        run(wait_until(lambda: server._pool.admitted == 0, "the worker slot is given back"))
+        run(wait_until(lambda: server.service.pool.admitted == 0, "the worker slot is given back"))
 
 
 # ----------------------------------------------------------------------------- timeouts
@@ -191,7 +191,7 @@ def test_an_idle_connection_is_closed_after_the_handshake() -> None:
         close = peer.expect(MessageType.CLOSE, timeout_s=20.0)
         assert "idle" in close.metadata["reason"]
         peer.expect_closed(timeout_s=20.0)
-        run(wait_until(lambda: not server._connections, "the slot is free"))
+        run(wait_until(lambda: not server.tcp.connections, "the slot is free"))
 
 
 def test_a_frame_that_never_completes_is_closed() -> None:
@@ -234,14 +234,14 @@ def test_connections_in_the_tls_handshake_count_and_time_out(tmp_path: Path) -> 
     with server_in_thread(max_connections=1, handshake_timeout_s=0.5, **settings) as server:
         silent = socket.create_connection(("127.0.0.1", server.port), timeout=20.0)
         try:
-            run(wait_until(lambda: len(server._connections) == 1, "the silent one is counted"))
+            run(wait_until(lambda: len(server.tcp.connections) == 1, "the silent one is counted"))
             with peer_for(server, tls=True, tls_verify=False) as refused:
                 refused.send(Hello(1))
                 refused.expect_error(ErrorCode.BUSY, request_id=1, fatal=True)
             assert silent.recv(1024) == b""  # closed by the server at the handshake timeout
         finally:
             silent.close()
-        run(wait_until(lambda: not server._connections, "the slot is free"))
+        run(wait_until(lambda: not server.tcp.connections, "the slot is free"))
         with peer_for(server, tls=True, tls_verify=False) as peer:
             peer.handshake()
             peer.send(Ping(2))
@@ -267,7 +267,7 @@ def test_a_client_that_never_reads_its_answers_is_dropped() -> None:
                     slow.send(with_data)
                 except (BlockingIOError, ConnectionError):
                     break
-            run(wait_until(lambda: not server._connections, "the slow reader is dropped", 30.0))
+            run(wait_until(lambda: not server.tcp.connections, "the slow reader is dropped", 30.0))
         finally:
             slow.close()
         with peer_for(server) as peer:
@@ -314,7 +314,7 @@ def test_the_robot_client_receives_a_capture_of_thirty_frames(folder_catalog: Ca
 
     with server_in_thread(folder_catalog) as server:
         run(body(server), timeout_s=120.0)
-        run(wait_until(lambda: server._budget.used == 0, "the reply's bytes are given back"))
+        run(wait_until(lambda: server.service.budget.used == 0, "the reply's bytes are given back"))
 
 
 def test_pipelined_captures_that_are_never_read_stay_within_the_budget(
@@ -337,10 +337,10 @@ def test_pipelined_captures_that_are_never_read_stay_within_the_budget(
             )
             # The first reply waits in the socket for a reader that never comes; every other
             # CAPTURE finds the budget taken.
-            run(wait_until(lambda: server._budget.refused == 11, "11 BUSY", 60.0))
-            assert server._budget.peak <= budget
+            run(wait_until(lambda: server.service.budget.refused == 11, "11 BUSY", 60.0))
+            assert server.service.budget.peak <= budget
             # Nothing waits in the pool behind the stuck reply.
-            run(wait_until(lambda: server._pool.admitted == 0, "the workers are free"))
+            run(wait_until(lambda: server.service.pool.admitted == 0, "the workers are free"))
         finally:
             sock.close()
-        run(wait_until(lambda: server._budget.used == 0, "everything is given back", 60.0))
+        run(wait_until(lambda: server.service.budget.used == 0, "everything is given back", 60.0))

@@ -69,7 +69,7 @@ def server_in_thread(**settings: Any) -> Iterator[VisionServer]:
     thread.start()
     server = VisionServer(builtin_catalog(), ServerSettings(port=0, **settings))
     runs: list[int] = []
-    server.on_result = lambda record: runs.append(record.result.request_id)
+    server.service.subscribe(lambda record: runs.append(record.request.request_id))
     server.runs = runs  # type: ignore[attr-defined]
     try:
         asyncio.run_coroutine_threadsafe(server.start(), loop).result(10.0)
@@ -98,8 +98,7 @@ def test_the_server_listens_on_loopback_unless_told_otherwise(tmp_path: Path) ->
 
     async def bound_address() -> str:
         async with VisionServer(builtin_catalog(), ServerSettings(port=0)) as server:
-            assert server._server is not None
-            return str(server._server.sockets[0].getsockname()[0])
+            return server.tcp.address[0]
 
     assert asyncio.run(bound_address()) == "127.0.0.1"
     # Only the container listens on every interface, and says so on its command line.
@@ -226,7 +225,7 @@ def test_a_wrong_token_is_refused_and_what_follows_it_is_never_run(given: str | 
 
 
 def test_the_token_is_compared_in_constant_time() -> None:
-    source = (REPO_ROOT / "vision_server/server.py").read_text()
+    source = (REPO_ROOT / "vision_server/frontends/tcp.py").read_text()
     assert "hmac.compare_digest(" in source
     tree = ast.parse(source)
     for node in ast.walk(tree):  # no == / != on the token anywhere

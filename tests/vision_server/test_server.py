@@ -41,7 +41,7 @@ from protocol.conformance import Target
 from protocol.conformance.peer import CLOSED, Peer
 from robot_client.client import ReconnectPolicy
 from robot_client.errors import ConnectionLost
-from vision_server import server as server_module
+from vision_server import service as service_module
 from vision_server.builtin import MeanIntensityPresence, builtin_catalog
 from vision_server.cameras import (
     FolderCamera,
@@ -50,7 +50,8 @@ from vision_server.cameras import (
     RequestCameraSettings,
 )
 from vision_server.catalog import Catalog, InspectionInput, InspectionOutcome
-from vision_server.server import ResultRecord, ServerSettings, VisionServer
+from vision_server.server import ServerSettings, VisionServer
+from vision_server.service import InspectionRecord, encode_image
 
 T = TypeVar("T")
 GRAY = np.full((48, 64), 200, np.uint8)
@@ -276,9 +277,9 @@ def test_overlays_are_encoded_in_the_worker_pool(monkeypatch: pytest.MonkeyPatch
 
     def recording(*args: Any, **kwargs: Any) -> Any:
         encoded_in.append(threading.current_thread().name)
-        return payload_from_array(*args, **kwargs)
+        return encode_image(*args, **kwargs)
 
-    monkeypatch.setattr(server_module, "payload_from_array", recording)
+    monkeypatch.setattr(service_module, "encode_image", recording)
 
     async def body() -> None:
         async with (
@@ -342,9 +343,9 @@ def test_stop_lets_requests_finish_within_the_grace_period(gate: Gate) -> None:
 
 def test_replace_catalog_serves_new_requests_with_the_new_one() -> None:
     async def body() -> None:
-        records: list[ResultRecord] = []
+        records: list[InspectionRecord] = []
         async with VisionServer(builtin_catalog(), ServerSettings(port=0)) as server:
-            server.on_result = records.append
+            server.service.subscribe(records.append)
             async with client_for(server) as client:
                 before = await client.inspect("brightness", GRAY)
                 server.replace_catalog(make_catalog(Raises()))
@@ -352,7 +353,7 @@ def test_replace_catalog_serves_new_requests_with_the_new_one() -> None:
                 assert names == {"brightness", "raises"}
                 after = await client.inspect("brightness", GRAY)
                 assert before.config_hash != after.config_hash
-        assert [r.result.config_hash for r in records] == [before.config_hash, after.config_hash]
+        assert [r.reply.config_hash for r in records] == [before.config_hash, after.config_hash]
 
     run(body())
 

@@ -36,7 +36,7 @@ def test_a_connection_silent_after_a_request_is_closed_as_idle() -> None:
         close = peer.expect(MessageType.CLOSE, timeout_s=20.0)
         assert "idle" in close.metadata["reason"]
         peer.expect_closed(timeout_s=20.0)
-        run(wait_until(lambda: not server._connections, "the slot is free", 20.0))
+        run(wait_until(lambda: not server.tcp.connections, "the slot is free", 20.0))
 
 
 def test_a_frame_dribbled_byte_by_byte_is_closed_at_the_frame_timeout() -> None:

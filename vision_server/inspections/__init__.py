@@ -5,7 +5,8 @@ Types: ``locate`` (feature locate: template, circle, blob), ``presence`` (ROI pr
 ``qr`` (QR read), ``qr_pose`` (pose of a QR code from colour + depth).
 
 Public API: :func:`parse_inspection` (configuration → an :class:`~vision_server.catalog.
-Inspection`), ``INSPECTION_TYPES``, and the classes :class:`LocateInspection`,
+Inspection`), ``INSPECTION_TYPES``, ``RESULT_KINDS`` (each type's :class:`ResultKind`: its
+golden expectations and summary values), and the classes :class:`LocateInspection`,
 :class:`PresenceInspection`, :class:`QRInspection`, :class:`QRPoseInspection`.
 """
 
@@ -17,6 +18,8 @@ from pathlib import Path
 from ..cameras import CameraSettings
 from ..catalog import Inspection
 from ..configfile import Node, one_of
+from . import locate, presence, qr, qr_pose
+from .kinds import ResultKind
 from .locate import LocateInspection, parse_locate
 from .presence import PresenceInspection, parse_presence
 from .qr import QRInspection, parse_qr
@@ -30,6 +33,14 @@ INSPECTION_TYPES: dict[str, Parser] = {
     "qr": parse_qr,
     "qr_pose": parse_qr_pose,
 }
+
+RESULT_KINDS: dict[str, ResultKind] = {
+    "locate": locate.RESULTS,
+    "presence": presence.RESULTS,
+    "qr": qr.RESULTS,
+    "qr_pose": qr_pose.RESULTS,
+}
+"""Each type's result shape (golden expectations, summary values), declared by the type."""
 
 InspectionSpec = Inspection
 """A configured inspection is its own specification: frozen, with its parameters."""
@@ -47,10 +58,12 @@ def parse_inspection(
 
 __all__ = [
     "INSPECTION_TYPES",
+    "RESULT_KINDS",
     "InspectionSpec",
     "LocateInspection",
     "PresenceInspection",
     "QRInspection",
     "QRPoseInspection",
+    "ResultKind",
     "parse_inspection",
 ]

@@ -26,6 +26,7 @@ from .base import (
     overlay_base,
     parse_common,
 )
+from .kinds import Data, ResultKind, as_number, points
 
 RED = (0, 0, 255)
 
@@ -199,3 +200,23 @@ def parse_locate(
         options["min_circularity"] = sub.take("min_circularity", fraction, 0.0)
     sub.finish()
     return LocateInspection(common, method, min_count, max_count, min_score, options)
+
+
+def _locate_expected(data: Data) -> dict[str, Any]:
+    return {
+        "count": int(data["count"]),
+        "features": points((f["u"], f["v"]) for f in data["features"]),
+    }
+
+
+def _locate_summary(data: Data) -> dict[str, float]:
+    first = data["features"][0] if data.get("features") else {}
+    return {
+        "count": as_number(data, "count"),
+        "u": as_number(first, "u"),
+        "v": as_number(first, "v"),
+    }
+
+
+RESULTS = ResultKind(("count", "features"), _locate_expected, _locate_summary)
+"""A locate result: how many features, where (the first one's position in the summary)."""

@@ -7,6 +7,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 
@@ -26,6 +27,7 @@ from .base import (
     overlay_base,
     parse_common,
 )
+from .kinds import Data, ResultKind, as_number
 
 MEASURE_RANGES: dict[str, tuple[float, float, str]] = {
     "mean_intensity": (0.0, 255.0, "a grey level, 0..255"),
@@ -136,3 +138,15 @@ def parse_presence(
 def _polarity(value: object) -> Polarity:
     """What ``blob_count`` counts: ``dark`` blobs (< threshold) or ``bright`` ones."""
     return "bright" if one_of("dark", "bright")(value) == "bright" else "dark"
+
+
+def _presence_expected(data: Data) -> dict[str, Any]:
+    return {"value": round(float(data["value"]), 4)}
+
+
+def _presence_summary(data: Data) -> dict[str, float]:
+    return {"value": as_number(data, "value")}
+
+
+RESULTS = ResultKind(("value",), _presence_expected, _presence_summary)
+"""A presence result: the measured value."""

@@ -6,6 +6,7 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -16,6 +17,7 @@ from ..cameras import CameraSettings
 from ..catalog import InspectionInput, InspectionOutcome
 from ..configfile import Node, string
 from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
+from .kinds import Data, ResultKind, points
 
 RED = (0, 0, 255)
 
@@ -88,3 +90,17 @@ def parse_expect(node: Node) -> str | re.Pattern[str] | None:
 def parse_qr(node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]) -> QRInspection:
     common = parse_common(node, "qr", cameras)
     return QRInspection(common, parse_expect(node))
+
+
+def _qr_expected(data: Data) -> dict[str, Any]:
+    if not data.get("found"):
+        return {}
+    return {"text": data["text"], "corners": points(data["corners"])}
+
+
+def _qr_summary(data: Data) -> dict[str, float]:
+    return {"found": 1.0 if data.get("found") else 0.0}
+
+
+RESULTS = ResultKind(("text", "corners"), _qr_expected, _qr_summary)
+"""A QR result: the text and corners of the code found (nothing when none was)."""

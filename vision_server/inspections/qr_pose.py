@@ -20,6 +20,7 @@ from ..cameras import CameraSettings
 from ..catalog import InspectionInput, InspectionOutcome
 from ..configfile import Node, fraction, one_of, positive
 from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
+from .kinds import Data, ResultKind, points
 from .qr import parse_expect
 
 RED = (0, 0, 255)
@@ -158,3 +159,24 @@ def parse_qr_pose(
         node.take("max_plane_rms_m", positive, None),
         node.take("min_valid_fraction", fraction, None),
     )
+
+
+def _qr_pose_expected(data: Data) -> dict[str, Any]:
+    if not data.get("found"):
+        return {}
+    return {
+        "text": data["text"],
+        "corners": points(data["corners"]),
+        "camera_from_qr": [[round(x, 6) for x in row] for row in data["camera_from_qr"]],
+    }
+
+
+def _qr_pose_summary(data: Data) -> dict[str, float]:
+    pose = data.get("camera_from_qr") if data.get("found") else None
+    x, y, z = (float("nan"),) * 3 if pose is None else (pose[0][3], pose[1][3], pose[2][3])
+    return {"found": 0.0 if pose is None else 1.0, "x": x, "y": y, "z": z}
+
+
+RESULTS = ResultKind(("text", "corners", "camera_from_qr"), _qr_pose_expected, _qr_pose_summary)
+"""A QR pose result: text, corners and camera_from_qr (its translation in metres in the
+summary)."""

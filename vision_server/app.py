@@ -1,0 +1,133 @@
+"""The running server: the inspection service, the enabled front-ends and the signals.
+
+:class:`App` wires one :class:`~vision_server.service.InspectionService` (the runtime: worker
+pool, admission, deadlines, cameras, result log, reload) to the front-ends that serve it — the
+TCP protocol today (:class:`~vision_server.frontends.tcp.TcpFrontend`); an HTTP console, a line
+protocol or Modbus would be started and stopped here beside it. SIGHUP reloads through the
+service, the same path as the protocol's RELOAD (in a thread, never on the event loop).
+
+``vision-server serve`` builds one from a configuration file (:mod:`vision_server.cli`);
+:class:`vision_server.server.VisionServer` is the same class under its older name.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+from collections.abc import Callable
+from typing import Any
+
+from protocol import CellvisionError
+
+from .catalog import Catalog
+from .frontends.tcp import TcpFrontend
+from .results import ResultLog
+from .service import InspectionService
+from .settings import ServerSettings
+
+log = logging.getLogger("vision_server")
+
+
+class App:
+    """A cellvision server: ``async with App(...) as app`` or start()/stop().
+
+    ``settings``: the configuration's ``server:`` section, split between the service and the
+    TCP front-end. ``reloader`` builds the catalog of a re-read configuration (None: reload is
+    off). The catalog is swapped whole on reload while connections stay open.
+    """
+
+    def __init__(
+        self,
+        catalog: Catalog,
+        settings: ServerSettings | None = None,
+        *,
+        results: ResultLog | None = None,
+        reloader: Callable[[], Catalog] | None = None,
+    ) -> None:
+        self.settings = settings or ServerSettings()
+        self.service = InspectionService(
+            catalog, self.settings.service(), results=results, reloader=reloader
+        )
+        self.tcp = TcpFrontend(self.service, self.settings.tcp())
+        self._stopped = asyncio.Event()
+        self._signal_tasks: set[asyncio.Task[None]] = set()
+
+    # ------------------------------------------------------------------ what it serves
+
+    @property
+    def catalog(self) -> Catalog:
+        return self.service.catalog
+
+    @property
+    def results(self) -> ResultLog | None:
+        return self.service.results
+
+    def replace_catalog(self, catalog: Catalog) -> None:
+        """Serve new requests with ``catalog`` (see :meth:`InspectionService.replace_catalog`)."""
+        self.service.replace_catalog(catalog)
+
+    async def reload(self) -> Catalog:
+        """Re-read the configuration (in a thread); raises CONFIG_INVALID, the old one stays."""
+        return await self.service.reload()
+
+    def health(self) -> dict[str, Any]:
+        return self.tcp.health()
+
+    @property
+    def port(self) -> int:
+        """The TCP front-end's port (useful with port 0)."""
+        return self.tcp.port
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def start(self) -> None:
+        await self.tcp.start()
+
+    async def serve_forever(self) -> None:
+        if not self.tcp.started:
+            await self.start()
+        await self._stopped.wait()
+
+    async def stop(self) -> None:
+        """Stop every front-end (each closes its connections gracefully), then the service."""
+        self._stopped.set()
+        await self.tcp.stop()
+        self.service.close()
+
+    async def __aenter__(self) -> App:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    # ------------------------------------------------------------------ signals
+
+    def install_signals(self, stop: asyncio.Event, *, reload: bool) -> None:
+        """SIGINT and SIGTERM set ``stop``; with ``reload``, SIGHUP re-reads the configuration
+        through the service (a refused configuration is logged, the old one stays)."""
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError):
+                loop.add_signal_handler(sig, stop.set)
+        if reload:
+            with contextlib.suppress(NotImplementedError):
+                loop.add_signal_handler(signal.SIGHUP, self._on_hup)
+
+    def _on_hup(self) -> None:
+        task = asyncio.get_running_loop().create_task(self._reload_on_signal())
+        self._signal_tasks.add(task)
+        task.add_done_callback(self._signal_tasks.discard)
+
+    async def _reload_on_signal(self) -> None:
+        try:
+            await self.service.reload()
+        except CellvisionError as exc:
+            log.error("SIGHUP: reload refused, the old configuration stays: %s", exc.message)
+        except Exception:  # a signal has nobody to answer: say it in the log, keep serving
+            log.exception("SIGHUP: reload failed, the old configuration stays")
+
+
+__all__ = ["App"]

@@ -1,0 +1,771 @@
+"""The TCP front-end: the cellvision binary protocol (SPEC.md) over asyncio streams, as a thin
+adapter over :class:`vision_server.service.InspectionService`.
+
+One task reads each connection and feeds a sans-IO :class:`protocol.Connection`; each INSPECT or
+CAPTURE runs as a child task in the connection's TaskGroup and calls the service. What is this
+front-end's own: the listener (``max_connections``, TLS started per connection, refusing with a
+fatal BUSY), the handshake (versions, the token, the client's ``max_frame_bytes``), the
+per-connection limits (``max_in_flight``) and timeouts (handshake, idle, frame, write), payload
+decoding (:mod:`.images`, run by the service in a worker) and the one table from the service's
+errors to ERROR frames (:func:`error_frame`).
+
+Admission happens when a frame's header arrives (:meth:`TcpSession._admit`): the service
+reserves a worker slot and the bytes of a large body (:meth:`InspectionService.admit`) before the
+body is read, so a refused request costs no read of its body. What a request holds is released
+once its answer has been handed to the socket and drained.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import logging
+import ssl
+import time
+from collections.abc import Coroutine
+from typing import Any
+
+from protocol import (
+    NEED_DATA,
+    Busy,
+    Capture,
+    CellvisionError,
+    Close,
+    ConfigInvalid,
+    Connection,
+    ConnectionClosed,
+    Error,
+    Frames,
+    Hello,
+    ImageEncoding,
+    ImagePayload,
+    ImageRole,
+    Inspect,
+    Inspections,
+    InternalError,
+    InvalidArgument,
+    Limits,
+    ListInspections,
+    LocalProtocolError,
+    Message,
+    NotAuthenticated,
+    Ping,
+    Pong,
+    Reload,
+    Reloaded,
+    Result,
+    Role,
+    ShuttingDown,
+    State,
+    UnexpectedMessage,
+    UnsupportedVersion,
+    Welcome,
+    negotiate_version,
+    payload_from_array,
+)
+from protocol.constants import HEADER_SIZE, SUPPORTED_VERSIONS, MessageType
+from protocol.frames import Header, encode_metadata
+
+from ..admission import Admission
+from ..service import (
+    CaptureReply,
+    CaptureRequest,
+    FrameEncoding,
+    InspectionService,
+    InspectReply,
+    InspectRequest,
+    deadline_after,
+)
+from ..settings import SERVER_VERSION, TcpSettings, welcome_limits
+from .images import payload_loader
+
+log = logging.getLogger("vision_server")
+
+READ_CHUNK = 256 * 1024
+DEFAULT_MAX_FRAME_BYTES = Limits().max_frame_bytes
+"""What a client accepts when its HELLO does not say (SPEC §3.4 default)."""
+REFUSE_HELLO_TIMEOUT_S = 2.0
+"""How long a refused connection may take to send its HELLO before it is closed anyway."""
+CAPTURE_ENCODINGS: dict[str, FrameEncoding] = {"png": "png", "jpeg": "jpeg"}
+
+
+def error_frame(exc: CellvisionError, request_id: int) -> Error:
+    """The one table from the service's errors to this front-end's form: an ERROR frame with
+    the error's code (SPEC §7), its message and details, for request ``request_id`` (0: the
+    connection). Other front-ends map the same codes to an HTTP status, an error line or a
+    Modbus exception."""
+    return Error.from_exception(exc, request_id=request_id)
+
+
+class TcpFrontend:
+    """Listens for protocol clients and serves them with ``service``."""
+
+    def __init__(self, service: InspectionService, settings: TcpSettings | None = None) -> None:
+        self.service = service
+        self.settings = settings or TcpSettings()
+        self._refusing = 0
+        self._server: asyncio.Server | None = None
+        self._ssl: ssl.SSLContext | None = None
+        self.connections: set[TcpSession] = set()
+        """The sessions open now (counted towards ``max_connections``)."""
+        self._stopping = asyncio.Event()
+
+    @property
+    def started(self) -> bool:
+        return self._server is not None
+
+    @property
+    def port(self) -> int:
+        """The port actually bound (useful with port 0)."""
+        return self.address[1]
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """The address and port actually bound."""
+        if self._server is None or not self._server.sockets:
+            raise RuntimeError("the server is not started")
+        host, port = self._server.sockets[0].getsockname()[:2]
+        return str(host), int(port)
+
+    async def start(self) -> None:
+        # TLS is started per connection in _accept, after the connection is counted, so that
+        # connections still in the TLS handshake count towards max_connections and time out.
+        self._ssl = self.settings.ssl_context()
+        self._server = await asyncio.start_server(
+            self._accept, self.settings.host, self.settings.port, limit=READ_CHUNK
+        )
+        log.info("listening on %s:%d", self.settings.host, self.port)
+
+    async def stop(self) -> None:
+        """Stop accepting; close every connection gracefully (SHUTTING_DOWN for what is still
+        unanswered after the grace period)."""
+        self._stopping.set()
+        if self._server is not None:
+            self._server.close()
+        sessions = list(self.connections)
+        for session in sessions:
+            session.begin_shutdown()
+        if sessions:
+            await asyncio.wait(
+                [asyncio.ensure_future(s.finished.wait()) for s in sessions],
+                timeout=self.settings.shutdown_grace_s + 1.0,
+            )
+        if self._server is not None:
+            await self._server.wait_closed()
+
+    def health(self) -> dict[str, Any]:
+        """The health report a PONG carries (SPEC §5.5): the service's, with this front-end's
+        connections among the admission counters."""
+        report = self.service.health()
+        report["admission"] = {
+            "connections": len(self.connections),
+            "max_connections": self.settings.max_connections,
+            **report["admission"],
+        }
+        return report
+
+    def welcome_limits(self) -> dict[str, int]:
+        return welcome_limits(self.settings, self.service.settings)
+
+    # ------------------------------------------------------------------ connections
+
+    async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if len(self.connections) >= self.settings.max_connections or self._stopping.is_set():
+            reason = "too many connections" if not self._stopping.is_set() else "stopping"
+            # Refusing politely costs a read (and a TLS handshake); never more of them at once
+            # than connections: past that, a flood is just closed.
+            if self._refusing >= self.settings.max_connections:
+                writer.transport.abort()
+                return
+            self._refusing += 1
+            try:
+                if await self._start_tls(writer, REFUSE_HELLO_TIMEOUT_S):
+                    await self._refuse(reader, writer, reason)
+            finally:
+                self._refusing -= 1
+            return
+        session = TcpSession(self, reader, writer)
+        self.connections.add(session)
+        try:
+            if await self._start_tls(writer, self.settings.handshake_timeout_s):
+                await session.run()
+        finally:
+            self.connections.discard(session)
+            session.admission_cleanup()
+
+    async def _start_tls(self, writer: asyncio.StreamWriter, timeout_s: float) -> bool:
+        """Wrap the connection in TLS when the server has TLS; False (and closed) on failure."""
+        if self._ssl is None:
+            return True
+        try:
+            await writer.start_tls(self._ssl, ssl_handshake_timeout=timeout_s)
+        except Exception as exc:  # noqa: BLE001 - whatever the peer did, only it is dropped
+            log.info("TLS handshake failed: %s", exc or type(exc).__name__)
+            writer.transport.abort()
+            return False
+        return True
+
+    async def _refuse(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, reason: str
+    ) -> None:
+        """Answer the HELLO with BUSY, then close.
+
+        The BUSY carries the HELLO's request id, so that the client's handshake fails with it,
+        and ``fatal``, because the connection is closed after it (SPEC §7: the flag is
+        authoritative). Reading the HELLO first also avoids closing with unread bytes, which
+        would reset the connection before the client could read the BUSY.
+        """
+        conn = Connection(Role.SERVER, limits=self.settings.limits())
+        request_id = 0
+        try:
+            with contextlib.suppress(CellvisionError, TimeoutError):
+                async with asyncio.timeout(REFUSE_HELLO_TIMEOUT_S):
+                    event: object = NEED_DATA
+                    while event is NEED_DATA:
+                        conn.receive_data(await reader.read(READ_CHUNK))
+                        event = conn.next_event()
+                    if isinstance(event, Hello):
+                        request_id = event.request_id
+            exc = Busy(
+                f"server refuses the connection: {reason}", request_id=request_id, fatal=True
+            )
+            writer.write(_late_error(conn, exc))
+            await writer.drain()
+        except (ConnectionError, OSError) as exc:
+            log.info("refused connection lost: %s", exc)
+        finally:
+            writer.close()
+
+
+def _late_error(conn: Connection, exc: CellvisionError) -> bytes:
+    """Bytes of an ERROR sent outside the normal flow (before HELLO, or after a fatal error)."""
+    try:
+        return conn.send(Error.from_exception(exc))
+    except LocalProtocolError:
+        return Error.from_exception(exc).to_frame(conn.wire_version).serialize()
+
+
+class TcpSession:
+    """One accepted connection.
+
+    Every frame is admitted when its header arrives (:meth:`_admit`): the state machine, the
+    connection's in-flight limit, a pool slot for INSPECT/CAPTURE and the bytes of a large body
+    from the server's budget; a refused frame is answered (BUSY …) and its body skipped unread.
+    What a request holds is released once its answer has been handed to the socket and drained.
+    """
+
+    def __init__(
+        self, frontend: TcpFrontend, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
+        self.frontend = frontend
+        self.service = frontend.service
+        self.settings = frontend.settings
+        self.reader = reader
+        self.writer = writer
+        self.conn = Connection(
+            Role.SERVER,
+            limits=self.settings.limits(),
+            versions=SUPPORTED_VERSIONS,
+            admit=self._admit,
+        )
+        self.finished = asyncio.Event()
+        self.handshake_deadline = time.monotonic() + self.settings.handshake_timeout_s
+        """The TLS handshake and HELLO must be done by then (monotonic seconds)."""
+        self.max_reply_bytes = DEFAULT_MAX_FRAME_BYTES
+        """The largest frame the client accepts (its HELLO's max_frame_bytes)."""
+        self._shutdown = asyncio.Event()
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks_done = asyncio.Event()
+        """Set when the last request task of the connection has finished."""
+        self._frame_admission: Admission | None = None
+        self._held: set[Admission] = set()
+        self._last_activity = time.monotonic()
+        self._frame_started: float | None = None
+        peer = writer.get_extra_info("peername")
+        self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
+
+    def begin_shutdown(self) -> None:
+        self._shutdown.set()
+
+    # ------------------------------------------------------------------ admission
+
+    def _admit(self, header: Header) -> None:
+        """Called by the connection with each header the state machine accepts, before the
+        body is kept. Raises BUSY to refuse; the body is then skipped."""
+        rid = header.request_id
+        work = header.type in (MessageType.INSPECT, MessageType.CAPTURE)
+        if work and len(self.conn.pending) >= self.settings.max_in_flight:
+            raise Busy(
+                f"more than {self.settings.max_in_flight} requests in flight on this connection",
+                request_id=rid,
+            )
+        # Small frames are bounded per connection (one frame at a time); a larger body is
+        # only read when the service's budget can hold it.
+        large = header.frame_length > self.conn.limits.max_handshake_frame_bytes
+        try:
+            admission = self.service.admit(
+                work=work, body_bytes=header.frame_length if large else 0
+            )
+        except CellvisionError as exc:
+            exc.request_id = rid  # the state machine answers it for this request
+            raise
+        self._frame_admission = admission
+        self._held.add(admission)
+
+    def _take_frame_admission(self) -> Admission | None:
+        admission, self._frame_admission = self._frame_admission, None
+        return admission
+
+    def _release(self, admission: Admission | None) -> None:
+        if admission is not None:
+            admission.release()
+            self._held.discard(admission)
+
+    def admission_cleanup(self) -> None:
+        """Give back everything this connection still holds (it is gone)."""
+        for admission in list(self._held):
+            self._release(admission)
+        self._frame_admission = None
+
+    # ------------------------------------------------------------------ the connection
+
+    async def run(self) -> None:
+        try:
+            async with asyncio.TaskGroup() as group:
+                graceful = await self._read_loop(group)
+                if not graceful:
+                    for task in list(self._tasks):
+                        task.cancel()
+                # Graceful: everything in flight is answered before CLOSE.
+            if self.conn.state is not State.CLOSED:
+                self._write(Close(reason="closing"))
+                await self._drain()
+        # except*: a request task's failure reaches here wrapped in the TaskGroup's
+        # ExceptionGroup, and a peer that resets the connection is no server error.
+        except* (ConnectionError, OSError) as lost:
+            log.info("%s: connection lost: %s", self.peer, lost.exceptions[0])
+        except* Exception:
+            log.exception("%s: unexpected error; closing this connection only", self.peer)
+        finally:
+            self.writer.close()
+            with contextlib.suppress(Exception):
+                await self.writer.wait_closed()
+            self.admission_cleanup()
+            self.finished.set()
+
+    def _read_timeout(self) -> tuple[float | None, str]:
+        """Seconds until the connection has been silent too long, and what it then says."""
+        settings = self.settings
+        now = time.monotonic()
+        if self.conn.state in (State.HANDSHAKE, State.HELLO_RECEIVED):
+            limit = settings.handshake_timeout_s
+            return max(self.handshake_deadline - now, 0.0), f"no HELLO within {limit:g} s"
+        if self._frame_started is not None:
+            limit = settings.frame_timeout_s
+            return (
+                max(self._frame_started + limit - now, 0.0),
+                f"a frame was not complete within {limit:g} s",
+            )
+        if not self.conn.pending and not self._tasks:
+            limit = settings.idle_timeout_s
+            return (
+                max(self._last_activity + limit - now, 0.0),
+                f"idle for {limit:g} s (send PING to keep a connection open)",
+            )
+        return None, ""
+
+    async def _read_loop(self, group: asyncio.TaskGroup) -> bool:
+        """Read and dispatch until the peer closes (True) or broke the protocol (False)."""
+        while True:
+            # Backpressure: do not read more while the peer is not reading our answers.
+            await self._drain()
+            read = asyncio.ensure_future(self.reader.read(READ_CHUNK))
+            stop = asyncio.ensure_future(self._shutdown.wait())
+            timeout, why = self._read_timeout()
+            waiters = {read, stop}
+            # With requests in flight there is no idle timeout; wake up when the last one is
+            # answered, so that a client that then goes silent is closed after idle_timeout_s.
+            woken: asyncio.Future[Any] | None = None
+            if timeout is None and self._tasks:
+                self._tasks_done.clear()
+                woken = asyncio.ensure_future(self._tasks_done.wait())
+                waiters.add(woken)
+            try:
+                done, _ = await asyncio.wait(
+                    waiters, timeout=timeout, return_when=asyncio.FIRST_COMPLETED
+                )
+            except asyncio.CancelledError:  # a request task failed: leave nothing pending
+                read.cancel()
+                stop.cancel()
+                if woken is not None:
+                    woken.cancel()
+                raise
+            if woken is not None:
+                woken.cancel()
+                if woken in done and read not in done and stop not in done:
+                    read.cancel()
+                    stop.cancel()
+                    with contextlib.suppress(asyncio.CancelledError, ConnectionError):
+                        await read
+                    continue
+            if read not in done:
+                read.cancel()
+                with contextlib.suppress(asyncio.CancelledError, ConnectionError):
+                    await read
+                if stop not in done:  # silent for too long
+                    stop.cancel()
+                    log.info("%s: %s; closing", self.peer, why)
+                    self._write(Close(reason=why))
+                    await self._drain()
+                    return False
+                await self._shutdown_session()
+                return True
+            stop.cancel()
+            data = read.result()
+            if data and self._frame_started is None:
+                self._frame_started = time.monotonic()
+            self.conn.receive_data(data)
+            frame_ended = False
+            while True:
+                try:
+                    event = self.conn.next_event()
+                except CellvisionError as exc:
+                    frame_ended = True
+                    self._release(self._take_frame_admission())
+                    log.info("%s: %s: %s", self.peer, exc.code.name, exc.message)
+                    if exc.fatal:
+                        self.writer.write(_late_error(self.conn, exc))
+                        await self._drain()
+                        return False
+                    # Request id 0 (e.g. a request sent with id 0) gets a connection-level
+                    # ERROR: SPEC §6.1 and §7 want an answer even then.
+                    self._write(Error.from_exception(exc))
+                    continue
+                if event is NEED_DATA:
+                    break
+                frame_ended = True
+                if isinstance(event, ConnectionClosed):
+                    return True
+                assert isinstance(event, Message)
+                # The whole frame is in: a request's deadline counts from now (SPEC §6.1).
+                arrived = self._last_activity = time.monotonic()
+                admission = self._take_frame_admission()
+                try:
+                    keep_going = self._dispatch(event, group, admission, arrived)
+                except BaseException:
+                    self._release(admission)
+                    raise
+                if not keep_going:
+                    return self.conn.state is not State.CLOSED
+            # The frame timeout counts from a frame's first byte: bytes that trickle in keep
+            # the same start (a slow sender must not hold the connection by dribbling), a new
+            # frame begun in this chunk starts now.
+            if not self.conn.receiving_frame:
+                self._frame_started = None
+            elif frame_ended:
+                self._frame_started = time.monotonic()
+
+    def _dispatch(
+        self,
+        message: Message,
+        group: asyncio.TaskGroup,
+        admission: Admission | None,
+        arrived: float,
+    ) -> bool:
+        """Answer or start one request (``arrived``: when its frame was complete, monotonic
+        seconds); False when the connection is to close. A request task takes over
+        ``admission``; for everything else it is released here."""
+        if isinstance(message, Inspect | Capture):
+            self._start(group, self._answer(message, admission, arrived))
+            return True
+        self._release(admission)
+        if isinstance(message, Hello):
+            return self._handshake(message)
+        if isinstance(message, Ping):
+            self._write(Pong(message.request_id, message.data, self.frontend.health()))
+            return True
+        if isinstance(message, ListInspections):
+            self._write(
+                Inspections(message.request_id, self.service.catalog.inspection_descriptors())
+            )
+            return True
+        if isinstance(message, Close):
+            return False  # the TaskGroup finishes what is in flight, then CLOSE goes out
+        if isinstance(message, Error):  # the client's fatal ERROR (SPEC §7): it is over
+            log.info("%s: the client ended the connection: %s", self.peer, message.message)
+            return False
+        if isinstance(message, Reload):
+            self._start(group, self._reload(message))
+            return True
+        self._write(
+            Error.from_exception(
+                UnexpectedMessage(
+                    f"{message.TYPE.name} is not handled by this server",
+                    request_id=message.request_id,
+                )
+            )
+        )
+        return True
+
+    def _start(self, group: asyncio.TaskGroup, work: Coroutine[Any, Any, None]) -> None:
+        task = group.create_task(work)
+        self._tasks.add(task)
+        task.add_done_callback(self._task_done)
+
+    def _task_done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if not self._tasks:
+            self._tasks_done.set()
+
+    def _handshake(self, hello: Hello) -> bool:
+        version = negotiate_version(hello.versions, self.conn.versions)
+        if version is None:
+            offered = ", ".join(f"{a}.{b}" for a, b in hello.versions)
+            exc: CellvisionError = UnsupportedVersion(
+                f"no common major version: client offers {offered}, server speaks "
+                + ", ".join(f"{a}.{b}" for a, b in self.conn.versions),
+                request_id=hello.request_id,
+                details={"supported": [list(v) for v in self.conn.versions]},
+            )
+            self._write(Error.from_exception(exc))
+            return False
+        expected = self.settings.auth_token
+        if expected is not None:
+            given = hello.auth_token or ""
+            if not hmac.compare_digest(given.encode(), expected.encode()):
+                self._write(
+                    Error.from_exception(
+                        NotAuthenticated(
+                            "missing or wrong auth_token in HELLO", request_id=hello.request_id
+                        )
+                    )
+                )
+                return False
+        if hello.max_frame_bytes is not None:
+            self.max_reply_bytes = hello.max_frame_bytes
+        settings = self.settings
+        catalog = self.service.catalog
+        self._write(
+            Welcome(
+                hello.request_id,
+                version,
+                settings.name,
+                SERVER_VERSION,
+                self.frontend.welcome_limits(),
+                catalog.inspection_descriptors(),
+                catalog.camera_descriptors(),
+            )
+        )
+        log.info("%s: handshake done (version %d.%d, client %r)", self.peer, *version, hello.client)
+        return True
+
+    async def _answer(
+        self, request: Inspect | Capture, admission: Admission | None, arrived: float
+    ) -> None:
+        rid = request.request_id
+        try:
+            response: Message
+            try:
+                if isinstance(request, Inspect):
+                    reply = await self.service.inspect(
+                        self._inspect_request(request, arrived), admission=admission
+                    )
+                    response = result_message(rid, reply)
+                else:
+                    wanted = _capture_request(request, arrived, self.max_reply_bytes)
+                    captured = await self.service.capture(wanted, admission=admission)
+                    response = _frames(rid, captured, wanted.encoding)
+            except CellvisionError as exc:
+                response = error_frame(exc, rid)
+            except Exception as exc:  # a bug in an inspection must not take the server down
+                log.exception("%s: request %d failed", self.peer, rid)
+                response = error_frame(InternalError(f"{type(exc).__name__}: {exc}"), rid)
+            if rid in self.conn.pending:
+                self._write(response)
+                await self._drain()
+        finally:
+            # The reply is in the socket (or the connection is gone): its memory is free.
+            self._release(admission)
+
+    def _inspect_request(self, message: Inspect, arrived: float) -> InspectRequest:
+        return InspectRequest(
+            message.inspection,
+            payload_loader(message.images) if message.images else None,
+            overlay=".png" if message.overlay else None,
+            options=message.options,
+            arrived=arrived,
+            deadline=deadline_after(arrived, message.deadline_ms),
+            peer=self.peer,
+            request_id=message.request_id,
+        )
+
+    async def _reload(self, request: Reload) -> None:
+        rid = request.request_id
+        response: Message
+        if not self.settings.allow_reload or self.service.reloader is None:
+            why = (
+                "this server was started without a configuration file"
+                if self.service.reloader is None
+                else "reload is disabled (allow_reload: false)"
+            )
+            response = error_frame(InvalidArgument(why), rid)
+        else:
+            try:
+                catalog = await self.service.reload()
+            except CellvisionError as exc:
+                if isinstance(exc, ConfigInvalid):
+                    log.error(
+                        "%s: reload refused, the old configuration stays: %s",
+                        self.peer,
+                        exc.message,
+                    )
+                response = error_frame(exc, rid)
+            else:
+                response = Reloaded(
+                    rid,
+                    catalog.config_hash,
+                    catalog.inspection_descriptors(),
+                    catalog.camera_descriptors(),
+                    catalog.notes,
+                )
+        if rid in self.conn.pending:
+            self._write(response)
+            await self._drain()
+
+    async def _shutdown_session(self) -> None:
+        grace = self.settings.shutdown_grace_s
+        if self._tasks:
+            await asyncio.wait(set(self._tasks), timeout=grace)
+        for task in list(self._tasks):
+            task.cancel()
+        for request_id in sorted(self.conn.pending):
+            self._write(
+                Error.from_exception(ShuttingDown("the server is stopping", request_id=request_id))
+            )
+        if self.conn.state is State.OPEN:
+            self._write(Close(reason="server shutting down"))
+        await self._drain()
+
+    def _write(self, message: Message) -> None:
+        """Send ``message``. An answer the client could not receive (larger than its HELLO's
+        max_frame_bytes) or cannot be encoded is replaced by an ERROR for its request."""
+        try:
+            data = self._encode(message)
+        except LocalProtocolError:
+            log.warning(
+                "%s: dropped %s that the state machine refused", self.peer, message.TYPE.name
+            )
+            return
+        if not self.writer.is_closing():
+            self.writer.write(data)
+            self._last_activity = time.monotonic()
+
+    def _encode(self, message: Message) -> bytes:
+        rid = message.request_id
+        try:
+            frame = message.to_frame(self.conn.wire_version)
+            size = HEADER_SIZE + len(encode_metadata(frame.metadata))
+            size += sum(4 + len(blob) for blob in frame.blobs)
+        except (TypeError, ValueError) as exc:
+            # Data JSON cannot carry (numpy scalars, NaN): fail this request, not the
+            # connection (the state machine is unchanged when serializing fails).
+            log.error("%s: answer to request %d not sendable: %s", self.peer, rid, exc)
+            return self.conn.send(
+                Error.from_exception(
+                    InternalError(f"the server could not encode its answer: {exc}", request_id=rid)
+                )
+            )
+        if size > self.max_reply_bytes and not isinstance(message, Error):
+            log.warning(
+                "%s: %s of %d bytes exceeds the client's limit", self.peer, message.TYPE.name, size
+            )
+            return self.conn.send(
+                Error.from_exception(
+                    InvalidArgument(
+                        f"the answer ({message.TYPE.name}) is {size} bytes, more than the "
+                        f"{self.max_reply_bytes} bytes the client accepts (HELLO "
+                        "max_frame_bytes); ask for less (fewer frames, a compressed encoding, "
+                        "no overlay)",
+                        request_id=rid,
+                        details={"size": size, "max_size": self.max_reply_bytes},
+                    )
+                )
+            )
+        return self.conn.send(message)
+
+    async def _drain(self) -> None:
+        """Wait until the client has taken our answers; drop a client that does not read."""
+        if self.writer.is_closing():
+            return
+        try:
+            async with asyncio.timeout(self.settings.write_timeout_s):
+                await self.writer.drain()
+        except TimeoutError:
+            log.warning(
+                "%s: the client has not read its answers for %g s; dropping it",
+                self.peer,
+                self.settings.write_timeout_s,
+            )
+            self.writer.transport.abort()
+            raise ConnectionAbortedError("slow reader dropped") from None
+
+
+def result_message(request_id: int, reply: InspectReply) -> Result:
+    """The RESULT for ``reply`` (SPEC §6.3): the overlay as the PNG the service encoded."""
+    images: tuple[ImagePayload, ...] = ()
+    overlay = reply.overlay
+    if overlay is not None and overlay.encoded is not None:
+        height, width = overlay.image.shape[:2]
+        images = (
+            ImagePayload(ImageEncoding.PNG, width, height, overlay.encoded, ImageRole.OVERLAY),
+        )
+    return Result(
+        request_id,
+        reply.inspection,
+        reply.passed,
+        reply.data,
+        reply.timing,
+        reply.camera,
+        reply.config_hash,
+        images,
+        reply.stored,
+    )
+
+
+def _capture_request(message: Capture, arrived: float, max_reply_bytes: int) -> CaptureRequest:
+    encoding = None
+    if message.encoding is not None:
+        encoding = CAPTURE_ENCODINGS.get(message.encoding)
+        if encoding is None:
+            raise InvalidArgument(
+                f"encoding {message.encoding!r}: CAPTURE takes 'png' or 'jpeg' "
+                "(or nothing, for raw frames)"
+            )
+    return CaptureRequest(
+        message.camera,
+        message.count,
+        message.depth,
+        encoding,
+        max_reply_bytes,
+        arrived=arrived,
+        deadline=deadline_after(arrived, message.deadline_ms),
+    )
+
+
+def _frames(request_id: int, reply: CaptureReply, encoding: FrameEncoding | None) -> Frames:
+    payloads: list[ImagePayload] = []
+    for frame in reply.frames:
+        if frame.encoded is not None:
+            height, width = frame.color.shape[:2]
+            wire = ImageEncoding.PNG if encoding == "png" else ImageEncoding.JPEG
+            payloads.append(ImagePayload(wire, width, height, frame.encoded))
+        else:
+            payloads.append(payload_from_array(frame.color))
+        if frame.depth is not None:
+            payloads.append(payload_from_array(frame.depth, role=ImageRole.DEPTH))
+    stamps = tuple(f.timestamp for f in reply.frames)
+    return Frames(request_id, reply.camera, tuple(payloads), stamps, reply.intrinsics)
+
+
+__all__ = ["TcpFrontend", "TcpSession", "error_frame", "result_message"]

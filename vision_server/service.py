@@ -1,0 +1,651 @@
+"""The inspection service: the one path to an inspection, under every front-end.
+
+A front-end (the TCP protocol, ``vision-server run``, the golden cases, the bench's HTTP
+reference; a web console, a line protocol and Modbus later) parses its own wire format into an
+:class:`InspectRequest` of arrays and plain values, calls :meth:`InspectionService.inspect`, and
+renders the :class:`InspectReply`. The service owns everything between:
+
+- admission: a bounded worker pool (a slot per request, BUSY when every slot is taken) and one
+  budget for the bytes held for requests and replies (:meth:`InspectionService.admit`, which a
+  front-end may call before it reads a request's body);
+- deadlines, absolute, stamped by the front-end when the whole request had arrived (SPEC §6.1);
+- images: those of the request (arrays, or a loader that decodes them in a worker), else a
+  capture from the inspection's server camera; checked the same way whatever brought them;
+- the result log, overlays (drawn and encoded in the worker), configuration reload (always in a
+  thread, never on the event loop) and observers of results.
+
+Errors are :class:`protocol.CellvisionError` subclasses without a request id (the code names
+the cause; the front-end that knows the request maps the code to its own form). Nothing here
+knows a wire type.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal, TypeVar
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from protocol import (
+    BadImage,
+    Busy,
+    CellvisionError,
+    ConfigInvalid,
+    DeadlineExceeded,
+    ImageTooLarge,
+    InvalidArgument,
+)
+
+from .admission import Admission, ByteBudget, WorkPool
+from .cameras import Camera, CameraFrame
+from .catalog import Catalog, InspectionInput, InspectionOutcome
+from .results import ResultEntry, ResultLog
+from .settings import ServiceSettings
+
+log = logging.getLogger("vision_server")
+_T = TypeVar("_T")
+Image = npt.NDArray[Any]
+
+FrameEncoding = Literal["png", "jpeg"]
+"""How a captured frame may be compressed (None: raw arrays)."""
+
+REPLY_OVERHEAD = 64 * 1024
+"""Bytes of a capture reply besides the pixels (headers, metadata), generously."""
+
+
+# ----------------------------------------------------------------------------- records
+
+
+@dataclass(frozen=True)
+class Images:
+    """The images of one request: ``color`` (H, W) or (H, W, 3) uint8 BGR; ``depth`` zero or
+    more (H, W) uint16 frames in millimetres, registered to ``color``."""
+
+    color: Image
+    depth: tuple[Image, ...] = ()
+
+
+@dataclass(frozen=True)
+class ImageNeeds:
+    """What the inspection a request names takes, for a loader that decodes its images."""
+
+    inspection: str
+    depth: bool
+    """Whether depth frames are taken at all."""
+    max_pixels: int
+    """The largest image (width x height) the service accepts."""
+
+
+ImageLoader = Callable[[ImageNeeds], Images]
+"""Decodes a request's images; called in a worker thread, once the inspection is known. Raises
+BadImage or ImageTooLarge for images that cannot be decoded."""
+
+
+def deadline_after(arrived: float, deadline_ms: float | None) -> float | None:
+    """The absolute deadline (``time.monotonic()`` seconds) of a request that arrived at
+    ``arrived`` with a budget of ``deadline_ms`` milliseconds (None: no deadline)."""
+    return None if deadline_ms is None else arrived + deadline_ms / 1000.0
+
+
+@dataclass(frozen=True)
+class InspectRequest:
+    """One inspection to run.
+
+    ``images``: arrays, a loader run in a worker (for encoded images), or None to capture from
+    the inspection's server camera. ``overlay``: None for no overlay, ``"array"`` for the drawn
+    image only, or an image file extension (``".png"``) to have it encoded in the worker too.
+    ``options``: per-request parameters, validated like the configuration (SPEC §6.3).
+    ``arrived`` and ``deadline``: ``time.monotonic()`` seconds; the front-end stamps ``arrived``
+    when the whole request was received. ``peer`` and ``request_id`` only go to the result log.
+    """
+
+    inspection: str
+    images: Images | ImageLoader | None = None
+    overlay: str | None = None
+    options: Mapping[str, Any] = field(default_factory=dict)
+    arrived: float = field(default_factory=time.monotonic)
+    deadline: float | None = None
+    peer: str = ""
+    request_id: int = 0
+
+
+@dataclass(frozen=True)
+class Overlay:
+    """An inspection's drawing: ``image`` BGR uint8; ``encoded`` the bytes of an image file of
+    ``format`` (``".png"``), or None when only the array was asked for."""
+
+    image: Image
+    format: str = "array"
+    encoded: bytes | None = None
+
+
+@dataclass(frozen=True)
+class InspectReply:
+    """What one inspection found. ``compute_ms``: the inspection's own run; ``total_ms``: from
+    the request's arrival to the reply. ``stored``: whether the result log kept it (None
+    without a log)."""
+
+    inspection: str
+    camera: str
+    passed: bool
+    data: dict[str, Any]
+    compute_ms: float
+    total_ms: float
+    config_hash: str
+    stored: bool | None = None
+    overlay: Overlay | None = None
+
+    @property
+    def timing(self) -> dict[str, float]:
+        return {"compute_ms": round(self.compute_ms, 3), "total_ms": round(self.total_ms, 3)}
+
+
+@dataclass(frozen=True)
+class InspectionRecord:
+    """What observers of results get for each answered inspection."""
+
+    request: InspectRequest
+    reply: InspectReply
+
+
+@dataclass(frozen=True)
+class CaptureRequest:
+    """``count`` distinct frames from server camera ``camera``; ``encoding`` compresses the
+    colour frames (None: raw); ``max_reply_bytes``: what the asker can receive (None: only the
+    service's budget bounds it). Times as in :class:`InspectRequest`."""
+
+    camera: str
+    count: int = 1
+    depth: bool = False
+    encoding: FrameEncoding | None = None
+    max_reply_bytes: int | None = None
+    arrived: float = field(default_factory=time.monotonic)
+    deadline: float | None = None
+
+
+@dataclass(frozen=True)
+class CapturedFrame:
+    """One frame: ``color`` BGR/gray uint8 (``encoded``: its compressed bytes when asked for),
+    ``depth`` (H, W) uint16 millimetres when asked for, ``timestamp`` in Unix seconds."""
+
+    color: Image
+    timestamp: float
+    depth: Image | None = None
+    encoded: bytes | None = None
+
+
+@dataclass(frozen=True)
+class CaptureReply:
+    camera: str
+    frames: tuple[CapturedFrame, ...]
+    intrinsics: dict[str, Any] | None
+
+
+# ----------------------------------------------------------------------------- the service
+
+
+class InspectionService:
+    """Runs inspections and captures for every front-end. See the module.
+
+    ``reloader`` builds the catalog of a re-read configuration (raises ``ConfigError``); None
+    when the service was not started from a configuration file.
+    """
+
+    def __init__(
+        self,
+        catalog: Catalog,
+        settings: ServiceSettings | None = None,
+        *,
+        results: ResultLog | None = None,
+        reloader: Callable[[], Catalog] | None = None,
+    ) -> None:
+        self.settings = settings or ServiceSettings()
+        self._catalog = catalog
+        self.results = results
+        self.reloader = reloader
+        self.pool = WorkPool(self.settings.workers, self.settings.queue_depth)
+        self.budget = ByteBudget(self.settings.max_buffered_bytes)
+        self._observers: list[Callable[[InspectionRecord], None]] = []
+        self._reload_lock = threading.Lock()
+
+    # ------------------------------------------------------------------ catalog, lifecycle
+
+    @property
+    def catalog(self) -> Catalog:
+        """The catalog new requests are served with."""
+        return self._catalog
+
+    def replace_catalog(self, catalog: Catalog) -> None:
+        """Serve new requests with ``catalog``; requests already running finish on the old,
+        whose lease they hold (retiring it is its owner's job, see CellRuntime.reload)."""
+        self._catalog = catalog
+
+    async def reload(self) -> Catalog:
+        """Re-read the configuration through ``reloader`` in a thread (building a catalog opens
+        cameras; the catalog it replaces closes its own later) and serve new requests with it.
+        INVALID_ARGUMENT without a reloader; CONFIG_INVALID when the configuration is refused
+        (the old one stays)."""
+        if self.reloader is None:
+            raise InvalidArgument("this server was started without a configuration file")
+        return await asyncio.to_thread(self._reload)
+
+    def _reload(self) -> Catalog:
+        assert self.reloader is not None
+        with self._reload_lock:  # SIGHUP, RELOAD and a console may ask at once
+            try:
+                catalog = self.reloader()
+            except CellvisionError:
+                raise
+            except ValueError as exc:  # ConfigError
+                raise ConfigInvalid(str(exc)) from None
+            self.replace_catalog(catalog)
+        log.info("configuration reloaded (config hash %s)", catalog.config_hash)
+        return catalog
+
+    def close(self) -> None:
+        """Stop the worker pool (running jobs finish in their threads)."""
+        self.pool.shutdown()
+
+    # ------------------------------------------------------------------ observers, health
+
+    def subscribe(self, observer: Callable[[InspectionRecord], None]) -> Callable[[], None]:
+        """Call ``observer`` (on the event loop) with every answered inspection; returns the
+        function that unsubscribes it. An observer that raises is logged, never fails a
+        request."""
+        self._observers.append(observer)
+
+        def unsubscribe() -> None:
+            if observer in self._observers:
+                self._observers.remove(observer)
+
+        return unsubscribe
+
+    def _notify(self, record: InspectionRecord) -> None:
+        for observer in list(self._observers):
+            try:
+                observer(record)
+            except Exception:
+                log.exception("an observer of results failed")
+
+    def health(self) -> dict[str, Any]:
+        """``ok`` false once the result log lost a row since start (see
+        :meth:`ResultLog.health`), the admission counters and the log's."""
+        report: dict[str, Any] = {"ok": True, "admission": self.admission_counters()}
+        if self.results is not None:
+            result_log = self.results.health()
+            report["ok"] = bool(result_log["ok"])
+            report["result_log"] = result_log
+        return report
+
+    def admission_counters(self) -> dict[str, Any]:
+        """What bounds the service now: worker slots and the byte budget."""
+        return {
+            "pool_admitted": self.pool.admitted,
+            "pool_capacity": self.pool.capacity,
+            "buffered_bytes": self.budget.used,
+            "buffered_bytes_peak": self.budget.peak,
+            "max_buffered_bytes": self.budget.limit,
+            "buffer_refusals": self.budget.refused,
+        }
+
+    # ------------------------------------------------------------------ admission
+
+    def admit(self, *, work: bool = True, body_bytes: int = 0) -> Admission:
+        """Reserve what a request will hold, before its body is read: a worker slot (``work``)
+        and ``body_bytes`` of the budget. Raises BUSY when either is taken. The front-end hands
+        the admission to :meth:`inspect` / :meth:`capture` and releases it once its reply is
+        sent (a reply's bytes are added to it)."""
+        admission = Admission(self.pool, self.budget)
+        if work and not admission.take_slot():
+            raise Busy(f"all {self.pool.capacity} inspection slots are taken; try again")
+        if body_bytes > 0 and not admission.take_bytes(body_bytes):
+            admission.release()
+            raise Busy(
+                f"the server's memory for request bodies is taken ({self.budget.used} of "
+                f"{self.budget.limit} bytes); try again",
+                details={"size": body_bytes},
+            )
+        return admission
+
+    # ------------------------------------------------------------------ inspect
+
+    async def inspect(
+        self, request: InspectRequest, *, admission: Admission | None = None
+    ) -> InspectReply:
+        """Run ``request``: its images (or a capture), the named inspection in the pool, the
+        result log, the overlay. Without ``admission`` a slot is taken here (BUSY when none is
+        free) and given back when done."""
+        own = admission is None
+        held = self.admit() if admission is None else admission
+        try:
+            # The lease keeps the catalog's cameras open until this request is done with them.
+            with self._catalog.lease_newest() as lease:
+                return await self._inspect(request, lease.catalog, held)
+        finally:
+            if own:
+                held.release()
+
+    async def _inspect(
+        self, request: InspectRequest, catalog: Catalog, admission: Admission
+    ) -> InspectReply:
+        inspection = catalog.inspection(request.inspection)
+        inspection = catalog.tuned(inspection, request.options)
+        camera = catalog.camera(inspection.camera)
+        needs = ImageNeeds(inspection.name, inspection.uses_depth, self.settings.max_image_pixels)
+        images = request.images
+        sources: list[str] = []  # the files a folder camera read: which images this is about
+        acquire: Callable[[], InspectionInput]
+        if images is not None:
+            # Images in the request are inspected whatever the camera: a tool camera's, or a
+            # stored image run through a fixed camera's inspection (SPEC §6.3).
+            given = images
+
+            def acquire() -> InspectionInput:
+                loaded = given if isinstance(given, Images) else given(needs)
+                check_images(loaded, needs)
+                return InspectionInput(loaded.color, loaded.depth, camera.intrinsics)
+
+        elif camera.source == "request":
+            raise BadImage(
+                f"inspection {inspection.name!r} uses camera {camera.name!r}, whose images "
+                "arrive in the request, and the request has none"
+            )
+        else:
+            timeout_s = self._capture_timeout(request.deadline)
+
+            def acquire() -> InspectionInput:
+                frames = camera.grab_many(inspection.frames, timeout_s=timeout_s)
+                sources.extend(f.source for f in frames if f.source is not None)
+                depth = tuple(f.depth for f in frames if f.depth is not None)
+                return InspectionInput(
+                    frames[0].color, depth if inspection.uses_depth else (), camera.intrinsics
+                )
+
+        def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None]:
+            image = acquire()
+            t0 = time.perf_counter()
+            entry = ResultEntry(
+                time=time.time(),
+                inspection=inspection.name,
+                camera=camera.name,
+                passed=False,
+                data={},
+                duration_ms=0.0,
+                config_hash=catalog.config_hash,
+                request_id=request.request_id,
+                peer=request.peer,
+                image=image.color,
+            )
+            try:
+                outcome = inspection.run(image, overlay=request.overlay is not None)
+            except CellvisionError as exc:
+                self._record(entry, t0, error=f"{exc.code.name}: {exc.message}")
+                raise
+            compute_ms = (time.perf_counter() - t0) * 1000.0
+            if sources:
+                outcome = replace(outcome, data={**outcome.data, "source_files": sources})
+            stored = self._record(replace(entry, passed=outcome.passed, data=outcome.data), t0)
+            overlay = None
+            if request.overlay is not None and outcome.overlay is not None:
+                # Encoding is CPU work too: here, not on the event loop of every connection.
+                overlay = _overlay(outcome.overlay, request.overlay)
+            return outcome, compute_ms, overlay, stored
+
+        outcome, compute_ms, overlay, stored = await self._in_pool(
+            work, request.arrived, request.deadline, admission, hold=catalog
+        )
+        reply = InspectReply(
+            inspection.name,
+            camera.name,
+            outcome.passed,
+            outcome.data,
+            compute_ms,
+            (time.monotonic() - request.arrived) * 1000.0,
+            catalog.config_hash,
+            stored,
+            overlay,
+        )
+        self._notify(InspectionRecord(request, reply))
+        return reply
+
+    def _record(self, entry: ResultEntry, t0: float, *, error: str | None = None) -> bool | None:
+        """Log one run before its answer is sent; return whether the row was written (None
+        without a result log). The log never raises: a full disk is counted and logged, the
+        answer still goes out, with ``stored: false`` (SPEC §6.3), and :meth:`health` turns
+        not ok. An error row that fails is counted the same way (its error carries no flag)."""
+        if self.results is None:
+            return None
+        duration_ms = (time.perf_counter() - t0) * 1000.0
+        row_id = self.results.record(replace(entry, duration_ms=duration_ms, error=error))
+        return row_id is not None
+
+    def _capture_timeout(self, deadline: float | None) -> float:
+        if deadline is None:
+            return self.settings.capture_timeout_s
+        return max(min(self.settings.capture_timeout_s, deadline - time.monotonic()), 0.0)
+
+    # ------------------------------------------------------------------ capture
+
+    async def capture(
+        self, request: CaptureRequest, *, admission: Admission | None = None
+    ) -> CaptureReply:
+        """``count`` distinct frames from a server camera.
+
+        The reply is bounded in bytes, not in frames: it must fit ``max_reply_bytes`` and the
+        service's byte budget, checked before the frames are taken (from the first frame); its
+        bytes are added to ``admission`` (released by the front-end once the reply is sent)."""
+        own = admission is None
+        held = self.admit() if admission is None else admission
+        try:
+            with self._catalog.lease_newest() as lease:
+                return await self._capture(request, lease.catalog, held)
+        finally:
+            if own:
+                held.release()
+
+    async def _capture(
+        self, request: CaptureRequest, catalog: Catalog, admission: Admission
+    ) -> CaptureReply:
+        camera = catalog.camera(request.camera)
+        if camera.source == "request":
+            raise InvalidArgument(
+                f"camera {camera.name!r} gets its images from the request: it cannot capture"
+            )
+        if request.depth and not camera.has_depth:
+            raise InvalidArgument(f"camera {camera.name!r} has no depth")
+        timeout_s = self._capture_timeout(request.deadline)
+
+        def work() -> list[CapturedFrame]:
+            frames = _capture_frames(
+                camera,
+                request.count,
+                timeout_s,
+                lambda first: self._admit_reply(request, first, admission),
+            )
+            out = []
+            for frame in frames:
+                encoded = None
+                if request.encoding is not None:
+                    encoded = encode_image(frame.color, "." + request.encoding)
+                depth = frame.depth if request.depth else None
+                out.append(CapturedFrame(frame.color, frame.timestamp, depth, encoded))
+            return out
+
+        frames = await self._in_pool(
+            work, request.arrived, request.deadline, admission, hold=catalog
+        )
+        intrinsics = None if camera.intrinsics is None else camera.intrinsics.to_dict()
+        return CaptureReply(camera.name, tuple(frames), intrinsics)
+
+    def _admit_reply(
+        self, request: CaptureRequest, first: CameraFrame, admission: Admission
+    ) -> None:
+        """Refuse a capture whose reply could not be received or held, before grabbing the
+        rest of its frames. Raw sizes bound the encoded ones (checked again when sent)."""
+        per_frame = first.color.nbytes
+        if request.encoding is not None:
+            # Compressed frames of one scene have similar sizes; twice the first one's, at most
+            # raw, bounds them (and the encoded reply is checked again before it is sent).
+            encoded = len(encode_image(first.color, "." + request.encoding))
+            per_frame = min(per_frame, 2 * encoded)
+        if request.depth and first.depth is not None:
+            per_frame += first.depth.nbytes
+        estimate = per_frame * request.count + REPLY_OVERHEAD
+        budget = self.settings.max_buffered_bytes
+        limit = budget if request.max_reply_bytes is None else min(request.max_reply_bytes, budget)
+        if estimate > limit:
+            who = (
+                "the client accepts (HELLO max_frame_bytes)"
+                if limit == request.max_reply_bytes
+                else "the server may hold for replies (max_buffered_bytes)"
+            )
+            raise InvalidArgument(
+                f"{request.count} frames of about {per_frame} bytes each make a reply of about "
+                f"{estimate} bytes, more than the {limit} bytes {who}; ask for fewer frames "
+                "or a compressed encoding",
+                details={"size": estimate, "max_size": limit},
+            )
+        if not admission.take_bytes(estimate):
+            raise Busy(
+                f"the server's memory for replies is taken ({self.budget.used} of "
+                f"{self.budget.limit} bytes); try again"
+            )
+
+    # ------------------------------------------------------------------ the pool
+
+    async def _in_pool(
+        self,
+        fn: Callable[[], _T],
+        arrived: float,
+        deadline: float | None,
+        admission: Admission,
+        *,
+        hold: Catalog,
+    ) -> _T:
+        """Run ``fn`` in the pool, on the slot ``admission`` reserved if it holds one, and wait
+        for it until ``deadline``. ``hold``: the catalog ``fn`` uses, leased until ``fn``
+        returns, which may be after the request gave up (its deadline passed)."""
+        budget_ms = None if deadline is None else round((deadline - arrived) * 1000.0, 3)
+        if deadline is not None and deadline <= time.monotonic():
+            # Already late (it waited to be read, or in a front-end): do not start the work.
+            raise DeadlineExceeded(f"not done within the request's deadline of {budget_ms:g} ms")
+        lease = hold.acquire()
+
+        def leased() -> _T:
+            with lease:
+                return fn()
+
+        future: asyncio.Future[_T] | None
+        if admission.hand_slot_to_pool():
+            future = self.pool.submit_reserved(leased)
+        else:
+            future = self.pool.try_submit(leased)
+        if future is None:
+            lease.release()
+            raise Busy(f"all {self.pool.capacity} inspection slots are taken; try again")
+        if deadline is None:
+            return await future
+        try:
+            loop = asyncio.get_running_loop()
+            # The loop's clock is time.monotonic(): the deadline is absolute on it.
+            async with asyncio.timeout_at(loop.time() + (deadline - time.monotonic())):
+                return await asyncio.shield(future)
+        except TimeoutError:
+            raise DeadlineExceeded(
+                f"not done within the request's deadline of {budget_ms:g} ms"
+            ) from None
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def check_images(images: Images, needs: ImageNeeds) -> None:
+    """Refuse images an inspection cannot take, whoever decoded them: BAD_IMAGE naming the
+    cause, IMAGE_TOO_LARGE beyond the pixel limit."""
+    color = images.color
+    if not isinstance(color, np.ndarray) or color.dtype != np.uint8:
+        dtype = getattr(color, "dtype", type(color).__name__)
+        raise BadImage(f"the colour image must be 8-bit (gray8, bgr8, 8-bit PNG/JPEG), got {dtype}")
+    if not (color.ndim == 2 or (color.ndim == 3 and color.shape[2] == 3)):
+        raise BadImage(f"the colour image must be (H, W) or (H, W, 3), got shape {color.shape}")
+    height, width = color.shape[:2]
+    if width * height > needs.max_pixels:
+        raise ImageTooLarge(
+            f"the colour image has {width}x{height} = {width * height} pixels, the limit is "
+            f"{needs.max_pixels}",
+            details={"pixels": width * height, "max_pixels": needs.max_pixels},
+        )
+    if images.depth and not needs.depth:
+        raise BadImage(
+            f"inspection {needs.inspection!r} takes no depth image, the request has "
+            f"{len(images.depth)}"
+        )
+    for index, frame in enumerate(images.depth):
+        if frame.dtype != np.uint16 or frame.ndim != 2:
+            raise BadImage(
+                f"depth image {index} must be uint16 millimetres (depth16 or 16-bit PNG), "
+                f"got {frame.dtype} with shape {frame.shape}"
+            )
+        if frame.shape != color.shape[:2]:
+            raise BadImage(
+                f"depth image {index} is {frame.shape[1]}x{frame.shape[0]}, the colour image "
+                f"is {width}x{height}: they must be registered"
+            )
+
+
+def encode_image(image: Image, suffix: str) -> bytes:
+    """``image`` as the bytes of an image file with extension ``suffix`` (``".png"``)."""
+    ok, buffer = cv2.imencode(suffix, image)
+    if not ok:
+        raise ValueError(f"OpenCV could not encode the image as {suffix}")
+    return bytes(buffer.tobytes())
+
+
+def _overlay(image: Image, wanted: str) -> Overlay:
+    if wanted == "array":
+        return Overlay(image)
+    return Overlay(image, wanted, encode_image(image, wanted))
+
+
+def _capture_frames(
+    camera: Camera, count: int, timeout_s: float, admit: Callable[[CameraFrame], None]
+) -> list[CameraFrame]:
+    """``count`` distinct successive frames; ``admit(first frame)`` may refuse the rest (a reply
+    too large) before they are taken."""
+    deadline = time.monotonic() + timeout_s
+    first = camera.grab_many(1, timeout_s=timeout_s)[0]
+    admit(first)
+    frames = [first]
+    try:
+        while len(frames) < count:
+            remaining = max(deadline - time.monotonic(), 0.0)
+            frames.append(camera.grab(timeout_s=remaining, newer_than=frames[-1].index))
+    except CellvisionError as exc:
+        exc.message = f"got {len(frames)} of {count} frames within {timeout_s:.3g} s: {exc.message}"
+        raise
+    return frames
+
+
+__all__ = [
+    "CaptureReply",
+    "CaptureRequest",
+    "CapturedFrame",
+    "ImageLoader",
+    "ImageNeeds",
+    "Images",
+    "InspectReply",
+    "InspectRequest",
+    "InspectionRecord",
+    "InspectionService",
+    "Overlay",
+    "check_images",
+    "deadline_after",
+    "encode_image",
+]

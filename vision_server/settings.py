@@ -1,0 +1,189 @@
+"""Settings: the runtime's (the inspection service) and each front-end's.
+
+The configuration file keeps one ``server:`` section (:class:`ServerSettings`, read by
+:mod:`vision_server.config`); it is split here into what the inspection service runs with
+(:class:`ServiceSettings`: workers, queue, memory budget, image limits, capture timeout) and what
+the TCP front-end listens with (:class:`TcpSettings`: address, TLS, token, per-connection limits
+and timeouts). A new front-end gets its own record beside :class:`TcpSettings`.
+
+Sizes in bytes, durations in seconds, unless a name says otherwise.
+"""
+
+from __future__ import annotations
+
+import os
+import ssl
+from dataclasses import dataclass, field
+
+from protocol import DEFAULT_PORT, Limits
+
+SERVER_VERSION = "0.1.0"
+"""The server's version, announced in WELCOME."""
+
+
+@dataclass(frozen=True)
+class ServiceSettings:
+    """What bounds the inspection service, whichever front-end a request came through."""
+
+    workers: int = field(default_factory=lambda: os.cpu_count() or 2)
+    """Threads for CPU-bound inspection work."""
+    queue_depth: int = 16
+    """Jobs that may wait for a worker; beyond workers + queue_depth a request gets BUSY."""
+    max_buffered_bytes: int = 256 * 1024 * 1024
+    """Service-wide budget for request bodies and replies held in memory."""
+    max_image_pixels: int = 4096 * 4096
+    """The largest image (width x height) an inspection is given."""
+    capture_timeout_s: float = 5.0
+    """How long a server camera may take for the frames of one request (without a deadline)."""
+
+    @property
+    def capacity(self) -> int:
+        """Requests that may be admitted at once: running plus waiting for a worker."""
+        return self.workers + self.queue_depth
+
+
+@dataclass(frozen=True)
+class TcpSettings:
+    """How the TCP front-end (the binary protocol, SPEC.md) listens and what it accepts."""
+
+    host: str = "127.0.0.1"
+    port: int = DEFAULT_PORT
+    name: str = "cellvision"
+    max_frame_bytes: int = 64 * 1024 * 1024
+    max_image_pixels: int = 4096 * 4096
+    max_in_flight: int = 32
+    """Requests one connection may have in flight; more are answered BUSY."""
+    max_connections: int = 64
+    auth_token: str | None = None
+    shutdown_grace_s: float = 5.0
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    allow_reload: bool = True
+    """Whether a client may ask for a configuration reload (RELOAD)."""
+    handshake_timeout_s: float = 10.0
+    idle_timeout_s: float = 60.0
+    frame_timeout_s: float = 30.0
+    write_timeout_s: float = 30.0
+
+    def limits(self) -> Limits:
+        return Limits(max_frame_bytes=self.max_frame_bytes, max_image_pixels=self.max_image_pixels)
+
+    def ssl_context(self) -> ssl.SSLContext | None:
+        if not self.tls_cert:
+            return None
+        context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        context.load_cert_chain(self.tls_cert, self.tls_key)
+        return context
+
+
+@dataclass(frozen=True)
+class ServerSettings:
+    """The ``server:`` section of a configuration file: the service's settings and the TCP
+    front-end's in one record (see :meth:`service` and :meth:`tcp`). Sizes in bytes, durations
+    in seconds."""
+
+    host: str = "127.0.0.1"
+    port: int = DEFAULT_PORT
+    name: str = "cellvision"
+    max_frame_bytes: int = 64 * 1024 * 1024
+    max_image_pixels: int = 4096 * 4096
+    max_in_flight: int = 32
+    """Requests one connection may have in flight; more are answered BUSY."""
+    max_connections: int = 64
+    workers: int = field(default_factory=lambda: os.cpu_count() or 2)
+    """Threads for CPU-bound inspection work."""
+    queue_depth: int = 16
+    """Jobs that may wait for a worker; beyond workers + queue_depth a request gets BUSY."""
+    auth_token: str | None = None
+    shutdown_grace_s: float = 5.0
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    capture_timeout_s: float = 5.0
+    """How long a server camera may take for the frames of one request (without a deadline)."""
+    allow_reload: bool = True
+    """Whether a client may ask for a configuration reload (RELOAD)."""
+    handshake_timeout_s: float = 10.0
+    """How long a new connection may take to complete its TLS handshake (if any) and HELLO; then
+    it is closed, so that silent connections cannot hold every one of the ``max_connections``
+    slots."""
+    idle_timeout_s: float = 60.0
+    """How long an open connection may stay silent with nothing in flight before the server
+    closes it (CLOSE). Announced in WELCOME; clients keep a connection alive with PING."""
+    frame_timeout_s: float = 30.0
+    """How long one frame may take to arrive, from its first byte to its last."""
+    write_timeout_s: float = 30.0
+    """How long the server waits for a client that does not read its answers before it drops
+    the connection (a slow reader must not hold the server's memory)."""
+    max_buffered_bytes: int = 256 * 1024 * 1024
+    """Server-wide budget for request bodies and replies held in memory; a frame or a reply that
+    does not fit is answered BUSY instead of being read or built."""
+
+    def __post_init__(self) -> None:
+        # "" would read as "a token is required" and let in every client that sends none.
+        if self.auth_token is not None and not self.auth_token.strip():
+            raise ValueError("auth_token is empty: give a token, or None for no authentication")
+
+    def service(self) -> ServiceSettings:
+        """The inspection service's part."""
+        return ServiceSettings(
+            workers=self.workers,
+            queue_depth=self.queue_depth,
+            max_buffered_bytes=self.max_buffered_bytes,
+            max_image_pixels=self.max_image_pixels,
+            capture_timeout_s=self.capture_timeout_s,
+        )
+
+    def tcp(self) -> TcpSettings:
+        """The TCP front-end's part."""
+        return TcpSettings(
+            host=self.host,
+            port=self.port,
+            name=self.name,
+            max_frame_bytes=self.max_frame_bytes,
+            max_image_pixels=self.max_image_pixels,
+            max_in_flight=self.max_in_flight,
+            max_connections=self.max_connections,
+            auth_token=self.auth_token,
+            shutdown_grace_s=self.shutdown_grace_s,
+            tls_cert=self.tls_cert,
+            tls_key=self.tls_key,
+            allow_reload=self.allow_reload,
+            handshake_timeout_s=self.handshake_timeout_s,
+            idle_timeout_s=self.idle_timeout_s,
+            frame_timeout_s=self.frame_timeout_s,
+            write_timeout_s=self.write_timeout_s,
+        )
+
+    def limits(self) -> Limits:
+        return self.tcp().limits()
+
+    def welcome_limits(self) -> dict[str, int]:
+        """The limits announced in WELCOME (SPEC §3.4, §5.2); durations in milliseconds."""
+        return welcome_limits(self.tcp(), self.service())
+
+    def ssl_context(self) -> ssl.SSLContext | None:
+        return self.tcp().ssl_context()
+
+
+def welcome_limits(tcp: TcpSettings, service: ServiceSettings) -> dict[str, int]:
+    """The limits announced in WELCOME (SPEC §3.4, §5.2); durations in milliseconds."""
+    limits = tcp.limits()
+    return {
+        "max_frame_bytes": tcp.max_frame_bytes,
+        "max_metadata_bytes": limits.max_metadata_bytes,
+        "max_blobs": limits.max_blobs,
+        "max_image_pixels": tcp.max_image_pixels,
+        # What a client can count on: on an idle server, this many pipelined requests are
+        # all run (the service's slots bound it too; others' requests share them).
+        "max_in_flight": min(tcp.max_in_flight, service.capacity),
+        "max_connections": tcp.max_connections,
+        "handshake_timeout_ms": round(tcp.handshake_timeout_s * 1000),
+        "idle_timeout_ms": round(tcp.idle_timeout_s * 1000),
+        "frame_timeout_ms": round(tcp.frame_timeout_s * 1000),
+        # The default deadline of a server camera's frames (INSPECT without images, CAPTURE)
+        # when the request sets none; work on a request's own images has no default.
+        "capture_timeout_ms": round(service.capture_timeout_s * 1000),
+    }
+
+
+__all__ = ["SERVER_VERSION", "ServerSettings", "ServiceSettings", "TcpSettings", "welcome_limits"]
