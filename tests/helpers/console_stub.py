@@ -393,7 +393,7 @@ class _App:
                     "count": 5,
                     "pass_rate": 1.0 if (b + k) % 6 else 0.8,
                     "p50_ms": 3.2 + 0.3 * ((b * 7 + k) % 4),
-                    "p99_ms": 5.5 + 0.9 * ((b * 5 + k) % 5),
+                    "p99_ms": 5.5 + 0.9 * ((b * 3 + k) % 5),
                 }
                 for b in range(24)
             ]

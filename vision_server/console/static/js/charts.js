@@ -54,8 +54,9 @@ export function rateBars(values, { width = 280, height = 64, label = "" } = {}) 
       class: v >= 0.99 ? "bar bar-good" : v >= 0.9 ? "bar bar-warn" : "bar bar-bad",
     }, svg("title", {}, `${formatNumber(v * 100, 3)} %`));
   });
-  return svg("svg", { viewBox: `0 0 ${width} ${height}`, class: "chart", role: "img", "aria-label": label },
-    svg("rect", { x: 0, y: 0, width, height, class: "chart-bg" }), bars);
+  return svg("svg", {
+    viewBox: `0 0 ${width} ${height}`, preserveAspectRatio: "none", class: "chart", role: "img", "aria-label": label,
+  }, svg("rect", { x: 0, y: 0, width, height, class: "chart-bg" }), bars);
 }
 
 /** Lines for several series of equal length ({values, cls}); nulls break the line. */
@@ -75,8 +76,10 @@ export function lines(series, { width = 280, height = 64, label = "" } = {}) {
     });
     return d ? svg("path", { d: d.trim(), class: `line ${cls}` }) : null;
   });
-  return svg("svg", { viewBox: `0 0 ${width} ${height}`, class: "chart", role: "img", "aria-label": label },
-    svg("rect", { x: 0, y: 0, width, height, class: "chart-bg" }),
-    svg("text", { x: 3, y: 10, class: "axis" }, `${formatNumber(top, 2)} ms`),
-    paths);
+  // No text inside: the chart stretches to its card; the scale goes into the tooltip instead.
+  return svg("svg", {
+    viewBox: `0 0 ${width} ${height}`, preserveAspectRatio: "none", class: "chart", role: "img",
+    "aria-label": `${label} (top of the chart: ${formatNumber(top, 2)} ms)`,
+  }, svg("title", {}, `top of the chart: ${formatNumber(top, 2)} ms`),
+  svg("rect", { x: 0, y: 0, width, height, class: "chart-bg" }), paths);
 }
