@@ -1,0 +1,195 @@
+// Cameras: a card per configured camera with its live image. Each card fetches its own
+// frame.jpg (a cache-busting query, one request at a time) at the camera's view rate, capped.
+
+import { api, ApiError } from "./api.js";
+import { byId, el, formatNumber, replaceChildren } from "./dom.js";
+import { Poller } from "./poll.js";
+
+/** The most frames per second one card asks for, whatever the camera offers. */
+const MAX_VIEW_FPS = 15;
+/** Request cameras change only when a robot sends an image: look once a second. */
+const REQUEST_CAMERA_FPS = 1;
+
+class CameraCard {
+  constructor(info) {
+    this.name = info.name;
+    this.info = info;
+    this.tick = 0;
+    this.paused = false;
+    this.blob = null;         // the frame shown, for "Save frame"
+    this.objectUrl = null;
+    this.shown = 0;           // frames shown since the card opened
+    this.since = performance.now();
+
+    this.image = el("img", { class: "camera-image", alt: `Live image of camera ${info.name}` });
+    this.placeholder = el("div", { class: "camera-placeholder" }, "waiting for the first image…");
+    this.fps = el("span", { class: "metric" });
+    this.size = el("span", { class: "metric" });
+    this.age = el("span", { class: "metric" });
+    this.pauseButton = el("button", { type: "button", class: "btn", onclick: () => this.togglePause() }, "Pause");
+    this.saveButton = el("button", { type: "button", class: "btn", disabled: true, onclick: () => this.save() }, "Save frame");
+    this.node = el("article", { class: "card camera-card", dataset: { camera: info.name } },
+      el("header", { class: "card-head" },
+        el("h2", { class: "camera-name" }, info.name),
+        el("span", { class: "tag" }, info.source ?? "camera"),
+        info.depth ? el("span", { class: "tag" }, "depth") : null),
+      el("div", { class: "camera-view" }, this.image, this.placeholder),
+      el("div", { class: "card-foot" },
+        el("div", { class: "metrics" }, this.fps, this.size, this.age),
+        el("div", { class: "actions" }, this.pauseButton, this.saveButton)));
+    this.update(info);
+    this.poller = new Poller(() => this.fetchFrame(), this.intervalMs());
+  }
+
+  intervalMs() {
+    const rate = this.info.source === "request"
+      ? REQUEST_CAMERA_FPS
+      : Math.min(MAX_VIEW_FPS, this.info.view_fps || this.info.fps || 5);
+    return Math.max(1000 / Math.max(rate, 0.1), 1000 / MAX_VIEW_FPS);
+  }
+
+  update(info) {
+    this.info = info;
+    const rate = typeof info.fps === "number" ? `${formatNumber(info.fps, 3)} fps` : "— fps";
+    this.fps.textContent = rate;
+    this.size.textContent = info.width && info.height ? `${info.width} × ${info.height}` : "size —";
+    this.age.textContent = typeof info.frame_age_s === "number"
+      ? `frame ${formatNumber(info.frame_age_s, 2)} s old` : "";
+    if (this.poller) this.poller.intervalMs = this.intervalMs();
+  }
+
+  async fetchFrame() {
+    if (this.paused) return;
+    this.tick += 1;
+    let response;
+    try {
+      response = await fetch(api.frameUrl(this.name, this.tick), { credentials: "same-origin", cache: "no-store" });
+    } catch {
+      this.showMessage("the server does not answer");
+      return;
+    }
+    if (response.status === 404) {
+      this.showMessage(this.info.source === "request"
+        ? "no image yet: a robot has not sent one" : "no frame yet");
+      return;
+    }
+    if (response.status === 401) {
+      // The console's own 401 handling runs through api.request: let it see this.
+      await api.cameras().catch(() => {});
+      return;
+    }
+    if (!response.ok) {
+      const err = await response.json().catch(() => null);
+      this.showMessage(err?.error?.message ?? `error ${response.status}`);
+      return;
+    }
+    const blob = await response.blob();
+    if (this.paused) return;
+    this.blob = blob;
+    const url = URL.createObjectURL(blob);
+    await new Promise((resolve) => {
+      this.image.onload = resolve;
+      this.image.onerror = resolve;
+      this.image.src = url;
+    });
+    if (this.objectUrl) URL.revokeObjectURL(this.objectUrl);
+    this.objectUrl = url;
+    this.placeholder.hidden = true;
+    this.image.hidden = false;
+    this.saveButton.disabled = false;
+    this.shown += 1;
+    if (!this.info.width && this.image.naturalWidth) {
+      this.size.textContent = `${this.image.naturalWidth} × ${this.image.naturalHeight}`;
+    }
+  }
+
+  showMessage(text) {
+    if (this.blob === null) {
+      this.placeholder.textContent = text;
+      this.placeholder.hidden = false;
+      this.image.hidden = true;
+    }
+  }
+
+  togglePause() {
+    this.paused = !this.paused;
+    this.pauseButton.textContent = this.paused ? "Resume" : "Pause";
+    this.pauseButton.classList.toggle("btn-active", this.paused);
+    this.node.classList.toggle("paused", this.paused);
+    if (!this.paused) this.poller.kick();
+  }
+
+  save() {
+    if (this.blob === null) return;
+    const stamp = new Date().toISOString().replace(/[:.]/g, "-");
+    const link = el("a", { href: URL.createObjectURL(this.blob), download: `${this.name}-${stamp}.jpg` });
+    document.body.append(link);
+    link.click();
+    link.remove();
+    setTimeout(() => URL.revokeObjectURL(link.href), 10000);
+  }
+
+  start() { this.poller.start(); }
+  stop() { this.poller.stop(); }
+}
+
+export class CamerasPage {
+  constructor() {
+    this.cards = new Map();
+    // The list (rates, frame ages, cameras added by a reload) refreshes every 2 s.
+    this.listPoller = new Poller(() => this.refresh(), 2000);
+    this.active = false;
+  }
+
+  start() {
+    this.active = true;
+    this.listPoller.start();
+    for (const card of this.cards.values()) card.start();
+  }
+
+  stop() {
+    this.active = false;
+    this.listPoller.stop();
+    for (const card of this.cards.values()) card.stop();
+  }
+
+  async refresh() {
+    let listing;
+    try {
+      listing = await api.cameras();
+    } catch (exc) {
+      if (!(exc instanceof ApiError && exc.status === 401)) {
+        byId("cameras-empty").textContent = `Cameras unavailable: ${exc.message}`;
+        byId("cameras-empty").hidden = false;
+      }
+      return;
+    }
+    const cameras = listing.cameras ?? [];
+    const names = new Set(cameras.map((c) => c.name));
+    for (const [name, card] of this.cards) {
+      if (!names.has(name)) {
+        card.stop();
+        card.node.remove();
+        this.cards.delete(name);
+      }
+    }
+    for (const info of cameras) {
+      let card = this.cards.get(info.name);
+      if (card === undefined) {
+        card = new CameraCard(info);
+        this.cards.set(info.name, card);
+        if (this.active) card.start();
+      } else {
+        card.update(info);
+      }
+    }
+    // Re-append only when the set or order changed: moving an <img> makes it flicker.
+    const grid = byId("camera-cards");
+    const wanted = cameras.map((c) => this.cards.get(c.name).node);
+    const same = wanted.length === grid.children.length &&
+      wanted.every((node, i) => grid.children[i] === node);
+    if (!same) replaceChildren(grid, ...wanted);
+    byId("cameras-empty").textContent = "No cameras are configured.";
+    byId("cameras-empty").hidden = cameras.length > 0;
+  }
+}
