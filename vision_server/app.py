@@ -22,10 +22,11 @@ from typing import Any
 from protocol import CellvisionError
 
 from .catalog import Catalog
+from .frontends.line import LineFrontend
 from .frontends.tcp import TcpFrontend
 from .results import ResultLog
 from .service import InspectionService
-from .settings import ServerSettings
+from .settings import LineSettings, ServerSettings
 
 log = logging.getLogger("vision_server")
 
@@ -45,12 +46,17 @@ class App:
         *,
         results: ResultLog | None = None,
         reloader: Callable[[], Catalog] | None = None,
+        line: LineSettings | None = None,
     ) -> None:
         self.settings = settings or ServerSettings()
         self.service = InspectionService(
             catalog, self.settings.service(), results=results, reloader=reloader
         )
         self.tcp = TcpFrontend(self.service, self.settings.tcp())
+        self.line: LineFrontend | None = None
+        """The line protocol for robot controllers, when ``line`` enables it."""
+        if line is not None and line.enabled:
+            self.line = LineFrontend(self.service, line, self.settings.tcp())
         self._stopped = asyncio.Event()
         self._signal_tasks: set[asyncio.Task[None]] = set()
 
@@ -84,6 +90,12 @@ class App:
 
     async def start(self) -> None:
         await self.tcp.start()
+        if self.line is not None:
+            try:
+                await self.line.start()
+            except BaseException:
+                await self.tcp.stop()
+                raise
 
     async def serve_forever(self) -> None:
         if not self.tcp.started:
@@ -93,6 +105,8 @@ class App:
     async def stop(self) -> None:
         """Stop every front-end (each closes its connections gracefully), then the service."""
         self._stopped.set()
+        if self.line is not None:
+            await self.line.stop()
         await self.tcp.stop()
         self.service.close()
 

@@ -159,6 +159,7 @@ def _serve(args: argparse.Namespace) -> int:
             settings,
             results=None if runtime is None else runtime.results,
             reloader=None if runtime is None else reload,
+            line=None if runtime is None else runtime.config.line,
         )
         try:
             await app.start()
@@ -182,6 +183,9 @@ def _serve(args: argparse.Namespace) -> int:
         app.install_signals(stop, reload=runtime is not None)
         # Only now: whoever waits for this line may signal the server at once.
         print(f"vision-server listening on {settings.host}:{app.port}", flush=True)
+        if app.line is not None:
+            line = app.line.settings
+            print(f"{PROG}: line protocol on {line.host}:{app.line.port}", flush=True)
         await stop.wait()
         await app.stop()
         return 0

@@ -5,7 +5,8 @@
     server:   {host, port, name, auth_token | auth_token_file, tls: {cert, key}, limits...}
     results:  {path, store_images: none|failures|all, max_image_mb}
     cameras:  {NAME: {source: request|opencv|folder|sim, ...source settings, intrinsics}}
-    inspections: [{name, type: locate|presence|qr|qr_pose, camera, roi, ...}]
+    inspections: [{name, type: locate|presence|qr|qr_pose, camera, roi, number, output, ...}]
+    line:     {enabled, host, port, tls, format, max_line_bytes, idle_timeout_s, deadline_s, ...}
 
 Every error names the file, the line and the key path; unknown keys are errors. Relative paths
 resolve against the configuration file's directory. See docs/configuration.md.
@@ -37,7 +38,8 @@ from .configfile import (
     string,
 )
 from .inspections import InspectionSpec, parse_inspection
-from .settings import ServerSettings
+from .inspections.output import numbers_by_position
+from .settings import LINE_FORMATS, LineSettings, ServerSettings
 
 
 @dataclass(frozen=True)
@@ -62,6 +64,8 @@ class CellConfig:
     inspections: tuple[InspectionSpec, ...]
     tune: Tuner | None = dataclasses.field(default=None, compare=False, repr=False)
     """Rebuilds an inspection with request options (SPEC §6.3), by the rules of this file."""
+    line: LineSettings = LineSettings()
+    """The line protocol's listener (protocol/LINE.md); off unless ``line: {enabled: true}``."""
 
 
 def load_config(path: Path | str) -> CellConfig:
@@ -99,15 +103,23 @@ def parse_config(
         seen[spec.name] = index
         inspections.append(spec)
         written[spec.name] = dict(node.data)
+        try:
+            numbers_by_position((s.name, getattr(s, "number", None)) for s in inspections)
+        except ValueError as exc:
+            raise node.error(str(exc), "number" if "number" in node else None) from None
+    line = _line(root.sub("line"), server)
     root.finish()
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
     tuner = Tuner(written, base_dir, cameras)
-    return CellConfig(source, base_dir, digest, server, results, cameras, tuple(inspections), tuner)
+    return CellConfig(
+        source, base_dir, digest, server, results, cameras, tuple(inspections), tuner, line
+    )
 
 
-FIXED_BY_THE_CONFIGURATION = frozenset({"name", "type", "camera", "template"})
-"""Keys of an inspection that a request's options cannot change: what it is, its camera, and
-the files it reads (a request must never make the server open a path it chose)."""
+FIXED_BY_THE_CONFIGURATION = frozenset({"name", "type", "camera", "template", "number", "output"})
+"""Keys of an inspection that a request's options cannot change: what it is, its camera, the
+files it reads (a request must never make the server open a path it chose), and how the line
+protocol names and answers it."""
 
 
 @dataclass(frozen=True)
@@ -211,6 +223,37 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
             f"max_buffered_bytes ({settings.max_buffered_bytes}) must be at least "
             f"max_frame_bytes ({settings.max_frame_bytes})",
             "max_buffered_bytes",
+        )
+    node.finish()
+    return settings
+
+
+def _line(node: Node, server: ServerSettings) -> LineSettings:
+    defaults = LineSettings()
+    port = node.take("port", integer, defaults.port)
+    if not 0 <= port < 65536:
+        raise node.error(f"expected a port in 0..65535, got {port}", "port")
+    settings = LineSettings(
+        enabled=node.take("enabled", boolean, defaults.enabled),
+        host=node.take("host", string, defaults.host),
+        port=port,
+        tls=node.take("tls", boolean, defaults.tls),
+        format=node.take("format", one_of(*LINE_FORMATS), defaults.format),
+        max_line_bytes=node.take("max_line_bytes", positive_int, defaults.max_line_bytes),
+        idle_timeout_s=node.take("idle_timeout_s", positive, defaults.idle_timeout_s),
+        deadline_s=node.take("deadline_s", positive, defaults.deadline_s),
+        max_connections=node.take("max_connections", positive_int, defaults.max_connections),
+        write_timeout_s=node.take("write_timeout_s", positive, defaults.write_timeout_s),
+    )
+    if settings.max_line_bytes < 16:
+        raise node.error(f"max_line_bytes must be at least 16, got {settings.max_line_bytes}")
+    if settings.tls and server.tls_cert is None:
+        raise node.error(
+            "tls: true needs the server's certificate (server: tls: {cert, key})", "tls"
+        )
+    if settings.enabled and settings.port == server.port and settings.port != 0:
+        raise node.error(
+            f"port {port} is the server's port: the line protocol needs its own", "port"
         )
     node.finish()
     return settings

@@ -146,7 +146,7 @@ class CellRuntime:
             config = load_config(self.path)
             notes = tuple(
                 f"{self.path.name}: changes under '{section}:' take effect after a restart"
-                for section in ("server", "results")
+                for section in ("server", "results", "line")
                 if getattr(config, section) != getattr(self._started, section)
             )
             for note in notes:

@@ -76,6 +76,35 @@ class TcpSettings:
         return context
 
 
+LINE_FORMATS = ("text", "ur")
+"""How a line-protocol trigger answer is written (protocol/LINE.md §5)."""
+DEFAULT_LINE_PORT = 7880
+"""The line protocol's port when ``line:`` enables it without one (protocol/LINE.md)."""
+
+
+@dataclass(frozen=True)
+class LineSettings:
+    """The ``line:`` section: the line protocol for robot controllers (protocol/LINE.md), off
+    unless ``enabled``. Its token and TLS are the ``server:`` section's (the same rules as the
+    main port); ``tls`` says whether this port uses it, since few controllers speak TLS."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = DEFAULT_LINE_PORT
+    tls: bool = False
+    format: str = "text"
+    """How trigger answers are written unless a connection says otherwise (``F``)."""
+    max_line_bytes: int = 256
+    """The longest request line, its end of line included; longer ones are refused."""
+    idle_timeout_s: float = 300.0
+    """How long a connection may send no complete line (with no trigger running)."""
+    deadline_s: float = 10.0
+    """Each trigger's deadline, from its line's arrival: an error line answers it by then."""
+    max_connections: int = 16
+    write_timeout_s: float = 10.0
+    """How long an answer may wait for a controller that does not read before it is dropped."""
+
+
 @dataclass(frozen=True)
 class ServerSettings:
     """The ``server:`` section of a configuration file: the service's settings and the TCP
@@ -186,4 +215,13 @@ def welcome_limits(tcp: TcpSettings, service: ServiceSettings) -> dict[str, int]
     }
 
 
-__all__ = ["SERVER_VERSION", "ServerSettings", "ServiceSettings", "TcpSettings", "welcome_limits"]
+__all__ = [
+    "DEFAULT_LINE_PORT",
+    "LINE_FORMATS",
+    "SERVER_VERSION",
+    "LineSettings",
+    "ServerSettings",
+    "ServiceSettings",
+    "TcpSettings",
+    "welcome_limits",
+]

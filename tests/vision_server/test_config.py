@@ -603,6 +603,12 @@ def test_docs_list_exactly_the_keys_the_validator_reads(
             return "server.tls" if path[1:] == ("tls",) else "server"
         if path[:1] == ("results",):
             return "results"
+        if path[:1] == ("line",):
+            return "line"
+        if path[:1] == ("inspections",) and path[2:3] == ("output",):
+            if len(path) == 3:
+                return "inspections.output"
+            return "output.fields" if path[3] == "fields" else "top"  # scale: any field name
         if path[:1] == ("cameras",) and len(path) == 2:
             return f"source: {node.data.get('source')}"
         if path[:1] == ("cameras",) and path[2:] == ("intrinsics",):
@@ -650,7 +656,11 @@ inspections:
   - {{name: b, type: locate, camera: req, method: blob, blob: {{}}}}
   - {{name: p, type: presence, camera: req, measure: mean_intensity, min: 1}}
   - {{name: q, type: qr, camera: req}}
-  - {{name: qp, type: qr_pose, camera: req}}
+  - {{name: qp, type: qr_pose, camera: req, number: 9,
+      output: {{fields: [found, {{name: x, decimals: 1, scale: 1000}}], decimals: 2,
+               scale: {{found: 1}}, missing: -1}}}}
+line: {{enabled: true, host: 0.0.0.0, port: 0, tls: false, format: ur, max_line_bytes: 100,
+       idle_timeout_s: 1, deadline_s: 2, max_connections: 3, write_timeout_s: 4}}
 """
     load_config(write(tmp_path, text))
     docs = documented_keys()
@@ -658,6 +668,9 @@ inspections:
         "server": docs["server"],
         "server.tls": docs["server.tls"],
         "results": docs["results"],
+        "line": docs["line"],
+        "inspections.output": docs["inspections.output"],
+        "output.fields": {"name", "decimals", "scale"},
         "cameras.intrinsics": docs["cameras.intrinsics"],
         **{
             f"source: {s}": docs["cameras"] | docs.get(f"source: {s}", set())

@@ -13,14 +13,17 @@ golden expectations and summary values), and the classes :class:`LocateInspectio
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 from pathlib import Path
 
 from ..cameras import CameraSettings
 from ..catalog import Inspection
-from ..configfile import Node, one_of
+from ..configfile import Node, one_of, positive_int
 from . import locate, presence, qr, qr_pose
+from .base import Configured
 from .kinds import ResultKind
 from .locate import LocateInspection, parse_locate
+from .output import OutputFormat, parse_output
 from .presence import PresenceInspection, parse_presence
 from .qr import QRInspection, parse_qr
 from .qr_pose import QRPoseInspection, parse_qr_pose
@@ -51,8 +54,17 @@ def parse_inspection(
 ) -> Inspection:
     """Read one entry of ``inspections:``; raises ConfigError naming file, line and key."""
     kind = node.take("type", one_of(*INSPECTION_TYPES))
+    # What the line protocol calls it and answers (the same for every type), read first so
+    # that the type's parser sees only its own keys.
+    number = node.take("number", positive_int, None)
+    given = node.has("output")
+    output_node = node.sub("output")
+    output = parse_output(output_node, RESULT_KINDS[kind], kind) if given else None
     inspection = INSPECTION_TYPES[kind](node, base_dir, cameras)
     node.finish()
+    if isinstance(inspection, Configured) and (number is not None or output is not None):
+        common = replace(inspection.common, number=number, output=output)
+        inspection = replace(inspection, common=common)  # type: ignore[type-var]
     return inspection
 
 
@@ -61,6 +73,7 @@ __all__ = [
     "RESULT_KINDS",
     "InspectionSpec",
     "LocateInspection",
+    "OutputFormat",
     "PresenceInspection",
     "QRInspection",
     "QRPoseInspection",

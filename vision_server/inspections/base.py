@@ -17,6 +17,7 @@ from protocol import BadImage, CellvisionError, InspectionFailed
 from ..analysis import AnalysisError, BadImageError, RoiError, TemplateError
 from ..cameras import CameraSettings, Intrinsics
 from ..configfile import Node, name, positive_int, roi, string
+from .output import OutputFormat
 
 Image = npt.NDArray[Any]
 ROI = tuple[int, int, int, int]
@@ -41,6 +42,11 @@ class Common:
     intrinsics: Intrinsics | None
     camera_has_depth: bool
     image_size: tuple[int, int] | None = None
+    number: int | None = None
+    """The ``number:`` a line-protocol trigger may use instead of the name (None: the
+    inspection's position in the list)."""
+    output: OutputFormat | None = None
+    """The ``output:`` of a line-protocol answer (None: every summary value)."""
 
     def region_size(self) -> tuple[int, int] | None:
         """The ``(width, height)`` an analysis sees: the ROI's, else the declared image's."""
@@ -115,6 +121,14 @@ class Configured:
     @property
     def frames(self) -> int:
         return self.common.frames
+
+    @property
+    def number(self) -> int | None:
+        return self.common.number
+
+    @property
+    def output(self) -> OutputFormat | None:
+        return self.common.output
 
 
 def analysis_failed(inspection: str, exc: AnalysisError) -> CellvisionError:
