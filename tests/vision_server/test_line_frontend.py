@@ -265,3 +265,27 @@ def test_connections_beyond_the_limit_are_refused_with_an_error_line(tmp_path: P
             first.close()
 
     run(body())
+
+
+def test_output_and_number_errors_name_the_file_line_and_key(tmp_path: Path) -> None:
+    from vision_server.config import ConfigError, load_config
+
+    base = CONFIG.replace("    output: {decimals: 2}\n", "    output: {fields: [value, u]}\n")
+    try:
+        load_config(write_cell(tmp_path, config=base))
+    except ConfigError as exc:
+        text = str(exc)
+    else:
+        raise AssertionError("an unknown output field was accepted")
+    assert "cell.yaml:11 inspections[0] (name='bright') -> output -> fields[1]" in text
+    assert "presence results have no summary value 'u' (there are: value)" in text
+
+    clash = CONFIG.replace("    number: 7\n", "    number: 1\n")
+    try:
+        load_config(write_cell(tmp_path, config=clash))
+    except ConfigError as exc:
+        text = str(exc)
+    else:
+        raise AssertionError("two inspections with number 1 were accepted")
+    assert "inspections[1] (name='dark') -> number" in text
+    assert "number 1 (its number:), which inspection 'bright' already has" in text
