@@ -17,15 +17,17 @@ import contextlib
 import logging
 import signal
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from protocol import CellvisionError
 
 from .catalog import Catalog
+from .frontends.http import HttpFrontend
 from .frontends.tcp import TcpFrontend
 from .results import ResultLog
 from .service import InspectionService
-from .settings import ServerSettings
+from .settings import ConsoleSettings, ServerSettings
 
 log = logging.getLogger("vision_server")
 
@@ -45,12 +47,23 @@ class App:
         *,
         results: ResultLog | None = None,
         reloader: Callable[[], Catalog] | None = None,
+        console: ConsoleSettings | None = None,
+        config_path: Path | None = None,
     ) -> None:
         self.settings = settings or ServerSettings()
         self.service = InspectionService(
             catalog, self.settings.service(), results=results, reloader=reloader
         )
         self.tcp = TcpFrontend(self.service, self.settings.tcp())
+        # The web console (off unless enabled): its token, TLS and limits are the server's.
+        self.http: HttpFrontend | None = None
+        if console is not None and console.enabled:
+            self.http = HttpFrontend(
+                self.service,
+                console.from_server(self.settings),
+                config_path=config_path,
+                server_info=self._console_info,
+            )
         self._stopped = asyncio.Event()
         self._signal_tasks: set[asyncio.Task[None]] = set()
 
@@ -84,6 +97,23 @@ class App:
 
     async def start(self) -> None:
         await self.tcp.start()
+        if self.http is not None:
+            try:
+                await self.http.start()
+            except BaseException:
+                await self.tcp.stop()
+                raise
+
+    def _console_info(self) -> dict[str, Any]:
+        """What the console's server page shows of the TCP front-end."""
+        host, port = self.tcp.address
+        return {
+            "listen": f"{host}:{port}",
+            "connections": [
+                {"peer": s.peer, "requests": None, "in_flight": len(s.conn.pending), "since": None}
+                for s in list(self.tcp.connections)
+            ],
+        }
 
     async def serve_forever(self) -> None:
         if not self.tcp.started:
@@ -93,6 +123,8 @@ class App:
     async def stop(self) -> None:
         """Stop every front-end (each closes its connections gracefully), then the service."""
         self._stopped.set()
+        if self.http is not None:
+            await self.http.stop()
         await self.tcp.stop()
         self.service.close()
 

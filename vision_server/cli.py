@@ -159,6 +159,8 @@ def _serve(args: argparse.Namespace) -> int:
             settings,
             results=None if runtime is None else runtime.results,
             reloader=None if runtime is None else reload,
+            console=None if runtime is None else runtime.config.console,
+            config_path=None if runtime is None else runtime.path,
         )
         try:
             await app.start()
@@ -181,6 +183,8 @@ def _serve(args: argparse.Namespace) -> int:
         # SIGHUP reloads through the service, the path of RELOAD (in a thread).
         app.install_signals(stop, reload=runtime is not None)
         # Only now: whoever waits for this line may signal the server at once.
+        if app.http is not None:
+            print(f"{PROG}: web console on {app.http.url}", flush=True)
         print(f"vision-server listening on {settings.host}:{app.port}", flush=True)
         await stop.wait()
         await app.stop()

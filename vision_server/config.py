@@ -3,6 +3,7 @@
 ::
 
     server:   {host, port, name, auth_token | auth_token_file, tls: {cert, key}, limits...}
+    console:  {enabled, host, port, max_view_fps}   (the web console; token and TLS: server's)
     results:  {path, store_images: none|failures|all, max_image_mb}
     cameras:  {NAME: {source: request|opencv|folder|sim, ...source settings, intrinsics}}
     inspections: [{name, type: locate|presence|qr|qr_pose, camera, roi, ...}]
@@ -37,7 +38,7 @@ from .configfile import (
     string,
 )
 from .inspections import InspectionSpec, parse_inspection
-from .settings import ServerSettings
+from .settings import ConsoleSettings, ServerSettings
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,8 @@ class CellConfig:
     inspections: tuple[InspectionSpec, ...]
     tune: Tuner | None = dataclasses.field(default=None, compare=False, repr=False)
     """Rebuilds an inspection with request options (SPEC §6.3), by the rules of this file."""
+    console: ConsoleSettings = dataclasses.field(default_factory=ConsoleSettings)
+    """The web console (``console:``), with the server's token, TLS and limits."""
 
 
 def load_config(path: Path | str) -> CellConfig:
@@ -85,6 +88,7 @@ def parse_config(
 ) -> CellConfig:
     server = _server(root.sub("server"), base_dir)
     results = _results(root.sub("results"), base_dir)
+    console = _console(root.sub("console"), server)
     cameras = _cameras(root, base_dir)
     inspections: list[InspectionSpec] = []
     written: dict[str, dict[str, Any]] = {}
@@ -102,7 +106,9 @@ def parse_config(
     root.finish()
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
     tuner = Tuner(written, base_dir, cameras)
-    return CellConfig(source, base_dir, digest, server, results, cameras, tuple(inspections), tuner)
+    return CellConfig(
+        source, base_dir, digest, server, results, cameras, tuple(inspections), tuner, console
+    )
 
 
 FIXED_BY_THE_CONFIGURATION = frozenset({"name", "type", "camera", "template"})
@@ -214,6 +220,20 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
         )
     node.finish()
     return settings
+
+
+def _console(node: Node, server: ServerSettings) -> ConsoleSettings:
+    """The web console's listening settings; its token, TLS and limits are the server's."""
+    defaults = ConsoleSettings()
+    enabled = node.take("enabled", boolean, defaults.enabled)
+    host = node.take("host", string, defaults.host)
+    port = node.take("port", integer, defaults.port)
+    if not 0 <= port < 65536:
+        raise node.error(f"expected a port in 0..65535, got {port}", "port")
+    view_fps = node.take("max_view_fps", positive, defaults.max_view_fps)
+    node.finish()
+    listening = ConsoleSettings(enabled=enabled, host=host, port=port, max_view_fps=view_fps)
+    return listening.from_server(server)
 
 
 def _results(node: Node, base_dir: Path) -> ResultsConfig:
