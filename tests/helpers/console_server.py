@@ -31,10 +31,18 @@ EXAMPLE = REPO_ROOT / "examples" / "cell.yaml"
 TOKEN = "console-test-token-0123456789"
 
 
-def example_config(folder: Path, *, token: str | None = TOKEN, extra_server: str = "") -> Path:
+def example_config(
+    folder: Path, *, token: str | None = TOKEN, extra_server: str = "", drop: tuple[str, ...] = ()
+) -> Path:
     """The example cell as ``folder/cell.yaml``: ports 0, the console on, results in
     ``folder``, the scene by absolute path."""
     text = EXAMPLE.read_text(encoding="utf-8")
+    # The server keys a test sets replace the example's.
+    text = "".join(
+        line
+        for line in text.splitlines(keepends=True)
+        if not any(line.startswith(f"  {key}:") for key in drop)
+    )
     text = text.replace(
         "scenes/grundfos_cell.yaml", str(EXAMPLE.parent / "scenes/grundfos_cell.yaml")
     )
@@ -80,7 +88,7 @@ def console_server(
     folder: Path, *, token: str | None = TOKEN, **server: Any
 ) -> Iterator[RunningConsole]:
     extra = "".join(f"  {k}: {v}\n" for k, v in server.items())
-    config = example_config(folder, token=token, extra_server=extra)
+    config = example_config(folder, token=token, extra_server=extra, drop=tuple(server))
     runtime = CellRuntime(config)
     loop = asyncio.new_event_loop()
     thread = threading.Thread(target=loop.run_forever, name="console-server", daemon=True)

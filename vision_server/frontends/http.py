@@ -29,6 +29,7 @@ from typing import Any
 import cv2
 import numpy as np
 from aiohttp import BodyPartReader, web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from protocol import (
     BadImage,
@@ -232,6 +233,8 @@ class HttpFrontend:
                 exc.status, "BAD_REQUEST"
             )
             response = error_response(exc.status, code, exc.reason)
+        except HttpProcessingError as exc:  # a body aiohttp could not parse
+            response = error_response(400, "BAD_REQUEST", f"malformed request: {exc.message}")
         except asyncio.CancelledError:
             raise
         except Exception:
@@ -490,7 +493,8 @@ class HttpFrontend:
                     upload = await _read_part(part, self.settings.max_upload_bytes, "the image")
                 else:
                     await part.release()
-        except (ValueError, AssertionError) as exc:
+        except (ValueError, AssertionError, HttpProcessingError) as exc:
+            # aiohttp's parser raises these on a malformed part (headers, boundary).
             raise HttpError(400, "BAD_REQUEST", f"malformed multipart body: {exc}") from None
         if spec is None:
             raise HttpError(400, "BAD_REQUEST", "the form has no 'request' part")
