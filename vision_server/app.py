@@ -100,6 +100,18 @@ class App:
         if self.http is not None:
             try:
                 await self.http.start()
+            except OSError as exc:
+                # The console is a convenience beside the robots' protocol: a port that is
+                # taken must not stop the cell. Said loudly, served without it.
+                settings = self.http.settings
+                log.error(
+                    "the web console cannot listen on %s:%s (%s); serving without it",
+                    settings.host,
+                    settings.port,
+                    exc,
+                )
+                await self.http.stop()
+                self.http = None
             except BaseException:
                 await self.tcp.stop()
                 raise

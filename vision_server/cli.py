@@ -183,9 +183,9 @@ def _serve(args: argparse.Namespace) -> int:
         # SIGHUP reloads through the service, the path of RELOAD (in a thread).
         app.install_signals(stop, reload=runtime is not None)
         # Only now: whoever waits for this line may signal the server at once.
-        if app.http is not None:
-            print(f"{PROG}: web console on {app.http.url}", flush=True)
         print(f"vision-server listening on {settings.host}:{app.port}", flush=True)
+        if app.http is not None:  # the line right after (make demo reads both)
+            print(f"{PROG}: web console on {app.http.url}", flush=True)
         await stop.wait()
         await app.stop()
         return 0

@@ -4,7 +4,9 @@ real sockets on loopback, port 0, the configuration file's runtime (save and rel
 
 from __future__ import annotations
 
+import asyncio
 import http.client
+import socket
 import struct
 import zlib
 from collections.abc import Iterator
@@ -14,9 +16,18 @@ from urllib.parse import urlsplit
 import cv2
 import numpy as np
 import pytest
-from console_server import TOKEN, Browserless, RunningConsole, console_server, multipart
+from console_server import (
+    TOKEN,
+    Browserless,
+    RunningConsole,
+    console_server,
+    example_config,
+    multipart,
+)
 
+from vision_server.app import App
 from vision_server.frontends.http_auth import COOKIE
+from vision_server.runtime import CellRuntime
 
 
 @pytest.fixture(scope="module")
@@ -314,8 +325,53 @@ def test_save_writes_a_backup_validates_and_reloads(tmp_path: Path) -> None:
         assert config["roi"] == [10, 10, 50, 60]
         # The reloaded server runs the saved inspection.
         assert c.try_("magnet_check", {"source": "camera"}).json()["verdict"] == "pass"
-        reloads = c.get("/api/server").json()["reloads"]
+        state = c.get("/api/server").json()
+        assert state["pool"]["answered"] >= 1
+        reloads = state["reloads"]
         assert reloads[0]["ok"]
         assert reloads[0]["config_hash"] == new_hash
         fixed = c.post_json("/api/inspections/magnet_check/save", {"options": {"camera": "tool"}})
         assert fixed.status == 422
+
+
+# ----------------------------------------------------------------------------- wiring
+
+
+def test_the_console_is_off_unless_enabled(tmp_path: Path) -> None:
+    from vision_server.config import load_config
+
+    config = example_config(tmp_path)
+    text = config.read_text().replace("console:\n  enabled: true\n", "console:\n")
+    config.write_text(text)
+    assert not load_config(config).console.enabled
+
+
+def test_a_taken_console_port_does_not_stop_the_server(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        config = example_config(tmp_path)
+        config.write_text(
+            config.read_text().replace(
+                "  port: 0\n  max_view_fps", f"  port: {port}\n  max_view_fps"
+            )
+        )
+        runtime = CellRuntime(config)
+        try:
+
+            async def body() -> None:
+                app = App(
+                    runtime.catalog,
+                    runtime.config.server,
+                    console=runtime.config.console,
+                    config_path=config,
+                )
+                async with app:
+                    assert app.http is None
+                    _, writer = await asyncio.open_connection("127.0.0.1", app.port)
+                    writer.close()
+
+            asyncio.run(body())
+        finally:
+            runtime.close()

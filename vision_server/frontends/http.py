@@ -323,7 +323,7 @@ class HttpFrontend:
                     "queued": max(service.pool.admitted - service.settings.workers, 0),
                     "queue_depth": service.settings.queue_depth,
                     "busy_count": service.busy_count,
-                    "answered": None,
+                    "answered": None if self.metrics is None else self.metrics.answered,
                 },
                 "connections": info.get("connections", []),
                 "reloads": reloads,

@@ -41,11 +41,14 @@ class Metrics:
             buckets=LATENCY_BUCKETS_S,
             registry=self.registry,
         )
+        self.answered = 0
+        """Inspections answered since the console started, every front-end's."""
         self.registry.register(_StateCollector(service, live))
         self._unsubscribe: Callable[[], None] = service.subscribe(self._on_result)
 
     def _on_result(self, record: InspectionRecord) -> None:
         reply = record.reply
+        self.answered += 1
         verdict = "pass" if reply.passed else "fail"
         self.inspections.labels(reply.inspection, verdict).inc()
         self.latency.labels(reply.inspection).observe(reply.total_ms / 1000.0)
