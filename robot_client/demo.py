@@ -86,9 +86,16 @@ def demo_config(output: Path) -> Path:
     qc = doc["cameras"]["qc"]
     qc["scene"] = str((CONFIG.parent / qc["scene"]).resolve())
     qc["state_file"] = str(output / "world-state.json")
+    if "console" in doc:  # a copy may run beside another demo: any free port
+        doc["console"]["port"] = 0
     path = output / "cell.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
     return path
+
+
+def _console_enabled(config: Path) -> bool:
+    doc = yaml.safe_load(config.read_text(encoding="utf-8"))
+    return bool((doc.get("console") or {}).get("enabled"))
 
 
 def state_file(config: Path) -> Path:
@@ -112,6 +119,13 @@ def vision_server(config: Path, log: Path) -> Iterator[tuple[int, Callable[[], i
         sink.write(line)
         sink.flush()
         match = re.search(r"listening on \S+:(\d+)", line)
+        if match and _console_enabled(config):
+            # serve prints the console's address on the line right after.
+            line = process.stdout.readline()
+            sink.write(line)
+            address = re.search(r"web console on (\S+)", line)
+            if address:
+                print(f"web console: {address.group(1)}", flush=True)
 
         def drain() -> None:  # keep the pipe empty (reload messages and the like)
             assert process.stdout is not None

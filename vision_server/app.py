@@ -17,16 +17,18 @@ import contextlib
 import logging
 import signal
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from protocol import CellvisionError
 
 from .catalog import Catalog
+from .frontends.http import HttpFrontend
 from .frontends.line import LineFrontend
 from .frontends.tcp import TcpFrontend
 from .results import ResultLog
 from .service import InspectionService
-from .settings import LineSettings, ServerSettings
+from .settings import ConsoleSettings, LineSettings, ServerSettings
 
 log = logging.getLogger("vision_server")
 
@@ -47,6 +49,8 @@ class App:
         results: ResultLog | None = None,
         reloader: Callable[[], Catalog] | None = None,
         line: LineSettings | None = None,
+        console: ConsoleSettings | None = None,
+        config_path: Path | None = None,
     ) -> None:
         self.settings = settings or ServerSettings()
         self.service = InspectionService(
@@ -57,6 +61,15 @@ class App:
         """The line protocol for robot controllers, when ``line`` enables it."""
         if line is not None and line.enabled:
             self.line = LineFrontend(self.service, line, self.settings.tcp())
+        # The web console (off unless enabled): its token, TLS and limits are the server's.
+        self.http: HttpFrontend | None = None
+        if console is not None and console.enabled:
+            self.http = HttpFrontend(
+                self.service,
+                console.from_server(self.settings),
+                config_path=config_path,
+                server_info=self._console_info,
+            )
         self._stopped = asyncio.Event()
         self._signal_tasks: set[asyncio.Task[None]] = set()
 
@@ -96,6 +109,35 @@ class App:
             except BaseException:
                 await self.tcp.stop()
                 raise
+        if self.http is not None:
+            try:
+                await self.http.start()
+            except OSError as exc:
+                # The console is a convenience beside the robots' protocol: a port that is
+                # taken must not stop the cell. Said loudly, served without it.
+                settings = self.http.settings
+                log.error(
+                    "the web console cannot listen on %s:%s (%s); serving without it",
+                    settings.host,
+                    settings.port,
+                    exc,
+                )
+                await self.http.stop()
+                self.http = None
+            except BaseException:
+                await self.tcp.stop()
+                raise
+
+    def _console_info(self) -> dict[str, Any]:
+        """What the console's server page shows of the TCP front-end."""
+        host, port = self.tcp.address
+        return {
+            "listen": f"{host}:{port}",
+            "connections": [
+                {"peer": s.peer, "requests": None, "in_flight": len(s.conn.pending), "since": None}
+                for s in list(self.tcp.connections)
+            ],
+        }
 
     async def serve_forever(self) -> None:
         if not self.tcp.started:
@@ -107,6 +149,8 @@ class App:
         self._stopped.set()
         if self.line is not None:
             await self.line.stop()
+        if self.http is not None:
+            await self.http.stop()
         await self.tcp.stop()
         self.service.close()
 

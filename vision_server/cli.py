@@ -160,6 +160,8 @@ def _serve(args: argparse.Namespace) -> int:
             results=None if runtime is None else runtime.results,
             reloader=None if runtime is None else reload,
             line=None if runtime is None else runtime.config.line,
+            console=None if runtime is None else runtime.config.console,
+            config_path=None if runtime is None else runtime.path,
         )
         try:
             await app.start()
@@ -183,6 +185,8 @@ def _serve(args: argparse.Namespace) -> int:
         app.install_signals(stop, reload=runtime is not None)
         # Only now: whoever waits for this line may signal the server at once.
         print(f"vision-server listening on {settings.host}:{app.port}", flush=True)
+        if app.http is not None:  # the line right after (make demo reads both)
+            print(f"{PROG}: web console on {app.http.url}", flush=True)
         if app.line is not None:
             line = app.line.settings
             print(f"{PROG}: line protocol on {line.host}:{app.line.port}", flush=True)

@@ -3,6 +3,7 @@
 ::
 
     server:   {host, port, name, auth_token | auth_token_file, tls: {cert, key}, limits...}
+    console:  {enabled, host, port, max_view_fps}   (the web console; token and TLS: server's)
     results:  {path, store_images: none|failures|all, max_image_mb}
     cameras:  {NAME: {source: request|opencv|folder|sim, ...source settings, intrinsics}}
     inspections: [{name, type: locate|presence|qr|qr_pose, camera, roi, number, output, ...}]
@@ -39,7 +40,7 @@ from .configfile import (
 )
 from .inspections import InspectionSpec, parse_inspection
 from .inspections.output import numbers_by_position
-from .settings import LINE_FORMATS, LineSettings, ServerSettings
+from .settings import LINE_FORMATS, ConsoleSettings, LineSettings, ServerSettings
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,8 @@ class CellConfig:
     """Rebuilds an inspection with request options (SPEC §6.3), by the rules of this file."""
     line: LineSettings = LineSettings()
     """The line protocol's listener (protocol/LINE.md); off unless ``line: {enabled: true}``."""
+    console: ConsoleSettings = dataclasses.field(default_factory=ConsoleSettings)
+    """The web console (``console:``), with the server's token, TLS and limits."""
 
 
 def load_config(path: Path | str) -> CellConfig:
@@ -89,6 +92,7 @@ def parse_config(
 ) -> CellConfig:
     server = _server(root.sub("server"), base_dir)
     results = _results(root.sub("results"), base_dir)
+    console = _console(root.sub("console"), server)
     cameras = _cameras(root, base_dir)
     inspections: list[InspectionSpec] = []
     written: dict[str, dict[str, Any]] = {}
@@ -112,7 +116,16 @@ def parse_config(
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
     tuner = Tuner(written, base_dir, cameras)
     return CellConfig(
-        source, base_dir, digest, server, results, cameras, tuple(inspections), tuner, line
+        source,
+        base_dir,
+        digest,
+        server,
+        results,
+        cameras,
+        tuple(inspections),
+        tuner,
+        line=line,
+        console=console,
     )
 
 
@@ -257,6 +270,20 @@ def _line(node: Node, server: ServerSettings) -> LineSettings:
         )
     node.finish()
     return settings
+
+
+def _console(node: Node, server: ServerSettings) -> ConsoleSettings:
+    """The web console's listening settings; its token, TLS and limits are the server's."""
+    defaults = ConsoleSettings()
+    enabled = node.take("enabled", boolean, defaults.enabled)
+    host = node.take("host", string, defaults.host)
+    port = node.take("port", integer, defaults.port)
+    if not 0 <= port < 65536:
+        raise node.error(f"expected a port in 0..65535, got {port}", "port")
+    view_fps = node.take("max_view_fps", positive, defaults.max_view_fps)
+    node.finish()
+    listening = ConsoleSettings(enabled=enabled, host=host, port=port, max_view_fps=view_fps)
+    return listening.from_server(server)
 
 
 def _results(node: Node, base_dir: Path) -> ResultsConfig:

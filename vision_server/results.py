@@ -710,10 +710,23 @@ class ResultLog:
         passed: bool | None = None,
         limit: int = 100,
         newest_first: bool = True,
+        peer: str | None = None,
+        before_id: int | None = None,
     ) -> list[StoredResult]:
-        """Results with ``time >= since`` (Unix seconds), of one inspection, with one verdict;
-        at most ``limit`` of them, newest (or oldest) first."""
+        """Results with ``time >= since`` (Unix seconds), of one inspection, with one verdict,
+        from peers starting with ``peer``, with ids below ``before_id`` (paging); at most
+        ``limit`` of them, newest (or oldest) first."""
         where, params = _where(since, inspection, passed)
+        extra: list[str] = []
+        if peer:
+            # A prefix match without LIKE's wildcards (a peer may contain '_').
+            extra.append("substr(peer, 1, ?) = ?")
+            params = (*params, len(peer), peer)
+        if before_id is not None:
+            extra.append("id < ?")
+            params = (*params, int(before_id))
+        if extra:
+            where = (where + " AND " if where else " WHERE ") + " AND ".join(extra)
         order = "DESC" if newest_first else "ASC"
         sql = f"SELECT {_COLUMNS} FROM results{where} ORDER BY time {order}, id {order} LIMIT ?"
         with self._lock:
@@ -735,6 +748,15 @@ class ResultLog:
             return int(
                 self._conn.execute(f"SELECT count(*) FROM results{where}", params).fetchone()[0]
             )
+
+    def get(self, row_id: int) -> StoredResult | None:
+        """The result with id ``row_id``, or None."""
+        with self._lock:
+            self._check_open()
+            row = self._conn.execute(
+                f"SELECT {_COLUMNS} FROM results WHERE id = ?", (int(row_id),)
+            ).fetchone()
+        return None if row is None else self._row(row)
 
     def _row(self, row: tuple[Any, ...]) -> StoredResult:
         (row_id, t, inspection, camera, passed, data, duration, chash, rid, peer, error, image) = (

@@ -25,6 +25,7 @@ import asyncio
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal, TypeVar
@@ -156,6 +157,17 @@ class InspectionRecord:
 
 
 @dataclass(frozen=True)
+class ReloadRecord:
+    """One reload through the service: ``time`` Unix seconds; ``ok`` false when refused, with
+    the validator's ``message``; ``config_hash`` of the configuration now served ("" if refused)."""
+
+    time: float
+    ok: bool
+    config_hash: str
+    message: str = ""
+
+
+@dataclass(frozen=True)
 class CaptureRequest:
     """``count`` distinct frames from server camera ``camera``; ``encoding`` compresses the
     colour frames (None: raw); ``max_reply_bytes``: what the asker can receive (None: only the
@@ -214,6 +226,12 @@ class InspectionService:
         self.budget = ByteBudget(self.settings.max_buffered_bytes)
         self._observers: list[Callable[[InspectionRecord], None]] = []
         self._reload_lock = threading.Lock()
+        self.busy_count = 0
+        """BUSY answers of :meth:`admit` and the pool since start (for health and metrics)."""
+        self.reloads: deque[ReloadRecord] = deque(maxlen=50)
+        """The latest reloads through :meth:`reload`, oldest first, refused ones too."""
+        self.reload_counts = {True: 0, False: 0}
+        """Reloads since start by outcome (True: done)."""
 
     # ------------------------------------------------------------------ catalog, lifecycle
 
@@ -241,13 +259,21 @@ class InspectionService:
         with self._reload_lock:  # SIGHUP, RELOAD and a console may ask at once
             try:
                 catalog = self.reloader()
-            except CellvisionError:
+            except CellvisionError as exc:
+                self._reloaded(ReloadRecord(time.time(), False, "", exc.message))
                 raise
             except ValueError as exc:  # ConfigError
+                self._reloaded(ReloadRecord(time.time(), False, "", str(exc)))
                 raise ConfigInvalid(str(exc)) from None
             self.replace_catalog(catalog)
+            notes = "; ".join(catalog.notes)
+            self._reloaded(ReloadRecord(time.time(), True, catalog.config_hash, notes))
         log.info("configuration reloaded (config hash %s)", catalog.config_hash)
         return catalog
+
+    def _reloaded(self, record: ReloadRecord) -> None:
+        self.reloads.append(record)
+        self.reload_counts[record.ok] += 1
 
     def close(self) -> None:
         """Stop the worker pool (running jobs finish in their threads)."""
@@ -304,9 +330,11 @@ class InspectionService:
         sent (a reply's bytes are added to it)."""
         admission = Admission(self.pool, self.budget)
         if work and not admission.take_slot():
+            self.busy_count += 1
             raise Busy(f"all {self.pool.capacity} inspection slots are taken; try again")
         if body_bytes > 0 and not admission.take_bytes(body_bytes):
             admission.release()
+            self.busy_count += 1
             raise Busy(
                 f"the server's memory for request bodies is taken ({self.budget.used} of "
                 f"{self.budget.limit} bytes); try again",
@@ -549,6 +577,7 @@ class InspectionService:
             future = self.pool.try_submit(leased)
         if future is None:
             lease.release()
+            self.busy_count += 1
             raise Busy(f"all {self.pool.capacity} inspection slots are taken; try again")
         if deadline is None:
             return await future
@@ -645,6 +674,7 @@ __all__ = [
     "InspectionRecord",
     "InspectionService",
     "Overlay",
+    "ReloadRecord",
     "check_images",
     "deadline_after",
     "encode_image",

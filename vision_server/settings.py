@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 import ssl
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from protocol import DEFAULT_PORT, Limits
 
@@ -194,6 +194,48 @@ class ServerSettings:
         return self.tcp().ssl_context()
 
 
+@dataclass(frozen=True)
+class ConsoleSettings:
+    """How the web console's HTTP front-end listens (the ``console:`` section); the token, TLS
+    and the limits of uploads come from the ``server:`` section (see :meth:`from_server`)."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = 7880
+    max_view_fps: float = 10.0
+    """The highest rate (frames per second) at which the live view reads a server camera,
+    however many browsers watch it."""
+    name: str = "cellvision"
+    auth_token: str | None = None
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    max_upload_bytes: int = 64 * 1024 * 1024
+    """The largest request body (an uploaded image and its form), as the protocol's frame."""
+    max_image_pixels: int = 4096 * 4096
+    allow_save: bool = True
+    """Whether the console may write the configuration file and reload (``allow_reload``)."""
+
+    def from_server(self, server: ServerSettings) -> ConsoleSettings:
+        """These listening settings with the server's token, TLS, limits and reload policy."""
+        return replace(
+            self,
+            name=server.name,
+            auth_token=server.auth_token,
+            tls_cert=server.tls_cert,
+            tls_key=server.tls_key,
+            max_upload_bytes=server.max_frame_bytes,
+            max_image_pixels=server.max_image_pixels,
+            allow_save=server.allow_reload,
+        )
+
+    def ssl_context(self) -> ssl.SSLContext | None:
+        if not self.tls_cert:
+            return None
+        context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        context.load_cert_chain(self.tls_cert, self.tls_key)
+        return context
+
+
 def welcome_limits(tcp: TcpSettings, service: ServiceSettings) -> dict[str, int]:
     """The limits announced in WELCOME (SPEC §3.4, §5.2); durations in milliseconds."""
     limits = tcp.limits()
@@ -219,6 +261,7 @@ __all__ = [
     "DEFAULT_LINE_PORT",
     "LINE_FORMATS",
     "SERVER_VERSION",
+    "ConsoleSettings",
     "LineSettings",
     "ServerSettings",
     "ServiceSettings",

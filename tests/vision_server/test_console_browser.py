@@ -1,0 +1,120 @@
+"""The console page in real headless Chromium against the real server with the example cell
+(tests/helpers/console_server.py): sign in, the live image, a try whose dragged ROI changes
+the verdict, and a saved edit that reloads the server."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import TypeVar
+
+import pytest
+from browser import console_errors, headless_chromium
+from console_server import TOKEN, RunningConsole, console_server
+
+selenium = pytest.importorskip("selenium")
+from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
+from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
+from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
+from selenium.webdriver.remote.webelement import WebElement  # noqa: E402
+from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
+
+pytestmark = pytest.mark.slow
+T = TypeVar("T")
+WAIT_S = 60.0  # only bounds a hang: each wait ends as soon as its condition holds
+
+
+@pytest.fixture(scope="module")
+def driver() -> Iterator[WebDriver]:
+    with headless_chromium() as d:
+        yield d
+
+
+def wait_for(driver: WebDriver, condition: Callable[[WebDriver], T], what: str) -> T:
+    wait = WebDriverWait(driver, WAIT_S, ignored_exceptions=(StaleElementReferenceException,))
+    return wait.until(condition, f"timed out waiting for {what}")
+
+
+def visible_page(driver: WebDriver) -> str:
+    return str(
+        driver.execute_script(
+            "return [...document.querySelectorAll('section.page')]"
+            ".filter((s) => !s.hidden).map((s) => s.id).join(',');"
+        )
+    )
+
+
+def image_loaded(element: WebElement) -> bool:
+    return bool(element.get_property("complete")) and int(element.get_property("naturalWidth")) > 0
+
+
+def sign_in(driver: WebDriver, server: RunningConsole, page: str) -> None:
+    driver.delete_all_cookies()
+    driver.get(f"{server.url}#/{page}")
+    console_errors(driver)
+    wait_for(driver, lambda d: visible_page(d) == "page-login", "the login page")
+    driver.find_element(By.ID, "login-token").send_keys(TOKEN)
+    driver.find_element(By.ID, "login-submit").click()
+    wait_for(driver, lambda d: visible_page(d) == f"page-{page}", f"the {page} page")
+
+
+def drag(
+    driver: WebDriver, canvas: WebElement, start: tuple[int, int], end: tuple[int, int]
+) -> None:
+    """Drag on the ROI canvas between two points in image pixels (u, v)."""
+    scale, width, height = driver.execute_script(
+        "const i = document.getElementById('try-image');"
+        "return [i.naturalWidth / i.clientWidth, i.clientWidth, i.clientHeight];"
+    )
+
+    def offset(point: tuple[int, int]) -> tuple[int, int]:
+        return round(point[0] / scale - width / 2), round(point[1] / scale - height / 2)
+
+    x0, y0 = offset(start)
+    x1, y1 = offset(end)
+    actions = ActionChains(driver)
+    actions.move_to_element_with_offset(canvas, x0, y0).click_and_hold()
+    actions.move_by_offset((x1 - x0) // 2, (y1 - y0) // 2)
+    actions.move_by_offset(x1 - x0 - (x1 - x0) // 2, y1 - y0 - (y1 - y0) // 2).release()
+    actions.perform()
+
+
+def test_live_view_and_a_dragged_roi_changes_the_verdict_and_saves(
+    driver: WebDriver, tmp_path: Path
+) -> None:
+    with console_server(tmp_path) as server:
+        sign_in(driver, server, "cameras")
+        qc = wait_for(
+            driver,
+            lambda d: d.find_element(By.CSS_SELECTOR, "[data-camera=qc] img.camera-image"),
+            "the qc camera's card",
+        )
+        wait_for(driver, lambda d: image_loaded(qc), "the qc camera's live image")
+        first = qc.get_attribute("src")
+        wait_for(driver, lambda d: qc.get_attribute("src") != first, "the live image to change")
+
+        driver.get(f"{server.url}#/inspections")
+        wait_for(
+            driver,
+            lambda d: d.find_elements(By.CSS_SELECTOR, "[data-inspection=magnet_check]"),
+            "the inspection list",
+        )
+        driver.find_element(By.CSS_SELECTOR, "[data-inspection=magnet_check]").click()
+        driver.find_element(By.ID, "try-run").click()
+        verdict = driver.find_element(By.ID, "try-verdict")
+        wait_for(driver, lambda d: verdict.text == "FAIL", "the configured ROI's verdict")
+        image = driver.find_element(By.ID, "try-image")
+        wait_for(driver, lambda d: image_loaded(image), "the overlay")
+        # A dark corner of the scene: dark_fraction well above min, so PASS.
+        drag(driver, driver.find_element(By.ID, "try-canvas"), (10, 10), (70, 80))
+        wait_for(driver, lambda d: verdict.text == "PASS", "the dragged ROI's verdict")
+
+        before = server.app.service.catalog.config_hash
+        driver.find_element(By.ID, "save-config").click()
+        ok = driver.find_element(By.ID, "save-ok")
+        wait_for(driver, lambda d: "Saved and reloaded" in ok.text, "the save")
+        assert server.app.service.catalog.config_hash != before
+        assert "roi: [" in server.config.read_text()
+        assert list(tmp_path.glob("cell.yaml.bak-*"))
+        assert console_errors(driver) == []

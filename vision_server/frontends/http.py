@@ -1,0 +1,878 @@
+"""The web console's HTTP front-end: the page, its JSON API (docs/console.md) and ``/metrics``.
+
+An aiohttp application in the server's own event loop over the one inspection service, like
+the TCP front-end: parse the request, call the service (every try through
+:meth:`InspectionService.inspect`: admission, deadlines, the result log), render its records as
+JSON, and map the service's ``ErrorCode`` to an HTTP status in one table
+(:data:`HTTP_STATUS`). Every error is a JSON body; a malformed request is a 4xx, never a
+traceback.
+
+Security: with an ``auth_token`` every ``/api/*`` path but ``/api/login`` (and ``/metrics``)
+answers 401 without a session (:mod:`.http_auth`); the page and its files answer so that the
+sign-in page can show. Files are served from the console's static folder only (aiohttp refuses
+paths that leave it); result images by result id only; the configuration file is the one the
+server was started with.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import logging
+import math
+import time
+from collections.abc import Awaitable, Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from aiohttp import BodyPartReader, web
+from aiohttp.http_exceptions import HttpProcessingError
+
+from protocol import (
+    BadImage,
+    CellvisionError,
+    ErrorCode,
+    ImageEncoding,
+    ImagePayload,
+    ImageTooLarge,
+    InvalidArgument,
+)
+from vision_server.console import static_dir
+from vision_server.service import (
+    CaptureRequest,
+    ImageNeeds,
+    Images,
+    InspectionService,
+    InspectRequest,
+    check_images,
+)
+from vision_server.settings import SERVER_VERSION, ConsoleSettings
+
+from . import http_save
+from .http_auth import COOKIE, Sessions
+from .http_live import LiveView
+from .http_metrics import CONTENT_TYPE, Metrics
+from .images import decode_payloads
+
+log = logging.getLogger("vision_server")
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+HTTP_STATUS: dict[ErrorCode, int] = {
+    ErrorCode.NOT_AUTHENTICATED: 401,
+    ErrorCode.UNKNOWN_INSPECTION: 404,
+    ErrorCode.UNKNOWN_CAMERA: 404,
+    ErrorCode.BAD_IMAGE: 400,
+    ErrorCode.IMAGE_TOO_LARGE: 413,
+    ErrorCode.INVALID_ARGUMENT: 400,
+    ErrorCode.BAD_METADATA: 400,
+    ErrorCode.FRAME_TOO_LARGE: 413,
+    ErrorCode.CONFIG_INVALID: 422,
+    ErrorCode.INSPECTION_FAILED: 422,
+    ErrorCode.CAMERA_UNAVAILABLE: 503,
+    ErrorCode.BUSY: 503,
+    ErrorCode.SHUTTING_DOWN: 503,
+    ErrorCode.DEADLINE_EXCEEDED: 504,
+    ErrorCode.INTERNAL_ERROR: 500,
+}
+"""The one table from the service's error codes to HTTP statuses (others: 400)."""
+
+RETRY_AFTER_S = 1
+MAX_JSON_PART = 64 * 1024
+"""The largest ``request`` part of a try, bytes."""
+FORM_OVERHEAD = 64 * 1024
+"""Bytes of a try's form besides the image (boundaries, the request part)."""
+STATS_MAX_ROWS = 200_000
+TRY_PEER_PREFIX = "console "
+SECURITY_HEADERS = {
+    "X-Content-Type-Options": "nosniff",
+    "X-Frame-Options": "DENY",
+    "Referrer-Policy": "no-referrer",
+    "Content-Security-Policy": (
+        "default-src 'self'; img-src 'self' data: blob:; style-src 'self' 'unsafe-inline'; "
+        "frame-ancestors 'none'; base-uri 'none'; form-action 'self'"
+    ),
+}
+PARAMETER_RANGES: dict[str, tuple[float | None, float | None, float | None]] = {
+    "threshold": (0, 255, 1),
+}
+
+
+class HttpError(Exception):
+    """An error of this front-end's own (not the service's): status, code, message."""
+
+    def __init__(self, status: int, code: str, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+        self.code = code
+        self.message = message
+
+
+def error_response(status: int, code: str, message: str) -> web.Response:
+    response = web.json_response({"error": {"code": code, "message": message}}, status=status)
+    if code == "BUSY":
+        response.headers["Retry-After"] = str(RETRY_AFTER_S)
+    return response
+
+
+def service_error(exc: CellvisionError) -> web.Response:
+    """The HTTP form of a service error (see :data:`HTTP_STATUS`)."""
+    return error_response(HTTP_STATUS.get(exc.code, 400), exc.code.name, exc.message)
+
+
+ServerInfo = Callable[[], dict[str, Any]]
+"""What the app knows that the service does not: ``listen`` and ``connections``."""
+
+
+class HttpFrontend:
+    """Serves the console for ``service``; ``config_path`` is the file saves write (None: no
+    saving); ``server_info`` adds the app's listening address and connections."""
+
+    def __init__(
+        self,
+        service: InspectionService,
+        settings: ConsoleSettings,
+        *,
+        config_path: Path | None = None,
+        server_info: ServerInfo | None = None,
+    ) -> None:
+        self.service = service
+        self.settings = settings
+        self.config_path = config_path
+        self.server_info = server_info or (lambda: {})
+        self.sessions = Sessions(settings.auth_token)
+        self.started_at = time.time()
+        self._runner: web.AppRunner | None = None
+        self._site: web.TCPSite | None = None
+        self._save_lock = asyncio.Lock()
+        self.live: LiveView | None = None
+        self.metrics: Metrics | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """The address and port actually bound (useful with port 0)."""
+        if self._runner is None or not self._runner.addresses:
+            raise RuntimeError("the console is not started")
+        host, port = self._runner.addresses[0][:2]
+        return str(host), int(port)
+
+    @property
+    def port(self) -> int:
+        return self.address[1]
+
+    @property
+    def url(self) -> str:
+        scheme = "https" if self.settings.tls_cert else "http"
+        host, port = self.address
+        return f"{scheme}://{'[' + host + ']' if ':' in host else host}:{port}/"
+
+    async def start(self) -> None:
+        self.live = LiveView(self.service, self.settings.max_view_fps)
+        self.metrics = Metrics(self.service, self.live)
+        self._runner = web.AppRunner(self.build(), access_log=None)
+        await self._runner.setup()
+        self._site = web.TCPSite(
+            self._runner,
+            self.settings.host,
+            self.settings.port,
+            ssl_context=self.settings.ssl_context(),
+        )
+        await self._site.start()
+
+    async def stop(self) -> None:
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+        if self.metrics is not None:
+            self.metrics.close()
+        if self.live is not None:
+            self.live.close()
+
+    def build(self) -> web.Application:
+        app = web.Application(
+            middlewares=[self._errors, self._guard],
+            client_max_size=self.settings.max_upload_bytes + FORM_OVERHEAD,
+        )
+        routes = app.router
+        routes.add_get("/", self.index)
+        routes.add_static("/static/", static_dir(), follow_symlinks=False)
+        routes.add_post("/api/login", self.login)
+        routes.add_post("/api/logout", self.logout)
+        routes.add_get("/api/server", self.server)
+        routes.add_get("/api/cameras", self.cameras)
+        routes.add_get("/api/cameras/{name}/frame.jpg", self.frame)
+        routes.add_get("/api/inspections", self.inspections)
+        routes.add_post("/api/inspections/{name}/try", self.try_)
+        routes.add_post("/api/inspections/{name}/save", self.save)
+        routes.add_get("/api/results", self.results_list)
+        routes.add_get(r"/api/results/{id:\d{1,18}}", self.result)
+        routes.add_get(r"/api/results/{id:\d{1,18}}/image.png", self.result_image)
+        routes.add_get("/api/stats", self.stats)
+        routes.add_get("/metrics", self.metrics_text)
+        return app
+
+    # ------------------------------------------------------------------ middlewares
+
+    @web.middleware
+    async def _errors(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        """Every error as JSON; nothing escapes as a traceback."""
+        try:
+            response = await handler(request)
+        except CellvisionError as exc:
+            response = service_error(exc)
+        except HttpError as exc:
+            response = error_response(exc.status, exc.code, exc.message)
+        except web.HTTPException as exc:  # routing (404, 405), body too large (413)
+            if exc.status < 400:
+                raise
+            code = {401: "UNAUTHORIZED", 404: "NOT_FOUND", 413: "TOO_LARGE"}.get(
+                exc.status, "BAD_REQUEST"
+            )
+            response = error_response(exc.status, code, exc.reason)
+        except HttpProcessingError as exc:  # a body aiohttp could not parse
+            response = error_response(400, "BAD_REQUEST", f"malformed request: {exc.message}")
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("console: %s %s failed", request.method, request.path)
+            response = error_response(500, "INTERNAL_ERROR", "the server failed; see its log")
+        for key, value in SECURITY_HEADERS.items():
+            response.headers.setdefault(key, value)
+        return response
+
+    @web.middleware
+    async def _guard(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        """Without a session only the page (its sign-in form) and /api/login answer."""
+        path = request.path
+        protected = (path.startswith("/api/") and path != "/api/login") or path == "/metrics"
+        if protected and not self._signed_in(request):
+            raise HttpError(401, "UNAUTHORIZED", "sign in with the server's token first")
+        return await handler(request)
+
+    def _signed_in(self, request: web.Request) -> bool:
+        if self.sessions.valid(request.cookies.get(COOKIE)):
+            return True
+        if request.path == "/metrics":  # a scraper sends the token as a bearer token
+            auth = request.headers.get("Authorization", "")
+            return auth.startswith("Bearer ") and self.sessions.token_matches(auth[7:].strip())
+        return False
+
+    # ------------------------------------------------------------------ page, sign-in
+
+    async def index(self, request: web.Request) -> web.StreamResponse:
+        response = web.FileResponse(static_dir() / "index.html")
+        response.headers["Cache-Control"] = "no-store"
+        return response
+
+    async def login(self, request: web.Request) -> web.Response:
+        body = await _json_body(request)
+        response = web.json_response({"ok": True})
+        if not self.sessions.required:
+            return response
+        if not self.sessions.token_matches(body.get("token")):
+            raise HttpError(401, "UNAUTHORIZED", "wrong token")
+        response.set_cookie(
+            COOKIE,
+            self.sessions.open(),
+            httponly=True,
+            samesite="Strict",
+            path="/",
+            secure=bool(self.settings.tls_cert),
+        )
+        return response
+
+    async def logout(self, request: web.Request) -> web.Response:
+        self.sessions.close(request.cookies.get(COOKIE))
+        response = web.json_response({"ok": True})
+        response.del_cookie(COOKIE, path="/")
+        return response
+
+    # ------------------------------------------------------------------ server, cameras
+
+    async def server(self, request: web.Request) -> web.Response:
+        service = self.service
+        health = service.health()
+        checks = [{"name": "result log", "ok": bool(health["ok"]), "message": ""}]
+        if "result_log" in health and not health["ok"]:
+            checks[0]["message"] = str(health["result_log"].get("last_error") or "rows lost")
+        info = self.server_info()
+        reloads = [
+            {"time": r.time, "ok": r.ok, "config_hash": r.config_hash, "message": r.message}
+            for r in reversed(service.reloads)
+        ]
+        return web.json_response(
+            {
+                "name": self.settings.name,
+                "version": SERVER_VERSION,
+                "protocol": info.get("protocol", "1.0"),
+                "config_file": None if self.config_path is None else str(self.config_path),
+                "config_hash": service.catalog.config_hash,
+                "started_at": self.started_at,
+                "uptime_s": round(time.time() - self.started_at, 1),
+                "listen": info.get("listen"),
+                "auth_required": self.sessions.required,
+                "health": {"status": "ok" if health["ok"] else "degraded", "checks": checks},
+                "pool": {
+                    "workers": service.settings.workers,
+                    "in_flight": service.pool.admitted,
+                    "max_in_flight": service.pool.capacity,
+                    "queued": max(service.pool.admitted - service.settings.workers, 0),
+                    "queue_depth": service.settings.queue_depth,
+                    "busy_count": service.busy_count,
+                    "answered": None if self.metrics is None else self.metrics.answered,
+                },
+                "connections": info.get("connections", []),
+                "reloads": reloads,
+            }
+        )
+
+    async def cameras(self, request: web.Request) -> web.Response:
+        assert self.live is not None
+        out = []
+        for name, camera in self.service.catalog.cameras.items():
+            request_camera = camera.source == "request"
+            newest = self.live.newest(name)
+            width = newest.width if newest else None
+            height = newest.height if newest else None
+            if width is None and camera.intrinsics is not None:
+                width, height = camera.intrinsics.width, camera.intrinsics.height
+            frames = None
+            if not request_camera:
+                try:
+                    frames = int(camera.status().get("frames", 0))
+                except Exception:  # a camera's status is best effort here
+                    frames = None
+            out.append(
+                {
+                    "name": name,
+                    "source": camera.source,
+                    "depth": camera.has_depth,
+                    "width": width,
+                    "height": height,
+                    "fps": None if request_camera else self.live.measured_fps(name, frames),
+                    "view_fps": None if request_camera else self.settings.max_view_fps,
+                    "frame_age_s": None
+                    if newest is None
+                    else round(max(time.time() - newest.timestamp, 0.0), 3),
+                }
+            )
+        return web.json_response({"cameras": out})
+
+    async def frame(self, request: web.Request) -> web.Response:
+        assert self.live is not None
+        name = request.match_info["name"]
+        frame = await self.live.frame(name)
+        if frame is None:
+            raise HttpError(404, "NOT_FOUND", f"camera {name!r} has had no image yet")
+        return web.Response(
+            body=frame.jpeg, content_type="image/jpeg", headers={"Cache-Control": "no-store"}
+        )
+
+    # ------------------------------------------------------------------ inspections
+
+    def _written(self, name: str) -> dict[str, Any]:
+        """Inspection ``name`` as written in the configuration (empty when unknown)."""
+        written = getattr(self.service.catalog.tune, "written", None)
+        if not isinstance(written, Mapping) or name not in written:
+            return {}
+        return dict(written[name])
+
+    async def inspections(self, request: web.Request) -> web.Response:
+        catalog = self.service.catalog
+        out = []
+        for descriptor in catalog.inspection_descriptors():
+            config = self._written(descriptor["name"]) or {
+                k: descriptor[k] for k in ("name", "type", "camera")
+            }
+            roi = config.get("roi")
+            out.append(
+                {
+                    **descriptor,
+                    "config": config,
+                    "parameters": parameters(config),
+                    "roi": roi if isinstance(roi, list) else None,
+                }
+            )
+        return web.json_response({"inspections": out}, dumps=_dumps)
+
+    async def try_(self, request: web.Request) -> web.Response:
+        name = request.match_info["name"]
+        inspection = self.service.catalog.inspection(name)  # UNKNOWN_INSPECTION: 404
+        arrived = time.monotonic()
+        declared = request.content_length
+        limit = self.settings.max_upload_bytes + FORM_OVERHEAD
+        if declared is not None and declared > limit:
+            raise HttpError(413, "TOO_LARGE", f"the request has {declared} bytes, limit {limit}")
+        # The body's bytes are reserved before it is read (BUSY when the server's memory for
+        # request bodies is taken), as the protocol does for a frame.
+        admission = self.service.admit(work=False, body_bytes=declared or limit)
+        try:
+            spec, upload = await self._try_form(request)
+            options = spec.get("options") or {}
+            if not isinstance(options, dict):
+                raise HttpError(400, "BAD_REQUEST", "options must be a JSON object")
+            written = self._written(name)
+            tuned = nested_options(written, options)
+            merged = {**written, **tuned}
+            source = spec.get("source")
+            images: Images | Callable[[ImageNeeds], Images]
+            if source == "camera":
+                images = await self._camera_images(inspection.camera)
+            elif source == "upload":
+                if upload is None:
+                    raise HttpError(400, "BAD_REQUEST", "source 'upload' needs an 'image' part")
+                images = _upload_loader(upload)
+            elif source == "result":
+                images = self._result_loader(spec.get("result_id"))
+            else:
+                raise HttpError(400, "BAD_REQUEST", "source must be 'camera', 'upload' or 'result'")
+            extras: dict[str, Any] = {}
+            loader = _with_extras(images, merged, extras)
+            peer = _peer(request)
+            reply = await self.service.inspect(
+                InspectRequest(
+                    name,
+                    images=loader,
+                    overlay=".png" if spec.get("overlay", True) else None,
+                    options=tuned,
+                    arrived=arrived,
+                    peer=TRY_PEER_PREFIX + peer,
+                ),
+                admission=admission,
+            )
+        finally:
+            admission.release()
+        overlay = None
+        if reply.overlay is not None and reply.overlay.encoded is not None:
+            overlay = _data_url("image/png", reply.overlay.encoded)
+        body = {
+            "verdict": "pass" if reply.passed else "fail",
+            "data": reply.data,
+            "timing": {
+                "inspect": round(reply.compute_ms, 3),
+                "total": round(reply.total_ms, 3),
+            },
+            "overlay": overlay,
+            "histogram": extras.get("histogram"),
+            "source_image": None if overlay else extras.get("source_image"),
+            "config_hash": reply.config_hash,
+        }
+        return web.json_response(body, dumps=_dumps)
+
+    async def _try_form(self, request: web.Request) -> tuple[dict[str, Any], bytes | None]:
+        """The ``request`` JSON part and the ``image`` part of a try's multipart form."""
+        if not request.content_type.startswith("multipart/"):
+            raise HttpError(400, "BAD_REQUEST", "a try is multipart/form-data")
+        try:
+            reader = await request.multipart()
+        except (ValueError, AssertionError) as exc:
+            raise HttpError(400, "BAD_REQUEST", f"malformed multipart body: {exc}") from None
+        spec: dict[str, Any] | None = None
+        upload: bytes | None = None
+        try:
+            while True:
+                part = await reader.next()
+                if part is None:
+                    break
+                if not isinstance(part, BodyPartReader):
+                    raise HttpError(400, "BAD_REQUEST", "nested multipart is not accepted")
+                if part.name == "request":
+                    raw = await _read_part(part, MAX_JSON_PART, "the request part")
+                    try:
+                        parsed = json.loads(raw)
+                    except ValueError as exc:
+                        raise HttpError(400, "BAD_REQUEST", f"request is not JSON: {exc}") from None
+                    if not isinstance(parsed, dict):
+                        raise HttpError(400, "BAD_REQUEST", "request must be a JSON object")
+                    spec = parsed
+                elif part.name == "image":
+                    upload = await _read_part(part, self.settings.max_upload_bytes, "the image")
+                else:
+                    await part.release()
+        except (ValueError, AssertionError, HttpProcessingError) as exc:
+            # aiohttp's parser raises these on a malformed part (headers, boundary).
+            raise HttpError(400, "BAD_REQUEST", f"malformed multipart body: {exc}") from None
+        if spec is None:
+            raise HttpError(400, "BAD_REQUEST", "the form has no 'request' part")
+        return spec, upload
+
+    async def _camera_images(self, camera: str) -> Images:
+        """The camera's current frame through the service's capture (or, for a request
+        camera, the last image a robot sent)."""
+        catalog = self.service.catalog
+        if catalog.camera(camera).source == "request":
+            raise HttpError(
+                404, "NOT_FOUND", f"camera {camera!r} gets its images from robots; upload one"
+            )
+        reply = await self.service.capture(CaptureRequest(camera))
+        return Images(reply.frames[0].color)
+
+    def _result_loader(self, result_id: Any) -> Callable[[ImageNeeds], Images]:
+        if isinstance(result_id, bool) or not isinstance(result_id, int) or result_id < 1:
+            raise HttpError(400, "BAD_REQUEST", "result_id must be a positive integer")
+        row = self._row(result_id)
+        path = row.image_path
+        if path is None or not path.is_file():
+            raise HttpError(404, "NOT_FOUND", f"result {result_id} has no stored image")
+
+        def load(needs: ImageNeeds) -> Images:
+            data = path.read_bytes()
+            return decode_payloads([ImagePayload(ImageEncoding.PNG, 0, 0, data)], needs)
+
+        return load
+
+    async def save(self, request: web.Request) -> web.Response:
+        name = request.match_info["name"]
+        self.service.catalog.inspection(name)
+        body = await _json_body(request)
+        options = body.get("options")
+        if not isinstance(options, dict) or not options:
+            raise HttpError(400, "BAD_REQUEST", "options must be a non-empty JSON object")
+        path = self.config_path
+        if path is None:
+            raise HttpError(403, "CONFIG_REFUSED", "this server runs without a configuration file")
+        if not self.settings.allow_save:
+            raise HttpError(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
+        async with self._save_lock:
+            old, backup = await asyncio.to_thread(_save_file, path, name, options)
+            try:
+                catalog = await self.service.reload()
+            except CellvisionError as exc:
+                # The file validated but the server could not take it (a camera that does not
+                # open): put the old text back so that file and server agree.
+                await asyncio.to_thread(http_save.replace_file, path, old)
+                raise HttpError(422, "CONFIG_REFUSED", exc.message) from None
+        return web.json_response({"config_hash": catalog.config_hash, "backup": backup.name})
+
+    # ------------------------------------------------------------------ results
+
+    def _log(self) -> Any:
+        if self.service.results is None:
+            raise HttpError(404, "NOT_FOUND", "this server keeps no result log")
+        return self.service.results
+
+    def _row(self, result_id: int) -> Any:
+        row = self._log().get(result_id)
+        if row is None:
+            raise HttpError(404, "NOT_FOUND", f"no result {result_id}")
+        return row
+
+    async def results_list(self, request: web.Request) -> web.Response:
+        query = request.query
+        limit = _int_param(query, "limit", 50, 1, 500)
+        before = _int_param(query, "before_id", None, 1, None)
+        verdict = query.get("verdict") or None
+        if verdict not in (None, "pass", "fail"):
+            raise HttpError(400, "BAD_REQUEST", "verdict must be 'pass' or 'fail'")
+        since = _float_param(query, "since")
+        rows = await asyncio.to_thread(
+            self._log().query,
+            since=since,
+            inspection=query.get("inspection") or None,
+            passed=None if verdict is None else verdict == "pass",
+            limit=limit + 1,
+            peer=query.get("peer") or None,
+            before_id=before,
+        )
+        more = len(rows) > limit
+        rows = rows[:limit]
+        return web.json_response(
+            {
+                "results": [_row_json(r) for r in rows],
+                "next_before_id": rows[-1].id if more and rows else None,
+            },
+            dumps=_dumps,
+        )
+
+    async def result(self, request: web.Request) -> web.Response:
+        row = self._row(int(request.match_info["id"]))
+        body = {
+            **_row_json(row),
+            "data": row.data,
+            "timing": {"total": row.duration_ms},
+            "error": row.error,
+        }
+        return web.json_response(body, dumps=_dumps)
+
+    async def result_image(self, request: web.Request) -> web.Response:
+        row = self._row(int(request.match_info["id"]))
+        path = row.image_path
+        if path is None or not path.is_file():
+            raise HttpError(404, "NOT_FOUND", f"result {row.id} has no stored image")
+        data = await asyncio.to_thread(path.read_bytes)
+        return web.Response(body=data, content_type="image/png")
+
+    async def stats(self, request: web.Request) -> web.Response:
+        window = _float_param(request.query, "window_s") or 86400.0
+        if not 60 <= window <= 366 * 86400:
+            raise HttpError(400, "BAD_REQUEST", "window_s must be in 60..31622400")
+        wanted = request.query.get("inspection") or None
+        names = [wanted] if wanted else sorted(self.service.catalog.inspections)
+        log_ = self._log()
+        now = time.time()
+        out = await asyncio.to_thread(lambda: [_stats(log_, n, now, window) for n in names])
+        return web.json_response({"window_s": window, "inspections": out}, dumps=_dumps)
+
+    async def metrics_text(self, request: web.Request) -> web.Response:
+        assert self.metrics is not None
+        return web.Response(body=self.metrics.render(), headers={"Content-Type": CONTENT_TYPE})
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def parameters(config: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The numeric keys of an inspection's configuration the page may tune (nested: dotted)."""
+    out: list[dict[str, Any]] = []
+    measure = config.get("measure")
+    for key, value in config.items():
+        if key in ("roi", "name", "type", "camera", "frames"):
+            continue
+        if isinstance(value, dict):
+            for sub, inner in value.items():
+                if _number(inner):
+                    out.append(_parameter(f"{key}.{sub}", inner, None, None))
+        elif _number(value):
+            low, high = _range(key, measure)
+            out.append(_parameter(key, value, low, high))
+    return out
+
+
+def _parameter(key: str, value: Any, low: float | None, high: float | None) -> dict[str, Any]:
+    step: float | None = 1 if isinstance(value, int) else None
+    if key in PARAMETER_RANGES:
+        low, high, step = PARAMETER_RANGES[key]
+    elif high is not None and low is not None and high - low <= 2:
+        step = 0.01
+    return {"key": key, "value": value, "min": low, "max": high, "step": step}
+
+
+def _range(key: str, measure: Any) -> tuple[float | None, float | None]:
+    if key in ("min", "max") and isinstance(measure, str):
+        from vision_server.inspections.presence import MEASURE_RANGES
+
+        if measure in MEASURE_RANGES:
+            low, high, _ = MEASURE_RANGES[measure]
+            return low, (None if math.isinf(high) else high)
+    return None, None
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def nested_options(written: Mapping[str, Any], options: Mapping[str, Any]) -> dict[str, Any]:
+    """The page's options (dotted keys for nested ones) as the service's: a nested mapping
+    laid over the configured one (``circle.min_radius_px`` keeps ``circle``'s other keys)."""
+    out: dict[str, Any] = {}
+    for key, value in options.items():
+        if not isinstance(key, str) or not key:
+            raise InvalidArgument("an option's key must be a non-empty string")
+        if "." not in key:
+            out[key] = value
+            continue
+        head, _, rest = key.partition(".")
+        base = out.get(head, written.get(head, {}))
+        if not isinstance(base, dict):
+            raise InvalidArgument(f"option {key!r}: {head!r} is not a mapping")
+        out[head] = {**base, **nested_options(base, {rest: value})}
+    return out
+
+
+def _save_file(path: Path, name: str, options: Mapping[str, Any]) -> tuple[bytes, Path]:
+    """Edit, validate and write the configuration file (in a thread); returns the old bytes
+    and the backup's path. HttpError CONFIG_REFUSED naming file, line and key path."""
+    try:
+        old = path.read_bytes()
+        text = old.decode("utf-8")
+        new = http_save.edited_text(text, path.name, name, options)
+        http_save.validate(new, path)
+        backup = http_save.write_with_backup(path, new)
+    except (http_save.SaveRefused, http_save.ConfigError) as exc:
+        raise HttpError(422, "CONFIG_REFUSED", str(exc)) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise HttpError(500, "CONFIG_REFUSED", f"cannot write {path.name}: {exc}") from None
+    return old, backup
+
+
+def _upload_loader(data: bytes) -> Callable[[ImageNeeds], Images]:
+    """Decodes an uploaded PNG or JPEG in a worker, with the protocol's header checks."""
+    if data.startswith(b"\x89PNG\r\n\x1a\n"):
+        encoding = ImageEncoding.PNG
+    elif data.startswith(b"\xff\xd8"):
+        encoding = ImageEncoding.JPEG
+    else:
+        raise BadImage("the uploaded file is not a PNG or JPEG image")
+
+    def load(needs: ImageNeeds) -> Images:
+        return decode_payloads([ImagePayload(encoding, 0, 0, data)], needs)
+
+    return load
+
+
+def _with_extras(
+    images: Images | Callable[[ImageNeeds], Images],
+    config: Mapping[str, Any],
+    extras: dict[str, Any],
+) -> Callable[[ImageNeeds], Images]:
+    """A loader that also computes, in the worker, what the try panel shows besides the
+    service's reply: the ROI's grey-level histogram and the source image."""
+
+    def load(needs: ImageNeeds) -> Images:
+        loaded = images if isinstance(images, Images) else images(needs)
+        check_images(loaded, needs)
+        color = loaded.color
+        grey = color if color.ndim == 2 else cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
+        if config.get("type") == "presence":
+            extras["histogram"] = _histogram(grey, config.get("roi"), config.get("threshold"))
+        ok, jpeg = cv2.imencode(".jpg", color, [cv2.IMWRITE_JPEG_QUALITY, 85])
+        if ok:
+            extras["source_image"] = _data_url("image/jpeg", bytes(jpeg.tobytes()))
+        return loaded
+
+    return load
+
+
+def _histogram(grey: Any, roi: Any, threshold: Any) -> dict[str, Any]:
+    height, width = grey.shape[:2]
+    x, y, w, h = 0, 0, width, height
+    if isinstance(roi, list) and len(roi) == 4 and all(_number(v) for v in roi):
+        x, y, w, h = (int(v) for v in roi)
+    patch = grey[max(y, 0) : max(y + h, 0), max(x, 0) : max(x + w, 0)]
+    bins = np.bincount(patch.ravel(), minlength=256)[:256] if patch.size else np.zeros(256)
+    return {
+        "bins": [int(b) for b in bins],
+        "threshold": threshold if _number(threshold) else None,
+    }
+
+
+def _stats(log_: Any, name: str, now: float, window: float) -> dict[str, Any]:
+    rows = log_.query(since=now - window, inspection=name, limit=STATS_MAX_ROWS, newest_first=False)
+    buckets = 24
+    bucket_s = window / buckets
+    start = now - window
+    series = []
+    for index in range(buckets):
+        t0 = start + index * bucket_s
+        inside = [r for r in rows if t0 <= r.time < t0 + bucket_s]
+        series.append({"t": t0, **_summary(inside)})
+    summary = _summary(rows)
+    return {
+        "name": name,
+        "count": summary["count"],
+        "pass": sum(1 for r in rows if r.passed),
+        "fail": sum(1 for r in rows if not r.passed),
+        "pass_rate": summary["pass_rate"],
+        "p50_ms": summary["p50_ms"],
+        "p99_ms": summary["p99_ms"],
+        "bucket_s": bucket_s,
+        "series": series,
+    }
+
+
+def _summary(rows: list[Any]) -> dict[str, Any]:
+    if not rows:
+        return {"count": 0, "pass_rate": None, "p50_ms": None, "p99_ms": None}
+    durations = np.array([r.duration_ms for r in rows], dtype=float)
+    return {
+        "count": len(rows),
+        "pass_rate": round(sum(1 for r in rows if r.passed) / len(rows), 4),
+        "p50_ms": round(float(np.percentile(durations, 50)), 3),
+        "p99_ms": round(float(np.percentile(durations, 99)), 3),
+    }
+
+
+def _row_json(row: Any) -> dict[str, Any]:
+    return {
+        "id": row.id,
+        "time": row.time,
+        "inspection": row.inspection,
+        "camera": row.camera,
+        "passed": row.passed,
+        "duration_ms": row.duration_ms,
+        "peer": row.peer,
+        "request_id": row.request_id,
+        "config_hash": row.config_hash,
+        "has_image": row.image_path is not None and row.image_path.is_file(),
+    }
+
+
+async def _json_body(request: web.Request) -> dict[str, Any]:
+    try:
+        body = await request.json()
+    except ValueError as exc:
+        raise HttpError(400, "BAD_REQUEST", f"the body is not JSON: {exc}") from None
+    if not isinstance(body, dict):
+        raise HttpError(400, "BAD_REQUEST", "the body must be a JSON object")
+    return body
+
+
+async def _read_part(part: BodyPartReader, limit: int, what: str) -> bytes:
+    chunks: list[bytes] = []
+    size = 0
+    while True:
+        chunk = await part.read_chunk(256 * 1024)
+        if not chunk:
+            return b"".join(chunks)
+        size += len(chunk)
+        if size > limit:
+            raise ImageTooLarge(f"{what} has more than {limit} bytes")
+        chunks.append(chunk)
+
+
+def _int_param(
+    query: Mapping[str, str], key: str, default: int | None, low: int, high: int | None
+) -> Any:
+    raw = query.get(key)
+    if raw is None or raw == "":
+        return default
+    try:
+        value = int(raw)
+    except ValueError:
+        raise HttpError(400, "BAD_REQUEST", f"{key} must be an integer, got {raw!r}") from None
+    if value < low or (high is not None and value > high):
+        raise HttpError(400, "BAD_REQUEST", f"{key} must be in {low}..{high or 'any'}")
+    return value
+
+
+def _float_param(query: Mapping[str, str], key: str) -> float | None:
+    raw = query.get(key)
+    if raw is None or raw == "":
+        return None
+    try:
+        value = float(raw)
+    except ValueError:
+        raise HttpError(400, "BAD_REQUEST", f"{key} must be a number, got {raw!r}") from None
+    if not math.isfinite(value):
+        raise HttpError(400, "BAD_REQUEST", f"{key} must be finite")
+    return value
+
+
+def _peer(request: web.Request) -> str:
+    peer = request.transport.get_extra_info("peername") if request.transport else None
+    return f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else "unknown"
+
+
+def _data_url(mime: str, data: bytes) -> str:
+    return f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}"
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    if isinstance(value, set | frozenset | tuple):
+        return list(value)
+    if isinstance(value, Path):
+        return value.name
+    return repr(value)
+
+
+def _dumps(value: Any) -> str:
+    return json.dumps(value, default=_json_default)
+
+
+__all__ = ["HTTP_STATUS", "HttpError", "HttpFrontend", "nested_options", "parameters"]

@@ -1,0 +1,145 @@
+"""The console's live view: each camera's current frame as JPEG, shared by every viewer.
+
+Server cameras are read through the service's capture (admission, the pool, the capture
+timeout), at most ``max_fps`` times per second per camera: a viewer asking sooner gets the
+cached JPEG, and viewers asking at once wait for the same capture. Request cameras show the
+last image a robot sent, learnt from the service's observers of results and encoded only when
+someone looks (and at most ``max_fps`` times per second).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+
+from vision_server.service import (
+    CaptureRequest,
+    ImageLoader,
+    ImageNeeds,
+    Images,
+    InspectionRecord,
+    InspectionService,
+)
+
+JPEG_QUALITY = 85
+
+
+@dataclass(frozen=True)
+class LiveFrame:
+    """One frame as the console shows it: ``jpeg`` bytes, ``width``/``height`` pixels,
+    ``timestamp`` Unix seconds of the capture (or of the robot's request)."""
+
+    jpeg: bytes
+    width: int
+    height: int
+    timestamp: float
+    read_at: float
+    """``time.monotonic()`` when the server read it (for the rate cap)."""
+
+
+@dataclass
+class _Sent:
+    """The last images a robot sent for a request camera, not decoded yet."""
+
+    images: Images | ImageLoader
+    inspection: str
+    timestamp: float
+
+
+class LiveView:
+    """Frames of every camera for any number of viewers. ``close()`` unsubscribes."""
+
+    def __init__(self, service: InspectionService, max_fps: float) -> None:
+        self.service = service
+        self.min_interval_s = 1.0 / max_fps if max_fps > 0 else 0.0
+        self._frames: dict[str, LiveFrame] = {}
+        self._locks: dict[str, asyncio.Lock] = {}
+        self._sent: dict[str, _Sent] = {}
+        self._rates: dict[str, tuple[float, int, float | None]] = {}
+        self._unsubscribe = service.subscribe(self._on_result)
+
+    def close(self) -> None:
+        self._unsubscribe()
+
+    def _on_result(self, record: InspectionRecord) -> None:
+        images = record.request.images
+        if images is None:
+            return
+        camera = self.service.catalog.cameras.get(record.reply.camera)
+        if camera is None or camera.source != "request":
+            return  # a stored image run through a fixed camera's inspection is not its view
+        self._sent[record.reply.camera] = _Sent(images, record.reply.inspection, time.time())
+
+    def newest(self, camera: str) -> LiveFrame | None:
+        """The last frame shown of ``camera`` (None before any)."""
+        return self._frames.get(camera)
+
+    def measured_fps(self, camera: str, frames_read: int | None) -> float | None:
+        """Frames per second of a camera's counter since the previous call (None at first)."""
+        now = time.monotonic()
+        if frames_read is None:
+            return None
+        previous = self._rates.get(camera)
+        fps = None if previous is None else previous[2]
+        if previous is None or now - previous[0] >= 1.0:
+            if previous is not None and now > previous[0]:
+                fps = round((frames_read - previous[1]) / (now - previous[0]), 1)
+            self._rates[camera] = (now, frames_read, fps)
+        return fps
+
+    async def frame(self, name: str) -> LiveFrame | None:
+        """The current frame of camera ``name`` (UNKNOWN_CAMERA when there is none such);
+        None for a request camera that has had no image yet."""
+        camera = self.service.catalog.camera(name)
+        lock = self._locks.setdefault(name, asyncio.Lock())
+        async with lock:  # viewers asking at once share one read
+            cached = self._frames.get(name)
+            if cached is not None and time.monotonic() - cached.read_at < self.min_interval_s:
+                return cached
+            if camera.source == "request":
+                fresh = await self._sent_frame(name, cached)
+            else:
+                fresh = await self._captured(name)
+            if fresh is not None:
+                self._frames[name] = fresh
+            return fresh
+
+    async def _captured(self, name: str) -> LiveFrame:
+        reply = await self.service.capture(CaptureRequest(name, encoding="jpeg"))
+        frame = reply.frames[0]
+        assert frame.encoded is not None
+        height, width = frame.color.shape[:2]
+        return LiveFrame(frame.encoded, width, height, frame.timestamp, time.monotonic())
+
+    async def _sent_frame(self, name: str, cached: LiveFrame | None) -> LiveFrame | None:
+        sent = self._sent.get(name)
+        if sent is None:
+            return None
+        if cached is not None and cached.timestamp >= sent.timestamp:
+            return cached
+        max_pixels = self.service.settings.max_image_pixels
+        needs = ImageNeeds(sent.inspection, True, max_pixels)
+        return await asyncio.to_thread(_encode_sent, sent, needs)
+
+
+def _encode_sent(sent: _Sent, needs: ImageNeeds) -> LiveFrame:
+    """Decode (a loader's encoded images) and re-encode as JPEG, in a thread."""
+    images = sent.images if isinstance(sent.images, Images) else sent.images(needs)
+    color: Any = images.color
+    height, width = color.shape[:2]
+    jpeg = _jpeg(color)
+    return LiveFrame(jpeg, width, height, sent.timestamp, time.monotonic())
+
+
+def _jpeg(image: Any) -> bytes:
+    ok, buffer = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    if not ok:
+        raise ValueError("OpenCV could not encode the frame as JPEG")
+    return bytes(buffer.tobytes())
+
+
+__all__ = ["LiveFrame", "LiveView"]

@@ -1,0 +1,104 @@
+"""``/metrics`` in the Prometheus text format, from the service's observers and counters.
+
+Counted as results are answered (an observer of the service): inspections by name and verdict,
+and their latency (arrival to reply). Read at each scrape: requests admitted and capacity,
+BUSY answers, reloads by outcome, and each camera's frame age as the live view last saw it.
+One registry per front-end, so that servers in one process (tests) do not share counters.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+
+from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+from prometheus_client.registry import Collector
+
+from vision_server.service import InspectionRecord, InspectionService
+
+from .http_live import LiveView
+
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
+
+
+class Metrics:
+    """The metrics of one server; ``close()`` unsubscribes from the service."""
+
+    def __init__(self, service: InspectionService, live: LiveView) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        self.inspections = Counter(
+            "cellvision_inspections",
+            "Inspections answered, by inspection and verdict.",
+            ["inspection", "verdict"],
+            registry=self.registry,
+        )
+        self.latency = Histogram(
+            "cellvision_inspection_latency_seconds",
+            "From a request's arrival to its reply, seconds.",
+            ["inspection"],
+            buckets=LATENCY_BUCKETS_S,
+            registry=self.registry,
+        )
+        self.answered = 0
+        """Inspections answered since the console started, every front-end's."""
+        self.registry.register(_StateCollector(service, live))
+        self._unsubscribe: Callable[[], None] = service.subscribe(self._on_result)
+
+    def _on_result(self, record: InspectionRecord) -> None:
+        reply = record.reply
+        self.answered += 1
+        verdict = "pass" if reply.passed else "fail"
+        self.inspections.labels(reply.inspection, verdict).inc()
+        self.latency.labels(reply.inspection).observe(reply.total_ms / 1000.0)
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)
+
+    def close(self) -> None:
+        self._unsubscribe()
+
+
+class _StateCollector(Collector):
+    """What the service and the live view hold now, read at each scrape."""
+
+    def __init__(self, service: InspectionService, live: LiveView) -> None:
+        self.service = service
+        self.live = live
+
+    def collect(self) -> Iterator[GaugeMetricFamily | CounterMetricFamily]:
+        service = self.service
+        yield CounterMetricFamily(
+            "cellvision_busy", "BUSY answers since start.", value=service.busy_count
+        )
+        admitted = GaugeMetricFamily(
+            "cellvision_requests_admitted", "Requests running or queued for a worker now."
+        )
+        admitted.add_metric([], service.pool.admitted)
+        yield admitted
+        capacity = GaugeMetricFamily(
+            "cellvision_requests_capacity", "Requests that may be admitted at once."
+        )
+        capacity.add_metric([], service.pool.capacity)
+        yield capacity
+        reloads = CounterMetricFamily(
+            "cellvision_reloads", "Configuration reloads since start, by outcome.", labels=["ok"]
+        )
+        reloads.add_metric(["true"], service.reload_counts[True])
+        reloads.add_metric(["false"], service.reload_counts[False])
+        yield reloads
+        age = GaugeMetricFamily(
+            "cellvision_camera_frame_age_seconds",
+            "Age of the newest frame the live view has of each camera, seconds.",
+            labels=["camera"],
+        )
+        now = time.time()
+        for name in service.catalog.cameras:
+            frame = self.live.newest(name)
+            if frame is not None:
+                age.add_metric([name], max(now - frame.timestamp, 0.0))
+        yield age
+
+
+__all__ = ["CONTENT_TYPE", "Metrics"]
