@@ -24,7 +24,7 @@ from .errors import (
     UnknownMessageType,
     UnsupportedVersion,
 )
-from .frames import FrameDecoder, Header, HeaderCheck, Limits
+from .frames import Blob, FrameDecoder, Header, HeaderCheck, Limits
 from .messages import DecodeContext, Error, Message, Version, Welcome, message_from_frame
 
 
@@ -183,9 +183,29 @@ class Connection:
 
     # ------------------------------------------------------------------ receiving
 
-    def receive_data(self, data: bytes) -> None:
-        """Feed bytes from the peer; ``b""`` means the peer closed its sending side."""
-        self._decoder.feed(bytes(data))
+    def receive_data(self, data: Blob) -> None:
+        """Feed bytes from the peer; ``b""`` means the peer closed its sending side.
+
+        ``data`` (any bytes-like object) is copied at once, never kept. To receive without
+        that copy, read into :meth:`get_buffer` and call :meth:`buffer_updated`.
+        """
+        self._decoder.feed(data)
+
+    def get_buffer(self) -> memoryview:
+        """A writable buffer for the next bytes from the peer (asyncio ``BufferedProtocol``,
+        ``socket.recv_into``): the rest of the frame body being received, so that an image's
+        bytes land where the message will view them. Then call :meth:`buffer_updated`."""
+        return self._decoder.get_buffer()
+
+    def buffer_updated(self, nbytes: int) -> None:
+        """``nbytes`` (> 0) were received into the latest :meth:`get_buffer` view."""
+        self._decoder.buffer_updated(nbytes)
+
+    @property
+    def copied_bytes(self) -> int:
+        """Received body bytes that were copied on their way into a frame body (0 when all
+        arrived through :meth:`get_buffer`); for tests and benchmarks that count copies."""
+        return self._decoder.copied_bytes
 
     def next_event(self) -> Message | _NeedData | ConnectionClosed:
         """The next message from the peer, ``NEED_DATA``, or ``ConnectionClosed``.
@@ -357,6 +377,11 @@ class Connection:
 
     def send(self, message: Message) -> bytes:
         """The bytes of ``message``; raises LocalProtocolError if it may not be sent now."""
+        return b"".join(self.send_parts(message))
+
+    def send_parts(self, message: Message) -> list[Blob]:
+        """Like :meth:`send`, the frame as buffers to write in order (``writelines``,
+        ``socket.sendmsg``): the image blobs are not copied into one ``bytes``."""
         mtype = message.TYPE
         key = (self.role, self.state, Direction.SEND, mtype)
         # A fatal ERROR may still be sent after the peer broke the protocol.
@@ -387,7 +412,7 @@ class Connection:
             if not self.speaks(message.version):
                 raise LocalProtocolError(f"version {message.version} is not one we speak")
             self.version = message.version
-        data = message.to_frame(self.wire_version).serialize()
+        data = message.to_frame(self.wire_version).serialize_parts()
         if key in TRANSITIONS:
             self._apply(key, message)
         return data

@@ -11,7 +11,7 @@ import math
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeAlias
 
 from .constants import BLOB_LENGTH, HEADER, HEADER_SIZE, MAGIC, MAX_U32
 from .errors import BadMetadata, CellvisionError, FrameTooLarge, MalformedFrame
@@ -44,6 +44,19 @@ class Limits:
             raise ValueError("Limits.max_frame_bytes cannot exceed 2**32 - 1")
 
 
+Blob: TypeAlias = bytes | bytearray | memoryview
+"""A blob's bytes: any flat byte buffer. Received blobs are read-only memoryviews into their
+frame's body (no copy per blob); sent ones may view the sender's array (no ``tobytes()``)."""
+
+
+def blob_view(data: Blob) -> memoryview:
+    """``data`` as a flat, read-only view of unsigned bytes (no copy); len() is its byte size."""
+    view = memoryview(data)
+    if view.ndim != 1 or view.format != "B":
+        view = view.cast("B")  # a multi-dimensional or typed export (e.g. a numpy array)
+    return view.toreadonly()
+
+
 @dataclass(frozen=True)
 class Frame:
     """One frame as it travels: header fields, parsed metadata, raw blobs."""
@@ -51,15 +64,22 @@ class Frame:
     type: int
     request_id: int
     metadata: dict[str, Any] = field(default_factory=dict)
-    blobs: tuple[bytes, ...] = ()
+    blobs: tuple[Blob, ...] = ()
     version: tuple[int, int] = (1, 0)
     flags: int = 0
 
     def serialize(self) -> bytes:
         """The frame's bytes. Metadata is compact JSON with sorted keys (deterministic)."""
+        return b"".join(self.serialize_parts())
+
+    def serialize_parts(self) -> list[Blob]:
+        """The frame's bytes in order, as buffers to write one after the other: the header,
+        metadata and blob table in one ``bytes``, then each blob as it is (never copied), for
+        ``writelines`` / ``socket.sendmsg``."""
         meta = encode_metadata(self.metadata)
-        table = b"".join(BLOB_LENGTH.pack(len(b)) for b in self.blobs)
-        body_length = len(meta) + len(table) + sum(len(b) for b in self.blobs)
+        blobs = [blob_view(b) for b in self.blobs]
+        table = b"".join(BLOB_LENGTH.pack(len(b)) for b in blobs)
+        body_length = len(meta) + len(table) + sum(len(b) for b in blobs)
         if body_length > MAX_U32:
             raise ValueError(f"frame body of {body_length} bytes does not fit a u32 length")
         header = HEADER.pack(
@@ -73,7 +93,7 @@ class Frame:
             len(meta),
             body_length,
         )
-        return b"".join((header, meta, table, *self.blobs))
+        return [b"".join((header, meta, table)), *(b for b in blobs if len(b))]
 
 
 def encode_metadata(metadata: dict[str, Any]) -> bytes:
@@ -217,15 +237,18 @@ def parse_header(data: bytes | bytearray | memoryview, limits: Limits) -> Header
     return header
 
 
-def parse_body(
-    header: Header, body: bytes | memoryview
-) -> tuple[dict[str, Any], tuple[bytes, ...]]:
-    """Split a complete body into (metadata, blobs). ``body`` is exactly body_length bytes."""
+def parse_body(header: Header, body: Blob) -> tuple[dict[str, Any], tuple[memoryview, ...]]:
+    """Split a complete body into (metadata, blobs). ``body`` is exactly body_length bytes.
+
+    The blobs are read-only views into ``body`` (no copy): they keep it alive, and it must not
+    change while they are in use.
+    """
     rid = header.request_id
+    view = blob_view(body)
     offset = header.metadata_length
     table_end = offset + BLOB_LENGTH.size * header.blob_count
     lengths = [
-        BLOB_LENGTH.unpack_from(body, offset + BLOB_LENGTH.size * i)[0]
+        BLOB_LENGTH.unpack_from(view, offset + BLOB_LENGTH.size * i)[0]
         for i in range(header.blob_count)
     ]
     if table_end + sum(lengths) != header.body_length:
@@ -236,9 +259,9 @@ def parse_body(
     blobs = []
     position = table_end
     for length in lengths:
-        blobs.append(bytes(body[position : position + length]))
+        blobs.append(view[position : position + length])
         position += length
-    metadata = decode_metadata(bytes(body[: header.metadata_length]), request_id=rid)
+    metadata = decode_metadata(bytes(view[: header.metadata_length]), request_id=rid)
     return metadata, tuple(blobs)
 
 
@@ -251,6 +274,11 @@ consumed) and is raised from :meth:`FrameDecoder.next_frame`.
 """
 
 
+SCRATCH_BYTES = 64 * 1024
+"""Size of the decoder's reused receive buffer for bytes outside a known body (headers, small
+frames); a body is received straight into its own buffer."""
+
+
 class FrameDecoder:
     """Incremental frame parser: feed bytes, take complete frames.
 
@@ -258,23 +286,37 @@ class FrameDecoder:
     later call raises the same error. A BadMetadata error consumes its frame and the stream goes on.
     A frame refused by ``check_header`` with a non-fatal error is skipped: its body is read and
     dropped as it arrives, never held in memory.
+
+    Once a frame's header is admitted, its body gets one buffer of exactly ``body_length`` bytes,
+    and its blobs are views into it (an image's pixels are never copied after that). Bytes
+    arrive either by :meth:`feed` (copied once, into that buffer) or, with no copy at all, by
+    reading into :meth:`get_buffer` and calling :meth:`buffer_updated` (asyncio's
+    ``BufferedProtocol`` shape, ``socket.recv_into``).
     """
 
     def __init__(self, limits: Limits | None = None) -> None:
         self.limits = limits or Limits()
         self.check_header: HeaderCheck | None = None
+        # Bytes received and not yet in a body: a header, or what follows a complete body.
         self._buffer = bytearray()
         self._header: Header | None = None
+        self._body: bytearray | None = None
+        self._filled = 0
         self._skip = 0
+        self._scratch = bytearray(SCRATCH_BYTES)
+        self._into_body = False
         self._broken: MalformedFrame | FrameTooLarge | CellvisionError | None = None
         self._eof = False
         self.last_header: Header | None = None
         """The header of the latest frame parsed, also when its body was bad."""
+        self.copied_bytes = 0
+        """Body bytes copied into a body buffer from elsewhere (fed data, the scratch buffer);
+        bytes read straight into the body through :meth:`get_buffer` are not counted."""
 
     @property
     def buffered(self) -> int:
         """Bytes received but not yet returned as frames (a skipped body is not kept)."""
-        return len(self._buffer)
+        return len(self._buffer) + self._filled
 
     @property
     def in_frame(self) -> bool:
@@ -285,17 +327,47 @@ class FrameDecoder:
     def eof(self) -> bool:
         return self._eof
 
-    def feed(self, data: bytes) -> None:
-        if not data:
+    def feed(self, data: Blob) -> None:
+        """Take received bytes (``b""`` = end of stream). ``data`` is copied, never kept."""
+        if not len(data):
             self._eof = True
-        elif self._skip and not self._buffer:
+            return
+        view = blob_view(data)
+        if self._skip and not self._buffer:
             # Drop the body of a refused frame as it arrives; keep only what follows it.
-            dropped = min(self._skip, len(data))
+            dropped = min(self._skip, len(view))
             self._skip -= dropped
-            if dropped < len(data):
-                self._buffer += data[dropped:]
-        else:
-            self._buffer += data
+            view = view[dropped:]
+        elif self._body is not None and not self._buffer:
+            taken = min(len(self._body) - self._filled, len(view))
+            self._body[self._filled : self._filled + taken] = view[:taken]
+            self._filled += taken
+            self.copied_bytes += taken
+            view = view[taken:]
+        if len(view):
+            self._buffer += view
+
+    def get_buffer(self) -> memoryview:
+        """Where the next received bytes should go; then call :meth:`buffer_updated`.
+
+        The rest of the current body when one is being received (no copy), else a reused
+        scratch buffer. Valid until the next call that changes the decoder.
+        """
+        self._into_body = (
+            self._body is not None and self._filled < len(self._body) and not self._buffer
+        )
+        if self._into_body:
+            assert self._body is not None
+            return memoryview(self._body)[self._filled :]
+        return memoryview(self._scratch)
+
+    def buffer_updated(self, nbytes: int) -> None:
+        """``nbytes`` were written at the start of the latest :meth:`get_buffer` view."""
+        if self._into_body:
+            self._into_body = False
+            self._filled += nbytes
+        elif nbytes:
+            self.feed(memoryview(self._scratch)[:nbytes])
 
     def next_frame(self) -> Frame | None:
         """The next complete frame, or None when more bytes are needed."""
@@ -307,6 +379,8 @@ class FrameDecoder:
             if exc.fatal:
                 self._broken = exc
                 self._buffer.clear()
+                self._body = None
+                self._filled = 0
             raise
 
     def _next_frame(self) -> Frame | None:
@@ -337,23 +411,23 @@ class FrameDecoder:
                         del self._buffer[:HEADER_SIZE]
                         self._skip = header.body_length
                     raise
-            self._header = header
-        header = self._header
-        if len(self._buffer) < header.frame_length:
+            self._start_body(header)
+        pending, body = self._header, self._body
+        assert pending is not None
+        assert body is not None
+        header = pending
+        if self._filled < header.body_length:
             if self._eof:
                 raise MalformedFrame(
-                    f"connection closed after {len(self._buffer)} of {header.frame_length} "
-                    "bytes of a frame",
+                    f"connection closed after {HEADER_SIZE + self._filled} of "
+                    f"{header.frame_length} bytes of a frame",
                     request_id=header.request_id,
                 )
             return None
-        body = memoryview(self._buffer)[HEADER_SIZE : header.frame_length]
         self._header = None
-        try:
-            metadata, blobs = parse_body(header, body)
-        finally:
-            body.release()
-            del self._buffer[: header.frame_length]
+        self._body = None
+        self._filled = 0
+        metadata, blobs = parse_body(header, body)
         return Frame(
             type=header.type,
             request_id=header.request_id,
@@ -362,3 +436,13 @@ class FrameDecoder:
             version=(header.major, header.minor),
             flags=header.flags,
         )
+
+    def _start_body(self, header: Header) -> None:
+        """Give an admitted frame its body buffer, with the body bytes already received."""
+        self._header = header
+        self._body = bytearray(header.body_length)
+        taken = min(len(self._buffer) - HEADER_SIZE, header.body_length)
+        self._body[:taken] = memoryview(self._buffer)[HEADER_SIZE : HEADER_SIZE + taken]
+        del self._buffer[: HEADER_SIZE + taken]
+        self._filled = taken
+        self.copied_bytes += taken

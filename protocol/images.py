@@ -14,7 +14,7 @@ import numpy.typing as npt
 
 from .constants import ImageEncoding, ImageRole
 from .errors import BadImage, ImageTooLarge
-from .frames import as_integer
+from .frames import Blob, as_integer, blob_view
 from .image_headers import ImageHeader, jpeg_header, png_header
 
 
@@ -24,15 +24,21 @@ class ImagePayload:
 
     For PNG/JPEG, ``width`` and ``height`` may be 0 (unknown to the sender); the receiver then
     learns them when decoding.
+
+    ``data`` is any bytes-like buffer; it is kept as a flat read-only view, not copied. A
+    received payload views its frame's body; one made by :func:`payload_from_array` views the
+    caller's array, which must then not change until the message is sent.
     """
 
     encoding: ImageEncoding
     width: int
     height: int
-    data: bytes
+    data: Blob
     role: ImageRole = ImageRole.COLOR
 
     def __post_init__(self) -> None:
+        if not isinstance(self.data, bytes):
+            object.__setattr__(self, "data", blob_view(self.data))
         # Accept plain strings too ("gray8"), normalised to the enums.
         object.__setattr__(self, "encoding", ImageEncoding(self.encoding))
         object.__setattr__(self, "role", ImageRole(self.role))
@@ -76,7 +82,7 @@ def _int_field(desc: dict[str, Any], key: str, where: str, request_id: int) -> i
 
 def payload_from_descriptor(
     desc: Any,
-    blobs: tuple[bytes, ...],
+    blobs: tuple[Blob, ...],
     *,
     where: str,
     request_id: int,
@@ -154,8 +160,10 @@ def payload_from_array(
     if chosen.is_raw:
         if chosen is not raw:
             raise ValueError(f"a {image.shape} {image.dtype} array cannot be sent as {chosen}")
-        data = np.ascontiguousarray(image, dtype=image.dtype.newbyteorder("<")).tobytes()
-        return ImagePayload(chosen, width, height, data, role)
+        # A view of the caller's pixels (a copy only when they are not contiguous little-endian
+        # already): the frame writes them to the socket from there.
+        pixels = np.ascontiguousarray(image, dtype=image.dtype.newbyteorder("<"))
+        return ImagePayload(chosen, width, height, blob_view(pixels.data), role)
     import cv2  # compressed encodings only
 
     if chosen is ImageEncoding.PNG:
@@ -166,7 +174,7 @@ def payload_from_array(
         ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
     if not ok:
         raise ValueError(f"OpenCV could not encode the image as {chosen}")
-    return ImagePayload(chosen, width, height, buf.tobytes(), role)
+    return ImagePayload(chosen, width, height, blob_view(buf.data), role)
 
 
 def compressed_header(
@@ -178,10 +186,13 @@ def compressed_header(
     use: there is no "unknown" answer, so nothing is ever decoded unchecked (SPEC §4.3).
     ImageTooLarge when it has more than ``max_pixels`` pixels.
     """
+    # The header readers search with bytes methods; a compressed blob is small next to the
+    # pixels it decodes into, and is copied only here.
+    data = payload.data if isinstance(payload.data, bytes) else bytes(payload.data)
     if payload.encoding is ImageEncoding.PNG:
-        header = png_header(payload.data, request_id=request_id)
+        header = png_header(data, request_id=request_id)
     elif payload.encoding is ImageEncoding.JPEG:
-        header = jpeg_header(payload.data, request_id=request_id)
+        header = jpeg_header(data, request_id=request_id)
     else:
         raise ValueError(f"{payload.encoding} is not a compressed encoding")
     if max_pixels is not None and header.pixels > max_pixels:

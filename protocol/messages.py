@@ -18,7 +18,7 @@ from .errors import (
     ErrorCode,
     error_from_code,
 )
-from .frames import Frame, as_integer
+from .frames import Blob, Frame, as_integer
 from .images import ImagePayload, payload_from_descriptor
 
 Version = tuple[int, int]
@@ -99,12 +99,12 @@ def _check_id(request_id: int) -> None:
 
 def _images_to_wire(
     images: tuple[ImagePayload, ...],
-) -> tuple[list[dict[str, Any]], tuple[bytes, ...]]:
+) -> tuple[list[dict[str, Any]], tuple[Blob, ...]]:
     return [img.descriptor(i) for i, img in enumerate(images)], tuple(img.data for img in images)
 
 
 def _images_from_wire(
-    meta: dict[str, Any], blobs: tuple[bytes, ...], rid: int, ctx: DecodeContext
+    meta: dict[str, Any], blobs: tuple[Blob, ...], rid: int, ctx: DecodeContext
 ) -> tuple[ImagePayload, ...]:
     descs = _get(meta, "images", list, rid, default=[])
     return tuple(
@@ -138,7 +138,7 @@ class Message:
             version=version,
         )
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         return {}, ()
 
     @classmethod
@@ -164,7 +164,7 @@ class Hello(Message):
         if self.max_frame_bytes is not None and not 24 <= self.max_frame_bytes <= MAX_U32:
             raise ValueError(f"max_frame_bytes must be in 24..2**32-1, got {self.max_frame_bytes}")
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         meta: dict[str, Any] = {"versions": [list(v) for v in self.versions]}
         if self.client:
             meta["client"] = self.client
@@ -212,7 +212,7 @@ class Welcome(Message):
     inspections: tuple[dict[str, Any], ...] = ()
     cameras: tuple[dict[str, Any], ...] = ()
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         return {
             "version": list(self.version),
             "server": {"name": self.server_name, "version": self.server_version},
@@ -263,7 +263,7 @@ class Ping(Message):
     TYPE: ClassVar[MessageType] = MessageType.PING
     data: str = ""
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         return ({"data": self.data} if self.data else {}), ()
 
     @classmethod
@@ -297,7 +297,7 @@ class Pong(Message):
         """False only when the server reported itself unhealthy (no report counts as healthy)."""
         return self.health is None or self.health["ok"] is True
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         meta: dict[str, Any] = {"data": self.data} if self.data else {}
         if self.health is not None:
             meta["health"] = dict(self.health)
@@ -320,7 +320,7 @@ class Close(Message):
     request_id: int = NO_REQUEST
     reason: str = ""
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         return ({"reason": self.reason} if self.reason else {}), ()
 
     @classmethod
@@ -344,7 +344,7 @@ class Inspections(Message):
     TYPE: ClassVar[MessageType] = MessageType.INSPECTIONS
     inspections: tuple[dict[str, Any], ...] = ()
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         return {"inspections": list(self.inspections)}, ()
 
     @classmethod
@@ -379,7 +379,7 @@ class Inspect(Message):
         ):
             raise ValueError(f"deadline_ms must be a positive number, got {self.deadline_ms}")
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         descs, blobs = _images_to_wire(self.images)
         meta: dict[str, Any] = {"inspection": self.inspection}
         if descs:
@@ -429,7 +429,7 @@ class Result(Message):
     images: tuple[ImagePayload, ...] = ()
     stored: bool | None = None
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         descs, blobs = _images_to_wire(self.images)
         meta: dict[str, Any] = {
             "inspection": self.inspection,
@@ -493,7 +493,7 @@ class Capture(Message):
         if self.count < 1:
             raise ValueError(f"count must be >= 1, got {self.count}")
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         meta: dict[str, Any] = {"camera": self.camera, "count": self.count}
         if self.depth:
             meta["depth"] = True
@@ -534,7 +534,7 @@ class Frames(Message):
     timestamps: tuple[float, ...] = ()
     intrinsics: dict[str, Any] | None = None
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         descs, blobs = _images_to_wire(self.images)
         meta: dict[str, Any] = {
             "camera": self.camera,
@@ -587,7 +587,7 @@ class Reloaded(Message):
     cameras: tuple[dict[str, Any], ...] = ()
     notes: tuple[str, ...] = ()
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         meta: dict[str, Any] = {
             "config_hash": self.config_hash,
             "inspections": list(self.inspections),
@@ -649,7 +649,7 @@ class Error(Message):
         except ValueError:
             return f"UNKNOWN_{self.code}"
 
-    def _encode(self) -> tuple[dict[str, Any], tuple[bytes, ...]]:
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         meta: dict[str, Any] = {
             "code": int(self.code),
             "name": self.name,

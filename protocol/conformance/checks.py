@@ -21,7 +21,7 @@ import numpy as np
 
 from ..constants import HEADER, MAGIC, ImageEncoding, ImageRole, MessageType
 from ..errors import CellvisionError, ErrorCode
-from ..frames import Frame
+from ..frames import Blob, Frame
 from ..images import ImagePayload, payload_from_array, payload_from_descriptor
 from ..messages import Capture, Close, Hello, Inspect, ListInspections, Ping, Reload
 from .peer import CLOSED, CheckFailed, Peer, Target
@@ -130,7 +130,7 @@ def _frame(
     mtype: int,
     request_id: int,
     metadata: dict[str, Any] | None = None,
-    blobs: tuple[bytes, ...] = (),
+    blobs: tuple[Blob, ...] = (),
     version: tuple[int, int] = (1, 0),
 ) -> Frame:
     return Frame(mtype, request_id, metadata or {}, blobs, version)
