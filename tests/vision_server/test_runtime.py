@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -153,6 +154,15 @@ def vision_server(*args: str, cwd: Path | None = None) -> subprocess.CompletedPr
     )
 
 
+async def _line_with(text: str, stream: Any) -> str:
+    """The first line of ``stream`` that contains ``text`` (other lines a server logs may come
+    first); empty at the end of the stream."""
+    while True:
+        line: str = await asyncio.to_thread(stream.readline)
+        if not line or text in line:
+            return line
+
+
 def test_sighup_reloads_and_a_broken_file_keeps_the_old_config(tmp_path: Path) -> None:
     path = write_config(tmp_path)
     process = subprocess.Popen(
@@ -170,12 +180,12 @@ def test_sighup_reloads_and_a_broken_file_keeps_the_old_config(tmp_path: Path) -
             async with VisionClient("127.0.0.1", port) as client:
                 write_config(tmp_path, extra="  - {name: hup, type: qr, camera: tool}\n")
                 process.send_signal(signal.SIGHUP)
-                assert "reloaded" in await asyncio.to_thread(process.stdout.readline)  # type: ignore[union-attr]
+                assert "reloaded" in await _line_with("reloaded", process.stdout)
                 names = {i["name"] for i in await client.list_inspections()}
                 assert "hup" in names
                 path.write_text("inspections: {not: [a list}\n")
                 process.send_signal(signal.SIGHUP)
-                line = await asyncio.to_thread(process.stderr.readline)  # type: ignore[union-attr]
+                line = await _line_with("reload refused", process.stderr)
                 assert "reload refused" in line
                 assert "cell.yaml" in line
                 assert "hup" in {i["name"] for i in await client.list_inspections()}
