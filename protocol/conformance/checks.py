@@ -63,6 +63,14 @@ class Context:
                 return item
         raise Skip("the server offers no inspection on a server-side camera")
 
+    def server_camera(self) -> dict[str, Any]:
+        """The first camera the server lists whose images it takes itself (not ``"request"``)."""
+        for item in self.cameras:
+            source = item.get("source")
+            if isinstance(source, str) and source != "request" and item.get("name"):
+                return item
+        raise Skip("the server lists no server-side camera")
+
     def camera(self, name: object) -> dict[str, Any] | None:
         """The WELCOME's descriptor of the camera ``name``, if it lists one."""
         for item in self.cameras:
@@ -738,16 +746,7 @@ CLIENT_MAX_FRAME_BYTES = 65536
     needs=frozenset({Feature.SERVER_CAMERAS}),
 )
 def _capture_within_client_limit(ctx: Context) -> str:
-    camera = next(
-        (
-            c
-            for c in ctx.cameras
-            if isinstance(c.get("source"), str) and c["source"] != "request" and c.get("name")
-        ),
-        None,
-    )
-    if camera is None:
-        raise Skip("the server lists no server-side camera")
+    camera = ctx.server_camera()
     limit = CLIENT_MAX_FRAME_BYTES
     # Raw frames take at least a byte a pixel: enough of them cannot fit in the limit.
     width, height = ctx.image_size({"camera": camera["name"]})
@@ -805,16 +804,7 @@ def _capture_request_camera(ctx: Context) -> None:
     needs=frozenset({Feature.SERVER_CAMERAS}),
 )
 def _capture_server_camera(ctx: Context) -> str:
-    camera = next(
-        (
-            c
-            for c in ctx.cameras
-            if isinstance(c.get("source"), str) and c["source"] != "request" and c.get("name")
-        ),
-        None,
-    )
-    if camera is None:
-        raise Skip("the server lists no server-side camera")
+    camera = ctx.server_camera()
     depth = camera.get("depth") is True
     with ctx.open() as peer:
         peer.send(Capture(47, camera["name"], depth=depth))
