@@ -149,7 +149,7 @@ async def _inspect(args: argparse.Namespace, client: VisionClient, console: Cons
         title.append(f" {result.inspection}" + (f" on {result.camera}" if result.camera else ""))
         timing = ", ".join(f"{k} {v:.1f} ms" for k, v in result.timing.items())
         title.append(f" ({timing})" if timing else "", style="dim")
-        console.print(title)
+        console.print(title, soft_wrap=True)  # a long path stays on its line, with its verdict
         _print_data(console, result.data)
     verdict = ExitCode.OK if result.passed else ExitCode.FAILED
     if args.overlay_suffix is not None:

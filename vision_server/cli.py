@@ -401,7 +401,7 @@ def _show_result(
     title.append_text(_verdict_text(reply.passed))
     title.append(f" {reply.inspection} on {reply.camera}")
     title.append(f" ({reply.compute_ms:.1f} ms)", style="dim")
-    console.print(title)
+    console.print(title, soft_wrap=True)  # a long path stays on its line, with its verdict
     print_result_data(console, reply.data)
 
 
