@@ -146,12 +146,14 @@ def _serve(args: argparse.Namespace) -> int:
     decoder_limits.ensure(settings.max_image_pixels, argv=args.reexec_argv)
 
     def reload() -> Catalog:
-        """Every way in (SIGHUP, RELOAD) comes here, in a thread of the service: a reload done
-        is said once, on stdout. A refused one is logged by whoever asked."""
+        """Every way in (SIGHUP, RELOAD) comes here, in a thread of the service. A reload done
+        is said once, on stdout, when its catalog is served (``announce_reload``); a refused
+        one is logged by whoever asked."""
         assert runtime is not None
-        catalog = runtime.reload()  # its notes (restart needed) are logged as warnings
+        return runtime.reload()  # its notes (restart needed) are logged as warnings
+
+    def announce_reload(catalog: Catalog) -> None:
         print(f"{PROG}: configuration reloaded (config hash {catalog.config_hash})", flush=True)
-        return catalog
 
     async def main() -> int:
         app = App(
@@ -163,6 +165,7 @@ def _serve(args: argparse.Namespace) -> int:
             console=None if runtime is None else runtime.config.console,
             config_path=None if runtime is None else runtime.path,
         )
+        app.service.on_reloaded = announce_reload
         try:
             await app.start()
         except OSError as exc:  # port in use, address not on this machine, no permission

@@ -229,6 +229,8 @@ class InspectionService:
         self.busy_count = 0
         """BUSY answers of :meth:`admit` and the pool since start (for health and metrics)."""
         self.reloads: deque[ReloadRecord] = deque(maxlen=50)
+        self.on_reloaded: Callable[[Catalog], None] | None = None
+        """Called (in the reload's thread) once a reloaded catalog is the one served."""
         """The latest reloads through :meth:`reload`, oldest first, refused ones too."""
         self.reload_counts = {True: 0, False: 0}
         """Reloads since start by outcome (True: done)."""
@@ -268,6 +270,8 @@ class InspectionService:
             self.replace_catalog(catalog)
             notes = "; ".join(catalog.notes)
             self._reloaded(ReloadRecord(time.time(), True, catalog.config_hash, notes))
+            if self.on_reloaded is not None:  # only now is the new catalog the one served
+                self.on_reloaded(catalog)
         log.info("configuration reloaded (config hash %s)", catalog.config_hash)
         return catalog
 

@@ -269,3 +269,18 @@ def test_reload_runs_off_the_event_loop_and_a_refused_one_keeps_the_catalog() ->
 
     run(body())
     assert len(threads) == 2
+
+
+def test_a_reload_is_announced_only_once_its_catalog_is_served() -> None:
+    """`serve` says "configuration reloaded" from this hook: before, it said so from the
+    reloader, before the new catalog was served, and a client asking at once saw the old one."""
+    fresh = make_catalog(Gate())
+    seen: list[bool] = []
+
+    async def body() -> None:
+        service = InspectionService(make_catalog(), reloader=lambda: fresh)
+        service.on_reloaded = lambda catalog: seen.append(service.catalog is catalog is fresh)
+        await service.reload()
+
+    run(body())
+    assert seen == [True]
