@@ -24,6 +24,7 @@ import pytest
 
 if TYPE_CHECKING:  # selenium is imported lazily: a missing package skips the test, not errors
     from selenium.webdriver.remote.webdriver import WebDriver
+    from selenium.webdriver.remote.webelement import WebElement
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SETUP = REPO_ROOT / "scripts" / "browser_setup.sh"
@@ -133,3 +134,27 @@ def console_errors(driver: WebDriver) -> list[str]:
         for e in driver.get_log("browser")
         if e.get("level") == "SEVERE" and "Failed to load resource" not in e["message"]
     ]
+
+
+def drag_on_image(
+    driver: WebDriver, canvas: WebElement, start: tuple[int, int], end: tuple[int, int]
+) -> None:
+    """Drag on the console's ROI canvas between two points given in image pixels (u, v) of the
+    try image (Selenium 4 offsets are from the element's centre, in CSS pixels)."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    scale, width, height = driver.execute_script(
+        "const i = document.getElementById('try-image');"
+        "return [i.naturalWidth / i.clientWidth, i.clientWidth, i.clientHeight];"
+    )
+
+    def offset(point: tuple[int, int]) -> tuple[int, int]:
+        return round(point[0] / scale - width / 2), round(point[1] / scale - height / 2)
+
+    x0, y0 = offset(start)
+    x1, y1 = offset(end)
+    actions = ActionChains(driver)
+    actions.move_to_element_with_offset(canvas, x0, y0).click_and_hold()
+    actions.move_by_offset((x1 - x0) // 2, (y1 - y0) // 2)
+    actions.move_by_offset(x1 - x0 - (x1 - x0) // 2, y1 - y0 - (y1 - y0) // 2).release()
+    actions.perform()

@@ -9,12 +9,11 @@ from pathlib import Path
 from typing import TypeVar
 
 import pytest
-from browser import console_errors, headless_chromium
+from browser import console_errors, drag_on_image, headless_chromium
 from console_server import TOKEN, RunningConsole, console_server
 
 selenium = pytest.importorskip("selenium")
 from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
-from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
 from selenium.webdriver.remote.webelement import WebElement  # noqa: E402
@@ -59,27 +58,6 @@ def sign_in(driver: WebDriver, server: RunningConsole, page: str) -> None:
     wait_for(driver, lambda d: visible_page(d) == f"page-{page}", f"the {page} page")
 
 
-def drag(
-    driver: WebDriver, canvas: WebElement, start: tuple[int, int], end: tuple[int, int]
-) -> None:
-    """Drag on the ROI canvas between two points in image pixels (u, v)."""
-    scale, width, height = driver.execute_script(
-        "const i = document.getElementById('try-image');"
-        "return [i.naturalWidth / i.clientWidth, i.clientWidth, i.clientHeight];"
-    )
-
-    def offset(point: tuple[int, int]) -> tuple[int, int]:
-        return round(point[0] / scale - width / 2), round(point[1] / scale - height / 2)
-
-    x0, y0 = offset(start)
-    x1, y1 = offset(end)
-    actions = ActionChains(driver)
-    actions.move_to_element_with_offset(canvas, x0, y0).click_and_hold()
-    actions.move_by_offset((x1 - x0) // 2, (y1 - y0) // 2)
-    actions.move_by_offset(x1 - x0 - (x1 - x0) // 2, y1 - y0 - (y1 - y0) // 2).release()
-    actions.perform()
-
-
 def test_live_view_and_a_dragged_roi_changes_the_verdict_and_saves(
     driver: WebDriver, tmp_path: Path
 ) -> None:
@@ -107,7 +85,7 @@ def test_live_view_and_a_dragged_roi_changes_the_verdict_and_saves(
         image = driver.find_element(By.ID, "try-image")
         wait_for(driver, lambda d: image_loaded(image), "the overlay")
         # A dark corner of the scene: dark_fraction well above min, so PASS.
-        drag(driver, driver.find_element(By.ID, "try-canvas"), (10, 10), (70, 80))
+        drag_on_image(driver, driver.find_element(By.ID, "try-canvas"), (10, 10), (70, 80))
         wait_for(driver, lambda d: verdict.text == "PASS", "the dragged ROI's verdict")
 
         before = server.app.service.catalog.config_hash

@@ -17,12 +17,11 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import pytest
-from browser import console_errors, headless_chromium, save_screenshot
+from browser import console_errors, drag_on_image, headless_chromium, save_screenshot
 from console_stub import ConsoleStub, Recorded, console_stub
 
 selenium = pytest.importorskip("selenium")
 from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
-from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
 from selenium.webdriver.remote.webelement import WebElement  # noqa: E402
@@ -181,28 +180,6 @@ def test_the_login_page_appears_on_401_and_a_good_token_opens_the_console(
         assert console_errors(driver) == []
 
 
-def _drag(
-    driver: WebDriver, canvas: WebElement, start: tuple[int, int], end: tuple[int, int]
-) -> None:
-    """Drag on the ROI canvas between two points given in image pixels (u, v)."""
-    scale, width, height = driver.execute_script(
-        "const i = document.getElementById('try-image');"
-        "return [i.naturalWidth / i.clientWidth, i.clientWidth, i.clientHeight];"
-    )
-
-    def offset(point: tuple[int, int]) -> tuple[int, int]:
-        # Selenium 4 offsets are from the element's centre, in CSS pixels.
-        return round(point[0] / scale - width / 2), round(point[1] / scale - height / 2)
-
-    x0, y0 = offset(start)
-    x1, y1 = offset(end)
-    actions = ActionChains(driver)
-    actions.move_to_element_with_offset(canvas, x0, y0).click_and_hold()
-    actions.move_by_offset((x1 - x0) // 2, (y1 - y0) // 2)
-    actions.move_by_offset(x1 - x0 - (x1 - x0) // 2, y1 - y0 - (y1 - y0) // 2).release()
-    actions.perform()
-
-
 def test_the_try_panel_sends_the_dragged_roi_and_parameters(driver: WebDriver, shots: Path) -> None:
     with console_stub() as stub:
         open_console(driver, stub, "inspections")
@@ -225,7 +202,7 @@ def test_the_try_panel_sends_the_dragged_roi_and_parameters(driver: WebDriver, s
 
         # Draw a new ROI away from the magnet: the re-run gets it as options.roi and fails.
         canvas = driver.find_element(By.ID, "try-canvas")
-        _drag(driver, canvas, (700, 500), (780, 580))
+        drag_on_image(driver, canvas, (700, 500), (780, 580))
 
         def dragged(roi: object) -> bool:
             # One CSS pixel is about 1.6 image pixels at this window size: allow two of them.
@@ -249,7 +226,7 @@ def test_the_try_panel_sends_the_dragged_roi_and_parameters(driver: WebDriver, s
 
         # Drag the ROI itself (from inside it) back over the magnet: it moves, keeping its size.
         inside = (roi[0] + roi[2] // 2, roi[1] + roi[3] // 2)
-        _drag(driver, canvas, inside, (inside[0] - 200, inside[1] - 250))
+        drag_on_image(driver, canvas, inside, (inside[0] - 200, inside[1] - 250))
         wait_for(
             driver,
             lambda d: tries(stub)[-1]["options"].get("roi", roi)[0] < roi[0] - 150,
