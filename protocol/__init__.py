@@ -2,12 +2,12 @@
 
 Public API:
 
-- :class:`Connection` (with :class:`Role`, :class:`State`, ``NEED_DATA``, :class:`ConnectionClosed`,
-  :func:`negotiate_version`): the state machine; bytes in, messages out.
+- :class:`Connection` (with :class:`Role`, :class:`State`, ``NEED_DATA``, ``PAUSED``,
+  :class:`ConnectionClosed`, :func:`negotiate_version`): the state machine; bytes in, messages out.
 - Messages: :class:`Hello`, :class:`Welcome`, :class:`Ping`, :class:`Pong`, :class:`Close`,
   :class:`ListInspections`, :class:`Inspections`, :class:`Inspect`, :class:`Result`,
   :class:`Capture`, :class:`Frames`, :class:`Reload`, :class:`Reloaded`, :class:`Error`.
-- Framing: :class:`Frame`, :class:`FrameDecoder`, :class:`Limits`.
+- Framing: :class:`Frame`, :class:`FrameDecoder`, :class:`Limits`, :class:`AdmitLater`.
 - Images: :class:`ImagePayload`, :func:`payload_from_array`, :func:`array_from_payload`,
   :class:`ImageEncoding`, :class:`ImageRole`.
 - Errors: :class:`ErrorCode`, :class:`CellvisionError` and one subclass per code,
@@ -19,6 +19,7 @@ Public API:
 
 from .connection import (
     NEED_DATA,
+    PAUSED,
     REQUESTS,
     RESPONSES,
     TRANSITIONS,
@@ -69,7 +70,7 @@ from .errors import (
     UnsupportedVersion,
     error_from_code,
 )
-from .frames import Frame, FrameDecoder, Limits
+from .frames import AdmitLater, Frame, FrameDecoder, Limits
 from .images import ImagePayload, array_from_payload, payload_from_array
 from .messages import (
     MESSAGE_CLASSES,
@@ -98,6 +99,7 @@ __all__ = [
     "MAGIC",
     "MESSAGE_CLASSES",
     "NEED_DATA",
+    "PAUSED",
     "NO_REQUEST",
     "PROTOCOL_VERSION",
     "REQUESTS",
@@ -121,6 +123,7 @@ __all__ = [
     "ErrorCode",
     "Frame",
     "FrameDecoder",
+    "AdmitLater",
     "FrameTooLarge",
     "Frames",
     "Hello",

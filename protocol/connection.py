@@ -1,8 +1,9 @@
 """The sans-IO connection: bytes in, messages out; messages in, bytes out.
 
 Like h11, it does no I/O. Feed received bytes with :meth:`Connection.receive_data` (``b""`` for
-end of stream), take events with :meth:`Connection.next_event` until it returns ``NEED_DATA``,
-and turn outgoing messages into bytes with :meth:`Connection.send`.
+end of stream), take events with :meth:`Connection.next_event` until it returns ``NEED_DATA`` (or
+``PAUSED``, when the server's own admission defers a frame: stop reading, as h11's PAUSED), and
+turn outgoing messages into bytes with :meth:`Connection.send`.
 
 Everything that affects the state machine lives in this file, in ``TRANSITIONS``.
 """
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
+from typing import Any
 
 from .constants import NO_REQUEST, SUPPORTED_VERSIONS, MessageType
 from .errors import (
@@ -24,7 +26,7 @@ from .errors import (
     UnknownMessageType,
     UnsupportedVersion,
 )
-from .frames import Blob, FrameDecoder, Header, HeaderCheck, Limits
+from .frames import AdmitCheck, AdmitLater, Blob, FrameDecoder, Header, HeaderCheck, Limits
 from .messages import DecodeContext, Error, Message, Version, Welcome, message_from_frame
 
 
@@ -59,6 +61,17 @@ class _NeedData:
 
 NEED_DATA = _NeedData()
 """Returned by next_event when a whole frame has not arrived yet."""
+
+
+class _Paused:
+    def __repr__(self) -> str:
+        return "PAUSED"
+
+
+PAUSED = _Paused()
+"""Returned by next_event when the owner's ``admit`` deferred the next frame
+(:class:`~protocol.frames.AdmitLater`): stop reading from the peer until the frame can be
+admitted (TCP backpressure), then call next_event again, which asks ``admit`` again."""
 
 
 @dataclass(frozen=True)
@@ -139,11 +152,16 @@ class Connection:
         *,
         limits: Limits | None = None,
         versions: tuple[Version, ...] = SUPPORTED_VERSIONS,
-        admit: HeaderCheck | None = None,
+        check_header: HeaderCheck | None = None,
+        admit: AdmitCheck | None = None,
     ) -> None:
-        """``admit`` (server side) is called with the header of every frame that the state
-        machine accepts, before any of its body is buffered; it raises a CellvisionError to
-        refuse the frame (e.g. BUSY: the body is then skipped, not kept in memory)."""
+        """Server side, the owner's admission, before a frame's body is buffered:
+        ``check_header`` is called with the header of every frame that the state machine
+        accepts (it may refuse it on its size alone, before any body byte has arrived);
+        ``admit`` then with the header and the frame's metadata (what it asks for), before its
+        blobs arrive. Either raises a CellvisionError to refuse the frame (e.g. BUSY: the body
+        is then skipped, not kept in memory); ``admit`` may raise
+        :class:`~protocol.frames.AdmitLater` to defer it (next_event returns :data:`PAUSED`)."""
         self.role = role
         self.limits = limits or Limits()
         self.versions = tuple(sorted(versions, reverse=True))
@@ -151,7 +169,10 @@ class Connection:
         self.version: Version | None = None
         self._decoder = FrameDecoder(self.limits)
         self._decoder.check_header = self._check_header
+        self._owner_check_header = check_header
         self._admit = admit
+        if admit is not None:
+            self._decoder.admit = self._admit_frame
         self._refused_at_header = False
         self._ctx = DecodeContext(max_image_pixels=self.limits.max_image_pixels)
         # request id -> request type: ids the client sent and awaits, or the server owes.
@@ -202,13 +223,20 @@ class Connection:
         self._decoder.buffer_updated(nbytes)
 
     @property
+    def buffered_bytes(self) -> int:
+        """Bytes received and held, not yet returned as messages (a skipped body is not
+        held): what this connection costs in memory now."""
+        return self._decoder.buffered
+
+    @property
     def copied_bytes(self) -> int:
         """Received body bytes that were copied on their way into a frame body (0 when all
         arrived through :meth:`get_buffer`); for tests and benchmarks that count copies."""
         return self._decoder.copied_bytes
 
-    def next_event(self) -> Message | _NeedData | ConnectionClosed:
-        """The next message from the peer, ``NEED_DATA``, or ``ConnectionClosed``.
+    def next_event(self) -> Message | _NeedData | _Paused | ConnectionClosed:
+        """The next message from the peer, ``NEED_DATA``, ``PAUSED`` (the owner's ``admit``
+        deferred the next frame), or ``ConnectionClosed``.
 
         Raises a :class:`~protocol.errors.CellvisionError` subclass when the peer broke the
         protocol. When the error is not fatal, its frame has been consumed and the connection
@@ -237,6 +265,8 @@ class Connection:
             self._on_error(exc)
             raise
         if frame is None:
+            if self._decoder.paused:
+                return PAUSED
             if self._decoder.eof:
                 if self._pending and self.role is Role.CLIENT:
                     lost = MalformedFrame(
@@ -276,8 +306,19 @@ class Connection:
                     request_id=header.request_id,
                     details={"size": header.frame_length, "max_size": limit},
                 )
-            if self._admit is not None:
-                self._admit(header)
+            if self._owner_check_header is not None:
+                self._owner_check_header(header)
+        except CellvisionError:
+            self._refused_at_header = True
+            raise
+
+    def _admit_frame(self, header: Header, metadata: dict[str, Any]) -> None:
+        """The decoder's admission hook: the owner's ``admit``, with the frame's metadata."""
+        assert self._admit is not None
+        try:
+            self._admit(header, metadata)
+        except AdmitLater:
+            raise
         except CellvisionError:
             self._refused_at_header = True
             raise

@@ -237,8 +237,11 @@ def parse_header(data: bytes | bytearray | memoryview, limits: Limits) -> Header
     return header
 
 
-def parse_body(header: Header, body: Blob) -> tuple[dict[str, Any], tuple[memoryview, ...]]:
-    """Split a complete body into (metadata, blobs). ``body`` is exactly body_length bytes.
+def parse_body(
+    header: Header, body: Blob, metadata: dict[str, Any] | None = None
+) -> tuple[dict[str, Any], tuple[memoryview, ...]]:
+    """Split a complete body into (metadata, blobs). ``body`` is exactly body_length bytes;
+    ``metadata``: the body's metadata when it was already decoded (at admission).
 
     The blobs are read-only views into ``body`` (no copy): they keep it alive, and it must not
     change while they are in use.
@@ -261,7 +264,8 @@ def parse_body(header: Header, body: Blob) -> tuple[dict[str, Any], tuple[memory
     for length in lengths:
         blobs.append(view[position : position + length])
         position += length
-    metadata = decode_metadata(bytes(view[: header.metadata_length]), request_id=rid)
+    if metadata is None:
+        metadata = decode_metadata(bytes(view[: header.metadata_length]), request_id=rid)
     return metadata, tuple(blobs)
 
 
@@ -271,6 +275,21 @@ HeaderCheck = Callable[[Header], None]
 It raises a :class:`~protocol.errors.CellvisionError` to refuse the frame: a fatal one breaks
 the stream; a non-fatal one makes the decoder skip the body without buffering it (the frame is
 consumed) and is raised from :meth:`FrameDecoder.next_frame`.
+"""
+
+
+class AdmitLater(Exception):  # noqa: N818 - a signal, not an error
+    """Raised by an :data:`AdmitCheck` that cannot take a frame now but may later (a server
+    whose workers are all busy): the decoder keeps the frame unread and reports
+    :attr:`FrameDecoder.paused`; the next :meth:`FrameDecoder.next_frame` asks again."""
+
+
+AdmitCheck = Callable[[Header, dict[str, Any]], None]
+"""Called with a frame's header and its decoded metadata once both have arrived, before its
+blobs are kept (so the owner knows what the frame asks for: an inspection's name, a deadline).
+
+It raises a non-fatal :class:`~protocol.errors.CellvisionError` to refuse the frame (its body
+is then skipped, never buffered), a fatal one to break the stream, or :class:`AdmitLater`.
 """
 
 
@@ -297,6 +316,16 @@ class FrameDecoder:
     def __init__(self, limits: Limits | None = None) -> None:
         self.limits = limits or Limits()
         self.check_header: HeaderCheck | None = None
+        self.admit: AdmitCheck | None = None
+        """Admission with the metadata in hand (see :data:`AdmitCheck`); None admits every
+        frame at its header."""
+        self.paused = False
+        """True when the latest :meth:`next_frame` stopped at a frame :attr:`admit` deferred
+        (:class:`AdmitLater`): its owner should stop reading from the peer until it can admit
+        it, then call :meth:`next_frame` again."""
+        # A header that passed check_header and waits for its metadata or its admission.
+        self._checked: Header | None = None
+        self._metadata: dict[str, Any] | None = None
         # Bytes received and not yet in a body: a header, or what follows a complete body.
         self._buffer = bytearray()
         self._header: Header | None = None
@@ -395,22 +424,27 @@ class FrameDecoder:
                     )
                 return None
         if self._header is None:
-            if len(self._buffer) < HEADER_SIZE:
-                if self._eof and self._buffer:
-                    raise MalformedFrame(
-                        f"connection closed after {len(self._buffer)} bytes of a 24-byte header"
-                    )
+            if self._checked is None:
+                if len(self._buffer) < HEADER_SIZE:
+                    if self._eof and self._buffer:
+                        raise MalformedFrame(
+                            f"connection closed after {len(self._buffer)} bytes of a 24-byte header"
+                        )
+                    return None
+                header = parse_header(self._buffer, self.limits)
+                self.last_header = header
+                if self.check_header is not None:
+                    try:
+                        self.check_header(header)
+                    except CellvisionError as exc:
+                        if not exc.fatal:
+                            self._skip_frame(header)
+                        raise
+                self._checked = header
+            header = self._checked
+            if self.admit is not None and not self._admit(header):
                 return None
-            header = parse_header(self._buffer, self.limits)
-            self.last_header = header
-            if self.check_header is not None:
-                try:
-                    self.check_header(header)
-                except CellvisionError as exc:
-                    if not exc.fatal:
-                        del self._buffer[:HEADER_SIZE]
-                        self._skip = header.body_length
-                    raise
+            self._checked = None
             self._start_body(header)
         pending, body = self._header, self._body
         assert pending is not None
@@ -427,7 +461,8 @@ class FrameDecoder:
         self._header = None
         self._body = None
         self._filled = 0
-        metadata, blobs = parse_body(header, body)
+        metadata, self._metadata = self._metadata, None
+        metadata, blobs = parse_body(header, body, metadata)
         return Frame(
             type=header.type,
             request_id=header.request_id,
@@ -436,6 +471,44 @@ class FrameDecoder:
             version=(header.major, header.minor),
             flags=header.flags,
         )
+
+    def _admit(self, header: Header) -> bool:
+        """Ask :attr:`admit` about ``header`` once its metadata has arrived; False when more
+        bytes are needed or the frame was deferred (:attr:`paused`)."""
+        assert self.admit is not None
+        self.paused = False
+        end = HEADER_SIZE + header.metadata_length
+        if len(self._buffer) < end:
+            if self._eof:
+                raise MalformedFrame(
+                    f"connection closed after {len(self._buffer)} of {header.frame_length} "
+                    "bytes of a frame",
+                    request_id=header.request_id,
+                )
+            return False
+        try:
+            metadata = decode_metadata(
+                bytes(self._buffer[HEADER_SIZE:end]), request_id=header.request_id
+            )
+            self.admit(header, metadata)
+        except AdmitLater:
+            self.paused = True
+            return False
+        except CellvisionError as exc:
+            if not exc.fatal:
+                self._checked = None
+                self._skip_frame(header)
+            raise
+        self._metadata = metadata
+        return True
+
+    def _skip_frame(self, header: Header) -> None:
+        """Consume a refused frame: its header now, its body as it arrives (never kept)."""
+        del self._buffer[:HEADER_SIZE]
+        self._skip = header.body_length
+        dropped = min(self._skip, len(self._buffer))
+        del self._buffer[:dropped]
+        self._skip -= dropped
 
     def _start_body(self, header: Header) -> None:
         """Give an admitted frame its body buffer, with the body bytes already received."""

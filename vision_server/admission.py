@@ -1,76 +1,278 @@
 """Admission: what bounds the server's work and memory, whoever the clients are.
 
-- :class:`WorkPool`: the threads that run inspections, with a bounded number of slots (workers +
-  queue); a request gets a slot or BUSY, never an unbounded queue.
+- :class:`WorkPool`: the threads that run inspections, in two lanes. The **main** lane has
+  ``workers`` threads; the **fast** lane has threads of its own that only run requests whose
+  measured cost is at most ``fast_lane_ms``, so that a 2 ms check never waits behind 30 ms
+  locates (SPEC §6.1 allows any order between requests). Each lane admits by count (its
+  threads + ``queue_depth``: the memory of the bodies read) and by cost (the expected
+  milliseconds of work it holds, from :class:`CostModel`, at most ``max_queue_ms`` per thread:
+  the wait a new request would see). A request gets a :class:`Slot` at once, or joins the
+  lane's FIFO of :class:`Waiter` s (a front-end that can stop reading, the TCP one, waits
+  there: backpressure instead of BUSY), or is refused.
+- :class:`CostModel`: the measured time each inspection holds a worker (an exponentially
+  weighted mean per inspection), which decides its lane and its weight in the queue.
 - :class:`ByteBudget`: one server-wide budget for the bytes the server holds for requests and
   replies (bodies being received, replies waiting to be sent). A frame is admitted only when its
   bytes fit, so the memory held for clients is bounded by the budget, not by the number of
   clients times the frame limit.
 - :class:`Admission`: what one request holds (a slot, bytes), released exactly once.
 
-All three are thread-safe: slots and bytes are taken on the event loop and released from worker
-threads or the loop.
+All are thread-safe: slots and bytes are taken on the event loop and released from worker
+threads or the loop; a waiter is woken on its own event loop.
 """
 
 from __future__ import annotations
 
 import asyncio
 import threading
+import time
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import TypeVar
+from dataclasses import dataclass
+from typing import Literal, TypeVar
 
 _T = TypeVar("_T")
+LaneName = Literal["main", "fast"]
+
+
+class CostModel:
+    """How long each kind of work holds a worker, in milliseconds: an exponentially weighted
+    mean of the measured durations per key (an inspection's name). Unknown keys have no cost
+    yet (None) and run in the main lane until measured."""
+
+    def __init__(self, weight: float = 0.2) -> None:
+        self._weight = weight
+        self._lock = threading.Lock()
+        self._mean: dict[str, float] = {}
+
+    def estimate(self, key: str | None) -> float | None:
+        if key is None:
+            return None
+        with self._lock:
+            return self._mean.get(key)
+
+    def observe(self, key: str | None, ms: float) -> None:
+        if key is None:
+            return
+        with self._lock:
+            old = self._mean.get(key)
+            self._mean[key] = ms if old is None else old + self._weight * (ms - old)
+
+    def snapshot(self) -> dict[str, float]:
+        with self._lock:
+            return dict(self._mean)
+
+
+@dataclass(frozen=True)
+class Slot:
+    """A place in a lane, held from admission until the work returns. ``cost_ms`` is what it
+    weighs in the lane's queue (its estimate when admitted, 0 when unknown)."""
+
+    lane: Lane
+    key: str | None
+    cost_ms: float
+
+
+class Waiter:
+    """A request waiting for a slot in a lane's FIFO; :meth:`wait` returns the slot that a
+    finishing job handed over."""
+
+    def __init__(self, pool: WorkPool, lane: Lane, key: str | None, cost_ms: float) -> None:
+        self._pool = pool
+        self.lane = lane
+        self.key = key
+        self.cost_ms = cost_ms
+        self._loop = asyncio.get_running_loop()
+        self._future: asyncio.Future[Slot] = self._loop.create_future()
+
+    def grant(self, slot: Slot) -> None:
+        """Hand ``slot`` over (from any thread); a waiter that gave up passes it on."""
+        try:
+            self._loop.call_soon_threadsafe(self._granted, slot)
+        except RuntimeError:  # its event loop is closed: the server has stopped
+            self._pool.release(slot)
+
+    def _granted(self, slot: Slot) -> None:
+        if self._future.done():
+            self._pool.release(slot)
+        else:
+            self._future.set_result(slot)
+
+    async def wait(self, timeout_s: float) -> Slot | None:
+        """The slot, or None after ``timeout_s`` (the waiter is then gone from the queue)."""
+        try:
+            async with asyncio.timeout(timeout_s):
+                return await asyncio.shield(self._future)
+        except TimeoutError:
+            return self._give_up()
+        except asyncio.CancelledError:
+            self._give_up_and_return()
+            raise
+
+    def _give_up(self) -> Slot | None:
+        self._pool.forget(self)
+        if not self._future.done():
+            self._future.cancel()
+            return None
+        # Granted at the last moment: take it after all.
+        return None if self._future.cancelled() else self._future.result()
+
+    def _give_up_and_return(self) -> None:
+        slot = self._give_up()
+        if slot is not None:
+            self._pool.release(slot)
+
+
+class Lane:
+    """One queue with its own threads. Counters are guarded by the pool's lock."""
+
+    def __init__(self, name: LaneName, threads: int, queue_depth: int, max_queue_ms: float):
+        self.name: LaneName = name
+        self.threads = threads
+        self.capacity = threads + queue_depth
+        self.max_cost_ms = max_queue_ms * threads
+        self.admitted = 0
+        self.admitted_cost_ms = 0.0
+        self.waiters: deque[Waiter] = deque()
+        self.executor = ThreadPoolExecutor(
+            max_workers=threads, thread_name_prefix=f"inspect-{name}"
+        )
+
+    def has_room(self, cost_ms: float) -> bool:
+        if self.admitted >= self.capacity:
+            return False
+        # A request heavier than the whole bound is still admitted into an empty lane.
+        return self.admitted == 0 or self.admitted_cost_ms + cost_ms <= self.max_cost_ms
+
+    def expected_wait_ms(self, cost_ms: float) -> float:
+        """When a slot is likely to be free for one more request: the queued work ahead
+        (admitted and waiting) spread over the lane's threads."""
+        waiting = sum(w.cost_ms for w in self.waiters)
+        return (self.admitted_cost_ms + waiting + cost_ms) / self.threads
 
 
 class WorkPool:
-    """A thread pool with bounded admission: a slot is taken before the work is submitted and
-    given back when the work returns; a full pool refuses instead of queueing."""
+    """Worker threads in lanes, with bounded admission (see the module)."""
 
-    def __init__(self, workers: int, queue_depth: int) -> None:
-        self.capacity = workers + queue_depth
-        self._executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="inspect")
+    def __init__(
+        self,
+        workers: int,
+        queue_depth: int,
+        *,
+        fast_workers: int = 1,
+        fast_lane_ms: float = 5.0,
+        max_queue_ms: float = 2000.0,
+        costs: CostModel | None = None,
+    ) -> None:
+        self.main = Lane("main", workers, queue_depth, max_queue_ms)
+        self.fast = (
+            Lane("fast", fast_workers, queue_depth, max_queue_ms) if fast_workers > 0 else None
+        )
+        self.fast_lane_ms = fast_lane_ms
+        self.costs = costs or CostModel()
         self._lock = threading.Lock()
-        self._admitted = 0
+
+    # ----------------------------------------------------------------- introspection
+
+    @property
+    def lanes(self) -> tuple[Lane, ...]:
+        return (self.main,) if self.fast is None else (self.main, self.fast)
 
     @property
     def admitted(self) -> int:
-        """Slots taken: jobs running or waiting, and slots reserved for requests being read."""
-        return self._admitted
+        """Slots taken in every lane: jobs running or waiting, and slots reserved for requests
+        being read."""
+        return sum(lane.admitted for lane in self.lanes)
 
-    def try_reserve(self) -> bool:
-        """Take a slot for work to be submitted later (:meth:`submit_reserved`); False when full."""
+    @property
+    def capacity(self) -> int:
+        return sum(lane.capacity for lane in self.lanes)
+
+    @property
+    def waiting(self) -> int:
+        """Requests waiting for a slot (their connections not read meanwhile)."""
+        return sum(len(lane.waiters) for lane in self.lanes)
+
+    def lane_for(self, key: str | None) -> tuple[Lane, float]:
+        """The lane a request for ``key`` belongs to, and its cost estimate (0 when unknown)."""
+        cost = self.costs.estimate(key)
+        if cost is not None and self.fast is not None and cost <= self.fast_lane_ms:
+            return self.fast, cost
+        return self.main, 0.0 if cost is None else cost
+
+    def expected_wait_ms(self, key: str | None) -> float:
+        lane, cost = self.lane_for(key)
         with self._lock:
-            if self._admitted >= self.capacity:
-                return False
-            self._admitted += 1
-            return True
+            return lane.expected_wait_ms(cost)
 
-    def release(self) -> None:
-        """Give back a reserved slot that will not be used."""
+    # ----------------------------------------------------------------- admission
+
+    def try_reserve(self, key: str | None = None) -> Slot | None:
+        """A slot for work on ``key`` now, or None when its lane is full (or others wait for
+        it: first come, first served)."""
+        lane, cost = self.lane_for(key)
         with self._lock:
-            self._admitted -= 1
+            return self._take(lane, key, cost)
 
-    def submit_reserved(self, fn: Callable[[], _T]) -> asyncio.Future[_T]:
-        """Run ``fn`` on a slot taken by :meth:`try_reserve`. The slot is held until ``fn``
-        returns, even if the awaiting request gave up (its deadline passed)."""
+    def reserve_or_wait(self, key: str | None = None) -> Slot | Waiter:
+        """A slot now, or a place in its lane's queue (await :meth:`Waiter.wait`)."""
+        lane, cost = self.lane_for(key)
+        with self._lock:
+            slot = self._take(lane, key, cost)
+            if slot is not None:
+                return slot
+            waiter = Waiter(self, lane, key, cost)
+            lane.waiters.append(waiter)
+            return waiter
+
+    def _take(self, lane: Lane, key: str | None, cost: float) -> Slot | None:
+        if lane.waiters or not lane.has_room(cost):
+            return None
+        lane.admitted += 1
+        lane.admitted_cost_ms += cost
+        return Slot(lane, key, cost)
+
+    def forget(self, waiter: Waiter) -> None:
+        with self._lock:
+            if waiter in waiter.lane.waiters:
+                waiter.lane.waiters.remove(waiter)
+
+    def release(self, slot: Slot) -> None:
+        """Give back ``slot``; the lane's first waiters that now fit get slots."""
+        lane = slot.lane
+        granted: list[tuple[Waiter, Slot]] = []
+        with self._lock:
+            lane.admitted -= 1
+            lane.admitted_cost_ms = max(lane.admitted_cost_ms - slot.cost_ms, 0.0)
+            while lane.waiters and lane.has_room(lane.waiters[0].cost_ms):
+                waiter = lane.waiters.popleft()
+                lane.admitted += 1
+                lane.admitted_cost_ms += waiter.cost_ms
+                granted.append((waiter, Slot(lane, waiter.key, waiter.cost_ms)))
+        for waiter, given in granted:
+            waiter.grant(given)
+
+    # ----------------------------------------------------------------- running
+
+    def submit(self, slot: Slot, fn: Callable[[], _T]) -> asyncio.Future[_T]:
+        """Run ``fn`` in ``slot``'s lane. The slot is held until ``fn`` returns, even if the
+        awaiting request gave up (its deadline passed); the time it took teaches the cost
+        model."""
 
         def job() -> _T:
+            t0 = time.perf_counter()
             try:
                 return fn()
             finally:
-                self.release()
+                self.costs.observe(slot.key, (time.perf_counter() - t0) * 1000.0)
+                self.release(slot)
 
-        return asyncio.get_running_loop().run_in_executor(self._executor, job)
-
-    def try_submit(self, fn: Callable[[], _T]) -> asyncio.Future[_T] | None:
-        """Take a slot and run ``fn`` in it; None when the pool is full."""
-        if not self.try_reserve():
-            return None
-        return self.submit_reserved(fn)
+        return asyncio.get_running_loop().run_in_executor(slot.lane.executor, job)
 
     def shutdown(self) -> None:
-        self._executor.shutdown(wait=False, cancel_futures=True)
+        for lane in self.lanes:
+            lane.executor.shutdown(wait=False, cancel_futures=True)
 
 
 class ByteBudget:
@@ -115,15 +317,24 @@ class Admission:
         self._pool = pool
         self._budget = budget
         self._lock = threading.Lock()
-        self.slot = False
-        """True while a reserved pool slot is held and not yet handed to the pool."""
+        self.slot: Slot | None = None
+        """The reserved pool slot while it is held and not yet handed to the pool."""
         self.bytes = 0
 
-    def take_slot(self) -> bool:
-        if self._pool is None or not self._pool.try_reserve():
+    def take_slot(self, key: str | None = None) -> bool:
+        if self._pool is None:
             return False
-        self.slot = True
+        slot = self._pool.try_reserve(key)
+        if slot is None:
+            return False
+        self.slot = slot
         return True
+
+    def hold_slot(self, slot: Slot) -> None:
+        """Hold a slot obtained elsewhere (a :class:`Waiter`'s)."""
+        with self._lock:
+            assert self.slot is None
+            self.slot = slot
 
     def take_bytes(self, n: int) -> bool:
         """Reserve ``n`` more bytes; True when they fit (always True without a budget)."""
@@ -135,17 +346,17 @@ class Admission:
             self.bytes += n
         return True
 
-    def hand_slot_to_pool(self) -> bool:
-        """The slot goes to :meth:`WorkPool.submit_reserved` (the job gives it back)."""
+    def hand_slot_to_pool(self) -> Slot | None:
+        """The slot goes to :meth:`WorkPool.submit` (the job gives it back)."""
         with self._lock:
-            had, self.slot = self.slot, False
-        return had
+            slot, self.slot = self.slot, None
+        return slot
 
     def release(self) -> None:
         with self._lock:
-            slot, self.slot = self.slot, False
+            slot, self.slot = self.slot, None
             n, self.bytes = self.bytes, 0
-        if slot and self._pool is not None:
-            self._pool.release()
+        if slot is not None and self._pool is not None:
+            self._pool.release(slot)
         if n and self._budget is not None:
             self._budget.release(n)

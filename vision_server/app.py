@@ -20,6 +20,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cv2
+
 from protocol import CellvisionError
 
 from .catalog import Catalog
@@ -102,6 +104,9 @@ class App:
     # ------------------------------------------------------------------ lifecycle
 
     async def start(self) -> None:
+        # OpenCV's own thread pool is process-wide: sized against the workers, so that
+        # workers x OpenCV threads does not oversubscribe the cores (docs/configuration.md).
+        cv2.setNumThreads(self.service.settings.opencv_thread_count())
         await self.tcp.start()
         if self.line is not None:
             try:

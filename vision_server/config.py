@@ -212,6 +212,11 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
         max_connections=node.take("max_connections", positive_int, defaults.max_connections),
         workers=node.take("workers", positive_int, defaults.workers),
         queue_depth=node.take("queue_depth", integer, defaults.queue_depth),
+        fast_workers=node.take("fast_workers", integer, defaults.fast_workers),
+        fast_lane_ms=node.take("fast_lane_ms", non_negative, defaults.fast_lane_ms),
+        max_queue_ms=node.take("max_queue_ms", positive, defaults.max_queue_ms),
+        admission_wait_s=node.take("admission_wait_s", non_negative, defaults.admission_wait_s),
+        opencv_threads=node.take("opencv_threads", positive_int, defaults.opencv_threads),
         auth_token=token,
         shutdown_grace_s=node.take("shutdown_grace_s", non_negative, defaults.shutdown_grace_s),
         tls_cert=None if cert is None else str(_resolve(base_dir, cert)),
@@ -230,6 +235,8 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
     )
     if settings.queue_depth < 0:
         raise node.error(f"expected an integer >= 0, got {settings.queue_depth}", "queue_depth")
+    if settings.fast_workers < 0:
+        raise node.error(f"expected an integer >= 0, got {settings.fast_workers}", "fast_workers")
     if settings.max_buffered_bytes < settings.max_frame_bytes:
         # Otherwise a frame within max_frame_bytes could never be admitted: BUSY for ever.
         raise node.error(

@@ -44,7 +44,7 @@ from protocol import (
     InvalidArgument,
 )
 
-from .admission import Admission, ByteBudget, WorkPool
+from .admission import Admission, ByteBudget, Slot, Waiter, WorkPool
 from .cameras import Camera, CameraFrame
 from .catalog import Catalog, InspectionInput, InspectionOutcome
 from .results import ResultEntry, ResultLog
@@ -222,7 +222,13 @@ class InspectionService:
         self._catalog = catalog
         self.results = results
         self.reloader = reloader
-        self.pool = WorkPool(self.settings.workers, self.settings.queue_depth)
+        self.pool = WorkPool(
+            self.settings.workers,
+            self.settings.queue_depth,
+            fast_workers=self.settings.fast_workers,
+            fast_lane_ms=self.settings.fast_lane_ms,
+            max_queue_ms=self.settings.max_queue_ms,
+        )
         self.budget = ByteBudget(self.settings.max_buffered_bytes)
         self._observers: list[Callable[[InspectionRecord], None]] = []
         self._reload_lock = threading.Lock()
@@ -319,6 +325,7 @@ class InspectionService:
         return {
             "pool_admitted": self.pool.admitted,
             "pool_capacity": self.pool.capacity,
+            "pool_waiting": self.pool.waiting,
             "buffered_bytes": self.budget.used,
             "buffered_bytes_peak": self.budget.peak,
             "max_buffered_bytes": self.budget.limit,
@@ -327,24 +334,49 @@ class InspectionService:
 
     # ------------------------------------------------------------------ admission
 
-    def admit(self, *, work: bool = True, body_bytes: int = 0) -> Admission:
-        """Reserve what a request will hold, before its body is read: a worker slot (``work``)
-        and ``body_bytes`` of the budget. Raises BUSY when either is taken. The front-end hands
-        the admission to :meth:`inspect` / :meth:`capture` and releases it once its reply is
-        sent (a reply's bytes are added to it)."""
+    def admit(self, *, work: bool = True, body_bytes: int = 0, key: str | None = None) -> Admission:
+        """Reserve what a request will hold, before its body is read: a worker slot (``work``;
+        ``key``: the inspection's name, which decides its lane and weight) and ``body_bytes`` of
+        the budget. Raises BUSY, with a retry-after hint, when either is taken. The front-end
+        hands the admission to :meth:`inspect` / :meth:`capture` and releases it once its reply
+        is sent (a reply's bytes are added to it)."""
         admission = Admission(self.pool, self.budget)
-        if work and not admission.take_slot():
-            self.busy_count += 1
-            raise Busy(f"all {self.pool.capacity} inspection slots are taken; try again")
+        if work and not admission.take_slot(key):
+            raise self._busy(key)
+        self._take_bytes(admission, body_bytes, key)
+        return admission
+
+    async def slot_after(self, waiter: Waiter) -> Slot:
+        """Wait for ``waiter``'s slot (from :meth:`WorkPool.reserve_or_wait`), at most
+        ``admission_wait_s``; then BUSY with a retry-after hint."""
+        slot = await waiter.wait(self.settings.admission_wait_s)
+        if slot is None:
+            raise self._busy(waiter.key, waited=True)
+        return slot
+
+    def _take_bytes(self, admission: Admission, body_bytes: int, key: str | None) -> None:
         if body_bytes > 0 and not admission.take_bytes(body_bytes):
             admission.release()
             self.busy_count += 1
             raise Busy(
                 f"the server's memory for request bodies is taken ({self.budget.used} of "
                 f"{self.budget.limit} bytes); try again",
-                details={"size": body_bytes},
+                details={"size": body_bytes, "retry_after_ms": self.retry_after_ms(key)},
             )
-        return admission
+
+    def retry_after_ms(self, key: str | None) -> int:
+        """When a request for ``key`` refused now could be admitted: the work queued ahead of
+        it in its lane over the lane's threads, in milliseconds (at least 1)."""
+        return max(1, min(round(self.pool.expected_wait_ms(key)), 60_000))
+
+    def _busy(self, key: str | None, *, waited: bool = False) -> Busy:
+        self.busy_count += 1
+        lane, _ = self.pool.lane_for(key)
+        how = f" after waiting {self.settings.admission_wait_s:g} s" if waited else ""
+        return Busy(
+            f"all {lane.capacity} inspection slots are taken ({lane.name} lane){how}; try again",
+            details={"retry_after_ms": self.retry_after_ms(key)},
+        )
 
     # ------------------------------------------------------------------ inspect
 
@@ -355,7 +387,7 @@ class InspectionService:
         result log, the overlay. Without ``admission`` a slot is taken here (BUSY when none is
         free) and given back when done."""
         own = admission is None
-        held = self.admit() if admission is None else admission
+        held = self.admit(key=request.inspection) if admission is None else admission
         try:
             # The lease keeps the catalog's cameras open until this request is done with them.
             with self._catalog.lease_newest() as lease:
@@ -431,7 +463,7 @@ class InspectionService:
             return outcome, compute_ms, overlay, stored
 
         outcome, compute_ms, overlay, stored = await self._in_pool(
-            work, request.arrived, request.deadline, admission, hold=catalog
+            work, request.arrived, request.deadline, admission, hold=catalog, key=inspection.name
         )
         reply = InspectReply(
             inspection.name,
@@ -474,7 +506,7 @@ class InspectionService:
         service's byte budget, checked before the frames are taken (from the first frame); its
         bytes are added to ``admission`` (released by the front-end once the reply is sent)."""
         own = admission is None
-        held = self.admit() if admission is None else admission
+        held = self.admit(key=capture_key(request.camera)) if admission is None else admission
         try:
             with self._catalog.lease_newest() as lease:
                 return await self._capture(request, lease.catalog, held)
@@ -511,7 +543,12 @@ class InspectionService:
             return out
 
         frames = await self._in_pool(
-            work, request.arrived, request.deadline, admission, hold=catalog
+            work,
+            request.arrived,
+            request.deadline,
+            admission,
+            hold=catalog,
+            key=capture_key(camera.name),
         )
         intrinsics = None if camera.intrinsics is None else camera.intrinsics.to_dict()
         return CaptureReply(camera.name, tuple(frames), intrinsics)
@@ -560,6 +597,7 @@ class InspectionService:
         admission: Admission,
         *,
         hold: Catalog,
+        key: str,
     ) -> _T:
         """Run ``fn`` in the pool, on the slot ``admission`` reserved if it holds one, and wait
         for it until ``deadline``. ``hold``: the catalog ``fn`` uses, leased until ``fn``
@@ -574,15 +612,11 @@ class InspectionService:
             with lease:
                 return fn()
 
-        future: asyncio.Future[_T] | None
-        if admission.hand_slot_to_pool():
-            future = self.pool.submit_reserved(leased)
-        else:
-            future = self.pool.try_submit(leased)
-        if future is None:
+        slot = admission.hand_slot_to_pool() or self.pool.try_reserve(key)
+        if slot is None:
             lease.release()
-            self.busy_count += 1
-            raise Busy(f"all {self.pool.capacity} inspection slots are taken; try again")
+            raise self._busy(key)
+        future = self.pool.submit(slot, leased)
         if deadline is None:
             return await future
         try:
@@ -597,6 +631,11 @@ class InspectionService:
 
 
 # ----------------------------------------------------------------------------- helpers
+
+
+def capture_key(camera: str) -> str:
+    """The cost model's key for CAPTURE on ``camera`` (inspections use their names)."""
+    return f"capture:{camera}"
 
 
 def check_images(images: Images, needs: ImageNeeds) -> None:

@@ -28,9 +28,23 @@ class ServiceSettings:
     workers: int = field(default_factory=lambda: os.cpu_count() or 2)
     """Threads for CPU-bound inspection work."""
     queue_depth: int = 16
-    """Jobs that may wait for a worker; beyond workers + queue_depth a request gets BUSY."""
+    """Jobs that may wait for a worker in each lane (bodies read and held)."""
     max_buffered_bytes: int = 256 * 1024 * 1024
     """Service-wide budget for request bodies and replies held in memory."""
+    fast_workers: int = 1
+    """Threads of their own for cheap inspections (0: none, every request in the main lane)."""
+    fast_lane_ms: float = 5.0
+    """An inspection whose measured time on a worker is at most this runs in the fast lane."""
+    max_queue_ms: float = 2000.0
+    """A lane admits work while what it holds is at most this many milliseconds per thread
+    (by the measured cost of each inspection): the wait a new request can expect."""
+    admission_wait_s: float = 5.0
+    """How long a request that cannot be admitted may wait, unread, for a slot (front-ends
+    that can stop reading: TCP backpressure) before it is answered BUSY with a retry-after."""
+    opencv_threads: int | None = None
+    """OpenCV's own threads (``cv2.setNumThreads``), set when the server starts; None: the
+    cores left to each worker (cores // workers, at least 1), so that workers x OpenCV threads
+    does not oversubscribe the machine."""
     max_image_pixels: int = 4096 * 4096
     """The largest image (width x height) an inspection is given."""
     capture_timeout_s: float = 5.0
@@ -38,8 +52,13 @@ class ServiceSettings:
 
     @property
     def capacity(self) -> int:
-        """Requests that may be admitted at once: running plus waiting for a worker."""
+        """Requests that may be admitted at once in the main lane: running plus queued."""
         return self.workers + self.queue_depth
+
+    def opencv_thread_count(self) -> int:
+        if self.opencv_threads is not None:
+            return self.opencv_threads
+        return max(1, (os.cpu_count() or 1) // max(self.workers, 1))
 
 
 @dataclass(frozen=True)
@@ -122,7 +141,12 @@ class ServerSettings:
     workers: int = field(default_factory=lambda: os.cpu_count() or 2)
     """Threads for CPU-bound inspection work."""
     queue_depth: int = 16
-    """Jobs that may wait for a worker; beyond workers + queue_depth a request gets BUSY."""
+    """Jobs that may wait for a worker in each lane (see ServiceSettings)."""
+    fast_workers: int = 1
+    fast_lane_ms: float = 5.0
+    max_queue_ms: float = 2000.0
+    admission_wait_s: float = 5.0
+    opencv_threads: int | None = None
     auth_token: str | None = None
     shutdown_grace_s: float = 5.0
     tls_cert: str | None = None
@@ -157,6 +181,11 @@ class ServerSettings:
         return ServiceSettings(
             workers=self.workers,
             queue_depth=self.queue_depth,
+            fast_workers=self.fast_workers,
+            fast_lane_ms=self.fast_lane_ms,
+            max_queue_ms=self.max_queue_ms,
+            admission_wait_s=self.admission_wait_s,
+            opencv_threads=self.opencv_threads,
             max_buffered_bytes=self.max_buffered_bytes,
             max_image_pixels=self.max_image_pixels,
             capture_timeout_s=self.capture_timeout_s,
@@ -254,6 +283,8 @@ def welcome_limits(tcp: TcpSettings, service: ServiceSettings) -> dict[str, int]
         # The default deadline of a server camera's frames (INSPECT without images, CAPTURE)
         # when the request sets none; work on a request's own images has no default.
         "capture_timeout_ms": round(service.capture_timeout_s * 1000),
+        # How long a request may wait unread for a worker slot before BUSY (SPEC §3.1).
+        "admission_wait_ms": round(service.admission_wait_s * 1000),
     }
 
 

@@ -41,6 +41,7 @@ from protocol import (
 from protocol.conformance import Target
 from protocol.conformance.peer import Peer
 from protocol.constants import HEADER_SIZE
+from protocol.frames import encode_metadata
 from robot_client import VisionClient
 from vision_server.builtin import MeanIntensityPresence
 from vision_server.cameras import (
@@ -153,20 +154,55 @@ def test_the_byte_budget_is_shared_by_all_connections() -> None:
         assert server.service.budget.peak <= 4 * MiB
 
 
-def test_an_inspect_is_busy_at_its_header_when_no_worker_slot_is_free(gate: Gate) -> None:
+def test_an_inspect_with_no_free_slot_waits_unread_then_runs(gate: Gate) -> None:
+    """Backpressure, not BUSY: while no worker slot is free the server stops reading the
+    connection at the request's metadata (its image stays in the socket), and runs it once a
+    slot is free; nothing is refused."""
     catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [gate])
     with (
-        server_in_thread(catalog, workers=1, queue_depth=0) as server,
+        server_in_thread(catalog, workers=1, queue_depth=0, fast_workers=0) as server,
         peer_for(server) as peer,
     ):
         peer.handshake()
         image = payload_from_array(np.zeros((600, 600), np.uint8))
         peer.send(Inspect(2, "gate", (image,)))
         run(wait_until(lambda: gate.entered == 1, "the first request runs"))
-        second = Inspect(3, "gate", (image,)).to_frame((1, 0)).serialize()
-        peer.send_raw(second[:HEADER_SIZE])
-        peer.expect_error(ErrorCode.BUSY, request_id=3)
-        peer.send_raw(second[HEADER_SIZE:])
+        peer.send(Inspect(3, "gate", (image,)))
+        run(wait_until(lambda: server.service.pool.waiting == 1, "the second one waits"))
+        # Its image is not in the server's memory: at most one read's worth of it.
+        [session] = server.tcp.connections
+        assert session.conn.buffered_bytes < 600 * 600
+        gate.release.set()
+        peer.expect(MessageType.RESULT, request_id=2)
+        peer.expect(MessageType.RESULT, request_id=3)
+        assert server.service.busy_count == 0
+        run(wait_until(lambda: server.service.pool.admitted == 0, "the worker slot is given back"))
+
+
+def test_a_request_that_waits_too_long_for_a_slot_is_busy_with_a_retry_after(gate: Gate) -> None:
+    """After admission_wait_s without a slot: BUSY with retry_after_ms, answered before the
+    image was sent (header and metadata only); the body is then skipped and the stream goes
+    on."""
+    catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [gate])
+    with (
+        server_in_thread(
+            catalog, workers=1, queue_depth=0, fast_workers=0, admission_wait_s=0.0
+        ) as server,
+        peer_for(server) as peer,
+    ):
+        peer.handshake()
+        image = payload_from_array(np.zeros((600, 600), np.uint8))
+        peer.send(Inspect(2, "gate", (image,)))
+        run(wait_until(lambda: gate.entered == 1, "the first request runs"))
+        frame = Inspect(3, "gate", (image,)).to_frame((1, 1))
+        second = frame.serialize()
+        up_to_metadata = HEADER_SIZE + len(encode_metadata(frame.metadata))
+        peer.send_raw(second[:up_to_metadata])
+        busy = peer.expect_error(ErrorCode.BUSY, request_id=3, fatal=False)
+        assert busy.metadata["details"]["retry_after_ms"] >= 1
+        peer.send_raw(second[up_to_metadata:])
+        peer.send(Ping(4, "after"))
+        assert peer.expect(MessageType.PONG, request_id=4).metadata["data"] == "after"
         gate.release.set()
         peer.expect(MessageType.RESULT, request_id=2)
         run(wait_until(lambda: server.service.pool.admitted == 0, "the worker slot is given back"))

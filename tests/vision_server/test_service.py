@@ -101,7 +101,8 @@ def test_body_bytes_beyond_the_budget_are_busy_and_given_back() -> None:
     first = service.admit(work=False, body_bytes=800)
     with pytest.raises(Busy, match="memory for request bodies") as refused:
         service.admit(work=False, body_bytes=400)
-    assert refused.value.details == {"size": 400}
+    assert refused.value.details["size"] == 400
+    assert refused.value.details["retry_after_ms"] >= 1  # BUSY says when to try again
     assert service.budget.used == 800
     first.release()
     first.release()  # idempotent

@@ -28,6 +28,8 @@ from typing import Any
 
 from protocol import (
     NEED_DATA,
+    PAUSED,
+    AdmitLater,
     Busy,
     Capture,
     CellvisionError,
@@ -67,7 +69,7 @@ from protocol import (
 from protocol.constants import HEADER_SIZE, SUPPORTED_VERSIONS, MessageType
 from protocol.frames import Header, encode_metadata
 
-from ..admission import Admission
+from ..admission import Admission, Slot, Waiter
 from ..service import (
     CaptureReply,
     CaptureRequest,
@@ -75,6 +77,7 @@ from ..service import (
     InspectionService,
     InspectReply,
     InspectRequest,
+    capture_key,
     deadline_after,
 )
 from ..settings import SERVER_VERSION, TcpSettings, welcome_limits
@@ -267,6 +270,7 @@ class TcpSession:
             Role.SERVER,
             limits=self.settings.limits(),
             versions=SUPPORTED_VERSIONS,
+            check_header=self._check_header,
             admit=self._admit,
         )
         self.finished = asyncio.Event()
@@ -280,6 +284,10 @@ class TcpSession:
         """Set when the last request task of the connection has finished."""
         self._frame_admission: Admission | None = None
         self._held: set[Admission] = set()
+        # Admission that waits for a slot (see _admit and _wait_for_admission).
+        self._waiter: Waiter | None = None
+        self._granted: Slot | None = None
+        self._refusal: CellvisionError | None = None
         self._last_activity = time.monotonic()
         self._frame_started: float | None = None
         peer = writer.get_extra_info("peername")
@@ -290,9 +298,11 @@ class TcpSession:
 
     # ------------------------------------------------------------------ admission
 
-    def _admit(self, header: Header) -> None:
-        """Called by the connection with each header the state machine accepts, before the
-        body is kept. Raises BUSY to refuse; the body is then skipped."""
+    def _check_header(self, header: Header) -> None:
+        """Called by the connection with each header the state machine accepts, before any of
+        the body: refuses (BUSY) what cannot be held whatever it asks for. Small frames are
+        bounded per connection (one frame at a time); a larger body is only read when the
+        service's byte budget can hold it, and its bytes are reserved now."""
         rid = header.request_id
         work = header.type in (MessageType.INSPECT, MessageType.CAPTURE)
         if work and len(self.conn.pending) >= self.settings.max_in_flight:
@@ -300,18 +310,74 @@ class TcpSession:
                 f"more than {self.settings.max_in_flight} requests in flight on this connection",
                 request_id=rid,
             )
-        # Small frames are bounded per connection (one frame at a time); a larger body is
-        # only read when the service's budget can hold it.
         large = header.frame_length > self.conn.limits.max_handshake_frame_bytes
         try:
             admission = self.service.admit(
-                work=work, body_bytes=header.frame_length if large else 0
+                work=False, body_bytes=header.frame_length if large else 0
             )
         except CellvisionError as exc:
             exc.request_id = rid  # the state machine answers it for this request
             raise
+        self._hold_frame_admission(admission)
+
+    def _admit(self, header: Header, metadata: dict[str, Any]) -> None:
+        """Called by the connection once the frame's metadata has arrived, before its blobs
+        (an image) are kept: an INSPECT or CAPTURE needs a worker slot in the lane its cost
+        belongs to. Raises BUSY to refuse (the body is then skipped) or AdmitLater to stop
+        reading this connection until a slot is free (:meth:`_wait_for_admission`)."""
+        if header.type not in (MessageType.INSPECT, MessageType.CAPTURE):
+            return
+        held = self._frame_admission
+        if held is None:  # no header check ran (a test's broken state machine)
+            held = self.service.admit(work=False)
+            self._hold_frame_admission(held)
+        if self._granted is not None:  # the slot this frame waited for
+            slot = self._granted
+            self._granted = None
+            held.hold_slot(slot)
+            return
+        if self._refusal is not None:  # its wait ended without a slot
+            refusal, self._refusal = self._refusal, None
+            refusal.request_id = header.request_id
+            raise refusal
+        admitted = self.service.pool.reserve_or_wait(_cost_key(header, metadata))
+        if isinstance(admitted, Waiter):
+            self._waiter = admitted
+            raise AdmitLater
+        held.hold_slot(admitted)
+
+    def _hold_frame_admission(self, admission: Admission) -> None:
         self._frame_admission = admission
         self._held.add(admission)
+
+    async def _wait_for_admission(self) -> None:
+        """The next frame waits for a worker slot: nothing more is read from this connection
+        meanwhile (the client's sends block: TCP backpressure). Ends with the slot, or with
+        BUSY after ``admission_wait_s``, or SHUTTING_DOWN; the frame is then asked again."""
+        waiter, self._waiter = self._waiter, None
+        assert waiter is not None
+        waiting = asyncio.ensure_future(self.service.slot_after(waiter))
+        stop = asyncio.ensure_future(self._shutdown.wait())
+        try:
+            await asyncio.wait({waiting, stop}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stop.cancel()
+            if not waiting.done():
+                waiting.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await waiting
+        if waiting.cancelled():
+            self._refusal = ShuttingDown("the server is stopping")
+            return
+        exc = waiting.exception()
+        if exc is None:
+            self._granted = waiting.result()
+        elif isinstance(exc, CellvisionError):
+            self._refusal = exc
+        else:
+            raise exc
+        # The frame timeout is about the sender's speed: the wait was ours.
+        self._frame_started = time.monotonic()
 
     def _take_frame_admission(self) -> Admission | None:
         admission, self._frame_admission = self._frame_admission, None
@@ -324,6 +390,9 @@ class TcpSession:
 
     def admission_cleanup(self) -> None:
         """Give back everything this connection still holds (it is gone)."""
+        if self._granted is not None:
+            self.service.pool.release(self._granted)
+            self._granted = None
         for admission in list(self._held):
             self._release(admission)
         self._frame_admission = None
@@ -444,6 +513,9 @@ class TcpSession:
                     continue
                 if event is NEED_DATA:
                     break
+                if event is PAUSED:
+                    await self._wait_for_admission()
+                    continue
                 frame_ended = True
                 if isinstance(event, ConnectionClosed):
                     return True
@@ -731,6 +803,17 @@ def result_message(request_id: int, reply: InspectReply) -> Result:
         images,
         reply.stored,
     )
+
+
+def _cost_key(header: Header, metadata: dict[str, Any]) -> str | None:
+    """What the service's cost model knows a request by: the inspection's name for INSPECT,
+    the camera for CAPTURE (None when the metadata does not say; the request will fail on
+    its own once read)."""
+    if header.type == MessageType.INSPECT:
+        name = metadata.get("inspection")
+        return name if isinstance(name, str) else None
+    camera = metadata.get("camera")
+    return capture_key(camera) if isinstance(camera, str) else None
 
 
 def _capture_request(message: Capture, arrived: float, max_reply_bytes: int) -> CaptureRequest:
