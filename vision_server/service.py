@@ -346,6 +346,26 @@ class InspectionService:
         self._take_bytes(admission, body_bytes, key)
         return admission
 
+    async def admit_when_free(self, key: str | None, *, deadline: float | None = None) -> Admission:
+        """A worker slot for ``key`` (an inspection's name), waiting for one in its lane's
+        queue (first come, first served) at most ``admission_wait_s`` and not past
+        ``deadline`` (monotonic seconds); then BUSY with a retry-after hint. For front-ends
+        whose request has already arrived whole (a line-protocol trigger)."""
+        reserved = self.pool.reserve_or_wait(key)
+        if isinstance(reserved, Waiter):
+            timeout_s = self.settings.admission_wait_s
+            if deadline is not None:
+                timeout_s = min(timeout_s, max(deadline - time.monotonic(), 0.0))
+            slot = await reserved.wait(timeout_s)
+            if slot is None:
+                if deadline is not None and time.monotonic() >= deadline:
+                    raise DeadlineExceeded("the deadline passed while no worker slot was free")
+                raise self._busy(key, waited=True)
+            reserved = slot
+        admission = Admission(self.pool, self.budget)
+        admission.hold_slot(reserved)
+        return admission
+
     async def slot_after(self, waiter: Waiter) -> Slot:
         """Wait for ``waiter``'s slot (from :meth:`WorkPool.reserve_or_wait`), at most
         ``admission_wait_s``; then BUSY with a retry-after hint."""

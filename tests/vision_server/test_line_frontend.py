@@ -172,14 +172,45 @@ def test_ur_format_is_read_by_socket_read_ascii_float(tmp_path: Path) -> None:
     run(body())
 
 
-def gate_app(tmp_path: Path, gate: Gate, **line: object) -> tuple[App, FolderCamera]:
+def gate_app(
+    tmp_path: Path, gate: Gate, *, server: ServerSettings | None = None, **line: object
+) -> tuple[App, FolderCamera]:
     write_cell(tmp_path)
     camera = FolderCamera("shelf", FolderCameraSettings(tmp_path / "imgs"))
     camera.open()
     gate = replace(gate, camera="shelf") if gate.camera != "shelf" else gate
     catalog = Catalog.build([camera], [gate])
     settings = LineSettings(enabled=True, port=0, **line)  # type: ignore[arg-type]
-    return App(catalog, ServerSettings(port=0, workers=4), line=settings), camera
+    served = server or ServerSettings(port=0, workers=4)
+    return App(catalog, served, line=settings), camera
+
+
+def test_a_trigger_waits_for_a_busy_server_instead_of_being_refused(tmp_path: Path) -> None:
+    """Controllers wait for their answer: with the only worker held, a second controller's
+    trigger waits for the slot (within its deadline) and is answered, not refused BUSY."""
+    gate = Gate(camera="shelf")
+
+    async def body() -> None:
+        server = ServerSettings(port=0, workers=1, queue_depth=0, fast_workers=0)
+        app, camera = gate_app(tmp_path, gate, server=server)
+        async with app:
+            first, second = await Controller.connect(app), await Controller.connect(app)
+            first.writer.write(b"T gate\n")
+            await wait_until(lambda: gate.entered == 1, "the first trigger runs")
+            second.writer.write(b"T gate\n")
+            await wait_until(lambda: app.service.pool.waiting == 1, "the second one waits")
+            gate.release.set()
+            assert await read_line(first.reader) == "OK 1"
+            assert await read_line(second.reader) == "OK 1"
+            assert app.service.busy_count == 0
+            first.close()
+            second.close()
+        camera.close()
+
+    try:
+        run(body())
+    finally:
+        gate.release.set()
 
 
 def test_one_trigger_at_a_time_per_connection_and_many_controllers_at_once(

@@ -355,15 +355,23 @@ class LineSession:
         self.busy = True
         try:
             target = self._find(key)
-            reply = await self.service.inspect(
-                InspectRequest(
-                    target.name,
-                    None,
-                    arrived=arrived,
-                    deadline=arrived + self.settings.deadline_s,
-                    peer=f"line {self.peer}",
+            deadline = arrived + self.settings.deadline_s
+            # A controller waits for its answer: a trigger waits for a worker slot (within its
+            # deadline) rather than being refused at once.
+            admission = await self.service.admit_when_free(target.name, deadline=deadline)
+            try:
+                reply = await self.service.inspect(
+                    InspectRequest(
+                        target.name,
+                        None,
+                        arrived=arrived,
+                        deadline=deadline,
+                        peer=f"line {self.peer}",
+                    ),
+                    admission=admission,
                 )
-            )
+            finally:
+                admission.release()
         except CellvisionError as exc:
             log.info("%s: T %s: %s: %s", self.peer, key, exc.code.name, exc.message)
             fields = None if target is None else len(target.output.fields)
