@@ -80,7 +80,9 @@ ERROR_TABLE: dict[ErrorCode, ErrorInfo] = {
     ErrorCode.CONFIG_INVALID: ErrorInfo(
         False, "the re-read configuration is invalid; the server keeps the old one"
     ),
-    ErrorCode.BUSY: ErrorInfo(False, "over capacity: try again later"),
+    ErrorCode.BUSY: ErrorInfo(
+        False, "over capacity: try again later (`details.retry_after_ms`, §6.1)"
+    ),
     ErrorCode.DEADLINE_EXCEEDED: ErrorInfo(
         False, "the request's deadline passed before it was done"
     ),

@@ -113,7 +113,8 @@ def open_peer(server: VisionServer) -> Peer:
 
 def test_full_pool_answers_busy_and_the_admitted_request_still_completes(gate: Gate) -> None:
     async def body() -> None:
-        settings = ServerSettings(port=0, workers=1, queue_depth=0)
+        # admission_wait_s 0: BUSY at once instead of waiting unread (test_hardening.py).
+        settings = ServerSettings(port=0, workers=1, queue_depth=0, admission_wait_s=0.0)
         async with (
             VisionServer(make_catalog(gate), settings) as server,
             client_for(server) as client,
