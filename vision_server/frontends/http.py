@@ -320,8 +320,28 @@ class HttpFrontend:
                     "workers": service.settings.workers,
                     "in_flight": service.pool.admitted,
                     "max_in_flight": service.pool.capacity,
-                    "queued": max(service.pool.admitted - service.settings.workers, 0),
+                    "queued": max(
+                        service.pool.admitted
+                        - service.settings.workers
+                        - service.settings.fast_workers,
+                        0,
+                    ),
                     "queue_depth": service.settings.queue_depth,
+                    "waiting_unread": service.pool.waiting,
+                    "lanes": [
+                        {
+                            "lane": lane.name,
+                            "threads": lane.threads,
+                            "admitted": lane.admitted,
+                            "capacity": lane.capacity,
+                            "expected_wait_ms": round(lane.expected_wait_ms(0.0), 1),
+                            "waiting": len(lane.waiters),
+                        }
+                        for lane in service.pool.lanes
+                    ],
+                    "costs_ms": {
+                        name: round(ms, 2) for name, ms in service.pool.costs.snapshot().items()
+                    },
                     "busy_count": service.busy_count,
                     "answered": None if self.metrics is None else self.metrics.answered,
                 },

@@ -82,6 +82,20 @@ class _StateCollector(Collector):
         )
         capacity.add_metric([], service.pool.capacity)
         yield capacity
+        waiting = GaugeMetricFamily(
+            "cellvision_requests_waiting",
+            "Requests waiting unread for a worker slot now (TCP backpressure).",
+        )
+        waiting.add_metric([], service.pool.waiting)
+        yield waiting
+        cost = GaugeMetricFamily(
+            "cellvision_inspection_cost_ms",
+            "Measured time each inspection holds a worker (weighted mean), in milliseconds.",
+            labels=["inspection"],
+        )
+        for name, ms in sorted(service.pool.costs.snapshot().items()):
+            cost.add_metric([name], ms)
+        yield cost
         reloads = CounterMetricFamily(
             "cellvision_reloads", "Configuration reloads since start, by outcome.", labels=["ok"]
         )

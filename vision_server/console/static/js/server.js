@@ -46,7 +46,12 @@ export class ServerPage {
     const pool = info.pool ?? {};
     fillKeyValues(byId("srv-pool"), [
       ["workers", pool.workers], ["in flight", `${pool.in_flight ?? "—"} of ${pool.max_in_flight ?? "—"}`],
-      ["queued", `${pool.queued ?? "—"} of ${pool.queue_depth ?? "—"}`],
+      ["queued", `${pool.queued ?? "—"} of ${pool.queue_depth ?? "—"} per lane`],
+      ["waiting unread (backpressure)", pool.waiting_unread],
+      ...(pool.lanes ?? []).map((l) => [`${l.lane} lane`,
+        `${l.threads} thread(s), ${l.admitted} of ${l.capacity} admitted, ${l.waiting} waiting, ` +
+        `expected wait ${l.expected_wait_ms} ms`]),
+      ...Object.entries(pool.costs_ms ?? {}).map(([name, ms]) => [`cost of ${name}`, `${ms} ms`]),
       ["BUSY answers", pool.busy_count], ["requests answered", pool.answered],
     ]);
     const conns = info.connections ?? [];
