@@ -32,7 +32,7 @@ figures are: requests answered as promised, wrong answers, errors by code, conne
 hangs, VmRSS before and after, VmHWM after. At the end the server must exit 0 on SIGTERM with no
 traceback on stderr, and its VmHWM must stay below the bound (:func:`memory_bound`)::
 
-    workers x max_image_pixels x 12 B  +  constant
+    (workers + fast_workers) x max_image_pixels x 12 B  +  constant
     constant = baseline VmRSS (after a warm-up) + 2 x max_buffered_bytes (a body or reply is
                held twice at its peak: bytes and parsed payload, payloads and serialized frame)
                + 2 x max_connections x 1 MiB (per-connection buffers) + 16 MiB (allocator)
@@ -109,6 +109,7 @@ CONFIG = """\
 server:
   port: 0
   workers: {workers}
+  fast_workers: {fast_workers}
   queue_depth: 2
   max_connections: {max_connections}
   max_in_flight: 8
@@ -136,6 +137,8 @@ class Limits:
     """The server's configured limits (bytes, pixels, seconds)."""
 
     workers: int = 2
+    fast_workers: int = 1
+    """The fast lane's threads decode images too: they count in the memory bound."""
     max_connections: int = 16
     side: int = 1024
     """The largest accepted image is side x side pixels (``max_image_pixels``)."""
@@ -150,6 +153,7 @@ class Limits:
     def config(self) -> str:
         return CONFIG.format(
             workers=self.workers,
+            fast_workers=self.fast_workers,
             max_connections=self.max_connections,
             max_pixels=self.max_pixels,
             max_frame_bytes=self.max_frame_bytes,
@@ -162,7 +166,10 @@ def memory_bound(limits: Limits, baseline_kib: int) -> dict[str, int]:
     """The promised ceiling of the server's resident memory, and its parts (KiB)."""
     parts = {
         "baseline": baseline_kib,
-        "decoding": limits.workers * limits.max_pixels * DECODE_BYTES_PER_PIXEL // 1024,
+        "decoding": (limits.workers + limits.fast_workers)
+        * limits.max_pixels
+        * DECODE_BYTES_PER_PIXEL
+        // 1024,
         # Counted once in the budget, a body or reply exists twice at its peak: received
         # bytes and the parsed payload; a FRAMES reply's payloads and its serialized frame.
         "byte_budget": 2 * limits.max_buffered_bytes // 1024,

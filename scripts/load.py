@@ -12,8 +12,11 @@ Starts ``python -m vision_server serve`` on 127.0.0.1 (port 0) with the configur
   with unique data and INSPECTs of flat images whose mean intensity is known exactly. Every
   answer is checked against its request. A BUSY answer (the worker pool is full) is counted and
   the request is retried after a random back-off, as SPEC §6.1 asks of a client.
-- a raw connection that sends three times ``max_in_flight`` INSPECTs in one write: the requests
-  beyond the limit must be answered BUSY at once (and every one must be answered);
+- a raw connection that sends three times ``max_in_flight`` INSPECTs in one write: every one
+  must be answered exactly once, by a RESULT or BUSY. A request the server reads while the
+  connection has ``max_in_flight`` in flight is BUSY at once; but while its lane is full the
+  server stops reading the connection (backpressure, SPEC §3.1) and reads the next request only
+  once an earlier one is answered, so how many are BUSY depends on timing (reported);
 - a slow reader: a connection that sends PINGs with 64 KiB of data and never reads the PONGs.
   The server must stop reading from it (backpressure: the bytes it accepts stay bounded) while
   the other clients go on.
@@ -297,7 +300,7 @@ def verdict(summary: dict[str, Any]) -> list[str]:
             f"{summary['answered_correctly']} of {summary['requests']} answered correctly"
         )
     probe = summary["busy_probe"]
-    if probe["answered"] != probe["sent"] or probe["busy"] == 0 or probe["other"]:
+    if probe["answered"] != probe["sent"] or probe["other"]:
         problems.append(f"the in-flight limit was not enforced as expected: {probe}")
     if not summary["slow_reader"]["stopped_by_backpressure"]:
         problems.append("the slow reader was never stopped: no backpressure")

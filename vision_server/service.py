@@ -454,6 +454,8 @@ class InspectionService:
 
         def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None]:
             image = acquire()
+            if request.overlay is not None:
+                self._admit_overlay(image.color, admission)
             t0 = time.perf_counter()
             entry = ResultEntry(
                 time=time.time(),
@@ -498,6 +500,22 @@ class InspectionService:
         )
         self._notify(InspectionRecord(request, reply))
         return reply
+
+    def _admit_overlay(self, color: Image, admission: Admission) -> None:
+        """Reserve the bytes of the overlay a reply will carry before the inspection runs: it
+        is drawn in colour at the input's size, and its PNG is at most about that raw size
+        (noise does not compress). BUSY when the service's memory for replies is taken, so
+        that clients that ask for overlays and read slowly cannot hold more than the budget."""
+        height, width = color.shape[:2]
+        estimate = width * height * 3 + REPLY_OVERHEAD
+        if not admission.take_bytes(estimate):
+            self.busy_count += 1
+            raise Busy(
+                f"the server's memory for replies is taken ({self.budget.used} of "
+                f"{self.budget.limit} bytes; an overlay of {width}x{height} needs about "
+                f"{estimate}); try again, or ask without an overlay",
+                details={"size": estimate, "retry_after_ms": self.retry_after_ms(None)},
+            )
 
     def _record(self, entry: ResultEntry, t0: float, *, error: str | None = None) -> bool | None:
         """Log one run before its answer is sent; return whether the row was written (None

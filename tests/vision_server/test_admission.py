@@ -165,3 +165,29 @@ def test_a_cheap_inspection_runs_while_a_long_one_holds_every_main_worker() -> N
     finally:
         gate.release.set()
         service.close()
+
+
+def test_an_overlay_is_admitted_by_the_bytes_of_its_reply() -> None:
+    """An overlay's reply is as large as a colour copy of the input: it is reserved in the
+    byte budget before the inspection runs, BUSY when it does not fit; without an overlay the
+    same request runs."""
+    image = np.full((600, 800), 200, np.uint8)  # overlay about 1.44 MB
+    service = InspectionService(
+        Catalog.build(
+            [RequestCamera("tool", RequestCameraSettings())],
+            [MeanIntensityPresence("brightness", "tool", 64.0, 255.0)],
+        ),
+        ServiceSettings(workers=1, queue_depth=0, max_buffered_bytes=1024 * 1024),
+    )
+
+    async def body() -> None:
+        with pytest.raises(Busy, match="memory for replies") as refused:
+            await service.inspect(InspectRequest("brightness", Images(image), overlay=".png"))
+        assert refused.value.details["size"] > 800 * 600 * 3
+        assert (await service.inspect(InspectRequest("brightness", Images(image)))).passed
+        assert service.budget.used == 0
+
+    try:
+        run(body())
+    finally:
+        service.close()

@@ -276,6 +276,9 @@ class TcpSession:
         self.finished = asyncio.Event()
         self.handshake_deadline = time.monotonic() + self.settings.handshake_timeout_s
         """The TLS handshake and HELLO must be done by then (monotonic seconds)."""
+        self.max_in_flight = frontend.welcome_limits()["max_in_flight"]
+        """What WELCOME announces (SPEC §6.1): requests beyond it are BUSY at their header, even
+        when the server could make them wait."""
         self.max_reply_bytes = DEFAULT_MAX_FRAME_BYTES
         """The largest frame the client accepts (its HELLO's max_frame_bytes)."""
         self._shutdown = asyncio.Event()
@@ -305,9 +308,9 @@ class TcpSession:
         service's byte budget can hold it, and its bytes are reserved now."""
         rid = header.request_id
         work = header.type in (MessageType.INSPECT, MessageType.CAPTURE)
-        if work and len(self.conn.pending) >= self.settings.max_in_flight:
+        if work and len(self.conn.pending) >= self.max_in_flight:
             raise Busy(
-                f"more than {self.settings.max_in_flight} requests in flight on this connection",
+                f"more than {self.max_in_flight} requests in flight on this connection",
                 request_id=rid,
             )
         large = header.frame_length > self.conn.limits.max_handshake_frame_bytes
