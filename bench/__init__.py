@@ -11,11 +11,12 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import calibration, compute, latency, pick, qr_real, render, throughput
+from . import calibration, compute, latency, pick, qr_real, render, throughput, workers
 
 SECTIONS: tuple[ModuleType, ...] = (
     latency,
     throughput,
+    workers,
     compute,
     calibration,
     pick,
