@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from .common import RunConfig, Section, Skip, Table, fmt
+from .common import RunConfig, Section, Skip, Table, fmt, load_average
 from .env import Env
 from .inprocess import Rate, cores, rate, runner
 from .plots import pyplot, save
@@ -30,6 +30,8 @@ TITLE = "2b. Worker model by measurement"
 THREADS_RULE = 0.8
 """Threads when N threads make >= THREADS_RULE x N times the calls of one."""
 CV_TIE = 0.95
+LOADED = 0.5
+"""A 1-minute load average from which the measurement is flagged as disturbed."""
 SHORT_CALL_MS = 1.0
 """Below this per call, threads whatever the GIL: handing an image to another process and
 the answer back costs about as much as the call itself."""
@@ -141,6 +143,7 @@ def measure(env: Env, name: str, image: Any, depth: tuple[Any, ...], window_s: f
 
 def run(cfg: RunConfig, env: Env) -> Section:
     section = Section(NAME, TITLE)
+    load = load_average()  # before this section's own threads add to it
     served = env.catalog.catalog.inspections
     window_s = cfg.f(1.5, 0.05)
     models: list[Model] = []
@@ -197,6 +200,13 @@ def run(cfg: RunConfig, env: Env) -> Section:
         section.value(f"{m.inspection}_thread_scaling", m.scaling)
         section.value(f"{m.inspection}_threads", float(m.threads))
     section.tables.append(table)
+    if load >= LOADED:
+        section.notes.append(
+            f"**Other processes were running** (1-minute load average {load:.2f} on {n} "
+            "cores when this section started): they take cores from the N-thread runs most, "
+            "so the ratios, and the choices made from them, may be too low. Repeat on an "
+            "otherwise idle machine before acting on them."
+        )
     section.notes += [
         f"Rule: threads when {n} threads reach >= {THREADS_RULE} x {n} = "
         f"{THREADS_RULE * n:.1f} times one thread's calls with OpenCV at one thread per worker "
