@@ -50,6 +50,19 @@ class Rate:
         return 100.0 * self.cpu_s / self.elapsed_s if self.elapsed_s > 0 else float("nan")
 
 
+def combined(rates: list[Rate]) -> Rate:
+    """Several windows of the same setting as one: calls, seconds and CPU added up."""
+    first = rates[0]
+    return Rate(
+        first.threads,
+        first.cv_threads,
+        sum(r.calls for r in rates),
+        sum(r.seconds for r in rates),
+        sum(r.cpu_s for r in rates),
+        sum(r.elapsed_s for r in rates),
+    )
+
+
 def runner(env: Env, inspection: str, image: Any, depth: tuple[Any, ...] = ()) -> Callable[[], Any]:
     """A call of the bench catalog's ``inspection`` on ``image`` (and ``depth``), with its
     camera's intrinsics, as a worker of the server would make it (no overlay)."""

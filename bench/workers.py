@@ -22,7 +22,7 @@ import numpy as np
 
 from .common import RunConfig, Section, Skip, Table, fmt, load_average
 from .env import Env
-from .inprocess import Rate, cores, rate, runner
+from .inprocess import Rate, combined, cores, rate, runner
 from .plots import pyplot, save
 
 NAME = "workers"
@@ -129,35 +129,43 @@ def inputs(env: Env) -> dict[str, tuple[Any, tuple[Any, ...]]]:
     }
 
 
-def measure(env: Env, name: str, image: Any, depth: tuple[Any, ...], window_s: float) -> Model:
+def measure(
+    env: Env, name: str, image: Any, depth: tuple[Any, ...], window_s: float, rounds: int
+) -> Model:
+    """The four settings in ``rounds`` interleaved rounds of ``window_s / rounds`` each, so
+    that a shared machine's drift hits them alike."""
     call = runner(env, name, image, depth)
     n = cores()
-    return Model(
-        name,
-        rate(call, threads=1, window_s=window_s),
-        rate(call, threads=n, window_s=window_s),
-        rate(call, threads=1, window_s=window_s, cv_threads=1),
-        rate(call, threads=n, window_s=window_s, cv_threads=1),
-    )
+    settings = [(1, None), (n, None), (1, 1), (n, 1)]
+    windows: list[list[Rate]] = [[] for _ in settings]
+    for _ in range(rounds):
+        for index, (threads, cv) in enumerate(settings):
+            windows[index].append(
+                rate(call, threads=threads, window_s=window_s / rounds, cv_threads=cv)
+            )
+    one_default, n_default, one_single, n_single = (combined(w) for w in windows)
+    return Model(name, one_default, n_default, one_single, n_single)
 
 
 def run(cfg: RunConfig, env: Env) -> Section:
     section = Section(NAME, TITLE)
     load = load_average()  # before this section's own threads add to it
     served = env.catalog.catalog.inspections
-    window_s = cfg.f(1.5, 0.05)
+    window_s = cfg.f(2.0, 0.05)
+    rounds = cfg.n(4, 1)
     models: list[Model] = []
     for name, (image, depth) in inputs(env).items():
         if name not in served:
             section.skipped.append(f"{name}: not in the bench catalog ({env.catalog.problem})")
             continue
-        models.append(measure(env, name, image, depth, window_s))
+        models.append(measure(env, name, image, depth, window_s, rounds))
     if not models:
         raise Skip("no inspection to measure")
     n = cores()
     section.intro = (
         f"Each inspection object of the bench catalog called in this process by 1 and by "
-        f"{n} threads (one per core) for {window_s:g} s each, on the sample image of its "
+        f"{n} threads (one per core) for {window_s:g} s each, in {rounds} interleaved rounds, "
+        f"on the sample image of its "
         f"camera, no protocol; OpenCV's own pool at its default "
         f"({models[0].one_default.cv_threads} threads) or set to 1 inside each worker. "
         f"The server today runs every inspection in threads with OpenCV at its default."

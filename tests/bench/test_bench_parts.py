@@ -116,3 +116,46 @@ def test_the_copies_helper_is_called_with_the_image(
     monkeypatch.setattr(copies, "PLACES", ("bench_fake_copies",))
     assert copies.copies_per_request("image")[0] == figure
     assert seen == ["image"]
+
+
+def model(one: float, n: float, *, default_n: float | None = None) -> Any:
+    """A worker-model measurement on 2 threads from calls per second (one-second windows)."""
+    from bench.inprocess import Rate
+    from bench.workers import Model
+
+    def r(threads: int, cv: int, rps: float) -> Rate:
+        return Rate(threads, cv, int(rps), 1.0, 1.0, 1.0)
+
+    n_default = n if default_n is None else default_n
+    return Model("x", r(1, 2, one), r(2, 2, n_default), r(1, 1, one), r(2, 1, n))
+
+
+def test_an_inspection_that_scales_with_threads_runs_in_threads() -> None:
+    chosen, why = model(60, 110).choice()
+    assert chosen.startswith("threads")
+    assert "releases the GIL" in why
+
+
+def test_a_long_inspection_that_does_not_scale_goes_to_processes() -> None:
+    chosen, why = model(60, 66).choice()  # 16.7 ms per call, 1.1x on 2 threads
+    assert chosen.startswith("processes")
+    assert "GIL" in why
+
+
+def test_a_short_inspection_stays_in_threads_whatever_the_gil() -> None:
+    chosen, why = model(30_000, 30_000).choice()  # 0.03 ms per call
+    assert chosen.startswith("threads")
+    assert "process hop" in why
+
+
+def test_opencv_at_one_thread_per_worker_only_when_not_slower() -> None:
+    assert "setNumThreads(1)" in model(60, 110, default_n=100).choice()[0]
+    assert "default" in model(60, 80, default_n=100).choice()[0]
+
+
+def test_windows_of_one_setting_add_up() -> None:
+    from bench.inprocess import Rate, combined
+
+    total = combined([Rate(2, 1, 10, 0.5, 0.9, 0.6), Rate(2, 1, 30, 0.5, 1.0, 0.5)])
+    assert total.rps == pytest.approx(40.0)
+    assert total.cpu_pct == pytest.approx(100 * 1.9 / 1.1)
