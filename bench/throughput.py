@@ -406,16 +406,17 @@ def _plotter(
             return []
         fig, axes = plt.subplots(2, len(names), figsize=(5.5 * len(names), 7), squeeze=False)
         for col, name in enumerate(names):
-            for depth in depths:
+            for index, depth in enumerate(depths):
                 row_cells = [c for c in cells if c.inspection == name and c.depth == depth]
                 xs = [c.clients for c in row_cells]
                 label = row_cells[0].mode if row_cells else ""
-                axes[0][col].plot(xs, [c.rps for c in row_cells], "o-", label=label)
+                color = f"C{index}"
+                axes[0][col].plot(xs, [c.rps for c in row_cells], "o-", color=color, label=label)
                 p99 = [Stats.of(c.latencies).p99 for c in row_cells]
-                axes[1][col].plot(xs, p99, "o-", label=f"p99, {label}")
+                axes[1][col].plot(xs, p99, "o-", color=color, label=f"p99, {label}")
                 queue = [c.queue_ms for c in row_cells]
-                axes[1][col].plot(xs, queue, ":", label=f"in flight ÷ rps, {label}")
-            if name in limit_rps:
+                axes[1][col].plot(xs, queue, ":", color=color, label=f"in flight ÷ rps, {label}")
+            if name in limit_rps and name in LIMIT_GOAL_INSPECTIONS:
                 axes[0][col].axhline(
                     limit_rps[name], color="k", ls="--", lw=1, label="machine's limit"
                 )
