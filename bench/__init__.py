@@ -11,11 +11,13 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import calibration, compute, latency, pick, qr_real, render, throughput
+from . import calibration, compute, latency, mixed, pick, qr_real, render, throughput, workers
 
 SECTIONS: tuple[ModuleType, ...] = (
     latency,
     throughput,
+    workers,
+    mixed,
     compute,
     calibration,
     pick,

@@ -80,6 +80,58 @@ def test_goals_are_reported_with_their_figures(run: dict[str, Any]) -> None:
         assert isinstance(goal["met"], bool)
 
 
+def _finite(values: dict[str, Any], key: str) -> bool:
+    value = values.get(key)
+    return value is not None and math.isfinite(value)
+
+
+def _goal_names(run: dict[str, Any], section: str) -> list[str]:
+    return [g["what"] for g in run["results"]["sections"][section]["goals"]]
+
+
+def test_throughput_is_set_beside_the_machines_limit(run: dict[str, Any]) -> None:
+    values = run["results"]["sections"]["throughput"]["values"]
+    for name in ("brightness", "cap_locate"):
+        assert _finite(values, f"{name}_limit_rps"), values
+        assert _finite(values, f"{name}_c2_d2_p99_over_queue"), values
+        assert _finite(values, f"{name}_c2_d2_busy_per_answer"), values
+    goals = " ".join(_goal_names(run, "throughput"))
+    assert "machine's limit" in goals
+    assert "no collapse" in goals
+    assert "grows no faster than the queue" in goals
+    assert "single-client" not in goals  # the former goal is information now
+
+
+def test_the_worker_model_is_chosen_per_inspection(run: dict[str, Any]) -> None:
+    values = run["results"]["sections"]["workers"]["values"]
+    for name in ("brightness", "cap_locate", "station_pose"):
+        assert _finite(values, f"{name}_thread_scaling"), values
+        assert values[f"{name}_threads"] in (0.0, 1.0)
+    assert "chosen" in run["report"].read_text()
+
+
+def test_mixed_load_compares_the_cheap_inspections_p99(run: dict[str, Any]) -> None:
+    values = run["results"]["sections"]["mixed"]["values"]
+    for key in ("cheap_idle_p99_ms", "cheap_loaded_p99_ms", "cheap_p99_ratio", "expensive_rps"):
+        assert _finite(values, key), values
+    assert any("<= 3x its idle p99" in g for g in _goal_names(run, "mixed"))
+
+
+def test_latency_measures_the_large_images_and_says_how_copies_are_counted(
+    run: dict[str, Any],
+) -> None:
+    values = run["results"]["sections"]["latency"]["values"]
+    for key in ("inspect_large1_cellvision_p50_ms", "inspect_large2_cellvision_p50_ms"):
+        assert _finite(values, key), values
+    goals = " ".join(_goal_names(run, "latency"))
+    assert "<= 0.3 ms p50 at 1024x768" in goals
+    assert "1.3x the floor's p99" in goals
+    text = run["report"].read_text()
+    assert "4096x3000 gray8" in text
+    assert "12-bit in depth16" in text
+    assert "Copies of the image per request" in text
+
+
 @pytest.mark.skipif(
     not HAVE_AIOHTTP, reason="aiohttp (bench extra) not installed: no HTTP/JSON reference"
 )

@@ -1,0 +1,131 @@
+"""In-process throughput of an inspection: the catalog's inspection object called directly on
+one image by a pool of threads for a fixed window, no protocol, no server. It is the
+machine's limit that a server is compared with, and it tells whether an inspection releases
+the GIL (its throughput with N threads against one thread).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+
+from .env import Env
+
+
+def cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+@dataclass(frozen=True)
+class Rate:
+    """``calls`` completed by ``threads`` threads in a window of ``seconds`` (wall), with
+    OpenCV's own thread count ``cv_threads`` in each; ``cpu_s``: this process's CPU time from
+    the window's start until the last call ended, ``elapsed_s`` later."""
+
+    threads: int
+    cv_threads: int
+    calls: int
+    seconds: float
+    cpu_s: float
+    elapsed_s: float
+
+    @property
+    def rps(self) -> float:
+        return self.calls / self.seconds if self.seconds > 0 else float("nan")
+
+    @property
+    def cpu_pct(self) -> float:
+        """CPU use over the window, 100 % = one core."""
+        return 100.0 * self.cpu_s / self.elapsed_s if self.elapsed_s > 0 else float("nan")
+
+
+def combined(rates: list[Rate]) -> Rate:
+    """Several windows of the same setting as one: calls, seconds and CPU added up."""
+    first = rates[0]
+    return Rate(
+        first.threads,
+        first.cv_threads,
+        sum(r.calls for r in rates),
+        sum(r.seconds for r in rates),
+        sum(r.cpu_s for r in rates),
+        sum(r.elapsed_s for r in rates),
+    )
+
+
+def runner(env: Env, inspection: str, image: Any, depth: tuple[Any, ...] = ()) -> Callable[[], Any]:
+    """A call of the bench catalog's ``inspection`` on ``image`` (and ``depth``), with its
+    camera's intrinsics, as a worker of the server would make it (no overlay)."""
+    from vision_server import InspectionInput
+
+    catalog = env.catalog.catalog
+    target = catalog.inspection(inspection)
+    intrinsics = getattr(catalog.cameras.get(target.camera), "intrinsics", None)
+    given = InspectionInput(image, depth, intrinsics)
+
+    def call() -> Any:
+        return target.run(given, overlay=False)
+
+    return call
+
+
+def rate(
+    call: Callable[[], Any],
+    *,
+    threads: int,
+    window_s: float,
+    cv_threads: int | None = None,
+    warmup: int = 2,
+) -> Rate:
+    """Calls per second of ``call`` made by ``threads`` threads at once over ``window_s``.
+
+    ``cv_threads``: ``cv2.setNumThreads`` inside each worker before it starts (None: OpenCV's
+    default, as the server leaves it); the setting is OpenCV's, process-wide, and restored
+    afterwards. Each thread makes ``warmup`` calls first; the window opens when all are done.
+    A call counts when it ends inside the window."""
+    previous = cv2.getNumThreads()
+    window: dict[str, float] = {}
+
+    def open_window() -> None:  # the barrier's action: runs once, before any thread goes on
+        window["start"] = time.perf_counter()
+        window["end"] = window["start"] + window_s
+        window["cpu"] = time.process_time()
+
+    barrier = threading.Barrier(threads, action=open_window)
+
+    def setup() -> None:
+        if cv_threads is not None:
+            cv2.setNumThreads(cv_threads)
+
+    def loop() -> int:
+        for _ in range(warmup):
+            call()
+        barrier.wait()
+        done = 0
+        end = window["end"]
+        while time.perf_counter() < end:
+            call()
+            if time.perf_counter() <= end:
+                done += 1
+        return done
+
+    try:
+        with ThreadPoolExecutor(threads, initializer=setup) as pool:
+            futures = [pool.submit(loop) for _ in range(threads)]
+            calls = sum(f.result() for f in futures)
+        cpu_s = time.process_time() - window["cpu"]
+        elapsed_s = time.perf_counter() - window["start"]
+        in_effect = cv_threads if cv_threads is not None else previous
+    finally:
+        cv2.setNumThreads(previous)
+    return Rate(threads, in_effect, calls, window_s, cpu_s, elapsed_s)
