@@ -276,7 +276,7 @@ class TcpSession:
         self.finished = asyncio.Event()
         self.handshake_deadline = time.monotonic() + self.settings.handshake_timeout_s
         """The TLS handshake and HELLO must be done by then (monotonic seconds)."""
-        self.max_in_flight = frontend.welcome_limits()["max_in_flight"]
+        self.max_in_flight = welcome_limits(self.settings, self.service.settings)["max_in_flight"]
         """What WELCOME announces (SPEC §6.1): requests beyond it are BUSY at their header, even
         when the server could make them wait."""
         self.max_reply_bytes = DEFAULT_MAX_FRAME_BYTES
