@@ -6,7 +6,8 @@ Public API:
   :class:`ConnectionClosed`, :func:`negotiate_version`): the state machine; bytes in, messages out.
 - Messages: :class:`Hello`, :class:`Welcome`, :class:`Ping`, :class:`Pong`, :class:`Close`,
   :class:`ListInspections`, :class:`Inspections`, :class:`Inspect`, :class:`Result`,
-  :class:`Capture`, :class:`Frames`, :class:`Reload`, :class:`Reloaded`, :class:`Error`.
+  :class:`Capture`, :class:`Frames`, :class:`Reload`, :class:`Reloaded`, :class:`OperatorCall`,
+  :class:`OperatorAnswer` (version 1.1), :class:`Error`.
 - Framing: :class:`Frame`, :class:`FrameDecoder`, :class:`Limits`, :class:`AdmitLater`.
 - Images: :class:`ImagePayload`, :func:`payload_from_array`, :func:`array_from_payload`,
   :class:`ImageEncoding`, :class:`ImageRole`.
@@ -18,6 +19,7 @@ Public API:
 """
 
 from .connection import (
+    INTRODUCED_IN,
     NEED_DATA,
     PAUSED,
     REQUESTS,
@@ -74,6 +76,7 @@ from .frames import AdmitLater, Frame, FrameDecoder, Limits
 from .images import ImagePayload, array_from_payload, payload_from_array
 from .messages import (
     MESSAGE_CLASSES,
+    OPERATOR_CHOICES,
     Capture,
     Close,
     Error,
@@ -83,6 +86,8 @@ from .messages import (
     Inspections,
     ListInspections,
     Message,
+    OperatorAnswer,
+    OperatorCall,
     Ping,
     Pong,
     Reload,
@@ -97,7 +102,9 @@ __all__ = [
     "ERROR_TABLE",
     "HEADER_SIZE",
     "MAGIC",
+    "INTRODUCED_IN",
     "MESSAGE_CLASSES",
+    "OPERATOR_CHOICES",
     "NEED_DATA",
     "PAUSED",
     "NO_REQUEST",
@@ -146,6 +153,8 @@ __all__ = [
     "Ping",
     "Pong",
     "Reload",
+    "OperatorAnswer",
+    "OperatorCall",
     "Reloaded",
     "Result",
     "Role",

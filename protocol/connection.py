@@ -83,7 +83,9 @@ S, R = Direction.SEND, Direction.RECEIVE
 C, V = Role.CLIENT, Role.SERVER
 T = MessageType
 
-REQUESTS = frozenset({T.HELLO, T.PING, T.LIST_INSPECTIONS, T.INSPECT, T.CAPTURE, T.RELOAD})
+REQUESTS = frozenset(
+    {T.HELLO, T.PING, T.LIST_INSPECTIONS, T.INSPECT, T.CAPTURE, T.RELOAD, T.OPERATOR_CALL}
+)
 """Client → server messages that are answered by a response with the same request id."""
 
 RESPONSES: dict[MessageType, frozenset[MessageType]] = {
@@ -93,11 +95,28 @@ RESPONSES: dict[MessageType, frozenset[MessageType]] = {
     T.INSPECT: frozenset({T.RESULT, T.ERROR}),
     T.CAPTURE: frozenset({T.FRAMES, T.ERROR}),
     T.RELOAD: frozenset({T.RELOADED, T.ERROR}),
+    T.OPERATOR_CALL: frozenset({T.OPERATOR_ANSWER, T.ERROR}),
 }
 """The message types that may answer each request type."""
 
-_OPEN_REQUESTS = (T.PING, T.LIST_INSPECTIONS, T.INSPECT, T.CAPTURE, T.RELOAD)
-_OPEN_RESPONSES = (T.PONG, T.INSPECTIONS, T.RESULT, T.FRAMES, T.RELOADED, T.ERROR)
+_OPEN_REQUESTS = (T.PING, T.LIST_INSPECTIONS, T.INSPECT, T.CAPTURE, T.RELOAD, T.OPERATOR_CALL)
+_OPEN_RESPONSES = (
+    T.PONG,
+    T.INSPECTIONS,
+    T.RESULT,
+    T.FRAMES,
+    T.RELOADED,
+    T.OPERATOR_ANSWER,
+    T.ERROR,
+)
+
+INTRODUCED_IN: dict[MessageType, Version] = {
+    T.OPERATOR_CALL: (1, 1),
+    T.OPERATOR_ANSWER: (1, 1),
+}
+"""Message types a minor version added, with that version; the others are 1.0's. On a
+connection that agreed on an older minor they are unknown types (SPEC §8.2): a peer refuses
+them as UNKNOWN_MESSAGE_TYPE, and this side will not send them."""
 
 _SERVER_LIVE_STATES = (State.HANDSHAKE, State.HELLO_RECEIVED, State.OPEN, State.CLOSING)
 
@@ -355,6 +374,13 @@ class Connection:
                 f"unknown message type 0x{raw_type:04x}", request_id=rid
             ) from None
         self._check_version(mtype, version, rid)
+        if not self._agreed_on(mtype):
+            raise UnknownMessageType(
+                f"message type 0x{raw_type:04x} ({mtype.name}) belongs to version "
+                f"{_dotted(INTRODUCED_IN[mtype])}; this connection agreed on "
+                f"{_dotted(self.version or self.wire_version)}",
+                request_id=rid,
+            )
         key = (self.role, self.state, Direction.RECEIVE, mtype)
         if key not in TRANSITIONS:
             self._reject_unexpected(mtype, rid)
@@ -369,6 +395,14 @@ class Connection:
         if self.role is Role.CLIENT and mtype not in REQUESTS and mtype is not T.CLOSE:
             self._match_response(mtype, rid)
         return key
+
+    def _agreed_on(self, mtype: MessageType) -> bool:
+        """Whether ``mtype`` exists in the version this connection agreed on (before the
+        handshake: nothing beyond HELLO is allowed anyway, the state machine says so)."""
+        introduced = INTRODUCED_IN.get(mtype)
+        if introduced is None or self.version is None:
+            return True
+        return self.version[0] != introduced[0] or self.version[1] >= introduced[1]
 
     def _check_version(self, mtype: MessageType, version: Version, rid: int) -> None:
         if mtype in (T.HELLO, T.ERROR) or self.version is None:
@@ -431,6 +465,11 @@ class Connection:
             raise LocalProtocolError(
                 f"cannot send {mtype.name} as {self.role.value} in state {self.state.value}"
             )
+        if not self._agreed_on(mtype):
+            raise LocalProtocolError(
+                f"{mtype.name} belongs to version {_dotted(INTRODUCED_IN[mtype])}; this "
+                f"connection agreed on {_dotted(self.wire_version)}"
+            )
         rid = message.request_id
         if mtype is T.CLOSE and rid != NO_REQUEST:
             raise LocalProtocolError("CLOSE must carry request id 0")
@@ -481,6 +520,10 @@ class Connection:
             self.state = State.CLOSED
         if self.state is State.CLOSED and mtype is T.CLOSE:
             self._closed_cleanly = True
+
+
+def _dotted(version: Version) -> str:
+    return f"{version[0]}.{version[1]}"
 
 
 def negotiate_version(

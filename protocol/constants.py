@@ -47,6 +47,8 @@ class MessageType(IntEnum):
     FRAMES = 0x0031
     RELOAD = 0x0040
     RELOADED = 0x0041
+    OPERATOR_CALL = 0x0050
+    OPERATOR_ANSWER = 0x0051
     ERROR = 0x00FF
 
 

@@ -11,11 +11,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-from .constants import MAX_U32, NO_REQUEST, MessageType
+from .constants import MAX_U32, NO_REQUEST, ImageRole, MessageType
 from .errors import (
+    BadImage,
     BadMetadata,
     CellvisionError,
     ErrorCode,
+    InvalidArgument,
     error_from_code,
 )
 from .frames import Blob, Frame, as_integer
@@ -612,6 +614,146 @@ class Reloaded(Message):
         )
 
 
+OPERATOR_CHOICES: tuple[str, ...] = ("retry", "continue", "abort")
+"""What an operator may answer an OPERATOR_CALL (SPEC §6.6), in the order a console shows them."""
+
+
+def _check_choices(choices: tuple[str, ...]) -> str | None:
+    """Why ``choices`` is not a valid OPERATOR_CALL ``choices`` list, or None when it is."""
+    if not choices:
+        return "choices must list at least one of " + ", ".join(OPERATOR_CHOICES)
+    unknown = [c for c in choices if c not in OPERATOR_CHOICES]
+    if unknown:
+        return f"unknown choice {unknown[0]!r}: choices are " + ", ".join(OPERATOR_CHOICES)
+    if len(set(choices)) != len(choices):
+        return f"choices must not repeat a choice, got {list(choices)}"
+    return None
+
+
+@dataclass(frozen=True)
+class OperatorCall(Message):
+    """Client → server (version 1.1): ask a person at the server's console to decide (SPEC §6.6).
+
+    ``message`` says what happened; ``choices`` what the person may answer (a subset of
+    :data:`OPERATOR_CHOICES`); ``inspection`` and ``skill`` name what failed, for the console;
+    ``images`` show it (e.g. the failing RESULT's overlay PNG; roles ``color`` or ``overlay``).
+    ``deadline_ms`` bounds the wait, counted from the server's receipt of the whole frame: then
+    DEADLINE_EXCEEDED. Answered by :class:`OperatorAnswer`.
+    """
+
+    TYPE: ClassVar[MessageType] = MessageType.OPERATOR_CALL
+    message: str = ""
+    choices: tuple[str, ...] = OPERATOR_CHOICES
+    inspection: str = ""
+    skill: str = ""
+    images: tuple[ImagePayload, ...] = ()
+    deadline_ms: float | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.message:
+            raise ValueError("OPERATOR_CALL needs a message for the operator")
+        why = _check_choices(self.choices)
+        if why is not None:
+            raise ValueError(why)
+        if self.deadline_ms is not None and not (
+            math.isfinite(self.deadline_ms) and self.deadline_ms > 0
+        ):
+            raise ValueError(f"deadline_ms must be a positive number, got {self.deadline_ms}")
+        for image in self.images:
+            if image.role is ImageRole.DEPTH:
+                raise ValueError("an operator call shows colour or overlay images, not depth")
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
+        descs, blobs = _images_to_wire(self.images)
+        meta: dict[str, Any] = {"message": self.message, "choices": list(self.choices)}
+        if self.inspection:
+            meta["inspection"] = self.inspection
+        if self.skill:
+            meta["skill"] = self.skill
+        if descs:
+            meta["images"] = descs
+        if self.deadline_ms is not None:
+            meta["deadline_ms"] = self.deadline_ms
+        return meta, blobs
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> OperatorCall:
+        m, rid = frame.metadata, frame.request_id
+        message = _get(m, "message", str, rid)
+        if not message:
+            raise BadMetadata("field 'message' must not be empty", request_id=rid)
+        raw = _get(m, "choices", list, rid, default=list(OPERATOR_CHOICES))
+        if not all(isinstance(c, str) for c in raw):
+            raise BadMetadata("field 'choices' must be an array of strings", request_id=rid)
+        choices = tuple(raw)
+        why = _check_choices(choices)
+        if why is not None:
+            raise InvalidArgument(why, request_id=rid, details={"option": "choices"})
+        images = _images_from_wire(m, frame.blobs, rid, ctx)
+        for i, image in enumerate(images):
+            if image.role is ImageRole.DEPTH:
+                raise BadImage(
+                    f"images[{i}]: an operator call shows colour or overlay images to a person, "
+                    "not depth",
+                    request_id=rid,
+                )
+        return cls(
+            rid,
+            message,
+            choices,
+            _get(m, "inspection", str, rid, default=""),
+            _get(m, "skill", str, rid, default=""),
+            images,
+            _deadline(m, rid),
+        )
+
+
+@dataclass(frozen=True)
+class OperatorAnswer(Message):
+    """Server → client (version 1.1): the operator's answer to an OPERATOR_CALL (SPEC §6.6).
+
+    ``choice`` is one of the call's choices; ``by`` names who answered (for the robot's log,
+    e.g. the console's peer address); ``answered_at`` is the server's time of the answer, Unix
+    seconds (None when the server did not say).
+    """
+
+    TYPE: ClassVar[MessageType] = MessageType.OPERATOR_ANSWER
+    choice: str = ""
+    by: str = ""
+    answered_at: float | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.choice not in OPERATOR_CHOICES:
+            raise ValueError(
+                f"choice must be one of {', '.join(OPERATOR_CHOICES)}, got {self.choice!r}"
+            )
+
+    def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
+        meta: dict[str, Any] = {"choice": self.choice}
+        if self.by:
+            meta["by"] = self.by
+        if self.answered_at is not None:
+            meta["answered_at"] = self.answered_at
+        return meta, ()
+
+    @classmethod
+    def from_frame(cls, frame: Frame, ctx: DecodeContext) -> OperatorAnswer:
+        m, rid = frame.metadata, frame.request_id
+        choice = _get(m, "choice", str, rid)
+        if choice not in OPERATOR_CHOICES:
+            raise BadMetadata(
+                f"field 'choice' must be one of {', '.join(OPERATOR_CHOICES)}, got {choice!r}",
+                request_id=rid,
+            )
+        stamp = _get(m, "answered_at", (int, float), rid, default=None)
+        answered_at = None if stamp is None else _as_float(stamp)
+        if stamp is not None and answered_at is None:
+            raise BadMetadata("field 'answered_at' must be a finite number", request_id=rid)
+        return cls(rid, choice, _get(m, "by", str, rid, default=""), answered_at)
+
+
 @dataclass(frozen=True)
 class Error(Message):
     """An error answering the request ``request_id`` (0: about the connection itself)."""
@@ -688,6 +830,8 @@ MESSAGE_CLASSES: dict[MessageType, type[Message]] = {
         Frames,
         Reload,
         Reloaded,
+        OperatorCall,
+        OperatorAnswer,
         Error,
     )
 }

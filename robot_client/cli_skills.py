@@ -30,6 +30,7 @@ from yamlfile import read_document
 from .address import endpoint_from_args, ssl_context
 from .devices import Devices
 from .devices.vision import LazyVision
+from .operator import DEFAULT_DEADLINE_S, ConsoleOperator, task_operator
 from .skills import Outcome, SkillContext, default_registry, execute
 from .skills import Progress as SkillProgress
 from .skills.world import WorldModel
@@ -94,8 +95,16 @@ def _context(args: argparse.Namespace, console: Console) -> Iterator[SkillContex
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{world_file}: cannot read the world model: {exc}") from None
     ctx = SkillContext(devices, world, store)
-    if not args.json and sys.stdin.isatty():
-        ctx.operator = _ask_operator(console)  # e.g. quality_control after its retries
+    ask = _ask_operator(console) if not args.json and sys.stdin.isatty() else None
+    ctx.operator = ask  # e.g. quality_control after its retries
+    if getattr(args, "operator", None) == "console":
+        # The person at the vision server's console; this terminal when the server cannot.
+        ctx.operator = ConsoleOperator(
+            devices.vision,
+            ask,
+            deadline_s=args.operator_timeout,
+            notify=lambda text: console.print(f"[yellow]operator:[/] {escape(text)}"),
+        )
     try:
         if args.json:
             yield ctx
@@ -225,6 +234,26 @@ def cmd_run(args: argparse.Namespace, console: Console) -> int:
     return ExitCode.OK if outcome.ok else ExitCode.FAILED
 
 
+def _operator_options(parser: argparse.ArgumentParser, modes: tuple[str, ...]) -> None:
+    parser.add_argument(
+        "--operator",
+        choices=modes,
+        default="ask",
+        help="who answers when a skill or step needs a person: ask (a prompt on this terminal, "
+        "else abort), console (the vision server's console, Operator page; this terminal when "
+        "the server cannot take the call)"
+        + (", or always retry / skip / abort" if "retry" in modes else ""),
+    )
+    parser.add_argument(
+        "--operator-timeout",
+        type=float,
+        default=DEFAULT_DEADLINE_S,
+        metavar="S",
+        help="with --operator console: seconds to wait for an answer before aborting "
+        f"(default {DEFAULT_DEADLINE_S:g})",
+    )
+
+
 def _operator(mode: str, console: Console) -> Callable[[Step, Outcome], OperatorDecision]:
     def decide(step: Step, outcome: Outcome) -> OperatorDecision:
         if mode != "ask":
@@ -262,9 +291,11 @@ def cmd_task_run(args: argparse.Namespace, console: Console) -> int:
         )
 
     with _context(args, console) as ctx:
-        runner = TaskRunner(
-            registry, store, ctx, operator=_operator(args.operator, console), on_step=on_step
-        )
+        if args.operator == "console" and ctx.operator is not None:
+            decide = task_operator(ctx.operator)
+        else:
+            decide = _operator(args.operator, console)
+        runner = TaskRunner(registry, store, ctx, operator=decide, on_step=on_step)
         report = runner.run(task)
     if args.json:
         print(json.dumps(report.to_dict()))
@@ -393,18 +424,14 @@ def add_skill_commands(sub: Any, common: argparse.ArgumentParser) -> None:
     run = sub.add_parser("run", parents=[common, dev, st], help="execute a taught skill")
     run.add_argument("skill")
     run.add_argument("name")
+    _operator_options(run, ("ask", "console"))
     run.set_defaults(func=cmd_run, sync=True)
 
     task = sub.add_parser("task", help="tasks composed of skills")
     task_sub = task.add_subparsers(dest="task_command", required=True)
     task_run = task_sub.add_parser("run", parents=[common, dev, st], help="run a task file")
     task_run.add_argument("file")
-    task_run.add_argument(
-        "--operator",
-        choices=("ask", "retry", "skip", "abort"),
-        default="ask",
-        help="answer for the operator policy (ask: prompt on a terminal, else abort)",
-    )
+    _operator_options(task_run, ("ask", "console", "retry", "skip", "abort"))
     task_run.set_defaults(func=cmd_task_run, sync=True)
 
     taught = sub.add_parser("taught", help="the taught records")

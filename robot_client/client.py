@@ -25,6 +25,7 @@ import numpy.typing as npt
 
 from protocol import (
     NEED_DATA,
+    OPERATOR_CHOICES,
     SUPPORTED_VERSIONS,
     Capture,
     CellvisionError,
@@ -42,6 +43,8 @@ from protocol import (
     Limits,
     ListInspections,
     Message,
+    OperatorAnswer,
+    OperatorCall,
     Ping,
     Pong,
     Result,
@@ -481,6 +484,34 @@ class VisionClient:
         assert isinstance(answer, Frames)
         return answer
 
+    async def operator_call(
+        self,
+        message: str,
+        *,
+        choices: Sequence[str] = OPERATOR_CHOICES,
+        inspection: str = "",
+        skill: str = "",
+        images: Sequence[ImageLike] = (),
+        deadline_s: float | None = None,
+    ) -> OperatorAnswer:
+        """Ask the person at the server's console (SPEC §6.6, protocol 1.1) and wait for the
+        answer: ``retry``, ``continue`` or ``abort``, one of ``choices``. ``images`` (arrays go
+        as PNG; a RESULT's overlay payload as it came) show what failed. The server answers
+        DEADLINE_EXCEEDED after ``deadline_s``; this side waits a ``request_timeout_s`` longer
+        (without a deadline: for days). A server without operator calls raises
+        UnexpectedMessage or UnknownMessageType; a 1.0 server LocalProtocolError (not sent)."""
+        payloads = tuple(_payload(i, ImageRole.COLOR, ImageEncoding.PNG) for i in images)
+        deadline_ms = None if deadline_s is None else deadline_s * 1000.0
+        wait_s = (deadline_s if deadline_s is not None else 7 * 86400.0) + self.request_timeout_s
+        answer = await self.request(
+            lambda rid: OperatorCall(
+                rid, message, tuple(choices), inspection, skill, payloads, deadline_ms
+            ),
+            timeout_s=wait_s,
+        )
+        assert isinstance(answer, OperatorAnswer)
+        return answer
+
 
 def _payload(image: ImageLike, role: ImageRole, encoding: ImageEncoding | None) -> ImagePayload:
     if isinstance(image, ImagePayload):
@@ -528,6 +559,10 @@ class SyncVisionClient:
 
     def capture(self, camera: str, **kwargs: Any) -> Frames:
         return self._call(self._client.capture(camera, **kwargs))
+
+    def operator_call(self, message: str, **kwargs: Any) -> OperatorAnswer:
+        """See :meth:`VisionClient.operator_call` (blocks until the person answers)."""
+        return self._call(self._client.operator_call(message, **kwargs))
 
     def close(self) -> None:
         if self._loop.is_running():

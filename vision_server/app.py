@@ -28,6 +28,7 @@ from .catalog import Catalog
 from .frontends.http import HttpFrontend
 from .frontends.line import LineFrontend
 from .frontends.tcp import TcpFrontend
+from .operator_desk import OperatorDesk
 from .results import ResultLog
 from .service import InspectionService
 from .settings import ConsoleSettings, LineSettings, ServerSettings
@@ -66,11 +67,15 @@ class App:
         # The web console (off unless enabled): its token, TLS and limits are the server's.
         self.http: HttpFrontend | None = None
         if console is not None and console.enabled:
+            # Robots' operator calls (SPEC §6.6) wait on the console's desk: without a
+            # console nobody could answer them, and the TCP front-end refuses them.
+            self.tcp.operator_desk = OperatorDesk()
             self.http = HttpFrontend(
                 self.service,
                 console.from_server(self.settings),
                 config_path=config_path,
                 server_info=self._console_info,
+                operator_desk=self.tcp.operator_desk,
             )
         self._stopped = asyncio.Event()
         self._signal_tasks: set[asyncio.Task[None]] = set()
@@ -129,6 +134,7 @@ class App:
                 )
                 await self.http.stop()
                 self.http = None
+                self.tcp.operator_desk = None
             except BaseException:
                 await self.tcp.stop()
                 raise

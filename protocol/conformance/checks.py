@@ -23,7 +23,17 @@ from ..constants import HEADER, MAGIC, ImageEncoding, ImageRole, MessageType
 from ..errors import CellvisionError, ErrorCode
 from ..frames import Blob, Frame
 from ..images import ImagePayload, payload_from_array, payload_from_descriptor
-from ..messages import Capture, Close, Hello, Inspect, ListInspections, Ping, Reload
+from ..messages import (
+    OPERATOR_CHOICES,
+    Capture,
+    Close,
+    Hello,
+    Inspect,
+    ListInspections,
+    OperatorCall,
+    Ping,
+    Reload,
+)
 from .peer import CLOSED, CheckFailed, Peer, Target
 from .profiles import Feature
 
@@ -1430,3 +1440,58 @@ def _wait_for_a_free_slot(ctx: Context, timeout_s: float = 15.0) -> None:
             if isinstance(answer, Frame) and answer.type == MessageType.WELCOME:
                 return
         time.sleep(0.05)
+
+
+# ----------------------------------------------------------------------------- operator calls
+
+NOT_OFFERED = (ErrorCode.UNKNOWN_MESSAGE_TYPE, ErrorCode.UNEXPECTED_MESSAGE)
+"""How a 1.1 server that offers no operator calls answers one (SPEC §6.6: optional)."""
+
+
+@check(
+    "operator_call",
+    "§6.6",
+    "OPERATOR_CALL with deadline_ms 300 is answered once: OPERATOR_ANSWER (a person answered) or "
+    "DEADLINE_EXCEEDED, or UNKNOWN_MESSAGE_TYPE / UNEXPECTED_MESSAGE from a server that offers "
+    "none (optional); the connection goes on; on a 1.0 connection it is UNKNOWN_MESSAGE_TYPE",
+)
+def _operator_call(ctx: Context) -> str:
+    peer, _ = _open_1_1(ctx)
+    with peer:
+        call = OperatorCall(
+            60,
+            "cellvision-conformance check: nothing to do, this call expires by itself",
+            OPERATOR_CHOICES,
+            deadline_ms=300.0,
+        )
+        peer.send(call, version=V1_1)
+        frame = peer.recv_frame()
+        if frame is CLOSED:
+            raise CheckFailed("the server closed the connection instead of answering")
+        assert isinstance(frame, Frame)
+        if frame.request_id != 60:
+            raise CheckFailed(f"answer for id {frame.request_id}, expected 60")
+        code = frame.metadata.get("code")
+        if frame.type == T.OPERATOR_ANSWER:
+            choice = frame.metadata.get("choice")
+            if choice not in OPERATOR_CHOICES:
+                raise CheckFailed(f"OPERATOR_ANSWER.choice is {choice!r}")
+            note = f"a person answered {choice!r}"
+        elif frame.type == T.ERROR and code == ErrorCode.DEADLINE_EXCEEDED:
+            note = "nobody answered: DEADLINE_EXCEEDED"
+        elif frame.type == T.ERROR and code in {int(c) for c in NOT_OFFERED}:
+            note = f"not offered ({frame.metadata.get('name')}), which §6.6 allows"
+        else:
+            raise CheckFailed(
+                "expected OPERATOR_ANSWER, DEADLINE_EXCEEDED, UNKNOWN_MESSAGE_TYPE or "
+                f"UNEXPECTED_MESSAGE, got type 0x{frame.type:04x} {frame.metadata}"
+            )
+        if frame.type == T.ERROR and frame.metadata.get("fatal"):
+            raise CheckFailed(f"{frame.metadata.get('name')} must not be fatal here")
+        _still_alive(peer, 61)
+    with ctx.peer() as peer:
+        _agreed(_hello(peer, ctx, (1, 0), request_id=62), (1, 0))
+        peer.send(OperatorCall(63, "on a 1.0 connection", deadline_ms=300.0), version=(1, 0))
+        peer.expect_error(ErrorCode.UNKNOWN_MESSAGE_TYPE, request_id=63, fatal=False)
+        _still_alive(peer, 64)
+    return note

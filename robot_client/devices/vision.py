@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from geometry import CameraIntrinsics
-from protocol import Frames, ImageRole, array_from_payload
+from protocol import Frames, ImageRole, UnexpectedMessage, array_from_payload
 
 from ..client import SyncVisionClient
 from . import Capture, DeviceError, Robot, Vision
@@ -60,6 +60,13 @@ class LazyVision:
 
     def capture(self, camera: str, **kwargs: Any) -> Any:
         return self.client.capture(camera, **kwargs)
+
+    def operator_call(self, message: str, **kwargs: Any) -> Any:
+        """Ask the person at the server's console (see SyncVisionClient.operator_call)."""
+        call = getattr(self.client, "operator_call", None)
+        if call is None:
+            raise UnexpectedMessage("this vision client cannot post operator calls")
+        return call(message, **kwargs)
 
     def close(self) -> None:
         closer = getattr(self._client, "close", None)

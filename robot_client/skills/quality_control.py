@@ -106,15 +106,20 @@ class QualityControl(Skill):
         ),
     )
 
-    def _attempt(self, args: Args, ctx: SkillContext, number: int) -> dict[str, Any]:
+    def _attempt(
+        self, args: Args, ctx: SkillContext, number: int, *, overlay: bool
+    ) -> tuple[dict[str, Any], Any]:
+        """One attempt's summary and its RESULT (with the overlay when ``overlay``: the
+        operator is shown the failing image)."""
         inspection = args.text("inspection")
         camera = args["camera"]
+        extra = {"overlay": True} if overlay else {}
         if camera is None:
-            result = ctx.vision.inspect(inspection)
+            result = ctx.vision.inspect(inspection, **extra)
         else:
             cap = ctx.camera(str(camera)).capture(depth_frames=args.integer("depth_frames"))
-            result = ctx.vision.inspect(inspection, cap.color, depth=list(cap.depth))
-        return attempt_summary(result, number, ctx.clock.now())
+            result = ctx.vision.inspect(inspection, cap.color, depth=list(cap.depth), **extra)
+        return attempt_summary(result, number, ctx.clock.now()), result
 
     def run(self, args: Args, ctx: SkillContext) -> Outcome:
         policy = args.text("on_failure")
@@ -147,7 +152,8 @@ class QualityControl(Skill):
                     ctx.report(f"{inspection}: failed; waiting {wait_s:g} s before retrying")
                     ctx.sleep(wait_s)
                 ctx.report(f"{inspection}: attempt {len(attempts) + 1}", k / (1 + retries))
-                attempt = self._attempt(args, ctx, len(attempts) + 1)
+                asking = policy == "operator" and ctx.operator is not None
+                attempt, result = self._attempt(args, ctx, len(attempts) + 1, overlay=asking)
                 attempts.append(attempt)
                 if attempt["verdict"] == "pass":
                     ctx.report(f"{inspection}: pass", 1.0)
@@ -161,7 +167,11 @@ class QualityControl(Skill):
             if policy == "fail" or ctx.operator is None:
                 unattended = "" if policy == "fail" else "; no operator to ask (unattended)"
                 fail(FailureReason.INSPECTION_FAILED, message + unattended, data(False))
-            answer = str(ctx.operator(message, data(False))).strip().lower()
+            # The person also sees what failed: the last RESULT's overlay (not in the outcome's
+            # data, which stays JSON).
+            shown = [i for i in getattr(result, "images", ()) if str(i.role) == "overlay"]
+            call = {**data(False), "skill": self.spec.name, "images": shown}
+            answer = str(ctx.operator(message, call)).strip().lower()
             answers.append(answer)
             if answer == "retry" and rounds < args.integer("operator_rounds"):
                 rounds += 1

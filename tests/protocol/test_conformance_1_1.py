@@ -46,6 +46,7 @@ from protocol.errors import ErrorCode, NotAuthenticated
 from protocol.frames import Header
 from vision_server.catalog import Catalog
 from vision_server.frontends.tcp import TcpFrontend
+from vision_server.operator_desk import OperatorDesk
 
 T = MessageType
 
@@ -66,6 +67,7 @@ RULES_OF_1_1 = {
     "option_camera": "§6.3",
     "request_after_close": "§5.6",
     "refused_at_header": "§3.1",
+    "operator_call": "§6.6",
 }
 """Every rule protocol 1.1 added or sharpened, by the check that tests it and its section."""
 
@@ -549,3 +551,40 @@ def test_two_colour_images_check_fails_when_the_second_is_ignored(
     monkeypatch.setattr(vision_server.frontends.images, "decode_payloads", first_colour_only)
     with server_in_thread() as server:
         _fails(server.port, "two_colour_images", "expected")
+
+
+# ----------------------------------------------------------------------------- operator calls
+
+
+def test_operator_call_passes_on_a_server_that_offers_none_and_on_one_that_does() -> None:
+    with server_in_thread() as server:  # no console: UNEXPECTED_MESSAGE, which §6.6 allows
+        result = _only(server.port, "operator_call")
+        assert result.status == "pass", result
+        assert "not offered (UNEXPECTED_MESSAGE)" in result.detail
+        server.tcp.operator_desk = OperatorDesk()
+        result = _only(server.port, "operator_call")
+        assert result.status == "pass", result
+        assert "DEADLINE_EXCEEDED" in result.detail
+
+
+def test_operator_call_fails_when_the_deadline_is_ignored(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    waits = OperatorDesk.wait
+
+    async def forever(self: OperatorDesk, call: Any, **kwargs: Any) -> Any:
+        return await waits(self, call, **{**kwargs, "timeout_s": None})
+
+    monkeypatch.setattr(OperatorDesk, "wait", forever)
+    with server_in_thread() as server:
+        server.tcp.operator_desk = OperatorDesk()
+        _fails(server.port, "operator_call", "no answer", timeout_s=1.0)
+
+
+def test_operator_call_fails_when_a_1_0_connection_gets_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(protocol.connection, "INTRODUCED_IN", {})
+    with server_in_thread() as server:
+        server.tcp.operator_desk = OperatorDesk()
+        _fails(server.port, "operator_call", "expected error code 4")

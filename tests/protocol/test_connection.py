@@ -19,6 +19,7 @@ from protocol import (
     Close,
     Connection,
     ConnectionClosed,
+    DeadlineExceeded,
     DuplicateRequestId,
     Error,
     ErrorCode,
@@ -35,6 +36,8 @@ from protocol import (
     Message,
     MessageType,
     NotAuthenticated,
+    OperatorAnswer,
+    OperatorCall,
     Ping,
     Pong,
     Result,
@@ -761,3 +764,61 @@ def test_bad_json_in_a_response_fails_the_request() -> None:
         events(client, _bad_json(MessageType.RESULT, 4))
     assert client.pending == frozenset()
     assert client.state is State.OPEN
+
+
+# --------------------------------------------------------------------------- operator call (1.1)
+
+
+def opened_at(version: tuple[int, int]) -> tuple[Connection, Connection]:
+    client, server = Connection(Role.CLIENT), Connection(Role.SERVER)
+    one(server, client.send(Hello(1)))
+    one(client, server.send(Welcome(1, version)))
+    return client, server
+
+
+def test_an_operator_call_is_a_request_answered_by_operator_answer_or_error() -> None:
+    client, server = opened_at((1, 1))
+    call = OperatorCall(5, "cap missing", ("retry", "abort"), deadline_ms=60_000.0)
+    assert one(server, client.send(call)) == call
+    assert server.pending == client.pending == {5}
+    # Other requests go on meanwhile: the call waits for a person, not for the connection.
+    one(server, client.send(Ping(6)))
+    assert one(client, server.send(Pong(6))) == Pong(6)
+    answer = OperatorAnswer(5, "retry", "console 10.0.0.9:5000", 1764000000.5)
+    assert one(client, server.send(answer)) == answer
+    assert server.pending == client.pending == frozenset()
+    # A timeout is an ERROR for the call's id.
+    one(server, client.send(OperatorCall(7, "again", deadline_ms=1.0)))
+    late = Error.from_exception(DeadlineExceeded("nobody answered", request_id=7))
+    assert one(client, server.send(late)) == late
+    assert client.state is server.state is State.OPEN
+
+
+def test_operator_answer_answers_nothing_else() -> None:
+    client, server = opened_at((1, 1))
+    one(server, client.send(Ping(3)))
+    with pytest.raises(LocalProtocolError, match="OPERATOR_ANSWER cannot answer PING"):
+        server.send(OperatorAnswer(3, "retry"))
+    with pytest.raises(UnexpectedMessage, match="cannot answer PING"):
+        events(client, raw(MessageType.OPERATOR_ANSWER, 3, {"choice": "retry"}, (1, 1)))
+
+
+def test_a_1_0_session_never_sees_an_operator_call() -> None:
+    """SPEC §8.2: a type of 1.1 on a connection that agreed on 1.0 is an unknown type, as a
+    1.0 server would answer it, and this side refuses to send it."""
+    client, server = opened_at((1, 0))
+    with pytest.raises(LocalProtocolError, match="belongs to version 1.1"):
+        client.send(OperatorCall(2, "x"))
+    with pytest.raises(UnknownMessageType, match="agreed on 1.0") as info:
+        events(server, raw(MessageType.OPERATOR_CALL, 2, {"message": "x"}))
+    assert not info.value.fatal
+    assert server.pending == {2}  # the server owes that ERROR, and the connection goes on
+    server.send(Error.from_exception(info.value))
+    one(server, client.send(Ping(3)))
+    assert server.state is State.OPEN
+
+
+def test_an_operator_call_before_the_handshake_is_not_authenticated() -> None:
+    server = Connection(Role.SERVER)
+    with pytest.raises(NotAuthenticated):
+        events(server, raw(MessageType.OPERATOR_CALL, 2, {"message": "x"}, (1, 1)))

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from protocol import (
     MESSAGE_CLASSES,
+    OPERATOR_CHOICES,
     BadImage,
     BadMetadata,
     Capture,
@@ -29,6 +30,8 @@ from protocol import (
     ListInspections,
     Message,
     MessageType,
+    OperatorAnswer,
+    OperatorCall,
     Ping,
     Pong,
     Reload,
@@ -142,6 +145,21 @@ MESSAGES: dict[type[Message], st.SearchStrategy[Message]] = {
         texts,
         st.lists(descriptors, max_size=2).map(tuple),
         st.lists(descriptors, max_size=2).map(tuple),
+    ),
+    OperatorCall: st.builds(
+        OperatorCall,
+        ids,
+        names,
+        st.permutations(OPERATOR_CHOICES).flatmap(
+            lambda all_: st.integers(1, len(all_)).map(lambda n: tuple(all_[:n]))
+        ),
+        texts,
+        texts,
+        st.lists(images().filter(lambda i: i.role is not ImageRole.DEPTH), max_size=2).map(tuple),
+        st.none() | positive,
+    ),
+    OperatorAnswer: st.builds(
+        OperatorAnswer, ids, st.sampled_from(OPERATOR_CHOICES), texts, st.none() | finite
     ),
     Error: st.builds(
         Error,

@@ -41,6 +41,7 @@ from protocol import (
     InvalidArgument,
 )
 from vision_server.console import static_dir
+from vision_server.operator_desk import OperatorDesk
 from vision_server.service import (
     CaptureRequest,
     ImageNeeds,
@@ -55,6 +56,7 @@ from . import http_save
 from .http_auth import COOKIE, Sessions
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
+from .http_operator import OperatorRoutes
 from .images import decode_payloads
 
 log = logging.getLogger("vision_server")
@@ -137,8 +139,11 @@ class HttpFrontend:
         *,
         config_path: Path | None = None,
         server_info: ServerInfo | None = None,
+        operator_desk: OperatorDesk | None = None,
     ) -> None:
         self.service = service
+        self.operator_desk = operator_desk or OperatorDesk()
+        """The operator calls this console shows and answers (the TCP front-end posts them)."""
         self.settings = settings
         self.config_path = config_path
         self.server_info = server_info or (lambda: {})
@@ -213,6 +218,7 @@ class HttpFrontend:
         routes.add_get(r"/api/results/{id:\d{1,18}}/image.png", self.result_image)
         routes.add_get("/api/stats", self.stats)
         routes.add_get("/metrics", self.metrics_text)
+        OperatorRoutes(self.operator_desk).add_to(routes)
         return app
 
     # ------------------------------------------------------------------ middlewares

@@ -37,6 +37,7 @@ from protocol import (
     ConfigInvalid,
     Connection,
     ConnectionClosed,
+    DeadlineExceeded,
     Error,
     Frames,
     Hello,
@@ -52,6 +53,8 @@ from protocol import (
     LocalProtocolError,
     Message,
     NotAuthenticated,
+    OperatorAnswer,
+    OperatorCall,
     Ping,
     Pong,
     Reload,
@@ -70,6 +73,7 @@ from protocol.constants import HEADER_SIZE, SUPPORTED_VERSIONS, MessageType
 from protocol.frames import Header, encode_metadata
 
 from ..admission import Admission, Slot, Waiter
+from ..operator_desk import OperatorDesk, desk_image
 from ..service import (
     CaptureReply,
     CaptureRequest,
@@ -113,6 +117,8 @@ class TcpFrontend:
         self.connections: set[TcpSession] = set()
         """The sessions open now (counted towards ``max_connections``)."""
         self._stopping = asyncio.Event()
+        self.operator_desk: OperatorDesk | None = None
+        """Where OPERATOR_CALLs wait for a person (the console's); None: refused (SPEC §6.6)."""
 
     @property
     def started(self) -> bool:
@@ -282,6 +288,8 @@ class TcpSession:
         self.max_reply_bytes = DEFAULT_MAX_FRAME_BYTES
         """The largest frame the client accepts (its HELLO's max_frame_bytes)."""
         self._shutdown = asyncio.Event()
+        self._reading_over = asyncio.Event()
+        """Set once nothing more is read: the client sent CLOSE or ended its stream."""
         self._tasks: set[asyncio.Task[None]] = set()
         self._tasks_done = asyncio.Event()
         """Set when the last request task of the connection has finished."""
@@ -406,6 +414,7 @@ class TcpSession:
         try:
             async with asyncio.TaskGroup() as group:
                 graceful = await self._read_loop(group)
+                self._reading_over.set()  # an operator call's robot is no longer listening
                 if not graceful:
                     for task in list(self._tasks):
                         task.cancel()
@@ -573,6 +582,9 @@ class TcpSession:
         if isinstance(message, Reload):
             self._start(group, self._reload(message))
             return True
+        if isinstance(message, OperatorCall):
+            self._start(group, self._operator_call(message, arrived))
+            return True
         self._write(
             Error.from_exception(
                 UnexpectedMessage(
@@ -704,6 +716,58 @@ class TcpSession:
                     catalog.camera_descriptors(),
                     catalog.notes,
                 )
+        if rid in self.conn.pending:
+            self._write(response)
+            await self._drain()
+
+    async def _operator_call(self, call: OperatorCall, arrived: float) -> None:
+        """Post the call on the operator desk and answer with the person's choice (SPEC §6.6):
+        no worker slot, just a wait, ended by the answer, the deadline, the client leaving
+        (DEADLINE_EXCEEDED: it gave up) or shutdown."""
+        rid = call.request_id
+        desk = self.frontend.operator_desk
+        response: Message
+        try:
+            if desk is None:
+                raise UnexpectedMessage(
+                    "this server has no operator console (console.enabled: false): nobody "
+                    "could answer an OPERATOR_CALL; ask the operator another way",
+                    request_id=rid,
+                )
+            if len(self.conn.pending) > self.settings.max_in_flight:
+                raise Busy(f"more than {self.settings.max_in_flight} requests in flight")
+            max_pixels = self.service.settings.max_image_pixels
+            images = await asyncio.to_thread(
+                lambda: [
+                    desk_image(p, max_pixels=max_pixels, where=f"images[{i}]")
+                    for i, p in enumerate(call.images)
+                ]
+            )
+            timeout_s = None
+            if call.deadline_ms is not None:
+                timeout_s = max(arrived + call.deadline_ms / 1000.0 - time.monotonic(), 0.0)
+            posted = desk.post(
+                peer=self.peer,
+                message=call.message,
+                choices=call.choices,
+                inspection=call.inspection,
+                skill=call.skill,
+                images=images,
+                timeout_s=timeout_s,
+            )
+            answer = await desk.wait(
+                posted,
+                timeout_s=timeout_s,
+                stop_when={
+                    self._shutdown: ShuttingDown("the server is stopping"),
+                    self._reading_over: DeadlineExceeded(
+                        "the client closed its connection; the operator call was withdrawn"
+                    ),
+                },
+            )
+            response = OperatorAnswer(rid, answer.choice, answer.by, answer.answered_at)
+        except CellvisionError as exc:
+            response = error_frame(exc, rid)
         if rid in self.conn.pending:
             self._write(response)
             await self._drain()

@@ -1,5 +1,5 @@
 // The console's entry point: the router between pages (#/cameras, #/inspections, #/results,
-// #/server), the login page shown whenever the API answers 401, and the status pill.
+// #/server, #/operator), the login page shown whenever the API answers 401, and the status pill.
 
 import { api, ApiError, onUnauthorized } from "./js/api.js";
 import { byId } from "./js/dom.js";
@@ -8,12 +8,14 @@ import { CamerasPage } from "./js/cameras.js";
 import { InspectionsPage } from "./js/inspections.js";
 import { ResultsPage } from "./js/results.js";
 import { ServerPage, statusText } from "./js/server.js";
+import { OperatorPage, operatorBadge } from "./js/operator.js";
 
 const pages = {
   cameras: new CamerasPage(),
   inspections: new InspectionsPage(),
   results: new ResultsPage(),
   server: new ServerPage(),
+  operator: new OperatorPage(),
 };
 const DEFAULT_PAGE = "cameras";
 
@@ -77,6 +79,7 @@ function lock() {
   if (current !== null) pages[current].stop();
   current = null;
   statusPoller.stop();
+  operatorBadge.stop();
   for (const section of document.querySelectorAll("section.page")) section.hidden = true;
   byId("page-login").hidden = false;
   byId("nav").hidden = true;
@@ -93,6 +96,7 @@ function unlock() {
   byId("login-error").textContent = "";
   byId("login-token").value = "";
   statusPoller.start();
+  operatorBadge.start();
   show(pageFromHash());
 }
 
@@ -132,10 +136,13 @@ document.addEventListener("visibilitychange", () => {
   if (document.hidden) {
     pages[current].stop();
     statusPoller.stop();
+    operatorBadge.stop();
   } else {
     pages[current].start();
     statusPoller.start();
+    operatorBadge.start();
   }
 });
 statusPoller.start();
+operatorBadge.start();
 show(pageFromHash());

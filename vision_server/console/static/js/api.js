@@ -99,4 +99,7 @@ export const api = {
   result: (id) => getJson(`/api/results/${encodeURIComponent(id)}`),
   resultImageUrl: (id) => `/api/results/${encodeURIComponent(id)}/image.png?overlay=1`,
   stats: (params) => getJson(`/api/stats${query(params)}`),
+  operatorCalls: () => getJson("/api/operator/calls"),
+  answerCall: (id, choice) =>
+    postJson(`/api/operator/calls/${encodeURIComponent(id)}/answer`, { choice }),
 };
