@@ -4,8 +4,8 @@ buffers (no intermediate ``bytes``, no join).
 
 Public API:
 
-- :class:`WireStream`: one connection; ``receive()`` (pulled by the owner: a frame's header
-  is read before its body, so the connection admits it first), ``pause_reading()`` /
+- :class:`WireStream`: one connection; ``receive()`` (pulled by the owner: a body is read
+  into its buffer once the connection has admitted its header), ``pause_reading()`` /
   ``resume_reading()``, ``writelines(parts)`` / ``write``, ``drain()``, ``close()``,
   ``abort()``, ``wait_closed()``, ``get_extra_info()``, ``start_tls()``.
 - :func:`serve` (a listening server for ``loop.create_server``) and :func:`open_connection`.
@@ -16,6 +16,6 @@ Imports only :mod:`protocol` and asyncio; ``vision_server`` and ``robot_client``
 
 from .endpoints import open_connection, serve
 from .framing import FrameCursor
-from .stream import EARLY_BUFFER_BYTES, WireStream
+from .stream import READ_BUFFER_BYTES, WireStream
 
-__all__ = ["EARLY_BUFFER_BYTES", "FrameCursor", "WireStream", "open_connection", "serve"]
+__all__ = ["READ_BUFFER_BYTES", "FrameCursor", "WireStream", "open_connection", "serve"]

@@ -16,8 +16,6 @@ async def serve(
     on_connect: OnConnect,
     host: str | None,
     port: int,
-    *,
-    lookahead: int | None = None,
     **kwargs: Any,
 ) -> asyncio.Server:
     """Listen on ``host``:``port``; each accepted connection runs ``on_connect(stream)`` as a
@@ -25,9 +23,7 @@ async def serve(
     :meth:`WireStream.receive` (so TLS can still be started on it). ``kwargs`` go to
     ``loop.create_server`` (``backlog``, ``reuse_address`` ...)."""
     loop = asyncio.get_running_loop()
-    return await loop.create_server(
-        lambda: WireStream(on_connect=on_connect, lookahead=lookahead), host, port, **kwargs
-    )
+    return await loop.create_server(lambda: WireStream(on_connect=on_connect), host, port, **kwargs)
 
 
 async def open_connection(
@@ -38,7 +34,6 @@ async def open_connection(
     ssl: ssl_module.SSLContext | None = None,
     server_hostname: str | None = None,
     ssl_handshake_timeout: float | None = None,
-    lookahead: int | None = None,
 ) -> WireStream:
     """Connect to ``host``:``port`` (TLS with ``ssl``) and carry ``conn`` over it."""
     loop = asyncio.get_running_loop()
@@ -47,9 +42,7 @@ async def open_connection(
         tls = {"ssl": ssl, "ssl_handshake_timeout": ssl_handshake_timeout}
         if server_hostname is not None:
             tls["server_hostname"] = server_hostname
-    _, stream = await loop.create_connection(
-        lambda: WireStream(conn, lookahead=lookahead), host, port, **tls
-    )
+    _, stream = await loop.create_connection(lambda: WireStream(conn), host, port, **tls)
     return stream
 
 

@@ -1,10 +1,12 @@
-"""Where the byte stream is, frame by frame: how many bytes the next read may take.
+"""Where the byte stream is, frame by frame, so that a frame's body can be read straight into
+the buffer the connection makes for it.
 
-The stream reads the start of each frame on its own (by default exactly its 24-byte header), so
-that the :class:`protocol.Connection` parses and admits the header before the body arrives; the
-body is then read straight into the buffer the connection gives it (no copy), and no read of a
-body takes bytes of the next frame along. This module only counts bytes and reads the body
-length from each header; every check of a header is the connection's.
+A read between frames takes whatever has arrived (small frames come many at a time). When it
+ends inside the body of a frame whose header it carried, that body's first bytes are held back
+until the :class:`protocol.Connection` has parsed and admitted the header; then they are copied
+once into the new body buffer, and the rest of the body is read into it directly. This module
+only counts bytes and reads the body length from each header; every check of a header is the
+connection's.
 """
 
 from __future__ import annotations
@@ -15,51 +17,36 @@ from protocol.constants import HEADER, HEADER_SIZE, MAGIC
 class FrameCursor:
     """Follows one direction of a byte stream through its frames.
 
-    :meth:`want` says how many bytes the next read may take; :meth:`advance` takes the bytes
-    read and says whether they completed a header (the owner must then look before more is
-    read). ``lookahead`` (bytes, >= 24) is what a read that starts a frame may take:
-    24 reads the header alone; more lets a small frame (PING, LIST_INSPECTIONS) arrive in one
-    read, at the price of the body bytes that come with a large frame's header being copied on
-    their way into its body. After bytes that are not a frame header (bad magic) the cursor
-    stops following the stream (``lost``); the connection raises a fatal error for it anyway.
+    After bytes that are not a frame header (bad magic) the cursor stops following the stream
+    (``lost``): everything is then handed on at once, and the connection raises a fatal error.
     """
 
-    def __init__(self, lookahead: int = HEADER_SIZE) -> None:
-        if lookahead < HEADER_SIZE:
-            raise ValueError(f"lookahead must be at least {HEADER_SIZE} bytes, got {lookahead}")
-        self.lookahead = lookahead
+    def __init__(self) -> None:
         self._header = bytearray()
         self._body_left: int | None = None
-        """Body bytes still to come of the current frame; None while a header is read."""
+        """Body bytes still to come of the current frame; None between frames or in a header."""
         self.lost = False
         """True once the stream was seen not to be framed (bad magic)."""
         self.frames = 0
         """Frames completed so far."""
 
     @property
-    def between_frames(self) -> bool:
-        """True when the next byte starts a frame."""
-        return not self._header and self._body_left is None
+    def body_left(self) -> int:
+        """Bytes still to come of the body being received (0 between frames or in a header)."""
+        return self._body_left or 0
 
-    def want(self, limit: int) -> int:
-        """How many bytes (at most ``limit``, which must be > 0) the next read should take."""
-        if self.lost:
-            return limit
-        if self._body_left is None:
-            return min(limit, max(HEADER_SIZE - len(self._header), self.lookahead))
-        return min(limit, self._body_left)
-
-    def advance(self, data: memoryview) -> bool:
-        """Take ``data``, the bytes just read. True when they completed a header (or showed
-        that the stream is not framed): the owner must see it, and admit the frame, before its
-        body is read. The end of a body needs no such stop: the next read is a header."""
-        header_done = False
-        view = data
-        while len(view) and not self.lost:
+    def advance(self, data: memoryview) -> int:
+        """Take ``data``, the bytes just read; how many of its first bytes may go to the
+        connection now. That is all of them, unless they end inside a body whose header they
+        carry: then the offset where that body starts (the rest waits for the header to be
+        admitted, so that it is copied into the body once, not buffered first)."""
+        offset, end = 0, len(data)
+        body_start: int | None = None
+        while offset < end and not self.lost:
             if self._body_left is None:
-                need = HEADER_SIZE - len(self._header)
-                self._header += view[:need]
-                view = view[need:]
+                piece = data[offset : offset + HEADER_SIZE - len(self._header)]
+                self._header += piece
+                offset += len(piece)
                 if len(self._header) < HEADER_SIZE:
                     break
                 fields = HEADER.unpack_from(self._header)
@@ -67,16 +54,19 @@ class FrameCursor:
                 if fields[0] != MAGIC:
                     self.lost = True
                     break
-                header_done = True
                 self._body_left = int(fields[-1])
+                body_start = offset
             else:
-                taken = min(self._body_left, len(view))
+                taken = min(self._body_left, end - offset)
                 self._body_left -= taken
-                view = view[taken:]
+                offset += taken
             if self._body_left == 0:
                 self._body_left = None
                 self.frames += 1
-        return header_done or self.lost
+                body_start = None
+        if self._body_left is not None and body_start is not None and not self.lost:
+            return body_start
+        return end
 
 
 __all__ = ["FrameCursor"]

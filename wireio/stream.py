@@ -2,12 +2,17 @@
 
 Received bytes go from the socket (or from asyncio's TLS layer, which decrypts into the buffer
 it is given) straight into :meth:`Connection.get_buffer`: an image's pixels land in the frame
-body its message views, with no intermediate ``bytes`` objects. Reading is pulled by the owner:
-the stream reads a frame's header alone, then waits until the owner has looked at it (the
-connection admits a frame at its header) before it reads the body, which it reads to its last
-byte, then the next header. So at most one frame and the next header are read beyond what the
-owner has seen; a connection whose owner does not ask for more stops there, and TCP's own flow
-control holds the peer back (backpressure), as when the owner pauses reading explicitly.
+body its message views, with no intermediate ``bytes`` objects.
+
+Between frames the stream reads whatever has arrived (up to :data:`READ_BUFFER_BYTES` a read,
+so pipelined small frames come together) into a buffer of its own and hands complete frames
+and headers to the connection. A large body (more than :data:`DIRECT_BODY_MIN` bytes still to
+come) is read into the buffer the connection makes for it once the owner has seen its header
+(the connection admits a frame at its header): reading waits for the owner there, and the
+body's first bytes that came along with the header are held back until then and copied into
+the body once. Reading also waits once :data:`UNSEEN_BYTES_MAX`
+bytes have come that the owner has not seen, and while the owner has paused it; then TCP's
+own flow control holds the peer back (backpressure).
 
 Sending takes a list of buffers (:meth:`Connection.send_parts`): nothing is joined. asyncio's
 plain socket transport of Python 3.11 joins in ``writelines``, so the parts are written one by
@@ -31,9 +36,15 @@ from .framing import FrameCursor
 
 log = logging.getLogger("wireio")
 
-EARLY_BUFFER_BYTES = 64 * 1024
-"""The read buffer for bytes that arrive before a connection is attached (a TLS client's first
-data can come with the end of the handshake)."""
+READ_BUFFER_BYTES = 64 * 1024
+"""The most one read between frames takes: what comes before a frame body (headers, small
+frames), and at most this much of a large body's first bytes, which are then copied once."""
+DIRECT_BODY_MIN = 64 * 1024
+"""A body with more than this still to come is read straight into its own buffer (reading
+waits for the owner to admit its header first); a smaller rest comes with the reads between
+frames (and is copied on its way, as small frames are)."""
+UNSEEN_BYTES_MAX = 256 * 1024
+"""Reading between frames stops once this much has been read that the owner has not seen."""
 
 OnConnect = Callable[["WireStream"], Awaitable[None]]
 WriteObserver = Callable[[memoryview], None]
@@ -47,16 +58,12 @@ class WireStream(asyncio.BufferedProtocol):
     :meth:`writelines` (``conn.send_parts(message)``) and :meth:`drain`.
 
     ``on_connect`` (server side): started as a task with this stream once the transport is
-    made; its failure is logged and the connection aborted. ``lookahead``: see
-    :class:`FrameCursor` (the default reads each header alone).
+    made; its failure is logged and the connection aborted. A connection attached late (after
+    TLS is started on the server) gets what came before it, copied.
     """
 
     def __init__(
-        self,
-        conn: Connection | None = None,
-        *,
-        on_connect: OnConnect | None = None,
-        lookahead: int | None = None,
+        self, conn: Connection | None = None, *, on_connect: OnConnect | None = None
     ) -> None:
         self._loop = asyncio.get_running_loop()
         self._conn = conn
@@ -65,7 +72,7 @@ class WireStream(asyncio.BufferedProtocol):
         self._transport: asyncio.Transport | None = None
         self._switching = False
         """True while start_tls swaps the transport: reading is not switched then."""
-        self._cursor = FrameCursor() if lookahead is None else FrameCursor(lookahead)
+        self._cursor = FrameCursor()
         self._gate = True
         """Read nothing until the owner has seen what was delivered (and has asked at all)."""
         self._paused_by_owner = False
@@ -79,7 +86,13 @@ class WireStream(asyncio.BufferedProtocol):
         self._write_paused = False
         self._drain_waiters: list[asyncio.Future[None]] = []
         self._view: memoryview | None = None
-        self._early_buffer: bytearray | None = None
+        self._direct = False
+        """True when the latest get_buffer view is the connection's own body buffer."""
+        self._body_is_direct = False
+        """True while the rest of the current (large) body is read into its own buffer."""
+        self._read_buffer: bytearray | None = None
+        self._held: memoryview | None = None
+        """A body's first bytes, read with its header, until the header has been seen."""
         self._early = bytearray()
         self.on_write: WriteObserver | None = None
         """Called with each buffer handed to the transport, in order (tests and benchmarks
@@ -258,27 +271,44 @@ class WireStream(asyncio.BufferedProtocol):
             self._owner_task = self._loop.create_task(self._run_owner(self._on_connect))
 
     def get_buffer(self, sizehint: int) -> memoryview:
-        if self._conn is not None:
-            view = self._conn.get_buffer()
+        # Held bytes must reach the connection before anything is read after them (this
+        # happens only when asyncio reads while we wait for the owner).
+        self._release_held()
+        body_left = self._cursor.body_left
+        self._direct = self._body_is_direct and body_left > 0
+        if self._direct and self._conn is not None:
+            view = self._conn.get_buffer()[:body_left]
         else:
-            if self._early_buffer is None:
-                self._early_buffer = bytearray(EARLY_BUFFER_BYTES)
-            view = memoryview(self._early_buffer)
-        self._view = view[: self._cursor.want(len(view))]
-        return self._view
+            if self._read_buffer is None:
+                self._read_buffer = bytearray(READ_BUFFER_BYTES)
+            view = memoryview(self._read_buffer)
+        self._view = view
+        return view
 
     def buffer_updated(self, nbytes: int) -> None:
         view, self._view = self._view, None
         if view is None or nbytes <= 0:
             return
-        boundary = self._cursor.advance(view[:nbytes])
-        if self._conn is not None:
-            self._conn.buffer_updated(nbytes)
+        data = view[:nbytes]
+        ready = self._cursor.advance(data)
+        large_body = self._cursor.body_left > DIRECT_BODY_MIN
+        conn = self._conn
+        if conn is None:
+            self._early += data
+        elif self._direct:
+            conn.buffer_updated(nbytes)
+            self._body_is_direct = self._cursor.body_left > 0
         else:
-            self._early += view[:nbytes]
+            if not large_body:
+                ready = nbytes
+            self._body_is_direct = large_body
+            conn.receive_data(data[:ready])
+            if ready < nbytes:
+                self._held = data[ready:]  # a view of our read buffer: nothing reads into it now
         self._fresh += nbytes
         self.received_bytes += nbytes
-        if boundary:
+        if not self._direct and (large_body or self._fresh >= UNSEEN_BYTES_MAX):
+            # A body comes next: its header must be admitted first. Or enough is unseen.
             self._gate = True
         self._apply_reading()
         self._wake()
@@ -317,7 +347,14 @@ class WireStream(asyncio.BufferedProtocol):
         if self._gate or self._paused_by_owner or self._eof:
             transport.pause_reading()
         else:
+            # The owner has seen the header of the body these bytes start: they go into it.
+            self._release_held()
             transport.resume_reading()
+
+    def _release_held(self) -> None:
+        held, self._held = self._held, None
+        if held is not None and self._conn is not None:
+            self._conn.receive_data(held)
 
     def _wake(self) -> None:
         if self._waiter is not None and not self._waiter.done():
@@ -327,6 +364,7 @@ class WireStream(asyncio.BufferedProtocol):
         if self._eof:
             return
         self._eof = True
+        self._release_held()
         if self._conn is not None:
             self._conn.receive_data(b"")
         self._wake()
@@ -350,4 +388,11 @@ class WireStream(asyncio.BufferedProtocol):
             self._closed.set_result(None)
 
 
-__all__ = ["EARLY_BUFFER_BYTES", "OnConnect", "WireStream", "WriteObserver"]
+__all__ = [
+    "DIRECT_BODY_MIN",
+    "READ_BUFFER_BYTES",
+    "UNSEEN_BYTES_MAX",
+    "OnConnect",
+    "WireStream",
+    "WriteObserver",
+]
