@@ -78,6 +78,7 @@ BUSY_BACKOFF_MAX_S = 0.2
 BUSY_JITTER = (0.8, 1.2)
 """Each wait after BUSY is scaled by a random factor in this range, so that clients refused
 together do not come back together."""
+_JITTER_RNG = random.Random()
 
 
 @dataclass(frozen=True)
@@ -459,10 +460,7 @@ class VisionClient:
             except Busy as exc:
                 if exc.fatal:
                     raise
-                hinted_s = retry_after_s(exc)
-                wait_s = (hinted_s if hinted_s is not None else backoff_s) * random.uniform(
-                    *BUSY_JITTER
-                )
+                wait_s = busy_wait_s(exc, backoff_s)
                 if loop.time() + wait_s > give_up:
                     raise  # the next try would come after busy_timeout_s
                 backoff_s = min(backoff_s * 2.0, BUSY_BACKOFF_MAX_S)
@@ -542,6 +540,14 @@ def retry_after_s(busy: Busy) -> float | None:
     if isinstance(hint, bool) or not isinstance(hint, int | float) or not hint >= 0:
         return None
     return float(hint) / 1000.0
+
+
+def busy_wait_s(busy: Busy, backoff_s: float, rng: random.Random | None = None) -> float:
+    """Seconds to wait before sending a request refused with ``busy`` again: the server's
+    hint, else ``backoff_s``, scaled by a random factor in :data:`BUSY_JITTER`."""
+    hinted_s = retry_after_s(busy)
+    base_s = hinted_s if hinted_s is not None else backoff_s
+    return base_s * (rng or _JITTER_RNG).uniform(*BUSY_JITTER)
 
 
 def _payload(image: ImageLike, role: ImageRole, encoding: ImageEncoding | None) -> ImagePayload:
