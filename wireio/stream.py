@@ -266,7 +266,13 @@ class WireStream(asyncio.BufferedProtocol):
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = cast(asyncio.Transport, transport)
-        self._apply_reading()  # nothing is read until the owner asks
+        # Nothing is read until the owner asks. Over TLS, not at once: asyncio's TLS layer
+        # (3.11) sends the handshake's last message after connection_made, and only when
+        # reading is not paused (a client that waits for the server would hang the handshake).
+        if transport.get_extra_info("sslcontext") is not None:
+            self._loop.call_soon(self._apply_reading)
+        else:
+            self._apply_reading()
         if self._on_connect is not None:
             self._owner_task = self._loop.create_task(self._run_owner(self._on_connect))
 
