@@ -42,6 +42,7 @@ COPY robot_client ./robot_client
 COPY simulation ./simulation
 COPY geometry ./geometry
 COPY yamlfile ./yamlfile
+COPY wireio ./wireio
 RUN pip install --no-cache-dir --no-deps --no-build-isolation . \
     && rm -rf /opt/cellvision/build
 

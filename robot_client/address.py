@@ -66,7 +66,10 @@ def add_connection_options(parser: argparse.ArgumentParser, *, top: bool) -> Non
         help="trust this CA or certificate (PEM) for TLS; implies --tls (default $CELLVISION_CA)",
     )
     group.add_argument(
-        "--timeout", type=float, default=unset, help="seconds per request (default 10)"
+        "--timeout",
+        type=float,
+        default=unset,
+        help="seconds per request, and for retrying a busy server (default 10)",
     )
     # Deprecated: a token on the command line is visible to every user through ps.
     group.add_argument("--auth-token", default=unset, help=argparse.SUPPRESS)

@@ -321,6 +321,8 @@ async def _run(args: argparse.Namespace, func: Command, console: Console) -> int
         ssl=ssl_context(endpoint),
         request_timeout_s=timeout_s,
         connect_timeout_s=timeout_s,
+        # A busy server is asked again (after its retry-after hint) within the same timeout.
+        busy_timeout_s=timeout_s,
         reconnect=ReconnectPolicy(attempts=0),
     )
     async with client:

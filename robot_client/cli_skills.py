@@ -65,6 +65,8 @@ def _devices(args: argparse.Namespace) -> Devices:
         ssl=ssl_context(endpoint),
         request_timeout_s=timeout_s,
         connect_timeout_s=timeout_s,
+        # A skill's inspection waits out a busy server (its retry-after hint) within --timeout.
+        busy_timeout_s=timeout_s,
     )
     if args.backend == "ur":
         if not args.robot_host:

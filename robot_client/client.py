@@ -3,7 +3,12 @@
 Requests are matched to responses by id, so many may be in flight at once (pipelining) and
 answers may come back in any order. A lost connection fails the requests in flight with
 :class:`ConnectionLost`; the next request reconnects (with exponential backoff) when
-``reconnect`` is on. Requests are never re-sent automatically.
+``reconnect`` is on. A request whose fate is unknown is never re-sent automatically; one the
+server refused with a non-fatal BUSY (not started) is, when ``busy_timeout_s`` is set.
+
+Images travel without copies on this side: a numpy image is sent from the caller's array (a
+view handed to the socket, no ``tobytes()``, no join), and answers are received straight into
+their frame body (:mod:`wireio`), where an overlay's bytes stay.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import asyncio
 import contextlib
 import itertools
 import logging
+import random
 import ssl as ssl_module
 import threading
 import time
@@ -27,6 +33,7 @@ from protocol import (
     NEED_DATA,
     OPERATOR_CHOICES,
     SUPPORTED_VERSIONS,
+    Busy,
     Capture,
     CellvisionError,
     Close,
@@ -56,6 +63,7 @@ from protocol import (
     array_from_payload,
     payload_from_array,
 )
+from wireio import WireStream, open_connection
 
 from .errors import ClientClosed, ConnectionLost, RequestTimeout
 
@@ -63,11 +71,17 @@ log = logging.getLogger("robot_client")
 _T = TypeVar("_T")
 _M = TypeVar("_M", bound=Message)
 
-READ_CHUNK = 256 * 1024
 DEFAULT_MAX_FRAME_BYTES = 256 * 1024 * 1024
 """The largest answer the client accepts by default: room for a CAPTURE of 30 1024x768 colour
 frames (70.8 MB), more than the protocol's 64 MiB default."""
 ImageLike = npt.NDArray[Any] | ImagePayload
+BUSY_BACKOFF_INITIAL_S = 0.005
+BUSY_BACKOFF_MAX_S = 0.2
+"""Without a retry-after hint, BUSY is retried after 5 ms, doubling up to 200 ms (jittered)."""
+BUSY_JITTER = (0.8, 1.2)
+"""Each wait after BUSY is scaled by a random factor in this range, so that clients refused
+together do not come back together."""
+_JITTER_RNG = random.Random()
 
 
 @dataclass(frozen=True)
@@ -102,11 +116,18 @@ class VisionClient:
         ssl: ssl_module.SSLContext | None = None,
         max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES,
         keepalive: bool = True,
+        busy_timeout_s: float | None = None,
     ) -> None:
         """``max_frame_bytes`` is the largest answer this client accepts; it is announced in
         HELLO, and the server answers a request whose reply would be larger with an ERROR.
         With ``keepalive``, an idle connection sends PING before the server's announced idle
-        timeout closes it."""
+        timeout closes it.
+
+        ``busy_timeout_s``: an INSPECT or CAPTURE refused with a non-fatal BUSY is sent again
+        after the server's ``retry_after_ms`` hint (or an exponential back-off, 5 ms doubling
+        to 200 ms), jittered by 0.8-1.2x, until this many seconds have passed since the first
+        send; then the last BUSY is raised. None (the default) raises BUSY at once. Retries are
+        counted in ``busy_retries``."""
         self.host = host
         self.port = port
         self.auth_token = auth_token
@@ -117,10 +138,13 @@ class VisionClient:
         self.ssl = ssl
         self.max_frame_bytes = max_frame_bytes
         self.keepalive = keepalive
+        self.busy_timeout_s = busy_timeout_s
+        self.busy_retries = 0
+        """Requests sent again after a BUSY (see ``busy_timeout_s``)."""
         self._keepalive_task: asyncio.Task[None] | None = None
         self.welcome: Welcome | None = None
         self._conn: Connection | None = None
-        self._writer: asyncio.StreamWriter | None = None
+        self._stream: WireStream | None = None
         self._reader_task: asyncio.Task[None] | None = None
         self._pending: dict[int, asyncio.Future[Message]] = {}
         self._ids = itertools.count(1)
@@ -136,6 +160,12 @@ class VisionClient:
     def connected(self) -> bool:
         return self._conn is not None and self._conn.state is State.OPEN
 
+    @property
+    def stream(self) -> WireStream | None:
+        """The stream of the current connection (None when not connected): its address
+        (``get_extra_info``) and byte counters, for tools and tests."""
+        return self._stream
+
     async def connect(self) -> Welcome:
         """Open the connection and do the handshake; returns the server's WELCOME."""
         async with self._connect_lock:
@@ -145,27 +175,25 @@ class VisionClient:
             return await self._open()
 
     async def _open(self) -> Welcome:
-        try:
-            async with asyncio.timeout(self.connect_timeout_s):
-                reader, writer = await asyncio.open_connection(
-                    self.host, self.port, ssl=self.ssl, limit=READ_CHUNK
-                )
-        except (OSError, TimeoutError) as exc:
-            raise ConnectionLost(
-                f"cannot connect to {self.host}:{self.port}: {exc or type(exc).__name__}"
-            ) from exc
         conn = Connection(
             Role.CLIENT,
             limits=Limits(max_frame_bytes=self.max_frame_bytes),
             versions=SUPPORTED_VERSIONS,
         )
-        self._conn, self._writer = conn, writer
+        try:
+            async with asyncio.timeout(self.connect_timeout_s):
+                stream = await open_connection(self.host, self.port, conn, ssl=self.ssl)
+        except (OSError, TimeoutError) as exc:
+            raise ConnectionLost(
+                f"cannot connect to {self.host}:{self.port}: {exc or type(exc).__name__}"
+            ) from exc
+        self._conn, self._stream = conn, stream
         hello_id = self._new_id()
         future: asyncio.Future[Message] = asyncio.get_running_loop().create_future()
         self._pending[hello_id] = future
-        self._reader_task = asyncio.create_task(self._read_loop(conn, reader, writer))
-        writer.write(
-            conn.send(
+        self._reader_task = asyncio.create_task(self._read_loop(conn, stream))
+        stream.writelines(
+            conn.send_parts(
                 Hello(
                     hello_id,
                     SUPPORTED_VERSIONS,
@@ -177,7 +205,7 @@ class VisionClient:
         )
         try:
             async with asyncio.timeout(self.connect_timeout_s):
-                await writer.drain()
+                await stream.drain()
                 answer = await future
         except TimeoutError:
             await self._drop_connection(ConnectionLost("no WELCOME within the connect timeout"))
@@ -216,11 +244,11 @@ class VisionClient:
     async def close(self) -> None:
         """Graceful close: CLOSE, wait for the answers in flight and the server's CLOSE."""
         self._closed = True
-        conn, writer, task = self._conn, self._writer, self._reader_task
-        if conn is not None and writer is not None and conn.state is State.OPEN:
+        conn, stream, task = self._conn, self._stream, self._reader_task
+        if conn is not None and stream is not None and conn.state is State.OPEN:
             with contextlib.suppress(Exception):
-                writer.write(conn.send(Close(reason="client done")))
-                await writer.drain()
+                stream.writelines(conn.send_parts(Close(reason="client done")))
+                await stream.drain()
             if task is not None:
                 with contextlib.suppress(Exception):
                     async with asyncio.timeout(self.connect_timeout_s):
@@ -238,18 +266,18 @@ class VisionClient:
         keepalive, self._keepalive_task = self._keepalive_task, None
         if keepalive is not None and keepalive is not asyncio.current_task():
             keepalive.cancel()
-        task, writer = self._reader_task, self._writer
+        task, stream = self._reader_task, self._stream
         self._reader_task = None
-        self._writer = None
+        self._stream = None
         self._conn = None
         if task is not None and task is not asyncio.current_task():
             task.cancel()
             with contextlib.suppress(BaseException):
                 await task
-        if writer is not None:
-            writer.close()
+        if stream is not None:
+            stream.close()
             with contextlib.suppress(Exception):
-                await writer.wait_closed()
+                await stream.wait_closed()
         self._fail_all(reason)
 
     def _fail_all(self, reason: Exception) -> None:
@@ -259,14 +287,12 @@ class VisionClient:
             if not future.done():
                 future.set_exception(reason)
 
-    async def _read_loop(
-        self, conn: Connection, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
-    ) -> None:
+    async def _read_loop(self, conn: Connection, stream: WireStream) -> None:
         reason: Exception = ConnectionLost("the server closed the connection")
         try:
             while True:
-                data = await reader.read(READ_CHUNK)
-                conn.receive_data(data)
+                # The bytes go straight into the connection (an answer's body, no copy).
+                await stream.receive()
                 while True:
                     try:
                         event = conn.next_event()
@@ -307,9 +333,9 @@ class VisionClient:
         finally:
             if self._conn is conn:
                 self._conn = None
-                self._writer = None
+                self._stream = None
                 self._reader_task = None
-                writer.close()
+                stream.close()
             self._fail_all(reason)
 
     def _deliver(self, message: Message) -> None:
@@ -333,20 +359,20 @@ class VisionClient:
             if rid and rid not in self._pending:
                 return rid
 
-    async def _ensure_connected(self) -> tuple[Connection, asyncio.StreamWriter]:
+    async def _ensure_connected(self) -> tuple[Connection, WireStream]:
         if self._closed:
             raise ClientClosed("the client was closed")
-        if self.connected and self._conn is not None and self._writer is not None:
-            return self._conn, self._writer
+        if self.connected and self._conn is not None and self._stream is not None:
+            return self._conn, self._stream
         async with self._connect_lock:
             if not self.connected:
                 if self.welcome is None:
                     await self._open()
                 else:
                     await self._reconnect()
-        if self._conn is None or self._writer is None:
+        if self._conn is None or self._stream is None:
             raise ConnectionLost(f"the connection to {self.host}:{self.port} dropped at once")
-        return self._conn, self._writer
+        return self._conn, self._stream
 
     async def _reconnect(self) -> None:
         last: Exception = ConnectionLost("reconnect is off")
@@ -364,18 +390,18 @@ class VisionClient:
             f"{self.reconnect.attempts} attempts: {last}"
         )
 
-    async def _wait_for_room(self, timeout_s: float) -> tuple[Connection, asyncio.StreamWriter]:
+    async def _wait_for_room(self, timeout_s: float) -> tuple[Connection, WireStream]:
         """The connection, once it has fewer requests in flight than the server's
         ``max_in_flight`` (SPEC §3.4: a client MUST NOT exceed it). Requests that timed out
         on our side still count until their late answer comes: the server is still on them.
         Raises RequestTimeout when no room is made within ``timeout_s``."""
         deadline = asyncio.get_running_loop().time() + timeout_s
         while True:
-            conn, writer = await self._ensure_connected()
+            conn, stream = await self._ensure_connected()
             welcome = self.welcome
             room = welcome.limits.get("max_in_flight", 0) if welcome is not None else 0
             if room <= 0 or len(conn.pending) < room:
-                return conn, writer
+                return conn, stream
             self._room.clear()
             try:
                 async with asyncio.timeout_at(deadline):
@@ -396,14 +422,15 @@ class VisionClient:
         :class:`ConnectionLost`.
         """
         limit = self.request_timeout_s if timeout_s is None else timeout_s
-        conn, writer = await self._wait_for_room(limit)
+        conn, stream = await self._wait_for_room(limit)
         rid = self._new_id()
         message = build(rid)
         future: asyncio.Future[Message] = asyncio.get_running_loop().create_future()
         self._pending[rid] = future
         try:
-            writer.write(conn.send(message))
-            await writer.drain()
+            # The frame's parts as they are: an image blob is a view of the caller's array.
+            stream.writelines(conn.send_parts(message))
+            await stream.drain()
         except (OSError, ConnectionError) as exc:
             self._pending.pop(rid, None)
             raise ConnectionLost(f"connection lost while sending: {exc}") from exc
@@ -419,6 +446,30 @@ class VisionClient:
             ) from None
         finally:
             self._pending.pop(rid, None)
+
+    async def _request_work(
+        self, build: Callable[[int], _M], *, timeout_s: float | None = None
+    ) -> Message:
+        """:meth:`request` for INSPECT and CAPTURE: a non-fatal BUSY is retried for up to
+        ``busy_timeout_s`` (see the constructor), each time with a new request id."""
+        if self.busy_timeout_s is None:
+            return await self.request(build, timeout_s=timeout_s)
+        loop = asyncio.get_running_loop()
+        give_up = loop.time() + self.busy_timeout_s
+        backoff_s = BUSY_BACKOFF_INITIAL_S
+        while True:
+            try:
+                return await self.request(build, timeout_s=timeout_s)
+            except Busy as exc:
+                if exc.fatal:
+                    raise
+                wait_s = busy_wait_s(exc, backoff_s)
+                if loop.time() + wait_s > give_up:
+                    raise  # the next try would come after busy_timeout_s
+                backoff_s = min(backoff_s * 2.0, BUSY_BACKOFF_MAX_S)
+                log.debug("BUSY (%s); sending again in %.3f s", exc.message, wait_s)
+                await asyncio.sleep(wait_s)
+                self.busy_retries += 1
 
     # ------------------------------------------------------------------ requests
 
@@ -457,7 +508,7 @@ class VisionClient:
             images.append(_payload(image, ImageRole.COLOR, encoding))
         images.extend(_payload(d, ImageRole.DEPTH, None) for d in depth)
         deadline_ms = None if deadline_s is None else deadline_s * 1000.0
-        answer = await self.request(
+        answer = await self._request_work(
             lambda rid: Inspect(
                 rid, inspection, tuple(images), deadline_ms, overlay, dict(options or {})
             ),
@@ -478,7 +529,7 @@ class VisionClient:
         """``count`` distinct frames from a server camera (colour, plus depth when asked);
         colour raw, or PNG/JPEG with ``encoding``."""
         wire = None if encoding is None else ImageEncoding(encoding).value
-        answer = await self.request(
+        answer = await self._request_work(
             lambda rid: Capture(rid, camera, count, depth, wire), timeout_s=timeout_s
         )
         assert isinstance(answer, Frames)
@@ -513,9 +564,27 @@ class VisionClient:
         return answer
 
 
+def retry_after_s(busy: Busy) -> float | None:
+    """The server's hint in a BUSY (``details.retry_after_ms``: when a slot is expected to
+    free), in seconds; None when it gives none (or nothing usable)."""
+    hint = busy.details.get("retry_after_ms")
+    if isinstance(hint, bool) or not isinstance(hint, int | float) or not hint >= 0:
+        return None
+    return float(hint) / 1000.0
+
+
+def busy_wait_s(busy: Busy, backoff_s: float, rng: random.Random | None = None) -> float:
+    """Seconds to wait before sending a request refused with ``busy`` again: the server's
+    hint, else ``backoff_s``, scaled by a random factor in :data:`BUSY_JITTER`."""
+    hinted_s = retry_after_s(busy)
+    base_s = hinted_s if hinted_s is not None else backoff_s
+    return base_s * (rng or _JITTER_RNG).uniform(*BUSY_JITTER)
+
+
 def _payload(image: ImageLike, role: ImageRole, encoding: ImageEncoding | None) -> ImagePayload:
     if isinstance(image, ImagePayload):
         return image
+    # Raw encodings view the array (a copy only when it is not C-contiguous little-endian).
     return payload_from_array(np.asarray(image), role=role, encoding=encoding)
 
 
@@ -529,7 +598,8 @@ def overlay_image(result: Result) -> npt.NDArray[Any] | None:
 
 class SyncVisionClient:
     """A blocking facade over :class:`VisionClient` for scripts and robot programs that are
-    not asyncio: it runs a private event loop in a background thread."""
+    not asyncio: it runs a private event loop in a background thread. Keyword arguments are
+    VisionClient's (``request_timeout_s``, ``busy_timeout_s`` ...)."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 7878, **kwargs: Any) -> None:
         self._loop = asyncio.new_event_loop()
@@ -563,6 +633,11 @@ class SyncVisionClient:
     def operator_call(self, message: str, **kwargs: Any) -> OperatorAnswer:
         """See :meth:`VisionClient.operator_call` (blocks until the person answers)."""
         return self._call(self._client.operator_call(message, **kwargs))
+
+    @property
+    def busy_retries(self) -> int:
+        """Requests sent again after a BUSY (see VisionClient's ``busy_timeout_s``)."""
+        return self._client.busy_retries
 
     def close(self) -> None:
         if self._loop.is_running():

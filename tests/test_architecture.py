@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-OURS = {"protocol", "vision_server", "robot_client", "simulation", "geometry", "yamlfile"}
+OURS = {"protocol", "vision_server", "robot_client", "simulation", "geometry", "yamlfile", "wireio"}
 IO_FRAMEWORKS = {"asyncio", "socket", "ssl", "selectors", "socketserver", "trio", "anyio"}
 THIRD_PARTY_ALLOWED = {
     # simulation: numpy/OpenCV; it reads its scene files through yamlfile, not PyYAML itself
@@ -72,6 +72,15 @@ def test_conformance_suite_uses_only_protocol() -> None:
 def test_server_and_client_never_import_each_other(package: str, forbidden: str) -> None:
     for path in _files(package):
         assert forbidden not in _imports(path), f"{path} imports {forbidden}"
+
+
+def test_wireio_imports_protocol_and_the_standard_library_only() -> None:
+    """wireio is asyncio I/O for the protocol: of ours only protocol, nothing third-party;
+    the server and the client import it, never the other way round."""
+    stdlib = set(sys.stdlib_module_names) | {"__future__"}
+    for path in _files("wireio"):
+        extra = _imports(path) - stdlib - {"protocol", "wireio"}
+        assert not extra, f"{path} imports {extra}"
 
 
 @pytest.mark.parametrize("package", ["simulation", "geometry", "yamlfile"])

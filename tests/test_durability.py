@@ -54,8 +54,8 @@ def test_every_acknowledged_result_survives_a_sigkill_mid_burst(tmp_path: Path) 
                 "127.0.0.1", port, request_timeout_s=60.0, reconnect=ReconnectPolicy(attempts=0)
             )
             await client.connect()
-            assert client._writer is not None
-            host, local_port = client._writer.get_extra_info("sockname")[:2]
+            assert client.stream is not None
+            host, local_port = client.stream.get_extra_info("sockname")[:2]
 
             async def one(i: int) -> None:
                 level = i % 256

@@ -26,7 +26,15 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent  # where the project's console scripts are installed
 # What the flow needs from the checkout: the code, the example cell, the ignore rules.
-COPIED = ("protocol", "vision_server", "robot_client", "simulation", "geometry", "examples")
+COPIED = (
+    "protocol",
+    "vision_server",
+    "robot_client",
+    "simulation",
+    "geometry",
+    "wireio",
+    "examples",
+)
 TIMEOUT_S = 300  # a hung process fails the test instead of blocking it; no verdict depends on it
 
 pytestmark = [

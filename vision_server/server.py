@@ -9,7 +9,7 @@ The parts live in :mod:`vision_server.service` (the runtime), :mod:`vision_serve
 from __future__ import annotations
 
 from .app import App
-from .frontends.tcp import DEFAULT_MAX_FRAME_BYTES, READ_CHUNK, REFUSE_HELLO_TIMEOUT_S
+from .frontends.tcp import DEFAULT_MAX_FRAME_BYTES, REFUSE_HELLO_TIMEOUT_S
 from .service import InspectionRecord
 from .settings import SERVER_VERSION, ServerSettings
 
@@ -19,7 +19,6 @@ VisionServer = App
 
 __all__ = [
     "DEFAULT_MAX_FRAME_BYTES",
-    "READ_CHUNK",
     "REFUSE_HELLO_TIMEOUT_S",
     "InspectionRecord",
     "ServerSettings",

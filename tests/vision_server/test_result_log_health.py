@@ -95,8 +95,8 @@ def test_a_result_that_was_not_logged_says_so_and_the_server_turns_unhealthy(
                 "127.0.0.1", port, request_timeout_s=60.0, reconnect=ReconnectPolicy(attempts=0)
             )
             await client.connect()
-            assert client._writer is not None
-            host, local_port = client._writer.get_extra_info("sockname")[:2]
+            assert client.stream is not None
+            host, local_port = client.stream.get_extra_info("sockname")[:2]
             image = (payload_from_array(np.full((48, 64), 120, np.uint8)),)
 
             async def one() -> Result:

@@ -1,4 +1,4 @@
-"""The TCP front-end: the cellvision binary protocol (SPEC.md) over asyncio streams, as a thin
+"""The TCP front-end: the cellvision binary protocol (SPEC.md) over :mod:`wireio` streams, as a thin
 adapter over :class:`vision_server.service.InspectionService`.
 
 One task reads each connection and feeds a sans-IO :class:`protocol.Connection`; each INSPECT or
@@ -70,7 +70,8 @@ from protocol import (
     payload_from_array,
 )
 from protocol.constants import HEADER_SIZE, SUPPORTED_VERSIONS, MessageType
-from protocol.frames import Header, encode_metadata
+from protocol.frames import Blob, Header, encode_metadata
+from wireio import WireStream, serve
 
 from ..admission import Admission, Slot, Waiter
 from ..operator_desk import OperatorDesk, desk_image
@@ -89,7 +90,6 @@ from .images import payload_loader
 
 log = logging.getLogger("vision_server")
 
-READ_CHUNK = 256 * 1024
 DEFAULT_MAX_FRAME_BYTES = Limits().max_frame_bytes
 """What a client accepts when its HELLO does not say (SPEC §3.4 default)."""
 REFUSE_HELLO_TIMEOUT_S = 2.0
@@ -141,9 +141,7 @@ class TcpFrontend:
         # TLS is started per connection in _accept, after the connection is counted, so that
         # connections still in the TLS handshake count towards max_connections and time out.
         self._ssl = self.settings.ssl_context()
-        self._server = await asyncio.start_server(
-            self._accept, self.settings.host, self.settings.port, limit=READ_CHUNK
-        )
+        self._server = await serve(self._accept, self.settings.host, self.settings.port)
         log.info("listening on %s:%d", self.settings.host, self.port)
 
     async def stop(self) -> None:
@@ -179,45 +177,43 @@ class TcpFrontend:
 
     # ------------------------------------------------------------------ connections
 
-    async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    async def _accept(self, stream: WireStream) -> None:
         if len(self.connections) >= self.settings.max_connections or self._stopping.is_set():
             reason = "too many connections" if not self._stopping.is_set() else "stopping"
             # Refusing politely costs a read (and a TLS handshake); never more of them at once
             # than connections: past that, a flood is just closed.
             if self._refusing >= self.settings.max_connections:
-                writer.transport.abort()
+                stream.abort()
                 return
             self._refusing += 1
             try:
-                if await self._start_tls(writer, REFUSE_HELLO_TIMEOUT_S):
-                    await self._refuse(reader, writer, reason)
+                if await self._start_tls(stream, REFUSE_HELLO_TIMEOUT_S):
+                    await self._refuse(stream, reason)
             finally:
                 self._refusing -= 1
             return
-        session = TcpSession(self, reader, writer)
+        session = TcpSession(self, stream)
         self.connections.add(session)
         try:
-            if await self._start_tls(writer, self.settings.handshake_timeout_s):
+            if await self._start_tls(stream, self.settings.handshake_timeout_s):
                 await session.run()
         finally:
             self.connections.discard(session)
             session.admission_cleanup()
 
-    async def _start_tls(self, writer: asyncio.StreamWriter, timeout_s: float) -> bool:
+    async def _start_tls(self, stream: WireStream, timeout_s: float) -> bool:
         """Wrap the connection in TLS when the server has TLS; False (and closed) on failure."""
         if self._ssl is None:
             return True
         try:
-            await writer.start_tls(self._ssl, ssl_handshake_timeout=timeout_s)
+            await stream.start_tls(self._ssl, server_side=True, ssl_handshake_timeout=timeout_s)
         except Exception as exc:  # noqa: BLE001 - whatever the peer did, only it is dropped
             log.info("TLS handshake failed: %s", exc or type(exc).__name__)
-            writer.transport.abort()
+            stream.abort()
             return False
         return True
 
-    async def _refuse(
-        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, reason: str
-    ) -> None:
+    async def _refuse(self, stream: WireStream, reason: str) -> None:
         """Answer the HELLO with BUSY, then close.
 
         The BUSY carries the HELLO's request id, so that the client's handshake fails with it,
@@ -226,33 +222,35 @@ class TcpFrontend:
         would reset the connection before the client could read the BUSY.
         """
         conn = Connection(Role.SERVER, limits=self.settings.limits())
+        stream.attach(conn)
         request_id = 0
         try:
             with contextlib.suppress(CellvisionError, TimeoutError):
                 async with asyncio.timeout(REFUSE_HELLO_TIMEOUT_S):
                     event: object = NEED_DATA
                     while event is NEED_DATA:
-                        conn.receive_data(await reader.read(READ_CHUNK))
+                        await stream.receive()
                         event = conn.next_event()
                     if isinstance(event, Hello):
                         request_id = event.request_id
             exc = Busy(
                 f"server refuses the connection: {reason}", request_id=request_id, fatal=True
             )
-            writer.write(_late_error(conn, exc))
-            await writer.drain()
+            stream.writelines(_late_error(conn, exc))
+            await stream.drain()
         except (ConnectionError, OSError) as exc:
             log.info("refused connection lost: %s", exc)
         finally:
-            writer.close()
+            stream.close()
 
 
-def _late_error(conn: Connection, exc: CellvisionError) -> bytes:
-    """Bytes of an ERROR sent outside the normal flow (before HELLO, or after a fatal error)."""
+def _late_error(conn: Connection, exc: CellvisionError) -> list[Blob]:
+    """The frame of an ERROR sent outside the normal flow (before HELLO, or after a fatal
+    error), as buffers to write."""
     try:
-        return conn.send(Error.from_exception(exc))
+        return conn.send_parts(Error.from_exception(exc))
     except LocalProtocolError:
-        return Error.from_exception(exc).to_frame(conn.wire_version).serialize()
+        return Error.from_exception(exc).to_frame(conn.wire_version).serialize_parts()
 
 
 class TcpSession:
@@ -264,14 +262,11 @@ class TcpSession:
     What a request holds is released once its answer has been handed to the socket and drained.
     """
 
-    def __init__(
-        self, frontend: TcpFrontend, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
-    ) -> None:
+    def __init__(self, frontend: TcpFrontend, stream: WireStream) -> None:
         self.frontend = frontend
         self.service = frontend.service
         self.settings = frontend.settings
-        self.reader = reader
-        self.writer = writer
+        self.stream = stream
         self.conn = Connection(
             Role.SERVER,
             limits=self.settings.limits(),
@@ -279,6 +274,7 @@ class TcpSession:
             check_header=self._check_header,
             admit=self._admit,
         )
+        stream.attach(self.conn)
         self.finished = asyncio.Event()
         self.handshake_deadline = time.monotonic() + self.settings.handshake_timeout_s
         """The TLS handshake and HELLO must be done by then (monotonic seconds)."""
@@ -301,7 +297,7 @@ class TcpSession:
         self._refusal: CellvisionError | None = None
         self._last_activity = time.monotonic()
         self._frame_started: float | None = None
-        peer = writer.get_extra_info("peername")
+        peer = stream.get_extra_info("peername")
         self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
 
     def begin_shutdown(self) -> None:
@@ -369,9 +365,11 @@ class TcpSession:
         assert waiter is not None
         waiting = asyncio.ensure_future(self.service.slot_after(waiter))
         stop = asyncio.ensure_future(self._shutdown.wait())
+        self.stream.pause_reading()
         try:
             await asyncio.wait({waiting, stop}, return_when=asyncio.FIRST_COMPLETED)
         finally:
+            self.stream.resume_reading()
             stop.cancel()
             if not waiting.done():
                 waiting.cancel()
@@ -429,9 +427,9 @@ class TcpSession:
         except* Exception:
             log.exception("%s: unexpected error; closing this connection only", self.peer)
         finally:
-            self.writer.close()
+            self.stream.close()
             with contextlib.suppress(Exception):
-                await self.writer.wait_closed()
+                await self.stream.wait_closed()
             self.admission_cleanup()
             self.finished.set()
 
@@ -461,7 +459,7 @@ class TcpSession:
         while True:
             # Backpressure: do not read more while the peer is not reading our answers.
             await self._drain()
-            read = asyncio.ensure_future(self.reader.read(READ_CHUNK))
+            read = asyncio.ensure_future(self.stream.receive())
             stop = asyncio.ensure_future(self._shutdown.wait())
             timeout, why = self._read_timeout()
             waiters = {read, stop}
@@ -503,10 +501,9 @@ class TcpSession:
                 await self._shutdown_session()
                 return True
             stop.cancel()
-            data = read.result()
-            if data and self._frame_started is None:
+            # The bytes are in the connection already (read into its frame body).
+            if read.result() and self._frame_started is None:
                 self._frame_started = time.monotonic()
-            self.conn.receive_data(data)
             frame_ended = False
             while True:
                 try:
@@ -516,7 +513,7 @@ class TcpSession:
                     self._release(self._take_frame_admission())
                     log.info("%s: %s: %s", self.peer, exc.code.name, exc.message)
                     if exc.fatal:
-                        self.writer.write(_late_error(self.conn, exc))
+                        self.stream.writelines(_late_error(self.conn, exc))
                         await self._drain()
                         return False
                     # Request id 0 (e.g. a request sent with id 0) gets a connection-level
@@ -796,11 +793,11 @@ class TcpSession:
                 "%s: dropped %s that the state machine refused", self.peer, message.TYPE.name
             )
             return
-        if not self.writer.is_closing():
-            self.writer.write(data)
+        if not self.stream.is_closing():
+            self.stream.writelines(data)
             self._last_activity = time.monotonic()
 
-    def _encode(self, message: Message) -> bytes:
+    def _encode(self, message: Message) -> list[Blob]:
         rid = message.request_id
         try:
             frame = message.to_frame(self.conn.wire_version)
@@ -810,7 +807,7 @@ class TcpSession:
             # Data JSON cannot carry (numpy scalars, NaN): fail this request, not the
             # connection (the state machine is unchanged when serializing fails).
             log.error("%s: answer to request %d not sendable: %s", self.peer, rid, exc)
-            return self.conn.send(
+            return self.conn.send_parts(
                 Error.from_exception(
                     InternalError(f"the server could not encode its answer: {exc}", request_id=rid)
                 )
@@ -819,7 +816,7 @@ class TcpSession:
             log.warning(
                 "%s: %s of %d bytes exceeds the client's limit", self.peer, message.TYPE.name, size
             )
-            return self.conn.send(
+            return self.conn.send_parts(
                 Error.from_exception(
                     InvalidArgument(
                         f"the answer ({message.TYPE.name}) is {size} bytes, more than the "
@@ -831,22 +828,22 @@ class TcpSession:
                     )
                 )
             )
-        return self.conn.send(message)
+        return self.conn.send_parts(message)
 
     async def _drain(self) -> None:
         """Wait until the client has taken our answers; drop a client that does not read."""
-        if self.writer.is_closing():
+        if self.stream.is_closing():
             return
         try:
             async with asyncio.timeout(self.settings.write_timeout_s):
-                await self.writer.drain()
+                await self.stream.drain()
         except TimeoutError:
             log.warning(
                 "%s: the client has not read its answers for %g s; dropping it",
                 self.peer,
                 self.settings.write_timeout_s,
             )
-            self.writer.transport.abort()
+            self.stream.abort()
             raise ConnectionAbortedError("slow reader dropped") from None
 
 
