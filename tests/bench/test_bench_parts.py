@@ -99,23 +99,39 @@ def test_without_a_copies_helper_the_figure_is_not_measured(
 
 @pytest.mark.parametrize(
     ("answer", "figure"),
-    [(1, "1"), ({"server": 1, "client": 0}, "server 1, client 0"), ("three", "not measured")],
+    [
+        (1, "1"),
+        ({"server": 1, "client": 0}, "server 1, client 0"),
+        (
+            types.SimpleNamespace(server_copies=0.083, client_copies=0.0),
+            "server 0.083, client 0.000",
+        ),
+        ("three", "not measured"),
+    ],
 )
-def test_the_copies_helper_is_called_with_the_image(
+def test_the_copies_helper_is_called_with_the_image_size(
     monkeypatch: pytest.MonkeyPatch, answer: Any, figure: str
 ) -> None:
     seen: list[Any] = []
 
-    def count_copies(image: Any) -> Any:
-        seen.append(image)
+    def count_copies(width: int, height: int) -> Any:
+        seen.append((width, height))
         return answer
 
     module = types.ModuleType("bench_fake_copies")
     module.count_copies = count_copies  # type: ignore[attr-defined]
     monkeypatch.setitem(sys.modules, "bench_fake_copies", module)
     monkeypatch.setattr(copies, "PLACES", ("bench_fake_copies",))
-    assert copies.copies_per_request("image")[0] == figure
-    assert seen == ["image"]
+    image = types.SimpleNamespace(shape=(768, 1024))
+    assert copies.copies_per_request(image)[0] == figure
+    assert seen == [(1024, 768)]
+
+
+def test_the_real_copies_helper_counts_at_most_one_server_copy() -> None:
+    figure, why = copies.copies_per_request(types.SimpleNamespace(shape=(768, 1024)))
+    assert "count_copies in copies" in why
+    server = float(figure.split(",")[0].split()[1])
+    assert server <= 1.0
 
 
 def model(one: float, n: float, *, default_n: float | None = None) -> Any:
