@@ -2,9 +2,9 @@
 ``retry_after_ms`` hint (or a jittered back-off) until the timeout, then raises the last BUSY.
 
 A real server with one slot (workers=1, queue_depth=0) whose slot a gated inspection holds:
-every other INSPECT is BUSY until the test opens the gate. Verdicts are counts of retries and
-the answers, never durations. The hint is added to the server's BUSY by wrapping its
-admission (``retry_after_ms`` in the details, as SPEC §7 will have the server send it).
+every other INSPECT is BUSY (admission_wait_s 0: no waiting unread) until the test opens the
+gate. Verdicts are counts of retries and the answers, never durations. The server's own hint
+(``retry_after_ms`` in BUSY's details, SPEC §6.1) is replaced by the test's to control it.
 """
 
 from __future__ import annotations
@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import random
 from collections.abc import Iterator
-from typing import Any
 
 import numpy as np
 import pytest
@@ -42,22 +41,26 @@ def one_slot(gate: Gate) -> Iterator[VisionServer]:
         [RequestCamera("tool", RequestCameraSettings())],
         [gate, MeanIntensityPresence("brightness", "tool", 64.0, 255.0)],
     )
-    with server_in_thread(catalog, workers=1, queue_depth=0) as server:
+    with server_in_thread(
+        catalog, workers=1, queue_depth=0, fast_workers=0, admission_wait_s=0.0
+    ) as server:
         yield server
 
 
-def hint_busy(server: VisionServer, retry_after_ms: int) -> None:
-    """Make the server's BUSY carry ``retry_after_ms``."""
-    admit = server.service.admit
+def hint_busy(server: VisionServer, retry_after_ms: int | None) -> None:
+    """Make the server's BUSY carry ``retry_after_ms`` (None: no hint at all)."""
+    service = server.service
+    busy = service._busy
 
-    def admit_with_hint(**kwargs: Any) -> Any:
-        try:
-            return admit(**kwargs)
-        except Busy as exc:
+    def busy_with_hint(key: str | None, *, waited: bool = False) -> Busy:
+        exc = busy(key, waited=waited)
+        if retry_after_ms is None:
+            exc.details.pop("retry_after_ms", None)
+        else:
             exc.details["retry_after_ms"] = retry_after_ms
-            raise
+        return exc
 
-    server.service.admit = admit_with_hint  # type: ignore[method-assign]
+    service._busy = busy_with_hint  # type: ignore[method-assign]
 
 
 async def _hold_the_slot(server: VisionServer, gate: Gate) -> tuple[VisionClient, asyncio.Task]:
@@ -125,6 +128,8 @@ def test_a_hint_beyond_busy_timeout_raises_without_retrying(
 
 
 def test_busy_without_a_hint_backs_off_and_succeeds(one_slot: VisionServer, gate: Gate) -> None:
+    hint_busy(one_slot, None)
+
     async def body() -> None:
         holder, held = await _hold_the_slot(one_slot, gate)
         async with client_for(one_slot, busy_timeout_s=60.0) as client:
