@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import calibration, compute, latency, pick, qr_real, render, throughput
+from . import calibration, compute, latency, pick, qr_real, render, results_page, throughput
 
 SECTIONS: tuple[ModuleType, ...] = (
     latency,
@@ -21,6 +21,7 @@ SECTIONS: tuple[ModuleType, ...] = (
     pick,
     qr_real,
     render,
+    results_page,
 )
 
 __all__ = ["SECTIONS"]
