@@ -252,4 +252,9 @@ def test_the_statistics_show_count_pass_rate_and_timing_over_the_window(
     Select(driver.find_element(By.ID, "stats-window")).select_by_value("28800")
     text = wait_for(driver, lambda d: "11 results" in (t := card_text(d)) and t, "8 hour stats")
     assert "63.6 %" in text  # 7 of 11
+    # An inspection without results in the window shows dashes, not NaN.
+    empty = driver.find_element(By.CSS_SELECTOR, ".stat-card[data-inspection=cap_locate]").text
+    assert "0 results" in empty
+    assert "p50 —" in empty
+    assert "NaN" not in empty
     assert console_errors(driver) == []

@@ -9,6 +9,11 @@ import { Poller } from "./poll.js";
 
 const PAGE_SIZE = 50;
 
+/** A duration for a person: "3.6 ms", or "—" when there is none (no results in the window). */
+function msText(value) {
+  return typeof value === "number" ? `${formatNumber(value, 3)} ms` : "—";
+}
+
 export class ResultsPage {
   constructor() {
     this.filters = {};
@@ -220,8 +225,8 @@ export class ResultsPage {
           rateBars(series.map((b) => (b.count > 0 ? b.pass_rate : null)), { label: `Pass rate of ${s.name}` })),
         el("div", { class: "stat-row" },
           el("span", { class: "stat-label" },
-            el("span", { class: "key key-p50" }, `p50 ${formatNumber(s.p50_ms ?? NaN, 3)} ms`),
-            el("span", { class: "key key-p99" }, `p99 ${formatNumber(s.p99_ms ?? NaN, 3)} ms`)),
+            el("span", { class: "key key-p50" }, `p50 ${msText(s.p50_ms)}`),
+            el("span", { class: "key key-p99" }, `p99 ${msText(s.p99_ms)}`)),
           lines([
             { values: series.map((b) => b.p99_ms ?? null), cls: "line-p99" },
             { values: series.map((b) => b.p50_ms ?? null), cls: "line-p50" },
