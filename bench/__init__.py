@@ -11,7 +11,18 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import calibration, compute, latency, mixed, pick, qr_real, render, throughput, workers
+from . import (
+    calibration,
+    compute,
+    latency,
+    mixed,
+    pick,
+    qr_real,
+    render,
+    results_page,
+    throughput,
+    workers,
+)
 
 SECTIONS: tuple[ModuleType, ...] = (
     latency,
@@ -23,6 +34,7 @@ SECTIONS: tuple[ModuleType, ...] = (
     pick,
     qr_real,
     render,
+    results_page,
 )
 
 __all__ = ["SECTIONS"]

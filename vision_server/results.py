@@ -2,9 +2,10 @@
 
 One row per inspection (time, inspection, camera, verdict, measures or features as JSON, duration,
 config hash, request id, peer, error) and, depending on the policy, the input image as a PNG file
-beside the database. The server calls :meth:`ResultLog.record` from its worker threads and sends
-the response only after it returned, and the response says whether the row was written (RESULT's
-``stored``, SPEC §6.3): a result acknowledged with ``stored: true`` is in the log.
+beside the database, with the inspection's overlay (its drawing over the input) as a second PNG.
+The server calls :meth:`ResultLog.record` from its worker threads and sends the response only
+after it returned, and the response says whether the row was written (RESULT's ``stored``, SPEC
+§6.3): a result acknowledged with ``stored: true`` is in the log.
 
 Choices, and why:
 
@@ -28,7 +29,12 @@ Choices, and why:
 - **Disk cap for images.** When the stored images exceed ``max_image_bytes``, the *oldest* images
   are deleted and their rows keep everything but the image reference (set to NULL). The newest
   failures are what an operator looks at; stopping at the cap would keep last month's instead.
-  An image larger than the whole cap is not stored at all.
+  An image larger than the whole cap is not stored at all. A row's overlay counts towards the
+  cap with its input and goes with it; an overlay that would not fit beside its input is
+  dropped (the input is kept: it is what a try re-runs on).
+- **Overlays cost a second PNG.** Encoding is in :meth:`~ResultLog.record`, i.e. in the worker
+  that ran the inspection, never on the event loop; it roughly doubles the log's encoding time
+  for stored rows (the bench measures it), and nothing for rows whose images are not stored.
 - **Paths.** Image file names are made here (``<YYYY-MM-DD>/<uuid>.png`` under the image
   directory), never from a client's strings, and names read back from the database are checked
   against that pattern before they are opened or deleted.
@@ -101,13 +107,25 @@ _MIGRATIONS: tuple[str, ...] = (
     CREATE INDEX results_with_image ON results (id) WHERE image IS NOT NULL;
     CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
     """,
+    """
+    -- The inspection's drawing over the input, stored beside it (image_bytes counts both files).
+    ALTER TABLE results ADD COLUMN overlay TEXT;
+    -- The console's filters read newest first (ORDER BY time DESC, id DESC: every index ends
+    -- with the rowid, which is id): one index per filter, so that a page reads ~limit rows
+    -- however large the log. The inspection index also covers the statistics' columns.
+    DROP INDEX results_by_inspection;
+    CREATE INDEX results_by_inspection ON results (inspection, time, passed, duration_ms);
+    CREATE INDEX results_by_verdict ON results (passed, time);
+    CREATE INDEX results_by_inspection_verdict ON results (inspection, passed, time);
+    CREATE INDEX results_by_peer ON results (peer, time);
+    """,
 )
 SCHEMA_VERSION = len(_MIGRATIONS)
 
 _IMAGE_NAME = re.compile(r"\d{4}-\d{2}-\d{2}/[0-9a-f]{32}\.png")
 _COLUMNS = (
     "id, time, inspection, camera, passed, data, duration_ms, config_hash, request_id, peer, "
-    "error, image"
+    "error, image, overlay"
 )
 
 
@@ -122,7 +140,8 @@ class ResultEntry:
 
     ``time`` in Unix seconds; ``duration_ms`` in milliseconds; ``data`` JSON-able (numpy scalars
     and arrays are converted); ``image`` the input image, ``(H, W, 3)`` BGR or ``(H, W)`` grey,
-    uint8 or uint16, stored according to the log's policy.
+    uint8 or uint16, stored according to the log's policy; ``overlay`` the inspection's drawing
+    (same kinds of array), stored with the input when the input is stored.
     """
 
     time: float
@@ -136,12 +155,15 @@ class ResultEntry:
     peer: str = ""
     image: np.ndarray | None = field(default=None, repr=False, compare=False)
     error: str | None = None
+    overlay: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
 class StoredResult:
     """One row of the log. ``image_path`` is ``None`` when no image was stored or it was deleted
-    by the disk cap (the file may also have been removed by hand: check before opening)."""
+    by the disk cap (the file may also have been removed by hand: check before opening);
+    ``overlay_path`` likewise for the drawn overlay, which also is ``None`` when the inspection
+    drew none (a failed request) or the row predates stored overlays."""
 
     id: int
     time: float
@@ -155,6 +177,7 @@ class StoredResult:
     peer: str
     error: str | None
     image_path: Path | None
+    overlay_path: Path | None = None
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-able dict (``time`` as Unix seconds and as ISO 8601 UTC, ``verdict``)."""
@@ -172,6 +195,7 @@ class StoredResult:
             "peer": self.peer,
             "error": self.error,
             "image_path": str(self.image_path) if self.image_path is not None else None,
+            "overlay_path": str(self.overlay_path) if self.overlay_path is not None else None,
         }
 
 
@@ -566,14 +590,23 @@ class ResultLog:
         except Exception as exc:
             self._fault(f"image of {entry.inspection!r} not stored", exc, row_lost=False)
             image_name, image_bytes = None, 0
+        overlay_name = None
+        if image_name is not None and entry.overlay is not None:
+            try:
+                overlay_name, overlay_bytes = self._store_overlay(entry, image_bytes)
+            except Exception as exc:
+                self._fault(f"overlay of {entry.inspection!r} not stored", exc, row_lost=False)
+                overlay_name, overlay_bytes = None, 0
+            image_bytes += overlay_bytes
         with self._lock:
             try:
                 if self._closed:
                     raise ResultLogError("the result log is closed")
-                new_id, pruned = self._insert(values, image_name, image_bytes)
+                new_id, pruned = self._insert(values, image_name, overlay_name, image_bytes)
             except Exception as exc:
-                if image_name is not None:
-                    self._unlink(image_name)
+                for name in (image_name, overlay_name):
+                    if name is not None:
+                        self._unlink(name)
                 self._fault(f"result of {entry.inspection!r} not recorded", exc, row_lost=True)
                 return None
             with self._stats:
@@ -588,9 +621,16 @@ class ResultLog:
                 streak, self._streak = self._streak, 0
             if streak:
                 logger.warning("result log %s recovered after %d faults", self.path, streak)
-        for name, _ in pruned:
-            self._unlink(name)
+        for names, _ in pruned:
+            for name in names:
+                if name is not None:
+                    self._unlink(name)
         return new_id
+
+    @property
+    def keeps_images(self) -> bool:
+        """Whether any image is ever stored: then the server has overlays drawn for the log."""
+        return self.store_images != "none"
 
     def _wants_image(self, entry: ResultEntry) -> bool:
         if entry.image is None or self.store_images == "none":
@@ -608,23 +648,41 @@ class ResultLog:
                 self._images_skipped += 1
             logger.debug("image of %d bytes is larger than the whole cap", len(payload))
             return None, 0
-        day = datetime.fromtimestamp(entry.time, UTC).strftime("%Y-%m-%d")
+        return self._write_image(entry.time, payload), len(payload)
+
+    def _store_overlay(self, entry: ResultEntry, input_bytes: int) -> tuple[str | None, int]:
+        """Encode and write the overlay beside a stored input; skipped when the two would not
+        fit the cap together (the input matters more: a try can re-run on it)."""
+        assert entry.overlay is not None
+        payload = _encode_png(entry.overlay)
+        if input_bytes + len(payload) > self.max_image_bytes:
+            with self._stats:
+                self._images_skipped += 1
+            return None, 0
+        return self._write_image(entry.time, payload), len(payload)
+
+    def _write_image(self, t: float, payload: bytes) -> str:
+        day = datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d")
         name = f"{day}/{uuid.uuid4().hex}.png"
         _write_atomically(self.image_dir / name, payload)
-        return name, len(payload)
+        return name
 
     def _insert(
-        self, values: tuple[Any, ...], image_name: str | None, image_bytes: int
-    ) -> tuple[int, list[tuple[str, int]]]:
+        self,
+        values: tuple[Any, ...],
+        image_name: str | None,
+        overlay_name: str | None,
+        image_bytes: int,
+    ) -> tuple[int, list[tuple[tuple[str | None, str | None], int]]]:
         """Insert the row and drop the oldest images over the cap, in one transaction."""
         conn = self._conn
         conn.execute("BEGIN IMMEDIATE")
         try:
             cursor = conn.execute(
                 "INSERT INTO results (time, inspection, camera, passed, data, duration_ms, "
-                "config_hash, request_id, peer, error, image, image_bytes) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (*values, image_name, image_bytes),
+                "config_hash, request_id, peer, error, image, overlay, image_bytes) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (*values, image_name, overlay_name, image_bytes),
             )
             new_id = cursor.lastrowid
             assert new_id is not None
@@ -636,28 +694,30 @@ class ResultLog:
             raise
         return new_id, pruned
 
-    def _prune(self, total: int, *, keep: int) -> list[tuple[str, int]]:
-        """Null the image reference of the oldest rows until ``total`` fits the cap.
+    def _prune(self, total: int, *, keep: int) -> list[tuple[tuple[str | None, str | None], int]]:
+        """Null the image and overlay references of the oldest rows until ``total`` fits the cap.
 
-        Returns the (name, bytes) of the files to delete once the transaction is committed: a
-        crash in between leaves an unreferenced file (harmless), never a row pointing at nothing.
+        Returns the ((image, overlay) names, bytes) of the files to delete once the transaction
+        is committed: a crash in between leaves an unreferenced file (harmless), never a row
+        pointing at nothing.
         """
-        pruned: list[tuple[str, int]] = []
+        pruned: list[tuple[tuple[str | None, str | None], int]] = []
         while total > self.max_image_bytes:
             rows = self._conn.execute(
-                "SELECT id, image, image_bytes FROM results "
+                "SELECT id, image, overlay, image_bytes FROM results "
                 "WHERE image IS NOT NULL AND id != ? ORDER BY id LIMIT 64",
                 (keep,),
             ).fetchall()
             if not rows:
                 break
-            for row_id, name, size in rows:
+            for row_id, name, overlay, size in rows:
                 if total <= self.max_image_bytes:
                     break
                 self._conn.execute(
-                    "UPDATE results SET image = NULL, image_bytes = 0 WHERE id = ?", (row_id,)
+                    "UPDATE results SET image = NULL, overlay = NULL, image_bytes = 0 WHERE id = ?",
+                    (row_id,),
                 )
-                pruned.append((name, int(size)))
+                pruned.append(((name, overlay), int(size)))
                 total -= int(size)
         return pruned
 
@@ -714,25 +774,89 @@ class ResultLog:
         before_id: int | None = None,
     ) -> list[StoredResult]:
         """Results with ``time >= since`` (Unix seconds), of one inspection, with one verdict,
-        from peers starting with ``peer``, with ids below ``before_id`` (paging); at most
-        ``limit`` of them, newest (or oldest) first."""
+        from peers starting with ``peer``, that come after row ``before_id`` in the order asked
+        (paging: the rows older than it, newest first); at most ``limit`` of them, newest (or
+        oldest) first, by time and then id.
+
+        Every filter is served by an index (see the migrations), so a page costs about ``limit``
+        rows read whatever the log's size; the tests check the query plans.
+        """
+        sql, params = self.query_sql(
+            since=since,
+            inspection=inspection,
+            passed=passed,
+            limit=limit,
+            newest_first=newest_first,
+            peer=peer,
+            before_id=before_id,
+        )
+        with self._lock:
+            self._check_open()
+            rows = self._conn.execute(sql, params).fetchall()
+        return [self._row(row) for row in rows]
+
+    def query_sql(
+        self,
+        *,
+        since: float | None = None,
+        inspection: str | None = None,
+        passed: bool | None = None,
+        limit: int = 100,
+        newest_first: bool = True,
+        peer: str | None = None,
+        before_id: int | None = None,
+    ) -> tuple[str, tuple[Any, ...]]:
+        """The SQL and parameters :meth:`query` runs (for ``EXPLAIN QUERY PLAN`` and the bench)."""
         where, params = _where(since, inspection, passed)
         extra: list[str] = []
         if peer:
-            # A prefix match without LIKE's wildcards (a peer may contain '_').
-            extra.append("substr(peer, 1, ?) = ?")
-            params = (*params, len(peer), peer)
+            # A prefix as a range (an index can serve it, LIKE's wildcards play no part: a peer
+            # may contain '_'); the upper bound is the prefix with its last character's
+            # successor, and text compares by code point.
+            extra.append("peer >= ?")
+            params = (*params, peer)
+            if ord(peer[-1]) < 0x10FFFF:
+                extra.append("peer < ?")
+                params = (*params, peer[:-1] + chr(ord(peer[-1]) + 1))
         if before_id is not None:
-            extra.append("id < ?")
-            params = (*params, int(before_id))
+            # Keyset paging in the order shown: rows before (time, id) of row ``before_id``.
+            # An id alone would skip or repeat rows whose time and id orders differ (workers
+            # finish out of order), and would read every newer row to find its place. An id
+            # that is not in the log (never written yet) falls back to the ids below it.
+            cmp = "<" if newest_first else ">"
+            with self._lock:
+                self._check_open()
+                key = self._conn.execute(
+                    "SELECT time, id FROM results WHERE id = ?", (int(before_id),)
+                ).fetchone()
+            if key is None:
+                extra.append(f"id {cmp} ?")
+                params = (*params, int(before_id))
+            else:
+                extra.append(f"(time, id) {cmp} (?, ?)")
+                params = (*params, float(key[0]), int(key[1]))
         if extra:
             where = (where + " AND " if where else " WHERE ") + " AND ".join(extra)
         order = "DESC" if newest_first else "ASC"
         sql = f"SELECT {_COLUMNS} FROM results{where} ORDER BY time {order}, id {order} LIMIT ?"
+        return sql, (*params, max(0, int(limit)))
+
+    def timings(
+        self, *, inspection: str, since: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The time (Unix seconds), verdict (bool) and duration (ms) of every result of
+        ``inspection`` with ``time >= since``, oldest first: what statistics are made of.
+
+        Three columns read from one covering index, without parsing any row's data, so that a
+        window of 100,000 results costs tens of milliseconds.
+        """
+        where, params = _where(since, inspection, None)
+        sql = f"SELECT time, passed, duration_ms FROM results{where} ORDER BY time"
         with self._lock:
             self._check_open()
-            rows = self._conn.execute(sql, (*params, max(0, int(limit)))).fetchall()
-        return [self._row(row) for row in rows]
+            rows = self._conn.execute(sql, params).fetchall()
+        table = np.array(rows, dtype=float).reshape(-1, 3)
+        return table[:, 0], table[:, 1] != 0, table[:, 2]
 
     def count(
         self,
@@ -760,7 +884,7 @@ class ResultLog:
 
     def _row(self, row: tuple[Any, ...]) -> StoredResult:
         (row_id, t, inspection, camera, passed, data, duration, chash, rid, peer, error, image) = (
-            row
+            row[:12]
         )
         try:
             parsed = json.loads(data)
@@ -779,6 +903,7 @@ class ResultLog:
             peer=peer,
             error=error,
             image_path=self._image_path(image),
+            overlay_path=self._image_path(row[12]),
         )
 
     def _check_open(self) -> None:

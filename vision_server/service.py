@@ -469,15 +469,23 @@ class InspectionService:
                 peer=request.peer,
                 image=image.color,
             )
+            # The log stores the overlay beside the input it keeps (drawing costs ~0.1 ms; the
+            # policy's pass/fail choice is only known after the run).
+            draw = request.overlay is not None or (
+                self.results is not None and self.results.keeps_images
+            )
             try:
-                outcome = inspection.run(image, overlay=request.overlay is not None)
+                outcome = inspection.run(image, overlay=draw)
             except CellvisionError as exc:
                 self._record(entry, t0, error=f"{exc.code.name}: {exc.message}")
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
             if sources:
                 outcome = replace(outcome, data={**outcome.data, "source_files": sources})
-            stored = self._record(replace(entry, passed=outcome.passed, data=outcome.data), t0)
+            stored = self._record(
+                replace(entry, passed=outcome.passed, data=outcome.data, overlay=outcome.overlay),
+                t0,
+            )
             overlay = None
             if request.overlay is not None and outcome.overlay is not None:
                 # Encoding is CPU work too: here, not on the event loop of every connection.

@@ -164,6 +164,7 @@ def _sample_results() -> list[JsonDict]:
                 "request_id": 1000 + i,
                 "config_hash": "5f1c9e0a7b3d" + "0" * 52,
                 "has_image": not passed or i % 10 == 0,
+                "has_overlay": not passed or i % 10 == 0,
                 "data": {"measure": "dark_fraction", "value": 0.41 if passed else 0.02, "min": 0.25}
                 if inspection == "magnet_check"
                 else {"count": 1 if passed else 0},

@@ -8,6 +8,7 @@ import asyncio
 import http.client
 import socket
 import struct
+import time
 import zlib
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,6 +28,7 @@ from console_server import (
 
 from vision_server.app import App
 from vision_server.frontends.http_auth import COOKIE
+from vision_server.results import ResultEntry
 from vision_server.runtime import CellRuntime
 
 
@@ -180,6 +182,54 @@ def test_results_list_detail_and_image(client: Browserless) -> None:
     assert client.get("/api/results?limit=x").status == 400
     stats = client.get("/api/stats?inspection=magnet_check&window_s=3600").json()
     assert stats["inspections"][0]["count"] >= 1
+
+
+def test_a_row_opens_its_stored_overlay_and_says_when_it_has_none(
+    server: RunningConsole, client: Browserless
+) -> None:
+    # The page's try may not ask for an overlay: the log draws and keeps one all the same.
+    reply = client.try_("magnet_check", {"source": "camera", "overlay": False})
+    assert reply.json()["verdict"] == "fail"
+    assert reply.json()["overlay"] is None
+    row = client.get("/api/results?inspection=magnet_check&verdict=fail&limit=1").json()
+    newest = row["results"][0]
+    assert newest["has_image"]
+    assert newest["has_overlay"]
+    raw = client.get(f"/api/results/{newest['id']}/image.png")
+    drawn = client.get(f"/api/results/{newest['id']}/image.png?overlay=1")
+    assert raw.status == drawn.status == 200
+    assert drawn.headers["Content-Type"] == "image/png"
+    inp = cv2.imdecode(np.frombuffer(raw.body, np.uint8), cv2.IMREAD_COLOR)
+    over = cv2.imdecode(np.frombuffer(drawn.body, np.uint8), cv2.IMREAD_COLOR)
+    assert inp.shape == over.shape
+    # The failing ROI [486, 236, 50, 60] is drawn in red on the overlay, not on the input.
+    assert tuple(over[236, 500]) == (0, 0, 255)
+    assert tuple(inp[236, 500]) != (0, 0, 255)
+    assert client.get(f"/api/results/{newest['id']}/image.png?overlay=2").status == 400
+
+    # A row stored without an overlay (a log written before overlays were kept).
+    log = server.app.service.results
+    assert log is not None
+    bare = log.record(
+        ResultEntry(
+            time=time.time(),
+            inspection="magnet_check",
+            camera="qc",
+            passed=False,
+            data={},
+            duration_ms=1.0,
+            config_hash="old",
+            image=inp,
+        )
+    )
+    listed = client.get(f"/api/results?before_id={bare + 1}&limit=1").json()["results"]
+    assert listed[0]["id"] == bare
+    assert listed[0]["has_image"]
+    assert not listed[0]["has_overlay"]
+    missing = client.get(f"/api/results/{bare}/image.png?overlay=1")
+    assert missing.status == 404
+    assert missing.json()["error"]["message"] == f"result {bare} has no stored overlay"
+    assert client.get(f"/api/results/{bare}/image.png").status == 200
 
 
 def test_a_try_on_a_stored_result(client: Browserless) -> None:

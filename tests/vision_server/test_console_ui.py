@@ -5,8 +5,8 @@ the results filter send, and that text from the server is shown as text.
 
 The same page against the real server comes with the server's HTTP front-end.
 
-Screenshots of each page go to a temporary directory; with ``CONSOLE_SCREENSHOTS=docs/console``
-they replace the ones docs/console.md shows.
+Screenshots of each page go to a temporary directory, or to ``CONSOLE_SCREENSHOTS``; the ones
+docs/console.md shows come from the real server (scripts/console_screenshots.py).
 """
 
 from __future__ import annotations

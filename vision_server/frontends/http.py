@@ -86,7 +86,6 @@ MAX_JSON_PART = 64 * 1024
 """The largest ``request`` part of a try, bytes."""
 FORM_OVERHEAD = 64 * 1024
 """Bytes of a try's form besides the image (boundaries, the request part)."""
-STATS_MAX_ROWS = 200_000
 TRY_PEER_PREFIX = "console "
 SECURITY_HEADERS = {
     "X-Content-Type-Options": "nosniff",
@@ -619,16 +618,28 @@ class HttpFrontend:
         body = {
             **_row_json(row),
             "data": row.data,
-            "timing": {"total": row.duration_ms},
+            # The log keeps the inspection's own run (after the image was read, before the
+            # reply), the figure the try panel calls "inspect".
+            "timing": {"inspect": row.duration_ms},
             "error": row.error,
         }
         return web.json_response(body, dumps=_dumps)
 
     async def result_image(self, request: web.Request) -> web.Response:
+        """The stored input, or with ``overlay=1`` the stored overlay; 404 naming which is
+        missing (the row's ``has_image`` / ``has_overlay`` say so beforehand)."""
         row = self._row(int(request.match_info["id"]))
-        path = row.image_path
-        if path is None or not path.is_file():
-            raise HttpError(404, "NOT_FOUND", f"result {row.id} has no stored image")
+        flag = request.query.get("overlay", "0")
+        if flag not in ("0", "1"):
+            raise HttpError(400, "BAD_REQUEST", f"overlay must be 0 or 1, got {flag!r}")
+        if flag == "1":
+            path = row.overlay_path
+            if path is None or not path.is_file():
+                raise HttpError(404, "NOT_FOUND", f"result {row.id} has no stored overlay")
+        else:
+            path = row.image_path
+            if path is None or not path.is_file():
+                raise HttpError(404, "NOT_FOUND", f"result {row.id} has no stored image")
         data = await asyncio.to_thread(path.read_bytes)
         return web.Response(body=data, content_type="image/png")
 
@@ -640,7 +651,7 @@ class HttpFrontend:
         names = [wanted] if wanted else sorted(self.service.catalog.inspections)
         log_ = self._log()
         now = time.time()
-        out = await asyncio.to_thread(lambda: [_stats(log_, n, now, window) for n in names])
+        out = await asyncio.to_thread(lambda: [stats_of(log_, n, now, window) for n in names])
         return web.json_response({"window_s": window, "inspections": out}, dumps=_dumps)
 
     async def metrics_text(self, request: web.Request) -> web.Response:
@@ -776,22 +787,29 @@ def _histogram(grey: Any, roi: Any, threshold: Any) -> dict[str, Any]:
     }
 
 
-def _stats(log_: Any, name: str, now: float, window: float) -> dict[str, Any]:
-    rows = log_.query(since=now - window, inspection=name, limit=STATS_MAX_ROWS, newest_first=False)
-    buckets = 24
-    bucket_s = window / buckets
+STATS_BUCKETS = 24
+
+
+def stats_of(log_: Any, name: str, now: float, window: float) -> dict[str, Any]:
+    """One inspection's statistics over the ``window`` seconds before ``now`` (Unix seconds):
+    count, pass rate, duration p50/p99 in ms, and the same per bucket of the window."""
+    times, passed, durations = log_.timings(inspection=name, since=now - window)
     start = now - window
-    series = []
-    for index in range(buckets):
-        t0 = start + index * bucket_s
-        inside = [r for r in rows if t0 <= r.time < t0 + bucket_s]
-        series.append({"t": t0, **_summary(inside)})
-    summary = _summary(rows)
+    bucket_s = window / STATS_BUCKETS
+    # The rows come oldest first: each bucket is one slice, found by bisection.
+    edges = np.searchsorted(times, start + bucket_s * np.arange(STATS_BUCKETS + 1), side="left")
+    edges[-1] = len(times)
+    series = [
+        {"t": start + index * bucket_s, **_summary(passed[lo:hi], durations[lo:hi])}
+        for index, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True))
+    ]
+    summary = _summary(passed, durations)
+    passes = int(np.count_nonzero(passed))
     return {
         "name": name,
         "count": summary["count"],
-        "pass": sum(1 for r in rows if r.passed),
-        "fail": sum(1 for r in rows if not r.passed),
+        "pass": passes,
+        "fail": len(passed) - passes,
         "pass_rate": summary["pass_rate"],
         "p50_ms": summary["p50_ms"],
         "p99_ms": summary["p99_ms"],
@@ -800,15 +818,15 @@ def _stats(log_: Any, name: str, now: float, window: float) -> dict[str, Any]:
     }
 
 
-def _summary(rows: list[Any]) -> dict[str, Any]:
-    if not rows:
+def _summary(passed: np.ndarray, durations: np.ndarray) -> dict[str, Any]:
+    if len(passed) == 0:
         return {"count": 0, "pass_rate": None, "p50_ms": None, "p99_ms": None}
-    durations = np.array([r.duration_ms for r in rows], dtype=float)
+    p50, p99 = np.percentile(durations, [50, 99])
     return {
-        "count": len(rows),
-        "pass_rate": round(sum(1 for r in rows if r.passed) / len(rows), 4),
-        "p50_ms": round(float(np.percentile(durations, 50)), 3),
-        "p99_ms": round(float(np.percentile(durations, 99)), 3),
+        "count": len(passed),
+        "pass_rate": round(float(np.count_nonzero(passed)) / len(passed), 4),
+        "p50_ms": round(float(p50), 3),
+        "p99_ms": round(float(p99), 3),
     }
 
 
@@ -824,6 +842,7 @@ def _row_json(row: Any) -> dict[str, Any]:
         "request_id": row.request_id,
         "config_hash": row.config_hash,
         "has_image": row.image_path is not None and row.image_path.is_file(),
+        "has_overlay": row.overlay_path is not None and row.overlay_path.is_file(),
     }
 
 

@@ -97,7 +97,8 @@ export const api = {
     postJson(`/api/inspections/${encodeURIComponent(name)}/save`, { options }),
   results: (params) => getJson(`/api/results${query(params)}`),
   result: (id) => getJson(`/api/results/${encodeURIComponent(id)}`),
-  resultImageUrl: (id) => `/api/results/${encodeURIComponent(id)}/image.png?overlay=1`,
+  resultImageUrl: (id, overlay = true) =>
+    `/api/results/${encodeURIComponent(id)}/image.png?overlay=${overlay ? 1 : 0}`,
   stats: (params) => getJson(`/api/stats${query(params)}`),
   operatorCalls: () => getJson("/api/operator/calls"),
   answerCall: (id, choice) =>

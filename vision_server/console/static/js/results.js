@@ -9,6 +9,11 @@ import { Poller } from "./poll.js";
 
 const PAGE_SIZE = 50;
 
+/** A duration for a person: "3.6 ms", or "—" when there is none (no results in the window). */
+function msText(value) {
+  return typeof value === "number" ? `${formatNumber(value, 3)} ms` : "—";
+}
+
 export class ResultsPage {
   constructor() {
     this.filters = {};
@@ -16,6 +21,7 @@ export class ResultsPage {
     this.beforeId = null;      // the page shown: null = the newest
     this.nextBeforeId = null;
     this.openId = null;
+    this.openRow = null;       // the open result's answer, to switch overlay/input
     this.wired = false;
     // The newest page follows the log; an older page stays put until the user moves.
     this.poller = new Poller(() => (this.beforeId === null ? this.loadPage() : null), 3000);
@@ -59,6 +65,9 @@ export class ResultsPage {
       this.loadPage();
     });
     byId("rd-close").addEventListener("click", () => this.closeDetail());
+    for (const id of ["rd-view-overlay", "rd-view-input"]) {
+      byId(id).addEventListener("change", () => this.showImage());
+    }
     byId("stats-window").addEventListener("change", () => this.statsPoller.kick());
   }
 
@@ -153,16 +162,10 @@ export class ResultsPage {
     const chip = byId("rd-verdict");
     chip.textContent = verdict.toUpperCase();
     chip.dataset.verdict = verdict || "none";
-    const image = byId("rd-image");
-    if (r.has_image) {
-      image.src = api.resultImageUrl(id);
-      image.hidden = false;
-      byId("rd-noimage").hidden = true;
-    } else {
-      image.removeAttribute("src");
-      image.hidden = true;
-      byId("rd-noimage").hidden = false;
-    }
+    this.openRow = r;
+    // A row opens on its overlay when it has one (older rows and failed requests have none).
+    byId(r.has_overlay === false ? "rd-view-input" : "rd-view-overlay").checked = true;
+    this.showImage();
     fillKeyValues(byId("rd-values"), [
       ["time", formatTime(r.time)], ["camera", r.camera], ["peer", r.peer],
       ["request id", r.request_id], ["configuration", r.config_hash ? String(r.config_hash).slice(0, 12) : null],
@@ -173,8 +176,29 @@ export class ResultsPage {
       .map(([k, v]) => [k, typeof v === "number" ? `${formatNumber(v, 3)} ms` : v]));
   }
 
+  /** The open row's stored overlay or input, as the toggle says; a note when one is missing. */
+  showImage() {
+    const r = this.openRow;
+    if (r === null) return;
+    const image = byId("rd-image");
+    const wantOverlay = byId("rd-view-overlay").checked;
+    const hasOverlay = r.has_overlay !== false;
+    const overlay = wantOverlay && hasOverlay;
+    const shown = overlay || Boolean(r.has_image);
+    byId("rd-views").hidden = !r.has_image;
+    byId("rd-view-overlay").disabled = !hasOverlay;
+    byId("rd-nooverlay").hidden = !(r.has_image && !hasOverlay);
+    byId("rd-noimage").hidden = shown;
+    image.hidden = !shown;
+    image.dataset.view = overlay ? "overlay" : "input";
+    if (shown) image.src = api.resultImageUrl(r.id, overlay);
+    else image.removeAttribute("src");
+    image.alt = overlay ? "Stored image with its overlay" : "Stored input image";
+  }
+
   closeDetail() {
     this.openId = null;
+    this.openRow = null;
     byId("result-detail").hidden = true;
     for (const tr of document.querySelectorAll("#results-body tr.active")) tr.classList.remove("active");
   }
@@ -201,8 +225,8 @@ export class ResultsPage {
           rateBars(series.map((b) => (b.count > 0 ? b.pass_rate : null)), { label: `Pass rate of ${s.name}` })),
         el("div", { class: "stat-row" },
           el("span", { class: "stat-label" },
-            el("span", { class: "key key-p50" }, `p50 ${formatNumber(s.p50_ms ?? NaN, 3)} ms`),
-            el("span", { class: "key key-p99" }, `p99 ${formatNumber(s.p99_ms ?? NaN, 3)} ms`)),
+            el("span", { class: "key key-p50" }, `p50 ${msText(s.p50_ms)}`),
+            el("span", { class: "key key-p99" }, `p99 ${msText(s.p99_ms)}`)),
           lines([
             { values: series.map((b) => b.p99_ms ?? null), cls: "line-p99" },
             { values: series.map((b) => b.p50_ms ?? null), cls: "line-p50" },
