@@ -20,8 +20,10 @@ PING with a fresh id synchronises it before the next unit, so that every answer 
 Checked, per unit: a reaction within ``--answer-s`` (1 s), every ERROR carries a code of the
 SPEC's table; no unit gets no reaction at all within ``--hang-s`` (a hang). Meanwhile the good
 clients run INSPECTs whose answer is known exactly (the mean of a flat image) and PINGs with
-unique data, and check every answer. The server must stay alive, its RSS bounded, its stderr
-free of tracebacks, and it must exit 0 on SIGTERM at the end.
+unique data, and check every answer. The server must stay alive, its RSS bounded (below twice
+its start plus 256 MiB; its byte budget for bodies is 96 MiB, so that a body counted once and
+held twice at its peak, the decoding workers and the allocator fit under that bound), its
+stderr free of tracebacks, and it must exit 0 on SIGTERM at the end.
 
 Exit status 0 when every check passed, 1 otherwise. Loopback only; bounded in frames and time.
 """
@@ -87,6 +89,7 @@ server:
   max_connections: {max_connections}
   max_in_flight: 32
   queue_depth: 16
+  max_buffered_bytes: 100663296
   allow_reload: true
 results: {{path: results.sqlite3, store_images: failures, max_image_mb: 20}}
 cameras:

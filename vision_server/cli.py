@@ -75,6 +75,7 @@ from .app import App
 from .builtin import builtin_catalog
 from .catalog import Catalog
 from .config import CellConfig, ConfigError, load_config
+from .malloc_arenas import PROCESS_ENV
 from .offline import file_request, image_payload, offline_service
 from .results_cli import describe_health, results_command
 from .service import InspectReply
@@ -128,7 +129,7 @@ def _serve(args: argparse.Namespace) -> int:
             # OpenCV fixes its image-size limits when it loads: settle them (perhaps by
             # re-executing) before the runtime opens cameras and the result log.
             limit = load_config(config_path).server.max_image_pixels
-            decoder_limits.ensure(limit, argv=args.reexec_argv)
+            decoder_limits.ensure(limit, argv=args.reexec_argv, process_env=PROCESS_ENV)
             runtime = CellRuntime(config_path)
         except ConfigError as exc:
             return _fail(args, ErrorKind.USAGE, f"invalid configuration: {exc}")
@@ -143,7 +144,7 @@ def _serve(args: argparse.Namespace) -> int:
         if runtime is not None:
             runtime.close()
         return _fail(args, ErrorKind.USAGE, str(exc))
-    decoder_limits.ensure(settings.max_image_pixels, argv=args.reexec_argv)
+    decoder_limits.ensure(settings.max_image_pixels, argv=args.reexec_argv, process_env=PROCESS_ENV)
 
     def reload() -> Catalog:
         """Every way in (SIGHUP, RELOAD) comes here, in a thread of the service. A reload done

@@ -81,23 +81,32 @@ def loaded_limit() -> int | None:
     return _loaded_with
 
 
-def ensure(max_pixels: int, *, argv: Sequence[str] | None = None) -> bool:
+def ensure(
+    max_pixels: int,
+    *,
+    argv: Sequence[str] | None = None,
+    process_env: Mapping[str, str] | None = None,
+) -> bool:
     """Make OpenCV's pixel limit ``max_pixels``; True when it holds.
 
     With ``argv`` (the process's full command line, ``sys.orig_argv``) a process whose OpenCV
-    loaded with another limit re-executes itself with the right environment: this does not
-    return then. Without it (a server embedded in another program, tests), a mismatch is
-    logged and False returned; the server's own header check still applies.
+    loaded with another limit, or that lacks a variable of ``process_env`` (read only at
+    start, such as ``MALLOC_ARENA_MAX``), re-executes itself once with the right environment:
+    this does not return then. Without it (a server embedded in another program, tests), a
+    mismatch is logged and False returned; the server's own header check still applies.
     """
-    if loaded_limit() == max_pixels:
+    missing = {k: v for k, v in (process_env or {}).items() if k not in os.environ}
+    if loaded_limit() == max_pixels and not missing:
         return True
-    wanted = opencv_environment(max_pixels)
+    wanted = {**opencv_environment(max_pixels), **missing}
     if argv and os.environ.get(_REEXEC_MARK) != str(max_pixels):
         # Flush what was printed so far: exec replaces the process and its buffers.
         sys.stdout.flush()
         sys.stderr.flush()
         env = {**os.environ, **wanted, _REEXEC_MARK: str(max_pixels)}
         os.execve(sys.executable, list(argv), env)
+    if loaded_limit() == max_pixels:
+        return True  # only a start-time variable is missing: nothing unsafe about that
     log.warning(
         "OpenCV's decoders were loaded with an image limit of %s pixels, the server's "
         "max_image_pixels is %d; start the process with %s to make them agree",

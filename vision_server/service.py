@@ -57,6 +57,9 @@ Image = npt.NDArray[Any]
 FrameEncoding = Literal["png", "jpeg"]
 """How a captured frame may be compressed (None: raw arrays)."""
 
+STORED_OVERLAY_MAX_PIXELS = 4096 * 3072
+"""The largest image whose overlay the result log stores unasked (a colour copy per worker)."""
+
 REPLY_OVERHEAD = 64 * 1024
 """Bytes of a capture reply besides the pixels (headers, metadata), generously."""
 
@@ -470,9 +473,13 @@ class InspectionService:
                 image=image.color,
             )
             # The log stores the overlay beside the input it keeps (drawing costs ~0.1 ms; the
-            # policy's pass/fail choice is only known after the run).
+            # policy's pass/fail choice is only known after the run). Not for very large
+            # images: a colour copy of 16 MP is 48 MB more per worker, for a picture the
+            # console shows at screen size; their rows keep the input only.
             draw = request.overlay is not None or (
-                self.results is not None and self.results.keeps_images
+                self.results is not None
+                and self.results.keeps_images
+                and image.color.shape[0] * image.color.shape[1] <= STORED_OVERLAY_MAX_PIXELS
             )
             try:
                 outcome = inspection.run(image, overlay=draw)
