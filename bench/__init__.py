@@ -11,13 +11,25 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import calibration, compute, latency, mixed, pick, qr_real, render, throughput, workers
+from . import (
+    calibration,
+    compute,
+    console,
+    latency,
+    mixed,
+    pick,
+    qr_real,
+    render,
+    throughput,
+    workers,
+)
 
 SECTIONS: tuple[ModuleType, ...] = (
     latency,
     throughput,
     workers,
     mixed,
+    console,
     compute,
     calibration,
     pick,
