@@ -35,7 +35,7 @@ from .busy import Retrier, make_client, retry_mode
 from .common import Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
 from .console_server import CAMERA_FPS, LIVE_CAMERA, MAX_VIEW_FPS, write_config
 from .env import Env
-from .plots import cdf, pyplot, save
+from .plots import cdf, log_scale_if_positive, pyplot, save
 from .servers import ServerProcess
 
 NAME = "console"
@@ -453,6 +453,7 @@ def _live(
         for label, _, figures in stretches:
             if figures.latencies:
                 cdf(lat, figures.latencies, f"INSPECT load: {label}")
+        log_scale_if_positive(lat, "x")
         lat.set_xlabel(f"live view: capture → arrival [ms] ({LIVE_CAMERA}, {CAMERA_FPS:g} fps)")
         lat.set_ylabel("fraction of frames")
         lat.grid(True, alpha=0.3)
