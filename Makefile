@@ -29,8 +29,10 @@ container-test: bootstrap
 
 test: lint typecheck wheel-check pytest
 
+# `make demo STAY=1` keeps the server and its web console up after the task (Ctrl-C stops it);
+# `make demo PACE=2` waits 2 s after each step, to follow the cell live in the console.
 demo: bootstrap
-	$(PY) -m robot_client.demo
+	$(PY) -m robot_client.demo $(if $(STAY),--stay) $(if $(PACE),--pace $(PACE))
 
 bench: bootstrap
 	$(PY) -m bench

@@ -14,6 +14,7 @@ from types import ModuleType
 from . import (
     calibration,
     compute,
+    console,
     latency,
     mixed,
     pick,
@@ -29,6 +30,7 @@ SECTIONS: tuple[ModuleType, ...] = (
     throughput,
     workers,
     mixed,
+    console,
     compute,
     calibration,
     pick,

@@ -44,12 +44,15 @@ class ServerProcess:
     """A server subprocess: ``info`` is its announcement (``port``, ...). Stopped by closing
     its standard input (it exits by itself); killed by its own pid only if it hangs."""
 
-    def __init__(self, kind: str, workdir: Path, *args: str) -> None:
+    def __init__(self, kind: str, workdir: Path, *args: str, module: str = "bench.servers") -> None:
+        """``python -m MODULE KIND ARGS...``; another ``module`` (bench.console_server) takes
+        ``args`` alone (``kind`` names its log)."""
         self.kind = kind
         self._log_path = workdir / f"server-{kind}.log"
         self._log: IO[bytes] = self._log_path.open("wb")
+        command = [kind, *args] if module == "bench.servers" else list(args)
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "bench.servers", kind, *args],
+            [sys.executable, "-m", module, *command],
             cwd=ROOT,
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,

@@ -16,7 +16,13 @@
    overlay images (the server's own drawings of what it found) to the output directory, stops
    the server and exits 0 only if every step succeeded and every error bound held.
 
-    python -m robot_client.demo [--output DIR] [--no-live]
+    python -m robot_client.demo [--output DIR] [--no-live] [--stay] [--pace S]
+
+``--stay`` keeps the vision server and its web console running after the task (the console's
+address and "Ctrl-C to stop" are printed), so that a person can look at the demo's cameras
+and results; Ctrl-C then stops the server and the demo exits as it would have. ``--pace S``
+waits S seconds after each step, to follow the cell live in the console. Without them the
+demo ends by itself (CI runs it so).
 """
 
 from __future__ import annotations
@@ -104,28 +110,46 @@ def state_file(config: Path) -> Path:
     return (config.parent / str(doc["cameras"]["qc"]["state_file"])).resolve()
 
 
+@dataclass(frozen=True)
+class DemoServer:
+    """The demo's vision server: its protocol ``port``, the web console's address
+    (``console_url``, None when the configuration does not enable the console) and ``stop``,
+    which stops it (SIGTERM) and returns its exit code."""
+
+    port: int
+    console_url: str | None
+    stop: Callable[[], int]
+
+
 @contextlib.contextmanager
-def vision_server(config: Path, log: Path) -> Iterator[tuple[int, Callable[[], int]]]:
+def vision_server(config: Path, log: Path) -> Iterator[DemoServer]:
     """``vision-server serve --config CONFIG --port 0`` in a subprocess: yields the port it
-    bound (from its first line) and a function that stops it (SIGTERM) and returns its exit
-    code. Its other output goes to ``log``."""
+    bound (from its first line) and the console's address (from the next). Its other output
+    goes to ``log``. It runs in its own process group, so that a Ctrl-C in the terminal
+    reaches the demo only, which then stops the server itself (cleanly, once)."""
     command = [sys.executable, "-m", "vision_server", "serve", "--config", str(config)]
     with log.open("w", encoding="utf-8") as sink:
         process = subprocess.Popen(
-            [*command, "--port", "0"], stdout=subprocess.PIPE, stderr=sink, text=True
+            [*command, "--port", "0"],
+            stdout=subprocess.PIPE,
+            stderr=sink,
+            text=True,
+            process_group=0,
         )
         assert process.stdout is not None
         line = process.stdout.readline()
         sink.write(line)
         sink.flush()
         match = re.search(r"listening on \S+:(\d+)", line)
+        console_url = None
         if match and _console_enabled(config):
             # serve prints the console's address on the line right after.
             line = process.stdout.readline()
             sink.write(line)
             address = re.search(r"web console on (\S+)", line)
             if address:
-                print(f"web console: {address.group(1)}", flush=True)
+                console_url = address.group(1)
+                print(f"web console: {console_url}", flush=True)
 
         def drain() -> None:  # keep the pipe empty (reload messages and the like)
             assert process.stdout is not None
@@ -147,7 +171,7 @@ def vision_server(config: Path, log: Path) -> Iterator[tuple[int, Callable[[], i
             if not match:
                 stop()
                 raise RuntimeError(f"the vision server did not start (see {log}): {line!r}")
-            yield int(match.group(1)), stop
+            yield DemoServer(int(match.group(1)), console_url, stop)
         finally:
             stop()
 
@@ -432,9 +456,18 @@ def step_line(row: StepRow) -> str:
 
 
 def run_demo(
-    output: Path = DEFAULT_OUTPUT, *, console: Console | None = None, live: bool = True
+    output: Path = DEFAULT_OUTPUT,
+    *,
+    console: Console | None = None,
+    live: bool = True,
+    pace_s: float = 0.0,
+    hold: Callable[[DemoResult, DemoServer], None] | None = None,
 ) -> DemoResult:
-    """The whole demo (module docstring) into ``output``; never raises for a failed step."""
+    """The whole demo (module docstring) into ``output``; never raises for a failed step.
+
+    ``pace_s``: seconds (wall time) to wait after each step, so that a person can follow the
+    cell in the web console. ``hold``: called once the task is done, with the server still
+    running (``--stay`` waits there for Ctrl-C); the server is stopped when it returns."""
     console = console or Console()
     started = time.perf_counter()
     result = DemoResult()
@@ -443,8 +476,8 @@ def run_demo(
     config = demo_config(output)
     task, store = load_task(TASK), TeachStore(TAUGHT)
     try:
-        with vision_server(config, output / "server.log") as (port, stop_server):
-            console.print(f"vision server: 127.0.0.1:{port}, configuration {config}")
+        with vision_server(config, output / "server.log") as server:
+            console.print(f"vision server: 127.0.0.1:{server.port}, configuration {config}")
             cell = SimCell.from_yaml(
                 CONFIG.parent / "scenes" / "grundfos_cell.yaml", state_path=state_file(config)
             )
@@ -453,7 +486,7 @@ def run_demo(
                 f"simulated cell: docked {np.linalg.norm(docked[:2, 3]) * 1e3:.1f} mm and "
                 f"{np.degrees(np.arctan2(docked[1, 0], docked[0, 0])):.2f}° off the nominal pose"
             )
-            with SyncVisionClient("127.0.0.1", port) as client:
+            with SyncVisionClient("127.0.0.1", server.port) as client:
                 recorder = OverlayRecorder(client, output)
                 upstream = UpstreamStation(cell, MAGNET_DELAY_S)
                 devices = sim_devices(cell, vision=recorder)
@@ -461,10 +494,14 @@ def run_demo(
                 ctx = SkillContext.create(devices, store=store)
                 observer = DemoObserver(ctx, cell, recorder, result)
                 result.task = run_task(
-                    task, default_registry(), ctx, observer, upstream, console, live
+                    task, default_registry(), ctx, observer, upstream, console, live, pace_s
                 )
                 result.overlays = list(recorder.written)
-            result.server_exit = stop_server()
+            if hold is not None:
+                held = time.perf_counter()
+                hold(result, server)
+                started += time.perf_counter() - held  # a person looking is not the demo's time
+            result.server_exit = server.stop()
     except Exception as exc:  # the demo reports; it does not crash
         result.error = f"{type(exc).__name__}: {exc}"
     result.wall_s = time.perf_counter() - started
@@ -479,9 +516,11 @@ def run_task(
     upstream: UpstreamStation,
     console: Console,
     live: bool,
+    pace_s: float = 0.0,
 ) -> TaskReport:
     """Run ``task`` on ``ctx``, one line per finished step, with a live progress view (the
-    task's steps and what the running skill reports) when ``live``."""
+    task's steps and what the running skill reports) when ``live``; ``pace_s`` seconds of
+    wall time after each step (0: none)."""
     assert ctx.store is not None
     bar = Progress(
         SpinnerColumn(),
@@ -512,6 +551,9 @@ def run_task(
         observer.result.steps.append(row)
         bar.console.print(step_line(row))
         bar.advance(overall)
+        if pace_s > 0:
+            time.sleep(pace_s)  # a person watching the console sees each step's effect
+            last = time.perf_counter()  # the pause is not the next step's time
 
     ctx.progress = on_progress
     with bar:
@@ -521,7 +563,8 @@ def run_task(
 # --- the summary --------------------------------------------------------------------------------
 
 
-def print_summary(result: DemoResult, console: Console) -> None:
+def print_summary(result: DemoResult, console: Console, *, verdict: bool = True) -> None:
+    """The steps and checks tables, then (with ``verdict``) :func:`print_verdict`."""
     steps = Table(title="Steps", box=box.SIMPLE_HEAD)
     steps.add_column("step", no_wrap=True)
     steps.add_column("outcome", no_wrap=True)
@@ -556,6 +599,12 @@ def print_summary(result: DemoResult, console: Console) -> None:
             f"task {result.task.task}: {result.task.duration_s:.1f} s simulated, "
             f"{result.wall_s:.1f} s wall in all (server start and stop included)"
         )
+    if verdict:
+        print_verdict(result, console)
+
+
+def print_verdict(result: DemoResult, console: Console) -> None:
+    """The demo's last lines: an error, an unclean server stop, success or failure."""
     if result.error:
         console.print(f"[red]error:[/] {result.error}")
     if result.server_exit not in (0, None):
@@ -563,15 +612,82 @@ def print_summary(result: DemoResult, console: Console) -> None:
     console.print("[green]demo succeeded[/]" if result.ok else "[red]demo failed[/]")
 
 
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
+    if not 0.0 <= value <= 3600.0:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 3600 seconds, got {text}")
+    return value
+
+
+def stay_until_interrupted(console: Console) -> Callable[[DemoResult, DemoServer], None]:
+    """``--stay``: once the task is done, show the summary and where to look, then wait for
+    Ctrl-C (SIGINT; SIGTERM too) with the server and its console still up."""
+
+    def hold(result: DemoResult, server: DemoServer) -> None:
+        print_summary(result, console, verdict=False)
+        if server.console_url is not None:
+            console.print(
+                f"The task is done; the vision server and its web console stay up: "
+                f"{server.console_url} (results: {server.console_url}#/results)",
+                soft_wrap=True,
+            )
+        else:
+            console.print(
+                f"The task is done; the vision server stays up on 127.0.0.1:{server.port} "
+                "(the configuration does not enable the web console)",
+                soft_wrap=True,
+            )
+        console.print("Ctrl-C to stop", soft_wrap=True)
+        wait_for_interrupt()
+
+    return hold
+
+
+def wait_for_interrupt() -> None:
+    """Block until SIGINT or SIGTERM arrives (either ends the wait, not the program)."""
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        while True:
+            signal.pause()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m robot_client.demo", description=__doc__)
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT, help="output directory")
     parser.add_argument("--no-live", action="store_true", help="plain output, no progress view")
+    parser.add_argument(
+        "--stay",
+        action="store_true",
+        help="after the task, keep the vision server and its web console running until Ctrl-C",
+    )
+    parser.add_argument(
+        "--pace",
+        type=_seconds,
+        default=0.0,
+        metavar="S",
+        help="wait S seconds after each step, to follow the cell in the web console",
+    )
     args = parser.parse_args(argv)
     console = Console()
     console.print("[bold]cellvision demo[/]: the paper's cell, simulated")
-    result = run_demo(args.output, console=console, live=console.is_terminal and not args.no_live)
-    print_summary(result, console)
+    live = console.is_terminal and not args.no_live
+    hold = stay_until_interrupted(console) if args.stay else None
+    result = run_demo(args.output, console=console, live=live, pace_s=args.pace, hold=hold)
+    if args.stay:
+        print_verdict(result, console)  # the tables were shown before the wait
+    else:
+        print_summary(result, console)
     return 0 if result.ok else 1
 
 

@@ -87,6 +87,8 @@ MAX_JSON_PART = 64 * 1024
 FORM_OVERHEAD = 64 * 1024
 """Bytes of a try's form besides the image (boundaries, the request part)."""
 TRY_PEER_PREFIX = "console "
+FRAME_TIMESTAMP_HEADER = "X-Frame-Timestamp"
+"""The live view's frame.jpg header: the frame's capture time, Unix seconds."""
 SECURITY_HEADERS = {
     "X-Content-Type-Options": "nosniff",
     "X-Frame-Options": "DENY",
@@ -393,9 +395,13 @@ class HttpFrontend:
         frame = await self.live.frame(name)
         if frame is None:
             raise HttpError(404, "NOT_FOUND", f"camera {name!r} has had no image yet")
-        return web.Response(
-            body=frame.jpeg, content_type="image/jpeg", headers={"Cache-Control": "no-store"}
-        )
+        headers = {
+            "Cache-Control": "no-store",
+            # When the camera took it (Unix seconds): a viewer can tell a new frame from the
+            # cached one and measure how old it is on arrival (bench/console.py does).
+            FRAME_TIMESTAMP_HEADER: f"{frame.timestamp:.6f}",
+        }
+        return web.Response(body=frame.jpeg, content_type="image/jpeg", headers=headers)
 
     # ------------------------------------------------------------------ inspections
 
