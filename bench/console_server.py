@@ -40,7 +40,7 @@ def write_video(path: Path, image: Any, *, frames: int = VIDEO_FRAMES) -> Path:
     color = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     height, width = color.shape[:2]
     writer = cv2.VideoWriter(
-        str(path), cv2.VideoWriter_fourcc(*"MJPG"), CAMERA_FPS, (width, height)
+        str(path), cv2.VideoWriter.fourcc(*"MJPG"), CAMERA_FPS, (width, height)
     )
     if not writer.isOpened():
         raise RuntimeError(f"OpenCV cannot write an MJPG video to {path}")

@@ -23,6 +23,7 @@ import json
 import sqlite3
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -134,8 +135,12 @@ def run(cfg: RunConfig, env: Env) -> Section:
             ("stats, 4 inspections, 24 h", f"/api/stats?window_s={DAY_S:.0f}", rows),
             ("stats, 1 inspection, 24 h", "/api/stats?inspection=magnet_check&window_s=86400", 1),
         ]
+
+        def getter(path: str) -> Callable[[], object]:
+            return lambda: served.get(path)
+
         timed = {
-            what: Stats.of(time_calls(lambda p=path: served.get(p), repeat=repeat, warmup=1))
+            what: Stats.of(time_calls(getter(path), repeat=repeat, warmup=1))
             for what, path, _ in cases
         }
         stats = served.get(f"/api/stats?window_s={DAY_S:.0f}")

@@ -223,8 +223,9 @@ def run(cfg: RunConfig, env: Env) -> Section:
         f"{server.info.get('max_in_flight')} per connection. All clients are asyncio "
         f"`VisionClient`s in one process on the same machine; BUSY is retried {retry_mode()}. "
         f"Windows: {', '.join(f'{n} {w:g} s after {u:g} s warm-up' for n, w, u in inspections)}."
-        f" OpenCV's own thread pool is left at its default ({_cv_threads()} threads), as the "
-        f"server leaves it. The machine's limit: the inspection called in this process by "
+        " The server also has a fast lane (one thread of its own for inspections measured at"
+        " 5 ms or less) and sets OpenCV's own pool to cores ÷ workers threads. The machine's"
+        " limit: the inspection called in this process by "
         f"{cores()} threads (one per core) for {cfg.f(3.0, 0.1):g} s, no protocol."
     )
     limit_table = Table(
@@ -433,9 +434,3 @@ def _plotter(
         return [save(fig, directory / "throughput.png")]
 
     return plot
-
-
-def _cv_threads() -> int:
-    import cv2
-
-    return int(cv2.getNumThreads())

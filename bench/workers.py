@@ -168,7 +168,9 @@ def run(cfg: RunConfig, env: Env) -> Section:
         f"on the sample image of its "
         f"camera, no protocol; OpenCV's own pool at its default "
         f"({models[0].one_default.cv_threads} threads) or set to 1 inside each worker. "
-        f"The server today runs every inspection in threads with OpenCV at its default."
+        "The server today runs every inspection in threads (two lanes: docs/configuration.md, "
+        "Overload), with OpenCV's pool set to cores ÷ workers threads (`opencv_threads`); the "
+        "process model this table recommends for some inspections is not built yet."
     )
     table = Table(
         [
