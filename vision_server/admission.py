@@ -34,6 +34,9 @@ from typing import Literal, TypeVar
 
 _T = TypeVar("_T")
 LaneName = Literal["main", "fast"]
+MIN_RETRY_MS = 5.0
+"""The least wait a BUSY suggests while work is ahead (unmeasured costs count as 0 ms): a
+retry sooner would only be refused again."""
 
 
 class CostModel:
@@ -147,9 +150,13 @@ class Lane:
 
     def expected_wait_ms(self, cost_ms: float) -> float:
         """When a slot is likely to be free for one more request: the queued work ahead
-        (admitted and waiting) spread over the lane's threads."""
+        (admitted and waiting) spread over the lane's threads; at least
+        :data:`MIN_RETRY_MS` when there is work ahead whose cost is not measured yet."""
         waiting = sum(w.cost_ms for w in self.waiters)
-        return (self.admitted_cost_ms + waiting + cost_ms) / self.threads
+        expected = (self.admitted_cost_ms + waiting + cost_ms) / self.threads
+        if self.admitted or self.waiters:
+            return max(expected, MIN_RETRY_MS)
+        return expected
 
 
 class WorkPool:
@@ -208,22 +215,34 @@ class WorkPool:
 
     # ----------------------------------------------------------------- admission
 
-    def try_reserve(self, key: str | None = None) -> Slot | None:
-        """A slot for work on ``key`` now, or None when its lane is full (or others wait for
-        it: first come, first served)."""
+    def _lanes_for(self, key: str | None) -> tuple[tuple[Lane, ...], float]:
+        """The lanes a request for ``key`` may run in, its own first: a cheap request may
+        also take a free main-lane slot when the fast lane is full; a costly one never takes
+        the fast lane's."""
         lane, cost = self.lane_for(key)
+        return ((lane, self.main) if lane is not self.main else (lane,)), cost
+
+    def try_reserve(self, key: str | None = None) -> Slot | None:
+        """A slot for work on ``key`` now, or None when its lanes are full (or others wait
+        for them: first come, first served)."""
+        lanes, cost = self._lanes_for(key)
         with self._lock:
-            return self._take(lane, key, cost)
+            for lane in lanes:
+                slot = self._take(lane, key, cost)
+                if slot is not None:
+                    return slot
+            return None
 
     def reserve_or_wait(self, key: str | None = None) -> Slot | Waiter:
-        """A slot now, or a place in its lane's queue (await :meth:`Waiter.wait`)."""
-        lane, cost = self.lane_for(key)
+        """A slot now, or a place in its own lane's queue (await :meth:`Waiter.wait`)."""
+        lanes, cost = self._lanes_for(key)
         with self._lock:
-            slot = self._take(lane, key, cost)
-            if slot is not None:
-                return slot
-            waiter = Waiter(self, lane, key, cost)
-            lane.waiters.append(waiter)
+            for lane in lanes:
+                slot = self._take(lane, key, cost)
+                if slot is not None:
+                    return slot
+            waiter = Waiter(self, lanes[0], key, cost)
+            lanes[0].waiters.append(waiter)
             return waiter
 
     def _take(self, lane: Lane, key: str | None, cost: float) -> Slot | None:

@@ -191,3 +191,27 @@ def test_an_overlay_is_admitted_by_the_bytes_of_its_reply() -> None:
         run(body())
     finally:
         service.close()
+
+
+def test_a_cheap_request_takes_a_free_main_slot_when_the_fast_lane_is_full() -> None:
+    pool = pool_with(cheap=1.0, heavy=30.0)
+    fast = pool.try_reserve("cheap")
+    assert fast is not None
+    assert fast.lane is pool.fast
+    spill = pool.try_reserve("cheap")  # the fast lane (1 thread, no queue) is full
+    assert spill is not None
+    assert spill.lane is pool.main
+    assert pool.try_reserve("heavy") is None  # and a heavy one never takes the fast lane's
+    pool.release(fast)
+    assert pool.try_reserve("heavy") is None
+    pool.release(spill)
+    assert pool.admitted == 0
+
+
+def test_retry_after_is_never_below_the_floor_while_work_is_ahead() -> None:
+    pool = WorkPool(1, 0, fast_workers=0)  # nothing measured yet: costs count as 0 ms
+    held = pool.try_reserve("unmeasured")
+    assert held is not None
+    assert pool.expected_wait_ms("unmeasured") >= 5.0
+    pool.release(held)
+    assert pool.expected_wait_ms("unmeasured") == 0.0
