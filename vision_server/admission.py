@@ -227,23 +227,25 @@ class WorkPool:
         for them: first come, first served)."""
         lanes, cost = self._lanes_for(key)
         with self._lock:
-            for lane in lanes:
-                slot = self._take(lane, key, cost)
-                if slot is not None:
-                    return slot
-            return None
+            return self._take_any(lanes, key, cost)
 
     def reserve_or_wait(self, key: str | None = None) -> Slot | Waiter:
         """A slot now, or a place in its own lane's queue (await :meth:`Waiter.wait`)."""
         lanes, cost = self._lanes_for(key)
         with self._lock:
-            for lane in lanes:
-                slot = self._take(lane, key, cost)
-                if slot is not None:
-                    return slot
+            slot = self._take_any(lanes, key, cost)
+            if slot is not None:
+                return slot
             waiter = Waiter(self, lanes[0], key, cost)
             lanes[0].waiters.append(waiter)
             return waiter
+
+    def _take_any(self, lanes: tuple[Lane, ...], key: str | None, cost: float) -> Slot | None:
+        for lane in lanes:
+            slot = self._take(lane, key, cost)
+            if slot is not None:
+                return slot
+        return None
 
     def _take(self, lane: Lane, key: str | None, cost: float) -> Slot | None:
         if lane.waiters or not lane.has_room(cost):

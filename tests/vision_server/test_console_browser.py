@@ -4,24 +4,20 @@ the verdict, and a saved edit that reloads the server."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import TypeVar
 
 import pytest
 from browser import console_errors, drag_on_image, headless_chromium
-from console_server import TOKEN, RunningConsole, console_server
+from console_server import console_server
 
 selenium = pytest.importorskip("selenium")
-from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
+from console_pages import sign_in, wait_for  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
 from selenium.webdriver.remote.webelement import WebElement  # noqa: E402
-from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
 
 pytestmark = pytest.mark.slow
-T = TypeVar("T")
-WAIT_S = 60.0  # only bounds a hang: each wait ends as soon as its condition holds
 
 
 @pytest.fixture(scope="module")
@@ -30,32 +26,8 @@ def driver() -> Iterator[WebDriver]:
         yield d
 
 
-def wait_for(driver: WebDriver, condition: Callable[[WebDriver], T], what: str) -> T:
-    wait = WebDriverWait(driver, WAIT_S, ignored_exceptions=(StaleElementReferenceException,))
-    return wait.until(condition, f"timed out waiting for {what}")
-
-
-def visible_page(driver: WebDriver) -> str:
-    return str(
-        driver.execute_script(
-            "return [...document.querySelectorAll('section.page')]"
-            ".filter((s) => !s.hidden).map((s) => s.id).join(',');"
-        )
-    )
-
-
 def image_loaded(element: WebElement) -> bool:
     return bool(element.get_property("complete")) and int(element.get_property("naturalWidth")) > 0
-
-
-def sign_in(driver: WebDriver, server: RunningConsole, page: str) -> None:
-    driver.delete_all_cookies()
-    driver.get(f"{server.url}#/{page}")
-    console_errors(driver)
-    wait_for(driver, lambda d: visible_page(d) == "page-login", "the login page")
-    driver.find_element(By.ID, "login-token").send_keys(TOKEN)
-    driver.find_element(By.ID, "login-submit").click()
-    wait_for(driver, lambda d: visible_page(d) == f"page-{page}", f"the {page} page")
 
 
 def test_live_view_and_a_dragged_roi_changes_the_verdict_and_saves(

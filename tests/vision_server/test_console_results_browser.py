@@ -11,27 +11,24 @@ that every expected row and figure is known here.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import TypeVar
 
 import cv2
 import numpy as np
 import pytest
 from browser import console_errors, headless_chromium
-from console_server import TOKEN, Browserless, RunningConsole, console_server
+from console_server import Browserless, RunningConsole, console_server
 
 from vision_server.results import ResultEntry, ResultLog
 
 selenium = pytest.importorskip("selenium")
-from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
+from console_pages import sign_in, wait_for  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
-from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
+from selenium.webdriver.support.ui import Select  # noqa: E402
 
 pytestmark = pytest.mark.slow
-T = TypeVar("T")
-WAIT_S = 60.0  # only bounds a hang: each wait ends as soon as its condition holds
 RED = (255, 0, 0)  # RGB, as a canvas reads it: the failing ROI's rectangle on the overlay
 
 
@@ -45,25 +42,6 @@ def driver() -> Iterator[WebDriver]:
 def server(tmp_path: Path) -> Iterator[RunningConsole]:
     with console_server(tmp_path) as running:
         yield running
-
-
-def wait_for(driver: WebDriver, condition: Callable[[WebDriver], T], what: str) -> T:
-    wait = WebDriverWait(driver, WAIT_S, ignored_exceptions=(StaleElementReferenceException,))
-    return wait.until(condition, f"timed out waiting for {what}")
-
-
-def sign_in(driver: WebDriver, server: RunningConsole, page: str) -> None:
-    driver.delete_all_cookies()
-    driver.get(f"{server.url}#/{page}")
-    console_errors(driver)
-    wait_for(driver, lambda d: d.find_element(By.ID, "login-token").is_displayed(), "sign-in")
-    driver.find_element(By.ID, "login-token").send_keys(TOKEN)
-    driver.find_element(By.ID, "login-submit").click()
-    wait_for(
-        driver,
-        lambda d: d.find_element(By.ID, f"page-{page}").is_displayed(),
-        f"the {page} page",
-    )
 
 
 def log_of(server: RunningConsole) -> ResultLog:

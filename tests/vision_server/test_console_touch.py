@@ -11,9 +11,8 @@ from browser import headless_chromium
 from console_server import console_server
 
 selenium = pytest.importorskip("selenium")
+from console_pages import sign_in, visible_page, wait_for  # noqa: E402
 from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
-
-from .test_console_browser import sign_in, visible_page, wait_for  # noqa: E402
 
 pytestmark = pytest.mark.slow
 PAGES = ("cameras", "inspections", "results", "server", "operator")

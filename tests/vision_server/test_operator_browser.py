@@ -7,10 +7,9 @@ With ``CONSOLE_SCREENSHOTS=docs/console`` the page's screenshot replaces docs/co
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TypeVar
 
 import pytest
 from browser import console_errors, headless_chromium, save_screenshot
@@ -20,25 +19,17 @@ from protocol import ImageRole
 from robot_client import SyncVisionClient
 
 selenium = pytest.importorskip("selenium")
-from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
+from console_pages import WAIT_S, wait_for  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
-from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
 
 pytestmark = pytest.mark.slow
-T = TypeVar("T")
-WAIT_S = 60.0  # only bounds a hang: each wait ends as soon as its condition holds
 
 
 @pytest.fixture(scope="module")
 def driver() -> Iterator[WebDriver]:
     with headless_chromium() as d:
         yield d
-
-
-def wait_for(driver: WebDriver, condition: Callable[[WebDriver], T], what: str) -> T:
-    wait = WebDriverWait(driver, WAIT_S, ignored_exceptions=(StaleElementReferenceException,))
-    return wait.until(condition, f"timed out waiting for {what}")
 
 
 def test_a_call_appears_and_a_tap_on_retry_answers_the_robot(
