@@ -1,8 +1,9 @@
 """A person with the console open, without a browser: an HTTP client (aiohttp) in its own
 process that asks the server what the page's JavaScript asks, at the page's rhythm.
 
-What the page polls (vision_server/console/static/console.js and js/*.js); each poller runs
-its request, then waits its interval *after* the answer (js/poll.js: never two at once):
+What the page polls (vision_server/console/static/console.js and js/*.js); each poller starts a
+round every interval, or at once when the previous round took longer (js/poll.js: never two at
+once):
 
 - every page: the status pill, ``GET /api/server`` every 3 s; the Operator badge,
   ``GET /api/operator/calls`` every 3 s;
@@ -55,6 +56,11 @@ class Segment:
     """Camera cards on the page (a frame.jpg poller each)."""
 
 
+async def _rest_of(interval_s: float, started: float) -> None:
+    """Wait out what is left of a round that began at ``started`` (monotonic seconds)."""
+    await asyncio.sleep(max(0.0, interval_s - (time.monotonic() - started)))
+
+
 def frame_interval_s(camera: dict[str, Any]) -> float:
     """js/cameras.js's ``intervalMs`` for one card, in seconds."""
     if camera.get("source") == "request":
@@ -90,10 +96,11 @@ class _Page:
 
     async def poll(self, path: str, interval_s: float, *, ready: bool = False) -> None:
         while True:
+            started = time.monotonic()
             _, response = await self.get(path)
             if ready and response is not None and response.status == 200:
                 self.ready.set()
-            await asyncio.sleep(interval_s)
+            await _rest_of(interval_s, started)
 
     async def cameras(self) -> list[dict[str, Any]]:
         body, response = await self.get("api/cameras")
@@ -117,13 +124,14 @@ class _Page:
         tick = 0
         while True:
             tick += 1
+            started = time.monotonic()
             _, response = await self.get(f"{path}?t={tick}")
             received = time.time()
             if name == self.camera and response is not None and response.status == 200:
                 captured = float(response.headers.get(FRAME_TIMESTAMP_HEADER, "nan"))
                 self.segment.frames.append((captured, received))
                 self.ready.set()
-            await asyncio.sleep(interval_s)
+            await _rest_of(interval_s, started)
 
     async def run(self) -> None:
         async with asyncio.TaskGroup() as group:

@@ -1,5 +1,6 @@
-// Repeating work while a page is visible: the next round starts ``intervalMs`` after the previous
-// one finished (never two at once, so a slow server is not piled up with requests).
+// Repeating work while a page is visible: a round starts every ``intervalMs`` (a live view at its
+// frame-rate cap), or as soon as the previous one finished when that took longer: never two at
+// once, so a slow server is not piled up with requests.
 
 export class Poller {
   constructor(fn, intervalMs) {
@@ -32,6 +33,7 @@ export class Poller {
   }
 
   async round(generation) {
+    const started = performance.now();
     try {
       await this.fn();
     } catch (exc) {
@@ -39,7 +41,8 @@ export class Poller {
       console.warn("console: poll failed", exc);
     }
     if (this.running && generation === this.generation) {
-      this.timer = setTimeout(() => this.round(generation), this.intervalMs);
+      const wait = Math.max(0, this.intervalMs - (performance.now() - started));
+      this.timer = setTimeout(() => this.round(generation), wait);
     }
   }
 }
