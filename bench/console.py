@@ -388,8 +388,8 @@ def _live(
         caption=(
             f"The live view of `{LIVE_CAMERA}`: the camera plays {CAMERA_FPS:g} fps (the "
             f"server measured {fmt(measured_fps, 1)}), the console reads at most "
-            f"{MAX_VIEW_FPS:g} per second, the page asks every {1000.0 / asked_fps:.0f} ms "
-            "after the previous frame arrived:"
+            f"{MAX_VIEW_FPS:g} per second, the page starts a read every "
+            f"{1000.0 / asked_fps:.0f} ms (at once after a slower one):"
         ),
     )
     stretches: list[tuple[str, str, LiveFigures]] = [
@@ -425,9 +425,10 @@ def _live(
     section.tables.append(table)
     section.notes.append(
         "Frame rate reached: distinct frames (by capture time) that arrived per second. The "
-        "page waits its interval after each frame arrived (js/poll.js), so it asks a little "
-        "less often than the cap; the camera's rate is above the cap on purpose (the cap is "
-        "what the console promises, not the camera)."
+        "page starts a read every interval, never two at once (js/poll.js), and the server "
+        "reads a new frame when the previous read began at least 0.9 interval ago; the "
+        "camera's rate is above the cap on purpose (the cap is what the console promises, "
+        "not the camera)."
     )
     section.notes.append(
         "A live frame is read through the service (admission, the worker pool): under a "
