@@ -649,28 +649,38 @@ class TcpSession:
     ) -> None:
         rid = request.request_id
         try:
-            response: Message
-            try:
-                if isinstance(request, Inspect):
-                    reply = await self.service.inspect(
-                        self._inspect_request(request, arrived), admission=admission
-                    )
-                    response = result_message(rid, reply)
-                else:
-                    wanted = _capture_request(request, arrived, self.max_reply_bytes)
-                    captured = await self.service.capture(wanted, admission=admission)
-                    response = _frames(rid, captured, wanted.encoding)
-            except CellvisionError as exc:
-                response = error_frame(exc, rid)
-            except Exception as exc:  # a bug in an inspection must not take the server down
-                log.exception("%s: request %d failed", self.peer, rid)
-                response = error_frame(InternalError(f"{type(exc).__name__}: {exc}"), rid)
+            response = await self._response(request, admission, arrived)
             if rid in self.conn.pending:
                 self._write(response)
+                # What the socket did not take is the transport's now (a copy, or its own
+                # reference): the answer's arrays and PNG need not live on while a slow
+                # reader drains, which the byte budget counts once.
+                del response
                 await self._drain()
         finally:
             # The reply is in the socket (or the connection is gone): its memory is free.
             self._release(admission)
+
+    async def _response(
+        self, request: Inspect | Capture, admission: Admission | None, arrived: float
+    ) -> Message:
+        """The answer to ``request``: RESULT, FRAMES or ERROR. The service's reply (with the
+        overlay's pixels beside its PNG) ends here; only the message goes on."""
+        rid = request.request_id
+        try:
+            if isinstance(request, Inspect):
+                reply = await self.service.inspect(
+                    self._inspect_request(request, arrived), admission=admission
+                )
+                return result_message(rid, reply)
+            wanted = _capture_request(request, arrived, self.max_reply_bytes)
+            captured = await self.service.capture(wanted, admission=admission)
+            return _frames(rid, captured, wanted.encoding)
+        except CellvisionError as exc:
+            return error_frame(exc, rid)
+        except Exception as exc:  # a bug in an inspection must not take the server down
+            log.exception("%s: request %d failed", self.peer, rid)
+            return error_frame(InternalError(f"{type(exc).__name__}: {exc}"), rid)
 
     def _inspect_request(self, message: Inspect, arrived: float) -> InspectRequest:
         return InspectRequest(
