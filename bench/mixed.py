@@ -189,7 +189,9 @@ def run(cfg: RunConfig, env: Env) -> Section:
         f"(or as many as {budget_s:g} s allow) while {clients} clients x {depth} in flight "
         f"(another process) send `{EXPENSIVE}` "
         f"on the same image. Server: default settings ({server.info.get('workers')} workers, "
-        f"queue_depth {server.info.get('queue_depth')}). BUSY is retried {retry_mode()}; "
+        f"queue_depth {server.info.get('queue_depth')}, a fast lane of one thread; in worker "
+        f"processes: {', '.join(server.info.get('process_inspections') or ['nothing'])}). "
+        f"BUSY is retried {retry_mode()}; "
         "the latency includes the retries."
     )
     table = Table(

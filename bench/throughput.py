@@ -224,7 +224,9 @@ def run(cfg: RunConfig, env: Env) -> Section:
         f"`VisionClient`s in one process on the same machine; BUSY is retried {retry_mode()}. "
         f"Windows: {', '.join(f'{n} {w:g} s after {u:g} s warm-up' for n, w, u in inspections)}."
         " The server also has a fast lane (one thread of its own for inspections measured at"
-        " 5 ms or less) and sets OpenCV's own pool to cores ÷ workers threads. The machine's"
+        " 5 ms or less), sets OpenCV's own pool to cores ÷ workers threads, and runs "
+        f"{', '.join(server.info.get('process_inspections') or ['nothing'])} in worker "
+        "processes (`process_inspections`, chosen by section 2b's rule). The machine's"
         " limit: the inspection called in this process by "
         f"{cores()} threads (one per core) for {cfg.f(3.0, 0.1):g} s, no protocol."
     )

@@ -112,6 +112,9 @@ class App:
         # OpenCV's own thread pool is process-wide: sized against the workers, so that
         # workers x OpenCV threads does not oversubscribe the cores (docs/configuration.md).
         cv2.setNumThreads(self.service.settings.opencv_thread_count())
+        if self.service.processes is not None:
+            # The worker processes start before the server listens (spawn imports for seconds).
+            await asyncio.to_thread(self.service.processes.start)
         await self.tcp.start()
         if self.line is not None:
             try:

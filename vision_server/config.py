@@ -71,6 +71,13 @@ class CellConfig:
     """The web console (``console:``), with the server's token, TLS and limits."""
 
 
+def _names(value: Any) -> tuple[str, ...]:
+    """A list of inspection names."""
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise ValueError(f"expected a list of inspection names, got {value!r}")
+    return tuple(value)
+
+
 def load_config(path: Path | str) -> CellConfig:
     """Read and validate a configuration file; raises :class:`ConfigError`."""
     file = Path(path)
@@ -90,7 +97,8 @@ def load_server_settings(path: Path | str) -> ServerSettings:
 def parse_config(
     root: Node, *, text: str, base_dir: Path, source: Path | None = None
 ) -> CellConfig:
-    server = _server(root.sub("server"), base_dir)
+    server_node = root.sub("server")
+    server = _server(server_node, base_dir)
     results = _results(root.sub("results"), base_dir)
     console = _console(root.sub("console"), server)
     cameras = _cameras(root, base_dir)
@@ -111,6 +119,13 @@ def parse_config(
             numbers_by_position((s.name, getattr(s, "number", None)) for s in inspections)
         except ValueError as exc:
             raise node.error(str(exc), "number" if "number" in node else None) from None
+    for name in server.process_inspections:
+        if name not in seen:
+            known = ", ".join(sorted(seen)) or "none"
+            raise server_node.error(
+                f"{name!r} is not an inspection of this file (inspections: {known})",
+                "process_inspections",
+            )
     line = _line(root.sub("line"), server)
     root.finish()
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
@@ -217,6 +232,9 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
         max_queue_ms=node.take("max_queue_ms", positive, defaults.max_queue_ms),
         admission_wait_s=node.take("admission_wait_s", non_negative, defaults.admission_wait_s),
         opencv_threads=node.take("opencv_threads", positive_int, defaults.opencv_threads),
+        process_inspections=tuple(
+            node.take("process_inspections", _names, defaults.process_inspections)
+        ),
         auth_token=token,
         shutdown_grace_s=node.take("shutdown_grace_s", non_negative, defaults.shutdown_grace_s),
         tls_cert=None if cert is None else str(_resolve(base_dir, cert)),

@@ -47,6 +47,7 @@ from protocol import (
 from .admission import Admission, ByteBudget, Slot, Waiter, WorkPool
 from .cameras import Camera, CameraFrame
 from .catalog import Catalog, InspectionInput, InspectionOutcome
+from .process_lane import ProcessLane
 from .results import ResultEntry, ResultLog
 from .settings import ServiceSettings
 
@@ -225,6 +226,10 @@ class InspectionService:
         self._catalog = catalog
         self.results = results
         self.reloader = reloader
+        self.processes = (
+            ProcessLane(self.settings.workers) if self.settings.process_inspections else None
+        )
+        """Worker processes for the inspections that hold the GIL (started on first use)."""
         self.pool = WorkPool(
             self.settings.workers,
             self.settings.queue_depth,
@@ -289,8 +294,10 @@ class InspectionService:
         self.reload_counts[record.ok] += 1
 
     def close(self) -> None:
-        """Stop the worker pool (running jobs finish in their threads)."""
+        """Stop the worker pool (running jobs finish in their threads) and the processes."""
         self.pool.shutdown()
+        if self.processes is not None:
+            self.processes.shutdown()
 
     # ------------------------------------------------------------------ observers, health
 
@@ -455,6 +462,8 @@ class InspectionService:
                     frames[0].color, depth if inspection.uses_depth else (), camera.intrinsics
                 )
 
+        in_process = inspection.name in self.settings.process_inspections
+
         def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None]:
             image = acquire()
             if request.overlay is not None:
@@ -482,7 +491,10 @@ class InspectionService:
                 and image.color.shape[0] * image.color.shape[1] <= STORED_OVERLAY_MAX_PIXELS
             )
             try:
-                outcome = inspection.run(image, overlay=draw)
+                if self.processes is not None and in_process:
+                    outcome = self.processes.run(inspection, image, overlay=draw)
+                else:
+                    outcome = inspection.run(image, overlay=draw)
             except CellvisionError as exc:
                 self._record(entry, t0, error=f"{exc.code.name}: {exc.message}")
                 raise

@@ -45,6 +45,9 @@ class ServiceSettings:
     """OpenCV's own threads (``cv2.setNumThreads``), set when the server starts; None: the
     cores left to each worker (cores // workers, at least 1), so that workers x OpenCV threads
     does not oversubscribe the machine."""
+    process_inspections: tuple[str, ...] = ()
+    """Inspections that hold the GIL, run in ``workers`` worker processes with their images in
+    shared memory instead of in the worker threads (see vision_server/process_lane.py)."""
     max_image_pixels: int = 4096 * 4096
     """The largest image (width x height) an inspection is given."""
     capture_timeout_s: float = 5.0
@@ -147,6 +150,7 @@ class ServerSettings:
     max_queue_ms: float = 2000.0
     admission_wait_s: float = 5.0
     opencv_threads: int | None = None
+    process_inspections: tuple[str, ...] = ()
     auth_token: str | None = None
     shutdown_grace_s: float = 5.0
     tls_cert: str | None = None
@@ -186,6 +190,7 @@ class ServerSettings:
             max_queue_ms=self.max_queue_ms,
             admission_wait_s=self.admission_wait_s,
             opencv_threads=self.opencv_threads,
+            process_inspections=self.process_inspections,
             max_buffered_bytes=self.max_buffered_bytes,
             max_image_pixels=self.max_image_pixels,
             capture_timeout_s=self.capture_timeout_s,

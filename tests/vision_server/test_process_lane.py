@@ -1,0 +1,96 @@
+"""Inspections named in ``process_inspections`` run in worker processes, their images passed
+through shared memory: the outcome is the same as in a thread, from another process, and the
+shared block is gone afterwards. Counts and values only, no timing."""
+
+from __future__ import annotations
+
+import os
+from multiprocessing.shared_memory import SharedMemory
+from pathlib import Path
+
+import numpy as np
+import pytest
+from child_inspections import WhereAmI
+from loopback import run
+
+from vision_server.cameras import RequestCamera, RequestCameraSettings
+from vision_server.catalog import Catalog, InspectionInput
+from vision_server.config import ConfigError, load_config
+from vision_server.process_lane import ProcessLane
+from vision_server.service import Images, InspectionService, InspectRequest
+from vision_server.settings import ServiceSettings
+
+COLOR = (np.arange(48 * 64, dtype=np.uint32).reshape(48, 64) % 251).astype(np.uint8)
+DEPTH = np.full((48, 64), 700, np.uint16)
+
+
+def test_an_inspection_named_for_processes_runs_in_another_process_with_its_images() -> None:
+    catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [WhereAmI()])
+    settings = ServiceSettings(workers=1, queue_depth=0, process_inspections=("where",))
+    service = InspectionService(catalog, settings)
+
+    async def body() -> None:
+        assert service.processes is not None
+        reply = await service.inspect(
+            InspectRequest("where", Images(COLOR, (DEPTH,)), overlay="array")
+        )
+        assert reply.data["pid"] != os.getpid()
+        assert reply.data["mean"] == pytest.approx(float(COLOR.mean()))
+        assert reply.data["depth"] == [[[48, 64], 700 * 48 * 64]]
+        assert reply.overlay is not None
+        assert np.array_equal(reply.overlay.image, 255 - COLOR)
+
+    try:
+        run(body(), timeout_s=120.0)
+    finally:
+        service.close()
+
+
+def test_without_the_setting_it_runs_in_the_server_process() -> None:
+    catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [WhereAmI()])
+    service = InspectionService(catalog, ServiceSettings(workers=1, queue_depth=0))
+
+    async def body() -> None:
+        assert service.processes is None
+        reply = await service.inspect(InspectRequest("where", Images(COLOR)))
+        assert reply.data["pid"] == os.getpid()
+
+    try:
+        run(body())
+    finally:
+        service.close()
+
+
+def test_the_shared_block_is_removed_after_each_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    names: list[str] = []
+    real = SharedMemory.__init__
+
+    def recording(self: SharedMemory, *args: object, **kwargs: object) -> None:
+        real(self, *args, **kwargs)  # type: ignore[arg-type]
+        names.append(self.name)
+
+    monkeypatch.setattr(SharedMemory, "__init__", recording)
+    lane = ProcessLane(1)
+    try:
+        outcome = lane.run(WhereAmI(), InspectionInput(COLOR), overlay=False)
+        assert outcome.data["mean"] == pytest.approx(float(COLOR.mean()))
+    finally:
+        lane.shutdown()
+    assert names
+    for name in names:
+        with pytest.raises(FileNotFoundError):
+            SharedMemory(name=name)
+
+
+def test_a_name_that_is_no_inspection_is_a_config_error(tmp_path: Path) -> None:
+    config = tmp_path / "cell.yaml"
+    config.write_text(
+        "server: {port: 0, process_inspections: [nope]}\n"
+        "cameras: {tool: {source: request}}\n"
+        "inspections:\n"
+        "  - {name: bright, type: presence, camera: tool, measure: mean_intensity, min: 1}\n",
+        encoding="utf-8",
+    )
+    with pytest.raises(ConfigError, match="'nope' is not an inspection") as refused:
+        load_config(config)
+    assert "process_inspections" in str(refused.value)
