@@ -98,7 +98,7 @@ class TcpSettings:
         return context
 
 
-LINE_FORMATS = ("text", "ur")
+LINE_FORMATS = ("text", "ur", "abb", "kuka", "fanuc")
 """How a line-protocol trigger answer is written (protocol/LINE.md §5)."""
 DEFAULT_LINE_PORT = 7880
 """The line protocol's port when ``line:`` enables it without one (protocol/LINE.md)."""

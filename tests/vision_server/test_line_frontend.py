@@ -11,7 +11,17 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from controllers import read_line, socket_read_ascii_float
+from controllers import (
+    eki_stream,
+    karel_fields,
+    karel_read,
+    krl_sread,
+    rapid_fields,
+    rapid_receive_line,
+    read_line,
+    real32,
+    socket_read_ascii_float,
+)
 from loopback import Gate, run, wait_until
 
 from vision_server.app import App
@@ -55,9 +65,9 @@ def write_cell(tmp_path: Path, extra: str = "", config: str = CONFIG) -> Path:
 
 @contextlib.asynccontextmanager
 async def serving(
-    tmp_path: Path, *, token: str | None = None, **line: object
+    tmp_path: Path, *, token: str | None = None, config: str = CONFIG, **line: object
 ) -> AsyncIterator[App]:
-    runtime = CellRuntime(write_cell(tmp_path))
+    runtime = CellRuntime(write_cell(tmp_path, config=config))
     settings = replace(runtime.config.line, **line)  # type: ignore[arg-type]
     app = App(runtime.catalog, ServerSettings(port=0, auth_token=token), line=settings)
     try:
@@ -167,6 +177,107 @@ def test_ur_format_is_read_by_socket_read_ascii_float(tmp_path: Path) -> None:
             # F switches this connection to text lines; others keep the configured format.
             assert await robot.ask("F text") == "OK TEXT"
             assert await robot.ask("T 7") == "OK 0 100.000"
+            robot.close()
+
+    run(body())
+
+
+CONTROLLER_CONFIG = """\
+server: {port: 0}
+results: {enabled: false}
+cameras:
+  shelf: {source: folder, path: imgs}
+inspections:
+  - name: pose
+    type: presence
+    camera: shelf
+    measure: mean_intensity
+    min: 10
+    output:
+      fields: [value, {name: value, scale: -0.0123, decimals: 4}, {name: value, scale: 1000}]
+      decimals: 2
+  - name: wide
+    type: presence
+    camera: shelf
+    measure: mean_intensity
+    min: 10
+    output: {fields: [value, value, value, value, value, value, value, value], decimals: 6}
+  - name: huge
+    type: presence
+    camera: shelf
+    measure: mean_intensity
+    min: 10
+    output: {fields: [{name: value, scale: 1000000, decimals: 6}]}
+line: {enabled: true, port: 0}
+"""
+POSE = [1.0, 100.0, real32(-1.23), 100000.0]
+"""What a controller holds after ``T 1`` (pose): the verdict, then 100.00, -1.2300, 100000.00,
+each a 32-bit REAL."""
+
+
+def test_abb_format_is_read_by_socket_receive_and_str_to_val(tmp_path: Path) -> None:
+    async def body() -> None:
+        async with serving(tmp_path, config=CONTROLLER_CONFIG) as app:
+            robot = await Controller.connect(app)
+            assert await robot.ask("F abb") == "OK ABB"
+            for _ in range(2):  # answer after answer, as a RAPID loop reads them
+                robot.writer.write(b"T 1\n")
+                answer = await rapid_receive_line(robot.reader)
+                assert answer == "1,100.00,-1.2300,100000.00\r\n"
+                assert rapid_fields(answer, 4) == POSE
+            # A failure: the negated code, then a 0 for each value (the count stays).
+            robot.writer.write(b"T 9\n")
+            assert rapid_fields(await rapid_receive_line(robot.reader) or "", 1) == [-10.0]
+            # 9 fields of 10 characters do not fit RAPID's 80: refused, never cut.
+            robot.writer.write(b"T 2\n")
+            assert await rapid_receive_line(robot.reader) == "-16\r\n"
+            robot.close()
+
+    run(body())
+
+
+def test_kuka_format_is_read_by_an_eki_stream_and_sread(tmp_path: Path) -> None:
+    async def body() -> None:
+        async with serving(tmp_path, config=CONTROLLER_CONFIG, format="kuka") as app:
+            robot = await Controller.connect(app)
+            for _ in range(2):
+                robot.writer.write(b"T pose\n")
+                answer = await eki_stream(robot.reader)
+                assert answer == "1 100.00 -1.2300 100000.00"
+                assert answer is not None
+                assert krl_sread(answer, "%d %f %f %f") == POSE
+            robot.writer.write(b"T 2\n")
+            wide = await eki_stream(robot.reader)
+            assert wide is not None
+            assert krl_sread(wide, "%d" + " %f" * 8) == [1.0] + [100.0] * 8
+            robot.writer.write(b"T 9\n")
+            assert krl_sread(await eki_stream(robot.reader) or "", "%d") == [-10.0]
+            robot.close()
+
+    run(body())
+
+
+def test_fanuc_format_is_read_by_karel_read_and_cnv_str_real(tmp_path: Path) -> None:
+    async def body() -> None:
+        async with serving(tmp_path, config=CONTROLLER_CONFIG, format="fanuc") as app:
+            robot = await Controller.connect(app)
+            length = 4 * 12 + 2  # four fields of 12 characters and CR LF
+            for _ in range(2):
+                robot.writer.write(b"T 1\n")
+                answer = await karel_read(robot.reader, length, declared=80)
+                assert answer == "000000000001000000100.00-000001.2300000100000.00\r\n"
+                assert answer is not None
+                assert karel_fields(answer, 4) == POSE
+            # A failure keeps the length the program reads: -21 would read as -00000000021.
+            robot.writer.write(b"T 9\n")
+            unknown = await karel_read(robot.reader, 12 + 2, declared=80)
+            assert unknown is not None
+            assert karel_fields(unknown, 1) == [-10.0]
+            # 100000000.000000 has 16 characters: refused rather than cut.
+            robot.writer.write(b"T 3\n")
+            huge = await karel_read(robot.reader, 12 + 2, declared=80)
+            assert huge is not None
+            assert karel_fields(huge, 1) == [-16.0]
             robot.close()
 
     run(body())

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 from protocol import CellvisionError, InvalidArgument, MalformedFrame, UnknownMessageType
 
+from .line_formats import WRITERS
+
 EOL = b"\r\n"
 """What every answer ends with (a controller reading up to LF or CR LF takes both)."""
 MAX_ERROR_TEXT = 160
@@ -24,7 +26,7 @@ ARITY: dict[str, tuple[int, int]] = {
     "L": (0, 0),  # list inspections
     "P": (0, 0),  # ping
     "A": (1, 1),  # authenticate <token>
-    "F": (1, 1),  # answer format <text|ur>
+    "F": (1, 1),  # answer format <text|ur|abb|kuka|fanuc>
     "Q": (0, 0),  # quit
 }
 """Each command letter and how many arguments it takes (min, max)."""
@@ -101,29 +103,39 @@ def error_line(exc: CellvisionError) -> bytes:
 
 def result_line(fmt: str, passed: bool, values: Sequence[tuple[float, int]]) -> bytes:
     """A trigger's answer: the verdict (1 pass, 0 fail), then ``values`` as ``(value,
-    decimals)``. ``text``: ``OK 1 311.40 208.90``; ``ur``: ``(1, 311.40, 208.90)``, what
-    URScript's socket_read_ascii_float reads."""
+    decimals)``. ``text``: ``OK 1 311.40 208.90``; a controller's format
+    (:mod:`.line_formats`): e.g. ``ur``: ``(1, 311.40, 208.90)``. An answer the controller
+    could not hold (too long for RAPID's string) is the error INVALID_ARGUMENT instead."""
     numbers = ["1" if passed else "0", *(number_text(v, d) for v, d in values)]
-    if fmt == "ur":
-        return ur_list(numbers)
-    return ok_line(*numbers)
+    writer = WRITERS.get(fmt)
+    if writer is None:
+        return ok_line(*numbers)
+    try:
+        return writer(numbers)
+    except InvalidArgument as exc:
+        return trigger_error_line(fmt, exc, None)
 
 
 def ur_list(numbers: Sequence[str]) -> bytes:
-    """``(a, b, c)`` with no end of line: socket_read_ascii_float stops at the parenthesis,
-    and a line end after it would be what the program's next socket_read_line returns."""
-    return ("(" + ", ".join(numbers) + ")").encode("ascii")
+    """``(a, b, c)`` with no end of line (LINE.md §5.2)."""
+    return WRITERS["ur"](numbers)
 
 
 def trigger_error_line(fmt: str, exc: CellvisionError, fields: int | None) -> bytes:
-    """The answer to a trigger (or R) that failed. ``text``: the error line. ``ur``: the
-    negated code in the verdict's place and a 0 for each of the ``fields`` values the
-    inspection answers with, so that a program reading a fixed count gets it (it checks the
-    first number): ``(-21, 0, 0)``. ``fields`` None (the inspection is not known): the code
-    alone, ``(-10)``, which a read of more numbers reports as a failed read."""
-    if fmt == "ur":
-        return ur_list([str(-int(exc.code))] + ["0"] * (fields or 0))
-    return error_line(exc)
+    """The answer to a trigger (or R) that failed. ``text``: the error line. A controller's
+    format: the negated code in the verdict's place and a 0 for each of the ``fields`` values
+    the inspection answers with, so that a program reading a fixed count gets it (it checks the
+    first number): ``(-21, 0, 0)``, ``-21,0,0``. ``fields`` None (the inspection is not known,
+    or its answer does not fit): the code alone, ``(-10)``, which a read of more numbers
+    reports as a failed read."""
+    writer = WRITERS.get(fmt)
+    if writer is None:
+        return error_line(exc)
+    code = str(-int(exc.code))
+    try:
+        return writer([code] + ["0"] * (fields or 0))
+    except InvalidArgument:  # the zeros do not fit either: the code alone does
+        return writer([code])
 
 
 __all__ = [
