@@ -387,12 +387,17 @@ class InspectionService:
     def _take_bytes(self, admission: Admission, body_bytes: int, key: str | None) -> None:
         if body_bytes > 0 and not admission.take_bytes(body_bytes):
             admission.release()
-            self.busy_count += 1
-            raise Busy(
-                f"the server's memory for request bodies is taken ({self.budget.used} of "
-                f"{self.budget.limit} bytes); try again",
-                details={"size": body_bytes, "retry_after_ms": self.retry_after_ms(key)},
-            )
+            raise self._memory_busy("request bodies", body_bytes, key)
+
+    def _memory_busy(self, what: str, size: int, key: str | None, hint: str = "") -> Busy:
+        """The BUSY of a reservation the byte budget could not take (``what``: request bodies
+        or replies), counted, with its size and a retry-after hint."""
+        self.busy_count += 1
+        return Busy(
+            f"the server's memory for {what} is taken ({self.budget.used} of "
+            f"{self.budget.limit} bytes{hint}); try again",
+            details={"size": size, "retry_after_ms": self.retry_after_ms(key)},
+        )
 
     def retry_after_ms(self, key: str | None) -> int:
         """When a request for ``key`` refused now could be admitted: the work queued ahead of
@@ -536,13 +541,8 @@ class InspectionService:
         height, width = color.shape[:2]
         estimate = width * height * 3 + REPLY_OVERHEAD
         if not admission.take_bytes(estimate):
-            self.busy_count += 1
-            raise Busy(
-                f"the server's memory for replies is taken ({self.budget.used} of "
-                f"{self.budget.limit} bytes; an overlay of {width}x{height} needs about "
-                f"{estimate}); try again, or ask without an overlay",
-                details={"size": estimate, "retry_after_ms": self.retry_after_ms(None)},
-            )
+            hint = f"; an overlay of {width}x{height} needs about {estimate}, ask without one"
+            raise self._memory_busy("replies", estimate, None, hint)
 
     def _record(self, entry: ResultEntry, t0: float, *, error: str | None = None) -> bool | None:
         """Log one run before its answer is sent; return whether the row was written (None
@@ -647,10 +647,7 @@ class InspectionService:
                 details={"size": estimate, "max_size": limit},
             )
         if not admission.take_bytes(estimate):
-            raise Busy(
-                f"the server's memory for replies is taken ({self.budget.used} of "
-                f"{self.budget.limit} bytes); try again"
-            )
+            raise self._memory_busy("replies", estimate, capture_key(request.camera))
 
     # ------------------------------------------------------------------ the pool
 
