@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import os
 import ssl
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
 
 from protocol import DEFAULT_PORT, Limits
 
@@ -181,41 +182,17 @@ class ServerSettings:
             raise ValueError("auth_token is empty: give a token, or None for no authentication")
 
     def service(self) -> ServiceSettings:
-        """The inspection service's part."""
-        return ServiceSettings(
-            workers=self.workers,
-            queue_depth=self.queue_depth,
-            fast_workers=self.fast_workers,
-            fast_lane_ms=self.fast_lane_ms,
-            max_queue_ms=self.max_queue_ms,
-            admission_wait_s=self.admission_wait_s,
-            opencv_threads=self.opencv_threads,
-            process_inspections=self.process_inspections,
-            max_buffered_bytes=self.max_buffered_bytes,
-            max_image_pixels=self.max_image_pixels,
-            capture_timeout_s=self.capture_timeout_s,
-        )
+        """The inspection service's part (its fields, by name)."""
+        return ServiceSettings(**self._part(ServiceSettings))
 
     def tcp(self) -> TcpSettings:
-        """The TCP front-end's part."""
-        return TcpSettings(
-            host=self.host,
-            port=self.port,
-            name=self.name,
-            max_frame_bytes=self.max_frame_bytes,
-            max_image_pixels=self.max_image_pixels,
-            max_in_flight=self.max_in_flight,
-            max_connections=self.max_connections,
-            auth_token=self.auth_token,
-            shutdown_grace_s=self.shutdown_grace_s,
-            tls_cert=self.tls_cert,
-            tls_key=self.tls_key,
-            allow_reload=self.allow_reload,
-            handshake_timeout_s=self.handshake_timeout_s,
-            idle_timeout_s=self.idle_timeout_s,
-            frame_timeout_s=self.frame_timeout_s,
-            write_timeout_s=self.write_timeout_s,
-        )
+        """The TCP front-end's part (its fields, by name)."""
+        return TcpSettings(**self._part(TcpSettings))
+
+    def _part(self, part: type[Any]) -> dict[str, Any]:
+        # Every field of a part is a field of this section (a test keeps it so), so a key
+        # added to the section and its part cannot be forgotten in a copy list.
+        return {f.name: getattr(self, f.name) for f in fields(part)}
 
     def limits(self) -> Limits:
         return self.tcp().limits()

@@ -712,3 +712,16 @@ def test_a_tls_key_that_is_not_the_certificates_is_a_configuration_error(tmp_pat
         )  # fmt: skip
         assert done.returncode == 2, done.stderr
         assert "cannot serve TLS" in done.stderr
+
+
+def test_the_server_section_holds_every_field_of_its_parts() -> None:
+    """ServerSettings.service() and .tcp() copy their fields by name: each must exist in the
+    section, with the same default."""
+    from dataclasses import fields
+
+    from vision_server.settings import ServerSettings, ServiceSettings, TcpSettings
+
+    section = ServerSettings()
+    for part, built in ((ServiceSettings(), section.service()), (TcpSettings(), section.tcp())):
+        for f in fields(part):
+            assert getattr(built, f.name) == getattr(part, f.name), f.name
