@@ -318,6 +318,8 @@ class TcpSession:
                 request_id=rid,
             )
         large = header.frame_length > self.conn.limits.max_handshake_frame_bytes
+        if not (work or large):
+            return  # a PING, a LIST_INSPECTIONS…: nothing to reserve
         try:
             admission = self.service.admit(
                 work=False, body_bytes=header.frame_length if large else 0
@@ -335,7 +337,7 @@ class TcpSession:
         if header.type not in (MessageType.INSPECT, MessageType.CAPTURE):
             return
         held = self._frame_admission
-        if held is None:  # no header check ran (a test's broken state machine)
+        if held is None:  # a small body reserved nothing at its header
             held = self.service.admit(work=False)
             self._hold_frame_admission(held)
         if self._granted is not None:  # the slot this frame waited for
