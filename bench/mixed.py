@@ -190,7 +190,9 @@ def run(cfg: RunConfig, env: Env) -> Section:
         f"(another process) send `{EXPENSIVE}` "
         f"on the same image. Server: default settings ({server.info.get('workers')} workers, "
         f"queue_depth {server.info.get('queue_depth')}, a fast lane of one thread; in worker "
-        f"processes: {', '.join(server.info.get('process_inspections') or ['nothing'])}). "
+        f"processes: {', '.join(server.info.get('process_inspections') or ['nothing'])}; the "
+        f"main lane's threads and processes at niceness +{server.info.get('main_lane_nice', 0)}"
+        "). "
         f"BUSY is retried {retry_mode()}; "
         "the latency includes the retries."
     )

@@ -150,6 +150,7 @@ async def _serve_cellvision(config: Path | None) -> None:
             "queue_depth": server.settings.queue_depth,
             "max_in_flight": server.settings.max_in_flight,
             "process_inspections": list(chosen),
+            "main_lane_nice": server.settings.main_lane_nice,
         }
     )
     await done.wait()

@@ -32,6 +32,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal, TypeVar
 
+from .cpu_priority import lower_this_thread
+
 _T = TypeVar("_T")
 LaneName = Literal["main", "fast"]
 MIN_RETRY_MS = 5.0
@@ -130,7 +132,15 @@ class Waiter:
 class Lane:
     """One queue with its own threads. Counters are guarded by the pool's lock."""
 
-    def __init__(self, name: LaneName, threads: int, queue_depth: int, max_queue_ms: float):
+    def __init__(
+        self,
+        name: LaneName,
+        threads: int,
+        queue_depth: int,
+        max_queue_ms: float,
+        *,
+        nice: int = 0,
+    ) -> None:
         self.name: LaneName = name
         self.threads = threads
         self.capacity = threads + queue_depth
@@ -138,8 +148,14 @@ class Lane:
         self.admitted = 0
         self.admitted_cost_ms = 0.0
         self.waiters: deque[Waiter] = deque()
+        self.nice = nice
+        """How much lower than the server's other threads this lane's threads run (niceness
+        added, vision_server/cpu_priority.py)."""
         self.executor = ThreadPoolExecutor(
-            max_workers=threads, thread_name_prefix=f"inspect-{name}"
+            max_workers=threads,
+            thread_name_prefix=f"inspect-{name}",
+            initializer=lower_this_thread,
+            initargs=(nice,),
         )
 
     def has_room(self, cost_ms: float) -> bool:
@@ -170,9 +186,10 @@ class WorkPool:
         fast_workers: int = 1,
         fast_lane_ms: float = 5.0,
         max_queue_ms: float = 2000.0,
+        main_lane_nice: int = 0,
         costs: CostModel | None = None,
     ) -> None:
-        self.main = Lane("main", workers, queue_depth, max_queue_ms)
+        self.main = Lane("main", workers, queue_depth, max_queue_ms, nice=main_lane_nice)
         self.fast = (
             Lane("fast", fast_workers, queue_depth, max_queue_ms) if fast_workers > 0 else None
         )

@@ -38,6 +38,7 @@ from .configfile import (
     read_document,
     string,
 )
+from .cpu_priority import MAX_NICE
 from .inspections import InspectionSpec, parse_inspection
 from .inspections.output import numbers_by_position
 from .settings import LINE_FORMATS, ConsoleSettings, LineSettings, ServerSettings
@@ -76,6 +77,14 @@ def _names(value: Any) -> tuple[str, ...]:
     if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
         raise ValueError(f"expected a list of inspection names, got {value!r}")
     return tuple(value)
+
+
+def _niceness(value: Any) -> int:
+    """A niceness to add: an integer in 0..19."""
+    added = integer(value)
+    if not 0 <= added <= MAX_NICE:
+        raise ValueError(f"expected a niceness in 0..{MAX_NICE}, got {added}")
+    return added
 
 
 def load_config(path: Path | str) -> CellConfig:
@@ -235,6 +244,7 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
         process_inspections=tuple(
             node.take("process_inspections", _names, defaults.process_inspections)
         ),
+        main_lane_nice=node.take("main_lane_nice", _niceness, defaults.main_lane_nice),
         auth_token=token,
         shutdown_grace_s=node.take("shutdown_grace_s", non_negative, defaults.shutdown_grace_s),
         tls_cert=None if cert is None else str(_resolve(base_dir, cert)),

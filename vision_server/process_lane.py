@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from .catalog import Inspection, InspectionInput, InspectionOutcome
+from .cpu_priority import run_this_process_at, target_niceness
 
 Layout = tuple[tuple[int, tuple[int, ...], str], ...]
 """Where each image lies in the shared block: (offset in bytes, shape, numpy dtype string);
@@ -41,8 +42,12 @@ class ProcessLane:
     """A pool of ``processes`` worker processes, started on first use. :meth:`run` blocks the
     calling thread (a worker of the service's lanes) until the outcome is back."""
 
-    def __init__(self, processes: int) -> None:
+    def __init__(self, processes: int, *, nice: int = 0) -> None:
         self.processes = processes
+        self.niceness = target_niceness(nice) if nice > 0 else None
+        """The niceness each process sets when it starts, ``nice`` above the server's own
+        (vision_server/cpu_priority.py): the main lane's work yields the cores to the event
+        loop and the fast lane. None: as inherited."""
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
 
@@ -50,7 +55,10 @@ class ProcessLane:
         with self._lock:
             if self._pool is None:
                 self._pool = ProcessPoolExecutor(
-                    self.processes, mp_context=multiprocessing.get_context("spawn")
+                    self.processes,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=run_this_process_at,
+                    initargs=(self.niceness,),
                 )
             return self._pool
 

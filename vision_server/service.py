@@ -227,7 +227,9 @@ class InspectionService:
         self.results = results
         self.reloader = reloader
         self.processes = (
-            ProcessLane(self.settings.workers) if self.settings.process_inspections else None
+            ProcessLane(self.settings.workers, nice=self.settings.main_lane_nice)
+            if self.settings.process_inspections
+            else None
         )
         """Worker processes for the inspections that hold the GIL (started on first use)."""
         self.pool = WorkPool(
@@ -236,6 +238,7 @@ class InspectionService:
             fast_workers=self.settings.fast_workers,
             fast_lane_ms=self.settings.fast_lane_ms,
             max_queue_ms=self.settings.max_queue_ms,
+            main_lane_nice=self.settings.main_lane_nice,
         )
         self.budget = ByteBudget(self.settings.max_buffered_bytes)
         self._observers: list[Callable[[InspectionRecord], None]] = []

@@ -4,6 +4,7 @@ tests' helpers are on the path it inherits), and picklable."""
 from __future__ import annotations
 
 import os
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -14,8 +15,9 @@ from vision_server.catalog import InspectionInput, InspectionOutcome
 
 @dataclass(frozen=True)
 class WhereAmI:
-    """Reports the process it ran in and what it saw: the mean of the colour image, the depth
-    frames' shapes and sums; its overlay is the image inverted."""
+    """Reports the process it ran in, the niceness of the thread that ran it, and what it saw:
+    the mean of the colour image, the depth frames' shapes and sums; its overlay is the image
+    inverted."""
 
     name: str = "where"
     camera: str = "tool"
@@ -26,6 +28,7 @@ class WhereAmI:
     def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
         data: dict[str, Any] = {
             "pid": os.getpid(),
+            "nice": os.getpriority(os.PRIO_PROCESS, threading.get_native_id()),
             "mean": float(np.mean(image.color)),
             "depth": [[list(d.shape), int(d.sum())] for d in image.depth],
         }

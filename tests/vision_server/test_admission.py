@@ -5,6 +5,10 @@ inspection in the fast lane while the main lane is held by a gate."""
 from __future__ import annotations
 
 import asyncio
+import os
+import sys
+import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +19,7 @@ from vision_server.admission import CostModel, Slot, Waiter, WorkPool
 from vision_server.builtin import MeanIntensityPresence
 from vision_server.cameras import RequestCamera, RequestCameraSettings
 from vision_server.catalog import Catalog
+from vision_server.config import ConfigError, load_config
 from vision_server.service import Images, InspectionService, InspectRequest
 from vision_server.settings import ServiceSettings
 
@@ -215,3 +220,33 @@ def test_retry_after_is_never_below_the_floor_while_work_is_ahead() -> None:
     assert pool.expected_wait_ms("unmeasured") >= 5.0
     pool.release(held)
     assert pool.expected_wait_ms("unmeasured") == 0.0
+
+
+def _thread_niceness() -> int:
+    return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="per-thread niceness is Linux's")
+def test_the_main_lane_runs_below_the_fast_lane_and_the_event_loop() -> None:
+    # A woken event loop or fast-lane thread must preempt a locate, not wait for its turn.
+    own = _thread_niceness()
+    pool = WorkPool(2, 0, fast_workers=1, main_lane_nice=5)
+    try:
+        assert pool.fast is not None
+        main = {pool.main.executor.submit(_thread_niceness).result() for _ in range(4)}
+        fast = pool.fast.executor.submit(_thread_niceness).result()
+    finally:
+        pool.shutdown()
+    assert main == {min(own + 5, 19)}
+    assert fast == own
+    assert _thread_niceness() == own
+
+
+def test_a_niceness_out_of_range_is_a_config_error(tmp_path: Path) -> None:
+    config = tmp_path / "cell.yaml"
+    config.write_text("server: {port: 0, main_lane_nice: 20}\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="niceness in 0..19") as refused:
+        load_config(config)
+    assert "main_lane_nice" in str(refused.value)
+    config.write_text("server: {port: 0}\n", encoding="utf-8")
+    assert load_config(config).server.main_lane_nice == 10

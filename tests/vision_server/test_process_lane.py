@@ -5,6 +5,7 @@ shared block is gone afterwards. Counts and values only, no timing."""
 from __future__ import annotations
 
 import os
+import sys
 from multiprocessing.shared_memory import SharedMemory
 from pathlib import Path
 
@@ -94,3 +95,26 @@ def test_a_name_that_is_no_inspection_is_a_config_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="'nope' is not an inspection") as refused:
         load_config(config)
     assert "process_inspections" in str(refused.value)
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="per-thread niceness is Linux's")
+def test_worker_processes_run_at_the_main_lanes_lower_priority() -> None:
+    # Priority by cost (bench 2c): the locates in the processes yield the cores to the event
+    # loop and the fast lane. The process's niceness is its own plus main_lane_nice.
+    own = os.getpriority(os.PRIO_PROCESS, 0)
+    catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [WhereAmI()])
+    settings = ServiceSettings(
+        workers=1, queue_depth=0, process_inspections=("where",), main_lane_nice=7
+    )
+    service = InspectionService(catalog, settings)
+
+    async def body() -> None:
+        reply = await service.inspect(InspectRequest("where", Images(COLOR)))
+        assert reply.data["pid"] != os.getpid()
+        assert reply.data["nice"] == min(own + 7, 19)
+
+    try:
+        run(body(), timeout_s=120.0)
+    finally:
+        service.close()
+    assert os.getpriority(os.PRIO_PROCESS, 0) == own  # the server's own thread is untouched
