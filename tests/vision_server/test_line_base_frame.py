@@ -151,3 +151,153 @@ def test_a_fixed_camera_answers_the_part_in_the_base_frame(tmp_path: Path) -> No
     assert ur[:3] == [8.0, 1.0, 1.0], ur
     assert np.allclose(ur[3:6], p_base, atol=0.0005), (ur, p_base)
     assert np.allclose(np.abs(ur[6:9]), [math.pi, 0.0, 0.0], atol=1e-4), ur
+
+
+def tool_camera_config(tmp_path: Path, state: Path) -> Path:
+    """The scene's tool camera as a server ``sim`` camera following ``state``, mounted as in
+    the scene; ``cap`` answers base-frame poses of the caps' tops."""
+    config = f"""\
+server: {{port: 0}}
+results: {{enabled: false}}
+cameras:
+  tool:
+    source: sim
+    scene: {SCENE}
+    camera: tool_camera
+    state_file: {state}
+    mount: {{tool_from_camera: {{xyz: [0.07, 0.0, -0.1], rpy: [0, 0, 0]}}}}
+inspections:
+  - name: cap
+    type: locate
+    camera: tool
+    method: circle
+    circle: {{min_radius_px: 60, max_radius_px: 100, polarity: bright}}
+    output: {{frame: base, fields: [count, pose], plane_z_m: 0.025}}
+line: {{enabled: true, port: 0}}
+"""
+    path = tmp_path / "cell.yaml"
+    path.write_text(config, encoding="utf-8")
+    return path
+
+
+def test_a_tool_camera_takes_the_robots_pose_in_each_controllers_convention(
+    tmp_path: Path,
+) -> None:
+    """The robot (a SimCell writing the world file) stands over cap_2; the same trigger with
+    its TCP pose in URScript's ``p[...]``, KUKA's X Y Z A B C and ABB's x,y,z,q1..q4 finds the
+    cap's top centre in the base frame within 0.5 mm of the truth. Without a pose, with a pose
+    of the wrong count, the trigger is refused naming what is expected."""
+    from robot_client.controllers.urscript import pose_to_str
+    from vision_server.frontends.line_poses import pose_values
+
+    state = tmp_path / "world.json"
+    cell = SimCell.from_yaml(SCENE, seed=5, state_path=state)
+    cell.restart()
+    tcp = np.eye(4)
+    tcp[:3, :3] = rotation_from_rpy(math.pi, 0.0, 0.0)
+    tcp[:3, 3] = [0.23, -0.55, 0.275]
+    cell.robot.move_linear(tcp)
+    truth = cell.render("tool_camera").truth.features["cap_2.top_centre"]
+    p_base = transform_points(invert_transform(cell.world.world_from_base), truth.p_world)
+    runtime = CellRuntime(tool_camera_config(tmp_path, state))
+    app = App(runtime.catalog, ServerSettings(port=0), line=runtime.config.line)
+
+    def numbers(fmt: str) -> str:
+        return " ".join(f"{v:.6f}" for v, _ in pose_values(fmt, tcp))
+
+    async def scenario() -> dict[str, str]:
+        async with app:
+            assert app.line is not None
+            reader, writer = await asyncio.open_connection("127.0.0.1", app.line.port)
+
+            async def ask(line: str) -> str:
+                writer.write(line.encode("ascii") + b"\n")
+                return await read_line(reader, timeout_s=30.0)
+
+            out = {
+                "none": await ask("T cap"),
+                "short": await ask("T cap 1 2 3"),
+                "text": await ask(f"T cap {numbers('text')}"),
+                "repeat": await ask("R"),
+                "F kuka": await ask("F kuka"),
+                "kuka": await ask(f"T 1 {numbers('kuka')}"),
+                "F abb": await ask("F abb"),
+                "abb": await ask("T 1 " + ",".join(numbers("abb").split())),
+                "F ur": await ask("F ur"),
+            }
+            writer.write(f"T 1 {pose_to_str(tcp)}\n".encode("ascii"))
+            ur = await socket_read_ascii_float(reader, 8, timeout_s=30.0)
+            out["ur"] = " ".join(str(v) for v in ur)
+            writer.close()
+            return out
+
+    try:
+        out = run(scenario())
+    finally:
+        runtime.close()
+    assert out["none"].startswith("ER 16 camera 'tool' of 'cap' is on the tool"), out
+    assert "x y z w p r" in out["none"]
+    assert out["short"] == "ER 16 a text pose is 6 numbers (x y z w p r), got 3", out
+    expected_mm = p_base * 1000.0
+    text = [float(v) for v in out["text"].split()[1:]]
+    assert text[:2] == [1.0, 1.0], out
+    assert np.allclose(text[2:5], expected_mm, atol=0.5), (out, expected_mm)
+    assert out["repeat"] == out["text"]
+    kuka = [float(v) for v in out["kuka"].split()]
+    assert np.allclose(kuka[2:5], expected_mm, atol=0.5), out
+    assert np.allclose(np.abs(kuka[5:8]), [0.0, 0.0, 180.0], atol=1e-3), out  # A B C
+    abb = [float(v) for v in out["abb"].strip().split(",")]
+    assert len(abb) == 9, out
+    assert np.allclose(abb[2:5], expected_mm, atol=0.5), out
+    assert np.allclose(np.abs(abb[5:9]), [0.0, 1.0, 0.0, 0.0], atol=1e-6), out  # q1..q4
+    ur = [float(v) for v in out["ur"].split()]
+    assert ur[:3] == [8.0, 1.0, 1.0], out
+    assert np.allclose(ur[3:6], p_base, atol=0.0005), out
+
+
+def test_a_pose_sent_to_an_inspection_that_takes_none_is_refused(tmp_path: Path) -> None:
+    mount = "    mount: {base_from_camera: {xyz: [0.15, 0.65, 0.6], rpy: [3.14159265, 0, 0]}}"
+    path = tmp_path / "cell.yaml"
+    path.write_text(cell_config(mount, "{frame: base, plane_z_m: 0.06}"), encoding="utf-8")
+    runtime = CellRuntime(path)
+    app = App(runtime.catalog, ServerSettings(port=0), line=runtime.config.line)
+
+    async def scenario() -> str:
+        async with app:
+            assert app.line is not None
+            reader, writer = await asyncio.open_connection("127.0.0.1", app.line.port)
+            writer.write(b"T core 0 0 0 0 0 0\n")
+            answer = await read_line(reader)
+            writer.close()
+            return answer
+
+    try:
+        answer = run(scenario())
+    finally:
+        runtime.close()
+    assert answer.startswith("ER 16 'core' takes no pose"), answer
+
+
+@pytest.mark.parametrize(
+    ("mount", "message"),
+    [
+        ("{}", "give exactly one of base_from_camera or tool_from_camera (got none)"),
+        (
+            "{base_from_camera: {xyz: [0, 0, 1], rpy: [0, 0, 0]}, "
+            "tool_from_camera: {xyz: [0, 0, 1], rpy: [0, 0, 0]}}",
+            "give exactly one of base_from_camera or tool_from_camera (got base_from_camera, "
+            "tool_from_camera)",
+        ),
+        ("{base_from_camera: {xyz: [0, 0], rpy: [0, 0, 0]}}", "xyz must be a list of 3 numbers"),
+        ("{tool_from_camera: {xyz: [0, 0, 1], rpy: [0, 0, 0], scale: 2}}", "scale"),
+    ],
+)
+def test_a_bad_mount_is_a_configuration_error_naming_the_key(
+    tmp_path: Path, mount: str, message: str
+) -> None:
+    path = tmp_path / "cell.yaml"
+    path.write_text(cell_config(f"    mount: {mount}", "{}"), encoding="utf-8")
+    with pytest.raises(ConfigError) as caught:
+        load_config(path)
+    assert message in str(caught.value)
+    assert "cameras" in str(caught.value)
