@@ -31,8 +31,9 @@ test: lint typecheck wheel-check pytest
 
 # `make demo STAY=1` keeps the server and its web console up after the task (Ctrl-C stops it);
 # `make demo PACE=2` waits 2 s after each step, to follow the cell live in the console.
+# `make demo LINE=1`: a robot controller (URScript's rules) picks through the line protocol alone.
 demo: bootstrap
-	$(PY) -m robot_client.demo $(if $(STAY),--stay) $(if $(PACE),--pace $(PACE))
+	$(PY) -m robot_client.demo $(if $(STAY),--stay) $(if $(PACE),--pace $(PACE)) $(if $(LINE),--via line)
 
 bench: bootstrap
 	$(PY) -m bench

@@ -678,8 +678,20 @@ def main(argv: list[str] | None = None) -> int:
         metavar="S",
         help="wait S seconds after each step, to follow the cell in the web console",
     )
+    parser.add_argument(
+        "--via",
+        choices=("skills", "line"),
+        default="skills",
+        help="line: a robot controller with no PC picks the caps through the line protocol "
+        "alone (URScript's rules), receiving base-frame poses (robot_client/line_demo.py)",
+    )
     args = parser.parse_args(argv)
     console = Console()
+    if args.via == "line":
+        from .line_demo import run_line_demo
+
+        console.print("[bold]cellvision demo[/]: the pick through the line protocol alone")
+        return 0 if run_line_demo(args.output, console=console).ok else 1
     console.print("[bold]cellvision demo[/]: the paper's cell, simulated")
     live = console.is_terminal and not args.no_live
     hold = stay_until_interrupted(console) if args.stay else None

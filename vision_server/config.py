@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from .cameras import SOURCE_NAMES, CameraSettings, FolderCameraSettings, Intrinsics
+from .cameras.mount import MOUNT_KEYS, CameraMount
 from .configfile import (
     ConfigError,
     Node,
@@ -372,6 +373,9 @@ def _settings(node: Node, cls: type[Any]) -> Any:
         if field.name == "intrinsics" and node.has("intrinsics"):
             kwargs["intrinsics"] = _settings(node.sub("intrinsics"), Intrinsics)
             continue
+        if field.name == "mount" and node.has("mount"):
+            kwargs["mount"] = _mount(node.sub("mount"))
+            continue
         if not required and not node.has(field.name):
             node.take(field.name, _any, None)  # an allowed key, even when absent
             continue
@@ -386,6 +390,25 @@ def _settings(node: Node, cls: type[Any]) -> Any:
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:
         raise node.error(str(exc)) from None
+
+
+def _mount(node: Node) -> CameraMount:
+    """A camera's ``mount:``: exactly one of ``base_from_camera`` (a fixed camera) or
+    ``tool_from_camera`` (a camera on the robot's tool), each ``{xyz, rpy}``."""
+    given = [key for key in MOUNT_KEYS if node.has(key)]
+    if len(given) != 1:
+        raise node.error(
+            f"give exactly one of {' or '.join(MOUNT_KEYS)} (got {', '.join(given) or 'none'})"
+        )
+    pose = node.sub(given[0])
+    xyz = pose.take("xyz", _any)
+    rpy = pose.take("rpy", _any)
+    pose.finish()
+    node.finish()
+    try:
+        return CameraMount("fixed" if given[0] == MOUNT_KEYS[0] else "tool", xyz, rpy)
+    except ValueError as exc:
+        raise pose.error(str(exc)) from None
 
 
 def _any(value: Any) -> Any:

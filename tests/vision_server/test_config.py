@@ -613,6 +613,10 @@ def test_docs_list_exactly_the_keys_the_validator_reads(
             return f"source: {node.data.get('source')}"
         if path[:1] == ("cameras",) and path[2:] == ("intrinsics",):
             return "cameras.intrinsics"
+        if path[:1] == ("cameras",) and path[2:] == ("mount",):
+            return "cameras.mount"
+        if path[:1] == ("cameras",) and path[2:3] == ("mount",):
+            return "mount pose"
         if path[:1] == ("inspections",) and len(path) == 2:
             return f"type: {node.data.get('type')}"
         if path[:1] == ("inspections",) and len(path) == 3:
@@ -645,14 +649,17 @@ server: {{host: 0.0.0.0, port: 0, name: x, max_frame_bytes: 1000000, max_image_p
 results: {{enabled: true, path: r.db, store_images: all, max_image_mb: 5}}
 cameras:
   req: {{source: request, depth: true,
-         intrinsics: {{width: 64, height: 48, fx: 50, fy: 50, cx: 32, cy: 24}}}}
-  cv: {{source: opencv, device: 0}}
+         intrinsics: {{width: 64, height: 48, fx: 50, fy: 50, cx: 32, cy: 24}},
+         mount: {{base_from_camera: {{xyz: [0, 0, 1], rpy: [3.14159265, 0, 0]}}}}}}
+  cv: {{source: opencv, device: 0,
+        mount: {{tool_from_camera: {{xyz: [0, 0, 0.1], rpy: [0, 0, 0]}}}}}}
   dir: {{source: folder, path: d}}
   sim: {{source: sim, scene: {EXAMPLE.parent / "scenes" / "grundfos_cell.yaml"}, camera: rgbd}}
 inspections:
   - {{name: t, type: locate, camera: req, method: template, template: {{image: t.png}}}}
   - {{name: c, type: locate, camera: req, method: circle,
-      circle: {{min_radius_px: 1, max_radius_px: 2}}}}
+      circle: {{min_radius_px: 1, max_radius_px: 2}},
+      output: {{frame: base, plane_z_m: 0, offset_m: [0, 0, 0.01], tool_rpy: [3, 0, 0]}}}}
   - {{name: b, type: locate, camera: req, method: blob, blob: {{}}}}
   - {{name: p, type: presence, camera: req, measure: mean_intensity, min: 1}}
   - {{name: q, type: qr, camera: req}}
@@ -672,6 +679,8 @@ line: {{enabled: true, host: 0.0.0.0, port: 0, tls: false, format: ur, max_line_
         "inspections.output": docs["inspections.output"],
         "output.fields": {"name", "decimals", "scale"},
         "cameras.intrinsics": docs["cameras.intrinsics"],
+        "cameras.mount": docs["cameras.mount"],
+        "mount pose": {"xyz", "rpy"},
         **{
             f"source: {s}": docs["cameras"] | docs.get(f"source: {s}", set())
             for s in ("request", "opencv", "folder", "sim")

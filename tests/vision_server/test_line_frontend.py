@@ -122,7 +122,7 @@ def test_every_malformed_line_gets_an_error_line_and_the_connection_goes_on(
         async with serving(tmp_path) as app:
             robot = await Controller.connect(app)
             assert (await robot.ask("X 1")).startswith("ER 4 unknown command 'X'")
-            assert (await robot.ask("T")).startswith("ER 16 T takes 1 argument(s), got 0")
+            assert (await robot.ask("T")).startswith("ER 16 T takes 1 to 8 argument(s), got 0")
             assert (await robot.ask("P now")).startswith("ER 16 ")
             assert (await robot.ask("T 3")).startswith("ER 10 no inspection number 3")
             assert (await robot.ask("T nope")).startswith("ER 10 no inspection named 'nope'")

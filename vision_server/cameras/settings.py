@@ -15,6 +15,8 @@ from typing import Any, Literal
 
 from geometry import CameraIntrinsics
 
+from .mount import CameraMount
+
 __all__ = [
     "BACKENDS",
     "SOURCE_NAMES",
@@ -168,6 +170,11 @@ def _intrinsics(value: object) -> None:
         raise ValueError(f"intrinsics must be an Intrinsics or None, got {value!r}")
 
 
+def _mount(value: object) -> None:
+    if value is not None and not isinstance(value, CameraMount):
+        raise ValueError(f"mount must be a CameraMount or None, got {value!r}")
+
+
 @dataclass(frozen=True)
 class RequestCameraSettings:
     """A camera whose images arrive with each request (the camera on the robot's tool).
@@ -176,10 +183,12 @@ class RequestCameraSettings:
     """
 
     intrinsics: Intrinsics | None = None
+    mount: CameraMount | None = None
     depth: bool = False
 
     def __post_init__(self) -> None:
         _intrinsics(self.intrinsics)
+        _mount(self.mount)
         _bool("depth", self.depth)
 
 
@@ -212,6 +221,7 @@ class OpenCVCameraSettings:
     read_timeout_s: float = 2.0
     fourcc: str | None = None
     intrinsics: Intrinsics | None = None
+    mount: CameraMount | None = None
     loop_file: bool = False
 
     def __post_init__(self) -> None:
@@ -237,6 +247,7 @@ class OpenCVCameraSettings:
         ):
             raise ValueError(f"fourcc must be 4 ASCII characters, got {self.fourcc!r}")
         _intrinsics(self.intrinsics)
+        _mount(self.mount)
         _bool("loop_file", self.loop_file)
         if self.intrinsics is not None:
             for name in ("width", "height"):
@@ -266,6 +277,7 @@ class FolderCameraSettings:
     depth_glob: str | None = None
     color: Literal["gray", "bgr", "unchanged"] = "unchanged"
     intrinsics: Intrinsics | None = None
+    mount: CameraMount | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "path", _path("path", self.path))
@@ -277,6 +289,7 @@ class FolderCameraSettings:
         if self.color not in ("gray", "bgr", "unchanged"):
             raise ValueError(f"color must be 'gray', 'bgr' or 'unchanged', got {self.color!r}")
         _intrinsics(self.intrinsics)
+        _mount(self.mount)
 
 
 @dataclass(frozen=True)
@@ -293,6 +306,7 @@ class SimCameraSettings:
     state_file: Path | None = None
     seed: int = 0
     intrinsics: Intrinsics | None = None
+    mount: CameraMount | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scene", _path("scene", self.scene))
@@ -303,6 +317,7 @@ class SimCameraSettings:
         if not _is_int(self.seed) or self.seed < 0:
             raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         _intrinsics(self.intrinsics)
+        _mount(self.mount)
 
 
 CameraSettings = (

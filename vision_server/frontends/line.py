@@ -15,10 +15,11 @@ import asyncio
 import contextlib
 import hmac
 import logging
+import math
 import ssl
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from protocol import (
     Busy,
@@ -45,6 +46,7 @@ from .line_codec import (
     result_line,
     trigger_error_line,
 )
+from .line_poses import CONVENTIONS, Matrix, parse_pose, pose_values
 
 log = logging.getLogger("vision_server")
 
@@ -64,20 +66,66 @@ class Answerable:
     type: str
     output: OutputFormat
 
-    def values(self, reply: InspectReply) -> list[tuple[float, int]]:
+    def count(self, fmt: str) -> int:
+        """Numbers after the verdict in format ``fmt``."""
+        return self.output.count(CONVENTIONS[fmt].count)
+
+    def values(
+        self, reply: InspectReply, fmt: str, base_from_tool: Matrix | None = None
+    ) -> list[tuple[float, int]]:
+        """The answer's numbers in format ``fmt``; a base-frame pose of a tool camera needs
+        the TCP pose the trigger carried (without it the pose is sent as missing)."""
         kind = RESULT_KINDS.get(self.type)
         summary = {} if kind is None else kind.summary(reply.data)
-        return self.output.values(summary)
+        base = self.output.base
+        if base is None:
+            return self.output.values(summary)
+        convention = CONVENTIONS[fmt]
+        pose = None
+        if base_from_tool is not None or not base.needs_tool_pose:
+            pose = base.pose(summary.get("u", math.nan), summary.get("v", math.nan), base_from_tool)
+        if pose is None:
+            numbers = [(math.nan, convention.position_decimals)] * convention.count
+        else:
+            numbers = pose_values(fmt, pose)
+        return self.output.values(summary, numbers)
+
+    def tool_pose(self, fmt: str, words: tuple[str, ...]) -> Matrix | None:
+        """The TCP pose a trigger's words after the inspection give (None: none given and
+        none needed). Raises INVALID_ARGUMENT for a pose the inspection does not take or a
+        missing one it needs."""
+        base = self.output.base
+        needed = base is not None and base.needs_tool_pose
+        if not words:
+            if needed:
+                assert base is not None
+                names = " ".join(["x", "y", "z", *CONVENTIONS[fmt].rotation])
+                raise InvalidArgument(
+                    f"camera {base.camera!r} of {self.name!r} is on the tool: send the "
+                    f"robot's TCP pose, T <inspection> {names}"
+                )
+            return None
+        if not needed:
+            raise InvalidArgument(
+                f"{self.name!r} takes no pose: its camera is not on the tool with frame: base"
+            )
+        return parse_pose(fmt, words)
 
 
-def answerable(inspection: Inspection) -> Answerable:
-    """The output an inspection's ``output:`` declares, else every summary value of its type."""
+def answerable(inspection: Inspection, catalog: Catalog | None = None) -> Answerable:
+    """The output an inspection's ``output:`` declares, else every summary value of its type.
+    ``catalog``: where a base-frame output without configured intrinsics finds its camera's
+    (a sim camera's come from its scene)."""
     declared = getattr(inspection, "output", None)
     output = (
         declared
         if isinstance(declared, OutputFormat)
         else default_output(RESULT_KINDS.get(inspection.type))
     )
+    if output.base is not None and output.base.intrinsics is None and catalog is not None:
+        camera = catalog.cameras.get(inspection.camera)
+        if camera is not None:
+            output = replace(output, base=output.base.with_intrinsics(camera.intrinsics))
     return Answerable(inspection.name, inspection.type, output)
 
 
@@ -180,7 +228,7 @@ class LineSession:
         self.writer = writer
         self.format = self.settings.format
         self.authenticated = frontend.tcp.auth_token is None
-        self.last: tuple[Answerable, InspectReply] | None = None
+        self.last: tuple[Answerable, InspectReply, Matrix | None] | None = None
         """The answer to this connection's last trigger (for ``R``)."""
         self.finished = asyncio.Event()
         self.busy = False
@@ -298,7 +346,7 @@ class LineSession:
             )
             raise _Closed
         if command.verb == "T":
-            await self._trigger(command.arg or "")
+            await self._trigger(command.arg or "", command.args[1:])
         elif command.verb == "R":
             await self._last_result(command.arg)
         elif command.verb == "L":
@@ -347,14 +395,15 @@ class LineSession:
                 shown = ", ".join(str(n) for n in sorted(numbers)) or "none"
                 raise UnknownInspection(f"no inspection number {int(key)}; numbers: {shown}")
             key = name
-        return answerable(catalog.inspection(key))
+        return answerable(catalog.inspection(key), catalog)
 
-    async def _trigger(self, key: str) -> None:
+    async def _trigger(self, key: str, pose_words: tuple[str, ...] = ()) -> None:
         arrived = time.monotonic()
         target: Answerable | None = None
         self.busy = True
         try:
             target = self._find(key)
+            base_from_tool = target.tool_pose(self.format, pose_words)
             deadline = arrived + self.settings.deadline_s
             # A controller waits for its answer: a trigger waits for a worker slot (within its
             # deadline) rather than being refused at once.
@@ -374,27 +423,29 @@ class LineSession:
                 admission.release()
         except CellvisionError as exc:
             log.info("%s: T %s: %s: %s", self.peer, key, exc.code.name, exc.message)
-            fields = None if target is None else len(target.output.fields)
+            fields = None if target is None else target.count(self.format)
             await self._send(trigger_error_line(self.format, exc, fields))
             return
         except Exception as exc:  # a bug in an inspection must not end the connection
             log.exception("%s: T %s failed", self.peer, key)
-            fields = None if target is None else len(target.output.fields)
+            fields = None if target is None else target.count(self.format)
             error = InternalError(f"{type(exc).__name__}: {exc}")
             await self._send(trigger_error_line(self.format, error, fields))
             return
         finally:
             self.busy = False
-        self.last = (target, reply)
-        await self._send(result_line(self.format, reply.passed, target.values(reply)))
+        self.last = (target, reply, base_from_tool)
+        values = target.values(reply, self.format, base_from_tool)
+        await self._send(result_line(self.format, reply.passed, values))
 
     async def _last_result(self, key: str | None) -> None:
         target: Answerable | None = None
+        base_from_tool: Matrix | None = None
         try:
             if key is None:
                 if self.last is None:
                     raise InvalidArgument("no trigger on this connection yet")
-                target, reply = self.last
+                target, reply, base_from_tool = self.last
             else:
                 target = self._find(key)
                 found = self.frontend.latest.get(target.name)
@@ -402,10 +453,11 @@ class LineSession:
                     raise InvalidArgument(f"inspection {target.name!r} has no result yet")
                 reply = found
         except CellvisionError as exc:
-            fields = None if target is None else len(target.output.fields)
+            fields = None if target is None else target.count(self.format)
             await self._send(trigger_error_line(self.format, exc, fields))
             return
-        await self._send(result_line(self.format, reply.passed, target.values(reply)))
+        values = target.values(reply, self.format, base_from_tool)
+        await self._send(result_line(self.format, reply.passed, values))
 
 
 __all__ = ["Answerable", "LineFrontend", "LineSession", "answerable", "inspection_numbers"]

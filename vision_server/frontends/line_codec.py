@@ -21,7 +21,7 @@ MAX_ERROR_TEXT = 160
 """Characters of an error line's message: enough to name the cause, short for a pendant."""
 
 ARITY: dict[str, tuple[int, int]] = {
-    "T": (1, 1),  # trigger <number|name>
+    "T": (1, 8),  # trigger <number|name> [the robot's TCP pose: 6 or 7 numbers]
     "R": (0, 1),  # last result (this connection's, or an inspection's)
     "L": (0, 0),  # list inspections
     "P": (0, 0),  # ping

@@ -59,7 +59,13 @@ def parse_inspection(
     number = node.take("number", positive_int, None)
     given = node.has("output")
     output_node = node.sub("output")
-    output = parse_output(output_node, RESULT_KINDS[kind], kind) if given else None
+    camera = node.data.get("camera") if isinstance(node.data, dict) else None
+    settings = cameras.get(camera) if isinstance(camera, str) else None
+    output = (
+        parse_output(output_node, RESULT_KINDS[kind], kind, camera=str(camera), settings=settings)
+        if given
+        else None
+    )
     inspection = INSPECTION_TYPES[kind](node, base_dir, cameras)
     node.finish()
     if isinstance(inspection, Configured) and (number is not None or output is not None):

@@ -14,7 +14,9 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ..configfile import Node, integer, number, string
+from ..cameras.settings import CameraSettings, SimCameraSettings
+from ..configfile import Node, integer, number, one_of, string
+from .base_frame import BaseFrame
 from .kinds import ResultKind
 
 MAX_FIELDS = 29
@@ -22,6 +24,13 @@ MAX_FIELDS = 29
 most 30 numbers, and the verdict is one of them."""
 MAX_DECIMALS = 6
 DEFAULT_DECIMALS = 3
+POSE = "pose"
+"""The field that stands for a base-frame pose (``output: {frame: base}``): x, y, z and the
+rotation, in the answer format's convention (protocol/LINE.md §5.7)."""
+MAX_POSE_NUMBERS = 7
+"""The most numbers a pose is written with (ABB: x, y, z and a quaternion)."""
+PIXELS = ("u", "v")
+"""The summary values a base-frame pose is computed from (and replaces)."""
 
 
 @dataclass(frozen=True)
@@ -48,10 +57,26 @@ class OutputFormat:
 
     fields: tuple[OutputField, ...]
     missing: float = 0.0
+    base: BaseFrame | None = None
+    """How the ``pose`` field is computed (``frame: base``); None: positions in pixels."""
 
-    def values(self, summary: Mapping[str, float]) -> list[tuple[float, int]]:
-        """``(value, decimals)`` of each field."""
-        return [(f.value(summary, self.missing), f.decimals) for f in self.fields]
+    def count(self, pose_count: int) -> int:
+        """Numbers after the verdict when a pose is written with ``pose_count`` numbers."""
+        return sum(pose_count if f.name == POSE else 1 for f in self.fields)
+
+    def values(
+        self, summary: Mapping[str, float], pose: Iterable[tuple[float, int]] | None = None
+    ) -> list[tuple[float, int]]:
+        """``(value, decimals)`` of each field; the ``pose`` field is ``pose``'s values
+        (each ``missing`` when a value is not finite)."""
+        out: list[tuple[float, int]] = []
+        for f in self.fields:
+            if f.name == POSE:
+                for value, places in pose or ():
+                    out.append((value if math.isfinite(value) else self.missing, places))
+            else:
+                out.append((f.value(summary, self.missing), f.decimals))
+        return out
 
 
 def summary_fields(kind: ResultKind | None) -> tuple[str, ...]:
@@ -85,7 +110,51 @@ def _field_list(value: Any) -> list[Any]:
     return value
 
 
-def parse_output(node: Node, kind: ResultKind | None, inspection_type: str) -> OutputFormat:
+def _triple(value: Any) -> tuple[float, float, float]:
+    if not isinstance(value, list) or len(value) != 3:
+        raise ValueError(f"expected a list of 3 numbers, got {value!r}")
+    x, y, z = (number(v) for v in value)
+    if not all(math.isfinite(v) for v in (x, y, z)):
+        raise ValueError(f"expected finite numbers, got {value!r}")
+    return x, y, z
+
+
+def _base_frame(
+    node: Node, available: tuple[str, ...], camera: str, settings: CameraSettings | None
+) -> BaseFrame:
+    """The keys of ``frame: base``, checked against the camera's calibration."""
+    if not all(p in available for p in PIXELS):
+        raise node.error(
+            "frame: base needs a result with a pixel position (u, v), as locate's", "frame"
+        )
+    if settings is None:
+        raise node.error(f"no camera named {camera!r}", "frame")
+    intrinsics = getattr(settings, "intrinsics", None)
+    mount = getattr(settings, "mount", None)
+    # A sim camera without intrinsics has its scene camera's (known once the scene is loaded).
+    has_intrinsics = intrinsics is not None or isinstance(settings, SimCameraSettings)
+    lacking = [k for k, ok in (("intrinsics", has_intrinsics), ("mount", mount)) if not ok]
+    if lacking or mount is None:
+        raise node.error(
+            f"frame: base needs the calibration of camera {camera!r}, which has no "
+            f"{' and no '.join(lacking)}: set "
+            + " and ".join(f"cameras.{camera}.{key}" for key in lacking),
+            "frame",
+        )
+    plane_z = node.take("plane_z_m", number)
+    offset = node.take("offset_m", _triple, (0.0, 0.0, 0.0))
+    rpy = node.take("tool_rpy", _triple, (math.pi, 0.0, 0.0))
+    return BaseFrame(camera, intrinsics, mount, plane_z, offset, rpy)
+
+
+def parse_output(
+    node: Node,
+    kind: ResultKind | None,
+    inspection_type: str,
+    *,
+    camera: str = "",
+    settings: CameraSettings | None = None,
+) -> OutputFormat:
     """Read an inspection's ``output:`` mapping::
 
         output:
@@ -93,10 +162,18 @@ def parse_output(node: Node, kind: ResultKind | None, inspection_type: str) -> O
           decimals: 2                                   # the default for every field
           scale: {x: 1000}                              # e.g. metres -> millimetres
           missing: -1                                   # sent for a value not measured
+          frame: base         # image (default) | base: u, v become a base-frame "pose"
+          plane_z_m: 0.02     # with frame: base, the features' height in the base frame
 
-    Raises ConfigError naming the key that is wrong (an unknown field names those there are).
+    ``camera``/``settings``: the inspection's camera, whose calibration (``intrinsics``,
+    ``mount``) ``frame: base`` needs. Raises ConfigError naming the key that is wrong (an
+    unknown field names those there are).
     """
     available = summary_fields(kind)
+    base: BaseFrame | None = None
+    if node.take("frame", one_of("image", "base"), "image") == "base":
+        base = _base_frame(node, available, camera, settings)
+        available = (*(a for a in available if a not in PIXELS), POSE)
     decimals = node.take("decimals", _decimals, DEFAULT_DECIMALS)
     missing = node.take("missing", number, 0.0)
     scales: dict[str, float] = {}
@@ -121,6 +198,10 @@ def parse_output(node: Node, kind: ResultKind | None, inspection_type: str) -> O
                 f"{inspection_type} results have no summary value {name!r} (there are: {offered})",
                 "name",
             )
+        if name == POSE:  # its units and decimals are the answer format's
+            field_node.finish()
+            fields.append(OutputField(name))
+            continue
         places = field_node.take("decimals", _decimals, decimals)
         field_scale = field_node.take("scale", _scale, scales.get(name, 1.0))
         field_node.finish()
@@ -129,7 +210,14 @@ def parse_output(node: Node, kind: ResultKind | None, inspection_type: str) -> O
         if key not in {f.name for f in fields}:
             raise scale_node.error(f"{key!r} is not one of the output's fields", key)
     node.finish()
-    return OutputFormat(tuple(fields), missing)
+    output = OutputFormat(tuple(fields), missing, base)
+    widest = output.count(MAX_POSE_NUMBERS)
+    if widest > MAX_FIELDS:
+        raise node.error(
+            f"{widest} numbers with a pose of 7 (ABB's quaternion); at most {MAX_FIELDS}",
+            "fields",
+        )
+    return output
 
 
 def numbers_by_position(
@@ -153,6 +241,7 @@ def numbers_by_position(
 
 __all__ = [
     "MAX_FIELDS",
+    "POSE",
     "OutputField",
     "OutputFormat",
     "default_output",
