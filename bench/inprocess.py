@@ -1,22 +1,28 @@
 """In-process throughput of an inspection: the catalog's inspection object called directly on
-one image by a pool of threads for a fixed window, no protocol, no server. It is the
+one image by a pool of threads (or of processes, for the inspections the server runs in
+worker processes) for a fixed window, no protocol, no server. It is the
 machine's limit that a server is compared with, and it tells whether an inspection releases
 the GIL (its throughput with N threads against one thread).
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import cv2
 
 from .env import Env
+
+PROCESS_TIMEOUT_S = 300.0
+"""How long :func:`process_rate` waits for its processes (imports, warm-up and window)."""
 
 
 def cores() -> int:
@@ -39,6 +45,8 @@ class Rate:
     seconds: float
     cpu_s: float
     elapsed_s: float
+    model: str = "threads"
+    """``threads`` (one process, :func:`rate`) or ``processes`` (:func:`process_rate`)."""
 
     @property
     def rps(self) -> float:
@@ -60,6 +68,7 @@ def combined(rates: list[Rate]) -> Rate:
         sum(r.seconds for r in rates),
         sum(r.cpu_s for r in rates),
         sum(r.elapsed_s for r in rates),
+        first.model,
     )
 
 
@@ -129,3 +138,93 @@ def rate(
     finally:
         cv2.setNumThreads(previous)
     return Rate(threads, in_effect, calls, window_s, cpu_s, elapsed_s)
+
+
+def _process_loop(
+    config: Path,
+    inspection: str,
+    image: Any,
+    depth: tuple[Any, ...],
+    cv_threads: int,
+    warmup: int,
+    window_s: float,
+    barrier: Any,
+    out: Any,
+) -> None:
+    """One process of :func:`process_rate`: loads the bench catalog itself, as a worker
+    process of the server does, and counts the calls that end inside its window."""
+    from .cell import load_catalog
+
+    cv2.setNumThreads(cv_threads)
+    catalog = load_catalog(config).catalog
+    target = catalog.inspection(inspection)
+    intrinsics = getattr(catalog.cameras.get(target.camera), "intrinsics", None)
+    from vision_server import InspectionInput
+
+    given = InspectionInput(image, depth, intrinsics)
+    for _ in range(warmup):
+        target.run(given, overlay=False)
+    barrier.wait()
+    start, cpu0 = time.perf_counter(), time.process_time()
+    end = start + window_s
+    done = 0
+    while time.perf_counter() < end:
+        target.run(given, overlay=False)
+        if time.perf_counter() <= end:
+            done += 1
+    out.put((done, time.process_time() - cpu0, time.perf_counter() - start))
+
+
+def process_rate(
+    env: Env,
+    inspection: str,
+    image: Any,
+    *,
+    processes: int,
+    window_s: float,
+    depth: tuple[Any, ...] = (),
+    warmup: int = 2,
+) -> Rate:
+    """Calls per second of ``inspection`` made by ``processes`` processes at once (each with
+    one OpenCV thread, no protocol, no shared memory: each has its own copy of the image):
+    the limit of the worker model the server uses for inspections that hold the GIL. CPU is
+    the processes' own, summed."""
+    context = multiprocessing.get_context("spawn")
+    barrier = context.Barrier(processes)
+    out = context.Queue()
+    workers = [
+        context.Process(
+            target=_process_loop,
+            args=(
+                env.config_path,
+                inspection,
+                image,
+                depth,
+                1,
+                warmup,
+                window_s,
+                barrier,
+                out,
+            ),
+            name=f"bench-limit-{inspection}-{index}",
+        )
+        for index in range(processes)
+    ]
+    for worker in workers:
+        worker.start()
+    try:
+        counts = [out.get(timeout=PROCESS_TIMEOUT_S) for _ in workers]
+    finally:
+        for worker in workers:
+            worker.join(10.0)
+            if worker.is_alive():
+                worker.terminate()
+    return Rate(
+        processes,
+        1,
+        sum(c[0] for c in counts),
+        window_s,
+        sum(c[1] for c in counts),
+        max(c[2] for c in counts),
+        model="processes",
+    )

@@ -11,8 +11,9 @@ stop when the window closes). CPU use of the server process and of this (client)
 the window is reported: they share the machine's cores.
 
 The reference is the machine's limit, measured in the same run: the inspection object called
-in this process by as many threads as cores, for a window, no protocol (bench/inprocess.py;
-the better of OpenCV's default thread count and ``cv2.setNumThreads(1)``). Goals (issue 16):
+by as many workers as cores, for a window, no protocol (bench/inprocess.py): threads in this
+process (OpenCV's default thread count and ``cv2.setNumThreads(1)``) and processes (as the
+server's worker processes); the best of the three. Goals (issue 16):
 
 - at saturation (4, 16 and 64 clients, one at a time and pipelined x4) cap_locate reaches
   >= 0.9x that limit;
@@ -39,7 +40,7 @@ import numpy as np
 from .busy import Retrier, make_client, retry_mode
 from .common import Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
 from .env import Env
-from .inprocess import Rate, cores, rate, runner
+from .inprocess import Rate, cores, process_rate, rate, runner
 from .plots import log_scale_if_positive, pyplot, save
 from .servers import ServerProcess
 
@@ -182,10 +183,14 @@ def saturation_point(cells: Sequence[Cell]) -> Cell:
 
 
 def machine_limit(env: Env, name: str, image: Any, window_s: float) -> list[Rate]:
-    """The in-process throughput of ``name`` with as many threads as cores: OpenCV's default
-    thread count (as the server runs) and ``cv2.setNumThreads(1)`` in each thread."""
+    """The throughput of ``name`` without a protocol, with as many workers as cores: threads
+    in this process with OpenCV's default thread count (as the server runs) and with
+    ``cv2.setNumThreads(1)``; and processes with one OpenCV thread each (as the server's
+    worker processes), the better of which is the limit."""
     call = runner(env, name, image)
-    return [rate(call, threads=cores(), window_s=window_s, cv_threads=cv) for cv in (None, 1)]
+    rates = [rate(call, threads=cores(), window_s=window_s, cv_threads=cv) for cv in (None, 1)]
+    rates.append(process_rate(env, name, image, processes=cores(), window_s=window_s))
+    return rates
 
 
 def run(cfg: RunConfig, env: Env) -> Section:
@@ -227,17 +232,20 @@ def run(cfg: RunConfig, env: Env) -> Section:
         " 5 ms or less), sets OpenCV's own pool to cores ÷ workers threads, and runs "
         f"{', '.join(server.info.get('process_inspections') or ['nothing'])} in worker "
         "processes (`process_inspections`, chosen by section 2b's rule). The machine's"
-        " limit: the inspection called in this process by "
-        f"{cores()} threads (one per core) for {cfg.f(3.0, 0.1):g} s, no protocol."
+        " limit: the inspection called without a protocol by "
+        f"{cores()} threads in one process, and by {cores()} processes (one worker per core"
+        f" either way) for {cfg.f(3.0, 0.1):g} s; the best of them."
     )
     limit_table = Table(
-        ["inspection", "OpenCV threads per worker", "threads", "requests/s", "CPU"],
-        caption="The machine's limit (in-process, same image, same run):",
+        ["inspection", "workers", "OpenCV threads per worker", "requests/s", "CPU"],
+        caption="The machine's limit (no protocol, same image, same run):",
     )
     limit_rps: dict[str, float] = {}
     for name, rates in limits.items():
         for r in rates:
-            limit_table.add(name, r.cv_threads, r.threads, fmt(r.rps, 1), f"{r.cpu_pct:.0f} %")
+            limit_table.add(
+                name, f"{r.threads} {r.model}", r.cv_threads, fmt(r.rps, 1), f"{r.cpu_pct:.0f} %"
+            )
         limit_rps[name] = max(r.rps for r in rates)
         section.value(f"{name}_limit_rps", limit_rps[name])
     section.tables.append(limit_table)
