@@ -25,6 +25,7 @@ import asyncio
 import base64
 import json
 import logging
+import os
 import subprocess
 import sys
 import threading
@@ -33,6 +34,8 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+
+from vision_server.malloc_env import PROCESS_ENV
 
 from .common import ROOT, Skip
 
@@ -58,6 +61,9 @@ class ServerProcess:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", module, *command],
             cwd=ROOT,
+            # The malloc settings `vision-server serve` starts itself with, so that the bench
+            # measures the server as it runs in a cell.
+            env={**PROCESS_ENV, **os.environ},
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=self._log,

@@ -75,7 +75,7 @@ from .app import App
 from .builtin import builtin_catalog
 from .catalog import Catalog
 from .config import CellConfig, ConfigError, load_config
-from .malloc_arenas import PROCESS_ENV
+from .malloc_env import PROCESS_ENV
 from .offline import file_request, image_payload, offline_service
 from .results_cli import describe_health, results_command
 from .service import InspectReply
