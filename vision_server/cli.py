@@ -165,6 +165,7 @@ def _serve(args: argparse.Namespace) -> int:
             line=None if runtime is None else runtime.config.line,
             console=None if runtime is None else runtime.config.console,
             config_path=None if runtime is None else runtime.path,
+            modbus=None if runtime is None else runtime.config.modbus,
         )
         app.service.on_reloaded = announce_reload
         try:
@@ -194,6 +195,9 @@ def _serve(args: argparse.Namespace) -> int:
         if app.line is not None:
             line = app.line.settings
             print(f"{PROG}: line protocol on {line.host}:{app.line.port}", flush=True)
+        if app.modbus is not None:
+            modbus = app.modbus.settings
+            print(f"{PROG}: Modbus TCP on {modbus.host}:{app.modbus.port}", flush=True)
         await stop.wait()
         await app.stop()
         return 0

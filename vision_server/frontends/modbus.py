@@ -1,0 +1,203 @@
+"""The Modbus TCP front-end: PLCs run inspections through a register hand-shake
+(protocol/MODBUS.md), a thin adapter over :class:`vision_server.service.InspectionService`.
+
+pymodbus (the optional extra ``modbus``) does the framing and the connections; its data store
+is replaced by :class:`_Bank`, which hands every read and write to the hand-shake state
+machine (:mod:`.modbus_handshake`) on the event loop. A trigger it accepts runs as a task
+through the service, with the same admission, deadline and result log as any other request;
+its outcome is published in one step. The register map follows the catalog the service
+serves: a reload that changes it is picked up at the next request.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+
+from pymodbus.constants import ExcCodes
+from pymodbus.datastore import ModbusServerContext
+from pymodbus.server import ModbusTcpServer
+
+from protocol import CellvisionError, ErrorCode, UnknownInspection
+
+from ..catalog import Catalog
+from ..service import InspectionService, InspectRequest
+from ..settings import ModbusSettings
+from .line import Answerable, answerable, inspection_numbers
+from .modbus_handshake import Handshake, IllegalAddress, IllegalValue, Outcome
+from .modbus_map import RegisterMap, build_map
+
+log = logging.getLogger("vision_server")
+
+READ_FUNCTIONS = frozenset({3, 4, 23})
+"""Read holding registers, read input registers (the same bank), read/write multiple."""
+WRITE_FUNCTIONS = frozenset({6, 16, 23})
+"""Write single register, write multiple registers, read/write multiple."""
+THIS_DEVICE = frozenset({0, 255})
+"""Unit identifiers that mean "the device at this address" on Modbus TCP."""
+
+
+def catalog_map(catalog: Catalog, word_order: str) -> RegisterMap:
+    """The register map of the inspections ``catalog`` serves."""
+    numbers = inspection_numbers(catalog)
+    return build_map(
+        ((n, answerable(catalog.inspection(name))) for n, name in numbers.items()), word_order
+    )
+
+
+class ModbusFrontend:
+    """Serves PLCs with ``service`` on ``settings.host``:``settings.port``. See the module."""
+
+    def __init__(self, service: InspectionService, settings: ModbusSettings) -> None:
+        self.service = service
+        self.settings = settings
+        self._catalog = service.catalog
+        self.handshake = Handshake(catalog_map(self._catalog, settings.word_order))
+        self._runs: set[asyncio.Task[None]] = set()
+        self._server: ModbusTcpServer | None = None
+
+    @property
+    def port(self) -> int:
+        # pymodbus keeps asyncio's listening Server in ``transport`` (typed as a transport).
+        listener: object = None if self._server is None else self._server.transport
+        if not isinstance(listener, asyncio.Server) or not listener.sockets:
+            raise RuntimeError("the Modbus front-end is not started")
+        return int(listener.sockets[0].getsockname()[1])
+
+    async def start(self) -> None:
+        if not log.isEnabledFor(logging.INFO):
+            # pymodbus logs each malformed frame from a peer as an error, with a hex dump: a
+            # hostile or broken client must not fill the server's log (-v shows them).
+            logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+        server = ModbusTcpServer(_Bank(self), address=(self.settings.host, self.settings.port))
+        if not await server.listen():  # pymodbus logs why; say it as an OSError, as asyncio
+            raise OSError(f"cannot listen on {self.settings.host}:{self.settings.port}")
+        self._server = server
+        log.info("Modbus TCP listening on %s:%d", self.settings.host, self.port)
+
+    async def stop(self, grace_s: float = 5.0) -> None:
+        """Refuse new triggers; let a running one finish (up to ``grace_s``, then DONE with
+        SHUTTING_DOWN); close the listener and every connection."""
+        self.handshake.stop_accepting()
+        runs = list(self._runs)
+        if runs:
+            await asyncio.wait(runs, timeout=grace_s)
+        for run in runs:
+            run.cancel()
+        if runs:
+            await asyncio.wait(runs)
+        if self._server is not None:
+            await self._server.shutdown()  # type: ignore[no-untyped-call]
+
+    # ------------------------------------------------------------------ requests
+
+    def current_map(self) -> RegisterMap:
+        """The map of the catalog served now (rebuilt once after each reload)."""
+        catalog = self.service.catalog
+        if catalog is not self._catalog:
+            self._catalog = catalog
+            self.handshake.set_map(catalog_map(catalog, self.settings.word_order))
+            log.info("Modbus register map regenerated (map id %d)", self.handshake.map.map_id)
+        return self.handshake.map
+
+    def serves(self, unit: int) -> bool:
+        return unit == self.settings.unit_id or unit in THIS_DEVICE
+
+    def read(self, unit: int, function: int, address: int, count: int) -> list[int] | ExcCodes:
+        if not self.serves(unit):
+            # What a Modbus TCP gateway answers for a unit behind it that is not there.
+            return ExcCodes.GATEWAY_NO_RESPONSE
+        if function not in READ_FUNCTIONS:
+            return ExcCodes.ILLEGAL_FUNCTION
+        self.current_map()
+        try:
+            return self.handshake.read(address, count)
+        except IllegalAddress:
+            return ExcCodes.ILLEGAL_ADDRESS
+        except IllegalValue:
+            return ExcCodes.ILLEGAL_VALUE
+
+    def write(self, unit: int, function: int, address: int, values: list[int]) -> ExcCodes | None:
+        if not self.serves(unit):
+            return ExcCodes.GATEWAY_NO_RESPONSE
+        if function not in WRITE_FUNCTIONS:
+            return ExcCodes.ILLEGAL_FUNCTION
+        mapped = self.current_map()
+        try:
+            number = self.handshake.write(address, values)
+        except IllegalAddress:
+            return ExcCodes.ILLEGAL_ADDRESS
+        if number is not None:
+            target = mapped.inspections.get(number)
+            run = asyncio.get_running_loop().create_task(
+                self._run(number, None if target is None else target.target, mapped.map_id)
+            )
+            self._runs.add(run)  # kept (and awaited at stop), never fire-and-forget
+            run.add_done_callback(self._runs.discard)
+        return None
+
+    async def _run(self, number: int, target: Answerable | None, map_id: int) -> None:
+        """One accepted trigger, to its DONE (whatever happens: never a stuck BUSY)."""
+        arrived = time.monotonic()
+        error: ErrorCode | None = None
+        passed = False
+        values: tuple[float, ...] = ()
+        try:
+            if target is None:
+                known = ", ".join(str(n) for n in sorted(self.handshake.map.inspections))
+                raise UnknownInspection(f"no inspection number {number}; numbers: {known}")
+            deadline = arrived + self.settings.deadline_s
+            # A PLC waits for DONE: a trigger waits for a worker slot (within its deadline)
+            # rather than being refused at once.
+            admission = await self.service.admit_when_free(target.name, deadline=deadline)
+            try:
+                reply = await self.service.inspect(
+                    InspectRequest(
+                        target.name, None, arrived=arrived, deadline=deadline, peer="modbus"
+                    ),
+                    admission=admission,
+                )
+            finally:
+                admission.release()
+            passed = reply.passed
+            values = tuple(round(v, places) for v, places in target.values(reply))
+        except CellvisionError as exc:
+            log.info("Modbus trigger %d: %s: %s", number, exc.code.name, exc.message)
+            error = exc.code
+        except asyncio.CancelledError:
+            self.handshake.finish(Outcome(number, False, int(ErrorCode.SHUTTING_DOWN), (), map_id))
+            raise
+        except Exception:  # a bug in an inspection must not leave BUSY set
+            log.exception("Modbus trigger %d failed", number)
+            error = ErrorCode.INTERNAL_ERROR
+        self.handshake.finish(
+            Outcome(number, passed, 0 if error is None else int(error), values, map_id)
+        )
+
+
+class _Bank(ModbusServerContext):
+    """pymodbus's data store, replaced: every request goes to the front-end."""
+
+    def __init__(self, frontend: ModbusFrontend) -> None:
+        # Not the base class's initialiser: it builds a simulated device we do not use. These
+        # two attributes make pymodbus call this object itself for every request.
+        self.old_simulator = True
+        self.simdevices = []
+        self._frontend = frontend
+
+    async def async_getValues(  # noqa: N802 (pymodbus's name)
+        self, device_id: int, func_code: int, address: int, count: int = 1
+    ) -> list[int] | list[bool] | ExcCodes:
+        return self._frontend.read(device_id, func_code, address, count)
+
+    async def async_setValues(  # noqa: N802 (pymodbus's name)
+        self, device_id: int, func_code: int, address: int, values: list[int] | list[bool]
+    ) -> ExcCodes | None:
+        return self._frontend.write(device_id, func_code, address, [int(v) for v in values])
+
+    def device_ids(self) -> list[int]:
+        return sorted({self._frontend.settings.unit_id, *THIS_DEVICE})
+
+
+__all__ = ["ModbusFrontend", "catalog_map"]
