@@ -24,9 +24,9 @@ from protocol import CellvisionError, ErrorCode, UnknownInspection
 from ..catalog import Catalog
 from ..service import InspectionService, InspectRequest
 from ..settings import ModbusSettings
-from .line import Answerable, answerable, inspection_numbers
+from .line import Answerable
 from .modbus_handshake import Handshake, IllegalAddress, IllegalValue, Outcome
-from .modbus_map import RegisterMap, build_map
+from .modbus_map import RegisterMap, config_map
 
 log = logging.getLogger("vision_server")
 
@@ -39,11 +39,8 @@ THIS_DEVICE = frozenset({0, 255})
 
 
 def catalog_map(catalog: Catalog, word_order: str) -> RegisterMap:
-    """The register map of the inspections ``catalog`` serves."""
-    numbers = inspection_numbers(catalog)
-    return build_map(
-        ((n, answerable(catalog.inspection(name))) for n, name in numbers.items()), word_order
-    )
+    """The register map of the inspections ``catalog`` serves (in its configuration order)."""
+    return config_map(catalog.inspections.values(), word_order)
 
 
 class ModbusFrontend:

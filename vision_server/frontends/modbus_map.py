@@ -14,11 +14,14 @@ import zlib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag
+from typing import Any
+
+from protocol import ErrorCode
 
 from ..inspections import RESULT_KINDS
-from ..inspections.output import MAX_FIELDS, OutputField
+from ..inspections.output import MAX_FIELDS, OutputField, numbers_by_position
 from ..settings import MODBUS_WORD_ORDERS as WORD_ORDERS
-from .line import Answerable
+from .line import Answerable, answerable
 
 
 class Reg(IntEnum):
@@ -116,6 +119,15 @@ def build_map(numbered: Iterable[tuple[int, Answerable]], word_order: str) -> Re
     return RegisterMap({n: MappedInspection(n, a) for n, a in numbered}, word_order)
 
 
+def config_map(inspections: Iterable[Any], word_order: str) -> RegisterMap:
+    """The map of a configuration's inspections (specs or built inspections: anything with a
+    name, a type and optionally ``number`` and ``output``), in configuration order."""
+    listed = list(inspections)
+    numbers = numbers_by_position((i.name, getattr(i, "number", None)) for i in listed)
+    by_name = {i.name: i for i in listed}
+    return build_map(((n, answerable(by_name[name])) for n, name in numbers.items()), word_order)
+
+
 def decode_float(words: tuple[int, int], word_order: str) -> float:
     """The float32 in two registers read in ``word_order`` (what a PLC does; for tests)."""
     high, low = words if word_order == "high_first" else (words[1], words[0])
@@ -141,6 +153,11 @@ class Row:
     def reference(self) -> int:
         """The "4xxxx" holding-register reference of PLC tools (1-based)."""
         return 40001 + self.address
+
+    @property
+    def width(self) -> int:
+        """Registers the value takes."""
+        return 2 if self.type == "float32" else 1
 
 
 FIXED_ROWS = (
@@ -171,6 +188,27 @@ FIXED_ROWS = (
 )
 
 
+ERROR_MEANINGS: dict[int, str] = {
+    ErrorCode.UNKNOWN_INSPECTION: "no inspection has the number in INSPECTION",
+    ErrorCode.BAD_IMAGE: "the inspection takes images in the request: not for Modbus",
+    ErrorCode.IMAGE_TOO_LARGE: "the camera's image has more pixels than the server allows",
+    ErrorCode.CAMERA_UNAVAILABLE: "the inspection's camera gave no frame",
+    ErrorCode.INSPECTION_FAILED: "the inspection could not be computed on this image",
+    ErrorCode.INVALID_ARGUMENT: "the inspection refused its settings",
+    ErrorCode.BUSY: "the server is over capacity: trigger again later",
+    ErrorCode.DEADLINE_EXCEEDED: "no result within deadline_s of the trigger edge",
+    ErrorCode.SHUTTING_DOWN: "the server stopped before the result",
+    ErrorCode.INTERNAL_ERROR: "a bug in the server (logged); the next trigger works",
+}
+"""What ERROR_CODE may hold (the binary protocol's numbers, protocol/SPEC.md)."""
+REFUSAL_MEANINGS: dict[int, str] = {
+    Refusal.TRIGGER_WHILE_BUSY: "a trigger edge while BUSY: the run in progress goes on",
+    Refusal.NOT_ACKNOWLEDGED: "a trigger edge while DONE: acknowledge the result first",
+    Refusal.NOT_READY: "a trigger edge while the server stops",
+}
+"""What REFUSAL may hold."""
+
+
 def field_units(inspection_type: str, output_field: OutputField) -> str:
     """The unit of a value as sent: its summary value's, with the output's scale."""
     kind = RESULT_KINDS.get(inspection_type)
@@ -192,7 +230,7 @@ def value_rows(mapped: MappedInspection) -> list[Row]:
                 "float32",
                 "R",
                 f"VALUE_{index + 1}",
-                f"{output_field.name} (registers {VALUES + 2 * index}-{VALUES + 2 * index + 1})",
+                output_field.name,
                 field_units(mapped.target.type, output_field),
             )
         )
@@ -200,7 +238,9 @@ def value_rows(mapped: MappedInspection) -> list[Row]:
 
 
 __all__ = [
+    "ERROR_MEANINGS",
     "FIXED_ROWS",
+    "REFUSAL_MEANINGS",
     "SIZE",
     "VALUES",
     "WORD_ORDERS",
@@ -213,6 +253,7 @@ __all__ = [
     "Row",
     "Status",
     "build_map",
+    "config_map",
     "decode_float",
     "field_units",
     "value_rows",
