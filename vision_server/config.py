@@ -8,7 +8,7 @@
     cameras:  {NAME: {source: request|opencv|folder|sim, ...source settings, intrinsics}}
     inspections: [{name, type: locate|presence|qr|qr_pose, camera, roi, number, output, ...}]
     line:     {enabled, host, port, tls, format, max_line_bytes, idle_timeout_s, deadline_s, ...}
-    modbus:   {enabled, host, port, unit_id, word_order, deadline_s}   (Modbus TCP for PLCs)
+    modbus:   {enabled, host, port, unit_id, word_order, deadline_s, max_connections}  (PLCs)
 
 Every error names the file, the line and the key path; unknown keys are errors. Relative paths
 resolve against the configuration file's directory. See docs/configuration.md.
@@ -324,6 +324,7 @@ def _modbus(node: Node, server: ServerSettings, line: LineSettings) -> ModbusSet
         unit_id=unit_id,
         word_order=node.take("word_order", one_of(*MODBUS_WORD_ORDERS), defaults.word_order),
         deadline_s=node.take("deadline_s", positive, defaults.deadline_s),
+        max_connections=node.take("max_connections", positive_int, defaults.max_connections),
     )
     taken = {server.port: "the server's port"}
     if line.enabled:

@@ -149,6 +149,8 @@ class ModbusSettings:
     ("CDAB")."""
     deadline_s: float = 10.0
     """Each trigger's deadline, from its edge: DONE with an error code by then."""
+    max_connections: int = 16
+    """Clients at once; one more is closed as it connects."""
 
 
 @dataclass(frozen=True)

@@ -664,7 +664,7 @@ inspections:
 line: {{enabled: true, host: 0.0.0.0, port: 0, tls: false, format: ur, max_line_bytes: 100,
        idle_timeout_s: 1, deadline_s: 2, max_connections: 3, write_timeout_s: 4}}
 modbus: {{enabled: true, host: 0.0.0.0, port: 0, unit_id: 3, word_order: low_first,
-         deadline_s: 2}}
+         deadline_s: 2, max_connections: 2}}
 """
     load_config(write(tmp_path, text))
     docs = documented_keys()

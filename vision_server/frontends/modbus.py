@@ -1,9 +1,11 @@
 """The Modbus TCP front-end: PLCs run inspections through a register hand-shake
 (protocol/MODBUS.md), a thin adapter over :class:`vision_server.service.InspectionService`.
 
-pymodbus (the optional extra ``modbus``) does the framing and the connections; its data store
-is replaced by :class:`_Bank`, which hands every read and write to the hand-shake state
-machine (:mod:`.modbus_handshake`) on the event loop. A trigger it accepts runs as a task
+pymodbus (the optional extra ``modbus``) listens, decodes and executes the register requests;
+the front-end frames them itself (:mod:`.modbus_frames`: pymodbus's server framing does not
+survive hostile or pipelined input) and answers them in order, one connection at a time; its
+data store is replaced by :class:`_Bank`, which hands every read and write to the hand-shake
+state machine (:mod:`.modbus_handshake`) on the event loop. A trigger it accepts runs as a task
 through the service, with the same admission, deadline and result log as any other request;
 its outcome is published in one step. The register map follows the catalog the service
 serves: a reload that changes it is picked up at the next request.
@@ -17,7 +19,9 @@ import time
 
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusServerContext
+from pymodbus.pdu import ModbusPDU
 from pymodbus.server import ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
 
 from protocol import CellvisionError, ErrorCode, UnknownInspection
 
@@ -25,17 +29,32 @@ from ..catalog import Catalog
 from ..service import InspectionService, InspectRequest
 from ..settings import ModbusSettings
 from .line import Answerable
+from .modbus_frames import (
+    ILLEGAL_VALUE,
+    FrameReader,
+    FramingError,
+    Request,
+    exception_frame,
+    frame,
+    pdu_problem,
+)
 from .modbus_handshake import Handshake, IllegalAddress, IllegalValue, Outcome
 from .modbus_map import RegisterMap, config_map
 
 log = logging.getLogger("vision_server")
 
-READ_FUNCTIONS = frozenset({3, 4, 23})
-"""Read holding registers, read input registers (the same bank), read/write multiple."""
-WRITE_FUNCTIONS = frozenset({6, 16, 23})
-"""Write single register, write multiple registers, read/write multiple."""
+READ_FUNCTIONS = frozenset({3, 4, 6, 22, 23})
+"""Read holding registers, read input registers (the same bank), and the read-back pymodbus
+does for write single register, mask write register and read/write multiple registers."""
+WRITE_FUNCTIONS = frozenset({6, 16, 22, 23})
+"""Write single register, write multiple registers, mask write register, read/write multiple.
+Coils and discrete inputs (1, 2, 5, 15) are not served: ILLEGAL FUNCTION."""
 THIS_DEVICE = frozenset({0, 255})
 """Unit identifiers that mean "the device at this address" on Modbus TCP."""
+MAX_PENDING = 32
+"""Requests one connection may have waiting for their answers; a client that sends more
+without reading is dropped (its answers would only pile up in the server's memory)."""
+DEVICE_FAILURE = 0x04
 
 
 def catalog_map(catalog: Catalog, word_order: str) -> RegisterMap:
@@ -52,7 +71,8 @@ class ModbusFrontend:
         self._catalog = service.catalog
         self.handshake = Handshake(catalog_map(self._catalog, settings.word_order))
         self._runs: set[asyncio.Task[None]] = set()
-        self._server: ModbusTcpServer | None = None
+        self._server: _Server | None = None
+        self.connections: set[_Connection] = set()
 
     @property
     def port(self) -> int:
@@ -67,7 +87,7 @@ class ModbusFrontend:
             # pymodbus logs each malformed frame from a peer as an error, with a hex dump: a
             # hostile or broken client must not fill the server's log (-v shows them).
             logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-        server = ModbusTcpServer(_Bank(self), address=(self.settings.host, self.settings.port))
+        server = _Server(self, address=(self.settings.host, self.settings.port))
         if not await server.listen():  # pymodbus logs why; say it as an OSError, as asyncio
             raise OSError(f"cannot listen on {self.settings.host}:{self.settings.port}")
         self._server = server
@@ -86,6 +106,9 @@ class ModbusFrontend:
             await asyncio.wait(runs)
         if self._server is not None:
             await self._server.shutdown()  # type: ignore[no-untyped-call]
+        for connection in list(self.connections):
+            if connection.transport is not None:
+                connection.transport.close()
 
     # ------------------------------------------------------------------ requests
 
@@ -171,6 +194,81 @@ class ModbusFrontend:
         self.handshake.finish(
             Outcome(number, passed, 0 if error is None else int(error), values, map_id)
         )
+
+
+class _Server(ModbusTcpServer):
+    """pymodbus's listener, with connections of ours."""
+
+    def __init__(self, frontend: ModbusFrontend, *, address: tuple[str, int]) -> None:
+        self.bank = _Bank(frontend)
+        super().__init__(self.bank, address=address)
+        self.frontend = frontend
+
+    def callback_new_connection(self) -> _Connection:
+        return _Connection(self)
+
+
+class _Connection(ServerRequestHandler):
+    """One client: frames its bytes (:class:`FrameReader`), answers its requests in order on
+    one task, and ends the connection when its stream is not Modbus TCP."""
+
+    def __init__(self, server: _Server) -> None:
+        super().__init__(server, None, None, None)  # type: ignore[no-untyped-call]
+        self.owner = server
+        self.bank = server.bank
+        self.reader = FrameReader()
+        self.queue: asyncio.Queue[Request] = asyncio.Queue()
+        self.worker: asyncio.Task[None] | None = None
+
+    def callback_connected(self) -> None:
+        connections = self.owner.frontend.connections
+        if len(connections) >= self.owner.frontend.settings.max_connections:
+            log.info("Modbus: too many connections; one more is closed")
+            self.transport.close()
+            return
+        connections.add(self)
+        self.worker = asyncio.get_running_loop().create_task(self._answer_in_order())
+
+    def callback_disconnected(self, exc: Exception | None) -> None:
+        self.owner.frontend.connections.discard(self)
+        if self.worker is not None:
+            self.worker.cancel()
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int] | None) -> None:
+        try:
+            requests = self.reader.feed(data)
+        except FramingError as exc:
+            log.info("Modbus: %s; closing the connection", exc)
+            self.transport.close()
+            return
+        for request in requests:
+            if self.queue.qsize() >= MAX_PENDING:
+                log.info("Modbus: a client sends without reading its answers; closing")
+                self.transport.close()
+                return
+            self.queue.put_nowait(request)
+
+    async def _answer_in_order(self) -> None:
+        while True:
+            request = await self.queue.get()
+            reply = await self._answer(request)
+            if self.transport is None or self.transport.is_closing():
+                return
+            self.transport.write(reply)  # type: ignore[attr-defined]
+
+    async def _answer(self, request: Request) -> bytes:
+        if (code := pdu_problem(request.pdu)) is not None:
+            return exception_frame(request, code)
+        pdu = self.owner.decoder.decode(request.pdu)
+        if pdu is None:  # pymodbus could not decode it
+            return exception_frame(request, ILLEGAL_VALUE)
+        try:
+            response: ModbusPDU = await pdu.datastore_update(self.bank, request.unit)
+        except Exception:  # a bug must cost this request, not the connection
+            log.exception("Modbus: function %d failed", request.function)
+            return exception_frame(request, DEVICE_FAILURE)
+        body = response.function_code.to_bytes(1, "big") + response.encode()
+        return frame(request.transaction, request.unit, body)
 
 
 class _Bank(ModbusServerContext):
