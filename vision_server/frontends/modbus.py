@@ -52,8 +52,12 @@ Coils and discrete inputs (1, 2, 5, 15) are not served: ILLEGAL FUNCTION."""
 THIS_DEVICE = frozenset({0, 255})
 """Unit identifiers that mean "the device at this address" on Modbus TCP."""
 MAX_PENDING = 32
-"""Requests one connection may have waiting for their answers; a client that sends more
-without reading is dropped (its answers would only pile up in the server's memory)."""
+"""Requests one connection may have waiting for their answers before the server stops
+reading from it (until it has answered half of them): a client that floods holds no more than
+this and one read's worth."""
+WRITE_TIMEOUT_S = 10.0
+"""How long an answer may wait for a client that does not read its answers; then it is
+dropped (its answers would only pile up in the server's memory)."""
 DEVICE_FAILURE = 0x04
 
 
@@ -217,7 +221,12 @@ class _Connection(ServerRequestHandler):
         self.owner = server
         self.bank = server.bank
         self.reader = FrameReader()
-        self.queue: asyncio.Queue[Request] = asyncio.Queue()
+        self.queue: asyncio.Queue[Request | None] = asyncio.Queue()
+        """Requests to answer, in order; None once the client has sent all it will."""
+        self.reading_paused = False
+        self.can_write = asyncio.Event()
+        """Cleared while the transport's write buffer is full (asyncio's flow control)."""
+        self.can_write.set()
         self.worker: asyncio.Task[None] | None = None
 
     def callback_connected(self) -> None:
@@ -242,16 +251,42 @@ class _Connection(ServerRequestHandler):
             self.transport.close()
             return
         for request in requests:
-            if self.queue.qsize() >= MAX_PENDING:
-                log.info("Modbus: a client sends without reading its answers; closing")
-                self.transport.close()
-                return
             self.queue.put_nowait(request)
+        if self.queue.qsize() >= MAX_PENDING and not self.reading_paused:
+            self.transport.pause_reading()  # type: ignore[attr-defined]
+            self.reading_paused = True
+
+    def pause_writing(self) -> None:
+        self.can_write.clear()
+
+    def resume_writing(self) -> None:
+        self.can_write.set()
+
+    def eof_received(self) -> bool:  # type: ignore[override]  # asyncio: bool | None
+        """The client sent all it will: answer what it sent, then close (True keeps the
+        transport open for those answers)."""
+        self.queue.put_nowait(None)
+        return True
 
     async def _answer_in_order(self) -> None:
         while True:
             request = await self.queue.get()
+            if request is None:
+                if self.transport is not None:
+                    self.transport.close()
+                return
+            if self.reading_paused and self.queue.qsize() <= MAX_PENDING // 2:
+                self.reading_paused = False
+                if self.transport is not None:
+                    self.transport.resume_reading()  # type: ignore[attr-defined]
             reply = await self._answer(request)
+            try:
+                async with asyncio.timeout(WRITE_TIMEOUT_S):
+                    await self.can_write.wait()
+            except TimeoutError:
+                log.info("Modbus: a client does not read its answers; closing")
+                self.transport.abort()  # type: ignore[attr-defined]
+                return
             if self.transport is None or self.transport.is_closing():
                 return
             self.transport.write(reply)  # type: ignore[attr-defined]
