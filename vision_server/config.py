@@ -23,6 +23,7 @@ import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
+from importlib.util import find_spec
 from pathlib import Path
 from typing import Any
 
@@ -326,6 +327,11 @@ def _modbus(node: Node, server: ServerSettings, line: LineSettings) -> ModbusSet
         deadline_s=node.take("deadline_s", positive, defaults.deadline_s),
         max_connections=node.take("max_connections", positive_int, defaults.max_connections),
     )
+    if settings.enabled and find_spec("pymodbus") is None:
+        raise node.error(
+            "enabled: true needs the optional extra: pip install 'cellvision[modbus]'",
+            "enabled",
+        )
     taken = {server.port: "the server's port"}
     if line.enabled:
         taken[line.port] = "the line protocol's port"

@@ -10,6 +10,8 @@ import contextlib
 import io
 import json
 import struct
+import subprocess
+import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -24,6 +26,7 @@ from vision_server.cameras import FolderCameraSettings
 from vision_server.cameras.folder import FolderCamera
 from vision_server.catalog import Catalog
 from vision_server.cli import main as cli_main
+from vision_server.config import ConfigError, load_config
 from vision_server.frontends.modbus_map import SIZE, Refusal, Reg, Status
 from vision_server.runtime import CellRuntime
 from vision_server.settings import ModbusSettings, ServerSettings
@@ -482,3 +485,27 @@ def test_a_stream_that_is_not_modbus_is_closed_and_disturbs_no_one(tmp_path: Pat
         camera.close()
 
     run(body())
+
+
+def test_without_the_extra_an_enabled_modbus_is_a_configuration_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Not a traceback at start: check-config and serve name the key and the fix."""
+    import vision_server.config
+
+    path = write_cell(tmp_path, CONFIG.replace("WORD_ORDER", "high_first"))
+    monkeypatch.setattr(vision_server.config, "find_spec", lambda name: None)
+    with pytest.raises(ConfigError, match=r"modbus -> enabled: .*cellvision\[modbus\]"):
+        load_config(path)
+
+
+def test_the_server_and_its_tools_do_not_import_pymodbus_unless_modbus_is_enabled() -> None:
+    """pymodbus is an optional extra: nothing else may need it."""
+    code = (
+        "import sys, vision_server.app, vision_server.cli, vision_server.modbus_cli; "
+        "print('pymodbus' in sys.modules)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout.strip() == "False"
