@@ -2,8 +2,9 @@
 
 :class:`App` wires one :class:`~vision_server.service.InspectionService` (the runtime: worker
 pool, admission, deadlines, cameras, result log, reload) to the front-ends that serve it — the
-TCP protocol today (:class:`~vision_server.frontends.tcp.TcpFrontend`); an HTTP console, a line
-protocol or Modbus would be started and stopped here beside it. SIGHUP reloads through the
+TCP protocol (:class:`~vision_server.frontends.tcp.TcpFrontend`) and, when enabled, the line
+protocol, Modbus TCP (:class:`~vision_server.frontends.modbus.ModbusFrontend`, imported only
+then: pymodbus is an optional extra) and the web console. SIGHUP reloads through the
 service, the same path as the protocol's RELOAD (in a thread, never on the event loop).
 
 ``vision-server serve`` builds one from a configuration file (:mod:`vision_server.cli`);

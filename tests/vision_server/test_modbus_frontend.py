@@ -9,9 +9,13 @@ import asyncio
 import contextlib
 import io
 import json
+import os
+import re
+import signal
 import struct
 import subprocess
 import sys
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -509,3 +513,92 @@ def test_the_server_and_its_tools_do_not_import_pymodbus_unless_modbus_is_enable
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
     )
     assert out.stdout.strip() == "False"
+
+
+SERVED = """\
+server: {port: 0}
+results: {enabled: true, path: results.db}
+cameras:
+  shelf: {source: folder, path: imgs}
+inspections:
+  - name: bright
+    type: presence
+    camera: shelf
+    measure: mean_intensity
+    min: 10
+modbus: {enabled: true, port: 0}
+"""
+
+
+def test_serve_speaks_modbus_logs_its_runs_and_reloads_its_map_on_sighup(tmp_path: Path) -> None:
+    """``vision-server serve`` as a process: the Modbus port it prints, the hand-shake with
+    pymodbus's blocking client, each run in the result log (peer ``modbus``), and SIGHUP
+    regenerating the map the PLC reads."""
+    from pymodbus.client import ModbusTcpClient
+
+    path = write_cell(tmp_path, SERVED)
+    root = Path(__file__).resolve().parents[2]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CELLVISION_")}
+    env["PYTHONPATH"] = str(root)
+    command = [sys.executable, "-m", "vision_server"]
+    proc = subprocess.Popen(
+        [*command, "serve", "--config", str(path)],
+        cwd=root,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        assert proc.stdout is not None
+        lines = [proc.stdout.readline() for _ in range(2)]
+        match = re.fullmatch(r"vision-server: Modbus TCP on 127\.0\.0\.1:(\d+)\n", lines[1])
+        assert match, f"no Modbus line: {lines!r}"
+        plc = ModbusTcpClient("127.0.0.1", port=int(match[1]), timeout=10.0, retries=0)
+        assert plc.connect()
+
+        def registers(address: int, count: int) -> list[int]:
+            reply = plc.read_holding_registers(address, count=count, device_id=1)
+            assert not reply.isError(), reply
+            return list(reply.registers)
+
+        def wait_for(bit: Status) -> None:
+            for _ in range(6000):  # a PLC's scan: poll, never a verdict on time
+                if bit in Status(registers(Reg.STATUS, 1)[0]):
+                    return
+                time.sleep(0.005)
+            raise AssertionError(f"{bit!r} never came")
+
+        for _ in range(3):
+            assert not plc.write_registers(Reg.CONTROL, [1, 1], device_id=1).isError()
+            wait_for(Status.DONE)
+            status, error_code, sequence = registers(Reg.STATUS, 3)
+            assert (status, error_code) == (Status.DONE | Status.PASS, 0)
+            assert not plc.write_register(Reg.CONTROL, 0, device_id=1).isError()
+            wait_for(Status.READY)
+        assert sequence == 3
+
+        path.write_text(SERVED.replace("min: 10", "min: 10\n    number: 4"), encoding="utf-8")
+        new_id = printed_map(path)["map_id"]
+        proc.send_signal(signal.SIGHUP)
+        assert "configuration reloaded" in proc.stdout.readline()
+        assert registers(Reg.MAP_ID, 1)[0] == new_id
+        plc.close()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    logged = subprocess.run(
+        [*command, "results", "--config", str(path), "--json"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+        check=True,
+    )
+    rows = [json.loads(line) for line in logged.stdout.splitlines() if line.strip()]
+    rows = rows[0] if len(rows) == 1 and isinstance(rows[0], list) else rows
+    assert [(r["inspection"], r["peer"], r["verdict"]) for r in rows] == [
+        ("bright", "modbus", "pass")
+    ] * 3
