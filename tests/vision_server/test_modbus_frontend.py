@@ -602,3 +602,26 @@ def test_serve_speaks_modbus_logs_its_runs_and_reloads_its_map_on_sighup(tmp_pat
     assert [(r["inspection"], r["peer"], r["verdict"]) for r in rows] == [
         ("bright", "modbus", "pass")
     ] * 3
+
+
+def test_a_stage_that_ignores_its_deadline_still_ends_in_done(tmp_path: Path) -> None:
+    """The service answers DEADLINE_EXCEEDED at the deadline; were a stage ever to hang past
+    it, the front-end ends the run itself: BUSY never stays set."""
+    gate = Gate(camera="shelf")
+
+    async def body() -> None:
+        app, camera = gate_app(tmp_path, gate, deadline_s=0.2)
+
+        async def hangs(*args: object, **kwargs: object) -> object:
+            await asyncio.Event().wait()  # never set
+            raise AssertionError("unreachable")
+
+        app.service.inspect = hangs  # type: ignore[method-assign]
+        async with app:
+            plc = await Plc(modbus_port(app)).connect()
+            result = await plc.run(1)
+            assert (result.status, result.error_code) == (Status.DONE | Status.ERROR, 21)
+            plc.close()
+        camera.close()
+
+    run(body())

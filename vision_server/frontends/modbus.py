@@ -23,10 +23,10 @@ from pymodbus.pdu import ModbusPDU
 from pymodbus.server import ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 
-from protocol import CellvisionError, ErrorCode, UnknownInspection
+from protocol import CellvisionError, DeadlineExceeded, ErrorCode, UnknownInspection
 
 from ..catalog import Catalog
-from ..service import InspectionService, InspectRequest
+from ..service import InspectionService, InspectReply, InspectRequest
 from ..settings import ModbusSettings
 from .line import Answerable
 from .modbus_frames import (
@@ -59,6 +59,10 @@ WRITE_TIMEOUT_S = 10.0
 """How long an answer may wait for a client that does not read its answers; then it is
 dropped (its answers would only pile up in the server's memory)."""
 DEVICE_FAILURE = 0x04
+BACKSTOP_S = 1.0
+"""How long past its deadline a run may go before the front-end ends it itself: the service
+answers DEADLINE_EXCEEDED at the deadline, this only guards BUSY against a stage that would
+not (BUSY must never stay set)."""
 
 
 def catalog_map(catalog: Catalog, word_order: str) -> RegisterMap:
@@ -172,18 +176,13 @@ class ModbusFrontend:
                 known = ", ".join(str(n) for n in sorted(self.handshake.map.inspections))
                 raise UnknownInspection(f"no inspection number {number}; numbers: {known}")
             deadline = arrived + self.settings.deadline_s
-            # A PLC waits for DONE: a trigger waits for a worker slot (within its deadline)
-            # rather than being refused at once.
-            admission = await self.service.admit_when_free(target.name, deadline=deadline)
             try:
-                reply = await self.service.inspect(
-                    InspectRequest(
-                        target.name, None, arrived=arrived, deadline=deadline, peer="modbus"
-                    ),
-                    admission=admission,
-                )
-            finally:
-                admission.release()
+                async with asyncio.timeout(self.settings.deadline_s + BACKSTOP_S):
+                    reply = await self._inspect(target, arrived, deadline)
+            except TimeoutError:
+                raise DeadlineExceeded(
+                    f"not done within the deadline of {self.settings.deadline_s:g} s"
+                ) from None
             passed = reply.passed
             values = tuple(round(v, places) for v, places in target.values(reply))
         except CellvisionError as exc:
@@ -198,6 +197,20 @@ class ModbusFrontend:
         self.handshake.finish(
             Outcome(number, passed, 0 if error is None else int(error), values, map_id)
         )
+
+    async def _inspect(self, target: Answerable, arrived: float, deadline: float) -> InspectReply:
+        # A PLC waits for DONE: a trigger waits for a worker slot (within its deadline)
+        # rather than being refused at once.
+        admission = await self.service.admit_when_free(target.name, deadline=deadline)
+        try:
+            return await self.service.inspect(
+                InspectRequest(
+                    target.name, None, arrived=arrived, deadline=deadline, peer="modbus"
+                ),
+                admission=admission,
+            )
+        finally:
+            admission.release()
 
 
 class _Server(ModbusTcpServer):
@@ -285,7 +298,8 @@ class _Connection(ServerRequestHandler):
                     await self.can_write.wait()
             except TimeoutError:
                 log.info("Modbus: a client does not read its answers; closing")
-                self.transport.abort()  # type: ignore[attr-defined]
+                if self.transport is not None:
+                    self.transport.abort()  # type: ignore[attr-defined]
                 return
             if self.transport is None or self.transport.is_closing():
                 return
