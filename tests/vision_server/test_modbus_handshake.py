@@ -4,8 +4,10 @@
 from __future__ import annotations
 
 import random
+import re
 import struct
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
@@ -24,8 +26,12 @@ from vision_server.frontends.modbus_handshake import (
     Outcome,
 )
 from vision_server.frontends.modbus_map import (
+    ERROR_MEANINGS,
+    FIXED_ROWS,
+    REFUSAL_MEANINGS,
     SIZE,
     VALUES,
+    WRITABLE,
     Refusal,
     Reg,
     RegisterMap,
@@ -243,3 +249,35 @@ def test_pdu_lengths_are_exact(pdu: bytes, problem: int | None) -> None:
 def test_an_exception_reply_carries_the_function_with_its_high_bit() -> None:
     reply = exception_frame(Request(0x1234, 9, bytes([0x63, 1])), 1)
     assert reply == bytes.fromhex("1234 0000 0003 09 e3 01".replace(" ", ""))
+
+
+# ----------------------------------------------------------------------------- the spec
+
+SPEC = Path(__file__).resolve().parents[2] / "protocol" / "MODBUS.md"
+
+
+def spec_section(title: str) -> str:
+    text = SPEC.read_text(encoding="utf-8")
+    start = text.index(title)
+    end = text.find("\n#", start + len(title))
+    return text[start : end if end >= 0 else len(text)]
+
+
+def test_the_spec_lists_the_registers_the_server_serves() -> None:
+    rows = re.findall(
+        r"^\| (\d+) \| (\d+) \| \w+ \| (R/W|R) \| (\w+) \|", spec_section("## 2."), re.M
+    )
+    assert [(int(a), int(ref), rw, name) for a, ref, rw, name in rows] == [
+        (r.address, r.reference, r.access, r.name) for r in FIXED_ROWS
+    ]
+    writable = {r.address for r in FIXED_ROWS if r.access == "R/W"}
+    assert writable == set(WRITABLE)
+
+
+def test_the_spec_lists_the_codes_the_server_sets() -> None:
+    def codes(title: str) -> set[int]:
+        return {int(c) for c in re.findall(r"^\| (\d+) \|", spec_section(title), re.M)}
+
+    assert codes("### 4.1") == set(ERROR_MEANINGS)
+    assert codes("### 4.2") == set(REFUSAL_MEANINGS)
+    assert set(REFUSAL_MEANINGS) == {r for r in Refusal if r != Refusal.NONE}
