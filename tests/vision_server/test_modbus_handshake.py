@@ -154,6 +154,20 @@ def test_values_are_float32_in_the_documented_word_order(word_order: str) -> Non
     assert regs[Reg.WORD_ORDER] == (0 if word_order == "high_first" else 1)
 
 
+def test_values_beyond_float32_are_published_as_infinities() -> None:
+    """A large scale can make a value no float32 holds: the result is still published."""
+    hs = fresh()
+    hs.write(Reg.CONTROL, [1])
+    finish(hs, (1e39, -1e300, 3.0e38))
+    regs = hs.registers
+    assert (regs[VALUES], regs[VALUES + 1]) == (0x7F80, 0)  # +inf
+    assert (regs[VALUES + 2], regs[VALUES + 3]) == (0xFF80, 0)  # -inf
+    assert decode_float((regs[VALUES + 4], regs[VALUES + 5]), "high_first") == pytest.approx(
+        3.0e38, rel=1e-6
+    )
+    assert Status.DONE in hs.status
+
+
 def test_a_new_trigger_clears_the_old_result_and_an_error_sets_error() -> None:
     hs = fresh()
     hs.write(Reg.CONTROL, [1])

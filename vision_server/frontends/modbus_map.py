@@ -9,6 +9,7 @@ addresses; a PLC tool's "4xxxx" reference is 40001 + address.
 
 from __future__ import annotations
 
+import math
 import struct
 import zlib
 from collections.abc import Iterable, Mapping
@@ -45,6 +46,8 @@ WRITABLE = frozenset({Reg.CONTROL, Reg.INSPECTION})
 """The registers a PLC writes; writing any other is answered ILLEGAL DATA ADDRESS."""
 VALUES = 16
 """The first register of the result's values: value k at VALUES + 2k and VALUES + 2k + 1."""
+FLOAT32_MAX = 3.4028234663852886e38
+"""The largest finite IEEE-754 single."""
 SIZE = VALUES + 2 * MAX_FIELDS
 """Registers served (0 .. SIZE - 1); a read or write past them is ILLEGAL DATA ADDRESS."""
 
@@ -107,7 +110,11 @@ class RegisterMap:
         return zlib.crc32("\n".join(parts).encode("utf-8")) & 0xFFFF
 
     def words(self, value: float) -> tuple[int, int]:
-        """``value`` as an IEEE-754 float32 in two registers, in this map's word order."""
+        """``value`` as an IEEE-754 float32 in two registers, in this map's word order. A
+        value beyond float32's range is sent as an infinity of its sign (packing it would
+        fail, and a result must always be published)."""
+        if math.isfinite(value) and abs(value) > FLOAT32_MAX:
+            value = math.copysign(math.inf, value)
         high, low = struct.unpack(">HH", struct.pack(">f", value))
         return (high, low) if self.word_order == "high_first" else (low, high)
 
