@@ -2,8 +2,9 @@
 
 :class:`App` wires one :class:`~vision_server.service.InspectionService` (the runtime: worker
 pool, admission, deadlines, cameras, result log, reload) to the front-ends that serve it — the
-TCP protocol today (:class:`~vision_server.frontends.tcp.TcpFrontend`); an HTTP console, a line
-protocol or Modbus would be started and stopped here beside it. SIGHUP reloads through the
+TCP protocol (:class:`~vision_server.frontends.tcp.TcpFrontend`) and, when enabled, the line
+protocol, Modbus TCP (:class:`~vision_server.frontends.modbus.ModbusFrontend`, imported only
+then: pymodbus is an optional extra) and the web console. SIGHUP reloads through the
 service, the same path as the protocol's RELOAD (in a thread, never on the event loop).
 
 ``vision-server serve`` builds one from a configuration file (:mod:`vision_server.cli`);
@@ -18,7 +19,7 @@ import logging
 import signal
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 
@@ -31,7 +32,10 @@ from .frontends.tcp import TcpFrontend
 from .operator_desk import OperatorDesk
 from .results import ResultLog
 from .service import InspectionService
-from .settings import ConsoleSettings, LineSettings, ServerSettings
+from .settings import ConsoleSettings, LineSettings, ModbusSettings, ServerSettings
+
+if TYPE_CHECKING:
+    from .frontends.modbus import ModbusFrontend
 
 log = logging.getLogger("vision_server")
 
@@ -54,6 +58,7 @@ class App:
         line: LineSettings | None = None,
         console: ConsoleSettings | None = None,
         config_path: Path | None = None,
+        modbus: ModbusSettings | None = None,
     ) -> None:
         self.settings = settings or ServerSettings()
         self.service = InspectionService(
@@ -64,6 +69,13 @@ class App:
         """The line protocol for robot controllers, when ``line`` enables it."""
         if line is not None and line.enabled:
             self.line = LineFrontend(self.service, line, self.settings.tcp())
+        self.modbus: ModbusFrontend | None = None
+        """Modbus TCP for PLCs, when ``modbus`` enables it (needs the extra ``modbus``)."""
+        if modbus is not None and modbus.enabled:
+            # Imported only then: pymodbus is an optional extra.
+            from .frontends.modbus import ModbusFrontend
+
+            self.modbus = ModbusFrontend(self.service, modbus)
         # The web console (off unless enabled): its token, TLS and limits are the server's.
         self.http: HttpFrontend | None = None
         if console is not None and console.enabled:
@@ -122,6 +134,14 @@ class App:
             except BaseException:
                 await self.tcp.stop()
                 raise
+        if self.modbus is not None:
+            try:
+                await self.modbus.start()
+            except BaseException:
+                if self.line is not None:
+                    await self.line.stop()
+                await self.tcp.stop()
+                raise
         if self.http is not None:
             try:
                 await self.http.start()
@@ -163,6 +183,8 @@ class App:
         self._stopped.set()
         if self.line is not None:
             await self.line.stop()
+        if self.modbus is not None:
+            await self.modbus.stop(self.settings.shutdown_grace_s)
         if self.http is not None:
             await self.http.stop()
         await self.tcp.stop()

@@ -7,6 +7,7 @@ image files, list logged results, and check or reload a running server.
                       [--json] [--overlay out.png]
     vision-server test-inspections [PATH ...] [--json] [--update]   # golden cases
     vision-server results --config cell.yaml --since 1h [--inspection NAME] [--json]
+    vision-server modbus-map cell.yaml [--json]   # the PLC's register map (protocol/MODBUS.md)
     vision-server ping [--server HOST:PORT] [--token-file PATH] [--tls] [--ca FILE]
     vision-server reload [...the same options]
 
@@ -165,6 +166,7 @@ def _serve(args: argparse.Namespace) -> int:
             line=None if runtime is None else runtime.config.line,
             console=None if runtime is None else runtime.config.console,
             config_path=None if runtime is None else runtime.path,
+            modbus=None if runtime is None else runtime.config.modbus,
         )
         app.service.on_reloaded = announce_reload
         try:
@@ -194,6 +196,9 @@ def _serve(args: argparse.Namespace) -> int:
         if app.line is not None:
             line = app.line.settings
             print(f"{PROG}: line protocol on {line.host}:{app.line.port}", flush=True)
+        if app.modbus is not None:
+            modbus = app.modbus.settings
+            print(f"{PROG}: Modbus TCP on {modbus.host}:{app.modbus.port}", flush=True)
         await stop.wait()
         await app.stop()
         return 0
@@ -286,6 +291,26 @@ def _check_config(args: argparse.Namespace) -> int:
         cells = (inspection.name, inspection.type, inspection.camera, source)
         table.add_row(*map(Text, cells), Text("whole image" if roi is None else str(list(roi))))
     console.print(table)
+    return 0
+
+
+def _modbus_map(args: argparse.Namespace) -> int:
+    from .modbus_cli import map_json, print_map
+
+    args.file = args.file or _config_path(args)
+    if not args.file:
+        return _fail(args, ErrorKind.USAGE, f"give the configuration FILE (or ${CONFIG_ENV})")
+    if not Path(args.file).is_file():
+        return _fail(args, ErrorKind.USAGE, f"no such file: {args.file}")
+    try:
+        config = load_config(args.file)
+    except ConfigError as exc:
+        return _fail(args, ErrorKind.USAGE, str(exc))  # exit 2, as check-config
+    if args.json:
+        print(json.dumps(map_json(config)))
+    else:
+        # A table piped to a file keeps its rows on one line each (rich's default is 80).
+        print_map(config, args.file, Console(width=None if sys.stdout.isatty() else 120))
     return 0
 
 
@@ -699,6 +724,14 @@ def build_parser() -> argparse.ArgumentParser:
     results.add_argument("--failed", action="store_true", help="only failed inspections")
     results.add_argument("--limit", type=int, default=100)
     results.set_defaults(func=_results)
+
+    modbus_map = sub.add_parser(
+        "modbus-map",
+        parents=[local],
+        help="print the Modbus register map of a configuration (for the PLC programmer)",
+    )
+    modbus_map.add_argument("file", nargs="?", help=f"the configuration (default ${CONFIG_ENV})")
+    modbus_map.set_defaults(func=_modbus_map)
 
     ping = sub.add_parser(
         "ping", parents=[common], help="check that a server answers (the container health check)"

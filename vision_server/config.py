@@ -8,6 +8,7 @@
     cameras:  {NAME: {source: request|opencv|folder|sim, ...source settings, intrinsics}}
     inspections: [{name, type: locate|presence|qr|qr_pose, camera, roi, number, output, ...}]
     line:     {enabled, host, port, tls, format, max_line_bytes, idle_timeout_s, deadline_s, ...}
+    modbus:   {enabled, host, port, unit_id, word_order, deadline_s, max_connections}  (PLCs)
 
 Every error names the file, the line and the key path; unknown keys are errors. Relative paths
 resolve against the configuration file's directory. See docs/configuration.md.
@@ -22,6 +23,7 @@ import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
+from importlib.util import find_spec
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +44,14 @@ from .configfile import (
 from .cpu_priority import MAX_NICE
 from .inspections import InspectionSpec, parse_inspection
 from .inspections.output import numbers_by_position
-from .settings import LINE_FORMATS, ConsoleSettings, LineSettings, ServerSettings
+from .settings import (
+    LINE_FORMATS,
+    MODBUS_WORD_ORDERS,
+    ConsoleSettings,
+    LineSettings,
+    ModbusSettings,
+    ServerSettings,
+)
 
 
 @dataclass(frozen=True)
@@ -71,6 +80,8 @@ class CellConfig:
     """The line protocol's listener (protocol/LINE.md); off unless ``line: {enabled: true}``."""
     console: ConsoleSettings = dataclasses.field(default_factory=ConsoleSettings)
     """The web console (``console:``), with the server's token, TLS and limits."""
+    modbus: ModbusSettings = ModbusSettings()
+    """Modbus TCP for PLCs (protocol/MODBUS.md); off unless ``modbus: {enabled: true}``."""
 
 
 def _names(value: Any) -> tuple[str, ...]:
@@ -137,6 +148,7 @@ def parse_config(
                 "process_inspections",
             )
     line = _line(root.sub("line"), server)
+    modbus = _modbus(root.sub("modbus"), server, line)
     root.finish()
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
     tuner = Tuner(written, base_dir, cameras)
@@ -151,6 +163,7 @@ def parse_config(
         tuner,
         line=line,
         console=console,
+        modbus=modbus,
     )
 
 
@@ -304,6 +317,37 @@ def _line(node: Node, server: ServerSettings) -> LineSettings:
         raise node.error(
             f"port {port} is the server's port: the line protocol needs its own", "port"
         )
+    node.finish()
+    return settings
+
+
+def _modbus(node: Node, server: ServerSettings, line: LineSettings) -> ModbusSettings:
+    defaults = ModbusSettings()
+    port = node.take("port", integer, defaults.port)
+    if not 0 <= port < 65536:
+        raise node.error(f"expected a port in 0..65535, got {port}", "port")
+    unit_id = node.take("unit_id", integer, defaults.unit_id)
+    if not 1 <= unit_id <= 247:
+        raise node.error(f"expected a unit id in 1..247, got {unit_id}", "unit_id")
+    settings = ModbusSettings(
+        enabled=node.take("enabled", boolean, defaults.enabled),
+        host=node.take("host", string, defaults.host),
+        port=port,
+        unit_id=unit_id,
+        word_order=node.take("word_order", one_of(*MODBUS_WORD_ORDERS), defaults.word_order),
+        deadline_s=node.take("deadline_s", positive, defaults.deadline_s),
+        max_connections=node.take("max_connections", positive_int, defaults.max_connections),
+    )
+    if settings.enabled and find_spec("pymodbus") is None:
+        raise node.error(
+            "enabled: true needs the optional extra: pip install 'cellvision[modbus]'",
+            "enabled",
+        )
+    taken = {server.port: "the server's port"}
+    if line.enabled:
+        taken[line.port] = "the line protocol's port"
+    if settings.enabled and settings.port != 0 and settings.port in taken:
+        raise node.error(f"port {port} is {taken[settings.port]}: Modbus needs its own", "port")
     node.finish()
     return settings
 

@@ -132,6 +132,31 @@ class LineSettings:
     """How long an answer may wait for a controller that does not read before it is dropped."""
 
 
+MODBUS_WORD_ORDERS = ("high_first", "low_first")
+"""How a float's two registers are ordered (protocol/MODBUS.md §2)."""
+DEFAULT_MODBUS_PORT = 5020
+"""The Modbus port when ``modbus:`` enables it without one: Modbus's own 502 needs root."""
+
+
+@dataclass(frozen=True)
+class ModbusSettings:
+    """The ``modbus:`` section: Modbus TCP for PLCs (protocol/MODBUS.md), off unless
+    ``enabled``. Modbus has no authentication: bind it to the cell network's interface only."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = DEFAULT_MODBUS_PORT
+    unit_id: int = 1
+    """The unit identifier answered (besides 0 and 255, Modbus TCP's "this device")."""
+    word_order: str = "high_first"
+    """``high_first``: a float's high 16 bits in the lower register ("ABCD"); ``low_first``
+    ("CDAB")."""
+    deadline_s: float = 10.0
+    """Each trigger's deadline, from its edge: DONE with an error code by then."""
+    max_connections: int = 16
+    """Clients at once; one more is closed as it connects."""
+
+
 @dataclass(frozen=True)
 class ServerSettings:
     """The ``server:`` section of a configuration file: the service's settings and the TCP
@@ -281,6 +306,9 @@ __all__ = [
     "SERVER_VERSION",
     "ConsoleSettings",
     "LineSettings",
+    "MODBUS_WORD_ORDERS",
+    "DEFAULT_MODBUS_PORT",
+    "ModbusSettings",
     "ServerSettings",
     "ServiceSettings",
     "TcpSettings",

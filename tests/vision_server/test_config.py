@@ -605,6 +605,8 @@ def test_docs_list_exactly_the_keys_the_validator_reads(
             return "results"
         if path[:1] == ("line",):
             return "line"
+        if path[:1] == ("modbus",):
+            return "modbus"
         if path[:1] == ("inspections",) and path[2:3] == ("output",):
             if len(path) == 3:
                 return "inspections.output"
@@ -668,6 +670,8 @@ inspections:
                scale: {{found: 1}}, missing: -1}}}}
 line: {{enabled: true, host: 0.0.0.0, port: 0, tls: false, format: ur, max_line_bytes: 100,
        idle_timeout_s: 1, deadline_s: 2, max_connections: 3, write_timeout_s: 4}}
+modbus: {{enabled: true, host: 0.0.0.0, port: 0, unit_id: 3, word_order: low_first,
+         deadline_s: 2, max_connections: 2}}
 """
     load_config(write(tmp_path, text))
     docs = documented_keys()
@@ -676,6 +680,7 @@ line: {{enabled: true, host: 0.0.0.0, port: 0, tls: false, format: ur, max_line_
         "server.tls": docs["server.tls"],
         "results": docs["results"],
         "line": docs["line"],
+        "modbus": docs["modbus"],
         "inspections.output": docs["inspections.output"],
         "output.fields": {"name", "decimals", "scale"},
         "cameras.intrinsics": docs["cameras.intrinsics"],

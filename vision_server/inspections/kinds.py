@@ -10,7 +10,7 @@ line-protocol answer). Adding a type means adding its ``RESULTS``, not editing t
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 Data = Mapping[str, Any]
@@ -23,12 +23,15 @@ class ResultKind:
     ``expected_keys``: what a golden case may expect of a result besides its verdict.
     ``expected``: a result's data as a golden expected entry (those keys, rounded; nothing for
     what was not found). ``summary``: named numbers, in a fixed order per type (missing values
-    are NaN), e.g. ``{"count": 2.0, "u": 311.4, "v": 208.9}``.
+    are NaN), e.g. ``{"count": 2.0, "u": 311.4, "v": 208.9}``. ``units``: the unit of each
+    summary value that has one (``"px"``, ``"m"``), for the tables readers work from (the
+    Modbus register map).
     """
 
     expected_keys: tuple[str, ...]
     expected: Callable[[Data], dict[str, Any]]
     summary: Callable[[Data], dict[str, float]]
+    units: Mapping[str, str] = field(default_factory=dict)
 
 
 def as_number(data: Data, key: str) -> float:

@@ -218,5 +218,10 @@ def _locate_summary(data: Data) -> dict[str, float]:
     }
 
 
-RESULTS = ResultKind(("count", "features"), _locate_expected, _locate_summary)
+RESULTS = ResultKind(
+    ("count", "features"),
+    _locate_expected,
+    _locate_summary,
+    units={"count": "features", "u": "px", "v": "px"},
+)
 """A locate result: how many features, where (the first one's position in the summary)."""

@@ -148,5 +148,7 @@ def _presence_summary(data: Data) -> dict[str, float]:
     return {"value": as_number(data, "value")}
 
 
-RESULTS = ResultKind(("value",), _presence_expected, _presence_summary)
+RESULTS = ResultKind(
+    ("value",), _presence_expected, _presence_summary, units={"value": "of the measure"}
+)
 """A presence result: the measured value."""

@@ -102,5 +102,7 @@ def _qr_summary(data: Data) -> dict[str, float]:
     return {"found": 1.0 if data.get("found") else 0.0}
 
 
-RESULTS = ResultKind(("text", "corners"), _qr_expected, _qr_summary)
+RESULTS = ResultKind(
+    ("text", "corners"), _qr_expected, _qr_summary, units={"found": "1 found, 0 not"}
+)
 """A QR result: the text and corners of the code found (nothing when none was)."""

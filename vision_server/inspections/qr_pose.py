@@ -177,6 +177,11 @@ def _qr_pose_summary(data: Data) -> dict[str, float]:
     return {"found": 0.0 if pose is None else 1.0, "x": x, "y": y, "z": z}
 
 
-RESULTS = ResultKind(("text", "corners", "camera_from_qr"), _qr_pose_expected, _qr_pose_summary)
+RESULTS = ResultKind(
+    ("text", "corners", "camera_from_qr"),
+    _qr_pose_expected,
+    _qr_pose_summary,
+    units={"found": "1 found, 0 not", "x": "m", "y": "m", "z": "m"},
+)
 """A QR pose result: text, corners and camera_from_qr (its translation in metres in the
 summary)."""
