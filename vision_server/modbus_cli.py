@@ -54,8 +54,13 @@ def map_json(config: CellConfig) -> dict[str, Any]:
                 "name": m.target.name,
                 "type": m.target.type,
                 "values": [
-                    {**row(r), "field": f.name, "scale": f.scale, "decimals": f.decimals}
-                    for r, f in zip(value_rows(m), m.fields, strict=True)
+                    {
+                        **row(r),
+                        "field": v.name,
+                        "scale": v.field.scale,
+                        "decimals": v.field.decimals,
+                    }
+                    for r, v in zip(value_rows(m), m.values, strict=True)
                 ],
             }
             for number, m in sorted(mapped.inspections.items())

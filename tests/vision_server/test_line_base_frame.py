@@ -5,6 +5,9 @@ measured against the scene's ground truth through real sockets."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import io
+import json
 import math
 from pathlib import Path
 
@@ -12,10 +15,12 @@ import numpy as np
 import pytest
 from controllers import read_line, socket_read_ascii_float
 from loopback import run
+from plc import Plc
 
 from geometry import invert_transform, rotation_from_rpy, transform_points, xyz_rpy_from_transform
 from simulation import SimCell
 from vision_server.app import App
+from vision_server.cli import main as cli_main
 from vision_server.config import ConfigError, load_config
 from vision_server.frontends.line_poses import CONVENTIONS, parse_pose, pose_values
 from vision_server.runtime import CellRuntime
@@ -301,3 +306,63 @@ def test_a_bad_mount_is_a_configuration_error_naming_the_key(
         load_config(path)
     assert message in str(caught.value)
     assert "cameras" in str(caught.value)
+
+
+def test_a_plc_reads_the_same_base_frame_pose_over_modbus(tmp_path: Path) -> None:
+    """A PLC gets the pose as six float32 values (mm; W P R in degrees: the text format's
+    convention), the ones a controller reads on the line protocol, and the map printed for
+    the PLC programmer names them with their units."""
+    cell = SimCell.from_yaml(SCENE, seed=3)
+    frame = cell.render("qc_camera")
+    xyz, rpy = xyz_rpy_from_transform(frame.truth.base_from_camera)
+    truth = frame.truth.features["rotor_core.top_centre"]
+    p_base = transform_points(invert_transform(frame.truth.world_from_base), truth.p_world)
+    mount = f"    mount: {{base_from_camera: {{xyz: {list(map(float, xyz))}, rpy: {list(rpy)}}}}}"
+    path = tmp_path / "cell.yaml"
+    config = cell_config(
+        mount, f"{{frame: base, fields: [count, pose], plane_z_m: {float(p_base[2])}}}"
+    )
+    path.write_text(config + "modbus: {enabled: true, port: 0}\n", encoding="utf-8")
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert cli_main(["modbus-map", str(path), "--json"]) == 0
+    (listed,) = json.loads(printed.getvalue())["inspections"]
+    assert [(v["field"], v["units"]) for v in listed["values"]] == [
+        ("count", "features"),
+        ("pose.x", "mm"),
+        ("pose.y", "mm"),
+        ("pose.z", "mm"),
+        ("pose.w", "deg"),
+        ("pose.p", "deg"),
+        ("pose.r", "deg"),
+    ]
+    runtime = CellRuntime(path)
+    app = App(
+        runtime.catalog,
+        ServerSettings(port=0),
+        line=runtime.config.line,
+        modbus=runtime.config.modbus,
+    )
+
+    async def scenario() -> tuple[str, list[float]]:
+        async with app:
+            assert app.line is not None
+            assert app.modbus is not None
+            reader, writer = await asyncio.open_connection("127.0.0.1", app.line.port)
+            writer.write(b"T core\n")
+            text = await read_line(reader)
+            writer.close()
+            plc = await Plc(app.modbus.port).connect()
+            result = await plc.run(1)
+            plc.close()
+            return text, result.values
+
+    try:
+        text, values = run(scenario())
+    finally:
+        runtime.close()
+    line_values = [float(v) for v in text.split()[3:]]
+    assert len(values) == 7, values
+    assert values[0] == 1.0
+    assert np.allclose(values[1:4], p_base * 1000.0, atol=0.5), (values, p_base)
+    assert np.allclose(values[1:], line_values, atol=0.01), (values, text)

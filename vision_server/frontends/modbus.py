@@ -39,7 +39,7 @@ from .modbus_frames import (
     pdu_problem,
 )
 from .modbus_handshake import Handshake, IllegalAddress, IllegalValue, Outcome
-from .modbus_map import RegisterMap, config_map
+from .modbus_map import POSE_FORMAT, RegisterMap, config_map
 
 log = logging.getLogger("vision_server")
 
@@ -67,7 +67,7 @@ not (BUSY must never stay set)."""
 
 def catalog_map(catalog: Catalog, word_order: str) -> RegisterMap:
     """The register map of the inspections ``catalog`` serves (in its configuration order)."""
-    return config_map(catalog.inspections.values(), word_order)
+    return config_map(catalog.inspections.values(), word_order, catalog)
 
 
 class ModbusFrontend:
@@ -184,7 +184,7 @@ class ModbusFrontend:
                     f"not done within the deadline of {self.settings.deadline_s:g} s"
                 ) from None
             passed = reply.passed
-            values = tuple(round(v, places) for v, places in target.values(reply))
+            values = tuple(round(v, places) for v, places in target.values(reply, POSE_FORMAT))
         except CellvisionError as exc:
             log.info("Modbus trigger %d: %s: %s", number, exc.code.name, exc.message)
             error = exc.code

@@ -19,10 +19,12 @@ from typing import Any
 
 from protocol import ErrorCode
 
+from ..catalog import Catalog
 from ..inspections import RESULT_KINDS
-from ..inspections.output import MAX_FIELDS, OutputField, numbers_by_position
+from ..inspections.output import MAX_FIELDS, POSE, OutputField, numbers_by_position
 from ..settings import MODBUS_WORD_ORDERS as WORD_ORDERS
 from .line import Answerable, answerable
+from .line_poses import CONVENTIONS
 
 
 class Reg(IntEnum):
@@ -45,6 +47,10 @@ class Reg(IntEnum):
 WRITABLE = frozenset({Reg.CONTROL, Reg.INSPECTION})
 """The registers a PLC writes; writing any other is answered ILLEGAL DATA ADDRESS."""
 VALUES = 16
+POSE_FORMAT = "text"
+"""The convention of a base-frame pose on Modbus: mm, and W P R in degrees (protocol/LINE.md
+§5.7). A tool camera's pose needs the robot's TCP pose, which Modbus does not carry: its
+values are the output's ``missing``."""
 """The first register of the result's values: value k at VALUES + 2k and VALUES + 2k + 1."""
 FLOAT32_MAX = 3.4028234663852886e38
 """The largest finite IEEE-754 single."""
@@ -90,6 +96,30 @@ class MappedInspection:
     def fields(self) -> tuple[OutputField, ...]:
         return self.target.output.fields
 
+    @property
+    def values(self) -> tuple[MappedValue, ...]:
+        """The values in register order: a base-frame ``pose`` field is six of them (x, y, z
+        in mm; w, p, r in degrees, fixed axes: the ``text`` convention, protocol/LINE.md
+        §5.7)."""
+        out: list[MappedValue] = []
+        for f in self.fields:
+            if f.name == POSE:
+                out += [MappedValue(f"pose.{a}", f, "mm") for a in "xyz"]
+                rotation = CONVENTIONS[POSE_FORMAT].rotation
+                out += [MappedValue(f"pose.{a}", f, "deg") for a in rotation]
+            else:
+                out.append(MappedValue(f.name, f, field_units(self.target.type, f)))
+        return tuple(out)
+
+
+@dataclass(frozen=True)
+class MappedValue:
+    """One float32 of a result: its name, the output field it comes from, its units."""
+
+    name: str
+    field: OutputField
+    units: str
+
 
 @dataclass(frozen=True)
 class RegisterMap:
@@ -105,7 +135,9 @@ class RegisterMap:
         map it was written against is still the one served."""
         parts = [self.word_order]
         for number, mapped in sorted(self.inspections.items()):
-            fields = ",".join(f"{f.name}*{f.scale!r}/{f.decimals}" for f in mapped.fields)
+            fields = ",".join(
+                f"{v.name}*{v.field.scale!r}/{v.field.decimals}" for v in mapped.values
+            )
             parts.append(f"{number}={mapped.target.name}:{mapped.target.type}:{fields}")
         return zlib.crc32("\n".join(parts).encode("utf-8")) & 0xFFFF
 
@@ -126,13 +158,19 @@ def build_map(numbered: Iterable[tuple[int, Answerable]], word_order: str) -> Re
     return RegisterMap({n: MappedInspection(n, a) for n, a in numbered}, word_order)
 
 
-def config_map(inspections: Iterable[Any], word_order: str) -> RegisterMap:
+def config_map(
+    inspections: Iterable[Any], word_order: str, catalog: Catalog | None = None
+) -> RegisterMap:
     """The map of a configuration's inspections (specs or built inspections: anything with a
-    name, a type and optionally ``number`` and ``output``), in configuration order."""
+    name, a type and optionally ``number`` and ``output``), in configuration order.
+    ``catalog``: the served one, where a base-frame output finds its camera's intrinsics (the
+    map's layout does not need them)."""
     listed = list(inspections)
     numbers = numbers_by_position((i.name, getattr(i, "number", None)) for i in listed)
     by_name = {i.name: i for i in listed}
-    return build_map(((n, answerable(by_name[name])) for n, name in numbers.items()), word_order)
+    return build_map(
+        ((n, answerable(by_name[name], catalog)) for n, name in numbers.items()), word_order
+    )
 
 
 def decode_float(words: tuple[int, int], word_order: str) -> float:
@@ -229,19 +267,10 @@ def field_units(inspection_type: str, output_field: OutputField) -> str:
 
 def value_rows(mapped: MappedInspection) -> list[Row]:
     """The value registers of one inspection's result."""
-    rows = []
-    for index, output_field in enumerate(mapped.fields):
-        rows.append(
-            Row(
-                VALUES + 2 * index,
-                "float32",
-                "R",
-                f"VALUE_{index + 1}",
-                output_field.name,
-                field_units(mapped.target.type, output_field),
-            )
-        )
-    return rows
+    return [
+        Row(VALUES + 2 * index, "float32", "R", f"VALUE_{index + 1}", value.name, value.units)
+        for index, value in enumerate(mapped.values)
+    ]
 
 
 __all__ = [
@@ -254,6 +283,8 @@ __all__ = [
     "WRITABLE",
     "Control",
     "MappedInspection",
+    "MappedValue",
+    "POSE_FORMAT",
     "Reg",
     "Refusal",
     "RegisterMap",
