@@ -29,14 +29,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import re
 import shutil
 import signal
-import subprocess
 import sys
-import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,10 +47,11 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn
 from rich.table import Table
 
-from geometry import invert_transform, make_transform, transform_points
+from geometry import invert_transform, make_transform
 from simulation import BOARD_FROM_QR, SimCell
 
 from .client import SyncVisionClient, overlay_image
+from .demo_cell import DemoServer, grasp_error_m, vision_server
 from .devices import Clock
 from .devices.sim import sim_devices
 from .skills import Progress as SkillProgress
@@ -99,81 +97,10 @@ def demo_config(output: Path) -> Path:
     return path
 
 
-def _console_enabled(config: Path) -> bool:
-    doc = yaml.safe_load(config.read_text(encoding="utf-8"))
-    return bool((doc.get("console") or {}).get("enabled"))
-
-
 def state_file(config: Path) -> Path:
     """The world-state file the configuration's ``qc`` camera reads."""
     doc = yaml.safe_load(config.read_text(encoding="utf-8"))
     return (config.parent / str(doc["cameras"]["qc"]["state_file"])).resolve()
-
-
-@dataclass(frozen=True)
-class DemoServer:
-    """The demo's vision server: its protocol ``port``, the web console's address
-    (``console_url``, None when the configuration does not enable the console) and ``stop``,
-    which stops it (SIGTERM) and returns its exit code."""
-
-    port: int
-    console_url: str | None
-    stop: Callable[[], int]
-
-
-@contextlib.contextmanager
-def vision_server(config: Path, log: Path) -> Iterator[DemoServer]:
-    """``vision-server serve --config CONFIG --port 0`` in a subprocess: yields the port it
-    bound (from its first line) and the console's address (from the next). Its other output
-    goes to ``log``. It runs in its own process group, so that a Ctrl-C in the terminal
-    reaches the demo only, which then stops the server itself (cleanly, once)."""
-    command = [sys.executable, "-m", "vision_server", "serve", "--config", str(config)]
-    with log.open("w", encoding="utf-8") as sink:
-        process = subprocess.Popen(
-            [*command, "--port", "0"],
-            stdout=subprocess.PIPE,
-            stderr=sink,
-            text=True,
-            process_group=0,
-        )
-        assert process.stdout is not None
-        line = process.stdout.readline()
-        sink.write(line)
-        sink.flush()
-        match = re.search(r"listening on \S+:(\d+)", line)
-        console_url = None
-        if match and _console_enabled(config):
-            # serve prints the console's address on the line right after.
-            line = process.stdout.readline()
-            sink.write(line)
-            address = re.search(r"web console on (\S+)", line)
-            if address:
-                console_url = address.group(1)
-                print(f"web console: {console_url}", flush=True)
-
-        def drain() -> None:  # keep the pipe empty (reload messages and the like)
-            assert process.stdout is not None
-            for rest in process.stdout:
-                sink.write(rest)
-
-        threading.Thread(target=drain, daemon=True).start()
-
-        def stop() -> int:
-            if process.poll() is None:
-                process.send_signal(signal.SIGTERM)
-            try:
-                return process.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                return process.wait()
-
-        try:
-            if not match:
-                stop()
-                raise RuntimeError(f"the vision server did not start (see {log}): {line!r}")
-            yield DemoServer(int(match.group(1)), console_url, stop)
-        finally:
-            stop()
 
 
 # --- the simulated cell around the robot --------------------------------------------------------
@@ -271,14 +198,6 @@ def true_base_from_qr(cell: SimCell, text: str) -> FloatArray:
         board.world_from_board @ BOARD_FROM_QR
     )
     return result
-
-
-def grasp_error_m(cell: SimCell) -> float:
-    """How far the held part's true grasp point is from the TCP (the pick's error)."""
-    held = cell.gripper.held
-    assert held is not None
-    tool_from_world = invert_transform(cell.world.world_from_tool())
-    return float(np.linalg.norm(transform_points(tool_from_world, cell.gripper.grasp_point(held))))
 
 
 def press_error_m(cell: SimCell, approach_m: float) -> tuple[str, float]:

@@ -34,6 +34,7 @@ from geometry import (
 from simulation import SimCell
 
 from .controllers.urscript import pose_to_str, read_line, socket_read_ascii_float, ur_pose
+from .demo_cell import grasp_error_m, vision_server
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE = REPO / "examples" / "scenes" / "grundfos_cell.yaml"
@@ -155,8 +156,6 @@ async def _connect(
 
 async def run_controller(cell: SimCell, port: int) -> list[LinePick]:
     """The URScript program: per taught station, look, move to the answer, grasp, drop."""
-    from .demo import grasp_error_m
-
     reader, writer = await _connect(port)
     picks: list[LinePick] = []
     try:
@@ -189,8 +188,6 @@ async def run_controller(cell: SimCell, port: int) -> list[LinePick]:
 
 def run_line_demo(output: Path, *, console: Console) -> LineDemoResult:
     """Start the server (a ``vision-server serve`` subprocess) and run the controller."""
-    from .demo import vision_server
-
     output.mkdir(parents=True, exist_ok=True)
     cell = SimCell.from_yaml(SCENE, state_path=output / "world-state.json")
     cell.restart()  # the scene's start, written for the server's camera

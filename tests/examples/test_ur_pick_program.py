@@ -19,7 +19,7 @@ from robot_client.controllers.urscript import (
     socket_read_ascii_float,
     ur_pose,
 )
-from robot_client.demo import grasp_error_m
+from robot_client.demo_cell import grasp_error_m
 from robot_client.line_demo import SCENE, line_config
 from simulation import SimCell
 from vision_server.app import App
