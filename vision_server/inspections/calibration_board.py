@@ -51,6 +51,8 @@ class CalibrationBoardInspection(Configured):
         data: dict[str, Any] = {
             "found": True,
             "board": self.board.kind,
+            "squares": [self.board.columns, self.board.rows],
+            "square_m": self.board.square_m,
             "count": len(found.ids),
             "of": self.board.corner_count,
             "markers": found.markers,
