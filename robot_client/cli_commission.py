@@ -56,7 +56,7 @@ def _inspection_camera(devices: Devices, inspection: str) -> str:
 def _ask_next(console: Console, interactive: bool) -> Any:
     def next_view(index: int, coverage: Coverage | None) -> bool:
         if coverage is not None:
-            console.print(escape(f"  {coverage.describe()}"))
+            console.print(escape(f"  {coverage.describe()}"), soft_wrap=True)
         if not interactive:
             return True
         answer = console.input(
@@ -120,8 +120,8 @@ def _print_solution(console: Console, solution: IntrinsicsSolution, collected: C
         views.add_row(v.label, str(v.corners), f"{v.rms_px:.3f}", "yes" if v.used else v.reason)
     console.print(views)
     for label, reason in collected.skipped:
-        console.print(escape(f"not taken: {label}: {reason}"))
-    console.print(escape(f"coverage: {solution.coverage.describe()}"))
+        console.print(escape(f"not taken: {label}: {reason}"), soft_wrap=True)
+    console.print(escape(f"coverage: {solution.coverage.describe()}"), soft_wrap=True)
 
 
 async def _reload(args: argparse.Namespace) -> Reloaded:
@@ -171,11 +171,14 @@ def _write(
     backup = write_intrinsics(path, camera, solution.intrinsics, note)
     try:
         reloaded = asyncio.run(_reload(args))
-    except CellvisionError as exc:
+    except CellvisionError:
         backup.replace(path)  # the server keeps its configuration; so does the file
-        raise ValueError(
-            f"the server refused the new configuration ({exc.message}); {path} is as it was"
-        ) from None
+        if not args.json:
+            Console(stderr=True).print(
+                escape(f"the server refused the new file: {path} is put back as it was"),
+                soft_wrap=True,
+            )
+        raise
     if not args.json:
         console.print(
             escape(

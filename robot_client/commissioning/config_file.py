@@ -1,7 +1,7 @@
 """Writing solved intrinsics into the vision server's configuration file.
 
-The camera's ``intrinsics:`` entry is replaced in place (or added under the camera), as one
-flow mapping, with a comment line above it that says when, from which board and how well it
+The camera's ``intrinsics:`` entry is replaced in place (or added under the camera; into a
+camera written as a one-line mapping, inside it), as one flow mapping, with a comment line above it that says when, from which board and how well it
 was calibrated. The rest of the file, its comments and layout included, is kept as it was:
 the file is edited as text at the lines YAML's parser locates, never re-dumped.
 """
@@ -52,9 +52,11 @@ def replace_intrinsics(text: str, camera: str, intrinsics: CameraIntrinsics, not
     if entry is None or not isinstance(entry[1], yaml.MappingNode):
         raise ValueError(f"the configuration has no camera {camera!r} under cameras:")
     camera_node = entry[1]
-    lines = text.splitlines(keepends=True)
     value = intrinsics_text(intrinsics)
     existing = _mapping_item(camera_node, "intrinsics")
+    if getattr(camera_node, "flow_style", False):
+        return _replace_in_flow(text, entry[0], camera_node, existing, value, note)
+    lines = text.splitlines(keepends=True)
     if existing is not None:
         key, node = existing
         first = key.start_mark.line
@@ -67,11 +69,6 @@ def replace_intrinsics(text: str, camera: str, intrinsics: CameraIntrinsics, not
             last -= 1
         del lines[first : last + 1]
     else:
-        if getattr(camera_node, "flow_style", False):
-            raise ValueError(
-                f"camera {camera!r} is written as a one-line mapping: give it an intrinsics "
-                "entry or write it as a block, then calibrate again"
-            )
         first_key, last_value = camera_node.value[0][0], camera_node.value[-1][1]
         indent = " " * first_key.start_mark.column
         # Right after the camera's last entry (not after comments that follow it).
@@ -89,6 +86,30 @@ def replace_intrinsics(text: str, camera: str, intrinsics: CameraIntrinsics, not
         f"{indent}intrinsics: {head}\n",
         f"{indent}{' ' * len('intrinsics: {')}distortion: {dist}\n",
     ]
+    return "".join(lines)
+
+
+def _replace_in_flow(
+    text: str,
+    camera_key: yaml.Node,
+    camera_node: yaml.Node,
+    existing: tuple[yaml.ScalarNode, yaml.Node] | None,
+    value: str,
+    note: str,
+) -> str:
+    """A camera written as a one-line mapping (``name: {source: ...}``): its intrinsics are
+    replaced, or join it before its closing brace; the note goes above the camera's line."""
+    if existing is not None:
+        start, end = existing[1].start_mark.index, existing[1].end_mark.index
+    else:
+        start = end = camera_node.end_mark.index - 1
+        value = f", intrinsics: {value}"
+    lines = (text[:start] + value + text[end:]).splitlines(keepends=True)
+    line = camera_key.start_mark.line
+    if line > 0 and lines[line - 1].strip().startswith(MARKER):
+        line -= 1
+        del lines[line]
+    lines.insert(line, f"{' ' * camera_key.start_mark.column}{MARKER} {note}\n")
     return "".join(lines)
 
 
