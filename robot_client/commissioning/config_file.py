@@ -2,8 +2,9 @@
 
 The camera's ``intrinsics:`` entry is replaced in place (or added under the camera; into a
 camera written as a one-line mapping, inside it), as one flow mapping, with a comment line
-above it that says when, from which board and how well it was calibrated. The rest of the file, its comments and layout included, is kept as it was:
-the file is edited as text at the lines YAML's parser locates, never re-dumped.
+above it that says when, from which board and how well it was calibrated. The rest of the
+file, its comments and layout included, is kept as it was: the file is edited as text at the
+places YAML's parser locates, never re-dumped.
 """
 
 from __future__ import annotations
