@@ -8,7 +8,9 @@ come from the server's ``calibration_board`` inspection (the positional argument
 solution is printed (intrinsics with standard deviations, RMS, per-view errors, coverage) and,
 with ``--config FILE`` (the server's configuration), written as the camera's ``intrinsics``
 after the user confirms (``--yes`` for scripts) and the server reloaded; a reload the server
-refuses puts the previous file back.
+refuses puts the previous file back. Views that leave image regions or board tilts uncovered
+give intrinsics that cannot be trusted: they are reported, not written (unless
+``--accept-incomplete``), and the command exits 1.
 """
 
 from __future__ import annotations
@@ -224,11 +226,26 @@ def cmd_calibrate_intrinsics(args: argparse.Namespace, console: Console) -> int:
     out = _solution_json(solution, collected)
     if not args.json:
         _print_solution(console, solution, collected)
-    if args.config:
+    coverage = solution.coverage
+    if not coverage.complete:
+        # Views that miss image regions or tilts leave parameters undetermined: the RMS can be
+        # small and the standard deviations too while fx is off by a third.
+        missing = ", ".join((*coverage.missing_regions, *coverage.missing_tilts))
+        if not args.json:
+            console.print(
+                f"[red]coverage incomplete[/] (missing: {escape(missing)}): these intrinsics "
+                "are not to be trusted; show the board there and calibrate again",
+                soft_wrap=True,
+            )
+    if args.config and (coverage.complete or args.accept_incomplete):
         out["config"] = _write(args, console, solution, collected, server_camera)
+    elif args.config:
+        out["config"] = {"written": False, "reason": "coverage incomplete"}
+        if not args.json:
+            console.print("not written (--accept-incomplete writes it all the same)")
     if args.json:
         print(json.dumps(out))
-    return int(ExitCode.OK)
+    return int(ExitCode.OK if coverage.complete else ExitCode.FAILED)
 
 
 def add_commission_commands(sub: Any, common: argparse.ArgumentParser) -> None:
@@ -259,4 +276,9 @@ def add_commission_commands(sub: Any, common: argparse.ArgumentParser) -> None:
         help="the camera in --config to write (default: the inspection's camera)",
     )
     cal.add_argument("--yes", action="store_true", help="write without asking")
+    cal.add_argument(
+        "--accept-incomplete",
+        action="store_true",
+        help="write even when image regions or board tilts are missing from the views",
+    )
     cal.set_defaults(func=cmd_calibrate_intrinsics, sync=True)

@@ -236,3 +236,40 @@ def test_a_camera_is_given_intrinsics_in_any_layout() -> None:
             assert data["cameras"]["other"] == {"source": "request"}
     with pytest.raises(ValueError, match="no camera 'nope'"):
         replace_intrinsics("cameras:\n  cam: {source: request}\n", "nope", k, "x")
+
+
+def test_views_that_miss_regions_and_tilts_are_not_written(tmp_path: Path) -> None:
+    # A fixed camera and a board nobody moves: every view is the same frontal one.
+    scene = Path("examples/scenes/intrinsics_cell.yaml").resolve()
+    config = tmp_path / "cell.yaml"
+    text = (
+        "server: {port: 0, allow_reload: true}\nresults: {enabled: false}\n"
+        f"cameras:\n  overhead: {{source: sim, scene: '{scene}', camera: fixed_camera}}\n"
+        "inspections:\n  - name: board_overhead\n    type: calibration_board\n"
+        "    camera: overhead\n"
+        "    board: {kind: charuco, columns: 11, rows: 8, square_m: 0.03, marker_m: 0.0225}\n"
+    )
+    config.write_text(text, encoding="utf-8")
+    for server in _serve(config):
+        done = tool(
+            "robot-client",
+            "calibrate-intrinsics",
+            "board_overhead",
+            "--fixed",
+            "--views",
+            "4",
+            "--scene",
+            str(scene),
+            "--state-file",
+            str(tmp_path / "world.json"),
+            "--server",
+            server.address,
+            "--config",
+            str(config),
+            "--yes",
+        )
+        assert done.returncode == 1, done.stderr + done.stdout
+        assert "coverage incomplete (missing: top left" in done.stdout
+        assert "tilted left" in done.stdout
+        assert "not written" in done.stdout
+        assert config.read_text(encoding="utf-8") == text
