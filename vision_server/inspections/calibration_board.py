@@ -17,7 +17,7 @@ from ..cameras import CameraSettings
 from ..catalog import InspectionInput, InspectionOutcome
 from ..configfile import Node, one_of, positive, positive_int
 from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
-from .kinds import Data, ResultKind, as_number, points
+from .kinds import Data, ResultKind, as_number
 
 RED = (0, 0, 255)
 
@@ -99,14 +99,13 @@ def parse_calibration_board(
 
 
 def _expected(data: Data) -> dict[str, Any]:
-    if not data.get("found"):
-        return {}
-    return {"count": data["count"], "ids": list(data["ids"]), "corners": points(data["corners"])}
+    return {"count": data["count"]} if data.get("found") else {}
 
 
 def _summary(data: Data) -> dict[str, float]:
     return {"count": as_number(data, "count")}
 
 
-RESULTS = ResultKind(("count", "ids", "corners"), _expected, _summary)
-"""A calibration-board result: how many corners, their ids and image positions."""
+RESULTS = ResultKind(("count",), _expected, _summary)
+"""A calibration-board result: how many corners were found (a golden case checks the count;
+the corners' accuracy is the simulated cell's test, tests/robot_client/test_intrinsics.py)."""
