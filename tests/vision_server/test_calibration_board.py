@@ -117,3 +117,17 @@ def test_a_bad_board_is_a_config_error_naming_it(tmp_path: Path, board: str, mes
     with pytest.raises(ConfigError, match=message) as caught:
         CellRuntime(path)
     assert "cell.yaml" in str(caught.value)
+
+
+def test_the_inspection_travels_pickled_after_it_ran(runtime: CellRuntime) -> None:
+    """``server: process_inspections`` sends the inspection to a worker process pickled with
+    every run: what a run leaves behind (the ChArUco detector's board) must not stop that."""
+    import pickle
+
+    from vision_server.catalog import InspectionInput
+
+    inspection = runtime.catalog.inspections["charuco"]
+    first = inspection.run(InspectionInput(_board_image("charuco")), overlay=False)
+    copy = pickle.loads(pickle.dumps(inspection))
+    again = copy.run(InspectionInput(_board_image("charuco")), overlay=False)
+    assert first.data["corners"] == again.data["corners"]

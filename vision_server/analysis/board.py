@@ -18,7 +18,7 @@ the board's own frame should use ChArUco.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -100,12 +100,19 @@ class BoardSpec:
             axis=1,
         ).astype(np.float64)
 
-    @cached_property
+    @property
     def charuco(self) -> cv2.aruco.CharucoBoard:
-        dictionary = cv2.aruco.getPredefinedDictionary(DICTIONARIES[self.dictionary])
-        return cv2.aruco.CharucoBoard(
-            (self.columns, self.rows), self.square_m, self.marker_m, dictionary
-        )
+        """OpenCV's board, made once per spec and kept outside it: the spec travels pickled
+        to the process lane's workers, an OpenCV board cannot."""
+        return _charuco_board(self)
+
+
+@lru_cache(maxsize=16)
+def _charuco_board(spec: BoardSpec) -> cv2.aruco.CharucoBoard:
+    dictionary = cv2.aruco.getPredefinedDictionary(DICTIONARIES[spec.dictionary])
+    return cv2.aruco.CharucoBoard(
+        (spec.columns, spec.rows), spec.square_m, spec.marker_m, dictionary
+    )
 
 
 @dataclass(frozen=True)
