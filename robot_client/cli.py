@@ -2,7 +2,8 @@
 
 Commands: ``ping``, ``inspections``, ``inspect NAME [--image F] [--depth F ...]``, ``skills``,
 ``teach SKILL NAME [KEY=VALUE ...] [--from-current-pose]``, ``run SKILL NAME``,
-``task run FILE``, ``taught list``, ``taught show NAME``; ``--json`` for machines.
+``task run FILE``, ``taught list``, ``taught show NAME``, ``calibrate-intrinsics INSPECTION``;
+``--json`` for machines.
 
 The server: ``--server HOST:PORT``, ``--token-file PATH``, ``--tls``, ``--ca FILE`` (before or
 after the command), else ``$CELLVISION_SERVER``, ``$CELLVISION_TOKEN`` or
@@ -43,6 +44,7 @@ from protocol.image_files import (
 from protocol.result_view import result_json, result_view
 
 from .address import add_connection_options, endpoint_from_args, ssl_context
+from .cli_commission import add_commission_commands
 from .cli_skills import add_skill_commands
 from .client import ReconnectPolicy, VisionClient, overlay_image
 from .devices import DeviceError
@@ -57,6 +59,8 @@ robot-client: talk to a vision server and run skills.
   robot-client inspect NAME [--image FILE] [--depth FILE ...] [--overlay out.png]
   robot-client skills | teach SKILL NAME [KEY=VALUE ...] | run SKILL NAME
   robot-client task run FILE | taught list | taught show NAME
+  robot-client calibrate-intrinsics INSPECTION (--camera TOOL_CAMERA | --fixed)
+               [--config SERVER.yaml [--yes]]
 
 The server: --server HOST:PORT, --token-file PATH, --tls, --ca FILE (before or after the
 command), else $CELLVISION_SERVER, $CELLVISION_TOKEN or $CELLVISION_TOKEN_FILE,
@@ -305,6 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     grab.set_defaults(func=_capture, prepare=_prepare_capture)
     add_skill_commands(sub, common)
+    add_commission_commands(sub, common)
     return parser
 
 

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from geometry import CameraIntrinsics, invert_transform, transform_points
+from simulation.calibration_board import board_dark_quads
 from simulation.qr import qr_modules
 from simulation.raster import SHIFT, CameraRaster, inset_polygons, to_fixed
 from simulation.scene import CameraSpec, LightSpec, PartSpec, Scene, SurfaceSpec
@@ -33,6 +34,10 @@ Color = tuple[float, float, float]
 LAYER_SURFACE, LAYER_BOX, LAYER_BIN, LAYER_ATTACHED, LAYER_PART = range(5)
 DEFAULT_BUDGET = 400_000  # supersamples per object
 BOARD_BUDGET = 3_000_000
+# A calibration board may fill the image, and its corners are what intrinsics are solved
+# from: 8 x 8 samples per pixel up to a full 1024x768 frame (2x2 would quantise an edge
+# parallel to the pixel grid to 0.5 px).
+CALIBRATION_BOARD_BUDGET = 64 * 1024 * 768
 TEXTURE_REDUCTION = 4
 COLOR_STEP = 2.0  # grey levels; faces of a batch sharing a colour are filled together
 
@@ -277,6 +282,33 @@ class Renderer:
                     budget=BOARD_BUDGET,
                 )
             )
+        for cb in scene.calibration_boards:
+            pose = cb.world_from_board
+            half_w = cb.size_m[0] / 2 + cb.margin_m
+            half_h = cb.size_m[1] / 2 + cb.margin_m
+            faces = [
+                _faces(
+                    _rect(pose, -half_w, half_w, -half_h, half_h, 0.0)[None],
+                    pose[:3, 2],
+                    cb.light,
+                    light,
+                )
+            ]
+            quads = transform_points(pose, board_dark_quads(cb).reshape(-1, 3))
+            dark = _shade(np.array([cb.dark]), pose[:3, 2][None], light)[0]
+            c, r = sphere(faces)
+            objs.append(
+                _Object(
+                    cb.name,
+                    LAYER_ATTACHED,
+                    c,
+                    r,
+                    fixed(faces),
+                    decals=quads.reshape(-1, 4, 3),
+                    decal_color=(float(dark[0]), float(dark[1]), float(dark[2])),
+                    budget=CALIBRATION_BOARD_BUDGET,
+                )
+            )
         for sw in scene.switches:
             faces = [_box_faces(sw.world_from_switch, sw.size, sw.color, light, z0=-sw.size[2])]
             c, r = sphere(faces)
@@ -497,10 +529,8 @@ class Renderer:
 
         decals: list[NDArray[np.int32]] = []
         if obj.decals is not None and board_seen:
-            quads_c = obj.decals.reshape(-1, 3) @ rot.T + trans
-            if cache.raster.inside_frustum(quads_c):
-                quads_uv = cache.raster.project_batch(quads_c.reshape(-1, 4, 3), dense=False)
-                decals = _fixed_polys(list(quads_uv - origin), s, inset=s > 1)
+            quads_c = (obj.decals.reshape(-1, 3) @ rot.T + trans).reshape(-1, 4, 3)
+            decals = _fixed_polys(_decal_outlines(cache.raster, quads_c, origin), s, inset=s > 1)
         decal_color = _color(np.maximum(np.asarray(obj.decal_color), 1.0), ch)
 
         roi = img[y0:y1, x0:x1]
@@ -601,6 +631,24 @@ class _Entry:
     fine: NDArray[np.int32]
     coarse: NDArray[np.int32]
     plane: FloatArray
+
+
+def _decal_outlines(
+    raster: CameraRaster, quads_camera: FloatArray, origin: FloatArray
+) -> list[FloatArray]:
+    """Pixel outlines (relative to ``origin``) of decal quads (n, 4, 3) in the camera frame:
+    those wholly in view projected together, those crossing the view's edge clipped one by one
+    (a large calibration board seen in part), those out of view dropped."""
+    planes = raster.frustum
+    inside = np.all(quads_camera @ planes[:, :3].T + planes[:, 3] >= 0, axis=(1, 2))
+    outlines: list[FloatArray] = []
+    if np.any(inside):
+        outlines.extend(raster.project_batch(quads_camera[inside], dense=False) - origin)
+    for quad in quads_camera[~inside]:
+        uv = raster.project_polygon(quad)
+        if uv is not None and len(uv) >= 3:
+            outlines.append(uv - origin)
+    return outlines
 
 
 def _by_color(

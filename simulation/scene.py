@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from geometry import CameraIntrinsics, make_transform, transform_from_xyz_rpy
 from simulation import _yaml as y
 from simulation._yaml import SceneError, SceneNode
+from simulation.calibration_board import CalibrationBoardSpec
 
 __all__ = [
     "BinSpec",
@@ -251,6 +252,7 @@ class Scene:
     switches: tuple[SwitchSpec, ...]
     robot: RobotSpec
     cameras: tuple[CameraSpec, ...]
+    calibration_boards: tuple[CalibrationBoardSpec, ...] = ()
 
     def camera(self, name: str) -> CameraSpec:
         for cam in self.cameras:
@@ -596,6 +598,27 @@ def parse_scene(reader: SceneNode) -> Scene:
         )
         qr.finish()
 
+    calibration_boards = []
+    for cb in reader.items("calibration_boards"):
+        name = _unique(cb.take("name", y.string), names, cb)
+        kind = cb.take("kind", y.one_of("charuco", "chessboard"))
+        columns, rows = cb.take("columns", y.integer), cb.take("rows", y.integer)
+        if columns < 3 or rows < 3:
+            raise cb.error(f"a board needs at least 3 x 3 squares, got {columns} x {rows}")
+        square = cb.take("square_m", y.positive)
+        calibration_boards.append(
+            CalibrationBoardSpec(
+                name=name,
+                kind=kind,
+                columns=columns,
+                rows=rows,
+                square_m=square,
+                margin_m=cb.take("margin_m", y.non_negative, square / 2),
+                world_from_board=_pose(cb.sub("pose", required=True)),
+            )
+        )
+        cb.finish()
+
     switches = []
     for sw in reader.items("switches"):
         name = _unique(sw.take("name", y.string), names, sw)
@@ -644,6 +667,7 @@ def parse_scene(reader: SceneNode) -> Scene:
         switches=tuple(switches),
         robot=_robot(reader.sub("robot", required=True)),
         cameras=tuple(cameras),
+        calibration_boards=tuple(calibration_boards),
     )
     reader.finish()
     return scene

@@ -416,6 +416,72 @@ def qr_pose_case() -> None:
     )
 
 
+# --------------------------------------------------------------------------- calibration board
+
+BOARD_SCENE = REPO / "examples" / "scenes" / "intrinsics_cell.yaml"
+
+
+def board_case() -> None:
+    """calibration_board: the tool camera's planned views of the ChArUco board, half size;
+    the expected count is the number of inner corners whose true projection is in the image
+    (every view here shows the whole board), none where the camera looks past the board."""
+    from robot_client.commissioning.views import plan_tool_views
+    from simulation import load_scene
+    from simulation.calibration_board import spec_from_opencv
+
+    scene = load_scene(BOARD_SCENE)
+    board = scene.calibration_boards[0]
+    camera = scene.camera("tool_camera")
+    base_from_board = (
+        invert_transform(scene.robot.world_from_base)
+        @ board.world_from_board
+        @ spec_from_opencv(board)
+    )
+    poses = plan_tool_views(
+        base_from_board, camera.pose, board.size_m, fx_px=1400.0, image_width_px=1024
+    )
+    aside = poses[0].copy()
+    aside[:3, 3] += np.array([0.0, 0.45, 0.0])  # the camera looks at the table beside the board
+    views = [
+        ("frontal.png", poses[0], "frontal, the board fills 0.8 of the width"),
+        ("tilted_30deg.png", poses[5], "tilted 30° about the board's x axis"),
+        ("diagonal_rolled.png", poses[9], "tilted 21° about both axes, rolled 15°"),
+        ("tilted_y_30deg.png", poses[7], "tilted 30° about the board's y axis"),
+        ("nothing.png", aside, "the table beside the board"),
+    ]
+    columns, rows = board.columns - 1, board.rows - 1
+    cols_idx, rows_idx = np.meshgrid(np.arange(columns), np.arange(rows))
+    corners_board = np.stack(
+        [
+            (cols_idx.ravel() + 1) * board.square_m,
+            (rows_idx.ravel() + 1) * board.square_m,
+            np.zeros(columns * rows),
+        ],
+        axis=1,
+    )
+    entries: Entries = {}
+    for seed, (name, pose, note) in enumerate(views, start=51):
+        cell = SimCell(scene, seed=seed)
+        cell.robot.move_linear(pose)
+        frame = cell.render("tool_camera")
+        camera_from_board = (
+            invert_transform(cell.world_from_camera("tool_camera"))
+            @ board.world_from_board
+            @ spec_from_opencv(board)
+        )
+        uv = camera.intrinsics.project(
+            corners_board @ camera_from_board[:3, :3].T + camera_from_board[:3, 3]
+        )
+        inside = int(np.sum((uv >= 0).all(axis=1) & (uv[:, 0] < 1023) & (uv[:, 1] < 767)))
+        small = cv2.resize(frame.color, (512, 384), interpolation=cv2.INTER_AREA)
+        write_png(HERE / "commissioning_board" / "images" / name, small)
+        entry: dict[str, Any] = {"verdict": "pass" if inside else "fail", "note": note}
+        if inside:
+            entry["count"] = inside
+        entries[name] = entry
+    write_expected("commissioning_board", entries, {})
+
+
 # --------------------------------------------------------------------------- real photographs
 
 REAL_SUBSET = [  # 13 of the 179 across the six sets (qrcode-4: blur, glare, tilt)
@@ -453,8 +519,8 @@ def main() -> int:
     parser.add_argument(
         "cases",
         nargs="*",
-        default=["caps", "qc", "qr", "qr_pose", "real"],
-        help="caps, qc, qr, qr_pose, real",
+        default=["caps", "qc", "qr", "qr_pose", "board", "real"],
+        help="caps, qc, qr, qr_pose, board, real",
     )
     args = parser.parse_args()
     steps = {
@@ -462,6 +528,7 @@ def main() -> int:
         "qc": qc_cases,
         "qr": qr_case,
         "qr_pose": qr_pose_case,
+        "board": board_case,
         "real": real_case,
     }
     for name in args.cases:

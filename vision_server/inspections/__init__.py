@@ -2,12 +2,14 @@
 image analysis of :mod:`vision_server.analysis` on the images of one request.
 
 Types: ``locate`` (feature locate: template, circle, blob), ``presence`` (ROI presence check),
-``qr`` (QR read), ``qr_pose`` (pose of a QR code from colour + depth).
+``qr`` (QR read), ``qr_pose`` (pose of a QR code from colour + depth), ``calibration_board``
+(corners of a ChArUco board or chessboard, for camera calibration).
 
 Public API: :func:`parse_inspection` (configuration → an :class:`~vision_server.catalog.
 Inspection`), ``INSPECTION_TYPES``, ``RESULT_KINDS`` (each type's :class:`ResultKind`: its
 golden expectations and summary values), and the classes :class:`LocateInspection`,
-:class:`PresenceInspection`, :class:`QRInspection`, :class:`QRPoseInspection`.
+:class:`PresenceInspection`, :class:`QRInspection`, :class:`QRPoseInspection`,
+:class:`CalibrationBoardInspection`.
 """
 
 from __future__ import annotations
@@ -19,8 +21,9 @@ from pathlib import Path
 from ..cameras import CameraSettings
 from ..catalog import Inspection
 from ..configfile import Node, one_of, positive_int
-from . import locate, presence, qr, qr_pose
+from . import calibration_board, locate, presence, qr, qr_pose
 from .base import Configured
+from .calibration_board import CalibrationBoardInspection, parse_calibration_board
 from .kinds import ResultKind
 from .locate import LocateInspection, parse_locate
 from .output import OutputFormat, parse_output
@@ -35,6 +38,7 @@ INSPECTION_TYPES: dict[str, Parser] = {
     "presence": parse_presence,
     "qr": parse_qr,
     "qr_pose": parse_qr_pose,
+    "calibration_board": parse_calibration_board,
 }
 
 RESULT_KINDS: dict[str, ResultKind] = {
@@ -42,6 +46,7 @@ RESULT_KINDS: dict[str, ResultKind] = {
     "presence": presence.RESULTS,
     "qr": qr.RESULTS,
     "qr_pose": qr_pose.RESULTS,
+    "calibration_board": calibration_board.RESULTS,
 }
 """Each type's result shape (golden expectations, summary values), declared by the type."""
 
@@ -76,6 +81,7 @@ def parse_inspection(
 
 __all__ = [
     "INSPECTION_TYPES",
+    "CalibrationBoardInspection",
     "RESULT_KINDS",
     "InspectionSpec",
     "LocateInspection",
