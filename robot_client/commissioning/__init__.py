@@ -8,17 +8,30 @@ Public API (intrinsics, issue 18 part 1):
 - :func:`board_coverage` -> :class:`Coverage` (image regions and board tilts still missing).
 - :func:`views_from_results`: the ``calibration_board`` inspection's results as views.
 - :func:`plan_tool_views`: tool poses over a board for a camera on the robot's tool.
+
+Hand-eye (issue 18 part 2):
+
+- :func:`solve_hand_eye` (robot poses and board corners -> :class:`HandEyeResult`:
+  ``tool_from_camera`` or ``base_from_camera``, per-view residuals, the AX=XB loop, sigmas and
+  a verdict), :class:`HandEyeView`, :class:`HandEyeError`; :func:`plan_hand_eye_views`.
 """
 
 from .coverage import Coverage, board_coverage
+from .hand_eye import HandEyeError, HandEyeResult, HandEyeView, solve_hand_eye
+from .hand_eye import plan_views as plan_hand_eye_views
 from .intrinsics import BoardView, CalibrationError, IntrinsicsSolution, ViewError, solve_intrinsics
 
 __all__ = [
     "BoardView",
     "CalibrationError",
     "Coverage",
+    "HandEyeError",
+    "HandEyeResult",
+    "HandEyeView",
     "IntrinsicsSolution",
     "ViewError",
     "board_coverage",
+    "plan_hand_eye_views",
+    "solve_hand_eye",
     "solve_intrinsics",
 ]

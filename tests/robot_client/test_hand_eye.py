@@ -10,8 +10,13 @@ import numpy as np
 import pytest
 
 from geometry import CameraIntrinsics, invert_transform, make_transform, rotation_angle
-from geometry.hand_eye import HandEyeError, HandEyeView, plan_views, solve_hand_eye
 from geometry.transforms import rotation_from_axis_angle, rotation_from_rpy
+from robot_client.commissioning.hand_eye import (
+    HandEyeError,
+    HandEyeView,
+    plan_views,
+    solve_hand_eye,
+)
 
 INTRINSICS = CameraIntrinsics(1024, 768, 900.0, 902.0, 515.0, 381.0, (-0.08, 0.05, 0.0, 0.0, 0.0))
 TOOL_FROM_CAMERA = make_transform(rotation_from_rpy(0.02, -0.03, 1.57), [0.052, -0.011, 0.085])

@@ -31,8 +31,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from geometry.camera import CameraIntrinsics
-from geometry.transforms import (
+from geometry import (
+    CameraIntrinsics,
     invert_transform,
     make_transform,
     orthonormalize,
