@@ -91,6 +91,18 @@ class Cluster:
             "start",
         )  # fmt: skip
 
+    def start_if_stopped(self) -> None:
+        """Start it unless it runs (a test that failed with the cluster down cleans up)."""
+        status = subprocess.run(
+            [str(self.bindir / "pg_ctl"), "-D", str(self.data), "status"],
+            capture_output=True,
+            timeout=60,
+            check=False,
+            **self._user,
+        )
+        if status.returncode != 0:  # 3: not running
+            self.start()
+
     def stop_immediate(self) -> None:
         """Stop without a shutdown: the postmaster and its backends exit at once, as after a
         crash, and the next start replays the write-ahead log."""
