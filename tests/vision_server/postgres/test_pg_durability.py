@@ -19,12 +19,16 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-import psycopg
+import pytest
 from loopback import run, wait_until
 from postgres import Cluster
 
 from protocol import Inspect, Result, payload_from_array
 from robot_client.client import ReconnectPolicy, VisionClient
+
+psycopg = pytest.importorskip(
+    "psycopg", reason="psycopg is not installed: pip install -e '.[test]' (extra postgres)"
+)
 
 CONFIG = """\
 server: {{port: 0, max_in_flight: 32, queue_depth: 64}}

@@ -11,7 +11,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-import psycopg
 import pytest
 from loopback import run, wait_until
 from postgres import Cluster
@@ -22,6 +21,10 @@ from vision_server.results_pg import PgResultLog
 from vision_server.results_pg_schema import SCHEMA_VERSION, migrate, schema_version
 from vision_server.results_spool import Spool
 from vision_server.results_store import ResultEntry, ResultLogError, ResultStore, StoredResult
+
+psycopg = pytest.importorskip(
+    "psycopg", reason="psycopg is not installed: pip install -e '.[test]' (extra postgres)"
+)
 
 T0 = 1_700_000_000.0
 
