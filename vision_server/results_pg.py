@@ -310,8 +310,12 @@ class PgResultLog:
             try:
                 if conn is None or conn.closed:
                     conn = self._open_connection(migrating=True)
-                with conn.transaction(), conn.cursor() as cur:
-                    cur.executemany(_INSERT, [values for _, values in batch])
+                try:
+                    with conn.transaction(), conn.cursor() as cur:
+                        cur.executemany(_INSERT, [values for _, values in batch])
+                    refused = 0
+                except (self._pg.DataError, self._pg.IntegrityError):
+                    refused = self._forward_singly(conn, batch)
             except Exception as exc:
                 self._drop(conn)
                 self._fault("forwarding the spool failed; retrying", exc)
@@ -324,8 +328,28 @@ class PgResultLog:
                 return conn
             with self._stats:
                 self._spooled -= len(batch)
-            self._wrote(len(batch))
+            self._wrote(len(batch) - refused)
         return conn
+
+    def _forward_singly(self, conn: Any, batch: list[tuple[str, tuple[Any, ...]]]) -> int:
+        """Forward a batch the database refused row by row; return how many rows it refuses.
+
+        Only for a refusal of the rows themselves (a value it cannot store, a constraint of its
+        own): such a row would block the spool behind it forever, so it is dropped, logged with
+        its uid and counted as lost (health turns not ok). Anything else (the database down,
+        permissions) raises, and the batch stays spooled.
+        """
+        refused = 0
+        for uid, values in batch:
+            try:
+                with conn.transaction():
+                    conn.execute(_INSERT, values)
+            except (self._pg.DataError, self._pg.IntegrityError) as exc:
+                refused += 1
+                self._fault(
+                    f"the database refuses spooled result {uid}; dropped", exc, row_lost=True
+                )
+        return refused
 
     def _fault(self, what: str, exc: BaseException, *, row_lost: bool = False) -> None:
         message = f"{what}: {str(exc).strip()}"

@@ -161,6 +161,27 @@ def test_a_row_forwarded_twice_is_stored_once(pg_url: str, tmp_path: Path) -> No
         assert sorted(r.request_id for r in log.query()) == [1, 2]
 
 
+def test_a_spooled_row_the_database_refuses_is_dropped_not_blocking_the_rest(
+    pg_url: str, tmp_path: Path
+) -> None:
+    path = tmp_path / "spool.sqlite3"
+    with PgResultLog(pg_url, spool=path, retry_s=0.05):
+        pass  # creates the schema
+    spool = Spool(path)
+    values = (T0, "gap", "cam", True, "{}", 1.0, "h", 0, "peer", None)
+    for request_id, peer in enumerate(("a", "nul\x00in text", "b")):
+        uid = f"{request_id:032x}"
+        spool.add(uid, (*values[:7], request_id, peer, None, uid, "cell"))
+    spool.close()
+    with PgResultLog(pg_url, spool=path, retry_s=0.05) as log:
+        run(wait_until(lambda: log.health()["spooled"] == 0, "the spool drains", 60.0), 70.0)
+        assert sorted(r.peer for r in log.query()) == ["a", "b"]
+        health = log.health()
+        assert health["failed"] == 1
+        assert not health["ok"]
+        assert "refuses spooled result 00000000000000000000000000000001" in health["last_error"]
+
+
 def test_a_database_down_at_start_spools_and_migrates_once_it_is_back(
     pg_cluster: Cluster, pg_url: str, tmp_path: Path
 ) -> None:
