@@ -182,6 +182,14 @@ class PgResultLog:
             autocommit=True,
             connect_timeout=max(1, round(self.connect_timeout_s)),
             application_name="cellvision",
+            # A pulled cable or a dead host must fail the write (and send the row to the
+            # spool) within seconds, not after TCP's default retries of ~15 minutes: data
+            # unacknowledged for 10 s, or an idle connection whose keepalives go unanswered.
+            tcp_user_timeout=10_000,
+            keepalives=1,
+            keepalives_idle=5,
+            keepalives_interval=2,
+            keepalives_count=3,
         )
         try:
             if migrating and not self._schema_ready:

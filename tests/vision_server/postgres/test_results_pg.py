@@ -7,6 +7,7 @@ the database is down, idempotent forwarding, and migrations from an older schema
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -213,6 +214,32 @@ def test_an_older_schema_is_upgraded_and_its_rows_kept(pg_url: str, tmp_path: Pa
         assert log.query(inspection="old")[0].data == {"v": 1}
     with psycopg.connect(pg_url) as conn:
         assert schema_version(conn) == SCHEMA_VERSION == 2
+
+
+def test_cells_starting_at_once_on_a_new_database_migrate_it_once(
+    pg_url: str, tmp_path: Path
+) -> None:
+    logs: list[PgResultLog] = []
+    errors: list[BaseException] = []
+
+    def open_one(i: int) -> None:
+        try:
+            logs.append(PgResultLog(pg_url, spool=tmp_path / f"spool{i}.sqlite3"))
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=open_one, args=(i,)) for i in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    try:
+        assert errors == []
+        assert all(log.record(entry(i)) for i, log in enumerate(logs))
+        assert logs[0].count() == 4
+    finally:
+        for log in logs:
+            log.close()
 
 
 def test_a_newer_schema_or_a_foreign_table_is_refused(pg_url: str, tmp_path: Path) -> None:
