@@ -272,11 +272,14 @@ class PgResultLog:
             except Exception as exc:
                 self._fault(f"result of {inspection!r} not recorded", exc, row_lost=True)
                 return None
-            self._pending = True
+            # Wake the forwarder when the spool starts, not per row: while the database is
+            # down it retries every retry_s, not once per result.
+            starting, self._pending = not self._pending, True
             with self._stats:
                 self._spooled += 1
                 self._failing = False
-        self._wake.set()
+        if starting:
+            self._wake.set()
         return 0
 
     def _wrote(self, rows: int) -> None:

@@ -141,6 +141,21 @@ def test_results_are_spooled_while_the_database_is_down_and_forwarded_after(
     assert Spool(spool).count() == 0
 
 
+def test_while_the_database_is_down_it_is_tried_once_per_retry_not_once_per_result(
+    pg_cluster: Cluster, pg_url: str, tmp_path: Path
+) -> None:
+    with PgResultLog(pg_url, spool=tmp_path / "spool.sqlite3", retry_s=3600) as log:
+        pg_cluster.stop_immediate()
+        try:
+            assert [log.record(entry(i)) for i in range(50)] == [0] * 50
+            # The write that found it down, and the forwarder's first try once woken.
+            run(wait_until(lambda: log.errors >= 2, "the forwarder's first try"), 20.0)
+            assert [log.record(entry(i)) for i in range(50, 100)] == [0] * 50
+            assert log.errors == 2
+        finally:
+            pg_cluster.start()
+
+
 def test_a_row_forwarded_twice_is_stored_once(pg_url: str, tmp_path: Path) -> None:
     """The server died after the database committed a spooled row and before the spool dropped
     it: the next start forwards it again, and the row's uid makes that a no-op."""
