@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import queue
 import socket
 import threading
 import time
@@ -138,8 +139,9 @@ class PgResultLog:
         self._database_up = False
         self._read_lock = threading.Lock()
         self._read_conn: Any = None
-        self._write_lock = threading.Lock()
-        self._write_conn: Any = None
+        # Idle write connections: a worker takes one (or opens one) per row, so that workers
+        # recording at once each wait for their own commit, not for one another's.
+        self._idle: queue.SimpleQueue[Any] = queue.SimpleQueue()
         if _readonly:
             self._spool: Spool | None = None
             try:
@@ -155,7 +157,7 @@ class PgResultLog:
         self._mode_lock = threading.Lock()
         self._pending = self._spooled > 0
         try:
-            self._write_conn = self._open_connection(migrating=True)
+            self._idle.put(self._open_connection(migrating=True))
         except (self._pg.OperationalError, self._pg.InterfaceError) as exc:
             self._fault("the result database is unreachable; results are spooled", exc)
             self._pending = True
@@ -163,6 +165,8 @@ class PgResultLog:
             self._spool.close()
             raise ResultLogError(f"cannot open the result log {self.where}: {exc}") from exc
         self._wake = threading.Event()
+        if self._pending:  # a spool left by the last run: forward it now, not after retry_s
+            self._wake.set()
         self._forwarder = threading.Thread(
             target=self._forward_loop, name="result-forwarder", daemon=True
         )
@@ -248,21 +252,33 @@ class PgResultLog:
 
     def _insert_now(self, values: tuple[Any, ...]) -> int | None:
         """Insert and commit one row; None when the database cannot (it is then marked down)."""
-        with self._write_lock:
-            try:
-                if self._write_conn is None or self._write_conn.closed:
-                    self._write_conn = self._open_connection(migrating=True)
-                with self._write_conn.transaction():
-                    row = self._write_conn.execute(_INSERT + " RETURNING id", values).fetchone()
-            except Exception as exc:
-                # The commit's fate may be unknown (the connection died on COMMIT): the spool
-                # takes the row, and its uid makes the second insert a no-op if it did commit.
-                self._drop(self._write_conn)
-                self._write_conn = None
-                self._fault("the result database did not take a row; spooling", exc)
-                return None
+        conn: Any = None
+        try:
+            with contextlib.suppress(queue.Empty):
+                conn = self._idle.get_nowait()
+            if conn is None or conn.closed:
+                conn = self._open_connection(migrating=True)
+            with conn.transaction():
+                row = conn.execute(_INSERT + " RETURNING id", values).fetchone()
+        except Exception as exc:
+            # The commit's fate may be unknown (the connection died on COMMIT): the spool
+            # takes the row, and its uid makes the second insert a no-op if it did commit.
+            self._drop(conn)
+            self._close_idle()  # they went through the same outage: reconnect afresh after it
+            self._fault("the result database did not take a row; spooling", exc)
+            return None
+        self._idle.put(conn)
+        if self._closed:  # close() may have emptied the queue before this put
+            self._close_idle()
         self._wrote(1)
         return int(row[0]) if row is not None else 0
+
+    def _close_idle(self) -> None:
+        while True:
+            try:
+                self._drop(self._idle.get_nowait())
+            except queue.Empty:
+                return
 
     def _spool_row(self, inspection: str, values: tuple[Any, ...]) -> int | None:
         assert self._spool is not None
@@ -506,8 +522,7 @@ class PgResultLog:
             self._forwarder.join()
             assert self._spool is not None
             self._spool.close()
-        with self._write_lock:
-            self._drop(self._write_conn)
+        self._close_idle()
         with self._read_lock:
             self._drop(self._read_conn)
 

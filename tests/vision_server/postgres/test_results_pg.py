@@ -156,6 +156,35 @@ def test_while_the_database_is_down_it_is_tried_once_per_retry_not_once_per_resu
             pg_cluster.start()
 
 
+def test_workers_recording_at_once_do_not_wait_for_each_others_commit(
+    pg_log: PgResultLog, pg_url: str
+) -> None:
+    """Each recording worker has a connection of its own: with the table locked by another
+    client, two records wait in the database side by side (one connection would queue the
+    second behind the first in the log itself)."""
+    assert pg_log.record(entry(0))
+    with psycopg.connect(pg_url) as locker:
+        locker.execute("LOCK TABLE results IN EXCLUSIVE MODE")
+        threads = [threading.Thread(target=pg_log.record, args=(entry(i),)) for i in (1, 2)]
+        for thread in threads:
+            thread.start()
+
+        def waiting() -> int:
+            with psycopg.connect(pg_url, autocommit=True) as probe:
+                return int(
+                    probe.execute(
+                        "SELECT count(*) FROM pg_stat_activity WHERE application_name = "
+                        "'cellvision' AND wait_event_type = 'Lock'"
+                    ).fetchone()[0]
+                )
+
+        run(wait_until(lambda: waiting() == 2, "two inserts waiting for the lock", 20.0), 30.0)
+        locker.rollback()
+    for thread in threads:
+        thread.join()
+    assert pg_log.count() == 3
+
+
 def test_a_row_forwarded_twice_is_stored_once(pg_url: str, tmp_path: Path) -> None:
     """The server died after the database committed a spooled row and before the spool dropped
     it: the next start forwards it again, and the row's uid makes that a no-op."""
