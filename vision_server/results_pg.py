@@ -353,8 +353,12 @@ class PgResultLog:
                 # Forwarded but still spooled: the next pass inserts nothing (uid) and retries.
                 self._fault("cannot remove forwarded rows from the spool", exc)
                 return conn
-            with self._stats:
+            # Under the mode lock, as _spool_row counts: a health report that says 0 spooled
+            # means new rows go to the database directly again.
+            with self._mode_lock, self._stats:
                 self._spooled -= len(batch)
+                if self._spooled == 0:
+                    self._pending = False
             self._wrote(len(batch) - refused)
         return conn
 
