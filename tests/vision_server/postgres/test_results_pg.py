@@ -185,6 +185,33 @@ def test_workers_recording_at_once_do_not_wait_for_each_others_commit(
     assert pg_log.count() == 3
 
 
+def test_once_health_says_nothing_is_spooled_rows_go_to_the_database_directly(
+    pg_cluster: Cluster, pg_url: str, tmp_path: Path
+) -> None:
+    with PgResultLog(pg_url, spool=tmp_path / "spool.sqlite3", retry_s=0.05) as log:
+        assert log._spool is not None
+        # The forwarder's look at the emptied spool is held until the test is done.
+        take, gate = log._spool.take, threading.Event()
+
+        def held_take(limit: int) -> list[tuple[str, tuple[object, ...]]]:
+            rows = take(limit)
+            if not rows:
+                gate.wait(30.0)
+            return rows
+
+        log._spool.take = held_take  # type: ignore[method-assign]
+        try:
+            pg_cluster.stop_immediate()
+            try:
+                assert [log.record(entry(i)) for i in range(3)] == [0, 0, 0]
+            finally:
+                pg_cluster.start()
+            run(wait_until(lambda: log.health()["spooled"] == 0, "the spool drains", 60.0), 70.0)
+            assert log.record(entry(3)) not in (None, 0)
+        finally:
+            gate.set()
+
+
 def test_a_row_forwarded_twice_is_stored_once(pg_url: str, tmp_path: Path) -> None:
     """The server died after the database committed a spooled row and before the spool dropped
     it: the next start forwards it again, and the row's uid makes that a no-op."""
