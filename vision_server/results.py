@@ -7,6 +7,10 @@ The server calls :meth:`ResultLog.record` from its worker threads and sends the 
 after it returned, and the response says whether the row was written (RESULT's ``stored``, SPEC
 §6.3): a result acknowledged with ``stored: true`` is in the log.
 
+This is the cell's own log; vision_server/results_pg.py keeps the same rows in PostgreSQL for a
+plant. Both implement :class:`vision_server.results_store.ResultStore`, which the server, the
+console and ``vision-server results`` use (vision_server/results_open.py picks one).
+
 Choices, and why:
 
 - **Durability.** WAL journal with ``synchronous=NORMAL``: a commit appends to the WAL file with
