@@ -328,25 +328,31 @@ class PgResultLog:
         assert self._spool is not None
         while not self._stop.is_set():
             batch = self._spool.take(_BATCH)
-            if not batch:
-                with self._mode_lock:
-                    if self._spool.count() == 0:
-                        self._pending = False
-                        return conn
-                continue
             try:
+                # Connected even for an empty spool: spool mode ends only once the database
+                # answered (a server that started while it was down has no schema there yet).
                 if conn is None or conn.closed:
                     conn = self._open_connection(migrating=True)
-                try:
-                    with conn.transaction(), conn.cursor() as cur:
-                        cur.executemany(_INSERT, [values for _, values in batch])
-                    refused = 0
-                except (self._pg.DataError, self._pg.IntegrityError):
-                    refused = self._forward_singly(conn, batch)
+                refused = 0
+                if batch:
+                    try:
+                        with conn.transaction(), conn.cursor() as cur:
+                            cur.executemany(_INSERT, [values for _, values in batch])
+                    except (self._pg.DataError, self._pg.IntegrityError):
+                        refused = self._forward_singly(conn, batch)
             except Exception as exc:
                 self._drop(conn)
                 self._fault("forwarding the spool failed; retrying", exc)
                 return None
+            if not batch:
+                with self._mode_lock:
+                    done = self._spool.count() == 0
+                    if done:
+                        self._pending = False
+                if done:
+                    self._wrote(0)  # the database is back, with nothing left to forward
+                    return conn
+                continue
             try:
                 self._spool.remove([uid for uid, _ in batch])
             except Exception as exc:

@@ -269,6 +269,22 @@ def test_a_database_down_at_start_spools_and_migrates_once_it_is_back(
         assert [r.request_id for r in log.query()] == [3]
 
 
+def test_a_database_down_at_start_is_reached_once_back_even_with_nothing_to_forward(
+    pg_cluster: Cluster, pg_url: str, tmp_path: Path
+) -> None:
+    pg_cluster.stop_immediate()
+    try:
+        log = PgResultLog(pg_url, spool=tmp_path / "spool.sqlite3", retry_s=0.05)
+        assert not log.health()["database_up"]
+    finally:
+        pg_cluster.start()
+    with log:
+        run(wait_until(lambda: log.health()["database_up"], "the database is reached", 60.0), 70.0)
+        with psycopg.connect(pg_url) as conn:
+            assert schema_version(conn) == SCHEMA_VERSION  # created without a result to write
+        assert log.record(entry(1)) not in (None, 0)  # straight to the database
+
+
 def test_an_older_schema_is_upgraded_and_its_rows_kept(pg_url: str, tmp_path: Path) -> None:
     with psycopg.connect(pg_url, autocommit=True) as conn:
         migrate(conn, "test", target=1)
