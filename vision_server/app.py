@@ -30,7 +30,7 @@ from .frontends.http import HttpFrontend
 from .frontends.line import LineFrontend
 from .frontends.tcp import TcpFrontend
 from .operator_desk import OperatorDesk
-from .results import ResultLog
+from .results_store import ResultStore
 from .service import InspectionService
 from .settings import ConsoleSettings, LineSettings, ModbusSettings, ServerSettings
 
@@ -53,7 +53,7 @@ class App:
         catalog: Catalog,
         settings: ServerSettings | None = None,
         *,
-        results: ResultLog | None = None,
+        results: ResultStore | None = None,
         reloader: Callable[[], Catalog] | None = None,
         line: LineSettings | None = None,
         console: ConsoleSettings | None = None,
@@ -99,7 +99,7 @@ class App:
         return self.service.catalog
 
     @property
-    def results(self) -> ResultLog | None:
+    def results(self) -> ResultStore | None:
         return self.service.results
 
     def replace_catalog(self, catalog: Catalog) -> None:

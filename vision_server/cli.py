@@ -79,6 +79,7 @@ from .config import CellConfig, ConfigError, load_config
 from .malloc_env import PROCESS_ENV
 from .offline import file_request, image_payload, offline_service
 from .results_cli import describe_health, results_command
+from .results_pg import is_database_url
 from .service import InspectReply
 from .settings import ServerSettings
 
@@ -491,6 +492,11 @@ def _test_inspections(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------- results, admin
 
 
+def _log_target(text: str) -> str | Path:
+    """``--db``: a PostgreSQL URL stays text, anything else is an SQLite file's path."""
+    return text if is_database_url(text) else Path(text)
+
+
 def _results(args: argparse.Namespace) -> int:
     db = args.db
     if db is None:
@@ -503,11 +509,11 @@ def _results(args: argparse.Namespace) -> int:
             config = load_config(config_path)
         except ConfigError as exc:
             return _fail(args, ErrorKind.USAGE, f"invalid configuration: {exc}")
-        if config.results.path is None:
+        if not config.results.enabled:
             return _fail(args, ErrorKind.USAGE, "the result log is disabled in the configuration")
-        db = config.results.path
+        db = config.results.url or config.results.path
     return results_command(
-        Path(db),
+        db,
         since=args.since,
         inspection=args.inspection,
         json_out=args.json,
@@ -718,7 +724,11 @@ def build_parser() -> argparse.ArgumentParser:
     golden.set_defaults(func=_test_inspections)
 
     results = sub.add_parser("results", parents=[local], help="list logged inspection results")
-    results.add_argument("--db", type=Path, help="the result log (SQLite file)")
+    results.add_argument(
+        "--db",
+        type=_log_target,
+        help="the result log: an SQLite file, or a postgresql://user@host:port/db URL",
+    )
     results.add_argument("--since", help="e.g. 10m, 2h, 1d or an ISO date/time")
     results.add_argument("--inspection")
     results.add_argument("--failed", action="store_true", help="only failed inspections")

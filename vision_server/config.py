@@ -4,7 +4,7 @@
 
     server:   {host, port, name, auth_token | auth_token_file, tls: {cert, key}, limits...}
     console:  {enabled, host, port, max_view_fps}   (the web console; token and TLS: server's)
-    results:  {path, store_images: none|failures|all, max_image_mb}
+    results:  {path | url, store_images: none|failures|all, max_image_mb, spool}
     cameras:  {NAME: {source: request|opencv|folder|sim, ...source settings, intrinsics}}
     inspections: [{name, type: locate|presence|qr|qr_pose|calibration_board, camera, roi,
                    number, output, ...}]
@@ -57,11 +57,21 @@ from .settings import (
 
 @dataclass(frozen=True)
 class ResultsConfig:
-    """Where the result log is and which input images it keeps (sizes in bytes)."""
+    """Where the result log is and which input images it keeps (sizes in bytes).
+
+    ``path`` is an SQLite file; ``url`` a PostgreSQL database (then ``path`` is None and
+    ``spool`` is the local file that keeps rows while the database is down). Both None: off.
+    """
 
     path: Path | None
     store_images: str = "failures"
     max_image_bytes: int = 1 << 30
+    url: str | None = None
+    spool: Path | None = None
+
+    @property
+    def enabled(self) -> bool:
+        return self.path is not None or self.url is not None
 
 
 @dataclass(frozen=True)
@@ -369,6 +379,11 @@ def _console(node: Node, server: ServerSettings) -> ConsoleSettings:
 
 def _results(node: Node, base_dir: Path) -> ResultsConfig:
     enabled = node.take("enabled", boolean, True)
+    url = node.take("url", string, None)
+    if url is not None:
+        return _database_results(node, base_dir, url, enabled)
+    if node.take("spool", string, None) is not None:
+        raise node.error("spool is for a PostgreSQL log: give url too, or drop spool", "spool")
     path = node.take("path", string, "results.sqlite3")
     store = node.take("store_images", one_of("none", "failures", "all"), "failures")
     max_mb = node.take("max_image_mb", positive, 1024.0)
@@ -376,6 +391,32 @@ def _results(node: Node, base_dir: Path) -> ResultsConfig:
     return ResultsConfig(
         _resolve(base_dir, path) if enabled else None, store, int(max_mb * 1024 * 1024)
     )
+
+
+def _database_results(node: Node, base_dir: Path, url: str, enabled: bool) -> ResultsConfig:
+    """``results: {url: postgresql://...}``: the plant-wide log (vision_server/results_pg.py)."""
+    if not url.startswith(("postgresql://", "postgres://")):
+        raise node.error(
+            "expected a PostgreSQL URL such as postgresql://user@host:5432/database", "url"
+        )
+    if node.has("path"):
+        raise node.error("give either path (an SQLite file) or url (PostgreSQL), not both", "path")
+    node.take("path", string, None)
+    # Images stay on the cell: a plant database keeps rows (docs/configuration.md).
+    store = node.take("store_images", one_of("none", "failures", "all"), "none")
+    if store != "none":
+        raise node.error(
+            "a PostgreSQL log keeps no images (they stay on the cell): store_images must be none",
+            "store_images",
+        )
+    if node.has("max_image_mb"):
+        raise node.error("a PostgreSQL log keeps no images: drop max_image_mb", "max_image_mb")
+    node.take("max_image_mb", positive, None)
+    spool = node.take("spool", string, "results-spool.sqlite3")
+    node.finish()
+    if not enabled:
+        return ResultsConfig(None, store)
+    return ResultsConfig(None, store, url=url, spool=_resolve(base_dir, spool))
 
 
 def _cameras(root: Node, base_dir: Path) -> dict[str, CameraSettings]:

@@ -7,6 +7,10 @@ The server calls :meth:`ResultLog.record` from its worker threads and sends the 
 after it returned, and the response says whether the row was written (RESULT's ``stored``, SPEC
 §6.3): a result acknowledged with ``stored: true`` is in the log.
 
+This is the cell's own log; vision_server/results_pg.py keeps the same rows in PostgreSQL for a
+plant. Both implement :class:`vision_server.results_store.ResultStore`, which the server, the
+console and ``vision-server results`` use (vision_server/results_open.py picks one).
+
 Choices, and why:
 
 - **Durability.** WAL journal with ``synchronous=NORMAL``: a commit appends to the WAL file with
@@ -46,24 +50,32 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import json
 import logging
-import math
 import os
 import re
 import sqlite3
 import threading
 import time
 import uuid
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal, get_args
+from typing import Any, get_args
 
 import cv2
 import numpy as np
+
+from .results_query import COLUMNS, page_sql
+from .results_query import where_sql as _where
+from .results_store import (
+    ImagePolicy,
+    ResultEntry,
+    ResultLogError,
+    StoredResult,
+    parse_data,
+    row_values,
+)
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -78,7 +90,6 @@ __all__ = [
 
 logger = logging.getLogger("vision_server.results")
 
-ImagePolicy = Literal["none", "failures", "all"]
 GIB = 1 << 30
 
 # Each entry upgrades the schema from version i to i + 1 (``PRAGMA user_version``). Append, never
@@ -123,80 +134,6 @@ _MIGRATIONS: tuple[str, ...] = (
 SCHEMA_VERSION = len(_MIGRATIONS)
 
 _IMAGE_NAME = re.compile(r"\d{4}-\d{2}-\d{2}/[0-9a-f]{32}\.png")
-_COLUMNS = (
-    "id, time, inspection, camera, passed, data, duration_ms, config_hash, request_id, peer, "
-    "error, image, overlay"
-)
-
-
-class ResultLogError(Exception):
-    """The result log cannot be opened or used as asked (not its runtime faults: those are
-    counted, see :meth:`ResultLog.record`)."""
-
-
-@dataclass(frozen=True)
-class ResultEntry:
-    """One answered inspection, as the server hands it to :meth:`ResultLog.record`.
-
-    ``time`` in Unix seconds; ``duration_ms`` in milliseconds; ``data`` JSON-able (numpy scalars
-    and arrays are converted); ``image`` the input image, ``(H, W, 3)`` BGR or ``(H, W)`` grey,
-    uint8 or uint16, stored according to the log's policy; ``overlay`` the inspection's drawing
-    (same kinds of array), stored with the input when the input is stored.
-    """
-
-    time: float
-    inspection: str
-    camera: str
-    passed: bool
-    data: Mapping[str, Any]
-    duration_ms: float
-    config_hash: str
-    request_id: int = 0
-    peer: str = ""
-    image: np.ndarray | None = field(default=None, repr=False, compare=False)
-    error: str | None = None
-    overlay: np.ndarray | None = field(default=None, repr=False, compare=False)
-
-
-@dataclass(frozen=True)
-class StoredResult:
-    """One row of the log. ``image_path`` is ``None`` when no image was stored or it was deleted
-    by the disk cap (the file may also have been removed by hand: check before opening);
-    ``overlay_path`` likewise for the drawn overlay, which also is ``None`` when the inspection
-    drew none (a failed request) or the row predates stored overlays."""
-
-    id: int
-    time: float
-    inspection: str
-    camera: str
-    passed: bool
-    data: dict[str, Any]
-    duration_ms: float
-    config_hash: str
-    request_id: int
-    peer: str
-    error: str | None
-    image_path: Path | None
-    overlay_path: Path | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        """A JSON-able dict (``time`` as Unix seconds and as ISO 8601 UTC, ``verdict``)."""
-        return {
-            "id": self.id,
-            "time": self.time,
-            "time_iso": datetime.fromtimestamp(self.time, UTC).isoformat(timespec="milliseconds"),
-            "inspection": self.inspection,
-            "camera": self.camera,
-            "verdict": "pass" if self.passed else "fail",
-            "data": self.data,
-            "duration_ms": self.duration_ms,
-            "config_hash": self.config_hash,
-            "request_id": self.request_id,
-            "peer": self.peer,
-            "error": self.error,
-            "image_path": str(self.image_path) if self.image_path is not None else None,
-            "overlay_path": str(self.overlay_path) if self.overlay_path is not None else None,
-        }
 
 
 @dataclass(frozen=True)
@@ -317,22 +254,6 @@ def _connect(path: Path, *, readonly: bool, busy_timeout_s: float) -> sqlite3.Co
     return conn
 
 
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray | np.generic):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, set | frozenset | tuple):
-        return list(value)
-    return repr(value)
-
-
-def _data_json(data: Mapping[str, Any]) -> str:
-    # NaN and infinities are written as JSON's common extension (NaN, Infinity), which
-    # json.loads reads back; a measure that failed to converge is still worth keeping.
-    return json.dumps(dict(data), default=_json_default, separators=(",", ":"))
-
-
 def _statements(script: str) -> list[str]:
     """Split an SQL script into statements (``executescript`` would commit half-way)."""
     statements, pending = [], ""
@@ -343,24 +264,6 @@ def _statements(script: str) -> list[str]:
                 statements.append(pending)
             pending = ""
     return statements
-
-
-def _row_values(entry: ResultEntry) -> tuple[Any, ...]:
-    """The entry's columns up to ``error``, checked and converted."""
-    if not math.isfinite(entry.time):
-        raise ValueError(f"time must be a finite Unix time, got {entry.time}")
-    return (
-        float(entry.time),
-        str(entry.inspection),
-        str(entry.camera),
-        int(bool(entry.passed)),
-        _data_json(entry.data),
-        float(entry.duration_ms),
-        str(entry.config_hash),
-        int(entry.request_id),
-        str(entry.peer),
-        None if entry.error is None else str(entry.error),
-    )
 
 
 def _encode_png(image: np.ndarray) -> bytes:
@@ -581,7 +484,7 @@ class ResultLog:
         try:
             if self._closed:
                 raise ResultLogError("the result log is closed")
-            values = _row_values(entry)
+            values = row_values(entry)
         except Exception as exc:
             self._fault(f"result of {entry.inspection!r} not recorded", exc, row_lost=True)
             return None
@@ -807,39 +710,26 @@ class ResultLog:
         before_id: int | None = None,
     ) -> tuple[str, tuple[Any, ...]]:
         """The SQL and parameters :meth:`query` runs (for ``EXPLAIN QUERY PLAN`` and the bench)."""
-        where, params = _where(since, inspection, passed)
-        extra: list[str] = []
-        if peer:
-            # A prefix as a range (an index can serve it, LIKE's wildcards play no part: a peer
-            # may contain '_'); the upper bound is the prefix with its last character's
-            # successor, and text compares by code point.
-            extra.append("peer >= ?")
-            params = (*params, peer)
-            if ord(peer[-1]) < 0x10FFFF:
-                extra.append("peer < ?")
-                params = (*params, peer[:-1] + chr(ord(peer[-1]) + 1))
-        if before_id is not None:
-            # Keyset paging in the order shown: rows before (time, id) of row ``before_id``.
-            # An id alone would skip or repeat rows whose time and id orders differ (workers
-            # finish out of order), and would read every newer row to find its place. An id
-            # that is not in the log (never written yet) falls back to the ids below it.
-            cmp = "<" if newest_first else ">"
-            with self._lock:
-                self._check_open()
-                key = self._conn.execute(
-                    "SELECT time, id FROM results WHERE id = ?", (int(before_id),)
-                ).fetchone()
-            if key is None:
-                extra.append(f"id {cmp} ?")
-                params = (*params, int(before_id))
-            else:
-                extra.append(f"(time, id) {cmp} (?, ?)")
-                params = (*params, float(key[0]), int(key[1]))
-        if extra:
-            where = (where + " AND " if where else " WHERE ") + " AND ".join(extra)
-        order = "DESC" if newest_first else "ASC"
-        sql = f"SELECT {_COLUMNS} FROM results{where} ORDER BY time {order}, id {order} LIMIT ?"
-        return sql, (*params, max(0, int(limit)))
+        return page_sql(
+            since=since,
+            inspection=inspection,
+            passed=passed,
+            limit=limit,
+            newest_first=newest_first,
+            peer=peer,
+            before_id=before_id,
+            key_of=self._key_of,
+            mark="?",
+            boolean=int,
+        )
+
+    def _key_of(self, row_id: int) -> tuple[float, int] | None:
+        with self._lock:
+            self._check_open()
+            key = self._conn.execute(
+                "SELECT time, id FROM results WHERE id = ?", (row_id,)
+            ).fetchone()
+        return None if key is None else (float(key[0]), int(key[1]))
 
     def timings(
         self, *, inspection: str, since: float
@@ -850,7 +740,7 @@ class ResultLog:
         Three columns read from one covering index, without parsing any row's data, so that a
         window of 100,000 results costs tens of milliseconds.
         """
-        where, params = _where(since, inspection, None)
+        where, params = _where(since, inspection, None, mark="?", boolean=int)
         sql = f"SELECT time, passed, duration_ms FROM results{where} ORDER BY time"
         with self._lock:
             self._check_open()
@@ -866,7 +756,7 @@ class ResultLog:
         passed: bool | None = None,
     ) -> int:
         """How many results match the filters (all of them without filters)."""
-        where, params = _where(since, inspection, passed)
+        where, params = _where(since, inspection, passed, mark="?", boolean=int)
         with self._lock:
             self._check_open()
             return int(
@@ -878,7 +768,7 @@ class ResultLog:
         with self._lock:
             self._check_open()
             row = self._conn.execute(
-                f"SELECT {_COLUMNS} FROM results WHERE id = ?", (int(row_id),)
+                f"SELECT {COLUMNS} FROM results WHERE id = ?", (int(row_id),)
             ).fetchone()
         return None if row is None else self._row(row)
 
@@ -886,17 +776,13 @@ class ResultLog:
         (row_id, t, inspection, camera, passed, data, duration, chash, rid, peer, error, image) = (
             row[:12]
         )
-        try:
-            parsed = json.loads(data)
-        except ValueError:
-            parsed = {"_unparsed": data}
         return StoredResult(
             id=int(row_id),
             time=float(t),
             inspection=inspection,
             camera=camera,
             passed=bool(passed),
-            data=parsed if isinstance(parsed, dict) else {"_value": parsed},
+            data=parse_data(data),
             duration_ms=float(duration),
             config_hash=chash,
             request_id=int(rid),
@@ -978,22 +864,3 @@ class ResultLog:
         tb: TracebackType | None,
     ) -> None:
         self.close()
-
-
-def _where(
-    since: float | None, inspection: str | None, passed: bool | None
-) -> tuple[str, tuple[Any, ...]]:
-    clauses: list[str] = []
-    params: list[Any] = []
-    if since is not None:
-        if not math.isfinite(since):
-            raise ValueError(f"since must be a finite Unix time, got {since}")
-        clauses.append("time >= ?")
-        params.append(float(since))
-    if inspection is not None:
-        clauses.append("inspection = ?")
-        params.append(inspection)
-    if passed is not None:
-        clauses.append("passed = ?")
-        params.append(int(passed))
-    return (" WHERE " + " AND ".join(clauses) if clauses else ""), tuple(params)

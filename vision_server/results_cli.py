@@ -1,7 +1,7 @@
 """``vision-server results``: list the result log, as a table for people or JSON lines for tools.
 
-The command opens the log read-only (:meth:`ResultLog.open_readonly`), so it runs safely beside a
-server that is writing to it.
+The command opens the log read-only (:func:`vision_server.results_open.open_readonly`: an SQLite
+file or a PostgreSQL URL), so it runs safely beside a server that is writing to it.
 """
 
 from __future__ import annotations
@@ -22,7 +22,9 @@ from rich.text import Text
 
 from protocol.cli import ErrorKind, json_error
 
-from .results import ResultLog, ResultLogError, StoredResult
+from .results_open import open_readonly
+from .results_pg import redact_url
+from .results_store import ResultLogError, StoredResult
 
 __all__ = ["describe_health", "parse_since", "results_command"]
 
@@ -76,6 +78,9 @@ def describe_health(health: Mapping[str, Any] | None) -> str:
         text += " (writing again; restart the server to clear)"
     if log.get("images_failed"):
         text += f", {log['images_failed']} without their image"
+    if "spooled" in log:  # a PostgreSQL log (vision_server/results_pg.py)
+        state = "up" if log.get("database_up") else "DOWN"
+        text += f", {log['spooled']} spooled for the database ({state})"
     if log.get("last_error"):
         when = log.get("last_error_time")
         at = ""
@@ -86,7 +91,7 @@ def describe_health(health: Mapping[str, Any] | None) -> str:
 
 
 def results_command(
-    db: Path,
+    db: Path | str,
     *,
     since: str | None,
     inspection: str | None,
@@ -121,7 +126,7 @@ def results_command(
         return fail(f"--limit must be >= 0, got {limit}")
     passed = False if failed_only else None
     try:
-        with ResultLog.open_readonly(db) as log:
+        with open_readonly(db) as log:
             rows = log.query(since=since_time, inspection=inspection, passed=passed, limit=limit)
             total = log.count(since=since_time, inspection=inspection, passed=passed)
     except ResultLogError as exc:
@@ -135,9 +140,10 @@ def results_command(
     return 0
 
 
-def _table(rows: list[StoredResult], total: int, db: Path) -> Table:
+def _table(rows: list[StoredResult], total: int, db: Path | str) -> Table:
+    where = redact_url(db) if isinstance(db, str) else str(db)
     table = Table(
-        title=Text(f"Results in {db}"),
+        title=Text(f"Results in {where}"),
         caption=f"{len(rows)} of {total} matching, newest first",
         header_style="bold",
     )

@@ -23,7 +23,8 @@ from .cameras import Camera, CameraSettings, make_camera
 from .catalog import Catalog
 from .config import CellConfig, ConfigError, load_config
 from .configfile import read_document
-from .results import ResultLog, ResultLogError, check_creatable
+from .results_open import check_result_store, open_result_store
+from .results_store import ResultLogError, ResultStore
 
 log = logging.getLogger("vision_server")
 
@@ -54,21 +55,16 @@ class CellRuntime:
         self.config = load_config(self.path)
         self._started = self.config  # what `server:` and `results:` run with until a restart
         self._cameras: dict[str, tuple[CameraSettings, Camera]] = {}
-        self.results: ResultLog | None = None
+        self.results: ResultStore | None = None
         self.catalog = self._build(self.config)
         self.results = self._open_results(self.config)
 
-    def _open_results(self, config: CellConfig) -> ResultLog | None:
-        """The configured log, opened for writing; a log that cannot be opened is a
-        configuration error (one line naming the file, the key and the cause), not a crash."""
-        if config.results.path is None:
-            return None
+    def _open_results(self, config: CellConfig) -> ResultStore | None:
+        """The configured log (SQLite or PostgreSQL), opened for writing; a log that cannot be
+        opened is a configuration error (one line naming the file, the key and the cause), not
+        a crash."""
         try:
-            return ResultLog(
-                config.results.path,
-                store_images=config.results.store_images,  # type: ignore[arg-type]
-                max_image_bytes=config.results.max_image_bytes,
-            )
+            return open_result_store(config.results)
         except ResultLogError as exc:
             self.close()  # the cameras opened by _build
             raise result_log_error(config, str(exc)) from None
@@ -188,27 +184,24 @@ def _close_all(cameras: Iterable[Camera]) -> None:
 def check_result_log(config: CellConfig) -> None:
     """Raise :class:`ConfigError` when the configured result log could not be created or
     written (``check-config``: creates nothing)."""
-    if config.results.path is None:
-        return
     try:
-        check_creatable(
-            config.results.path,
-            store_images=config.results.store_images,  # type: ignore[arg-type]
-        )
+        check_result_store(config.results)
     except ResultLogError as exc:
         raise result_log_error(config, str(exc)) from None
 
 
 def result_log_error(config: CellConfig, message: str) -> ConfigError:
-    """``message`` as an error at ``results -> path`` of the configuration file, with the
-    key's line (the line of the top level when the path is the default)."""
+    """``message`` as an error at ``results -> path`` (``url`` for PostgreSQL) of the
+    configuration file, with the key's line (the line of the top level when the path is the
+    default)."""
+    key = "url" if config.results.url is not None else "path"
     if config.source is None:
-        return ConfigError(message, path="results -> path")
+        return ConfigError(message, path=f"results -> {key}")
     try:
         root, _ = read_document(config.source)
-        return root.sub("results").error(message, "path")
+        return root.sub("results").error(message, key)
     except ConfigError:  # the file changed or vanished since it was loaded
-        return ConfigError(message, source=config.source.name, path="results -> path")
+        return ConfigError(message, source=config.source.name, path=f"results -> {key}")
 
 
 __all__ = ["CameraFactory", "CellRuntime", "check_result_log", "result_log_error"]

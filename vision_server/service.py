@@ -48,7 +48,7 @@ from .admission import Admission, ByteBudget, Slot, Waiter, WorkPool
 from .cameras import Camera, CameraFrame
 from .catalog import Catalog, InspectionInput, InspectionOutcome
 from .process_lane import ProcessLane
-from .results import ResultEntry, ResultLog
+from .results_store import ResultEntry, ResultStore
 from .settings import ServiceSettings
 
 log = logging.getLogger("vision_server")
@@ -219,7 +219,7 @@ class InspectionService:
         catalog: Catalog,
         settings: ServiceSettings | None = None,
         *,
-        results: ResultLog | None = None,
+        results: ResultStore | None = None,
         reloader: Callable[[], Catalog] | None = None,
     ) -> None:
         self.settings = settings or ServiceSettings()

@@ -42,6 +42,7 @@ from protocol import (
 )
 from vision_server.console import static_dir
 from vision_server.operator_desk import OperatorDesk
+from vision_server.results_store import ResultLogError
 from vision_server.service import (
     CaptureRequest,
     ImageNeeds,
@@ -242,6 +243,8 @@ class HttpFrontend:
             response = error_response(exc.status, code, exc.reason)
         except HttpProcessingError as exc:  # a body aiohttp could not parse
             response = error_response(400, "BAD_REQUEST", f"malformed request: {exc.message}")
+        except ResultLogError as exc:  # e.g. a PostgreSQL log whose database is down
+            response = error_response(503, "RESULT_LOG_UNAVAILABLE", str(exc))
         except asyncio.CancelledError:
             raise
         except Exception:

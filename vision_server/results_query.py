@@ -1,0 +1,94 @@
+"""The SQL of the result log's readers, written once for both databases.
+
+SQLite marks parameters with ``?``, psycopg with ``%s``; everything else (row values, keyset
+paging, the peer prefix as a range) is the same text, so that both logs answer a filter alike.
+PostgreSQL's ``peer`` column uses the "C" collation for the same reason: the prefix range below
+assumes text compares by code point, as SQLite's does.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+__all__ = ["COLUMNS", "KeyLookup", "page_sql", "where_sql"]
+
+COLUMNS = (
+    "id, time, inspection, camera, passed, data, duration_ms, config_hash, request_id, peer, "
+    "error, image, overlay"
+)
+
+KeyLookup = Callable[[int], "tuple[float, int] | None"]
+"""The (time, id) of a row by id, or None when there is no such row."""
+
+
+def where_sql(
+    since: float | None,
+    inspection: str | None,
+    passed: bool | None,
+    *,
+    mark: str,
+    boolean: Callable[[bool], Any],
+) -> tuple[str, tuple[Any, ...]]:
+    """`` WHERE ...`` (or ``""``) and its parameters; ``boolean`` converts ``passed`` to the
+    database's type (SQLite stores 0/1, PostgreSQL a boolean)."""
+    clauses: list[str] = []
+    params: list[Any] = []
+    if since is not None:
+        if not math.isfinite(since):
+            raise ValueError(f"since must be a finite Unix time, got {since}")
+        clauses.append(f"time >= {mark}")
+        params.append(float(since))
+    if inspection is not None:
+        clauses.append(f"inspection = {mark}")
+        params.append(inspection)
+    if passed is not None:
+        clauses.append(f"passed = {mark}")
+        params.append(boolean(passed))
+    return (" WHERE " + " AND ".join(clauses) if clauses else ""), tuple(params)
+
+
+def page_sql(
+    *,
+    since: float | None,
+    inspection: str | None,
+    passed: bool | None,
+    limit: int,
+    newest_first: bool,
+    peer: str | None,
+    before_id: int | None,
+    key_of: KeyLookup,
+    mark: str,
+    boolean: Callable[[bool], Any],
+) -> tuple[str, tuple[Any, ...]]:
+    """The query of one page of results (see :meth:`ResultStore.query` for the filters)."""
+    where, params = where_sql(since, inspection, passed, mark=mark, boolean=boolean)
+    extra: list[str] = []
+    if peer:
+        # A prefix as a range (an index can serve it, LIKE's wildcards play no part: a peer
+        # may contain '_'); the upper bound is the prefix with its last character's
+        # successor, and text compares by code point.
+        extra.append(f"peer >= {mark}")
+        params = (*params, peer)
+        if ord(peer[-1]) < 0x10FFFF:
+            extra.append(f"peer < {mark}")
+            params = (*params, peer[:-1] + chr(ord(peer[-1]) + 1))
+    if before_id is not None:
+        # Keyset paging in the order shown: rows before (time, id) of row ``before_id``.
+        # An id alone would skip or repeat rows whose time and id orders differ (workers
+        # finish out of order), and would read every newer row to find its place. An id
+        # that is not in the log (never written yet) falls back to the ids below it.
+        cmp = "<" if newest_first else ">"
+        key = key_of(int(before_id))
+        if key is None:
+            extra.append(f"id {cmp} {mark}")
+            params = (*params, int(before_id))
+        else:
+            extra.append(f"(time, id) {cmp} ({mark}, {mark})")
+            params = (*params, float(key[0]), int(key[1]))
+    if extra:
+        where = (where + " AND " if where else " WHERE ") + " AND ".join(extra)
+    order = "DESC" if newest_first else "ASC"
+    sql = f"SELECT {COLUMNS} FROM results{where} ORDER BY time {order}, id {order} LIMIT {mark}"
+    return sql, (*params, max(0, int(limit)))
