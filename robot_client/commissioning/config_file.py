@@ -45,7 +45,7 @@ def replace_intrinsics(text: str, camera: str, intrinsics: CameraIntrinsics, not
     into the comment line above them. Raises ``ValueError`` when the file has no such camera
     or is not YAML."""
     try:
-        root = yaml.compose(text)
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as exc:
         raise ValueError(f"the configuration is not YAML: {exc}") from None
     cameras = _mapping_item(root, "cameras") if root is not None else None
