@@ -89,6 +89,10 @@ class FakeDevice:
     stalled: bool = False
     frame_number: int = 0
     tag: int = 7
+    hold: threading.Event | None = None
+    """When set to an Event, wait_for_frames blocks until it is set (a slow exposure)."""
+    waiting: threading.Event = field(default_factory=threading.Event)
+    """Set while a wait_for_frames is blocked on ``hold``."""
 
     def color_intrinsics(self, width: int, height: int) -> intrinsics:
         scale = width / 640
@@ -311,6 +315,10 @@ class pipeline:  # noqa: N801
     def wait_for_frames(self, timeout_ms: int = 5000) -> composite_frame:
         if not self.started:
             raise RuntimeError("wait_for_frames cannot be called before start()")
+        hold = self.device.hold if self.device is not None else None
+        if hold is not None:
+            self.device.waiting.set()  # type: ignore[union-attr]
+            hold.wait()
         with self.ctx.bus.lock:
             device = self.device
             assert device is not None

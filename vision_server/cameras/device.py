@@ -3,10 +3,11 @@ import, a connect/read/disconnect life cycle driven by grabs, and reconnects.
 
 A device camera reads on demand, in the grabbing thread: there is no reader thread, because
 both SDKs already buffer frames in their own threads. Grabs are serialised by a lock (one SDK
-handle, one reader at a time). The first grab connects; a grab that finds the device lost
-disconnects it and the camera is *down*: grabs raise ``CameraUnavailable`` at once with the
-cause until ``reconnect_interval_s`` has passed on the camera's clock, and then the next grab
-tries again (each recovery counts as a reconnect). So a device that disappears and comes back
+handle, one reader at a time). ``open()`` connects (a failure marks the camera down, it does
+not raise); a grab that finds the device lost disconnects it and the camera is *down*:
+grabs raise ``CameraUnavailable`` at once with the cause until ``reconnect_interval_s`` has
+passed on the camera's clock, and then the next grab tries again (each recovery counts as a
+reconnect). So a device that disappears and comes back
 needs no server restart, and a test drives the pacing with a manual clock, not with sleeps.
 
 Subclasses implement :meth:`DeviceCamera._connect`, :meth:`DeviceCamera._read` and
@@ -16,6 +17,7 @@ down) or :class:`FrameTimeout` (no frame in time: not down, the next grab tries 
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import threading
 from abc import abstractmethod
@@ -24,6 +26,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from protocol import CameraUnavailable
 
 from .base import Camera, CameraFrame, log
 from .clock import Clock
@@ -106,15 +110,30 @@ class DeviceCamera(Camera):
 
     # -- the camera ------------------------------------------------------------------------
 
+    def open(self) -> None:
+        """Connect now, so that the device is armed (a hardware trigger before the first
+        request is not lost) and its intrinsics are known; a failure only marks the camera
+        down (reported by ``grab`` and ``status``), as for every source."""
+        if self.closed:
+            raise RuntimeError(f"camera {self.name!r} is closed and cannot be reopened")
+        with self._lock, contextlib.suppress(CameraUnavailable):
+            self._ensure_connected()
+
     def grab(self, *, timeout_s: float, newer_than: int | None = None) -> CameraFrame:
         # Every read returns a frame captured after it started, with a new index: always
         # newer than ``newer_than``.
         self._check_open()
-        with self._lock:
+        started = self._clock.monotonic()
+        # Another request's read holds the device: wait for it no longer than this grab may
+        # take (a real-time wait: the lock knows no other clock).
+        if not self._lock.acquire(timeout=max(timeout_s, 0.0)):
+            raise self.unavailable(f"the device is busy with another capture for {timeout_s:.3g} s")
+        try:
             self._check_open()
             self._ensure_connected()
+            remaining_s = max(timeout_s - (self._clock.monotonic() - started), 0.0)
             try:
-                color, depth = self._read(max(timeout_s, 0.0))
+                color, depth = self._read(remaining_s)
             except FrameTimeout as exc:
                 raise self.unavailable(str(exc)) from None
             except DeviceError as exc:
@@ -126,6 +145,8 @@ class DeviceCamera(Camera):
                 raise self.unavailable(f"the device gave an unusable frame: {exc}") from None
             self._next_index += 1
             return frame
+        finally:
+            self._lock.release()
 
     def _ensure_connected(self) -> None:
         """Connect if needed; raise ``CameraUnavailable`` while down and not yet due."""

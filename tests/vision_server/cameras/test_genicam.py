@@ -163,6 +163,16 @@ def test_hardware_trigger_waits_for_the_line(
         assert cam.grab(timeout_s=1.0).color[0, 0] == 2
 
 
+def test_a_hardware_trigger_before_the_first_request_is_not_lost(
+    network: Network, cti: Path, clock: ManualClock
+) -> None:
+    """open() arms the camera: a PLC may trigger before the robot's first request."""
+    for cam in camera(cti, clock, trigger="hardware"):
+        assert network.camera(SERIAL).acquiring
+        network.pulse(SERIAL, "Line0")
+        assert cam.grab(timeout_s=1.0).color[0, 0] == 1
+
+
 def test_unplugged_mid_stream_then_back_reconnects(
     network: Network, cti: Path, clock: ManualClock
 ) -> None:

@@ -4,7 +4,9 @@ on a bus (tests/helpers/fake_realsense.py), registered as ``sys.modules["pyreals
 from __future__ import annotations
 
 import sys
+import threading
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -55,15 +57,16 @@ def test_colour_depth_aligned_in_mm_and_the_devices_intrinsics(
     device.distortion_model = distortion.brown_conrady
     device.coeffs = (0.1, -0.2, 0.001, 0.002, 0.03)
     for cam in camera(clock, depth_width=320, depth_height=240):
-        assert cam.intrinsics is None  # not known before the device is opened
-        frame = cam.grab(timeout_s=1.0)
-        assert frame.color.shape == (480, 640, 3)
-        assert frame.depth is not None
-        assert frame.depth.shape == (480, 640)
-        assert np.all(frame.depth == 500)
+        # open() connected: the device's intrinsics are known before the first frame.
         assert cam.intrinsics == Intrinsics(
             640, 480, 615.0, 616.0, 321.5, 238.25, (0.1, -0.2, 0.001, 0.002, 0.03)
         )
+        assert cam.status()["state"] == "up"
+        frame = cam.grab(timeout_s=1.0)
+        assert frame.color.shape == (480, 640, 3)
+        assert frame.depth is not None
+        assert frame.depth.shape == (480, 640)  # aligned to colour
+        assert np.all(frame.depth == 500)
         assert cam.descriptor()["intrinsics"]["fx"] == 615.0
         status = cam.status()
         assert status["serial"] == "123456789012"
@@ -129,6 +132,21 @@ def test_a_late_frame_is_a_timeout_and_the_camera_stays_connected(
         assert cam.status()["connected"]
         bus.device("123456789012").stalled = False
         assert cam.grab(timeout_s=1.0).index == 1
+
+
+def test_a_grab_waits_for_anothers_read_no_longer_than_its_timeout(
+    bus: Bus, clock: ManualClock
+) -> None:
+    device = bus.device("123456789012")
+    device.hold = threading.Event()
+    for cam in camera(clock, depth=False):
+        with ThreadPoolExecutor(1) as pool:
+            first = pool.submit(cam.grab, timeout_s=30.0)
+            assert device.waiting.wait(30.0), "the first grab reads from the device"
+            with pytest.raises(CameraUnavailable, match="busy with another capture for 0.05 s"):
+                cam.grab(timeout_s=0.05)
+            device.hold.set()
+            assert first.result(30.0).index == 0
 
 
 def test_unplugged_mid_stream_then_back_reconnects(bus: Bus, clock: ManualClock) -> None:
