@@ -5,7 +5,7 @@
     server:   {host, port, name, auth_token | auth_token_file, tls: {cert, key}, limits...}
     console:  {enabled, host, port, max_view_fps}   (the web console; token and TLS: server's)
     results:  {path, store_images: none|failures|all, max_image_mb}
-    cameras:  {NAME: {source: request|opencv|folder|sim, ...source settings, intrinsics}}
+    cameras:  {NAME: {source: request|opencv|folder|sim|realsense|genicam, ...settings, intrinsics}}
     inspections: [{name, type: locate|presence|qr|qr_pose, camera, roi, number, output, ...}]
     line:     {enabled, host, port, tls, format, max_line_bytes, idle_timeout_s, deadline_s, ...}
     modbus:   {enabled, host, port, unit_id, word_order, deadline_s, max_connections}  (PLCs)
