@@ -22,7 +22,7 @@ What it copies from harvesters 1.4 and the genicam binding:
   must be handed back with ``queue()``: the pool has four. An unplugged camera's register
   reads raise ``gentl.IoException``.
 - Images: Mono8/10/12/16 hold ``frame_number`` (times 4, 16, 256 above 8 bits, so that the
-  top 8 bits read back the number) in every pixel; Bayer formats hold a mosaic of a flat scene
+  8-bit image reads back the number) in every pixel; Bayer formats hold a mosaic of a flat scene
   of BGR ``SCENE_BGR``.
 """
 

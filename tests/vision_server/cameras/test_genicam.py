@@ -92,6 +92,15 @@ def test_every_bayer_order_keeps_red_red(pixel_format: str, red_at: tuple[int, i
     assert tuple(int(c) for c in bgr[4, 4]) == (10, 100, 200)
 
 
+def test_high_bit_depths_scale_round_and_saturate() -> None:
+    values = np.array([0, 7, 9, 4095, 4096, 65535], np.uint16)
+    got = convert_pixels(values, pixel_format="Mono12", width=6, height=1)
+    assert got.tolist() == [[0, 0, 1, 255, 255, 255]]
+    got = convert_pixels(np.array([0, 127, 129, 65535], np.uint16), pixel_format="Mono16",
+                         width=4, height=1)  # fmt: skip
+    assert got.tolist() == [[0, 0, 1, 255]]
+
+
 def test_a_buffer_of_the_wrong_size_is_named() -> None:
     with pytest.raises(ValueError, match="a Mono12 frame of 4x4 has 16 pixels, the buffer holds 8"):
         convert_pixels(np.zeros(8, np.uint16), pixel_format="Mono12", width=4, height=4)
