@@ -79,6 +79,9 @@ class DeviceCamera(Camera):
         self._configured_intrinsics = intrinsics
         self._reconnect_interval_s = reconnect_interval_s
         self._lock = threading.Lock()
+        """Held while the device is used (connect, read, disconnect): one user at a time."""
+        self._state_lock = threading.Lock()
+        """Guards the fields status() reports, so that it never waits for a slow read."""
         self._connected = False
         self._retry_at: float | None = None  # clock.monotonic() of the next connect attempt
         self._error: str | None = None
@@ -143,7 +146,8 @@ class DeviceCamera(Camera):
                 frame = CameraFrame(color, depth, self._clock.time(), self._next_index)
             except ValueError as exc:  # an SDK handed us something we did not ask for
                 raise self.unavailable(f"the device gave an unusable frame: {exc}") from None
-            self._next_index += 1
+            with self._state_lock:
+                self._next_index += 1
             return frame
         finally:
             self._lock.release()
@@ -160,29 +164,33 @@ class DeviceCamera(Camera):
             self._disconnect()
             self._go_down(str(exc))
             raise self.unavailable(self._down_cause()) from None
-        self._connected = True
-        self._retry_at = None
-        if self._failed:
-            self._reconnects += 1
-            self._failed = False
+        with self._state_lock:
+            self._connected = True
+            self._retry_at = None
+            back = self._failed
+            if back:
+                self._reconnects += 1
+                self._failed = False
+            self._error = None
+        if back:
             log.info("camera %r: the device is back", self.name)
-        self._error = None
 
     def _go_down(self, error: str) -> None:
         if error != self._error:
             log.warning("camera %r is unavailable: %s", self.name, error)
         if self._connected:
             self._disconnect()
+        with self._state_lock:
             self._connected = False
-        self._error = error
-        self._failed = True
-        self._retry_at = self._clock.monotonic() + self._reconnect_interval_s
+            self._error = error
+            self._failed = True
+            self._retry_at = self._clock.monotonic() + self._reconnect_interval_s
 
     def _down_cause(self) -> str:
         return f"{self._error}; retrying every {self._reconnect_interval_s:g} s"
 
     def status(self) -> dict[str, Any]:
-        with self._lock:
+        with self._state_lock:
             if self.closed:
                 state = "closed"
             elif self._connected:
@@ -207,4 +215,5 @@ class DeviceCamera(Camera):
         with self._lock:
             if self._connected:
                 self._disconnect()
-                self._connected = False
+                with self._state_lock:
+                    self._connected = False

@@ -145,6 +145,8 @@ def test_a_grab_waits_for_anothers_read_no_longer_than_its_timeout(
             assert device.waiting.wait(30.0), "the first grab reads from the device"
             with pytest.raises(CameraUnavailable, match="busy with another capture for 0.05 s"):
                 cam.grab(timeout_s=0.05)
+            # Health answers at once, without waiting for the device.
+            assert cam.status()["state"] == "up"
             device.hold.set()
             assert first.result(30.0).index == 0
 
