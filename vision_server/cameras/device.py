@@ -17,7 +17,6 @@ down) or :class:`FrameTimeout` (no frame in time: not down, the next grab tries 
 
 from __future__ import annotations
 
-import contextlib
 import importlib
 import threading
 from abc import abstractmethod
@@ -116,11 +115,20 @@ class DeviceCamera(Camera):
     def open(self) -> None:
         """Connect now, so that the device is armed (a hardware trigger before the first
         request is not lost) and its intrinsics are known; a failure only marks the camera
-        down (reported by ``grab`` and ``status``), as for every source."""
+        down (reported by ``grab`` and ``status``), as for every source.
+
+        After a failure here the first grab tries again at once: a reload that changes the
+        camera's settings opens the new camera while the old one still holds the device,
+        which it releases when its last request is done.
+        """
         if self.closed:
             raise RuntimeError(f"camera {self.name!r} is closed and cannot be reopened")
-        with self._lock, contextlib.suppress(CameraUnavailable):
-            self._ensure_connected()
+        with self._lock:
+            try:
+                self._ensure_connected()
+            except CameraUnavailable:
+                with self._state_lock:
+                    self._retry_at = None
 
     def grab(self, *, timeout_s: float, newer_than: int | None = None) -> CameraFrame:
         # Every read returns a frame captured after it started, with a new index: always

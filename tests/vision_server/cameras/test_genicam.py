@@ -182,6 +182,21 @@ def test_a_hardware_trigger_before_the_first_request_is_not_lost(
         assert cam.grab(timeout_s=1.0).color[0, 0] == 1
 
 
+def test_new_settings_take_the_device_once_the_old_camera_releases_it(
+    network: Network, cti: Path, clock: ManualClock
+) -> None:
+    """A reload opens the new camera while the old one still holds the device (GenTL opens a
+    device for one client): the new one's first request after the old closes connects."""
+    for old in camera(cti, clock, exposure_us=1000.0):
+        old.grab(timeout_s=1.0)
+        for new in camera(cti, clock, exposure_us=3000.0):
+            assert new.status()["state"] == "down"
+            assert "is opened by another client" in str(new.status()["last_error"])
+            old.close()
+            new.grab(timeout_s=1.0)  # no reconnect pause: open() failed, not the device
+            assert network.camera(SERIAL).features["ExposureTime"] == 3000.0
+
+
 def test_unplugged_mid_stream_then_back_reconnects(
     network: Network, cti: Path, clock: ManualClock
 ) -> None:
