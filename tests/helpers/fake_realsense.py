@@ -9,7 +9,8 @@ What it copies from librealsense 2.5x, as seen from Python:
 - ``context().query_devices()`` lists the plugged devices; ``get_info(camera_info.X)``.
 - ``config.enable_device/enable_stream``; ``config.can_resolve(pipeline_wrapper(p))`` is
   False for a mode the device does not offer; ``pipeline.start(config)`` raises RuntimeError
-  ("No device connected", "Couldn't resolve requests") and starts at most once.
+  ("No device connected", "Couldn't resolve requests", "Device or resource busy" while another
+  pipeline streams from the device) and starts at most once.
 - ``wait_for_frames`` before ``start`` raises RuntimeError; a stalled or unplugged device
   raises ``RuntimeError("Frame didn't arrive within N")`` (the same message for both, as
   the real SDK gives); ``poll_for_frames`` returns a falsy frameset when none is queued.
@@ -274,6 +275,11 @@ class pipeline:  # noqa: N801
         device = self.resolve(cfg)
         if device is None:
             raise RuntimeError("Couldn't resolve requests")
+        with self.ctx.bus.lock:
+            if any(p.device is device for p in self.ctx.bus.pipelines):
+                raise RuntimeError(
+                    "xioctl(VIDIOC_S_FMT) failed, errno=16 Last Error: Device or resource busy"
+                )
         self.started, self.device, self.streams = True, device, dict(cfg.streams)
         with self.ctx.bus.lock:
             self.ctx.bus.pipelines.append(self)

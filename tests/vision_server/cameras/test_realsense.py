@@ -151,6 +151,16 @@ def test_a_grab_waits_for_anothers_read_no_longer_than_its_timeout(
             assert first.result(30.0).index == 0
 
 
+def test_a_device_streaming_for_another_camera_is_busy_until_released(
+    bus: Bus, clock: ManualClock
+) -> None:
+    for old in camera(clock):
+        for new in camera(clock, fps=30, depth=False):
+            assert "Device or resource busy" in str(new.status()["last_error"])
+            old.close()
+            assert new.grab(timeout_s=1.0).depth is None
+
+
 def test_unplugged_mid_stream_then_back_reconnects(bus: Bus, clock: ManualClock) -> None:
     device = bus.device("123456789012")
     for cam in camera(clock, reconnect_interval_s=2.0):
