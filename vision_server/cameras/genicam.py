@@ -104,13 +104,17 @@ class GenICamCamera(DeviceCamera):
         found = {str(info.serial_number): str(info.model) for info in infos}
         listed = ", ".join(sorted(found)) or "none"
         wanted = self.settings.serial
+        # A producer that fails to load lists no device (harvesters only logs it): name it.
+        through = f"through {self.cti_path}"
         if wanted is None:
             if len(found) != 1:
                 what = "no GenICam device is visible" if not found else "several are visible"
-                raise DeviceError(f"{what} (serials: {listed}); set serial to choose one")
+                raise DeviceError(f"{what} {through} (serials: {listed}); set serial to choose one")
             return next(iter(found.items()))
         if wanted not in found:
-            raise DeviceError(f"no GenICam device with serial {wanted} (visible: {listed})")
+            raise DeviceError(
+                f"no GenICam device with serial {wanted} {through} (visible: {listed})"
+            )
         return wanted, found[wanted]
 
     def _node(self, feature: str) -> Any:

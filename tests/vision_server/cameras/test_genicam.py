@@ -223,9 +223,13 @@ def test_device_selection_and_producer_errors(
         cam.grab(timeout_s=1.0)
         assert cam.status()["serial"] == "B2"
     for cam in camera(cti, clock):
-        assert "several are visible (serials: A1, B2); set serial to choose one" in grab_error(cam)
+        assert (
+            "several are visible through producer.cti (serials: A1, B2); set serial to choose one"
+        ) in grab_error(cam)
     for cam in camera(cti, clock, serial="C3"):
-        assert "no GenICam device with serial C3 (visible: A1, B2)" in grab_error(cam)
+        assert "no GenICam device with serial C3 through producer.cti (visible: A1, B2)" in (
+            grab_error(cam)
+        )
     network.camera("A1").opened = True  # another process holds it
     for cam in camera(cti, clock, serial="A1"):
         assert "opening GenICam device A1 failed: device A1 is opened by another" in (
