@@ -5,7 +5,8 @@
     server:   {host, port, name, auth_token | auth_token_file, tls: {cert, key}, limits...}
     console:  {enabled, host, port, max_view_fps}   (the web console; token and TLS: server's)
     results:  {path | url, store_images: none|failures|all, max_image_mb, spool}
-    cameras:  {NAME: {source: request|opencv|folder|sim, ...source settings, intrinsics}}
+    cameras:  {NAME: {source: request|opencv|folder|sim|realsense|genicam, ...settings,
+               intrinsics}}
     inspections: [{name, type: locate|presence|qr|qr_pose|calibration_board, camera, roi,
                    number, output, ...}]
     line:     {enabled, host, port, tls, format, max_line_bytes, idle_timeout_s, deadline_s, ...}

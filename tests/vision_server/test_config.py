@@ -657,6 +657,10 @@ cameras:
         mount: {{tool_from_camera: {{xyz: [0, 0, 0.1], rpy: [0, 0, 0]}}}}}}
   dir: {{source: folder, path: d}}
   sim: {{source: sim, scene: {EXAMPLE.parent / "scenes" / "grundfos_cell.yaml"}, camera: rgbd}}
+  rs: {{source: realsense, serial: "1", width: 64, height: 48, fps: 15, depth: true,
+        depth_width: 32, depth_height: 24, reconnect_interval_s: 2}}
+  gc: {{source: genicam, cti: p.cti, serial: "2", pixel_format: Mono12, exposure_us: 100,
+        gain_db: 1, trigger: hardware, trigger_source: Line1, reconnect_interval_s: 2}}
 inspections:
   - {{name: t, type: locate, camera: req, method: template, template: {{image: t.png}}}}
   - {{name: c, type: locate, camera: req, method: circle,
@@ -688,7 +692,7 @@ modbus: {{enabled: true, host: 0.0.0.0, port: 0, unit_id: 3, word_order: low_fir
         "mount pose": {"xyz", "rpy"},
         **{
             f"source: {s}": docs["cameras"] | docs.get(f"source: {s}", set())
-            for s in ("request", "opencv", "folder", "sim")
+            for s in ("request", "opencv", "folder", "sim", "realsense", "genicam")
         },
         **{
             f"type: {t}": docs["inspections"] | docs[f"type: {t}"]

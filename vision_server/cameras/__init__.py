@@ -2,13 +2,16 @@
 
 Sources (``source:`` in the configuration): ``request`` (images arrive with the request),
 ``opencv`` (device, stream or video file through ``cv2.VideoCapture``, latest-frame semantics,
-automatic reconnect), ``folder`` (replay a directory), ``sim`` (the simulated cell). Any source
+automatic reconnect), ``folder`` (replay a directory), ``sim`` (the simulated cell),
+``realsense`` (Intel RealSense RGB-D through pyrealsense2, an optional extra) and ``genicam``
+(GigE Vision / USB3 Vision through harvesters, an optional extra). Any source
 may deliver a depth frame (uint16 mm) registered to its colour frame.
 
 Public API:
 
 - Settings (frozen, validated): :class:`Intrinsics`, :class:`RequestCameraSettings`,
   :class:`OpenCVCameraSettings`, :class:`FolderCameraSettings`, :class:`SimCameraSettings`,
+  :class:`RealSenseCameraSettings`, :class:`GenICamCameraSettings`,
   ``CameraSettings`` (their union), ``SOURCE_NAMES`` (source name -> settings class).
 - :class:`CameraFrame` (``color``, ``depth``, ``timestamp``, ``index``) and :class:`Camera`
   (``name``, ``source``, ``has_depth``, ``intrinsics``, ``open()``,
@@ -18,21 +21,26 @@ Public API:
 - Time: :class:`Clock` (what a camera reads and waits on), ``SYSTEM_CLOCK`` (the default) and
   :class:`ManualClock` (a clock a test advances by hand).
 - The implementations: :class:`RequestCamera`, :class:`OpenCVCamera`, :class:`FolderCamera`,
-  :class:`SimCamera`.
+  :class:`SimCamera`, :class:`RealSenseCamera`, :class:`GenICamCamera` (the vendor SDK is
+  imported when the camera first connects, so neither extra is needed to load this package).
 """
 
 from .base import Camera, CameraFrame
 from .clock import SYSTEM_CLOCK, Clock, ManualClock
 from .factory import make_camera
 from .folder import FolderCamera
+from .genicam import GenICamCamera
 from .opencv import OpenCVCamera
+from .realsense import RealSenseCamera
 from .request import RequestCamera
 from .settings import (
     SOURCE_NAMES,
     CameraSettings,
     FolderCameraSettings,
+    GenICamCameraSettings,
     Intrinsics,
     OpenCVCameraSettings,
+    RealSenseCameraSettings,
     RequestCameraSettings,
     SimCameraSettings,
 )
@@ -47,10 +55,14 @@ __all__ = [
     "Clock",
     "FolderCamera",
     "FolderCameraSettings",
+    "GenICamCamera",
+    "GenICamCameraSettings",
     "Intrinsics",
     "ManualClock",
     "OpenCVCamera",
     "OpenCVCameraSettings",
+    "RealSenseCamera",
+    "RealSenseCameraSettings",
     "RequestCamera",
     "RequestCameraSettings",
     "SimCamera",

@@ -137,7 +137,8 @@ class Camera(ABC):
     """
 
     source: ClassVar[str] = ""
-    """The source kind: ``request``, ``opencv``, ``folder`` or ``sim``."""
+    """The source kind: ``request``, ``opencv``, ``folder``, ``sim``, ``realsense`` or
+    ``genicam``."""
 
     def __init__(
         self,

@@ -7,12 +7,16 @@ from pathlib import Path
 from .base import Camera
 from .clock import Clock
 from .folder import FolderCamera
+from .genicam import GenICamCamera
 from .opencv import OpenCVCamera
+from .realsense import RealSenseCamera
 from .request import RequestCamera
 from .settings import (
     CameraSettings,
     FolderCameraSettings,
+    GenICamCameraSettings,
     OpenCVCameraSettings,
+    RealSenseCameraSettings,
     RequestCameraSettings,
     SimCameraSettings,
 )
@@ -44,4 +48,8 @@ def make_camera(
         return FolderCamera(name, settings, base_dir=base_dir, clock=clock)
     if isinstance(settings, SimCameraSettings):
         return SimCamera(name, settings, base_dir=base_dir, clock=clock)
+    if isinstance(settings, RealSenseCameraSettings):
+        return RealSenseCamera(name, settings, clock=clock)
+    if isinstance(settings, GenICamCameraSettings):
+        return GenICamCamera(name, settings, base_dir=base_dir, clock=clock)
     raise TypeError(f"camera {name!r}: unknown settings type {type(settings).__name__}")

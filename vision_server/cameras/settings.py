@@ -22,8 +22,12 @@ __all__ = [
     "SOURCE_NAMES",
     "CameraSettings",
     "FolderCameraSettings",
+    "GENICAM_PIXEL_FORMATS",
+    "GENICAM_TRIGGERS",
+    "GenICamCameraSettings",
     "Intrinsics",
     "OpenCVCameraSettings",
+    "RealSenseCameraSettings",
     "RequestCameraSettings",
     "SimCameraSettings",
 ]
@@ -320,8 +324,154 @@ class SimCameraSettings:
         _mount(self.mount)
 
 
+def _serial(value: object) -> None:
+    if value is not None and (not isinstance(value, str) or not value.strip()):
+        raise ValueError(
+            f"serial must be a non-empty string (quote a numeric serial in YAML), got {value!r}"
+        )
+
+
+def _intrinsics_match(intrinsics: Intrinsics | None, width: int, height: int) -> None:
+    if intrinsics is not None and (intrinsics.width, intrinsics.height) != (width, height):
+        raise ValueError(
+            f"intrinsics are for {intrinsics.width}x{intrinsics.height} but the camera is set "
+            f"to {width}x{height}: intrinsics must match the frame size"
+        )
+
+
+@dataclass(frozen=True)
+class RealSenseCameraSettings:
+    """An Intel RealSense RGB-D camera through pyrealsense2 (the ``realsense`` extra).
+
+    ``serial``: the device's serial number (a string; quote it in YAML); None takes the only
+    connected device and refuses to guess between several. ``width``/``height``/``fps``: the
+    colour stream's mode, which the device must offer. ``depth``: also stream depth, aligned
+    to the colour image and converted to uint16 mm with the device's depth scale.
+    ``depth_width``/``depth_height``: the depth stream's mode when it differs from the
+    colour's (e.g. 1280x720 depth under 1920x1080 colour). ``reconnect_interval_s``: pause
+    before connecting again to a device that was absent or lost. ``intrinsics``: default the
+    device's own colour intrinsics.
+    """
+
+    serial: str | None = None
+    width: int = 640
+    height: int = 480
+    fps: int = 30
+    depth: bool = True
+    depth_width: int | None = None
+    depth_height: int | None = None
+    reconnect_interval_s: float = 1.0
+    intrinsics: Intrinsics | None = None
+    mount: CameraMount | None = None
+
+    def __post_init__(self) -> None:
+        _serial(self.serial)
+        for name in ("width", "height", "fps"):
+            _positive_int(name, getattr(self, name))
+        if (self.depth_width is None) != (self.depth_height is None):
+            raise ValueError("give both depth_width and depth_height, or neither")
+        for name in ("depth_width", "depth_height"):
+            if getattr(self, name) is not None:
+                _positive_int(name, getattr(self, name))
+        _bool("depth", self.depth)
+        object.__setattr__(
+            self,
+            "reconnect_interval_s",
+            _finite("reconnect_interval_s", self.reconnect_interval_s, positive=True),
+        )
+        _intrinsics(self.intrinsics)
+        _mount(self.mount)
+        _intrinsics_match(self.intrinsics, self.width, self.height)
+
+
+GENICAM_PIXEL_FORMATS = (
+    "Mono8",
+    "Mono10",
+    "Mono12",
+    "Mono16",
+    "BayerRG8",
+    "BayerGR8",
+    "BayerGB8",
+    "BayerBG8",
+)
+"""Values of ``GenICamCameraSettings.pixel_format`` (GenICam's SFNC names, unpacked)."""
+
+GENICAM_TRIGGERS = ("free_run", "software", "hardware")
+"""Values of ``GenICamCameraSettings.trigger``."""
+
+
+@dataclass(frozen=True)
+class GenICamCameraSettings:
+    """A GenICam camera (GigE Vision, USB3 Vision) through harvesters (the ``genicam`` extra).
+
+    ``cti``: the GenTL producer (.cti file) of the camera's vendor, relative to the
+    configuration file. ``serial``: the device's serial number (a string); None takes the
+    only device the producer sees. ``pixel_format``: Mono8/10/12/16 (frames are scaled to
+    8 bits) or Bayer*8 (demosaiced to BGR). ``exposure_us``: ExposureTime in microseconds;
+    ``gain_db``: Gain in dB; None leaves the device's value. ``trigger``: ``free_run`` (a grab
+    takes the newest frame), ``software`` (a grab fires TriggerSoftware) or ``hardware`` (a
+    grab takes the next frame triggered on ``trigger_source``, e.g. ``Line0``).
+    ``reconnect_interval_s``: pause before connecting again to a device that was absent or
+    lost. The device's own ranges are checked when it connects.
+    """
+
+    cti: Path
+    serial: str | None = None
+    pixel_format: str = "Mono8"
+    exposure_us: float | None = None
+    gain_db: float | None = None
+    trigger: str = "free_run"
+    trigger_source: str | None = None
+    reconnect_interval_s: float = 1.0
+    intrinsics: Intrinsics | None = None
+    mount: CameraMount | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "cti", _path("cti", self.cti))
+        if self.cti.suffix.lower() != ".cti":
+            raise ValueError(f"cti must name a GenTL producer file (*.cti), got {str(self.cti)!r}")
+        _serial(self.serial)
+        if self.pixel_format not in GENICAM_PIXEL_FORMATS:
+            raise ValueError(
+                f"pixel_format must be one of {list(GENICAM_PIXEL_FORMATS)}, "
+                f"got {self.pixel_format!r}"
+            )
+        if self.exposure_us is not None:
+            object.__setattr__(
+                self, "exposure_us", _finite("exposure_us", self.exposure_us, positive=True)
+            )
+        if self.gain_db is not None:
+            object.__setattr__(self, "gain_db", _finite("gain_db", self.gain_db))
+        if self.trigger not in GENICAM_TRIGGERS:
+            raise ValueError(
+                f"trigger must be one of {list(GENICAM_TRIGGERS)}, got {self.trigger!r}"
+            )
+        if self.trigger_source is not None:
+            if self.trigger != "hardware":
+                raise ValueError("trigger_source is only used with trigger: hardware")
+            if not isinstance(self.trigger_source, str) or not self.trigger_source.strip():
+                raise ValueError(
+                    f"trigger_source must be a line name such as 'Line0', "
+                    f"got {self.trigger_source!r}"
+                )
+        elif self.trigger == "hardware":
+            object.__setattr__(self, "trigger_source", "Line0")
+        object.__setattr__(
+            self,
+            "reconnect_interval_s",
+            _finite("reconnect_interval_s", self.reconnect_interval_s, positive=True),
+        )
+        _intrinsics(self.intrinsics)
+        _mount(self.mount)
+
+
 CameraSettings = (
-    RequestCameraSettings | OpenCVCameraSettings | FolderCameraSettings | SimCameraSettings
+    RequestCameraSettings
+    | OpenCVCameraSettings
+    | FolderCameraSettings
+    | SimCameraSettings
+    | RealSenseCameraSettings
+    | GenICamCameraSettings
 )
 
 SOURCE_NAMES: dict[str, type[CameraSettings]] = {
@@ -329,5 +479,7 @@ SOURCE_NAMES: dict[str, type[CameraSettings]] = {
     "opencv": OpenCVCameraSettings,
     "folder": FolderCameraSettings,
     "sim": SimCameraSettings,
+    "realsense": RealSenseCameraSettings,
+    "genicam": GenICamCameraSettings,
 }
 """The ``source:`` value of a camera in the configuration -> its settings class."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -12,8 +13,10 @@ from geometry import CameraIntrinsics
 from vision_server.cameras import (
     SOURCE_NAMES,
     FolderCameraSettings,
+    GenICamCameraSettings,
     Intrinsics,
     OpenCVCameraSettings,
+    RealSenseCameraSettings,
     RequestCameraSettings,
     SimCameraSettings,
 )
@@ -138,4 +141,58 @@ def test_request_settings_and_source_names() -> None:
         "opencv": OpenCVCameraSettings,
         "folder": FolderCameraSettings,
         "sim": SimCameraSettings,
+        "realsense": RealSenseCameraSettings,
+        "genicam": GenICamCameraSettings,
     }
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"serial": 123456789012}, "serial must be a non-empty string (quote a numeric serial"),
+        ({"serial": " "}, "serial must be a non-empty string"),
+        ({"fps": 0}, "fps must be a positive integer"),
+        ({"width": 640.5}, "width must be a positive integer"),
+        ({"depth_width": 320}, "give both depth_width and depth_height"),
+        ({"depth": "yes"}, "depth must be true or false"),
+        ({"reconnect_interval_s": 0}, "reconnect_interval_s must be > 0"),
+        (
+            {"intrinsics": Intrinsics(**K)},  # 640x480 intrinsics, default 640x480: fine ...
+            None,
+        ),
+        (
+            {"width": 1280, "height": 720, "intrinsics": Intrinsics(**K)},
+            "intrinsics are for 640x480 but the camera is set to 1280x720",
+        ),
+    ],
+)
+def test_realsense_settings_name_the_field(kwargs: dict[str, Any], message: str | None) -> None:
+    if message is None:
+        RealSenseCameraSettings(**kwargs)
+        return
+    with pytest.raises(ValueError, match=re.escape(message)):
+        RealSenseCameraSettings(**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"cti": "producer.so"}, "cti must name a GenTL producer file (*.cti)"),
+        ({"cti": "p.cti", "pixel_format": "RGB8"}, "pixel_format must be one of ['Mono8'"),
+        ({"cti": "p.cti", "exposure_us": -1}, "exposure_us must be > 0"),
+        ({"cti": "p.cti", "gain_db": float("nan")}, "gain_db must be a finite number"),
+        ({"cti": "p.cti", "trigger": "line"}, "trigger must be one of ['free_run'"),
+        ({"cti": "p.cti", "trigger_source": "Line1"}, "trigger_source is only used with"),
+        ({"cti": "p.cti", "trigger": "hardware", "trigger_source": ""}, "trigger_source must"),
+        ({"cti": "p.cti", "serial": 42}, "serial must be a non-empty string"),
+    ],
+)
+def test_genicam_settings_name_the_field(kwargs: dict[str, Any], message: str) -> None:
+    with pytest.raises(ValueError, match=re.escape(message)):
+        GenICamCameraSettings(**kwargs)
+
+
+def test_a_hardware_trigger_defaults_to_line0() -> None:
+    settings = GenICamCameraSettings(Path("p.cti"), trigger="hardware")
+    assert settings.trigger_source == "Line0"
+    assert GenICamCameraSettings(Path("p.cti")).trigger_source is None
