@@ -158,6 +158,9 @@ class InspectionRecord:
 
     request: InspectRequest
     reply: InspectReply
+    captured: Images | None = None
+    """The frames a server camera gave for this run (None when the request brought its
+    images): the live view of a triggered camera shows them instead of reading one itself."""
 
 
 @dataclass(frozen=True)
@@ -471,9 +474,12 @@ class InspectionService:
                 )
 
         in_process = inspection.name in self.settings.process_inspections
+        captured: list[Images] = []
 
         def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None]:
             image = acquire()
+            if request.images is None:
+                captured.append(Images(image.color, image.depth))
             if request.overlay is not None:
                 self._admit_overlay(image.color, admission)
             t0 = time.perf_counter()
@@ -533,7 +539,7 @@ class InspectionService:
             stored,
             overlay,
         )
-        self._notify(InspectionRecord(request, reply))
+        self._notify(InspectionRecord(request, reply, captured[0] if captured else None))
         return reply
 
     def _admit_overlay(self, color: Image, admission: Admission) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from fake_harvesters import FakeGigECamera, fake_harvesters
@@ -17,8 +18,11 @@ from protocol import CameraUnavailable
 from protocol.images import array_from_payload
 from vision_server.cameras import CameraSettings, ManualClock, make_camera
 from vision_server.config import ConfigError, load_config
+from vision_server.frontends.http_live import LiveView
 from vision_server.runtime import CellRuntime
 from vision_server.server import ServerSettings, VisionServer
+from vision_server.service import InspectionService, InspectRequest
+from vision_server.settings import ServiceSettings
 
 CONFIG = """\
 server: {port: 0}
@@ -131,3 +135,51 @@ def test_configuration_errors_name_the_camera_and_key(
         load_config(path)
     assert message in str(excinfo.value)
     assert "cell.yaml:2" in str(excinfo.value)
+
+
+def test_the_live_view_of_a_triggered_camera_fires_no_trigger_and_shows_the_inspected_frame(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A console viewer of a camera with a software (or hardware) trigger must not fire one
+    (or take the frame a PLC's trigger started for a robot): it shows the frame the last
+    inspection took, and nothing before the first."""
+    gc_modules, network = fake_harvesters(FakeGigECamera("22001234"))
+    for name, module in gc_modules.items():
+        monkeypatch.setitem(sys.modules, name, module)
+    config = tmp_path / "cell.yaml"
+    (tmp_path / "producers").mkdir()
+    (tmp_path / "producers" / "fake.cti").write_bytes(b"fake GenTL producer")
+    config.write_text(
+        "server: {port: 0}\n"
+        "cameras:\n"
+        "  mono: {source: genicam, cti: producers/fake.cti, serial: '22001234',\n"
+        "         pixel_format: Mono8, trigger: software}\n"
+        "inspections:\n"
+        "  - {name: mono_present, type: presence, camera: mono, measure: mean_intensity,"
+        " min: 1}\n",
+        encoding="utf-8",
+    )
+    runtime = CellRuntime(config)
+    service = InspectionService(runtime.catalog, ServiceSettings(workers=1))
+    live = LiveView(service, max_fps=1000.0)
+    device = network.camera("22001234")
+
+    async def body() -> None:
+        assert await live.frame("mono") is None  # no inspection yet: nothing to show
+        assert device.frame_number == 0  # ... and no trigger fired for the view
+        await service.inspect(InspectRequest("mono_present"))
+        taken = device.frame_number
+        shown = await live.frame("mono")
+        assert shown is not None
+        pixels = cv2.imdecode(np.frombuffer(shown.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
+        assert abs(int(np.median(pixels)) - taken % 256) <= 1  # the inspected frame
+        again = await live.frame("mono")
+        assert again is not None
+        assert device.frame_number == taken  # viewing fired nothing
+
+    try:
+        run(body())
+    finally:
+        live.close()
+        service.close()
+        runtime.close()

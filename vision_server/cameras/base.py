@@ -169,6 +169,13 @@ class Camera(ABC):
         """True when frames carry a registered depth image."""
         return self._has_depth
 
+    @property
+    def triggered(self) -> bool:
+        """True when a grab fires a trigger or takes a frame a trigger line started: a frame read
+        only to be looked at (the console's live view) would then be a frame taken from the
+        cell's work. Such a camera's view shows the last frame an inspection took."""
+        return False
+
     def descriptor(self) -> dict[str, Any]:
         """JSON-able description: name, source, depth, intrinsics (when known)."""
         desc: dict[str, Any] = {"name": self.name, "source": self.source, "depth": self.has_depth}

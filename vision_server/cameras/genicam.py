@@ -49,6 +49,11 @@ class GenICamCamera(DeviceCamera):
 
     source = "genicam"
 
+    @property
+    def triggered(self) -> bool:
+        """A software or hardware trigger: the live view must not fire or take one."""
+        return self.settings.trigger != "free_run"
+
     def __init__(
         self,
         name: str,

@@ -3,8 +3,9 @@
 Server cameras are read through the service's capture (admission, the pool, the capture
 timeout), at most ``max_fps`` times per second per camera: a viewer asking sooner gets the
 cached JPEG, and viewers asking at once wait for the same capture. Request cameras show the
-last image a robot sent, learnt from the service's observers of results and encoded only when
-someone looks (and at most ``max_fps`` times per second).
+last image a robot sent, and triggered cameras (a GenICam camera with a software or hardware
+trigger) the last frame an inspection took, learnt from the service's observers of results and
+encoded only when someone looks (and at most ``max_fps`` times per second).
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ class LiveFrame:
 
 @dataclass
 class _Sent:
-    """The last images a robot sent for a request camera, not decoded yet."""
+    """The last images a robot sent for a request camera (not decoded yet), or the last frames
+    an inspection took from a triggered camera."""
 
     images: Images | ImageLoader
     inspection: str
@@ -66,13 +68,17 @@ class LiveView:
         self._unsubscribe()
 
     def _on_result(self, record: InspectionRecord) -> None:
-        images = record.request.images
-        if images is None:
-            return
         camera = self.service.catalog.cameras.get(record.reply.camera)
-        if camera is None or camera.source != "request":
+        if camera is None:
+            return
+        if camera.source == "request":
+            images = record.request.images
+        elif camera.triggered:
+            images = record.captured
+        else:
             return  # a stored image run through a fixed camera's inspection is not its view
-        self._sent[record.reply.camera] = _Sent(images, record.reply.inspection, time.time())
+        if images is not None:
+            self._sent[record.reply.camera] = _Sent(images, record.reply.inspection, time.time())
 
     def newest(self, camera: str) -> LiveFrame | None:
         """The last frame shown of ``camera`` (None before any)."""
@@ -103,7 +109,9 @@ class LiveView:
             # timer jitter: a page asking every interval gets a new frame each time.
             if cached is not None and started - cached.read_at < 0.9 * self.min_interval_s:
                 return cached
-            if camera.source == "request":
+            if camera.source == "request" or camera.triggered:
+                # Never a read of its own for a triggered camera: it would fire a trigger, or
+                # take a frame the cell's trigger line started for a robot's inspection.
                 fresh = await self._sent_frame(name, cached)
             else:
                 fresh = await self._captured(name, started)
