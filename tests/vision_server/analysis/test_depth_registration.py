@@ -85,7 +85,8 @@ def test_fit_needs_views_and_tilts() -> None:
     # square to the camera: the shift is not determined, only the scale
     reg = fit_depth_registration([0.004, 0.006, 0.005, 0.005], np.zeros((4, 2)))
     assert reg.scale == pytest.approx(1.005)
-    assert reg.shift_px == (0.0, 0.0) and np.isnan(reg.shift_std_px[0])
+    assert reg.shift_px == (0.0, 0.0)
+    assert np.isnan(reg.shift_std_px[0])
     with pytest.raises(ValueError, match="depth_scale"):
         qr_pose(None, np.zeros((4, 4), np.uint16), _intrinsics(), depth_scale=0.0)
 
