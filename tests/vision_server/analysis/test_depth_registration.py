@@ -73,6 +73,16 @@ def test_corrected_pose_meets_the_goal_under_sensor_errors(misregistered: Any) -
     assert r <= 0.2
 
 
+@pytest.mark.parametrize("bias", [-0.01, 0.01])
+def test_corrected_pose_at_one_percent_scale_error(bias: float) -> None:
+    views = _views(24, seed=3, misregistration_px=SHIFT_PX, scale_bias=bias)
+    reg = _check(views[:12])
+    assert reg.scale == pytest.approx(1 + bias, abs=0.0015)
+    t, r = _p95(views[12:], depth_scale=reg.scale, depth_shift_px=reg.shift_px)
+    assert t <= 0.0005
+    assert r <= 0.2
+
+
 def test_perfect_sensor_checks_as_perfect() -> None:
     reg = _check(_views(12, seed=4))
     assert abs(reg.scale - 1.0) < 0.0015
