@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import AnalysisError
+from .qr_pose import CORNER_BIAS_PX
 
 __all__ = ["DepthRegistration", "fit_depth_registration"]
 
@@ -62,7 +63,7 @@ def fit_depth_registration(
     shift_sensitivity: Sequence[Sequence[float]] | FloatArray,
     side_px: Sequence[float] | FloatArray | None = None,
     *,
-    corner_bias_px: float = -0.07,
+    corner_bias_px: float = CORNER_BIAS_PX,
     min_tilt_spread: float = 2e-4,
 ) -> DepthRegistration:
     """Least-squares fit of scale and shift over N views (see the module's docstring).

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from protocol import BadImage
-from yamlfile import numbers
+from yamlfile import non_negative, numbers
 
 from ..analysis import AnalysisError, DepthError, NotFoundError
 from ..analysis.qr_pose import QRPoseQuality, qr_pose
@@ -39,6 +39,8 @@ class QRPoseInspection(Configured):
     depth_scale: float = 1.0
     depth_shift_px: tuple[float, float] = (0.0, 0.0)
     max_depth_vs_side: float = 0.003
+    depth_scale_std: float | None = None
+    depth_shift_std_px: tuple[float, float] = (0.0, 0.0)
 
     type = "qr_pose"
     uses_depth = True
@@ -63,6 +65,8 @@ class QRPoseInspection(Configured):
                 side_m=self.side_m,
                 depth_scale=self.depth_scale,
                 depth_shift_px=self.depth_shift_px,
+                depth_scale_std=self.depth_scale_std,
+                depth_shift_std_px=self.depth_shift_std_px,
             )
         except (NotFoundError, DepthError) as exc:
             picture = None
@@ -183,6 +187,8 @@ def parse_qr_pose(
         node.take("depth_scale", positive, 1.0),
         _pair(node.take("depth_shift_px", numbers(2), (0.0, 0.0))),
         node.take("max_depth_vs_side", positive, 0.003),
+        node.take("depth_scale_std", non_negative, None),
+        _pair(node.take("depth_shift_std_px", numbers(2, each=non_negative), (0.0, 0.0))),
     )
 
 

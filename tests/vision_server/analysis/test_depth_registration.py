@@ -47,6 +47,16 @@ def misregistered() -> list[tuple[Any, list[Any]]]:
     return _views(24, seed=3, misregistration_px=SHIFT_PX, scale_bias=BIAS)
 
 
+def _corrected(reg: Any) -> dict[str, Any]:
+    """qr_pose's keywords for a sensor check's correction with its uncertainties."""
+    return {
+        "depth_scale": reg.scale,
+        "depth_shift_px": reg.shift_px,
+        "depth_scale_std": reg.scale_std,
+        "depth_shift_std_px": reg.shift_std_px,
+    }
+
+
 def _check(views: list[tuple[Any, list[Any]]]) -> Any:
     poses = [qr_pose(f.color, d, f.truth.intrinsics, side_m=SIDE) for f, d in views]
     q = [p.quality for p in poses]
@@ -67,7 +77,7 @@ def test_corrected_pose_meets_the_goal_under_sensor_errors(misregistered: Any) -
     reg = _check(misregistered[:12])
     held_out = misregistered[12:]  # the check's views are not the evaluated ones
     raw_t, _ = _p95(held_out)
-    t, r = _p95(held_out, depth_scale=reg.scale, depth_shift_px=reg.shift_px)
+    t, r = _p95(held_out, **_corrected(reg))
     assert raw_t > 0.001  # the uncorrected sensor errors cost millimetres
     assert t <= 0.0005
     assert r <= 0.2
@@ -78,8 +88,21 @@ def test_corrected_pose_at_one_percent_scale_error(bias: float) -> None:
     views = _views(24, seed=3, misregistration_px=SHIFT_PX, scale_bias=bias)
     reg = _check(views[:12])
     assert reg.scale == pytest.approx(1 + bias, abs=0.0015)
-    t, r = _p95(views[12:], depth_scale=reg.scale, depth_shift_px=reg.shift_px)
+    t, r = _p95(views[12:], **_corrected(reg))
     assert t <= 0.0005
+    assert r <= 0.2
+
+
+def test_fusion_with_the_side_beats_the_correction_alone() -> None:
+    # (-2, 1) px: the check's shift is ~0.4 px off on these views, the corrected depth alone
+    # 0.55 mm p95; the printed side, weighted by the check's uncertainty, pulls it back
+    views = _views(24, seed=3, misregistration_px=(-2.0, 1.0), scale_bias=0.01)
+    reg = _check(views[:12])
+    alone, _ = _p95(views[12:], depth_scale=reg.scale, depth_shift_px=reg.shift_px)
+    fused, r = _p95(views[12:], **_corrected(reg))
+    assert alone > 0.0005  # the correction alone misses the goal here
+    assert fused < alone
+    assert fused <= 0.0005
     assert r <= 0.2
 
 
