@@ -221,11 +221,16 @@ def _sensor_check(views: int) -> dict[str, dict[str, Any]]:
             [q.side_px for q in check],
         )
         rows: dict[str, Any] = {"registration": reg}
-        corrections = {
-            "plane, uncorrected": (1.0, (0.0, 0.0)),
-            "plane, sensor-checked": (reg.scale, reg.shift_px),
+        corrections: dict[str, dict[str, Any]] = {
+            "plane, uncorrected": {},
+            "plane, sensor-checked": {
+                "depth_scale": reg.scale,
+                "depth_shift_px": reg.shift_px,
+                "depth_scale_std": reg.scale_std,
+                "depth_shift_std_px": reg.shift_std_px,
+            },
         }
-        for name, (scale, shift) in corrections.items():
+        for name, kw in corrections.items():
             t, r = [], []
             for f, d, truth in measured[views:]:
                 pose = qr_pose(
@@ -234,8 +239,7 @@ def _sensor_check(views: int) -> dict[str, dict[str, Any]]:
                     f.truth.intrinsics,
                     expect=QR_TEXT,
                     side_m=side,
-                    depth_scale=scale,
-                    depth_shift_px=shift,
+                    **kw,
                 ).camera_from_qr
                 t.append(float(np.linalg.norm(pose[:3, 3] - truth[:3, 3])) * 1e3)
                 r.append(float(np.degrees(rotation_error_rad(pose, truth))))
@@ -420,7 +424,8 @@ def run(cfg: RunConfig, env: Env) -> Section:
     section.notes.append(
         "Sensor check: `fit_depth_registration` over the check's views fits the depth scale and "
         "the depth-to-colour shift against the printed side (what `vision-server sensor-check` "
-        "prints); the corrected rows pass them as `depth_scale` / `depth_shift_px`. Without "
+        "prints); the corrected rows pass them and their standard errors as `depth_scale` / "
+        "`depth_shift_px` / `depth_scale_std` / `depth_shift_std_px`. Without "
         "sensor errors the uncorrected plane method stays the default (its p95 here "
         f"{fmt(clean_p95)} mm); no correction is configured unless the check says so."
     )

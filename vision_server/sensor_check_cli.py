@@ -65,8 +65,8 @@ def _verdict(reg: DepthRegistration) -> tuple[bool, str]:
     if not off:
         return True, "the sensor agrees with the board: no depth correction needed"
     return False, (
-        "; ".join(off) + ": set the qr_pose inspection's depth_scale and depth_shift_px to these "
-        "values (or calibrate the sensor's depth-to-colour registration)"
+        "; ".join(off) + ": set the qr_pose inspection's depth_scale, depth_shift_px and their "
+        "_std keys to these values (or calibrate the sensor's depth-to-colour registration)"
     )
 
 
