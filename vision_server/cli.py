@@ -70,7 +70,7 @@ from protocol.image_files import (
 )
 from protocol.result_view import result_json, result_view
 
-from . import decoder_limits
+from . import decoder_limits, sensor_check_cli
 from .admin import AdminError, call_endpoint, resolve
 from .app import App
 from .builtin import builtin_catalog
@@ -734,6 +734,8 @@ def build_parser() -> argparse.ArgumentParser:
     results.add_argument("--failed", action="store_true", help="only failed inspections")
     results.add_argument("--limit", type=int, default=100)
     results.set_defaults(func=_results)
+
+    sensor_check_cli.add_parser(sub, [local])
 
     modbus_map = sub.add_parser(
         "modbus-map",

@@ -43,6 +43,7 @@ in-plane angle comes from the image corners. Why this is robust on a Kinect-like
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -69,6 +70,15 @@ def QR_CORNERS_QR(side_m: float) -> FloatArray:  # noqa: N802 - reads like a con
 
 
 @dataclass(frozen=True)
+class DepthCorrection:
+    """A depth sensor's known systematic errors: its depth reads ``scale`` times the true z,
+    and its pixel (u, v) saw the colour pixel (u - du, v - dv), ``shift_px`` = (du, dv)."""
+
+    scale: float = 1.0
+    shift_px: tuple[float, float] = (0.0, 0.0)
+
+
+@dataclass(frozen=True)
 class QRPoseQuality:
     """How much to trust a :class:`QRPose`.
 
@@ -80,6 +90,15 @@ class QRPoseQuality:
     orthonormalisation. ``side_lengths_m`` (4,): |c0c1|, |c1c2|, |c2c3|, |c3c0| measured
     before any rescaling; ``side_m``: the printed side if given. ``scale``: the factor applied
     to the corners (1.0 without ``side_m``). ``frames``: depth frames used.
+
+    Depth against the board (NaN without ``side_m``): ``depth_vs_side`` = (mean measured side
+    / ``side_m``) - 1 after the configured depth correction, i.e. how much further the depth
+    puts the board than its printed size does (relative; a depth scale error s adds s, a
+    misregistration (du, dv) px adds ``shift_sensitivity`` · (du, dv), and corner noise
+    ~0.03 %). ``shift_sensitivity`` (2,): that gain per pixel of misregistration, from the
+    plane's tilt (n_x / (n_z fx), n_y / (n_z fy)); a view square to the camera has (0, 0),
+    so one view cannot tell a shift from a scale: the sensor check fits several views.
+    ``side_px``: the code's mean side in the image, pixels.
     """
 
     corner_depth_std_m: FloatArray
@@ -91,6 +110,9 @@ class QRPoseQuality:
     side_m: float | None
     scale: float
     frames: int
+    depth_vs_side: float = float("nan")
+    side_px: float = float("nan")
+    shift_sensitivity: FloatArray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
 
 
 @dataclass(frozen=True)
@@ -203,6 +225,11 @@ def qr_pose(
     ransac_threshold_m: float | None = None,
     min_valid_pixels: int = 50,
     disparity_levels: tuple[float, int] | None = (43.5, 8),
+    depth_scale: float = 1.0,
+    depth_shift_px: tuple[float, float] = (0.0, 0.0),
+    depth_scale_std: float | None = None,
+    depth_shift_std_px: tuple[float, float] = (0.0, 0.0),
+    corner_bias_px: float = 0.0,
 ) -> QRPose:
     """``camera_from_qr`` of the QR code in ``color`` (or at the given ``corners``).
 
@@ -222,6 +249,15 @@ def qr_pose(
     depth values lie exactly on that table, each is snapped back to its level's exact z,
     which removes the ±0.5 mm rounding that does not average out over frames (it biases the
     plane's tilt by up to ~0.2°). None turns this off.
+    ``depth_scale`` and ``depth_shift_px`` correct a sensor whose depth reads ``depth_scale``
+    times the true z and whose depth pixel (u, v) sees the colour pixel (u - du, v - dv)
+    (the values the sensor check measures, :mod:`.depth_registration`); the defaults assume
+    a perfect sensor. ``depth_scale_std`` and ``depth_shift_std_px``: their uncertainties (the
+    check's standard errors); given with ``side_m`` and ``scale="auto"``, the distance is the
+    fusion of the corrected depth's and the printed side's by their variances (see
+    :func:`_fused_factor`) instead of the ``side_tolerance`` switch. ``corner_bias_px``: how
+    much too long the corner detector reads the code's image side on this camera (negative:
+    too short), removed from the side before the fusion (0: none assumed).
 
     Raises NotFoundError (no code), DepthError (a corner without depth, too few depth pixels,
     degenerate geometry), BadImageError (bad depth frames).
@@ -234,8 +270,13 @@ def qr_pose(
         raise ValueError(f"scale must be 'auto', 'side' or 'depth', got {scale!r}")
     if scale == "side" and side_m is None:
         raise ValueError("scale='side' needs side_m")
+    if not depth_scale > 0:
+        raise ValueError(f"depth_scale must be positive, got {depth_scale}")
     shape = (intrinsics.height, intrinsics.width)
     depth = _depth_stack(depth_frames, shape)
+    correction = DepthCorrection(
+        float(depth_scale), (float(depth_shift_px[0]), float(depth_shift_px[1]))
+    )
 
     if corners is None:
         if color is None:
@@ -255,7 +296,7 @@ def qr_pose(
 
     if method == "corners":
         corners_cam, spread, valid_fraction = _corners_method(
-            corners_uv, depth, intrinsics, window_px, disparity_levels
+            corners_uv, depth, intrinsics, window_px, disparity_levels, correction
         )
         rms = inlier_fraction = float("nan")
     else:
@@ -267,6 +308,7 @@ def qr_pose(
             ransac_threshold_m,
             min_valid_pixels,
             disparity_levels,
+            correction,
         )
 
     sides = _sides(corners_cam)
@@ -274,7 +316,19 @@ def qr_pose(
         raise DepthError(f"degenerate QR geometry: side lengths {sides.tolist()} m")
     orthogonality = _orthogonality(corners_cam)
     factor = 1.0
-    if side_m is not None and scale != "depth":
+    side_px = float(np.mean(_sides(corners_uv)))
+    sensitivity = _shift_sensitivity(corners_cam, intrinsics)
+    if side_m is not None and scale == "auto" and depth_scale_std is not None:
+        factor = _fused_factor(
+            float(sides.mean()) / side_m - 1.0,
+            side_px,
+            sensitivity,
+            depth_scale_std,
+            depth_shift_std_px,
+            corner_bias_px,
+        )
+        corners_cam = corners_cam * factor
+    elif side_m is not None and scale != "depth":
         ratio = side_m / float(sides.mean())
         if scale == "side" or abs(ratio - 1.0) > side_tolerance:
             factor = ratio
@@ -292,6 +346,7 @@ def qr_pose(
     else:
         model = QR_CORNERS_QR(side_m if side_m is not None else float(sides.mean()))
         rotation = _kabsch(model, corners_cam)
+    depth_vs_side = float("nan") if side_m is None else float(sides.mean()) / side_m - 1.0
     camera_from_qr = np.eye(4)
     camera_from_qr[:3, :3] = rotation
     camera_from_qr[:3, 3] = corners_cam.mean(axis=0)
@@ -305,8 +360,53 @@ def qr_pose(
         side_m=side_m,
         scale=factor,
         frames=int(depth.shape[0]),
+        depth_vs_side=depth_vs_side,
+        side_px=side_px,
+        shift_sensitivity=sensitivity,
     )
     return QRPose(camera_from_qr, text, corners_uv.copy(), corners_cam, method, quality)
+
+
+# The noise of the code's mean image side from the sub-pixel corner detector (read_qr), std in
+# pixels, measured against the simulated camera's truth at 0.7-1.3 m. The detector's *bias* on
+# the side depends on the camera's blur and is configured per camera (``corner_bias_px``,
+# measured against a known reference: -0.07 px on the simulated Xtion-like camera), not
+# assumed here.
+SIDE_NOISE_PX = 0.024
+
+
+def _shift_sensitivity(corners_cam: FloatArray, intr: CameraIntrinsics) -> FloatArray:
+    """d(depth_vs_side) / d(du, dv) per pixel: (n_x / (n_z fx), n_y / (n_z fy)) of the plane
+    through the corners (the sign of n cancels)."""
+    n = np.cross(corners_cam[2] - corners_cam[0], corners_cam[3] - corners_cam[1])
+    result: FloatArray = np.array([n[0] / (n[2] * intr.fx), n[1] / (n[2] * intr.fy)])
+    return result
+
+
+def _fused_factor(
+    depth_vs_side: float,
+    side_px: float,
+    sensitivity: FloatArray,
+    scale_std: float,
+    shift_std_px: tuple[float, float],
+    corner_bias_px: float,
+) -> float:
+    """The factor on the corrected depth's corners that fuses two distances by their variances:
+    the depth's (relative variance scale_std² + (g · shift_std)², the correction's own
+    uncertainty) and the printed side's (SIDE_NOISE_PX / side_px, after removing the
+    detector's ``corner_bias_px``). The fused distance is the depth's times 1 / (1 + w r), r the
+    disagreement, w = var_depth / (var_depth + var_side)."""
+    r = (1.0 + depth_vs_side) / (1.0 + corner_bias_px / side_px) - 1.0
+    var_depth = (
+        scale_std**2
+        + float((sensitivity[0] * shift_std_px[0]) ** 2)
+        + float((sensitivity[1] * shift_std_px[1]) ** 2)
+    )
+    var_side = (SIDE_NOISE_PX / side_px) ** 2
+    if not np.isfinite(var_depth) or var_depth + var_side <= 0:
+        return 1.0
+    w = var_depth / (var_depth + var_side)
+    return 1.0 / (1.0 + w * r)
 
 
 def _corners_method(
@@ -315,20 +415,23 @@ def _corners_method(
     intr: CameraIntrinsics,
     window: int,
     levels: tuple[float, int] | None,
+    correction: DepthCorrection,
 ) -> tuple[FloatArray, FloatArray, float]:
     h, w = depth.shape[1:]
     z = np.zeros(4)
     spread = np.zeros(4)
     valid_total = 0
     count_total = 0
+    du, dv = correction.shift_px
     for i, (u, v) in enumerate(corners_uv):
-        cu, cv = int(np.rint(u)), int(np.rint(v))
+        # the depth pixel that saw this colour pixel
+        cu, cv = int(np.rint(u + du)), int(np.rint(v + dv))
         patch = depth[
             :,
             max(cv - window, 0) : min(cv + window + 1, h),
             max(cu - window, 0) : min(cu + window + 1, w),
         ]
-        samples = _depth_m(patch[patch > 0], levels)
+        samples = _depth_m(patch[patch > 0], levels) / correction.scale
         valid_total += samples.size
         count_total += patch.size
         if samples.size == 0:
@@ -349,6 +452,7 @@ def _plane_method(
     threshold: float | None,
     min_valid: int,
     levels: tuple[float, int] | None,
+    correction: DepthCorrection,
     max_points: int = 25000,
 ) -> tuple[FloatArray, FloatArray, float, float, float]:
     n_frames, h, w = depth.shape
@@ -372,7 +476,8 @@ def _plane_method(
         keep = ((vv + v0) % stride == 0) & ((uu + u0) % stride == 0)
         vv, uu = vv[keep], uu[keep]
     uv = np.column_stack([uu + u0, vv + v0]).astype(np.float64)
-    xy = intr.undistort_pixels(uv)  # once per pixel, shared by all frames
+    # depth pixel (u, v) measured the colour pixel (u - du, v - dv): cast that pixel's ray
+    xy = intr.undistort_pixels(uv - np.asarray(correction.shift_px))  # shared by all frames
     zmm = depth[:, vv + v0, uu + u0]  # (N, P)
     valid = zmm > 0
     valid_fraction = float(valid.mean())
@@ -382,7 +487,7 @@ def _plane_method(
             f"too few valid depth pixels in the QR code: {n_valid} in {n_frames} frames "
             f"(need {min_valid})"
         )
-    z = _depth_m(zmm[valid], levels)
+    z = _depth_m(zmm[valid], levels) / correction.scale
     pix = np.nonzero(valid)[1]
     points = np.column_stack([xy[pix, 0] * z, xy[pix, 1] * z, z])
     z_med = float(z.mean())

@@ -13,6 +13,8 @@ import cv2
 import numpy as np
 
 from protocol import BadImage
+from yamlfile import non_negative, numbers
+from yamlfile import number as to_number
 
 from ..analysis import AnalysisError, DepthError, NotFoundError
 from ..analysis.qr_pose import QRPoseQuality, qr_pose
@@ -22,6 +24,9 @@ from ..configfile import Node, fraction, one_of, positive
 from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
 from .kinds import Data, ResultKind, points
 from .qr import parse_expect
+
+MAX_CORNER_BIAS_PX = 1.0
+"""A detector off by more than this is broken, not biased."""
 
 RED = (0, 0, 255)
 AXIS_COLOURS = ((0, 0, 255), (0, 200, 0), (255, 0, 0))  # x red, y green, z blue (BGR)
@@ -35,6 +40,12 @@ class QRPoseInspection(Configured):
     side_m: float | None
     max_plane_rms_m: float | None
     min_valid_fraction: float | None
+    depth_scale: float = 1.0
+    depth_shift_px: tuple[float, float] = (0.0, 0.0)
+    max_depth_vs_side: float = 0.003
+    depth_scale_std: float | None = None
+    depth_shift_std_px: tuple[float, float] = (0.0, 0.0)
+    corner_bias_px: float = 0.0
 
     type = "qr_pose"
     uses_depth = True
@@ -57,6 +68,11 @@ class QRPoseInspection(Configured):
                 roi=self.common.roi,
                 expect=self.expect,
                 side_m=self.side_m,
+                depth_scale=self.depth_scale,
+                depth_shift_px=self.depth_shift_px,
+                depth_scale_std=self.depth_scale_std,
+                depth_shift_std_px=self.depth_shift_std_px,
+                corner_bias_px=self.corner_bias_px,
             )
         except (NotFoundError, DepthError) as exc:
             picture = None
@@ -78,6 +94,7 @@ class QRPoseInspection(Configured):
         ):
             reasons.append(f"valid depth fraction {valid:.2f} below {self.min_valid_fraction}")
         passed = not reasons
+        quality["warnings"] = _warnings(quality, self.max_depth_vs_side)
         data: dict[str, Any] = {
             "found": True,
             "text": pose.text,
@@ -110,6 +127,19 @@ class QRPoseInspection(Configured):
             cv2.arrowedLine(picture, tuple(uv[0]), tuple(uv[i + 1]), AXIS_COLOURS[i], 2)
 
 
+def _warnings(quality: dict[str, Any], limit: float) -> list[str]:
+    """Warnings that do not fail the inspection: the depth disagrees with the printed side
+    (a depth scale error or misregistration the camera's correction does not remove)."""
+    mismatch = quality.get("depth_vs_side")
+    if mismatch is None or abs(mismatch) <= limit:
+        return []
+    return [
+        f"depth puts the code {mismatch * 100:+.2f} % from where its printed side does "
+        f"(limit {limit * 100:.2f} %): the depth sensor is misregistered or its scale is off; "
+        "run `vision-server sensor-check` and set depth_scale / depth_shift_px"
+    ]
+
+
 def _quality(quality: QRPoseQuality) -> dict[str, Any]:
     """The quality report as JSON (metres, radians)."""
     out: dict[str, Any] = {}
@@ -121,6 +151,8 @@ def _quality(quality: QRPoseQuality) -> dict[str, Any]:
         "side_m",
         "scale",
         "frames",
+        "depth_vs_side",
+        "side_px",
     ):
         value = getattr(quality, name, None)
         if value is None or isinstance(value, str):
@@ -130,7 +162,7 @@ def _quality(quality: QRPoseQuality) -> dict[str, Any]:
         else:
             number = float(value)
             out[name] = number if math.isfinite(number) else None  # NaN: not measured
-    for name in ("corner_depth_std_m", "side_lengths_m"):
+    for name in ("corner_depth_std_m", "side_lengths_m", "shift_sensitivity"):
         values = np.asarray(getattr(quality, name), dtype=float)
         out[name] = [float(x) if math.isfinite(x) else None for x in values]
     return out
@@ -158,7 +190,25 @@ def parse_qr_pose(
         node.take("side_m", positive, None),
         node.take("max_plane_rms_m", positive, None),
         node.take("min_valid_fraction", fraction, None),
+        node.take("depth_scale", positive, 1.0),
+        _pair(node.take("depth_shift_px", numbers(2), (0.0, 0.0))),
+        node.take("max_depth_vs_side", positive, 0.003),
+        node.take("depth_scale_std", non_negative, None),
+        _pair(node.take("depth_shift_std_px", numbers(2, each=non_negative), (0.0, 0.0))),
+        node.take("corner_bias_px", _corner_bias, 0.0),
     )
+
+
+def _corner_bias(value: Any) -> float:
+    """The corner detector's bias on the code's image side, pixels (a small number)."""
+    bias = to_number(value)
+    if not math.isfinite(bias) or abs(bias) > MAX_CORNER_BIAS_PX:
+        raise ValueError(f"expected a bias within +/-{MAX_CORNER_BIAS_PX:g} px, got {value!r}")
+    return bias
+
+
+def _pair(values: tuple[float, ...]) -> tuple[float, float]:
+    return (float(values[0]), float(values[1]))
 
 
 def _qr_pose_expected(data: Data) -> dict[str, Any]:
