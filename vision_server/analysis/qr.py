@@ -5,21 +5,25 @@
 ``c3`` bottom-left of the code as printed, in full-image pixels ``(u, v)`` with sub-pixel
 precision (the outer boundary of the dark modules, without the quiet zone).
 
-Decoders, in order: pyzbar (zbar, the paper's choice), zxing-cpp, OpenCV's ``QRCodeDetector``
-and ``QRCodeDetectorAruco``. They run on the plain grey image first; only when they find
-nothing (or nothing matching ``expect``) are preprocessed copies tried: upscaling of small
-images, downscaling of large ones, smoothing, sharpening, adaptive threshold, inversion and a
-45° rotation. The same code found several times is reported once.
+Decoders, in order: zxing-cpp (the fastest and the best single decoder on real photographs),
+pyzbar (zbar, the paper's choice), OpenCV's ``QRCodeDetector`` and ``QRCodeDetectorAruco``.
+Each runs on the plain grey image only when the ones before it found nothing (or nothing
+matching ``expect``): the common case costs one zxing-cpp call, and the slower decoders are
+kept for the images zxing-cpp misses (issue 19). Only then are preprocessed copies tried:
+upscaling of small images, downscaling of large ones, smoothing, sharpening, adaptive
+threshold, inversion and a 45° rotation. The same code found several times is reported once.
 
-Corner order. Every decoder reports the four corners in its own order and starting point, so
-the order is recomputed from the image: the quadrilateral is put in clockwise order on the
-screen, the image is rectified and the corner whose diagonal does not show the 1:1:3:1:1
-profile of a finder pattern is ``c2``; ``c0`` is the opposite corner. A code on a board seen
-from the front is clockwise on the screen. A *mirrored* image (a code seen in a mirror, or a
-flipped sensor) reverses the winding; we do not detect mirroring: ``c0`` is still the corner of
-the top-left finder pattern and ``c2`` the corner without one, and the order stays clockwise on
-the screen, so ``c1`` and ``c3`` are then the printed bottom-left and top-right corners (the
-corners of a real code that would produce that image seen from the front).
+Corner order. zxing-cpp reports the corners in symbol order, and its order is used as it is
+(put clockwise on the screen). The other decoders report them in their own order and starting
+point, so for them the order is recomputed from the image: the quadrilateral is put in
+clockwise order on the screen, the image is rectified and the corner whose diagonal does not
+show the 1:1:3:1:1 profile of a finder pattern is ``c2``; ``c0`` is the opposite corner. A
+code on a board seen from the front is clockwise on the screen. A *mirrored* image (a code seen
+in a mirror, or a flipped sensor) reverses the winding; we do not detect mirroring: ``c0`` is
+still the corner of the top-left finder pattern and ``c2`` the corner without one, and the
+order stays clockwise on the screen, so ``c1`` and ``c3`` are then the printed bottom-left and
+top-right corners (the corners of a real code that would produce that image seen from the
+front).
 
 Sub-pixel corners. Along each of the four sides, grey-level profiles across the side are
 sampled (bilinear) and the first crossing of the mid-level between the quiet zone and the dark
@@ -315,8 +319,12 @@ def _line_fit(points: FloatArray, outward: FloatArray, tol: float) -> FloatArray
         if len(p) < 4:
             return None
         centroid = p.mean(axis=0)
-        _, _, vt = np.linalg.svd(p - centroid)
-        n = vt[1]
+        d = p - centroid
+        # The normal is the eigenvector of the 2x2 scatter matrix with the smaller eigenvalue
+        # (eigh sorts ascending); a full SVD of the (N, 2) points built an N x N matrix and
+        # was most of the read's time.
+        _, vecs = np.linalg.eigh(d.T @ d)
+        n = vecs[:, 0]
         if n @ outward < 0:
             n = -n
         line = np.array([n[0], n[1], -float(n @ centroid)])
@@ -378,7 +386,17 @@ def refine_corners(
     side = float(np.mean(np.linalg.norm(q - np.roll(q, -1, axis=0), axis=1)))
     module = side / (modules if modules else 25)
     reach = float(np.clip(max(2.5, 0.8 * module, 0.03 * side), 2.5, 0.2 * side))
-    g = gray.astype(np.float32)
+    # Convert only the code's neighbourhood to float: converting a multi-megapixel photograph
+    # cost several times the decode itself (issue 19's speed goal).
+    margin = reach + 3.0
+    height, width = gray.shape
+    u0 = int(np.clip(np.floor(q[:, 0].min() - margin), 0, width - 1))
+    v0 = int(np.clip(np.floor(q[:, 1].min() - margin), 0, height - 1))
+    u1 = int(np.clip(np.ceil(q[:, 0].max() + margin) + 1, u0 + 1, width))
+    v1 = int(np.clip(np.ceil(q[:, 1].max() + margin) + 1, v0 + 1, height))
+    origin = np.array([u0, v0], np.float64)
+    g = gray[v0:v1, u0:u1].astype(np.float32)
+    q = q - origin
     centre = q.mean(axis=0)
     lines = []
     for i in range(4):
@@ -390,18 +408,18 @@ def refine_corners(
         pts = _edge_points(g, a, b, outward, reach)
         line = _line_fit(pts, outward, tol=max(0.35, 0.3 * module))
         if line is None:
-            return q
+            return q + origin
         lines.append(line)
     out = np.zeros((4, 2))
     for i in range(4):
         l1, l2 = lines[(i - 1) % 4], lines[i]  # the sides meeting at corner i
         p = np.cross(l1, l2)
         if abs(p[2]) < 1e-12:
-            return q
+            return q + origin
         out[i] = p[:2] / p[2]
     if np.max(np.linalg.norm(out - q, axis=1)) > max(3.0, 0.1 * side):
-        return q
-    return out
+        return q + origin
+    return out + origin
 
 
 # --- the reader ----------------------------------------------------------------------------
@@ -475,11 +493,11 @@ def decode_raw(
     for name in decoders:
         tried.append(name)
         _merge(found, DECODERS[name](gray))
-        if done() and name != "pyzbar":
+        if done():  # escalate to a slower decoder only when the faster ones found nothing
             return found, tried
     if done() or not preprocess:
         return found, tried
-    cheap = [d for d in decoders if d in ("pyzbar", "zxing")]
+    cheap = [d for d in decoders if d in ("zxing", "pyzbar")]
     for label, make in _variants(gray):
         img, back = make()
         for name in cheap:
@@ -498,7 +516,7 @@ def read_qr(
     *,
     roi: Sequence[int] | None = None,
     expect: Expect = None,
-    decoders: Sequence[str] = ("pyzbar", "zxing", "opencv", "opencv_aruco"),
+    decoders: Sequence[str] = ("zxing", "pyzbar", "opencv", "opencv_aruco"),
     refine: bool = True,
 ) -> list[QRCode]:
     """Find and decode the QR codes in ``image`` (uint8 gray or BGR; (u, v) pixels).
@@ -521,11 +539,16 @@ def read_qr(
     for r in found:
         if not _matches(r.text, expect):
             continue
-        ordered, confident = order_corners(gray, r.quad)
-        if not confident and r.decoder.startswith(("zxing", "opencv")) and "rot" not in r.decoder:
-            # these decoders report corners in symbol order; trust them when the test is unsure
-            ordered = _clockwise(r.quad)
-            ordered = _start_at(ordered, r.quad[0])
+        if r.decoder.startswith("zxing") and "rot" not in r.decoder:
+            # zxing-cpp reports the corners in symbol order (top-left = the finder pattern
+            # opposite the corner without one): the image test would only repeat it, at twice
+            # the cost of the decode.
+            ordered = _start_at(_clockwise(r.quad), r.quad[0])
+        else:
+            ordered, confident = order_corners(gray, r.quad)
+            if not confident and r.decoder.startswith("opencv") and "rot" not in r.decoder:
+                # OpenCV reports corners in symbol order too: trust it when the test is unsure
+                ordered = _start_at(_clockwise(r.quad), r.quad[0])
         if refine:
             modules = 17 + 4 * r.version if r.version else None
             ordered = refine_corners(gray, ordered, modules=modules)
