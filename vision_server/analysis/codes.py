@@ -1,0 +1,541 @@
+"""Reading 2D and 1D codes (DataMatrix, QR, Micro QR, Aztec, PDF417, Code 128, Code 39, EAN/UPC,
+ITF, GS1 DataBar) with zxing-cpp, escalating to preprocessed copies only when nothing is read.
+
+:func:`read_codes` returns :class:`Code` objects in full-image pixels ``(u, v)``. ``corners``
+are the symbol's four corners in symbol order as zxing-cpp reports them (top-left, top-right,
+bottom-right, bottom-left of the symbol as printed, for a 1D code the ends of its scan line
+pair); ``bbox`` is the axis-aligned box around them.
+
+Payloads. ``text`` is the payload exactly as encoded (zxing-cpp's plain text mode): GS1 and
+ISO/IEC 15434 separators (GS 0x1D, RS 0x1E, EOT 0x04) and every other control character are
+kept. ``text_hri`` beside it is for people: each control character spelled ``<GS>``, ``<RS>``…
+
+Escalation. The plain grey image is read first; only when nothing is read (or nothing matching
+``expect``) the preprocessed copies of :data:`ESCALATION` are tried, in order, and the first
+that reads something wins: a global-histogram binarizer instead of the local one, upscaling
+(small images) or downscaling (large ones), sharpening, smoothing and a white border (a symbol
+touching the image edge has no quiet zone). Each code says which copy read it (``decoder``).
+
+Grading (:class:`Grade`, estimates from the image, not an ISO 15415/15416 verification):
+``module_px``, ``contrast``, ``decode_margin`` and ``quiet_zone_modules``; see :class:`Grade`.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import zxingcpp
+from numpy.typing import NDArray
+
+from .errors import BadImageError, NotFoundError, RoiError
+
+__all__ = [
+    "SYMBOLOGIES",
+    "Code",
+    "Grade",
+    "human_readable",
+    "read_codes",
+]
+
+FloatArray = NDArray[np.float64]
+GrayImage = NDArray[np.uint8]
+Expect = str | re.Pattern[str] | None
+
+_F = zxingcpp.BarcodeFormat
+SYMBOLOGIES: dict[str, tuple[zxingcpp.BarcodeFormat, ...]] = {
+    "datamatrix": (_F.DataMatrix,),
+    "qr": (_F.QRCode,),
+    "micro_qr": (_F.MicroQRCode,),
+    "aztec": (_F.Aztec,),
+    "pdf417": (_F.PDF417,),
+    "code128": (_F.Code128,),
+    "code39": (_F.Code39,),
+    "ean_upc": (_F.EAN13, _F.EAN8, _F.UPCA, _F.UPCE),
+    "itf": (_F.ITF,),
+    "databar": (_F.DataBar, _F.DataBarExp, _F.DataBarLtd),
+}
+"""The ``symbologies:`` names and the zxing-cpp formats each stands for."""
+
+_MATRIX = {"datamatrix", "qr", "micro_qr", "aztec"}
+
+_FORMAT_NAMES: dict[str, str] = {
+    "DataMatrix": "datamatrix",
+    "QRCode": "qr",
+    "MicroQRCode": "micro_qr",
+    "Aztec": "aztec",
+    "PDF417": "pdf417",
+    "Code128": "code128",
+    "Code39": "code39",
+    "EAN13": "ean_upc",
+    "EAN8": "ean_upc",
+    "UPCA": "ean_upc",
+    "UPCE": "ean_upc",
+    "ITF": "itf",
+    "DataBar": "databar",
+    "DataBarExp": "databar",
+    "DataBarExpanded": "databar",
+    "DataBarLtd": "databar",
+    "DataBarLimited": "databar",
+}
+
+# fmt: off
+_CONTROL_NAMES = [
+    "NUL", "SOH", "STX", "ETX", "EOT", "ENQ", "ACK", "BEL", "BS", "HT", "LF", "VT", "FF", "CR",
+    "SO", "SI", "DLE", "DC1", "DC2", "DC3", "DC4", "NAK", "SYN", "ETB", "CAN", "EM", "SUB",
+    "ESC", "FS", "GS", "RS", "US",
+]
+# fmt: on
+
+
+def human_readable(text: str) -> str:
+    """``text`` with every ASCII control character spelled out: ``"A\\x1dB"`` -> ``"A<GS>B"``."""
+    out = []
+    for ch in text:
+        code = ord(ch)
+        if code < 0x20:
+            out.append(f"<{_CONTROL_NAMES[code]}>")
+        elif code == 0x7F:
+            out.append("<DEL>")
+        else:
+            out.append(ch)
+    return "".join(out)
+
+
+@dataclass(frozen=True)
+class Grade:
+    """Print-quality estimates of one read code, from the grey image.
+
+    - ``module_px``: the module (narrowest bar or cell) size in pixels: for a matrix code, the
+      mean side of the corner quadrilateral divided by the modules per side that the decoder
+      reports (its version); otherwise the median of the runs no longer than 1.5x the shortest
+      runs on the scan line through the symbol's middle (c0c3 midpoint to c1c2 midpoint),
+      thresholded at the mid-level.
+    - ``contrast``: (light - dark) / 255, light and dark the 90th and 10th percentiles of the
+      grey values inside the symbol (0..1; ISO's symbol contrast in spirit).
+    - ``decode_margin``: the median over the scan-line samples of ``|g - mid| / ((light -
+      dark) / 2)``, clipped to 0..1: 1 when every sample is fully light or fully dark, 0 when
+      all sit at the threshold (blur, low contrast, ink spread all lower it).
+    - ``quiet_zone_modules``: the smallest, over the four sides, of the width of the uniform
+      background beside the symbol, in modules: along the outward normal at the side's middle,
+      the distance to the first pixel further than half the contrast from the background level
+      (the median just outside the symbol), searched up to 10 modules (``10.0`` = at least).
+      ``None`` where the symbol touches the image edge before any change.
+    """
+
+    module_px: float
+    contrast: float
+    decode_margin: float
+    quiet_zone_modules: float | None
+
+
+@dataclass(frozen=True)
+class Code:
+    """One read code. ``text``: the payload as encoded (control characters kept);
+    ``text_hri``: the same for people; ``symbology``: a :data:`SYMBOLOGIES` name; ``format``:
+    zxing-cpp's own format name (e.g. ``EAN13``); ``corners`` (4, 2) float64 full-image pixels
+    in symbol order; ``bbox`` ``(u, v, width, height)`` pixels; ``orientation_deg``: the
+    symbol's rotation in the image as zxing-cpp reports it (degrees, clockwise on the screen);
+    ``inverted``: light modules on a dark background; ``mirrored``: the symbol-order corners
+    wind counter-clockwise on the screen (zxing-cpp reads a mirrored QR or DataMatrix by
+    transposing its grid and reports clockwise corners for it, so those read as False);
+    ``decoder``: which copy of the image read it (``zxing``, ``zxing+sharpen``…)."""
+
+    text: str
+    text_hri: str
+    symbology: str
+    format: str
+    corners: FloatArray
+    bbox: tuple[float, float, float, float]
+    orientation_deg: float
+    inverted: bool
+    mirrored: bool
+    decoder: str
+    grade: Grade
+
+
+# --- escalation ----------------------------------------------------------------------------
+
+Mapper = Callable[[FloatArray], FloatArray]
+
+
+def _identity(p: FloatArray) -> FloatArray:
+    return p
+
+
+def _scaled(gray: GrayImage, f: float) -> tuple[GrayImage, Mapper]:
+    interp = cv2.INTER_CUBIC if f > 1 else cv2.INTER_AREA
+    img = np.asarray(cv2.resize(gray, None, fx=f, fy=f, interpolation=interp), np.uint8)
+    s = np.array([img.shape[1] / gray.shape[1], img.shape[0] / gray.shape[0]])
+
+    def back(p: FloatArray) -> FloatArray:
+        out: FloatArray = (p + 0.5) / s - 0.5
+        return out
+
+    return img, back
+
+
+def _padded(gray: GrayImage) -> tuple[GrayImage, Mapper]:
+    pad = max(8, min(gray.shape) // 10)
+    # the border takes the image's light level so that a symbol cut by the edge gets a quiet zone
+    light = int(np.percentile(gray, 90))
+    img = cv2.copyMakeBorder(gray, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=light)
+
+    def back(p: FloatArray) -> FloatArray:
+        out: FloatArray = p - pad
+        return out
+
+    return np.asarray(img, np.uint8), back
+
+
+def _sharpened(gray: GrayImage) -> tuple[GrayImage, Mapper]:
+    blurred = cv2.GaussianBlur(gray, (0, 0), 2.0)
+    return np.asarray(cv2.addWeighted(gray, 2.0, blurred, -1.0, 0), np.uint8), _identity
+
+
+def _smoothed(gray: GrayImage) -> tuple[GrayImage, Mapper]:
+    return np.asarray(cv2.GaussianBlur(gray, (0, 0), 1.0), np.uint8), _identity
+
+
+def _plain(gray: GrayImage) -> tuple[GrayImage, Mapper]:
+    return gray, _identity
+
+
+def _resized(gray: GrayImage) -> tuple[GrayImage, Mapper]:
+    # small symbols gain from more pixels per module, large photographs from less noise
+    return _scaled(gray, 2.0 if min(gray.shape) < 600 else 0.5)
+
+
+_LOCAL = zxingcpp.Binarizer.LocalAverage
+_GLOBAL = zxingcpp.Binarizer.GlobalHistogram
+
+Step = tuple[str, Callable[[GrayImage], tuple[GrayImage, Mapper]], zxingcpp.Binarizer]
+
+ESCALATION: tuple[Step, ...] = (
+    ("histogram", _plain, _GLOBAL),
+    ("resized", _resized, _LOCAL),
+    ("sharpen", _sharpened, _LOCAL),
+    ("smooth", _smoothed, _LOCAL),
+    ("padded", _padded, _LOCAL),
+)
+"""The copies tried, in order, after the plain image read nothing: (label, make, binarizer)."""
+
+
+@dataclass
+class _Raw:
+    text: str
+    format: str
+    quad: FloatArray  # (4, 2) pixels of the searched image, symbol order
+    orientation_deg: float
+    version: str | None
+    decoder: str
+
+
+def _formats(symbologies: Sequence[str]) -> list[zxingcpp.BarcodeFormat]:
+    out: list[zxingcpp.BarcodeFormat] = []
+    for name in symbologies:
+        if name not in SYMBOLOGIES:
+            raise ValueError(f"unknown symbology {name!r}; known: {sorted(SYMBOLOGIES)}")
+        out.extend(SYMBOLOGIES[name])
+    if not out:
+        raise ValueError("symbologies is empty: name at least one")
+    return out
+
+
+def _read(
+    gray: GrayImage, formats: Sequence[zxingcpp.BarcodeFormat], binarizer: zxingcpp.Binarizer
+) -> list[_Raw]:
+    out = []
+    for b in zxingcpp.read_barcodes(
+        gray,
+        formats=zxingcpp.BarcodeFormats(list(formats)),
+        text_mode=zxingcpp.TextMode.Plain,  # as encoded: control characters kept
+        binarizer=binarizer,
+    ):
+        if not b.valid:
+            continue
+        pos = b.position
+        quad = np.array(
+            [
+                [pos.top_left.x, pos.top_left.y],
+                [pos.top_right.x, pos.top_right.y],
+                [pos.bottom_right.x, pos.bottom_right.y],
+                [pos.bottom_left.x, pos.bottom_left.y],
+            ],
+            dtype=np.float64,
+        )
+        extra = b.extra if isinstance(b.extra, dict) else {}
+        version = extra.get("Version")
+        out.append(
+            _Raw(
+                b.text,
+                b.format.name,
+                quad,
+                float(b.orientation),
+                None if version is None else str(version),
+                "zxing",
+            )
+        )
+    return out
+
+
+def _matches(text: str, expect: Expect) -> bool:
+    if expect is None:
+        return True
+    if isinstance(expect, re.Pattern):
+        return expect.fullmatch(text) is not None
+    return text == expect
+
+
+def _escalate(
+    gray: GrayImage, formats: Sequence[zxingcpp.BarcodeFormat], expect: Expect
+) -> tuple[list[_Raw], list[str]]:
+    """The plain read, then each :data:`ESCALATION` copy until one reads a matching code."""
+    tried = ["zxing"]
+    found = _read(gray, formats, _LOCAL)
+    if any(_matches(r.text, expect) for r in found):
+        return found, tried
+    for label, make, binarizer in ESCALATION:
+        img, back = make(gray)
+        tried.append(f"zxing+{label}")
+        new = _read(img, formats, binarizer)
+        for r in new:
+            r.quad = back(r.quad)
+            r.decoder = f"zxing+{label}"
+        seen = {r.text for r in found}
+        found.extend(r for r in new if r.text not in seen)
+        if any(_matches(r.text, expect) for r in new):
+            break
+    return found, tried
+
+
+# --- grading -------------------------------------------------------------------------------
+
+
+def _modules_per_side(symbology: str, version: str | None) -> float | None:
+    """Modules along a side of a matrix symbol from the decoder's version string."""
+    if version is None:
+        return None
+    try:
+        if symbology == "datamatrix":  # "ROWSxCOLUMNS"
+            rows, cols = (int(x) for x in version.lower().split("x"))
+            return (rows + cols) / 2.0
+        number = int(version)
+    except ValueError:
+        return None
+    if symbology == "qr":
+        return 17.0 + 4.0 * number
+    if symbology == "micro_qr":
+        return 9.0 + 2.0 * number
+    return None  # Aztec's size depends on compact/full as well: measured instead
+
+
+def _profile(gray: GrayImage, a: FloatArray, b: FloatArray) -> NDArray[np.float32]:
+    n = int(np.clip(np.linalg.norm(b - a) * 2.0, 8, 4000))  # two samples per pixel
+    t = np.linspace(0.0, 1.0, n)
+    pts = a[None, :] + t[:, None] * (b - a)[None, :]
+    mx = pts[:, 0].astype(np.float32).reshape(1, -1)
+    my = pts[:, 1].astype(np.float32).reshape(1, -1)
+    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return np.asarray(prof, np.float32).reshape(-1)
+
+
+def _grade(gray: GrayImage, quad: FloatArray, symbology: str, version: str | None) -> Grade:
+    height, width = gray.shape
+    mask = np.zeros(gray.shape, np.uint8)
+    cv2.fillConvexPoly(mask, np.round(quad).astype(np.int32), 1)
+    inside = gray[mask > 0]
+    if inside.size < 4:
+        inside = gray.reshape(-1)
+    light = float(np.percentile(inside, 90))
+    dark = float(np.percentile(inside, 10))
+    contrast = (light - dark) / 255.0
+    mid = (light + dark) / 2.0
+    half = max((light - dark) / 2.0, 1e-6)
+    left = (quad[0] + quad[3]) / 2.0
+    right = (quad[1] + quad[2]) / 2.0
+    prof = _profile(gray, left, right)
+    margin = float(np.clip(np.median(np.abs(prof - mid) / half), 0.0, 1.0))
+    sides = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
+    modules = _modules_per_side(symbology, version)
+    if modules is not None:
+        module = float(np.mean(sides) / modules)
+    else:
+        module = _narrow_run_px(prof, mid, float(np.linalg.norm(right - left)))
+    quiet = _quiet_zone(gray, quad, module, contrast * 255.0, width, height)
+    return Grade(module, contrast, margin, quiet)
+
+
+def _narrow_run_px(prof: NDArray[np.float32], mid: float, length_px: float) -> float:
+    dark = prof < mid
+    change = np.flatnonzero(np.diff(dark.astype(np.int8))) + 1
+    runs = np.diff(np.concatenate([[0], change, [dark.size]]))[1:-1]  # whole runs only
+    if runs.size == 0:
+        return length_px
+    px_per_sample = length_px / max(prof.size - 1, 1)
+    shortest = float(np.percentile(runs, 10))
+    narrow = runs[runs <= 1.5 * shortest]
+    return float(np.median(narrow)) * px_per_sample
+
+
+def _quiet_zone(
+    gray: GrayImage, quad: FloatArray, module: float, contrast: float, width: int, height: int
+) -> float | None:
+    if module <= 0:
+        return None
+    centre = quad.mean(axis=0)
+    reach = 10.0 * module
+    widths = []
+    for i in range(4):
+        a, b = quad[i], quad[(i + 1) % 4]
+        mid_side = (a + b) / 2.0
+        d = b - a
+        length = float(np.linalg.norm(d))
+        if length < 1e-6:
+            continue
+        normal = np.array([d[1], -d[0]]) / length
+        if normal @ (mid_side - centre) < 0:
+            normal = -normal
+        # start half a module out: the corner estimate may lie on the symbol's edge
+        start = mid_side + 0.5 * module * normal
+        if not (0 <= start[0] <= width - 1 and 0 <= start[1] <= height - 1):
+            return None  # the symbol touches the image edge: no quiet zone to see
+        # stop at the image edge: beyond it the width is unknown, so it counts as seen so far
+        room = _room(start, normal, width, height)
+        end = start + min(reach - 0.5 * module, room) * normal
+        prof = _profile(gray, start, end)
+        background = float(np.median(prof[: max(2, prof.size // 20)]))
+        off = np.flatnonzero(np.abs(prof - background) > contrast / 2.0)
+        span = float(np.linalg.norm(end - start))
+        distance = span if off.size == 0 else span * off[0] / max(prof.size - 1, 1)
+        widths.append((distance + 0.5 * module) / module)
+    return float(min(widths)) if widths else None
+
+
+def _room(p: FloatArray, direction: FloatArray, width: int, height: int) -> float:
+    """Distance from ``p`` along unit ``direction`` to the image's last pixel centre."""
+    limits = []
+    for k, size in ((0, width), (1, height)):
+        if direction[k] > 1e-9:
+            limits.append((size - 1 - p[k]) / direction[k])
+        elif direction[k] < -1e-9:
+            limits.append(-p[k] / direction[k])
+    return float(max(0.0, min(limits))) if limits else 0.0
+
+
+def _inverted(gray: GrayImage, quad: FloatArray) -> bool:
+    """Light-on-dark: the ring just outside the symbol is darker than the symbol's mean."""
+    centre = quad.mean(axis=0)
+    outer = centre + (quad - centre) * 1.15
+    mask_in = np.zeros(gray.shape, np.uint8)
+    cv2.fillConvexPoly(mask_in, np.round(quad).astype(np.int32), 1)
+    mask_out = np.zeros(gray.shape, np.uint8)
+    cv2.fillConvexPoly(mask_out, np.round(outer).astype(np.int32), 1)
+    ring = gray[(mask_out > 0) & (mask_in == 0)]
+    inside = gray[mask_in > 0]
+    if ring.size == 0 or inside.size == 0:
+        return False
+    return float(np.median(ring)) < float(np.mean(inside))
+
+
+def _counter_clockwise(quad: FloatArray) -> bool:
+    x, y = quad[:, 0], quad[:, 1]
+    # v points down: a negative shoelace sum is counter-clockwise on the screen
+    return float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) < 0
+
+
+# --- the reader ----------------------------------------------------------------------------
+
+
+def _to_gray(image: NDArray[np.generic]) -> GrayImage:
+    arr = np.asarray(image)
+    if arr.dtype != np.uint8:
+        raise BadImageError(f"image must be uint8, got {arr.dtype}")
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    if arr.ndim == 3 and arr.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if arr.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        arr = cv2.cvtColor(arr, code)
+    if arr.ndim != 2:
+        raise BadImageError(f"image must be (H, W) or (H, W, 3), got shape {arr.shape}")
+    if arr.shape[0] < 8 or arr.shape[1] < 8:
+        raise BadImageError(f"image too small for a code: {arr.shape[1]}x{arr.shape[0]}")
+    return np.ascontiguousarray(arr)
+
+
+def _crop(gray: GrayImage, roi: Sequence[int] | None) -> tuple[GrayImage, FloatArray]:
+    if roi is None:
+        return gray, np.zeros(2)
+    if len(roi) != 4:
+        raise RoiError(f"roi must be [u, v, width, height], got {roi!r}")
+    u, v, w, h = (int(x) for x in roi)
+    height, width = gray.shape
+    if w <= 0 or h <= 0:
+        raise RoiError(f"roi {list(roi)} is empty")
+    if u < 0 or v < 0 or u + w > width or v + h > height:
+        raise RoiError(f"roi {list(roi)} does not lie inside the {width}x{height} image")
+    if w < 8 or h < 8:
+        raise RoiError(f"roi {list(roi)} is too small for a code")
+    return np.ascontiguousarray(gray[v : v + h, u : u + w]), np.array([u, v], np.float64)
+
+
+def _describe(expect: Expect) -> str:
+    if isinstance(expect, re.Pattern):
+        return f"pattern {expect.pattern!r}"
+    return repr(expect)
+
+
+def read_codes(
+    image: NDArray[np.generic],
+    *,
+    symbologies: Sequence[str] = tuple(SYMBOLOGIES),
+    roi: Sequence[int] | None = None,
+    expect: Expect = None,
+) -> list[Code]:
+    """Read the codes of ``symbologies`` in ``image`` (uint8 grey or BGR; (u, v) pixels).
+
+    ``roi`` ``[u, v, width, height]`` restricts the search; ``expect`` (an exact string, or a
+    compiled pattern that must match the whole payload) selects codes and keeps escalating
+    until one matches. Returns the codes in reading order (the first copy that read them,
+    then zxing-cpp's order), corners in full-image pixels.
+
+    Raises ValueError (unknown symbology), BadImageError, RoiError, or NotFoundError naming
+    what was tried and, with ``expect``, what was read instead.
+    """
+    formats = _formats(symbologies)
+    gray, offset = _crop(_to_gray(image), roi)
+    found, tried = _escalate(gray, formats, expect)
+    codes = []
+    for r in found:
+        if not _matches(r.text, expect):
+            continue
+        symbology = _FORMAT_NAMES.get(r.format, r.format.lower())
+        quad = r.quad
+        u0, v0 = quad.min(axis=0)
+        u1, v1 = quad.max(axis=0)
+        full = quad + offset
+        codes.append(
+            Code(
+                text=r.text,
+                text_hri=human_readable(r.text),
+                symbology=symbology,
+                format=r.format,
+                corners=full,
+                bbox=(float(u0 + offset[0]), float(v0 + offset[1]), float(u1 - u0), float(v1 - v0)),
+                orientation_deg=r.orientation_deg,
+                inverted=_inverted(gray, quad),
+                mirrored=symbology in _MATRIX and _counter_clockwise(quad),
+                decoder=r.decoder,
+                grade=_grade(gray, quad, symbology, r.version),
+            )
+        )
+    if not codes:
+        names = ", ".join(symbologies)
+        what = f"no code ({names})" if expect is None else f"no code matching {_describe(expect)}"
+        seen = [human_readable(r.text) for r in found]
+        extra = f"; read instead: {seen}" if seen else ""
+        raise NotFoundError(f"{what} found (tried {', '.join(tried)}){extra}")
+    return codes
