@@ -12,7 +12,8 @@ kept. ``text_hri`` beside it is for people: each control character spelled ``<GS
 
 Escalation. The plain grey image is read first; only when nothing is read (or nothing matching
 ``expect``) the preprocessed copies of :data:`ESCALATION` are tried, in order, and the first
-that reads something wins: a global-histogram binarizer instead of the local one, upscaling
+that reads something wins: the inverted image (zxing-cpp retries light-on-dark matrix codes by
+itself, not 1D codes or PDF417), a global-histogram binarizer instead of the local one, upscaling
 (small images) or downscaling (large ones), sharpening, smoothing and a white border (a symbol
 touching the image edge has no quiet zone). Each code says which copy read it (``decoder``).
 
@@ -75,11 +76,6 @@ _FORMAT_NAMES: dict[str, str] = {
     "UPCA": "ean_upc",
     "UPCE": "ean_upc",
     "ITF": "itf",
-    "DataBar": "databar",
-    "DataBarExp": "databar",
-    "DataBarExpanded": "databar",
-    "DataBarLtd": "databar",
-    "DataBarLimited": "databar",
 }
 
 # fmt: off
@@ -115,10 +111,12 @@ class Grade:
       runs on the scan line through the symbol's middle (c0c3 midpoint to c1c2 midpoint),
       thresholded at the mid-level.
     - ``contrast``: (light - dark) / 255, light and dark the 90th and 10th percentiles of the
-      grey values inside the symbol (0..1; ISO's symbol contrast in spirit).
-    - ``decode_margin``: the median over the scan-line samples of ``|g - mid| / ((light -
-      dark) / 2)``, clipped to 0..1: 1 when every sample is fully light or fully dark, 0 when
-      all sit at the threshold (blur, low contrast, ink spread all lower it).
+      grey values of the pixels inside the corner quadrilateral (of the scan line where that
+      holds fewer than 50 pixels, as a 1D code's may) (0..1; ISO's symbol contrast in spirit).
+    - ``decode_margin``: the median over the same pixels of ``|g - mid| / ((light - dark) /
+      2)``, ``mid`` = (light + dark) / 2, clipped to 0..1: 1 when every pixel is fully light or
+      fully dark, 0 when all sit at the threshold (blur, low contrast, noise and ink spread
+      lower it; module edges take a few pixels even in a sharp image).
     - ``quiet_zone_modules``: the smallest, over the four sides, of the width of the uniform
       background beside the symbol, in modules: along the outward normal at the side's middle,
       the distance to the first pixel further than half the contrast from the background level
@@ -200,6 +198,12 @@ def _smoothed(gray: GrayImage) -> tuple[GrayImage, Mapper]:
     return np.asarray(cv2.GaussianBlur(gray, (0, 0), 1.0), np.uint8), _identity
 
 
+def _inverted_copy(gray: GrayImage) -> tuple[GrayImage, Mapper]:
+    # zxing-cpp's own inversion retry covers matrix codes only; light-on-dark 1D codes and
+    # PDF417 need the inverted image
+    return np.asarray(255 - gray, np.uint8), _identity
+
+
 def _plain(gray: GrayImage) -> tuple[GrayImage, Mapper]:
     return gray, _identity
 
@@ -215,6 +219,7 @@ _GLOBAL = zxingcpp.Binarizer.GlobalHistogram
 Step = tuple[str, Callable[[GrayImage], tuple[GrayImage, Mapper]], zxingcpp.Binarizer]
 
 ESCALATION: tuple[Step, ...] = (
+    ("inverted", _inverted_copy, _LOCAL),
     ("histogram", _plain, _GLOBAL),
     ("resized", _resized, _LOCAL),
     ("sharpen", _sharpened, _LOCAL),
@@ -347,18 +352,18 @@ def _grade(gray: GrayImage, quad: FloatArray, symbology: str, version: str | Non
     height, width = gray.shape
     mask = np.zeros(gray.shape, np.uint8)
     cv2.fillConvexPoly(mask, np.round(quad).astype(np.int32), 1)
-    inside = gray[mask > 0]
-    if inside.size < 4:
-        inside = gray.reshape(-1)
-    light = float(np.percentile(inside, 90))
-    dark = float(np.percentile(inside, 10))
-    contrast = (light - dark) / 255.0
-    mid = (light + dark) / 2.0
-    half = max((light - dark) / 2.0, 1e-6)
     left = (quad[0] + quad[3]) / 2.0
     right = (quad[1] + quad[2]) / 2.0
     prof = _profile(gray, left, right)
-    margin = float(np.clip(np.median(np.abs(prof - mid) / half), 0.0, 1.0))
+    inside = gray[mask > 0].astype(np.float32)
+    # a 1D code's corners may enclose a thin band only: then its scan line is the sample
+    samples = inside if inside.size >= 50 else prof
+    light = float(np.percentile(samples, 90))
+    dark = float(np.percentile(samples, 10))
+    contrast = (light - dark) / 255.0
+    mid = (light + dark) / 2.0
+    half = max((light - dark) / 2.0, 1e-6)
+    margin = float(np.clip(np.median(np.abs(samples - mid) / half), 0.0, 1.0))
     sides = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
     modules = _modules_per_side(symbology, version)
     if modules is not None:
@@ -512,7 +517,9 @@ def read_codes(
     for r in found:
         if not _matches(r.text, expect):
             continue
-        symbology = _FORMAT_NAMES.get(r.format, r.format.lower())
+        # zxing-cpp names DataBar's variants (DataBarOmni, DataBarExp...) one by one
+        default = "databar" if r.format.startswith("DataBar") else r.format.lower()
+        symbology = _FORMAT_NAMES.get(r.format, default)
         quad = r.quad
         u0, v0 = quad.min(axis=0)
         u1, v1 = quad.max(axis=0)
