@@ -309,70 +309,88 @@ def order_corners(gray: GrayImage, quad: FloatArray) -> tuple[FloatArray, bool]:
 # --- sub-pixel corners ---------------------------------------------------------------------
 
 
-def _line_fit(points: FloatArray, outward: FloatArray, tol: float) -> FloatArray | None:
-    """Line (a, b, c) with a*u + b*v + c = 0, (a, b) = the outward unit normal, fitted with
-    one-sided outlier removal (outliers lie inwards)."""
-    keep = np.ones(len(points), bool)
-    line: FloatArray | None = None
+def _line_fits(
+    points: FloatArray, valid: NDArray[np.bool_], outward: FloatArray, tol: float
+) -> FloatArray | None:
+    """Lines (4, 3) ``(a, b, c)`` with a*u + b*v + c = 0, (a, b) = each side's outward unit
+    normal, fitted to ``points`` (4, n, 2) where ``valid`` (4, n), with one-sided outlier
+    removal (outliers lie inwards); None when a side keeps fewer than 4 points.
+
+    The four sides are fitted together (one array operation for all), so that the cost does
+    not grow with Python calls per side (issue 19's speed goal); each side stops at its own
+    convergence, as a fit of that side alone would.
+    """
+    keep = valid.copy()
+    pu, pv = points[..., 0], points[..., 1]
+    done = np.zeros(4, bool)
+    lines = np.zeros((4, 3))
     for it in range(6):
-        p = points[keep]
-        if len(p) < 4:
+        w = keep.astype(np.float64)
+        count = w.sum(axis=1)
+        if np.any(count[~done] < 4):
             return None
-        centroid = p.mean(axis=0)
-        d = p - centroid
-        # The normal is the eigenvector of the 2x2 scatter matrix with the smaller eigenvalue
-        # (eigh sorts ascending); a full SVD of the (N, 2) points built an N x N matrix and
-        # was most of the read's time.
-        _, vecs = np.linalg.eigh(d.T @ d)
-        n = vecs[:, 0]
-        if n @ outward < 0:
-            n = -n
-        line = np.array([n[0], n[1], -float(n @ centroid)])
-        dist = points @ line[:2] + line[2]  # > 0 outward, < 0 inward
+        cu = (w * pu).sum(axis=1) / np.maximum(count, 1)
+        cv = (w * pv).sum(axis=1) / np.maximum(count, 1)
+        du, dv = pu - cu[:, None], pv - cv[:, None]
+        suu, svv, suv = (w * du * du).sum(1), (w * dv * dv).sum(1), (w * du * dv).sum(1)
+        # the 2x2 scatter's major axis is at 0.5 * atan2(2 suv, suu - svv): the line's
+        # direction; the normal is perpendicular to it
+        theta = 0.5 * np.arctan2(2.0 * suv, suu - svv)
+        nu, nv = -np.sin(theta), np.cos(theta)
+        flip = np.where(nu * outward[:, 0] + nv * outward[:, 1] < 0, -1.0, 1.0)
+        nu, nv = nu * flip, nv * flip
+        fitted = np.stack([nu, nv, -(nu * cu + nv * cv)], axis=1)
+        lines[~done] = fitted[~done]
+        dist = pu * lines[:, 0:1] + pv * lines[:, 1:2] + lines[:, 2:3]  # > 0 outward
         limit = max(tol, 3.0 * (0.5**it) * tol * 4)
-        new_keep = dist > -limit
+        new_keep = valid & (dist > -limit)
         if it > 0:
             # symmetric clean-up of outward noise (bad samples near glare, clutter)
             new_keep &= dist < 3.0 * limit
-        if np.array_equal(new_keep, keep) and it > 2:
-            break
-        keep = new_keep
-    return line
+        if it > 2:
+            done |= np.all(new_keep == keep, axis=1)
+            if done.all():
+                break
+        keep = np.where(done[:, None], keep, new_keep)
+    return lines
 
 
 def _edge_points(
-    gray: NDArray[np.float32], a: FloatArray, b: FloatArray, outward: FloatArray, reach: float
-) -> FloatArray:
-    """Sub-pixel mid-level crossings on profiles across side a->b (outside to inside)."""
-    n_samples = int(np.clip(np.linalg.norm(b - a) / 1.5, 12, 120))
+    gray: NDArray[np.float32], q: FloatArray, outward: FloatArray, reach: float
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Sub-pixel mid-level crossings on profiles across the four sides q[k] -> q[k+1]
+    (outside to inside): points (4, n, 2) and which of them were found (4, n)."""
+    lengths = np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1)
+    n_samples = int(np.clip(lengths.max() / 1.5, 12, 120))
     t = np.linspace(0.06, 0.94, n_samples)
     step = 0.25
     s = np.arange(-reach, reach + step / 2, step)  # s > 0 outward
-    base = a[None, :] + t[:, None] * (b - a)[None, :]
-    pts = base[:, None, :] + s[::-1][None, :, None] * outward[None, None, :]  # outside first
-    mx = pts[..., 0].astype(np.float32)
-    my = pts[..., 1].astype(np.float32)
+    s_rev = s[::-1]  # outside first
+    a = q
+    b = np.roll(q, -1, axis=0)
+    base = a[:, None, :] + t[None, :, None] * (b - a)[:, None, :]  # (4, n, 2)
+    offsets = s_rev.astype(np.float32)[None, None, :]
+    shape = (4 * n_samples, len(s))
+    mx = (base[:, :, 0:1] + offsets * outward[:, None, None, 0]).astype(np.float32).reshape(shape)
+    my = (base[:, :, 1:2] + offsets * outward[:, None, None, 1]).astype(np.float32).reshape(shape)
     prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     nq = max(2, len(s) // 5)
     light = np.median(prof[:, :nq], axis=1)
     dark = prof.min(axis=1)
-    contrast = light - dark
-    good_contrast = contrast > 0.5 * float(np.median(contrast))
+    contrast = (light - dark).reshape(4, n_samples)
+    good_contrast = contrast > 0.5 * np.median(contrast, axis=1, keepdims=True)
     level = (light + dark) / 2
     below = prof < level[:, None]
     first = np.argmax(below, axis=1)
-    valid = good_contrast & below.any(axis=1) & (first > 0)
-    rows = np.flatnonzero(valid)
-    if rows.size == 0:
-        return np.zeros((0, 2))
-    i1 = first[rows]
+    valid = good_contrast.reshape(-1) & below.any(axis=1) & (first > 0)
+    rows = np.arange(prof.shape[0])
+    i1 = np.maximum(first, 1)
     v0 = prof[rows, i1 - 1]
     v1 = prof[rows, i1]
-    frac = np.clip((v0 - level[rows]) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
-    s_rev = s[::-1]
+    frac = np.clip((v0 - level) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
     s_cross = s_rev[i1 - 1] + frac * (s_rev[i1] - s_rev[i1 - 1])
-    result: FloatArray = base[rows] + s_cross[:, None] * outward[None, :]
-    return result
+    points = base + s_cross.reshape(4, n_samples)[:, :, None] * outward[:, None, :]
+    return np.asarray(points, np.float64), valid.reshape(4, n_samples)
 
 
 def refine_corners(
@@ -397,19 +415,18 @@ def refine_corners(
     origin = np.array([u0, v0], np.float64)
     g = gray[v0:v1, u0:u1].astype(np.float32)
     q = q - origin
-    centre = q.mean(axis=0)
-    lines = []
-    for i in range(4):
-        a, b = q[i], q[(i + 1) % 4]
-        d = (b - a) / np.linalg.norm(b - a)
-        outward = np.array([d[1], -d[0]])
-        if outward @ ((a + b) / 2 - centre) < 0:
-            outward = -outward
-        pts = _edge_points(g, a, b, outward, reach)
-        line = _line_fit(pts, outward, tol=max(0.35, 0.3 * module))
-        if line is None:
-            return q + origin
-        lines.append(line)
+    direction = np.roll(q, -1, axis=0) - q
+    lengths = np.linalg.norm(direction, axis=1)
+    if np.any(lengths < 1e-9):
+        return q + origin
+    direction /= lengths[:, None]
+    outward = np.stack([direction[:, 1], -direction[:, 0]], axis=1)
+    midpoints = (q + np.roll(q, -1, axis=0)) / 2 - q.mean(axis=0)
+    outward *= np.where(np.einsum("ki,ki->k", outward, midpoints) < 0, -1.0, 1.0)[:, None]
+    points, valid = _edge_points(g, q, outward, reach)
+    lines = _line_fits(points, valid, outward, tol=max(0.35, 0.3 * module))
+    if lines is None:
+        return q + origin
     out = np.zeros((4, 2))
     for i in range(4):
         l1, l2 = lines[(i - 1) % 4], lines[i]  # the sides meeting at corner i
