@@ -11,11 +11,13 @@ ISO/IEC 15434 separators (GS 0x1D, RS 0x1E, EOT 0x04) and every other control ch
 kept. ``text_hri`` beside it is for people: each control character spelled ``<GS>``, ``<RS>``…
 
 Escalation. The plain grey image is read first; only when nothing is read (or nothing matching
-``expect``) the preprocessed copies of :data:`ESCALATION` are tried, in order, and the first
-that reads something wins: the inverted image (zxing-cpp retries light-on-dark matrix codes by
-itself, not 1D codes or PDF417), a global-histogram binarizer instead of the local one, upscaling
-(small images) or downscaling (large ones), sharpening, smoothing and a white border (a symbol
-touching the image edge has no quiet zone). Each code says which copy read it (``decoder``).
+``expect``) pyzbar reads it for QR codes (where QR is wanted: zbar reads some that zxing-cpp
+misses; ``orientation_deg`` is then 0, not measured), then the preprocessed copies of
+:data:`ESCALATION` are tried, in order, and the first that reads something wins: the inverted
+image (zxing-cpp retries light-on-dark matrix codes by itself, not 1D codes or PDF417), a
+global-histogram binarizer instead of the local one, upscaling (small images) or downscaling
+(large ones), sharpening, smoothing and a white border (a symbol touching the image edge has
+no quiet zone). Each code says which copy read it (``decoder``).
 
 Grading (:class:`Grade`, estimates from the image, not an ISO 15415/15416 verification):
 ``module_px``, ``contrast``, ``decode_margin`` and ``quiet_zone_modules``; see :class:`Grade`.
@@ -31,8 +33,10 @@ import cv2
 import numpy as np
 import zxingcpp
 from numpy.typing import NDArray
+from pyzbar import pyzbar
 
 from .errors import BadImageError, NotFoundError, RoiError
+from .qr import order_corners
 
 __all__ = [
     "SYMBOLOGIES",
@@ -140,7 +144,7 @@ class Code:
     ``inverted``: light modules on a dark background; ``mirrored``: the symbol-order corners
     wind counter-clockwise on the screen (zxing-cpp reads a mirrored QR or DataMatrix by
     transposing its grid and reports clockwise corners for it, so those read as False);
-    ``decoder``: which copy of the image read it (``zxing``, ``zxing+sharpen``…)."""
+    ``decoder``: which copy of the image read it (``zxing``, ``pyzbar``, ``zxing+sharpen``…)."""
 
     text: str
     text_hri: str
@@ -287,6 +291,22 @@ def _read(
     return out
 
 
+def _pyzbar_qr(gray: GrayImage) -> list[_Raw]:
+    out = []
+    for d in pyzbar.decode(gray, symbols=[pyzbar.ZBarSymbol.QRCODE]):
+        if len(d.polygon) != 4:
+            continue
+        quad = np.array([[p.x, p.y] for p in d.polygon], dtype=np.float64)
+        # zbar's corners come in its own order: put them in the printed (symbol) order
+        ordered, _ = order_corners(gray, quad)
+        try:
+            text = d.data.decode("utf-8")
+        except UnicodeDecodeError:
+            text = d.data.decode("latin-1")
+        out.append(_Raw(text, "QRCode", ordered, 0.0, None, "pyzbar"))
+    return out
+
+
 def _matches(text: str, expect: Expect) -> bool:
     if expect is None:
         return True
@@ -303,6 +323,13 @@ def _escalate(
     found = _read(gray, formats, _LOCAL)
     if any(_matches(r.text, expect) for r in found):
         return found, tried
+    if _F.QRCode in formats:
+        # zbar reads some QR codes zxing-cpp misses (the qr inspection's union of decoders);
+        # it runs only after zxing-cpp's plain read found nothing
+        tried.append("pyzbar")
+        found.extend(_pyzbar_qr(gray))
+        if any(_matches(r.text, expect) for r in found):
+            return found, tried
     for label, make, binarizer in ESCALATION:
         img, back = make(gray)
         tried.append(f"zxing+{label}")
