@@ -17,7 +17,9 @@ misses; ``orientation_deg`` is then 0, not measured), then the preprocessed copi
 image (zxing-cpp retries light-on-dark matrix codes by itself, not 1D codes or PDF417), a
 global-histogram binarizer instead of the local one, upscaling (small images) or downscaling
 (large ones), sharpening, smoothing and a white border (a symbol touching the image edge has
-no quiet zone). Each code says which copy read it (``decoder``).
+no quiet zone); last, where the image's border is dark, :func:`_reframed` copies (a symbol
+without a light quiet zone whose edge modules merge with a dark surround). Each code says
+which copy read it (``decoder``).
 
 Grading (:class:`Grade`, estimates from the image, not an ISO 15415/15416 verification):
 ``module_px``, ``contrast``, ``decode_margin`` and ``quiet_zone_modules``; see :class:`Grade`.
@@ -340,8 +342,63 @@ def _escalate(
         seen = {r.text for r in found}
         found.extend(r for r in new if r.text not in seen)
         if any(_matches(r.text, expect) for r in new):
+            return found, tried
+    for label, img, back in _reframed(gray):
+        tried.append(f"zxing+{label}")
+        new = _read(img, formats, _LOCAL)
+        for r in new:
+            r.quad = back(r.quad)
+            r.decoder = f"zxing+{label}"
+        seen = {r.text for r in found}
+        found.extend(r for r in new if r.text not in seen)
+        if any(_matches(r.text, expect) for r in new):
             break
     return found, tried
+
+
+_SIDES = ("left", "top", "right", "bottom")
+
+
+def _reframed(gray: GrayImage) -> list[tuple[str, GrayImage, Mapper]]:
+    """Copies for a symbol with no light quiet zone, set in a dark surround that merges with
+    its dark edge modules (the finder L of a DataMatrix): the box of the light pixels, grown
+    by one module on two adjacent sides (where the solid edge may lie: four choices), framed
+    in light. Nothing when the image's border is not mostly dark."""
+    _, binary = cv2.threshold(gray, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    light = binary > 0
+    frame = np.concatenate([light[0], light[-1], light[:, 0], light[:, -1]])
+    if frame.mean() > 0.1 or not light.any():
+        return []
+    # the module: the 10th percentile of the light runs along the rows
+    edges = np.diff(np.pad(light.astype(np.int8), ((0, 0), (1, 1))), axis=1)
+    starts = np.flatnonzero(edges.reshape(-1) == 1)
+    ends = np.flatnonzero(edges.reshape(-1) == -1)
+    module = max(1, int(round(float(np.percentile(ends - starts, 10)))))
+    rows = np.flatnonzero(light.any(axis=1))
+    cols = np.flatnonzero(light.any(axis=0))
+    box = {"top": rows[0], "bottom": rows[-1] + 1, "left": cols[0], "right": cols[-1] + 1}
+    height, width = gray.shape
+    pad = 4 * module
+    level = int(np.median(gray[light]))  # the frame takes the symbol's own light level
+    out: list[tuple[str, GrayImage, Mapper]] = []
+    for k in range(4):
+        grow = {_SIDES[k], _SIDES[(k + 1) % 4]}
+        v0 = max(0, box["top"] - (module if "top" in grow else 0))
+        v1 = min(height, box["bottom"] + (module if "bottom" in grow else 0))
+        u0 = max(0, box["left"] - (module if "left" in grow else 0))
+        u1 = min(width, box["right"] + (module if "right" in grow else 0))
+        img = cv2.copyMakeBorder(
+            gray[v0:v1, u0:u1], pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=level
+        )
+        shift = np.array([u0 - pad, v0 - pad], np.float64)
+
+        def back(p: FloatArray, shift: FloatArray = shift) -> FloatArray:
+            out_p: FloatArray = p + shift
+            return out_p
+
+        label = "reframed_" + "_".join(sorted(grow))
+        out.append((label, np.asarray(img, np.uint8), back))
+    return out
 
 
 # --- grading -------------------------------------------------------------------------------
