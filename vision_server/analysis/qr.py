@@ -36,6 +36,7 @@ slightly curved side).
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -321,18 +322,25 @@ def _line_fits(
     convergence, as a fit of that side alone would.
     """
     keep = valid.copy()
-    pu, pv = points[..., 0], points[..., 1]
+    # Coordinates relative to each side's mean point (no cancellation in the moments below);
+    # the weighted sums of 1, u, v, uu, vv, uv of every side then take one matrix product
+    # per iteration.
+    ref = points.mean(axis=1)
+    pu = points[..., 0] - ref[:, 0:1]
+    pv = points[..., 1] - ref[:, 1:2]
+    moments = np.stack([np.ones_like(pu), pu, pv, pu * pu, pv * pv, pu * pv], axis=2)
     done = np.zeros(4, bool)
-    lines = np.zeros((4, 3))
+    lines = np.zeros((4, 3))  # in the shifted coordinates until the end
     for it in range(6):
-        w = keep.astype(np.float64)
-        count = w.sum(axis=1)
+        sums = np.matmul(keep.astype(np.float64)[:, None, :], moments)[:, 0, :]  # (4, 6)
+        count = sums[:, 0]
         if np.any(count[~done] < 4):
             return None
-        cu = (w * pu).sum(axis=1) / np.maximum(count, 1)
-        cv = (w * pv).sum(axis=1) / np.maximum(count, 1)
-        du, dv = pu - cu[:, None], pv - cv[:, None]
-        suu, svv, suv = (w * du * du).sum(1), (w * dv * dv).sum(1), (w * du * dv).sum(1)
+        safe = np.maximum(count, 1.0)
+        cu, cv = sums[:, 1] / safe, sums[:, 2] / safe
+        suu = sums[:, 3] - safe * cu * cu
+        svv = sums[:, 4] - safe * cv * cv
+        suv = sums[:, 5] - safe * cu * cv
         # the 2x2 scatter's major axis is at 0.5 * atan2(2 suv, suu - svv): the line's
         # direction; the normal is perpendicular to it
         theta = 0.5 * np.arctan2(2.0 * suv, suu - svv)
@@ -352,6 +360,8 @@ def _line_fits(
             if done.all():
                 break
         keep = np.where(done[:, None], keep, new_keep)
+    # back to the points' own coordinates: n . (p - ref) + c = n . p + (c - n . ref)
+    lines[:, 2] -= lines[:, 0] * ref[:, 0] + lines[:, 1] * ref[:, 1]
     return lines
 
 
@@ -361,7 +371,7 @@ def _edge_points(
     """Sub-pixel mid-level crossings on profiles across the four sides q[k] -> q[k+1]
     (outside to inside): points (4, n, 2) and which of them were found (4, n)."""
     lengths = np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1)
-    n_samples = int(np.clip(lengths.max() / 1.5, 12, 120))
+    n_samples = int(min(max(float(lengths.max()) / 1.5, 12.0), 120.0))
     t = np.linspace(0.06, 0.94, n_samples)
     step = 0.25
     s = np.arange(-reach, reach + step / 2, step)  # s > 0 outward
@@ -403,15 +413,18 @@ def refine_corners(
     q = np.asarray(corners, np.float64)
     side = float(np.mean(np.linalg.norm(q - np.roll(q, -1, axis=0), axis=1)))
     module = side / (modules if modules else 25)
-    reach = float(np.clip(max(2.5, 0.8 * module, 0.03 * side), 2.5, 0.2 * side))
+    # (plain min/max: np.clip on scalars costs as much as an array operation)
+    reach = min(max(2.5, 0.8 * module, 0.03 * side), max(2.5, 0.2 * side))
     # Convert only the code's neighbourhood to float: converting a multi-megapixel photograph
     # cost several times the decode itself (issue 19's speed goal).
     margin = reach + 3.0
     height, width = gray.shape
-    u0 = int(np.clip(np.floor(q[:, 0].min() - margin), 0, width - 1))
-    v0 = int(np.clip(np.floor(q[:, 1].min() - margin), 0, height - 1))
-    u1 = int(np.clip(np.ceil(q[:, 0].max() + margin) + 1, u0 + 1, width))
-    v1 = int(np.clip(np.ceil(q[:, 1].max() + margin) + 1, v0 + 1, height))
+    low = q.min(axis=0) - margin
+    high = q.max(axis=0) + margin
+    u0 = min(max(math.floor(low[0]), 0), width - 1)
+    v0 = min(max(math.floor(low[1]), 0), height - 1)
+    u1 = min(max(math.ceil(high[0]) + 1, u0 + 1), width)
+    v1 = min(max(math.ceil(high[1]) + 1, v0 + 1), height)
     origin = np.array([u0, v0], np.float64)
     g = gray[v0:v1, u0:u1].astype(np.float32)
     q = q - origin
@@ -427,13 +440,19 @@ def refine_corners(
     lines = _line_fits(points, valid, outward, tol=max(0.35, 0.3 * module))
     if lines is None:
         return q + origin
-    out = np.zeros((4, 2))
-    for i in range(4):
-        l1, l2 = lines[(i - 1) % 4], lines[i]  # the sides meeting at corner i
-        p = np.cross(l1, l2)
-        if abs(p[2]) < 1e-12:
-            return q + origin
-        out[i] = p[:2] / p[2]
+    # corner i is where the sides i - 1 and i meet: the cross product of their lines
+    l1, l2 = np.roll(lines, 1, axis=0), lines
+    hom = np.stack(
+        [
+            l1[:, 1] * l2[:, 2] - l1[:, 2] * l2[:, 1],
+            l1[:, 2] * l2[:, 0] - l1[:, 0] * l2[:, 2],
+            l1[:, 0] * l2[:, 1] - l1[:, 1] * l2[:, 0],
+        ],
+        axis=1,
+    )
+    if np.any(np.abs(hom[:, 2]) < 1e-12):
+        return q + origin
+    out = hom[:, :2] / hom[:, 2:3]
     if np.max(np.linalg.norm(out - q, axis=1)) > max(3.0, 0.1 * side):
         return q + origin
     return out + origin
