@@ -482,6 +482,65 @@ def board_case() -> None:
     write_expected("commissioning_board", entries, {})
 
 
+# --------------------------------------------------------------------------- codes
+
+GS, RS, EOT = "\x1d", "\x1e", "\x04"
+LABEL_DM = f"[)>{RS}06{GS}P12345{RS}{EOT}"  # ISO/IEC 15434 format 06: separators in the payload
+LABEL_128 = f"ABC{GS}4711"
+
+
+def code_symbol(fmt_name: str, text: str, scale: int, border: int) -> tuple[Array, Array]:
+    """A white image with the symbol written by zxing-cpp, and the symbol's corners in symbol
+    order (the centres of its outermost module pixels, as the decoder reports them)."""
+    import zxingcpp
+
+    symbol = zxingcpp.create_barcode(text, getattr(zxingcpp.BarcodeFormat, fmt_name))
+    bare = np.asarray(zxingcpp.write_barcode_to_image(symbol, scale=scale, add_quiet_zones=False))
+    img = cv2.copyMakeBorder(bare, border, border, border, border, cv2.BORDER_CONSTANT, value=255)
+    h, w = bare.shape[:2]
+    lo_u, lo_v, hi_u, hi_v = border, border, border + w - 1, border + h - 1
+    corners = np.array([[lo_u, lo_v], [hi_u, lo_v], [hi_u, hi_v], [lo_u, hi_v]], float)
+    return np.asarray(img, np.uint8), corners
+
+
+def codes_case() -> None:
+    """code: DataMatrix and Code 128 labels written by zxing-cpp's encoder (payloads with GS1 /
+    ISO 15434 separators), upright, turned, inverted, blurred, a wrong payload and none."""
+    entries: Entries = {}
+    out = HERE / "label_codes" / "images"
+    dm, dm_corners = code_symbol("DataMatrix", LABEL_DM, 5, 30)
+    entries["datamatrix.png"] = {"verdict": "pass", "note": "upright, 5 px modules"}
+    entries["datamatrix.png"].update(text=LABEL_DM, corners=r2(dm_corners))
+    write_png(out / "datamatrix.png", dm)
+    # np.rot90 turns the image a quarter counter-clockwise: (u, v) -> (v, W - 1 - u)
+    turned = np.ascontiguousarray(np.rot90(dm))
+    w = dm.shape[1]
+    turned_corners = np.stack([dm_corners[:, 1], w - 1 - dm_corners[:, 0]], axis=1)
+    entries["datamatrix_turned.png"] = {"verdict": "pass", "note": "turned 90°"}
+    entries["datamatrix_turned.png"].update(text=LABEL_DM, corners=r2(turned_corners))
+    write_png(out / "datamatrix_turned.png", turned)
+    entries["datamatrix_inverted.png"] = {"verdict": "pass", "note": "light on dark"}
+    entries["datamatrix_inverted.png"].update(text=LABEL_DM, corners=r2(dm_corners))
+    write_png(out / "datamatrix_inverted.png", 255 - dm)
+    wrong, _ = code_symbol("DataMatrix", LABEL_DM.replace("P12345", "Q12345"), 5, 30)
+    entries["wrong_payload.png"] = {"verdict": "fail", "note": "reads, but not the expected"}
+    write_png(out / "wrong_payload.png", wrong)
+    bar, _ = code_symbol("Code128", LABEL_128, 3, 30)
+    # a 1D code's corners are the ends of the band the decoder scanned: only the text is known
+    entries["code128.png"] = {"verdict": "pass", "note": "Code 128 with a GS", "text": LABEL_128}
+    write_png(out / "code128.png", bar)
+    soft = cv2.GaussianBlur(bar, (0, 0), 1.0)
+    entries["code128_blurred.png"] = {"verdict": "pass", "note": "blur sigma 1 px"}
+    entries["code128_blurred.png"]["text"] = LABEL_128
+    write_png(out / "code128_blurred.png", soft)
+    rng = np.random.default_rng(7)
+    ramp = np.linspace(60, 200, 240)[None, :] + rng.normal(0, 6, (180, 240))
+    entries["nothing.png"] = {"verdict": "fail", "note": "shaded, noisy, no code"}
+    write_png(out / "nothing.png", np.clip(ramp, 0, 255).astype(np.uint8))
+    # zxing-cpp's corners are whole-pixel estimates of the outermost modules: up to 1 px each way
+    write_expected("label_codes", entries, {"tolerance_px": 1.5})
+
+
 # --------------------------------------------------------------------------- real photographs
 
 REAL_SUBSET = [  # 13 of the 179 across the six sets (qrcode-4: blur, glare, tilt)
@@ -519,8 +578,8 @@ def main() -> int:
     parser.add_argument(
         "cases",
         nargs="*",
-        default=["caps", "qc", "qr", "qr_pose", "board", "real"],
-        help="caps, qc, qr, qr_pose, board, real",
+        default=["caps", "qc", "qr", "qr_pose", "board", "codes", "real"],
+        help="caps, qc, qr, qr_pose, board, codes, real",
     )
     args = parser.parse_args()
     steps = {
@@ -529,6 +588,7 @@ def main() -> int:
         "qr": qr_case,
         "qr_pose": qr_pose_case,
         "board": board_case,
+        "codes": codes_case,
         "real": real_case,
     }
     for name in args.cases:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -27,4 +28,14 @@ def qr_real_dir() -> Path:
     path = SHARED_DATA / "qr_real"
     if not (path / "manifest.json").is_file():
         pytest.skip(f"real QR photographs not found at {path} (shared/ sits beside the clone)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def codes_real_dir() -> Path:
+    """The real DataMatrix / Code 128 photographs (../shared/data/codes_real, or
+    ``$CELLVISION_CODES_REAL``); the test is skipped where absent."""
+    path = Path(os.environ.get("CELLVISION_CODES_REAL", SHARED_DATA / "codes_real"))
+    if not (path / "manifest.json").is_file():
+        pytest.skip(f"real code photographs not found at {path} (shared/ sits beside the clone)")
     return path

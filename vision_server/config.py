@@ -7,7 +7,7 @@
     results:  {path | url, store_images: none|failures|all, max_image_mb, spool}
     cameras:  {NAME: {source: request|opencv|folder|sim|realsense|genicam, ...settings,
                intrinsics}}
-    inspections: [{name, type: locate|presence|qr|qr_pose|calibration_board, camera, roi,
+    inspections: [{name, type: locate|presence|qr|code|qr_pose|calibration_board, camera, roi,
                    number, output, ...}]
     line:     {enabled, host, port, tls, format, max_line_bytes, idle_timeout_s, deadline_s, ...}
     modbus:   {enabled, host, port, unit_id, word_order, deadline_s, max_connections}  (PLCs)

@@ -669,6 +669,8 @@ inspections:
   - {{name: b, type: locate, camera: req, method: blob, blob: {{}}}}
   - {{name: p, type: presence, camera: req, measure: mean_intensity, min: 1}}
   - {{name: q, type: qr, camera: req}}
+  - {{name: k, type: code, camera: req, symbologies: [datamatrix, code128], expect: x,
+      min_grade: {{module_px: 2, contrast: 0.2, decode_margin: 0.3, quiet_zone_modules: 1}}}}
   - {{name: qp, type: qr_pose, camera: req, number: 9,
       output: {{fields: [found, {{name: x, decimals: 1, scale: 1000}}], decimals: 2,
                scale: {{found: 1}}, missing: -1}}}}
@@ -696,7 +698,7 @@ modbus: {{enabled: true, host: 0.0.0.0, port: 0, unit_id: 3, word_order: low_fir
         },
         **{
             f"type: {t}": docs["inspections"] | docs[f"type: {t}"]
-            for t in ("locate", "presence", "qr", "qr_pose")
+            for t in ("locate", "presence", "qr", "code", "qr_pose")
         },
         **{f"locate.{m}": docs[f"locate.{m}"] for m in ("template", "circle", "blob")},
     }

@@ -11,10 +11,13 @@ Public API:
   → :class:`PresenceResult`; ``MEASURES``.
 - QR: :func:`read_qr` → :class:`QRCode`; :func:`qr_pose` → :class:`QRPose` with
   :class:`QRPoseQuality`.
+- Codes (every common 2D and 1D symbology): :func:`read_codes` → :class:`Code` with its
+  :class:`Grade`; ``SYMBOLOGIES``.
 - Errors: :class:`AnalysisError` and its kinds :class:`BadImageError`, :class:`RoiError`,
   :class:`TemplateError`, :class:`DepthError`, :class:`NotFoundError`.
 """
 
+from .codes import SYMBOLOGIES, Code, Grade, read_codes
 from .errors import AnalysisError, BadImageError, DepthError, NotFoundError, RoiError, TemplateError
 from .locate import Feature, locate, locate_blobs, locate_circles, locate_template
 from .presence import MEASURES, PresenceResult, measure_presence, measure_presence_details
@@ -23,6 +26,9 @@ from .qr_pose import QRPose, QRPoseQuality, qr_pose
 
 __all__ = [
     "MEASURES",
+    "SYMBOLOGIES",
+    "Code",
+    "Grade",
     "AnalysisError",
     "BadImageError",
     "DepthError",
@@ -41,5 +47,6 @@ __all__ = [
     "measure_presence",
     "measure_presence_details",
     "qr_pose",
+    "read_codes",
     "read_qr",
 ]

@@ -5,21 +5,25 @@
 ``c3`` bottom-left of the code as printed, in full-image pixels ``(u, v)`` with sub-pixel
 precision (the outer boundary of the dark modules, without the quiet zone).
 
-Decoders, in order: pyzbar (zbar, the paper's choice), zxing-cpp, OpenCV's ``QRCodeDetector``
-and ``QRCodeDetectorAruco``. They run on the plain grey image first; only when they find
-nothing (or nothing matching ``expect``) are preprocessed copies tried: upscaling of small
-images, downscaling of large ones, smoothing, sharpening, adaptive threshold, inversion and a
-45° rotation. The same code found several times is reported once.
+Decoders, in order: zxing-cpp (the fastest and the best single decoder on real photographs),
+pyzbar (zbar, the paper's choice), OpenCV's ``QRCodeDetector`` and ``QRCodeDetectorAruco``.
+Each runs on the plain grey image only when the ones before it found nothing (or nothing
+matching ``expect``): the common case costs one zxing-cpp call, and the slower decoders are
+kept for the images zxing-cpp misses (issue 19). Only then are preprocessed copies tried:
+upscaling of small images, downscaling of large ones, smoothing, sharpening, adaptive
+threshold, inversion and a 45° rotation. The same code found several times is reported once.
 
-Corner order. Every decoder reports the four corners in its own order and starting point, so
-the order is recomputed from the image: the quadrilateral is put in clockwise order on the
-screen, the image is rectified and the corner whose diagonal does not show the 1:1:3:1:1
-profile of a finder pattern is ``c2``; ``c0`` is the opposite corner. A code on a board seen
-from the front is clockwise on the screen. A *mirrored* image (a code seen in a mirror, or a
-flipped sensor) reverses the winding; we do not detect mirroring: ``c0`` is still the corner of
-the top-left finder pattern and ``c2`` the corner without one, and the order stays clockwise on
-the screen, so ``c1`` and ``c3`` are then the printed bottom-left and top-right corners (the
-corners of a real code that would produce that image seen from the front).
+Corner order. zxing-cpp reports the corners in symbol order, and its order is used as it is
+(put clockwise on the screen). The other decoders report them in their own order and starting
+point, so for them the order is recomputed from the image: the quadrilateral is put in
+clockwise order on the screen, the image is rectified and the corner whose diagonal does not
+show the 1:1:3:1:1 profile of a finder pattern is ``c2``; ``c0`` is the opposite corner. A
+code on a board seen from the front is clockwise on the screen. A *mirrored* image (a code seen
+in a mirror, or a flipped sensor) reverses the winding; we do not detect mirroring: ``c0`` is
+still the corner of the top-left finder pattern and ``c2`` the corner without one, and the
+order stays clockwise on the screen, so ``c1`` and ``c3`` are then the printed bottom-left and
+top-right corners (the corners of a real code that would produce that image seen from the
+front).
 
 Sub-pixel corners. Along each of the four sides, grey-level profiles across the side are
 sampled (bilinear) and the first crossing of the mid-level between the quiet zone and the dark
@@ -32,6 +36,7 @@ slightly curved side).
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -305,66 +310,97 @@ def order_corners(gray: GrayImage, quad: FloatArray) -> tuple[FloatArray, bool]:
 # --- sub-pixel corners ---------------------------------------------------------------------
 
 
-def _line_fit(points: FloatArray, outward: FloatArray, tol: float) -> FloatArray | None:
-    """Line (a, b, c) with a*u + b*v + c = 0, (a, b) = the outward unit normal, fitted with
-    one-sided outlier removal (outliers lie inwards)."""
-    keep = np.ones(len(points), bool)
-    line: FloatArray | None = None
+def _line_fits(
+    points: FloatArray, valid: NDArray[np.bool_], outward: FloatArray, tol: float
+) -> FloatArray | None:
+    """Lines (4, 3) ``(a, b, c)`` with a*u + b*v + c = 0, (a, b) = each side's outward unit
+    normal, fitted to ``points`` (4, n, 2) where ``valid`` (4, n), with one-sided outlier
+    removal (outliers lie inwards); None when a side keeps fewer than 4 points.
+
+    The four sides are fitted together (one array operation for all), so that the cost does
+    not grow with Python calls per side (issue 19's speed goal); each side stops at its own
+    convergence, as a fit of that side alone would.
+    """
+    keep = valid.copy()
+    # Coordinates relative to each side's mean point (no cancellation in the moments below);
+    # the weighted sums of 1, u, v, uu, vv, uv of every side then take one matrix product
+    # per iteration.
+    ref = points.mean(axis=1)
+    pu = points[..., 0] - ref[:, 0:1]
+    pv = points[..., 1] - ref[:, 1:2]
+    moments = np.stack([np.ones_like(pu), pu, pv, pu * pu, pv * pv, pu * pv], axis=2)
+    done = np.zeros(4, bool)
+    lines = np.zeros((4, 3))  # in the shifted coordinates until the end
     for it in range(6):
-        p = points[keep]
-        if len(p) < 4:
+        sums = np.matmul(keep.astype(np.float64)[:, None, :], moments)[:, 0, :]  # (4, 6)
+        count = sums[:, 0]
+        if np.any(count[~done] < 4):
             return None
-        centroid = p.mean(axis=0)
-        _, _, vt = np.linalg.svd(p - centroid)
-        n = vt[1]
-        if n @ outward < 0:
-            n = -n
-        line = np.array([n[0], n[1], -float(n @ centroid)])
-        dist = points @ line[:2] + line[2]  # > 0 outward, < 0 inward
+        safe = np.maximum(count, 1.0)
+        cu, cv = sums[:, 1] / safe, sums[:, 2] / safe
+        suu = sums[:, 3] - safe * cu * cu
+        svv = sums[:, 4] - safe * cv * cv
+        suv = sums[:, 5] - safe * cu * cv
+        # the 2x2 scatter's major axis is at 0.5 * atan2(2 suv, suu - svv): the line's
+        # direction; the normal is perpendicular to it
+        theta = 0.5 * np.arctan2(2.0 * suv, suu - svv)
+        nu, nv = -np.sin(theta), np.cos(theta)
+        flip = np.where(nu * outward[:, 0] + nv * outward[:, 1] < 0, -1.0, 1.0)
+        nu, nv = nu * flip, nv * flip
+        fitted = np.stack([nu, nv, -(nu * cu + nv * cv)], axis=1)
+        lines[~done] = fitted[~done]
+        dist = pu * lines[:, 0:1] + pv * lines[:, 1:2] + lines[:, 2:3]  # > 0 outward
         limit = max(tol, 3.0 * (0.5**it) * tol * 4)
-        new_keep = dist > -limit
+        new_keep = valid & (dist > -limit)
         if it > 0:
             # symmetric clean-up of outward noise (bad samples near glare, clutter)
             new_keep &= dist < 3.0 * limit
-        if np.array_equal(new_keep, keep) and it > 2:
-            break
-        keep = new_keep
-    return line
+        if it > 2:
+            done |= np.all(new_keep == keep, axis=1)
+            if done.all():
+                break
+        keep = np.where(done[:, None], keep, new_keep)
+    # back to the points' own coordinates: n . (p - ref) + c = n . p + (c - n . ref)
+    lines[:, 2] -= lines[:, 0] * ref[:, 0] + lines[:, 1] * ref[:, 1]
+    return lines
 
 
 def _edge_points(
-    gray: NDArray[np.float32], a: FloatArray, b: FloatArray, outward: FloatArray, reach: float
-) -> FloatArray:
-    """Sub-pixel mid-level crossings on profiles across side a->b (outside to inside)."""
-    n_samples = int(np.clip(np.linalg.norm(b - a) / 1.5, 12, 120))
+    gray: NDArray[np.float32], q: FloatArray, outward: FloatArray, reach: float
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Sub-pixel mid-level crossings on profiles across the four sides q[k] -> q[k+1]
+    (outside to inside): points (4, n, 2) and which of them were found (4, n)."""
+    lengths = np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1)
+    n_samples = int(min(max(float(lengths.max()) / 1.5, 12.0), 120.0))
     t = np.linspace(0.06, 0.94, n_samples)
     step = 0.25
     s = np.arange(-reach, reach + step / 2, step)  # s > 0 outward
-    base = a[None, :] + t[:, None] * (b - a)[None, :]
-    pts = base[:, None, :] + s[::-1][None, :, None] * outward[None, None, :]  # outside first
-    mx = pts[..., 0].astype(np.float32)
-    my = pts[..., 1].astype(np.float32)
+    s_rev = s[::-1]  # outside first
+    a = q
+    b = np.roll(q, -1, axis=0)
+    base = a[:, None, :] + t[None, :, None] * (b - a)[:, None, :]  # (4, n, 2)
+    offsets = s_rev.astype(np.float32)[None, None, :]
+    shape = (4 * n_samples, len(s))
+    mx = (base[:, :, 0:1] + offsets * outward[:, None, None, 0]).astype(np.float32).reshape(shape)
+    my = (base[:, :, 1:2] + offsets * outward[:, None, None, 1]).astype(np.float32).reshape(shape)
     prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     nq = max(2, len(s) // 5)
     light = np.median(prof[:, :nq], axis=1)
     dark = prof.min(axis=1)
-    contrast = light - dark
-    good_contrast = contrast > 0.5 * float(np.median(contrast))
+    contrast = (light - dark).reshape(4, n_samples)
+    good_contrast = contrast > 0.5 * np.median(contrast, axis=1, keepdims=True)
     level = (light + dark) / 2
     below = prof < level[:, None]
     first = np.argmax(below, axis=1)
-    valid = good_contrast & below.any(axis=1) & (first > 0)
-    rows = np.flatnonzero(valid)
-    if rows.size == 0:
-        return np.zeros((0, 2))
-    i1 = first[rows]
+    valid = good_contrast.reshape(-1) & below.any(axis=1) & (first > 0)
+    rows = np.arange(prof.shape[0])
+    i1 = np.maximum(first, 1)
     v0 = prof[rows, i1 - 1]
     v1 = prof[rows, i1]
-    frac = np.clip((v0 - level[rows]) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
-    s_rev = s[::-1]
+    frac = np.clip((v0 - level) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
     s_cross = s_rev[i1 - 1] + frac * (s_rev[i1] - s_rev[i1 - 1])
-    result: FloatArray = base[rows] + s_cross[:, None] * outward[None, :]
-    return result
+    points = base + s_cross.reshape(4, n_samples)[:, :, None] * outward[:, None, :]
+    return np.asarray(points, np.float64), valid.reshape(4, n_samples)
 
 
 def refine_corners(
@@ -377,31 +413,49 @@ def refine_corners(
     q = np.asarray(corners, np.float64)
     side = float(np.mean(np.linalg.norm(q - np.roll(q, -1, axis=0), axis=1)))
     module = side / (modules if modules else 25)
-    reach = float(np.clip(max(2.5, 0.8 * module, 0.03 * side), 2.5, 0.2 * side))
-    g = gray.astype(np.float32)
-    centre = q.mean(axis=0)
-    lines = []
-    for i in range(4):
-        a, b = q[i], q[(i + 1) % 4]
-        d = (b - a) / np.linalg.norm(b - a)
-        outward = np.array([d[1], -d[0]])
-        if outward @ ((a + b) / 2 - centre) < 0:
-            outward = -outward
-        pts = _edge_points(g, a, b, outward, reach)
-        line = _line_fit(pts, outward, tol=max(0.35, 0.3 * module))
-        if line is None:
-            return q
-        lines.append(line)
-    out = np.zeros((4, 2))
-    for i in range(4):
-        l1, l2 = lines[(i - 1) % 4], lines[i]  # the sides meeting at corner i
-        p = np.cross(l1, l2)
-        if abs(p[2]) < 1e-12:
-            return q
-        out[i] = p[:2] / p[2]
+    # (plain min/max: np.clip on scalars costs as much as an array operation)
+    reach = min(max(2.5, 0.8 * module, 0.03 * side), max(2.5, 0.2 * side))
+    # Convert only the code's neighbourhood to float: converting a multi-megapixel photograph
+    # cost several times the decode itself (issue 19's speed goal).
+    margin = reach + 3.0
+    height, width = gray.shape
+    low = q.min(axis=0) - margin
+    high = q.max(axis=0) + margin
+    u0 = min(max(math.floor(low[0]), 0), width - 1)
+    v0 = min(max(math.floor(low[1]), 0), height - 1)
+    u1 = min(max(math.ceil(high[0]) + 1, u0 + 1), width)
+    v1 = min(max(math.ceil(high[1]) + 1, v0 + 1), height)
+    origin = np.array([u0, v0], np.float64)
+    g = gray[v0:v1, u0:u1].astype(np.float32)
+    q = q - origin
+    direction = np.roll(q, -1, axis=0) - q
+    lengths = np.linalg.norm(direction, axis=1)
+    if np.any(lengths < 1e-9):
+        return q + origin
+    direction /= lengths[:, None]
+    outward = np.stack([direction[:, 1], -direction[:, 0]], axis=1)
+    midpoints = (q + np.roll(q, -1, axis=0)) / 2 - q.mean(axis=0)
+    outward *= np.where(np.einsum("ki,ki->k", outward, midpoints) < 0, -1.0, 1.0)[:, None]
+    points, valid = _edge_points(g, q, outward, reach)
+    lines = _line_fits(points, valid, outward, tol=max(0.35, 0.3 * module))
+    if lines is None:
+        return q + origin
+    # corner i is where the sides i - 1 and i meet: the cross product of their lines
+    l1, l2 = np.roll(lines, 1, axis=0), lines
+    hom = np.stack(
+        [
+            l1[:, 1] * l2[:, 2] - l1[:, 2] * l2[:, 1],
+            l1[:, 2] * l2[:, 0] - l1[:, 0] * l2[:, 2],
+            l1[:, 0] * l2[:, 1] - l1[:, 1] * l2[:, 0],
+        ],
+        axis=1,
+    )
+    if np.any(np.abs(hom[:, 2]) < 1e-12):
+        return q + origin
+    out = hom[:, :2] / hom[:, 2:3]
     if np.max(np.linalg.norm(out - q, axis=1)) > max(3.0, 0.1 * side):
-        return q
-    return out
+        return q + origin
+    return out + origin
 
 
 # --- the reader ----------------------------------------------------------------------------
@@ -475,11 +529,11 @@ def decode_raw(
     for name in decoders:
         tried.append(name)
         _merge(found, DECODERS[name](gray))
-        if done() and name != "pyzbar":
+        if done():  # escalate to a slower decoder only when the faster ones found nothing
             return found, tried
     if done() or not preprocess:
         return found, tried
-    cheap = [d for d in decoders if d in ("pyzbar", "zxing")]
+    cheap = [d for d in decoders if d in ("zxing", "pyzbar")]
     for label, make in _variants(gray):
         img, back = make()
         for name in cheap:
@@ -498,7 +552,7 @@ def read_qr(
     *,
     roi: Sequence[int] | None = None,
     expect: Expect = None,
-    decoders: Sequence[str] = ("pyzbar", "zxing", "opencv", "opencv_aruco"),
+    decoders: Sequence[str] = ("zxing", "pyzbar", "opencv", "opencv_aruco"),
     refine: bool = True,
 ) -> list[QRCode]:
     """Find and decode the QR codes in ``image`` (uint8 gray or BGR; (u, v) pixels).
@@ -521,11 +575,16 @@ def read_qr(
     for r in found:
         if not _matches(r.text, expect):
             continue
-        ordered, confident = order_corners(gray, r.quad)
-        if not confident and r.decoder.startswith(("zxing", "opencv")) and "rot" not in r.decoder:
-            # these decoders report corners in symbol order; trust them when the test is unsure
-            ordered = _clockwise(r.quad)
-            ordered = _start_at(ordered, r.quad[0])
+        if r.decoder.startswith("zxing") and "rot" not in r.decoder:
+            # zxing-cpp reports the corners in symbol order (top-left = the finder pattern
+            # opposite the corner without one): the image test would only repeat it, at twice
+            # the cost of the decode.
+            ordered = _start_at(_clockwise(r.quad), r.quad[0])
+        else:
+            ordered, confident = order_corners(gray, r.quad)
+            if not confident and r.decoder.startswith("opencv") and "rot" not in r.decoder:
+                # OpenCV reports corners in symbol order too: trust it when the test is unsure
+                ordered = _start_at(_clockwise(r.quad), r.quad[0])
         if refine:
             modules = 17 + 4 * r.version if r.version else None
             ordered = refine_corners(gray, ordered, modules=modules)

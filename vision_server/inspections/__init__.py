@@ -2,13 +2,15 @@
 image analysis of :mod:`vision_server.analysis` on the images of one request.
 
 Types: ``locate`` (feature locate: template, circle, blob), ``presence`` (ROI presence check),
-``qr`` (QR read), ``qr_pose`` (pose of a QR code from colour + depth), ``calibration_board``
+``qr`` (QR read), ``code`` (DataMatrix, QR, Aztec, PDF417 and 1D codes: read, verify,
+grade), ``qr_pose`` (pose of a QR code from colour + depth), ``calibration_board``
 (corners of a ChArUco board or chessboard, for camera calibration).
 
 Public API: :func:`parse_inspection` (configuration → an :class:`~vision_server.catalog.
 Inspection`), ``INSPECTION_TYPES``, ``RESULT_KINDS`` (each type's :class:`ResultKind`: its
 golden expectations and summary values), and the classes :class:`LocateInspection`,
-:class:`PresenceInspection`, :class:`QRInspection`, :class:`QRPoseInspection`,
+:class:`PresenceInspection`, :class:`QRInspection`, :class:`CodeInspection`,
+:class:`QRPoseInspection`,
 :class:`CalibrationBoardInspection`.
 """
 
@@ -21,9 +23,10 @@ from pathlib import Path
 from ..cameras import CameraSettings
 from ..catalog import Inspection
 from ..configfile import Node, one_of, positive_int
-from . import calibration_board, locate, presence, qr, qr_pose
+from . import calibration_board, code, locate, presence, qr, qr_pose
 from .base import Configured
 from .calibration_board import CalibrationBoardInspection, parse_calibration_board
+from .code import CodeInspection, parse_code
 from .kinds import ResultKind
 from .locate import LocateInspection, parse_locate
 from .output import OutputFormat, parse_output
@@ -37,6 +40,7 @@ INSPECTION_TYPES: dict[str, Parser] = {
     "locate": parse_locate,
     "presence": parse_presence,
     "qr": parse_qr,
+    "code": parse_code,
     "qr_pose": parse_qr_pose,
     "calibration_board": parse_calibration_board,
 }
@@ -45,6 +49,7 @@ RESULT_KINDS: dict[str, ResultKind] = {
     "locate": locate.RESULTS,
     "presence": presence.RESULTS,
     "qr": qr.RESULTS,
+    "code": code.RESULTS,
     "qr_pose": qr_pose.RESULTS,
     "calibration_board": calibration_board.RESULTS,
 }
@@ -82,6 +87,7 @@ def parse_inspection(
 __all__ = [
     "INSPECTION_TYPES",
     "CalibrationBoardInspection",
+    "CodeInspection",
     "RESULT_KINDS",
     "InspectionSpec",
     "LocateInspection",
