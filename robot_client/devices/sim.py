@@ -120,7 +120,9 @@ class SimCamera:
 
     def _base_from_camera(self) -> FloatArray:
         if self.spec.mount == "tool":
-            pose: FloatArray = self.cell.world.base_from_tool @ self.spec.pose
+            # Where the arm says the tool is, as a real controller reports it (the image is
+            # taken from the true pose, off by the arm's repeatability).
+            pose: FloatArray = self.cell.robot.tool_pose("base") @ self.spec.pose
             return pose
         nominal: FloatArray = (
             invert_transform(self.cell.scene.robot.world_from_base) @ self.spec.pose
