@@ -106,7 +106,7 @@ def test_tool_from_camera_meets_the_goal_in_the_simulated_cell(vision: SyncVisio
         translation, rotation = errors(result.camera, truth)
         assert translation <= 0.3e-3, (seed, translation)
         assert rotation <= 0.05, (seed, rotation)
-        assert result.verdict != "redo", result.reasons
+        assert result.verdict == "good", result.reasons  # no good view sent to be checked
         assert len(result.views) == 15
         assert result.rms_px < 0.5
         # The residuals say how good it is: the loop within a millimetre.
