@@ -41,6 +41,7 @@ from vision_server.analysis.errors import NotFoundError
 from .cell import require
 from .common import ROOT, Goal, RunConfig, Section, Table, fmt
 from .env import Env
+from .plots import pyplot, save
 from .servers import HOST
 
 NAME = "hand_eye"
@@ -279,4 +280,24 @@ def run(cfg: RunConfig, env: Env) -> Section:
         "true error: the per-pose translation residuals and the AX=XB loop (a few tenths of a "
         "millimetre here) are the figures that show the arm's share."
     )
+
+    def plot(directory: Path) -> list[Path]:
+        plt = pyplot()
+        if plt is None:
+            return []
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        x = np.arange(n)
+        for ax, values, goal, unit, title in (
+            (axes[0], t_errors, GOAL_T_MM, "mm", "translation"),
+            (axes[1], r_errors, GOAL_R_DEG, "deg", "rotation"),
+        ):
+            ax.bar(x, values, 0.6)
+            ax.axhline(goal, color="grey", linestyle="--")
+            ax.set_xlabel("seed")
+            ax.set_ylabel(f"error [{unit}]")
+            ax.set_title(f"tool_from_camera {title} error (goal: dashed)")
+            ax.grid(True, alpha=0.3)
+        return [save(fig, directory / "hand_eye.png")]
+
+    section.plot = plot
     return section
