@@ -1,5 +1,5 @@
 """Hand-eye calibration in the simulated cell (issue 18, part 2): the tool camera of
-examples/scenes/intrinsics_cell.yaml (an arm with 0.03 mm / 0.01 deg repeatability: images
+examples/scenes/intrinsics_cell.yaml (its arm given 0.03 mm / 0.01 deg repeatability: images
 from where it truly is, poses as it reports them) moves through the 15 poses
 ``robot-client calibrate-hand-eye`` plans around the ChArUco board; corners from the server's
 board detector (vision_server.analysis.board, in process), ``tool_from_camera`` solved by
@@ -87,6 +87,13 @@ class BoardVision:
         )
 
 
+def commissioning_cell(seed: int) -> SimCell:
+    """The commissioning cell, its arm off by the repeatability of a real one."""
+    scene = load_scene(SCENE)
+    robot = replace(scene.robot, repeatability_m=0.03e-3, repeatability_rad=math.radians(0.01))
+    return SimCell(replace(scene, robot=robot), seed=seed)
+
+
 def _devices(cell: SimCell, vision: Any, **camera: Any) -> Devices:
     devices = sim_devices(cell, vision=vision)
     devices.cameras["tool_camera"] = SimCamera(cell, "tool_camera", **camera)
@@ -111,7 +118,7 @@ def errors(found: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 
 def commission(seed: int) -> tuple[CameraIntrinsics, HandEyeResult, float, float]:
     """Intrinsics, then hand-eye, from the approximate description; the mount's errors."""
-    cell = SimCell(load_scene(SCENE), seed=seed)
+    cell = commissioning_cell(seed)
     camera = {"nominal_mount": NOMINAL_MOUNT, "nominal_intrinsics": APPROXIMATE}
     views = collect_tool_views(
         _devices(cell, BoardVision(), **camera), camera="tool_camera", inspection="board"
@@ -133,7 +140,7 @@ def pick(
     from robot_client.teach_store import TeachStore
 
     scene = load_scene(PICK_SCENE)
-    robot = replace(scene.robot, repeatability_m=0.03e-3, repeatability_rad=1.75e-4)
+    robot = replace(scene.robot, repeatability_m=0.03e-3, repeatability_rad=math.radians(0.01))
     cell = SimCell(replace(scene, robot=robot), seed=seed)
     devices = _devices(cell, client, nominal_mount=NOMINAL_MOUNT, nominal_intrinsics=APPROXIMATE)
     folder = tempfile.TemporaryDirectory(prefix="cellvision-bench-hand-eye-")
@@ -195,7 +202,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
     )
     t_errors, r_errors = [], []
     for seed in seeds:
-        cell = SimCell(load_scene(SCENE), seed=seed)
+        cell = commissioning_cell(seed)
         truth = cell.scene.camera("tool_camera")
         devices = _devices(cell, BoardVision())
         collected = collect_hand_eye_views(
