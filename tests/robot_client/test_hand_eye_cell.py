@@ -216,3 +216,43 @@ def test_vision_pick_with_the_calibrated_hand_eye_and_intrinsics(
     print(f"\ncalibrated: p50 {np.median(mm):.3f} mm, p95 {np.percentile(mm, 95):.3f} mm")
     print(f"uncommissioned: {np.round(np.asarray(uncommissioned) * 1000, 3)} mm, {failed} failed")
     assert failed > 0 or min(uncommissioned) > 1e-3, uncommissioned
+
+
+def test_a_fixed_camera_or_a_board_out_of_view_is_told_so(vision: SyncVisionClient) -> None:
+    cell = commissioning_cell(0)
+    devices = sim_devices(cell, vision=vision)
+    intrinsics = cell.scene.camera("tool_camera").intrinsics
+    with pytest.raises(ValueError, match="'fixed_camera' is not on the tool: eye-to-hand"):
+        collect_hand_eye_views(
+            devices, camera="fixed_camera", inspection="board_tool", intrinsics=intrinsics
+        )
+    away = devices.robot.base_from_tool()
+    away[:3, 3] += [0.0, 0.6, 0.0]
+    devices.robot.move_linear(away)
+    with pytest.raises(ValueError, match="the board is not in view of camera 'tool_camera'"):
+        collect_hand_eye_views(
+            devices, camera="tool_camera", inspection="board_tool", intrinsics=intrinsics
+        )
+
+
+def test_poses_the_robot_cannot_reach_are_skipped_with_the_reason(
+    vision: SyncVisionClient,
+) -> None:
+    scene = commissioning_cell(0).scene
+    # The ceiling just above the start: the poses from higher up cannot be taken.
+    top = (scene.robot.workspace_max[0], scene.robot.workspace_max[1], 0.4)
+    cell = SimCell(replace(scene, robot=replace(scene.robot, workspace_max=top)), seed=0)
+    devices = sim_devices(cell, vision=vision)
+    start = devices.robot.base_from_tool()
+    intrinsics = cell.scene.camera("tool_camera").intrinsics
+    collected = collect_hand_eye_views(
+        devices, camera="tool_camera", inspection="board_tool", intrinsics=intrinsics
+    )
+    assert 0 < len(collected.skipped) < 15
+    assert all("outside the robot's workspace" in why for _, why in collected.skipped)
+    assert len(collected.views) + len(collected.skipped) == 15
+    taken = {label for label, _ in collected.skipped} | set(collected.labels)
+    assert taken == {f"pose {i}" for i in range(1, 16)}
+    np.testing.assert_allclose(devices.robot.base_from_tool(), start)
+    result = solve_hand_eye(collected.views, intrinsics)  # the rest still gives a pose
+    assert result.verdict != "redo", result.reasons
