@@ -45,6 +45,7 @@ from protocol.result_view import result_json, result_view
 
 from .address import add_connection_options, endpoint_from_args, ssl_context
 from .cli_commission import add_commission_commands
+from .cli_hand_eye import add_hand_eye_command
 from .cli_skills import add_skill_commands
 from .client import ReconnectPolicy, VisionClient, overlay_image
 from .devices import DeviceError
@@ -310,6 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
     grab.set_defaults(func=_capture, prepare=_prepare_capture)
     add_skill_commands(sub, common)
     add_commission_commands(sub, common)
+    add_hand_eye_command(sub, common)
     return parser
 
 

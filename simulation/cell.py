@@ -126,7 +126,13 @@ class SimCell:
         self.world = self._initial_world()
         self._state = WorldStateFile(state_path) if state_path is not None else None
         self.clock = SimClock(self.world, scene.robot.time_scale)
-        self.robot = SimRobot(scene.robot, self.world, self.clock, self._changed)
+        self.robot = SimRobot(
+            scene.robot,
+            self.world,
+            self.clock,
+            self._changed,
+            rng=np.random.default_rng([self.seed, 7]),
+        )
         self.gripper = Gripper(scene, self.world, self.clock, self._changed)
         self._renderer = Renderer(scene, self.seed)
         self._frames: dict[str, int] = {}

@@ -18,6 +18,7 @@ from geometry import (
     invert_transform,
     make_transform,
     rotation_angle,
+    rotation_from_axis_angle,
     rotation_from_rpy,
     transform_from_xyz_rpy,
 )
@@ -62,7 +63,12 @@ def _as_pose(pose: ArrayLike, name: str) -> FloatArray:
 
 
 class SimRobot:
-    """A Cartesian arm that moves its tool linearly at ``speed_m_s`` in simulated time."""
+    """A Cartesian arm that moves its tool linearly at ``speed_m_s`` in simulated time.
+
+    With the scene's ``repeatability``, a move ends a random few hundredths of a millimetre
+    from its target while the arm reports the target, as a real arm's encoders do: the world
+    (what cameras see, what the gripper grasps) has the true pose, :meth:`tool_pose` the
+    reported one. ``rng`` draws these errors (default: a fixed seed)."""
 
     def __init__(
         self,
@@ -70,11 +76,17 @@ class SimRobot:
         world: World,
         clock: SimClock,
         on_change: Callable[[], None] = lambda: None,
+        *,
+        rng: np.random.Generator | None = None,
     ) -> None:
         self.spec = spec
         self._world = world
         self._clock = clock
         self._on_change = on_change
+        self._rng = rng if rng is not None else np.random.default_rng(0)
+        # (true pose, reported pose) of the last move; the report holds while the world's
+        # tool is still at that true pose (a restart or another process moves it elsewhere).
+        self._last_move: tuple[FloatArray, FloatArray] | None = None
 
     # --- poses --------------------------------------------------------------------------
     @property
@@ -92,13 +104,30 @@ class SimRobot:
         self._world.version += 1
         self._on_change()
 
+    def _reported(self) -> FloatArray:
+        true = self._world.base_from_tool
+        if self._last_move is not None and np.array_equal(self._last_move[0], true):
+            return self._last_move[1].copy()
+        return true.copy()
+
     def tool_pose(self, frame: str = "base") -> FloatArray:
-        """``base_from_tool`` (frame='base') or ``user_from_tool`` (frame='user')."""
+        """``base_from_tool`` (frame='base') or ``user_from_tool`` (frame='user') as the arm
+        reports it (off the true pose by its repeatability, if the scene gives one)."""
         if frame == "base":
-            return self._world.base_from_tool.copy()
+            return self._reported()
         if frame == "user":
-            return invert_transform(self._world.base_from_user) @ self._world.base_from_tool
+            return invert_transform(self._world.base_from_user) @ self._reported()
         raise ValueError(f"frame must be 'base' or 'user', got {frame!r}")
+
+    def _arrival(self, target: FloatArray) -> FloatArray:
+        """Where a move to ``target`` truly ends (the repeatability's random error)."""
+        if self.spec.repeatability_m <= 0 and self.spec.repeatability_rad <= 0:
+            return target.copy()
+        axis = self._rng.normal(size=3)
+        angle = float(self._rng.normal(0.0, self.spec.repeatability_rad))
+        turn = rotation_from_axis_angle(axis / np.linalg.norm(axis), angle)
+        shift = self._rng.normal(0.0, self.spec.repeatability_m, 3)
+        return make_transform(turn @ target[:3, :3], target[:3, 3] + shift)
 
     def in_workspace(self, p_base: ArrayLike) -> bool:
         p = np.asarray(p_base, dtype=np.float64)
@@ -133,7 +162,9 @@ class SimRobot:
         angle = rotation_angle(current[:3, :3].T @ pose[:3, :3])
         duration = max(distance / speed, angle / self.spec.angular_speed_rad_s)
         self._clock.advance(duration)
-        self._world.base_from_tool = pose.copy()
+        true = self._arrival(pose)
+        self._world.base_from_tool = true
+        self._last_move = (true.copy(), pose.copy())
         self._world.version += 1
         self._on_change()
         return duration

@@ -174,7 +174,9 @@ class GripperSpec:
 class RobotSpec:
     """The arm: ``world_from_base`` (its mount), ``home`` (base_from_tool), linear speed,
     workspace box in the base frame, the gripper, and the simulated-time scale
-    (0: never wait; 1: real time; k: k times faster than real time)."""
+    (0: never wait; 1: real time; k: k times faster than real time). ``repeatability_m`` and
+    ``repeatability_rad``: one standard deviation of where the tool truly ends up against
+    where the arm says it is (per axis, metres; about a random axis, radians); 0: exact."""
 
     world_from_base: FloatArray
     home: FloatArray
@@ -186,6 +188,8 @@ class RobotSpec:
     gripper: GripperSpec
     docking_error_xy_m: float
     docking_error_yaw: float
+    repeatability_m: float = 0.0
+    repeatability_rad: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -526,6 +530,12 @@ def _robot(r: SceneNode) -> RobotSpec:
         dxy = dock.take("xy_m", y.non_negative, 0.0)
         dyaw = dock.take("yaw", y.non_negative, 0.0)
         dock.finish()
+    rep = r.sub_optional("repeatability")
+    rep_m, rep_rad = 0.0, 0.0
+    if rep is not None:
+        rep_m = rep.take("m", y.non_negative, 0.0)
+        rep_rad = rep.take("rad", y.non_negative, 0.0)
+        rep.finish()
     spec = RobotSpec(
         world_from_base=_pose(r.sub("world_from_base", required=True)),
         home=_pose(r.sub("home", required=True)),
@@ -537,6 +547,8 @@ def _robot(r: SceneNode) -> RobotSpec:
         gripper=gripper,
         docking_error_xy_m=dxy,
         docking_error_yaw=dyaw,
+        repeatability_m=rep_m,
+        repeatability_rad=rep_rad,
     )
     r.finish()
     return spec

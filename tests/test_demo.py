@@ -72,8 +72,25 @@ def test_pick_calibration_and_press_errors_against_ground_truth(
     assert errors["switch_m"] <= demo.PAPER_CALIBRATION_M
     assert errors["switch_m"] <= 2e-3
     judged = [c for c in run[0].checks if c.ok is not None]
-    assert len(judged) == 9
+    assert len(judged) == 10  # the hand-eye of commissioning, the QR frame, 3 picks, ...
     assert all(c.ok for c in judged)
+
+
+def test_the_cell_commissions_its_tool_camera_first(
+    run: tuple[demo.DemoResult, Path, str],
+) -> None:
+    """Issue 18's "done when": the demo starts from an uncommissioned cell (intrinsics from
+    the data sheet, the mount from the drawing), calibrates both, and the task runs with what
+    was stored (the picks above would fail with the drawing's mount)."""
+    result, output, log = run
+    assert abs(result.errors["commission_fx"]) <= 0.001
+    assert result.errors["commission_mount_m"] <= 0.3e-3
+    assert np.degrees(result.errors["commission_mount_rad"]) <= 0.05
+    assert "commissioned the tool camera" in log
+    stored = (output / "taught.yaml").read_text(encoding="utf-8")
+    assert "skill: hand_eye" in stored
+    assert "name: caps_l1" in stored  # the taught records, copied beside it
+    assert "name: board_tool" in (output / "cell.yaml").read_text(encoding="utf-8")
 
 
 def test_quality_control_shows_the_retry_path(run: tuple[demo.DemoResult, Path, str]) -> None:

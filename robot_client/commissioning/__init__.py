@@ -14,6 +14,10 @@ Hand-eye (issue 18 part 2):
 - :func:`solve_hand_eye` (robot poses and board corners -> :class:`HandEyeResult`:
   ``tool_from_camera`` or ``base_from_camera``, per-view residuals, the AX=XB loop, sigmas and
   a verdict), :class:`HandEyeView`, :class:`HandEyeError`; :func:`plan_hand_eye_views`.
+- :func:`~robot_client.commissioning.hand_eye_collect.collect_hand_eye_views`: the robot
+  moves a tool camera through the planned poses and the server finds the board at each
+  (``robot-client calibrate-hand-eye``); the result is kept in the teach store
+  (:mod:`robot_client.skills.camera_mounts`).
 """
 
 from .coverage import Coverage, board_coverage

@@ -53,8 +53,12 @@ translation along the one axis is not observable)."""
 GOOD_RMS_PX = 1.0
 """Above this reprojection RMS over all views the observations or the model are wrong."""
 OUTLIER_FACTOR = 3.0
-"""A view whose reprojection RMS is this many times the median (and above 0.3 px) is named."""
-OUTLIER_FLOOR_PX = 0.3
+"""A view whose reprojection RMS is this many times the median (and above
+:data:`OUTLIER_FLOOR_PX`) is named."""
+OUTLIER_FLOOR_PX = 0.6
+"""Views tilted 35 degrees in the simulated cell reach 0.55 px from the corner detection alone
+(median 0.15 px; 20 seeds): at 0.3 px a quarter of the good calibrations were sent to be
+checked. A pose 1 mm from where the robot said gives well over 1 px."""
 
 
 @dataclass(frozen=True)

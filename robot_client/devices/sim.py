@@ -101,14 +101,28 @@ class SimCamera:
     ``base_from_camera`` uses the nominal mount of the base (what the robot program was told),
     not the true docked one."""
 
-    def __init__(self, cell: SimCell, name: str) -> None:
+    def __init__(
+        self,
+        cell: SimCell,
+        name: str,
+        *,
+        nominal_mount: FloatArray | None = None,
+        nominal_intrinsics: CameraIntrinsics | None = None,
+    ) -> None:
+        """``nominal_mount`` (``tool_from_camera``) and ``nominal_intrinsics``: what the robot
+        program is told about a tool camera before commissioning (default: the scene's truth);
+        images are always rendered with the truth."""
         self.cell = cell
         self.name = name
         self.spec = cell.scene.camera(name)
+        if nominal_mount is not None and self.spec.mount != "tool":
+            raise ValueError(f"camera {name!r} is fixed: a nominal mount is for a tool camera")
+        self._mount = self.spec.pose.copy() if nominal_mount is None else nominal_mount.copy()
+        self._intrinsics = nominal_intrinsics or self.spec.intrinsics
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
-        return self.spec.intrinsics
+        return self._intrinsics
 
     @property
     def has_depth(self) -> bool:
@@ -116,11 +130,13 @@ class SimCamera:
 
     @property
     def tool_from_camera(self) -> FloatArray | None:
-        return self.spec.pose.copy() if self.spec.mount == "tool" else None
+        return self._mount.copy() if self.spec.mount == "tool" else None
 
     def _base_from_camera(self) -> FloatArray:
         if self.spec.mount == "tool":
-            pose: FloatArray = self.cell.world.base_from_tool @ self.spec.pose
+            # Where the arm says the tool is, as a real controller reports it (the image is
+            # taken from the true pose, off by the arm's repeatability).
+            pose: FloatArray = self.cell.robot.tool_pose("base") @ self._mount
             return pose
         nominal: FloatArray = (
             invert_transform(self.cell.scene.robot.world_from_base) @ self.spec.pose

@@ -30,6 +30,7 @@ from protocol import CellvisionError
 
 from ..devices import Camera, Clock, DeviceError, Devices, Gripper, Robot, Unreachable, Vision
 from ..errors import ClientError
+from .camera_mounts import HAND_EYE_SKILL, CalibratedCamera, stored_hand_eye
 from .conditions import CalibrationValid, Condition
 from .outcome import FailureReason, Outcome, SkillFailed, fail
 from .record import REQUIRED, Param, ParamError, ParamType, TaughtRecord, utc_now_iso
@@ -229,7 +230,16 @@ class SkillContext:
         return self.devices.vision
 
     def camera(self, name: str) -> Camera:
-        return self.devices.camera(name)
+        """The device camera ``name``, with its hand-eye calibration from the teach store
+        when there is one (:mod:`robot_client.skills.camera_mounts`)."""
+        camera = self.devices.camera(name)
+        if self.store is None:
+            return camera
+        try:
+            stored = stored_hand_eye(self.store.records(HAND_EYE_SKILL), name)
+            return camera if stored is None else CalibratedCamera(camera, stored)
+        except ValueError as exc:
+            fail(FailureReason.BAD_RECORD, f"{self.store.path}: {exc}")
 
     def report(self, message: str, fraction: float | None = None, **data: Any) -> None:
         """Tell the progress callback (the CLI's progress bar) what the skill is doing."""

@@ -117,6 +117,16 @@ def test_a_view_taken_at_another_pose_is_named() -> None:
     assert worst.index == 6
 
 
+def test_a_pose_a_millimetre_off_is_named() -> None:
+    views = eye_in_hand_views(5)
+    moved = views[9].base_from_tool.copy()
+    moved[:3, 3] += [0.0, 0.001, 0.0]
+    views[9] = HandEyeView(moved, views[9].corners_uv, views[9].corners_board)
+    result = solve_hand_eye(views, INTRINSICS)
+    assert result.verdict == "check"
+    assert "views 9 (" in result.reasons[0], result.reasons
+
+
 def test_poses_that_turn_about_one_axis_only_are_refused_with_the_reason() -> None:
     rng = np.random.default_rng(1)
     views = []

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -112,3 +114,45 @@ def test_docking_error_is_seeded() -> None:
     nominal = a.scene.robot.world_from_base
     offset = np.linalg.norm(pa[:2, 3] - nominal[:2, 3])
     assert 0 < offset <= 0.02 * np.sqrt(2)
+
+
+def test_repeatability_moves_the_true_tool_while_the_arm_reports_the_target() -> None:
+    """Scene ``robot.repeatability``: the world (cameras, gripper) has the tool where it truly
+    ended, the arm reports the commanded pose; the error's spread is the one asked for."""
+    from dataclasses import replace
+
+    from geometry import rotation_angle
+
+    from .conftest import EXAMPLE_SCENE
+
+    exact = SimCell.from_yaml(EXAMPLE_SCENE)
+    spec = replace(exact.scene.robot, repeatability_m=0.03e-3, repeatability_rad=1.75e-4)
+    cell = SimCell(replace(exact.scene, robot=spec))
+    shifts, turns = [], []
+    for i in range(200):
+        target = _pose(0.5 + 0.001 * (i % 7), 0.0, 0.3)
+        cell.robot.move_linear(target)
+        np.testing.assert_array_equal(cell.robot.tool_pose(), target)
+        true = cell.world.base_from_tool
+        shifts.append(true[:3, 3] - target[:3, 3])
+        turns.append(rotation_angle(target[:3, :3].T @ true[:3, :3]))
+    assert float(np.std(shifts)) == pytest.approx(0.03e-3, rel=0.2)
+    assert float(np.sqrt(np.mean(np.square(turns)))) == pytest.approx(1.75e-4, rel=0.2)
+    # Once something else puts the tool elsewhere, the arm reports where it is.
+    cell.restart()
+    np.testing.assert_array_equal(cell.robot.tool_pose(), cell.world.base_from_tool)
+    exact.robot.move_linear(_pose(0.5, 0.0, 0.3))
+    np.testing.assert_array_equal(exact.world.base_from_tool, _pose(0.5, 0.0, 0.3))
+
+
+def test_repeatability_is_read_from_the_scene(tmp_path: Path) -> None:
+    from .conftest import EXAMPLE_SCENE
+
+    text = Path(EXAMPLE_SCENE).read_text(encoding="utf-8")
+    text = text.replace(
+        "  docking_error:", "  repeatability: {m: 0.00003, rad: 0.000175}\n  docking_error:", 1
+    )
+    path = tmp_path / "scene.yaml"
+    path.write_text(text, encoding="utf-8")
+    spec = SimCell.from_yaml(path).scene.robot
+    assert (spec.repeatability_m, spec.repeatability_rad) == (0.00003, 0.000175)

@@ -1,0 +1,226 @@
+"""``robot-client calibrate-hand-eye``: where a camera sits on the tool, from views of a board.
+
+The robot starts where the tool camera (``--camera NAME``) sees the board; the command plans
+15 poses around the board (a spread of tilts and rolls, reachability checked: unreachable
+poses are skipped with the reason), moves through them, finds the corners with the server's
+``calibration_board`` inspection (the positional argument) and comes back. It solves
+``tool_from_camera`` (closed form, then Levenberg-Marquardt on every corner's reprojection)
+and prints the result with the residuals per pose, the AX=XB loop consistency, the standard
+deviations and the verdict (good / check / redo, with the reason). After the user confirms
+(``--yes`` for scripts) the calibration goes into the teach store (``--store``), record
+``hand_eye/CAMERA``, where vision pick, QR calibration and quality control read it. A
+``redo`` verdict is never stored and exits 1.
+
+The intrinsics the solution is made with: the server camera's in ``--config FILE`` (as
+``calibrate-intrinsics`` wrote them), else the robot's own camera description. They are
+stored with the pose, which is right only with them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import yaml
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from geometry import CameraIntrinsics, xyz_rpy_from_transform
+from protocol.cli import ExitCode
+
+from .cli_commission import _inspection_camera
+from .cli_skills import _device_options, _devices, _store, _store_options
+from .commissioning import HandEyeResult, solve_hand_eye
+from .commissioning.hand_eye_collect import HandEyeCollected, collect_hand_eye_views
+from .skills.camera_mounts import _intrinsics_from_yaml, hand_eye_record
+
+__all__ = ["add_hand_eye_command"]
+
+
+def _config_intrinsics(path: Path, camera: str) -> CameraIntrinsics:
+    """The ``intrinsics`` of ``camera`` in the server's configuration file ``path``."""
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f"{path}: cannot read the configuration: {exc}") from None
+    cameras = doc.get("cameras") if isinstance(doc, dict) else None
+    entry = cameras.get(camera) if isinstance(cameras, dict) else None
+    if not isinstance(entry, dict) or entry.get("intrinsics") is None:
+        raise ValueError(f"{path}: camera {camera!r} has no intrinsics (cameras.{camera})")
+    try:
+        return _intrinsics_from_yaml(entry["intrinsics"])
+    except ValueError as exc:
+        raise ValueError(f"{path}: cameras.{camera}.{exc}") from None
+
+
+def _figures(result: HandEyeResult, collected: HandEyeCollected) -> dict[str, Any]:
+    """The residuals as plain values (metres, radians, pixels), for the store and --json."""
+    return {
+        "rms_px": round(result.rms_px, 4),
+        "loop_translation_m": round(result.loop_translation_m, 7),
+        "loop_rotation_rad": round(result.loop_rotation_rad, 7),
+        "sigma_translation_m": round(result.sigma_translation_m, 7),
+        "sigma_rotation_rad": round(result.sigma_rotation_rad, 7),
+        "board": collected.board,
+        "poses": [
+            {
+                "pose": collected.labels[v.index],
+                "translation_m": round(v.translation_m, 7),
+                "rotation_rad": round(v.rotation_rad, 7),
+                "rms_px": round(v.rms_px, 4),
+            }
+            for v in result.views
+        ],
+        "skipped": [{"pose": label, "reason": why} for label, why in collected.skipped],
+    }
+
+
+def _print_result(
+    console: Console, result: HandEyeResult, collected: HandEyeCollected, camera: str
+) -> None:
+    xyz, rpy = xyz_rpy_from_transform(result.camera)
+    console.print(
+        f"[bold]tool_from_camera[/] of {escape(camera)} from {len(result.views)} poses "
+        f"({escape(collected.board)}):"
+    )
+    console.print(
+        "  xyz "
+        + ", ".join(f"{v * 1000:.3f}" for v in xyz)
+        + " mm   rpy "
+        + ", ".join(f"{math.degrees(v):.4f}" for v in rpy)
+        + " deg"
+    )
+    console.print(
+        f"  std dev {result.sigma_translation_m * 1000:.3f} mm, "
+        f"{math.degrees(result.sigma_rotation_rad):.4f} deg (largest axis)"
+    )
+    table = Table("pose", "corners", "translation mm", "rotation deg", "RMS px")
+    for v in result.views:
+        view = collected.views[v.index]
+        table.add_row(
+            collected.labels[v.index],
+            str(len(view.corners_uv)),
+            f"{v.translation_m * 1000:.3f}",
+            f"{math.degrees(v.rotation_rad):.4f}",
+            f"{v.rms_px:.3f}",
+        )
+    console.print(table)
+    for label, reason in collected.skipped:
+        console.print(escape(f"not taken: {label}: {reason}"), soft_wrap=True)
+    console.print(
+        f"reprojection RMS [bold]{result.rms_px:.3f} px[/]; AX=XB loop "
+        f"{result.loop_translation_m * 1000:.3f} mm, "
+        f"{math.degrees(result.loop_rotation_rad):.4f} deg (RMS over the pairs of poses)"
+    )
+    colour = {"good": "green", "check": "yellow", "redo": "red"}[result.verdict]
+    console.print(f"verdict: [{colour}]{result.verdict}[/]")
+    for reason in result.reasons:
+        console.print(escape(f"  {reason}"), soft_wrap=True)
+
+
+def _confirmed(args: argparse.Namespace, console: Console, camera: str, store: Path) -> bool:
+    if args.yes:
+        return True
+    if args.json or not sys.stdin.isatty():
+        if not args.json:
+            console.print("not stored: confirm with --yes (no terminal to ask at)")
+        return False
+    answer = console.input(
+        f"store this tool_from_camera for {escape(camera)!r} in {escape(str(store))}? \\[y/N] "
+    )
+    return answer.strip().lower() in ("y", "yes")
+
+
+def cmd_calibrate_hand_eye(args: argparse.Namespace, console: Console) -> int:
+    if args.views < 3:
+        raise ValueError(f"--views must be >= 3, got {args.views}")
+    store = _store(args)
+    devices = _devices(args)
+    try:
+        if args.config:
+            server_camera = args.server_camera or _inspection_camera(devices, args.inspection)
+            intrinsics = _config_intrinsics(Path(args.config), server_camera)
+        else:
+            intrinsics = devices.camera(args.camera).intrinsics
+        collected = collect_hand_eye_views(
+            devices,
+            camera=args.camera,
+            inspection=args.inspection,
+            intrinsics=intrinsics,
+            count=args.views,
+            progress=None
+            if args.json
+            else lambda message, _: console.print(escape(f"  {message}")),
+        )
+    finally:
+        devices.close()
+    result = solve_hand_eye(collected.views, intrinsics, "eye_in_hand")
+    figures = _figures(result, collected)
+    xyz, rpy = xyz_rpy_from_transform(result.camera)
+    out: dict[str, Any] = {
+        "camera": args.camera,
+        "tool_from_camera": {"xyz": [float(v) for v in xyz], "rpy": [float(v) for v in rpy]},
+        "verdict": result.verdict,
+        "reasons": list(result.reasons),
+        **figures,
+    }
+    if not args.json:
+        _print_result(console, result, collected, args.camera)
+    if result.verdict == "redo":
+        out["stored"] = {"stored": False, "reason": "verdict redo"}
+        if not args.json:
+            console.print("not stored: calibrate again after fixing what the verdict says")
+    elif _confirmed(args, console, args.camera, store.path):
+        record = hand_eye_record(
+            args.camera,
+            "eye_in_hand",
+            result.camera,
+            intrinsics=intrinsics,
+            verdict=result.verdict,
+            reasons=result.reasons,
+            figures=figures,
+        )
+        stored = store.put(record)
+        out["stored"] = {"stored": True, "store": str(store.path), "revision": stored.revision}
+        if not args.json:
+            console.print(
+                escape(
+                    f"stored as {stored.key} (revision {stored.revision}) in {store.path}: "
+                    "vision pick, QR calibration and quality control use it from now on"
+                )
+            )
+    else:
+        out["stored"] = {"stored": False, "reason": "not confirmed"}
+    if args.json:
+        print(json.dumps(out))
+    return int(ExitCode.FAILED if result.verdict == "redo" else ExitCode.OK)
+
+
+def add_hand_eye_command(sub: Any, common: argparse.ArgumentParser) -> None:
+    """Add ``calibrate-hand-eye`` to the ``robot-client`` subparsers."""
+    cal = sub.add_parser(
+        "calibrate-hand-eye",
+        parents=[common, _device_options(), _store_options()],
+        help="calibrate where a camera sits on the tool (tool_from_camera) from board views",
+    )
+    cal.add_argument("inspection", help="the server's calibration_board inspection")
+    cal.add_argument("--camera", required=True, help="the robot's tool camera")
+    cal.add_argument("--views", type=int, default=15, help="poses to plan (default 15)")
+    cal.add_argument(
+        "--config",
+        default=None,
+        metavar="FILE",
+        help="take the intrinsics from this server configuration (default: the camera's own)",
+    )
+    cal.add_argument(
+        "--server-camera",
+        default=None,
+        help="the camera in --config (default: the inspection's camera)",
+    )
+    cal.add_argument("--yes", action="store_true", help="store without asking")
+    cal.set_defaults(func=cmd_calibrate_hand_eye, sync=True)

@@ -1,0 +1,104 @@
+"""``robot-client calibrate-hand-eye`` end to end: a ``vision-server serve`` process with a
+calibration_board inspection whose camera has calibrated intrinsics in the file; the simulated
+robot (0.03 mm / 0.01 deg repeatability) moves its tool camera around the ChArUco board; the
+solved ``tool_from_camera`` goes into the teach store only when confirmed."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from cli_tools import Server, _serve, tool
+
+from geometry import transform_from_xyz_rpy
+from robot_client.skills.camera_mounts import stored_hand_eye
+from robot_client.teach_store import TeachStore
+
+CONFIG = """\
+server: {port: 0}
+results: {enabled: false}
+cameras:
+  tool:
+    source: request
+    # intrinsics calibrated (as calibrate-intrinsics writes them)
+    intrinsics: {width: 1024, height: 768, fx: 1400.0, fy: 1400.0, cx: 511.5, cy: 383.5,
+                 distortion: [-0.08, 0.05, 0.0004, -0.0003, 0.0]}
+inspections:
+  - name: board_tool
+    type: calibration_board
+    camera: tool
+    board: {kind: charuco, columns: 11, rows: 8, square_m: 0.03, marker_m: 0.0225}
+"""
+ROOT = Path(__file__).resolve().parents[2]
+TRUTH = transform_from_xyz_rpy([0.07, 0.0, -0.1], [0.0, 0.0, 0.0])  # the scene's mount
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[Server]:
+    config = tmp_path / "cell.yaml"
+    config.write_text(CONFIG, encoding="utf-8")
+    yield from _serve(config)
+
+
+def _scene(tmp_path: Path) -> Path:
+    """The commissioning cell with the arm's repeatability of issue 18 (0.03 mm, 0.01 deg)."""
+    text = (ROOT / "examples" / "scenes" / "intrinsics_cell.yaml").read_text(encoding="utf-8")
+    line = "  docking_error: {xy_m: 0.02, yaw: 0.03}\n"
+    assert line in text
+    text = text.replace(line, line + "  repeatability: {m: 0.00003, rad: 0.000175}\n", 1)
+    path = tmp_path / "scene.yaml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _calibrate(server: Server, tmp_path: Path, *extra: str) -> dict[str, Any]:
+    done = tool(
+        "robot-client",
+        "calibrate-hand-eye",
+        "board_tool",
+        "--camera",
+        "tool_camera",
+        "--scene",
+        str(_scene(tmp_path)),
+        "--state-file",
+        str(tmp_path / "world.json"),
+        "--fresh",
+        "--server",
+        server.address,
+        "--store",
+        str(tmp_path / "taught.yaml"),
+        "--config",
+        str(server.config),
+        "--json",
+        *extra,
+    )
+    assert done.returncode == 0, done.stderr + done.stdout
+    result: dict[str, Any] = json.loads(done.stdout)
+    return result
+
+
+def test_the_calibration_is_stored_when_confirmed(server: Server, tmp_path: Path) -> None:
+    result = _calibrate(server, tmp_path, "--yes")
+    assert result["stored"]["stored"] is True
+    assert result["verdict"] in ("good", "check")
+    assert len(result["poses"]) == 15
+    assert result["skipped"] == []
+    assert all(p["translation_m"] < 1e-3 for p in result["poses"])
+    stored = stored_hand_eye(TeachStore(tmp_path / "taught.yaml").records(), "tool_camera")
+    assert stored is not None
+    assert np.linalg.norm(stored.pose[:3, 3] - TRUTH[:3, 3]) <= 0.3e-3
+    turn = stored.pose[:3, :3].T @ TRUTH[:3, :3]
+    assert math.degrees(math.acos(min(1.0, (np.trace(turn) - 1) / 2))) <= 0.05
+    assert stored.intrinsics is not None
+    assert stored.intrinsics.fx == 1400.0  # the intrinsics of --config, kept with the pose
+
+
+def test_without_yes_nothing_is_stored(server: Server, tmp_path: Path) -> None:
+    result = _calibrate(server, tmp_path)
+    assert result["stored"] == {"stored": False, "reason": "not confirmed"}
+    assert not (tmp_path / "taught.yaml").exists()
