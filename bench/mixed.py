@@ -138,6 +138,58 @@ async def _cheap(
         await client.close()
 
 
+@dataclass
+class Measured:
+    """One server's figures: the cheap inspection's latencies (ms) idle and loaded, their BUSY
+    answers, and what the load process saw between ``start`` and ``end``."""
+
+    idle: list[float]
+    idle_busy: int
+    loaded: list[float]
+    loaded_busy: int
+    load: Load
+    start: float
+    end: float
+
+
+def _measure(
+    port: int, image: Any, count: int, warmup: int, clients: int, depth: int, budget_s: float
+) -> Measured:
+    idle, idle_busy = asyncio.run(_cheap(port, image, count, warmup))
+    context = multiprocessing.get_context("spawn")
+    ready, stop, out = context.Event(), context.Event(), context.Queue()
+    process = context.Process(
+        target=_load_main,
+        args=(port, image, clients, depth, ready, stop, out),
+        name="bench-mixed-load",
+    )
+    process.start()
+    try:
+        if not ready.wait(READY_TIMEOUT_S):
+            raise RuntimeError(
+                f"the load process did not saturate the server within {READY_TIMEOUT_S:g} s "
+                f"(alive: {process.is_alive()}, exit code {process.exitcode})"
+            )
+        start = time.monotonic()
+        loaded, loaded_busy = asyncio.run(_cheap(port, image, count, 0, budget_s))
+        end = time.monotonic()
+        stop.set()
+        load: Load = out.get(timeout=READY_TIMEOUT_S)
+    except queue.Empty:
+        raise RuntimeError("the load process gave no account of its requests") from None
+    finally:
+        stop.set()
+        process.join(30.0)
+        if process.is_alive():
+            process.terminate()
+            process.join(10.0)
+    return Measured(idle, idle_busy, loaded, loaded_busy, load, start, end)
+
+
+SERVERS = (("cellvision", "nice"), ("cellvision_idle", "idle"))
+"""The servers measured: default settings, and the same with ``main_lane_policy: idle``."""
+
+
 def run(cfg: RunConfig, env: Env) -> Section:
     section = Section(NAME, TITLE)
     server = env.server("cellvision")
@@ -150,39 +202,13 @@ def run(cfg: RunConfig, env: Env) -> Section:
     depth = cfg.n(LOAD_DEPTH, 2)
     budget_s = cfg.f(30.0, 3.0)
 
-    idle, idle_busy = asyncio.run(_cheap(server.port, image, count, warmup))
+    results: dict[str, Measured] = {}
+    for kind, policy in SERVERS:
+        port = env.server(kind).port
+        results[policy] = _measure(port, image, count, warmup, clients, depth, budget_s)
+        if kind != "cellvision":
+            env.stop_server(kind)
 
-    context = multiprocessing.get_context("spawn")
-    ready, stop, out = context.Event(), context.Event(), context.Queue()
-    process = context.Process(
-        target=_load_main,
-        args=(server.port, image, clients, depth, ready, stop, out),
-        name="bench-mixed-load",
-    )
-    process.start()
-    try:
-        if not ready.wait(READY_TIMEOUT_S):
-            raise RuntimeError(
-                f"the load process did not saturate the server within {READY_TIMEOUT_S:g} s "
-                f"(alive: {process.is_alive()}, exit code {process.exitcode})"
-            )
-        start = time.monotonic()
-        loaded, loaded_busy = asyncio.run(_cheap(server.port, image, count, 0, budget_s))
-        end = time.monotonic()
-        stop.set()
-        load: Load = out.get(timeout=READY_TIMEOUT_S)
-    except queue.Empty:
-        raise RuntimeError("the load process gave no account of its requests") from None
-    finally:
-        stop.set()
-        process.join(30.0)
-        if process.is_alive():
-            process.terminate()
-            process.join(10.0)
-
-    s_idle, s_loaded = Stats.of(idle), Stats.of(loaded)
-    load_rps = load.rps(start, end)
-    load_answers = sum(1 for t in load.answered if start <= t <= end)
     section.intro = (
         f"One client sends `{CHEAP}` one request at a time on the tool camera's 1024x768 "
         f"image: {count} requests after {warmup} warm-up on the idle server, then {count} "
@@ -192,13 +218,16 @@ def run(cfg: RunConfig, env: Env) -> Section:
         f"queue_depth {server.info.get('queue_depth')}, a fast lane of one thread; in worker "
         f"processes: {', '.join(server.info.get('process_inspections') or ['nothing'])}; the "
         f"main lane's threads and processes at niceness +{server.info.get('main_lane_nice', 0)}"
-        "). "
+        "), then the same server with `main_lane_policy: idle` (the worker processes at "
+        "Linux's SCHED_IDLE: any other runnable task preempts them at once, and a busy "
+        "foreign process starves them; docs/configuration.md). "
         f"BUSY is retried {retry_mode()}; "
         "the latency includes the retries."
     )
     table = Table(
         [
             "server",
+            "load",
             "n",
             f"{CHEAP} p50 ms",
             f"{CHEAP} p99 ms",
@@ -208,64 +237,76 @@ def run(cfg: RunConfig, env: Env) -> Section:
             f"{EXPENSIVE} BUSY per answer",
         ]
     )
-    table.add(
-        "idle",
-        len(idle),
-        fmt(s_idle.p50, 2),
-        fmt(s_idle.p99, 2),
-        "1.00×",
-        fmt(idle_busy / len(idle), 2),
-        "-",
-        "-",
-    )
-    table.add(
-        f"saturated by {clients} x {depth} {EXPENSIVE}",
-        len(loaded),
-        fmt(s_loaded.p50, 2),
-        fmt(s_loaded.p99, 2),
-        ratio(s_loaded.p99, s_idle.p99),
-        fmt(loaded_busy / max(len(loaded), 1), 2),
-        fmt(load_rps, 1),
-        fmt(load.busy / max(len(load.answered), 1), 2),
-    )
-    section.tables.append(table)
-    values = {
-        "cheap_idle_p50_ms": s_idle.p50,
-        "cheap_idle_p99_ms": s_idle.p99,
-        "cheap_loaded_p50_ms": s_loaded.p50,
-        "cheap_loaded_p99_ms": s_loaded.p99,
-        "cheap_p99_ratio": s_loaded.p99 / s_idle.p99,
-        "cheap_loaded_busy_per_answer": loaded_busy / max(len(loaded), 1),
-        "expensive_rps": load_rps,
-        "expensive_busy_per_answer": load.busy / max(len(load.answered), 1),
-    }
-    for key, number in values.items():
-        section.value(key, number)
-    section.goals.append(
-        Goal(
-            f"{CHEAP} p99 while {EXPENSIVE} saturates the server <= {P99_GOAL:g}x its idle p99",
-            f"{fmt(s_loaded.p99, 2)} ms loaded ÷ {fmt(s_idle.p99, 2)} ms idle = "
-            f"{ratio(s_loaded.p99, s_idle.p99)} (p50 {fmt(s_loaded.p50, 2)} vs "
-            f"{fmt(s_idle.p50, 2)} ms; {EXPENSIVE} {fmt(load_rps, 1)} req/s meanwhile)",
-            s_loaded.p99 <= P99_GOAL * s_idle.p99,
+    for policy, m in results.items():
+        label = "default (nice)" if policy == "nice" else "main_lane_policy: idle"
+        s_idle, s_loaded = Stats.of(m.idle), Stats.of(m.loaded)
+        load_rps = m.load.rps(m.start, m.end)
+        load_answers = sum(1 for t in m.load.answered if m.start <= t <= m.end)
+        table.add(
+            label,
+            "none",
+            len(m.idle),
+            fmt(s_idle.p50, 2),
+            fmt(s_idle.p99, 2),
+            "1.00×",
+            fmt(m.idle_busy / len(m.idle), 2),
+            "-",
+            "-",
         )
-    )
-    section.notes.append(
-        f"{EXPENSIVE}'s throughput counts its answers ({load_answers}) while the loaded "
-        f"{CHEAP} requests ran ({end - start:.1f} s)."
-    )
-    if load.errors or load.gave_up:
+        table.add(
+            label,
+            f"{clients} x {depth} {EXPENSIVE}",
+            len(m.loaded),
+            fmt(s_loaded.p50, 2),
+            fmt(s_loaded.p99, 2),
+            ratio(s_loaded.p99, s_idle.p99),
+            fmt(m.loaded_busy / max(len(m.loaded), 1), 2),
+            fmt(load_rps, 1),
+            fmt(m.load.busy / max(len(m.load.answered), 1), 2),
+        )
+        suffix = "" if policy == "nice" else "_idle_policy"
+        values = {
+            "cheap_idle_p50_ms": s_idle.p50,
+            "cheap_idle_p99_ms": s_idle.p99,
+            "cheap_loaded_p50_ms": s_loaded.p50,
+            "cheap_loaded_p99_ms": s_loaded.p99,
+            "cheap_p99_ratio": s_loaded.p99 / s_idle.p99,
+            "cheap_loaded_busy_per_answer": m.loaded_busy / max(len(m.loaded), 1),
+            "expensive_rps": load_rps,
+            "expensive_busy_per_answer": m.load.busy / max(len(m.load.answered), 1),
+        }
+        for key, number in values.items():
+            section.value(key + suffix, number)
+        section.goals.append(
+            Goal(
+                f"{label}: {CHEAP} p99 while {EXPENSIVE} saturates the server "
+                f"<= {P99_GOAL:g}x its idle p99",
+                f"{fmt(s_loaded.p99, 2)} ms loaded ÷ {fmt(s_idle.p99, 2)} ms idle = "
+                f"{ratio(s_loaded.p99, s_idle.p99)} (p50 {fmt(s_loaded.p50, 2)} vs "
+                f"{fmt(s_idle.p50, 2)} ms; {EXPENSIVE} {fmt(load_rps, 1)} req/s meanwhile)",
+                s_loaded.p99 <= P99_GOAL * s_idle.p99,
+            )
+        )
         section.notes.append(
-            f"The load saw {load.errors} failed requests and gave up {load.gave_up} after BUSY."
+            f"{label}: {EXPENSIVE}'s throughput counts its answers ({load_answers}) while the "
+            f"loaded {CHEAP} requests ran ({m.end - m.start:.1f} s)."
         )
+        if m.load.errors or m.load.gave_up:
+            section.notes.append(
+                f"{label}: the load saw {m.load.errors} failed requests and gave up "
+                f"{m.load.gave_up} after BUSY."
+            )
+    section.tables.append(table)
 
     def plot(directory: Path) -> list[Path]:
         plt = pyplot()
         if plt is None:
             return []
         fig, ax = plt.subplots(figsize=(6.5, 4))
-        cdf(ax, idle, "idle server")
-        cdf(ax, loaded, f"beside {clients} x {depth} {EXPENSIVE}")
+        for policy, m in results.items():
+            label = "default" if policy == "nice" else "idle policy"
+            cdf(ax, m.idle, f"{label}: idle server")
+            cdf(ax, m.loaded, f"{label}: beside {clients} x {depth} {EXPENSIVE}")
         log_scale_if_positive(ax, "x")
         ax.set_xlabel(f"{CHEAP} round trip [ms]")
         ax.set_ylabel("fraction of requests")

@@ -1,7 +1,8 @@
 """Servers under test, each in its own process on 127.0.0.1 (as the cell PC would run them):
 
 - ``cellvision``: :class:`vision_server.VisionServer` with the bench catalog (bench/cell.py),
-  default settings except the port.
+  default settings except the port. ``cellvision_idle``: the same with ``main_lane_policy:
+  idle`` (section 2c compares the two).
 - ``echo``: the floor, a bare asyncio socket. It reads a frame's 24-byte header and body (the
   same bytes a cellvision client sends) and answers with as many bytes as the header's request
   id field says (the client puts there the size of the real answer), so the same bytes cross
@@ -137,14 +138,17 @@ def _stdin_closed(loop: asyncio.AbstractEventLoop) -> asyncio.Event:
     return done
 
 
-async def _serve_cellvision(config: Path | None) -> None:
+async def _serve_cellvision(config: Path | None, policy: str = "nice") -> None:
     from vision_server import ServerSettings, VisionServer
 
     from .cell import load_catalog
 
     bench = load_catalog(config)
     chosen = tuple(n for n in PROCESS_INSPECTIONS if n in bench.catalog.inspections)
-    server = VisionServer(bench.catalog, ServerSettings(port=0, process_inspections=chosen))
+    server = VisionServer(
+        bench.catalog,
+        ServerSettings(port=0, process_inspections=chosen, main_lane_policy=policy),
+    )
     await server.start()
     done = _stdin_closed(asyncio.get_running_loop())
     _announce(
@@ -157,6 +161,7 @@ async def _serve_cellvision(config: Path | None) -> None:
             "max_in_flight": server.settings.max_in_flight,
             "process_inspections": list(chosen),
             "main_lane_nice": server.settings.main_lane_nice,
+            "main_lane_policy": server.settings.main_lane_policy,
         }
     )
     await done.wait()
@@ -276,12 +281,14 @@ async def _serve_http(config: Path | None) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(prog="python -m bench.servers")
-    parser.add_argument("kind", choices=["cellvision", "echo", "http"])
+    parser.add_argument("kind", choices=["cellvision", "cellvision_idle", "echo", "http"])
     parser.add_argument("--config", type=Path, default=None)
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
     if args.kind == "cellvision":
         asyncio.run(_serve_cellvision(args.config))
+    elif args.kind == "cellvision_idle":
+        asyncio.run(_serve_cellvision(args.config, "idle"))
     elif args.kind == "echo":
         asyncio.run(_serve_echo())
     else:

@@ -43,7 +43,7 @@ from .configfile import (
     read_document,
     string,
 )
-from .cpu_priority import MAX_NICE
+from .cpu_priority import MAX_NICE, POLICIES
 from .inspections import InspectionSpec, parse_inspection
 from .inspections.output import numbers_by_position
 from .settings import (
@@ -271,6 +271,9 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
             node.take("process_inspections", _names, defaults.process_inspections)
         ),
         main_lane_nice=node.take("main_lane_nice", _niceness, defaults.main_lane_nice),
+        main_lane_policy=node.take(
+            "main_lane_policy", one_of(*POLICIES), defaults.main_lane_policy
+        ),
         auth_token=token,
         shutdown_grace_s=node.take("shutdown_grace_s", non_negative, defaults.shutdown_grace_s),
         tls_cert=None if cert is None else str(_resolve(base_dir, cert)),

@@ -21,6 +21,12 @@ import sys
 import threading
 
 MAX_NICE = 19
+POLICIES = ("nice", "idle")
+"""How the worker processes yield: ``nice`` (a higher niceness: they still get a share of a
+busy machine; a woken event loop waits up to the scheduler's slice, a few ms, for a core) or
+``idle`` (``SCHED_IDLE``: they run only on cores nothing else wants, so a woken event loop or
+fast-lane thread preempts them at once; but any other busy process on the machine starves them
+and their requests end in DEADLINE_EXCEEDED). Measured in bench section 2c."""
 
 
 def process_niceness() -> int:
@@ -46,8 +52,12 @@ def lower_this_thread(by: int) -> None:
         _set_thread(threading.get_native_id(), target_niceness(by))
 
 
-def run_this_process_at(niceness: int | None) -> None:
+def run_this_process_at(niceness: int | None, policy: str = "nice") -> None:
     """Set a process that has just started (its one thread; threads it starts later inherit
-    it) to ``niceness``; None leaves it as it is."""
+    it) to ``niceness``; None leaves it as it is. ``policy`` "idle": Linux's ``SCHED_IDLE``
+    as well, so that any other runnable task preempts it at once (see
+    :data:`POLICIES`)."""
     if niceness is not None:
         _set_thread(0, niceness)
+    if policy == "idle" and hasattr(os, "SCHED_IDLE"):
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))

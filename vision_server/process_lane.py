@@ -42,12 +42,14 @@ class ProcessLane:
     """A pool of ``processes`` worker processes, started on first use. :meth:`run` blocks the
     calling thread (a worker of the service's lanes) until the outcome is back."""
 
-    def __init__(self, processes: int, *, nice: int = 0) -> None:
+    def __init__(self, processes: int, *, nice: int = 0, policy: str = "nice") -> None:
         self.processes = processes
         self.niceness = target_niceness(nice) if nice > 0 else None
         """The niceness each process sets when it starts, ``nice`` above the server's own
         (vision_server/cpu_priority.py): the main lane's work yields the cores to the event
         loop and the fast lane. None: as inherited."""
+        self.policy = policy
+        """``nice`` or ``idle`` (:data:`vision_server.cpu_priority.POLICIES`)."""
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
 
@@ -58,7 +60,7 @@ class ProcessLane:
                     self.processes,
                     mp_context=multiprocessing.get_context("spawn"),
                     initializer=run_this_process_at,
-                    initargs=(self.niceness,),
+                    initargs=(self.niceness, self.policy),
                 )
             return self._pool
 

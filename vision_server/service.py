@@ -230,7 +230,11 @@ class InspectionService:
         self.results = results
         self.reloader = reloader
         self.processes = (
-            ProcessLane(self.settings.workers, nice=self.settings.main_lane_nice)
+            ProcessLane(
+                self.settings.workers,
+                nice=self.settings.main_lane_nice,
+                policy=self.settings.main_lane_policy,
+            )
             if self.settings.process_inspections
             else None
         )

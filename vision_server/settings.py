@@ -51,8 +51,11 @@ class ServiceSettings:
     shared memory instead of in the worker threads (see vision_server/process_lane.py)."""
     main_lane_nice: int = 10
     """Niceness added to the main lane's threads and the worker processes (0..19), so that the
-    event loop and the fast lane get a core at once when the main lane's work fills them
+    event loop and the fast lane get a core soon when the main lane's work fills them
     (vision_server/cpu_priority.py); 0: all at the server's own priority."""
+    main_lane_policy: str = "nice"
+    """How the worker processes yield to the event loop and the fast lane: ``nice`` or
+    ``idle`` (vision_server/cpu_priority.py ``POLICIES``)."""
     max_image_pixels: int = 4096 * 4096
     """The largest image (width x height) an inspection is given."""
     capture_timeout_s: float = 5.0
@@ -182,6 +185,7 @@ class ServerSettings:
     opencv_threads: int | None = None
     process_inspections: tuple[str, ...] = ()
     main_lane_nice: int = 10
+    main_lane_policy: str = "nice"
     auth_token: str | None = None
     shutdown_grace_s: float = 5.0
     tls_cert: str | None = None

@@ -29,6 +29,7 @@ class WhereAmI:
         data: dict[str, Any] = {
             "pid": os.getpid(),
             "nice": os.getpriority(os.PRIO_PROCESS, threading.get_native_id()),
+            "policy": os.sched_getscheduler(0),
             "mean": float(np.mean(image.color)),
             "depth": [[list(d.shape), int(d.sum())] for d in image.depth],
         }

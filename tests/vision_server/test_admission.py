@@ -248,5 +248,9 @@ def test_a_niceness_out_of_range_is_a_config_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="niceness in 0..19") as refused:
         load_config(config)
     assert "main_lane_nice" in str(refused.value)
+    config.write_text("server: {port: 0, main_lane_policy: fifo}\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="main_lane_policy"):
+        load_config(config)
     config.write_text("server: {port: 0}\n", encoding="utf-8")
     assert load_config(config).server.main_lane_nice == 10
+    assert load_config(config).server.main_lane_policy == "nice"

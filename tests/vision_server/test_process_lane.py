@@ -118,3 +118,22 @@ def test_worker_processes_run_at_the_main_lanes_lower_priority() -> None:
     finally:
         service.close()
     assert os.getpriority(os.PRIO_PROCESS, 0) == own  # the server's own thread is untouched
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
+def test_the_idle_policy_puts_the_worker_processes_at_sched_idle() -> None:
+    catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [WhereAmI()])
+    settings = ServiceSettings(
+        workers=1, queue_depth=0, process_inspections=("where",), main_lane_policy="idle"
+    )
+    service = InspectionService(catalog, settings)
+
+    async def body() -> None:
+        reply = await service.inspect(InspectRequest("where", Images(COLOR)))
+        assert reply.data["policy"] == os.SCHED_IDLE
+
+    try:
+        run(body(), timeout_s=120.0)
+    finally:
+        service.close()
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the server itself is untouched
