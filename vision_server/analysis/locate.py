@@ -664,8 +664,7 @@ def _refine_circle(
         if len(points) < needed:
             return (
                 f"edge found on {len(points)} of {rays} rays (needs {needed}): contrast below "
-                f"{min_contrast:g} grey levels, or no flat level either side of the edge "
-                f"(edge sigma {sigma:.2f} px)"
+                f"{min_contrast:g} grey levels, or no flat level either side of the edge"
             )
         fit = _fit_circle_algebraic(points)
         fit = _fit_circle_geometric(points, fit)
@@ -715,6 +714,11 @@ def _denoised(
     return np.asarray(patch, np.float64), (x0, y0), math.sqrt(2.0) * sigma
 
 
+_MAX_EDGE_DENSITY = 0.15
+"""Largest share of edge pixels (Canny, half size) for which the classic Hough pass runs: its
+cost grows with the edges' count (seconds on pure noise, where it would find nothing)."""
+
+
 def _hough_candidates(
     hough: Gray, radius_range: tuple[float, float], threshold: float, max_count: int
 ) -> FloatArray:
@@ -722,27 +726,45 @@ def _hough_candidates(
 
     ``HOUGH_GRADIENT_ALT`` (``threshold``: its "perfectness", 0..1) is precise and rarely
     proposes junk, but on heavily blurred parts (sigma 3..4 px) it misses a few in ten whatever
-    its settings; OpenCV's classic ``HOUGH_GRADIENT`` (votes of gradient directions) misses
-    others. Refinement decides, so the union costs only a few more refinements: classic
-    candidates within half a radius of an ALT one are dropped, and at most ``2 * max_count + 4``
-    of them are kept.
+    its settings. OpenCV's classic ``HOUGH_GRADIENT`` (votes of gradient directions) on the
+    image halved (blur loses nothing there) finds those; it runs only when at most
+    ``_MAX_EDGE_DENSITY`` of the halved image is edge. Refinement decides, so the union costs
+    only a few more refinements: classic candidates within half a radius of an ALT one are
+    dropped, and at most ``2 * max_count + 4`` of them are kept.
     """
     r_lo, r_hi = radius_range
-    common: dict[str, Any] = {
-        "dp": 1.5,
-        "minDist": max(r_lo, 2.0),
-        "minRadius": int(math.floor(r_lo)),
-        "maxRadius": int(math.ceil(r_hi)),
-    }
-    alt = cv2.HoughCircles(hough, cv2.HOUGH_GRADIENT_ALT, param1=150, param2=threshold, **common)
-    classic = cv2.HoughCircles(hough, cv2.HOUGH_GRADIENT, param1=100, param2=20, **common)
+    alt = cv2.HoughCircles(
+        hough,
+        cv2.HOUGH_GRADIENT_ALT,
+        dp=1.5,
+        minDist=max(r_lo, 2.0),
+        param1=150,
+        param2=threshold,
+        minRadius=int(math.floor(r_lo)),
+        maxRadius=int(math.ceil(r_hi)),
+    )
     first = np.empty((0, 3)) if alt is None else alt.reshape(-1, 3).astype(np.float64)
+    half = np.asarray(cv2.pyrDown(hough), np.uint8)
+    if r_lo < 4.0 or float(cv2.Canny(half, 50, 100).mean()) / 255.0 > _MAX_EDGE_DENSITY:
+        return first
+    classic = cv2.HoughCircles(
+        half,
+        cv2.HOUGH_GRADIENT,
+        dp=1.0,
+        minDist=max(r_lo / 2.0, 2.0),
+        param1=100,
+        param2=10,
+        minRadius=int(math.floor(r_lo / 2.0)),
+        maxRadius=int(math.ceil(r_hi / 2.0)),
+    )
     extra: list[FloatArray] = []
     if classic is not None:
+        # Half-size pixel centres: full = 2 * half + 0.5.
         for c in classic.reshape(-1, 3).astype(np.float64)[: 2 * max_count + 4]:
+            full = np.array([2.0 * c[0] + 0.5, 2.0 * c[1] + 0.5, 2.0 * c[2]])
             taken = np.concatenate([first, np.array(extra).reshape(-1, 3)])
-            if not (np.hypot(taken[:, 0] - c[0], taken[:, 1] - c[1]) < 0.5 * c[2]).any():
-                extra.append(c)
+            if not (np.hypot(taken[:, 0] - full[0], taken[:, 1] - full[1]) < 0.5 * full[2]).any():
+                extra.append(full)
     return np.concatenate([first, np.array(extra).reshape(-1, 3)])
 
 
@@ -880,7 +902,7 @@ def locate_circles(
             sigma=seen_sigma,
         )
         if isinstance(refined, str):
-            reject(cx, cy, r, refined)
+            reject(cx, cy, r, f"{refined} (edge sigma {sigma:.2f} px)")
             continue
         (fx, fy, fr), score = refined
         fx, fy = fx + px, fy + py
@@ -893,7 +915,12 @@ def locate_circles(
         if fx - fr < -0.5 or fy - fr < -0.5 or fx + fr > width - 0.5 or fy + fr > height - 0.5:
             reject(cx, cy, r, "the fitted circle leaves the search region")
             continue
-        if any(math.hypot(fx - (f.u - u0), fy - (f.v - v0)) < 0.5 * fr for f in features):
+        # Within half a radius (of either) of one already taken: the same part, or a ring of
+        # relief inside it (a coin's inner border), not a second part.
+        if any(
+            math.hypot(fx - (f.u - u0), fy - (f.v - v0)) < 0.5 * max(fr, f.radius or 0.0)
+            for f in features
+        ):
             reject(cx, cy, r, "the same circle as a better candidate")
             continue
         features.append(Feature(u=u0 + fx, v=v0 + fy, angle=0.0, score=score, radius=fr))
