@@ -18,6 +18,7 @@ from . import (
     intrinsics,
     latency,
     line,
+    locate_blur,
     mixed,
     pick,
     qr_real,
@@ -41,6 +42,7 @@ SECTIONS: tuple[ModuleType, ...] = (
     qr_real,
     render,
     results_page,
+    locate_blur,
 )
 
 __all__ = ["SECTIONS"]

@@ -72,7 +72,7 @@ def degrade(
     px (defocus), its grey levels scaled by ``gain`` (0.4: dimmed to 40 % contrast), rounded."""
     moved = cv2.warpAffine(
         image.astype(np.float32),
-        np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]),
+        np.array([[1, 0, shift[0]], [0, 1, shift[1]]], np.float32),
         (image.shape[1], image.shape[0]),
         flags=cv2.INTER_LANCZOS4,
         borderMode=cv2.BORDER_REFLECT,

@@ -687,6 +687,13 @@ def _refine_circle(
     return (cx, cy, r), fraction
 
 
+_SMOOTHING = 1.5
+"""Smoothing of a blurred candidate's patch, as a multiple of its edge sigma. More quiets the
+noise on a shallow edge (rendered discs at sigma 4 px, 40 % contrast: worst centre error 0.12
+px at 1x, 0.08 px at 1.5x) but mixes more of a real part's rim relief into its edge (worn
+coins move further from their sharp answer); 1.5 keeps round parts within 0.1 px."""
+
+
 def _denoised(
     image: FloatArray, guess: tuple[float, float, float], sigma: float
 ) -> tuple[FloatArray, tuple[int, int], float]:
@@ -694,24 +701,27 @@ def _denoised(
 
     A blurred edge is shallow: camera noise of a few grey levels moves its 50 % crossing by a
     sizeable fraction of a pixel on every ray, and neighbouring rays share pixels, so the errors
-    do not average out. Smoothing with a Gaussian as wide as the blur already there removes most
-    of the noise and moves neither a straight edge's 50 % level nor a circle's centre (only
-    its radius, by about sigma² / 2r). Sharp edges are left as they are.
+    do not average out. Smoothing with a Gaussian ``_SMOOTHING`` times as wide as the blur
+    already there removes most of the noise and moves neither a straight edge's 50 % level nor a
+    circle's centre (only its radius, by about sigma² / 2r). Sharp edges are left as they are.
 
     Returns the patch, its top-left corner ``(x0, y0)`` in ``image``'s pixels and the edge
-    sigma now seen in it (px): ``sqrt(2) * sigma`` after smoothing.
+    sigma now seen in it (px): ``sqrt(1 + _SMOOTHING²) * sigma`` after smoothing.
     """
     if sigma <= SHARP_SIGMA:
         return image, (0, 0), sigma
     cx, cy, r = guess
-    margin = r + 2.0 * r * 0.1 + 12.0 * sigma + 8.0
+    margin = r + 2.0 * r * 0.1 + 16.0 * sigma + 8.0
     height, width = image.shape
     x0, y0 = max(int(cx - margin), 0), max(int(cy - margin), 0)
     x1, y1 = min(int(cx + margin) + 1, width), min(int(cy + margin) + 1, height)
     patch = cv2.GaussianBlur(
-        np.ascontiguousarray(image[y0:y1, x0:x1]), (0, 0), sigma, borderType=cv2.BORDER_REPLICATE
+        np.ascontiguousarray(image[y0:y1, x0:x1]),
+        (0, 0),
+        _SMOOTHING * sigma,
+        borderType=cv2.BORDER_REPLICATE,
     )
-    return np.asarray(patch, np.float64), (x0, y0), math.sqrt(2.0) * sigma
+    return np.asarray(patch, np.float64), (x0, y0), math.sqrt(1.0 + _SMOOTHING**2) * sigma
 
 
 _MAX_EDGE_DENSITY = 0.15
