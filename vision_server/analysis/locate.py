@@ -792,12 +792,14 @@ def _hough_input(search: Gray) -> Gray:
     the original grey levels, so this cannot create a part.
     """
     smooth = cv2.GaussianBlur(search, (5, 5), 1.0)
-    lo, hi = (float(x) for x in np.percentile(smooth, (1.0, 99.0)))
+    # Percentiles from the histogram: np.percentile sorts the whole ROI (~8 ms at 1024x768).
+    cumulative = np.cumsum(cv2.calcHist([smooth], [0], None, [256], [0, 256]).ravel())
+    lo, hi = (float(np.searchsorted(cumulative, q * cumulative[-1])) for q in (0.01, 0.99))
     if hi - lo < 1.0:
         return np.asarray(smooth, np.uint8)
     gain = min(255.0 / (hi - lo), 4.0)  # at most 4x: noise must not become edges
-    stretched = (smooth.astype(np.float32) - lo) * gain
-    return np.asarray(np.clip(stretched + 0.5, 0, 255), np.uint8)
+    table = np.clip((np.arange(256, dtype=np.float64) - lo) * gain + 0.5, 0, 255)
+    return np.asarray(cv2.LUT(smooth, table.astype(np.uint8)), np.uint8)
 
 
 def _refine_candidate(
