@@ -19,6 +19,7 @@ from . import (
     intrinsics,
     latency,
     line,
+    locate_blur,
     mixed,
     pick,
     qr_real,
@@ -43,6 +44,7 @@ SECTIONS: tuple[ModuleType, ...] = (
     qr_real,
     render,
     results_page,
+    locate_blur,
 )
 
 __all__ = ["SECTIONS"]

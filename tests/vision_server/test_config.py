@@ -288,6 +288,26 @@ def test_camera_sources_become_their_settings(tmp_path: Path) -> None:
             r"missing required key 'max_radius_px'",
         ),
         (
+            "{name: a, type: locate, camera: tool, method: circle, circle: {min_radius_px: 5, "
+            "max_radius_px: 9, edge_sigma_px: 7}}",
+            r"edge_sigma_px \(7\) is above max_edge_sigma_px \(6\)",
+        ),
+        (
+            "{name: a, type: locate, camera: tool, method: circle, circle: {min_radius_px: 5, "
+            "max_radius_px: 9, edge_sigma_px: sharp}}",
+            r"circle -> edge_sigma_px: .*sharp",
+        ),
+        (
+            "{name: a, type: locate, camera: tool, method: circle, circle: {min_radius_px: 5, "
+            "max_radius_px: 9, rays: 8}}",
+            r"circle -> rays: expected 16\.\.3600 rays",
+        ),
+        (
+            "{name: a, type: locate, camera: tool, method: circle, circle: {min_radius_px: 5, "
+            "max_radius_px: 9, min_edge_contrast: 300}}",
+            r"circle -> min_edge_contrast: expected a grey-level step",
+        ),
+        (
             "{name: a, type: locate, camera: tool, method: blob, blob: {}, circle: {}}",
             r"'circle' options given, but method is 'blob'",
         ),

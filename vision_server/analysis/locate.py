@@ -20,7 +20,7 @@ radians, measured from the +u axis towards the +v axis (clockwise on the screen)
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -28,11 +28,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .edge_width import SHARP_SIGMA, edge_sigma
 from .errors import BadImageError, NotFoundError, RoiError, TemplateError
 
 __all__ = [
     "METHODS",
     "Feature",
+    "Rejection",
     "crop_roi",
     "locate",
     "locate_blobs",
@@ -520,6 +522,7 @@ def _edge_points(
     rays: int,
     half_width: float,
     min_contrast: float,
+    sigma: float = SHARP_SIGMA,
 ) -> tuple[FloatArray, FloatArray]:
     """Sub-pixel edge points (n, 2) along radial rays around a circle guess, and their contrasts.
 
@@ -529,10 +532,20 @@ def _edge_points(
     ``_LEVEL_NEAR`` to ``_LEVEL_FAR`` px either side of the steepest step), found by linear
     interpolation. A ray is dropped when either side is not flat out to ``_FLAT_FAR`` px (a
     second edge close by, e.g. a cap's thin side wall, would bias the 50 % level).
+
+    ``sigma`` is the edge's blur (px, :func:`.edge_width.edge_sigma`): beyond
+    :data:`.edge_width.SHARP_SIGMA` every distance above (and the baseline of the steepest
+    fall) grows by ``sigma / SHARP_SIGMA``, so that the levels are read where a blurred step has
+    settled (2 sigma and more from it) rather than on its slope; the flatness check then looks
+    1.5 px beyond them. A sharp edge is read exactly as before.
     """
     step = 0.25
-    lo = max(radius - half_width - _FLAT_FAR - 0.5, 0.5)
-    hi = radius + half_width + _FLAT_FAR + 0.5
+    scale = max(1.0, sigma / SHARP_SIGMA)
+    level_near = _LEVEL_NEAR * scale
+    level_far = _LEVEL_FAR * scale
+    flat_far = level_far + (_FLAT_FAR - _LEVEL_FAR)
+    lo = max(radius - half_width - flat_far - 0.5, 0.5)
+    hi = radius + half_width + flat_far + 0.5
     radii = np.arange(lo, hi + step / 2, step)
     theta = np.linspace(0.0, 2 * np.pi, rays, endpoint=False)
     cos, sin = np.cos(theta)[:, None], np.sin(theta)[:, None]
@@ -548,9 +561,10 @@ def _edge_points(
     ).astype(np.float64)
     if polarity == "dark":
         profiles = -profiles
-    n3 = int(round(_LEVEL_FAR / step))
-    n2 = int(round(_LEVEL_NEAR / step))
-    n4 = int(round(_FLAT_FAR / step))
+    n3 = int(round(level_far / step))
+    n2 = int(round(level_near / step))
+    n4 = int(round(flat_far / step))
+    nb = int(round(2 * scale))  # half-baseline of the steepest fall, samples
     window = (radii >= radius - half_width) & (radii <= radius + half_width)
     idx_window = np.nonzero(window)[0]
     length = profiles.shape[1]
@@ -560,7 +574,10 @@ def _edge_points(
     ok: NDArray[np.bool_] = np.asarray(~np.isnan(profiles).any(axis=1), dtype=bool)
     prof = np.where(ok[:, None], profiles, 0.0)
     # Steepest fall going outwards, over a 1 px baseline to resist noise.
-    fall = prof[:, idx_window - 2] - prof[:, idx_window + 2]
+    idx_window = idx_window[(idx_window - nb >= 0) & (idx_window + nb < length)]
+    if len(idx_window) == 0:
+        return np.empty((0, 2)), np.empty(0)
+    fall = prof[:, idx_window - nb] - prof[:, idx_window + nb]
     j = idx_window[np.argmax(fall, axis=1)]
     ok &= (j - n4 >= 0) & (j + n4 < length)
     jj = np.clip(j, n4, length - 1 - n4)
@@ -599,6 +616,20 @@ def _edge_points(
     return points.reshape(-1, 2), contrast[keep].astype(np.float64)
 
 
+@dataclass(frozen=True)
+class Rejection:
+    """A Hough candidate that refinement did not accept, and why (for debugging a setup).
+
+    ``u``, ``v``, ``radius``: the candidate as Hough proposed it (full-image px); ``reason``: a
+    short sentence naming the check that failed and its numbers.
+    """
+
+    u: float
+    v: float
+    radius: float
+    reason: str
+
+
 def _refine_circle(
     image: FloatArray,
     guess: tuple[float, float, float],
@@ -606,10 +637,18 @@ def _refine_circle(
     polarity: Polarity,
     rays: int,
     min_contrast: float,
-) -> tuple[tuple[float, float, float], float] | None:
-    """Fit a circle to sub-pixel edge points; returns ((u, v, r), inlier fraction) or None."""
+    sigma: float,
+) -> tuple[tuple[float, float, float], float] | str:
+    """Fit a circle to sub-pixel edge points; ((u, v, r), inlier fraction), or why not (str).
+
+    ``sigma`` is the edge blur in px (see :func:`_edge_points`); the fitted circle's inliers
+    are the edge points within ``max(1, sigma)`` px of it.
+    """
     cx, cy, r = guess
-    half_width = max(3.0, 0.1 * r)
+    scale = max(1.0, sigma / SHARP_SIGMA)
+    half_width = max(3.0, 0.1 * r, 2.0 * scale)
+    needed = max(8, rays // 4)
+    band = 1.0
     fraction = 0.0
     for _ in range(3):
         points, _contrast = _edge_points(
@@ -620,28 +659,205 @@ def _refine_circle(
             rays=rays,
             half_width=half_width,
             min_contrast=min_contrast,
+            sigma=sigma,
         )
-        if len(points) < max(8, rays // 4):
-            return None
+        if len(points) < needed:
+            return (
+                f"edge found on {len(points)} of {rays} rays (needs {needed}): contrast below "
+                f"{min_contrast:g} grey levels, or no flat level either side of the edge"
+            )
         fit = _fit_circle_algebraic(points)
         fit = _fit_circle_geometric(points, fit)
         for _ in range(3):  # drop outliers (e.g. a shadow or a neighbour), refit
             residual = np.abs(np.hypot(points[:, 0] - fit[0], points[:, 1] - fit[1]) - fit[2])
             mad = float(np.median(residual))
             keep = residual <= max(3.0 * 1.4826 * mad, 0.25)
-            if keep.sum() < max(8, rays // 4):
-                return None
+            if keep.sum() < needed:
+                return f"only {int(keep.sum())} edge points agree on one circle (needs {needed})"
             fit = _fit_circle_geometric(points[keep], fit)
         residual = np.abs(np.hypot(points[:, 0] - fit[0], points[:, 1] - fit[1]) - fit[2])
-        fraction = float((residual <= 1.0).sum()) / rays
+        fraction = float((residual <= band).sum()) / rays
         moved = math.hypot(fit[0] - cx, fit[1] - cy) + abs(fit[2] - r)
         cx, cy, r = fit
-        half_width = 2.0
+        half_width = 2.0 * scale
         if moved < 0.01:
             break
     if not (math.isfinite(cx) and math.isfinite(cy) and r > 0):
-        return None
+        return "the circle fit diverged"
     return (cx, cy, r), fraction
+
+
+_SMOOTHING = 1.5
+"""Smoothing of a blurred candidate's patch, as a multiple of its edge sigma. More quiets the
+noise on a shallow edge (rendered discs at sigma 4 px, 40 % contrast: worst centre error 0.12
+px at 1x, 0.08 px at 1.5x) but mixes more of a real part's rim relief into its edge (worn
+coins move further from their sharp answer); 1.5 keeps round parts within 0.1 px."""
+
+
+def _denoised(
+    image: FloatArray, guess: tuple[float, float, float], sigma: float
+) -> tuple[FloatArray, tuple[int, int], float]:
+    """The part of ``image`` around a candidate that refinement reads, smoothed for its blur.
+
+    A blurred edge is shallow: camera noise of a few grey levels moves its 50 % crossing by a
+    sizeable fraction of a pixel on every ray, and neighbouring rays share pixels, so the errors
+    do not average out. Smoothing with a Gaussian ``_SMOOTHING`` times as wide as the blur
+    already there removes most of the noise and moves neither a straight edge's 50 % level nor a
+    circle's centre (only its radius, by about sigma² / 2r). Sharp edges are left as they are.
+
+    Returns the patch, its top-left corner ``(x0, y0)`` in ``image``'s pixels and the edge
+    sigma now seen in it (px): ``sqrt(1 + _SMOOTHING²) * sigma`` after smoothing.
+    """
+    if sigma <= SHARP_SIGMA:
+        return image, (0, 0), sigma
+    cx, cy, r = guess
+    margin = r + 2.0 * r * 0.1 + 16.0 * sigma + 8.0
+    height, width = image.shape
+    x0, y0 = max(int(cx - margin), 0), max(int(cy - margin), 0)
+    x1, y1 = min(int(cx + margin) + 1, width), min(int(cy + margin) + 1, height)
+    patch = cv2.GaussianBlur(
+        np.ascontiguousarray(image[y0:y1, x0:x1]),
+        (0, 0),
+        _SMOOTHING * sigma,
+        borderType=cv2.BORDER_REPLICATE,
+    )
+    return np.asarray(patch, np.float64), (x0, y0), math.sqrt(1.0 + _SMOOTHING**2) * sigma
+
+
+_MAX_EDGE_DENSITY = 0.15
+_SHARP_TRUSTED = 0.8
+"""Score from which a candidate's sharp reading is kept without trying the blurred one. A sharp
+reading that sees most of the outline is the most precise (rendered caps blurred 2 px: median
+0.04 px from the sharp image's answer, against 0.18 px read as blurred, the cap's side wall
+merging into its rim); one that sees less on a blurred edge can be off by 0.1 px or more."""
+"""Largest share of edge pixels (Canny, half size) for which the classic Hough pass runs: its
+cost grows with the edges' count (seconds on pure noise, where it would find nothing)."""
+
+
+def _hough_candidates(
+    hough: Gray, radius_range: tuple[float, float], threshold: float, max_count: int
+) -> FloatArray:
+    """Circle candidates (n, 3) = (u, v, r) in ROI pixels, the gradient-ALT ones first.
+
+    ``HOUGH_GRADIENT_ALT`` (``threshold``: its "perfectness", 0..1) is precise and rarely
+    proposes junk, but on heavily blurred parts (sigma 3..4 px) it misses a few in ten whatever
+    its settings. OpenCV's classic ``HOUGH_GRADIENT`` (votes of gradient directions) on the
+    image halved (blur loses nothing there) finds those; it runs only when at most
+    ``_MAX_EDGE_DENSITY`` of the halved image is edge. Refinement decides, so the union costs
+    only a few more refinements: classic candidates within half a radius of an ALT one are
+    dropped, and at most ``2 * max_count + 4`` of them are kept.
+    """
+    r_lo, r_hi = radius_range
+    alt = cv2.HoughCircles(
+        hough,
+        cv2.HOUGH_GRADIENT_ALT,
+        dp=1.5,
+        minDist=max(r_lo, 2.0),
+        param1=150,
+        param2=threshold,
+        minRadius=int(math.floor(r_lo)),
+        maxRadius=int(math.ceil(r_hi)),
+    )
+    first = np.empty((0, 3)) if alt is None else alt.reshape(-1, 3).astype(np.float64)
+    half = np.asarray(cv2.pyrDown(hough), np.uint8)
+    if r_lo < 4.0 or float(cv2.Canny(half, 50, 100).mean()) / 255.0 > _MAX_EDGE_DENSITY:
+        return first
+    classic = cv2.HoughCircles(
+        half,
+        cv2.HOUGH_GRADIENT,
+        dp=1.0,
+        minDist=max(r_lo / 2.0, 2.0),
+        param1=100,
+        param2=10,
+        minRadius=int(math.floor(r_lo / 2.0)),
+        maxRadius=int(math.ceil(r_hi / 2.0)),
+    )
+    extra: list[FloatArray] = []
+    if classic is not None:
+        # Half-size pixel centres: full = 2 * half + 0.5.
+        for c in classic.reshape(-1, 3).astype(np.float64)[: 2 * max_count + 4]:
+            full = np.array([2.0 * c[0] + 0.5, 2.0 * c[1] + 0.5, 2.0 * c[2]])
+            taken = np.concatenate([first, np.array(extra).reshape(-1, 3)])
+            if not (np.hypot(taken[:, 0] - full[0], taken[:, 1] - full[1]) < 0.5 * full[2]).any():
+                extra.append(full)
+    return np.concatenate([first, np.array(extra).reshape(-1, 3)])
+
+
+def _hough_input(search: Gray) -> Gray:
+    """The ROI as Hough should see it: lightly smoothed and stretched to the full grey range.
+
+    ``HOUGH_GRADIENT_ALT``'s Canny thresholds are fixed grey-level gradients; a dim or blurred
+    part (contrast 40 %, sigma 4 px) stays under them. Stretching the 1st..99th percentile to
+    0..255 makes the thresholds relative to the scene's own contrast; refinement still works on
+    the original grey levels, so this cannot create a part.
+    """
+    smooth = cv2.GaussianBlur(search, (5, 5), 1.0)
+    # Percentiles from the histogram: np.percentile sorts the whole ROI (~8 ms at 1024x768).
+    cumulative = np.cumsum(cv2.calcHist([smooth], [0], None, [256], [0, 256]).ravel())
+    lo, hi = (float(np.searchsorted(cumulative, q * cumulative[-1])) for q in (0.01, 0.99))
+    if hi - lo < 1.0:
+        return np.asarray(smooth, np.uint8)
+    gain = min(255.0 / (hi - lo), 4.0)  # at most 4x: noise must not become edges
+    table = np.clip((np.arange(256, dtype=np.float64) - lo) * gain + 0.5, 0, 255)
+    return np.asarray(cv2.LUT(smooth, table.astype(np.uint8)), np.uint8)
+
+
+def _refine_candidate(
+    sample: FloatArray,
+    guess: tuple[float, float, float],
+    *,
+    polarity: Polarity,
+    rays: int,
+    min_contrast: float,
+    accept: Callable[[tuple[float, float, float], float], bool],
+    edge_sigma_px: float | None,
+    max_edge_sigma_px: float,
+) -> tuple[tuple[float, float, float], float] | str:
+    """Refine one Hough candidate: as a sharp edge first, as a blurred one where that fails.
+
+    The sharp reading (levels 1.5..2 px from the step, no smoothing) is the most precise where
+    it works: it drops the rays where a second edge is near, such as a cap's side wall that a
+    blurred reading would merge into the rim. Where it finds too few rays, a fit that ``accept``
+    refuses or a score below ``_SHARP_TRUSTED``, the edge sigma is measured (or
+    ``edge_sigma_px`` taken) and, if the edge is blurred, the candidate is read again with
+    windows scaled to it on a smoothed patch.
+    Returns ((u, v, r), score) in ``sample``'s pixels, or why not (str).
+    """
+    sharp: tuple[tuple[float, float, float], float] | str | None = None
+    if edge_sigma_px is None or edge_sigma_px <= SHARP_SIGMA:
+        sharp = _refine_circle(
+            sample,
+            guess,
+            polarity=polarity,
+            rays=rays,
+            min_contrast=min_contrast,
+            sigma=SHARP_SIGMA,
+        )
+        if not isinstance(sharp, str) and accept(*sharp) and sharp[1] >= _SHARP_TRUSTED:
+            return sharp
+    sigma = edge_sigma_px
+    if sigma is None:
+        sigma = edge_sigma(sample, guess[:2], guess[2], polarity=polarity)
+        if sigma is None:
+            return sharp if sharp is not None else "no edge of the right polarity on most rays"
+    if sigma <= SHARP_SIGMA:
+        assert sharp is not None
+        return sharp if not isinstance(sharp, str) else f"{sharp} (edge sigma {sigma:.2f} px)"
+    if sigma > max_edge_sigma_px:
+        return f"edge sigma {sigma:.2f} px > max_edge_sigma_px {max_edge_sigma_px:g}"
+    patch, (px, py), seen_sigma = _denoised(sample, guess, sigma)
+    blurred = _refine_circle(
+        patch,
+        (guess[0] - px, guess[1] - py, guess[2]),
+        polarity=polarity,
+        rays=rays,
+        min_contrast=min_contrast,
+        sigma=seen_sigma,
+    )
+    if isinstance(blurred, str):
+        return f"{blurred} (edge sigma {sigma:.2f} px)"
+    (fx, fy, fr), score = blurred
+    return (fx + px, fy + py, fr), score
 
 
 def locate_circles(
@@ -655,16 +871,22 @@ def locate_circles(
     min_contrast: float = 15.0,
     rays: int = 180,
     hough_threshold: float = 0.6,
+    edge_sigma_px: float | None = None,
+    max_edge_sigma_px: float = 6.0,
+    rejected: list[Rejection] | None = None,
 ) -> list[Feature]:
     """Find round features (e.g. rotor caps seen from above) with sub-pixel centres.
 
     Candidates come from :func:`cv2.HoughCircles` (``HOUGH_GRADIENT_ALT``) on the lightly
-    smoothed ROI. Each is refined: along ``rays`` radial rays the edge is found where the
-    intensity profile crosses 50 % between its local inner and outer levels (linear
-    interpolation between bilinear samples 0.25 px apart); a circle is fitted to these points,
-    algebraically (Kåsa) and then geometrically (Gauss-Newton on orthogonal distances) with
-    outliers beyond 3 robust standard deviations dropped; rays are re-cast from the new centre
-    until it settles.
+    smoothed, contrast-stretched ROI (:func:`_hough_input`). Each is refined: its edge blur is
+    measured (:func:`.edge_width.edge_sigma`, unless ``edge_sigma_px`` fixes it); along ``rays``
+    radial rays the edge is found where the intensity profile crosses 50 % between its local
+    inner and outer levels, read far enough from the step for that blur (linear interpolation
+    between bilinear samples 0.25 px apart); a circle is fitted to these points, algebraically
+    (Kåsa) and then geometrically (Gauss-Newton on orthogonal distances) with outliers beyond 3
+    robust standard deviations dropped; rays are re-cast from the new centre until it settles.
+    The 50 % level of a blurred step stays where the sharp step was, so blur moves the radius
+    slightly (by about sigma² / 2r inwards) but not the centre.
 
     Parameters
     ----------
@@ -686,12 +908,19 @@ def locate_circles(
         Number of radial rays.
     hough_threshold : float
         ``param2`` of ``HOUGH_GRADIENT_ALT``: the circle "perfectness" (0..1) a candidate needs.
+    edge_sigma_px : float, optional
+        The edges' blur as a Gaussian sigma in px; None (default): measured per candidate.
+    max_edge_sigma_px : float
+        Largest blur accepted (px); a candidate whose measured edge is wider is rejected.
+    rejected : list, optional
+        When given, a :class:`Rejection` is appended for every Hough candidate not reported.
 
     Returns
     -------
     list of Feature
         Best first, ``radius`` in px, ``angle`` 0. ``score`` is the fraction (0..1) of rays
-        whose edge point lies within 1 px of the fitted circle: the share of the outline seen.
+        whose edge point lies within ``max(1, sigma)`` px of the fitted circle: the share of the
+        outline seen.
 
     Raises
     ------
@@ -703,43 +932,64 @@ def locate_circles(
     r_lo, r_hi = float(radius_range[0]), float(radius_range[1])
     if not 0 < r_lo <= r_hi:
         raise ValueError(f"radius_range must be (low, high) with 0 < low <= high: {radius_range}")
+    if edge_sigma_px is not None and not 0 < edge_sigma_px <= max_edge_sigma_px:
+        raise ValueError(
+            f"edge_sigma_px must be in (0, max_edge_sigma_px={max_edge_sigma_px:g}], "
+            f"not {edge_sigma_px}"
+        )
     if max_count < 1:
         return []
-    smooth = cv2.GaussianBlur(search, (5, 5), 1.0)
-    found = cv2.HoughCircles(
-        smooth,
-        cv2.HOUGH_GRADIENT_ALT,
-        dp=1.5,
-        minDist=max(r_lo, 2.0),
-        param1=150,
-        param2=hough_threshold,
-        minRadius=int(math.floor(r_lo)),
-        maxRadius=int(math.ceil(r_hi)),
-    )
-    if found is None:
+    candidates = _hough_candidates(_hough_input(search), (r_lo, r_hi), hough_threshold, max_count)
+    if len(candidates) == 0:
         return []
     sample = search.astype(np.float64)
     height, width = search.shape
     features: list[Feature] = []
-    for cx, cy, r in found.reshape(-1, 3)[: 4 * max_count + 8]:
-        refined = _refine_circle(
+    limit = 4 * max_count + 8
+
+    def reject(cx: float, cy: float, r: float, reason: str) -> None:
+        if rejected is not None:
+            rejected.append(Rejection(u0 + float(cx), v0 + float(cy), float(r), reason))
+
+    for index, (cx, cy, r) in enumerate(candidates):
+        if index >= limit:
+            reject(cx, cy, r, f"not examined: only the first {limit} candidates are")
+            continue
+        refined = _refine_candidate(
             sample,
             (float(cx), float(cy), float(r)),
             polarity=polarity,
             rays=rays,
             min_contrast=min_contrast,
+            accept=lambda fit, score: r_lo <= fit[2] <= r_hi and score >= min_score,
+            edge_sigma_px=edge_sigma_px,
+            max_edge_sigma_px=max_edge_sigma_px,
         )
-        if refined is None:
+        if isinstance(refined, str):
+            reject(cx, cy, r, refined)
             continue
         (fx, fy, fr), score = refined
-        if not r_lo <= fr <= r_hi or score < min_score:
+        if not r_lo <= fr <= r_hi:
+            reject(cx, cy, r, f"fitted radius {fr:.1f} px outside {r_lo:g}..{r_hi:g}")
+            continue
+        if score < min_score:
+            reject(cx, cy, r, f"score {score:.2f} (share of the outline seen) < {min_score:g}")
             continue
         if fx - fr < -0.5 or fy - fr < -0.5 or fx + fr > width - 0.5 or fy + fr > height - 0.5:
+            reject(cx, cy, r, "the fitted circle leaves the search region")
             continue
-        if any(math.hypot(fx - (f.u - u0), fy - (f.v - v0)) < 0.5 * fr for f in features):
-            continue  # the same circle found twice
+        # Within half a radius (of either) of one already taken: the same part, or a ring of
+        # relief inside it (a coin's inner border), not a second part.
+        if any(
+            math.hypot(fx - (f.u - u0), fy - (f.v - v0)) < 0.5 * max(fr, f.radius or 0.0)
+            for f in features
+        ):
+            reject(cx, cy, r, "the same circle as a better candidate")
+            continue
         features.append(Feature(u=u0 + fx, v=v0 + fy, angle=0.0, score=score, radius=fr))
     features.sort(key=lambda f: -f.score)
+    for extra in features[max_count:]:
+        reject(extra.u - u0, extra.v - v0, extra.radius or 0.0, f"beyond max_count {max_count}")
     return features[:max_count]
 
 

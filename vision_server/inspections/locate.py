@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 
 from ..analysis import AnalysisError
-from ..analysis.locate import Feature, locate
+from ..analysis.locate import Feature, Rejection, locate
 from ..cameras import CameraSettings
 from ..catalog import InspectionInput, InspectionOutcome
-from ..configfile import Node, fraction, number, one_of, positive, positive_int
+from ..configfile import Node, boolean, fraction, number, one_of, positive, positive_int
 from .base import (
     Common,
     Configured,
@@ -29,6 +29,10 @@ from .base import (
 from .kinds import Data, ResultKind, as_number, points
 
 RED = (0, 0, 255)
+ORANGE = (0, 140, 255)
+
+MAX_REJECTED = 20
+"""Most rejected circle candidates a result reports (the strongest Hough candidates first)."""
 
 
 @dataclass(frozen=True)
@@ -39,6 +43,7 @@ class LocateInspection(Configured):
     max_count: int
     min_score: float | None
     options: Mapping[str, Any] = field(default_factory=dict)
+    show_rejected: bool = False
 
     type = "locate"
     uses_depth = False
@@ -47,6 +52,9 @@ class LocateInspection(Configured):
         kwargs: dict[str, Any] = dict(self.options)
         if self.min_score is not None:
             kwargs["min_score"] = self.min_score
+        rejected: list[Rejection] = []
+        if self.method == "circle":
+            kwargs["rejected"] = rejected
         try:
             features = locate(
                 image.color,
@@ -58,15 +66,20 @@ class LocateInspection(Configured):
         except AnalysisError as exc:
             raise analysis_failed(self.common.name, exc) from None
         passed = len(features) >= self.min_count
-        data = {
+        data: dict[str, Any] = {
             "method": self.method,
             "count": len(features),
             "min_count": self.min_count,
             "features": [_feature_dict(f) for f in features],
         }
+        if self.method == "circle":
+            data["rejected"] = [_rejection_dict(r) for r in rejected[:MAX_REJECTED]]
         picture = None
         if overlay:
             picture = overlay_base(image.color, self.common.roi)
+            if self.show_rejected:
+                for rejection in rejected[:MAX_REJECTED]:
+                    _draw_rejection(picture, rejection)
             for rank, feature in enumerate(features):
                 _draw_feature(picture, feature, rank)
             draw_verdict(picture, passed, f"{len(features)} found")
@@ -85,6 +98,32 @@ def _feature_dict(feature: Feature) -> dict[str, Any]:
     if feature.area is not None:
         out["area"] = float(feature.area)
     return out
+
+
+def _rejection_dict(rejection: Rejection) -> dict[str, Any]:
+    return {
+        "u": float(rejection.u),
+        "v": float(rejection.v),
+        "radius": float(rejection.radius),
+        "reason": rejection.reason,
+    }
+
+
+def _draw_rejection(picture: Any, rejection: Rejection) -> None:
+    """A rejected candidate: a thin orange circle and the start of its reason."""
+    centre = (int(round(rejection.u)), int(round(rejection.v)))
+    cv2.circle(picture, centre, max(int(round(rejection.radius)), 1), ORANGE, 1, cv2.LINE_8)
+    reason = rejection.reason if len(rejection.reason) <= 40 else rejection.reason[:39] + "…"
+    cv2.putText(
+        picture,
+        reason.replace("…", "..."),  # Hershey fonts draw ASCII only
+        (centre[0] - int(rejection.radius), centre[1] + int(rejection.radius) + 12),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.35,
+        ORANGE,
+        1,
+        cv2.LINE_AA,
+    )
 
 
 def _draw_feature(picture: Any, feature: Feature, rank: int) -> None:
@@ -157,6 +196,7 @@ def parse_locate(
             raise node.error(f"{other!r} options given, but method is {method!r}", other)
         node.take(other, lambda v: v, None)
     sub = node.sub(method, required=True)
+    show_rejected = False
     if method == "template":
         options["template"] = load_template(sub, "image", base_dir, common)
         low = sub.take("angle_min", number, 0.0)
@@ -186,6 +226,8 @@ def parse_locate(
             )
         options["radius_range"] = (low_r, high_r)
         options["polarity"] = sub.take("polarity", one_of("bright", "dark"), "bright")
+        _circle_edge_options(sub, options)
+        show_rejected = sub.take("show_rejected", boolean, False)
     else:
         options["threshold"] = sub.take("threshold", _threshold, "otsu")
         options["polarity"] = sub.take("polarity", one_of("dark", "bright"), "dark")
@@ -199,7 +241,43 @@ def parse_locate(
             )
         options["min_circularity"] = sub.take("min_circularity", fraction, 0.0)
     sub.finish()
-    return LocateInspection(common, method, min_count, max_count, min_score, options)
+    return LocateInspection(common, method, min_count, max_count, min_score, options, show_rejected)
+
+
+def _edge_sigma(value: Any) -> float | None:
+    if value == "auto":
+        return None
+    out = positive(value)
+    return out
+
+
+def _grey_level(value: Any) -> float:
+    out = number(value)
+    if not 0 < out <= 255:
+        raise ValueError(f"expected a grey-level step in (0, 255], got {value!r}")
+    return out
+
+
+def _rays(value: Any) -> int:
+    out = positive_int(value)
+    if not 16 <= out <= 3600:
+        raise ValueError(f"expected 16..3600 rays, got {value!r}")
+    return out
+
+
+def _circle_edge_options(sub: Node, options: dict[str, Any]) -> None:
+    """The circle edge model's settings (docs/configuration.md, locate.circle)."""
+    options["edge_sigma_px"] = sub.take("edge_sigma_px", _edge_sigma, None)
+    options["max_edge_sigma_px"] = sub.take("max_edge_sigma_px", positive, 6.0)
+    sigma = options["edge_sigma_px"]
+    if sigma is not None and sigma > options["max_edge_sigma_px"]:
+        raise sub.error(
+            f"edge_sigma_px ({sigma:g}) is above max_edge_sigma_px "
+            f"({options['max_edge_sigma_px']:g})",
+            "edge_sigma_px",
+        )
+    options["min_contrast"] = sub.take("min_edge_contrast", _grey_level, 15.0)
+    options["rays"] = sub.take("rays", _rays, 180)
 
 
 def _locate_expected(data: Data) -> dict[str, Any]:
