@@ -1,5 +1,6 @@
 """vision-server: serve inspections, check a configuration, run an inspection offline on
-image files, list logged results, and check or reload a running server.
+image files, list logged results, check a depth camera against a QR board, print a PLC's
+register map, and check or reload a running server.
 
     vision-server serve --config cell.yaml          # SIGHUP or "vision-server reload" re-reads it
     vision-server check-config cell.yaml
@@ -8,6 +9,8 @@ image files, list logged results, and check or reload a running server.
     vision-server test-inspections [PATH ...] [--json] [--update]   # golden cases
     vision-server results --config cell.yaml --since 1h [--inspection NAME] [--json]
     vision-server modbus-map cell.yaml [--json]   # the PLC's register map (protocol/MODBUS.md)
+    vision-server sensor-check --config cell.yaml station_pose --view c1.png d1.png ...
+                      [--json]   # a depth camera's misregistration and scale (guide 7.3)
     vision-server ping [--server HOST:PORT] [--token-file PATH] [--tls] [--ca FILE]
     vision-server reload [...the same options]
 
