@@ -70,7 +70,16 @@ for entry in (REPO_ROOT, SCRIPTS, REPO_ROOT / "tests" / "helpers"):
 import cv2  # noqa: E402
 import hostile_images as hi  # noqa: E402
 import numpy as np  # noqa: E402
-from soak import TIMEOUT, RawConnection, ServerProcess, status_kib  # noqa: E402
+from soak import (  # noqa: E402
+    ALLOCATOR_BYTES,
+    DECODE_BYTES_PER_PIXEL,
+    PER_CONNECTION_BYTES,
+    TIMEOUT,
+    RawConnection,
+    ServerProcess,
+    memory_bound_kib,
+    status_kib,
+)
 
 from protocol import (  # noqa: E402
     Busy,
@@ -93,19 +102,6 @@ from robot_client.client import ReconnectPolicy, VisionClient  # noqa: E402
 
 VERSION = (1, 0)
 MIB = 1 << 20
-DECODE_BYTES_PER_PIXEL = 12
-"""Peak memory of one decode, per pixel (OpenCV 5.0, measured: baseline JPEG 6, progressive
-JPEG 9, 16-bit colour PNG 12; docs/configuration.md)."""
-PER_CONNECTION_BYTES = 1 * MIB
-"""What one connection may hold outside the byte budget: the stream reader's buffer (2 x the
-256 KiB read chunk before it pauses), the chunk being parsed, a HELLO-sized frame (64 KiB) and
-the transport's write buffer (64 KiB), rounded up."""
-ALLOCATOR_BYTES = 32 * MIB
-"""Headroom for the allocator: freed blocks it keeps, thread arenas of the workers. It was
-16 MiB; with the fast lane's thread and backpressure (more requests run before the budget
-refuses), the phases before ``non_readers`` were measured to leave up to 26 MiB resident
-that the allocator kept (a fresh-clone run: 121 MiB after warm-up, 147 MiB before the phase),
-which 16 MiB did not cover."""
 FOLDER_LEVELS = (60, 120, 180)
 """Grey levels of the folder camera's frames: the mean a ``replayed`` RESULT must report."""
 
@@ -167,20 +163,15 @@ class Limits:
 
 
 def memory_bound(limits: Limits, baseline_kib: int) -> dict[str, int]:
-    """The promised ceiling of the server's resident memory, and its parts (KiB)."""
-    parts = {
-        "baseline": baseline_kib,
-        "decoding": (limits.workers + limits.fast_workers)
-        * limits.max_pixels
-        * DECODE_BYTES_PER_PIXEL
-        // 1024,
-        # Counted once in the budget, a body or reply exists twice at its peak: received
-        # bytes and the parsed payload; a FRAMES reply's payloads and its serialized frame.
-        "byte_budget": 2 * limits.max_buffered_bytes // 1024,
-        "connections": 2 * limits.max_connections * PER_CONNECTION_BYTES // 1024,
-        "allocator": ALLOCATOR_BYTES // 1024,
-    }
-    return {**parts, "bound": sum(parts.values())}
+    """The promised ceiling of the server's resident memory, and its parts (KiB): the model
+    shared with scripts/soak.py (:func:`soak.memory_bound_kib`)."""
+    return memory_bound_kib(
+        baseline_kib=baseline_kib,
+        decoders=limits.workers + limits.fast_workers,
+        max_pixels=limits.max_pixels,
+        max_buffered_bytes=limits.max_buffered_bytes,
+        max_connections=limits.max_connections,
+    )
 
 
 # ----------------------------------------------------------------------------- bookkeeping
