@@ -19,8 +19,8 @@ from numpy.typing import NDArray
 from geometry import CameraIntrinsics
 
 from ..devices import DeviceError, Devices, Unreachable
+from .board_view import BoardView
 from .coverage import Coverage, board_coverage
-from .intrinsics import BoardView
 from .views import plan_tool_views
 
 __all__ = [

@@ -20,7 +20,7 @@ import numpy as np
 from geometry import CameraIntrinsics
 
 if TYPE_CHECKING:
-    from .intrinsics import BoardView
+    from .board_view import BoardView
 
 __all__ = ["GRID", "MIN_CELL_CORNERS", "TILTS", "Coverage", "board_coverage", "view_tilt"]
 

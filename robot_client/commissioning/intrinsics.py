@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from geometry import CameraIntrinsics
 
+from .board_view import BoardView
 from .coverage import Coverage, board_coverage
 
 __all__ = [
@@ -41,16 +42,6 @@ OUTLIER_FLOOR_PX = 0.3  # ... but never below this (a clean set has medians near
 
 class CalibrationError(ValueError):
     """The views cannot give intrinsics (too few usable views); the message says why."""
-
-
-@dataclass(frozen=True)
-class BoardView:
-    """One image of the board: ``uv`` (N, 2) pixels, ``object_points`` (N, 3) board frame in
-    metres (z = 0), ``label`` a name for reports (e.g. ``"view 3"`` or a file name)."""
-
-    uv: FloatArray
-    object_points: FloatArray
-    label: str
 
 
 @dataclass(frozen=True)
