@@ -39,8 +39,12 @@ from numpy.typing import NDArray
 from pyzbar import pyzbar
 
 from .code_grade import Grade, grade_code, is_inverted
-from .errors import BadImageError, NotFoundError, RoiError
-from .qr import order_corners
+from .errors import NotFoundError
+from .qr import crop_for_code, gray_for_code, order_corners
+
+MIN_SIDE_PX = 8
+"""An image or ROI smaller than this a side holds no readable code (a 1D code's bars, the
+smallest Micro QR)."""
 
 __all__ = [
     "SYMBOLOGIES",
@@ -383,38 +387,6 @@ def _counter_clockwise(quad: FloatArray) -> bool:
 # --- the reader ----------------------------------------------------------------------------
 
 
-def _to_gray(image: NDArray[np.generic]) -> GrayImage:
-    arr = np.asarray(image)
-    if arr.dtype != np.uint8:
-        raise BadImageError(f"image must be uint8, got {arr.dtype}")
-    if arr.ndim == 3 and arr.shape[2] == 1:
-        arr = arr[:, :, 0]
-    if arr.ndim == 3 and arr.shape[2] in (3, 4):
-        code = cv2.COLOR_BGR2GRAY if arr.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-        arr = cv2.cvtColor(arr, code)
-    if arr.ndim != 2:
-        raise BadImageError(f"image must be (H, W) or (H, W, 3), got shape {arr.shape}")
-    if arr.shape[0] < 8 or arr.shape[1] < 8:
-        raise BadImageError(f"image too small for a code: {arr.shape[1]}x{arr.shape[0]}")
-    return np.ascontiguousarray(arr)
-
-
-def _crop(gray: GrayImage, roi: Sequence[int] | None) -> tuple[GrayImage, FloatArray]:
-    if roi is None:
-        return gray, np.zeros(2)
-    if len(roi) != 4:
-        raise RoiError(f"roi must be [u, v, width, height], got {roi!r}")
-    u, v, w, h = (int(x) for x in roi)
-    height, width = gray.shape
-    if w <= 0 or h <= 0:
-        raise RoiError(f"roi {list(roi)} is empty")
-    if u < 0 or v < 0 or u + w > width or v + h > height:
-        raise RoiError(f"roi {list(roi)} does not lie inside the {width}x{height} image")
-    if w < 8 or h < 8:
-        raise RoiError(f"roi {list(roi)} is too small for a code")
-    return np.ascontiguousarray(gray[v : v + h, u : u + w]), np.array([u, v], np.float64)
-
-
 def _describe(expect: Expect) -> str:
     if isinstance(expect, re.Pattern):
         return f"pattern {expect.pattern!r}"
@@ -439,7 +411,12 @@ def read_codes(
     what was tried and, with ``expect``, what was read instead.
     """
     formats = _formats(symbologies)
-    gray, offset = _crop(_to_gray(image), roi)
+    gray, offset = crop_for_code(
+        gray_for_code(image, min_side=MIN_SIDE_PX, what="a code"),
+        roi,
+        min_side=MIN_SIDE_PX,
+        what="a code",
+    )
     found, tried = _escalate(gray, formats, expect)
     codes = []
     for r in found:

@@ -461,7 +461,11 @@ def refine_corners(
 # --- the reader ----------------------------------------------------------------------------
 
 
-def _to_gray(image: NDArray[np.generic]) -> GrayImage:
+def gray_for_code(
+    image: NDArray[np.generic], *, min_side: int = 21, what: str = "a QR code"
+) -> GrayImage:
+    """``image`` (uint8 gray, BGR or BGRA) as a contiguous gray image; BadImageError when it is
+    not one, or smaller than ``min_side`` pixels a side (too small for ``what``)."""
     arr = np.asarray(image)
     if arr.dtype != np.uint8:
         raise BadImageError(f"image must be uint8, got {arr.dtype}")
@@ -472,12 +476,16 @@ def _to_gray(image: NDArray[np.generic]) -> GrayImage:
         arr = cv2.cvtColor(arr, code)
     if arr.ndim != 2:
         raise BadImageError(f"image must be (H, W) or (H, W, 3), got shape {arr.shape}")
-    if arr.shape[0] < 21 or arr.shape[1] < 21:
-        raise BadImageError(f"image too small for a QR code: {arr.shape[1]}x{arr.shape[0]}")
+    if arr.shape[0] < min_side or arr.shape[1] < min_side:
+        raise BadImageError(f"image too small for {what}: {arr.shape[1]}x{arr.shape[0]}")
     return np.ascontiguousarray(arr)
 
 
-def _crop(gray: GrayImage, roi: Sequence[int] | None) -> tuple[GrayImage, FloatArray]:
+def crop_for_code(
+    gray: GrayImage, roi: Sequence[int] | None, *, min_side: int = 21, what: str = "a QR code"
+) -> tuple[GrayImage, FloatArray]:
+    """The ``roi`` ``[u, v, width, height]`` of ``gray`` and its offset (pixels); RoiError when
+    it is malformed, outside the image or smaller than ``min_side`` a side."""
     if roi is None:
         return gray, np.zeros(2)
     if len(roi) != 4:
@@ -488,8 +496,8 @@ def _crop(gray: GrayImage, roi: Sequence[int] | None) -> tuple[GrayImage, FloatA
         raise RoiError(f"roi {list(roi)} is empty")
     if u < 0 or v < 0 or u + w > width or v + h > height:
         raise RoiError(f"roi {list(roi)} does not lie inside the {width}x{height} image")
-    if w < 21 or h < 21:
-        raise RoiError(f"roi {list(roi)} is too small for a QR code")
+    if w < min_side or h < min_side:
+        raise RoiError(f"roi {list(roi)} is too small for {what}")
     return np.ascontiguousarray(gray[v : v + h, u : u + w]), np.array([u, v], np.float64)
 
 
@@ -568,8 +576,8 @@ def read_qr(
     for name in decoders:
         if name not in DECODERS:
             raise ValueError(f"unknown decoder {name!r}; known: {sorted(DECODERS)}")
-    gray_full = _to_gray(image)
-    gray, offset = _crop(gray_full, roi)
+    gray_full = gray_for_code(image)
+    gray, offset = crop_for_code(gray_full, roi)
     found, tried = decode_raw(gray, decoders, expect)
     codes: list[tuple[int, float, QRCode]] = []
     for r in found:
