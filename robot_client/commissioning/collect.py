@@ -29,9 +29,24 @@ __all__ = [
     "board_result",
     "collect_fixed_views",
     "collect_tool_views",
+    "move_to_view",
 ]
 
 FloatArray = NDArray[np.float64]
+
+
+def move_to_view(devices: Devices, pose: FloatArray) -> str | None:
+    """Move the tool to ``pose`` (``base_from_tool``) for a view; None when it got there,
+    else why the view is skipped (outside the workspace, unreachable)."""
+    if not devices.robot.in_workspace(pose[:3, 3]):
+        return "the pose lies outside the robot's workspace"
+    try:
+        devices.robot.move_linear(pose)
+    except Unreachable as exc:
+        return f"unreachable: {exc}"
+    return None
+
+
 ProgressFn = Callable[[str, float], None]
 
 
@@ -138,13 +153,9 @@ def collect_tool_views(
             label = f"view {i + 1}"
             if progress is not None:
                 progress(f"{label} of {len(poses)}", i / len(poses))
-            if not devices.robot.in_workspace(pose[:3, 3]):
-                collected.skipped.append((label, "the pose lies outside the robot's workspace"))
-                continue
-            try:
-                devices.robot.move_linear(pose)
-            except Unreachable as exc:
-                collected.skipped.append((label, f"unreachable: {exc}"))
+            refused = move_to_view(devices, pose)
+            if refused is not None:
+                collected.skipped.append((label, refused))
                 continue
             found = _inspect(devices, inspection, device.capture().color, label)
             if found.view is None:

@@ -19,8 +19,8 @@ from numpy.typing import NDArray
 
 from geometry import CameraIntrinsics, make_transform
 
-from ..devices import Devices, Unreachable
-from .collect import BoardResult, board_result
+from ..devices import Devices
+from .collect import BoardResult, board_result, move_to_view
 from .hand_eye import MIN_CORNERS, HandEyeView, plan_views
 
 __all__ = ["HandEyeCollected", "collect_hand_eye_views"]
@@ -116,13 +116,9 @@ def collect_hand_eye_views(
             label = f"pose {i + 1}"
             if progress is not None:
                 progress(f"{label} of {len(poses)}", i / len(poses))
-            if not devices.robot.in_workspace(pose[:3, 3]):
-                collected.skipped.append((label, "the pose lies outside the robot's workspace"))
-                continue
-            try:
-                devices.robot.move_linear(pose)
-            except Unreachable as exc:
-                collected.skipped.append((label, f"unreachable: {exc}"))
+            refused = move_to_view(devices, pose)
+            if refused is not None:
+                collected.skipped.append((label, refused))
                 continue
             reported = devices.robot.base_from_tool()
             found = board_result(
