@@ -234,6 +234,7 @@ class InspectionService:
                 self.settings.workers,
                 nice=self.settings.main_lane_nice,
                 policy=self.settings.main_lane_policy,
+                opencv_threads=self.settings.opencv_thread_count(),
             )
             if self.settings.process_inspections
             else None

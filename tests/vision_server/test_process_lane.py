@@ -1,6 +1,7 @@
 """Inspections named in ``process_inspections`` run in worker processes, their images passed
-through shared memory: the outcome is the same as in a thread, from another process, and the
-shared block is gone afterwards. Counts and values only, no timing."""
+through shared memory: the outcome is the same as in a thread, from another process; each
+process keeps one block, removed when the lane stops; errors come back typed, and a process that
+dies is replaced. Counts and values only, no timing."""
 
 from __future__ import annotations
 
@@ -11,9 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from child_inspections import WhereAmI
+from child_inspections import CountsItsPickles, Misbehaving, WhereAmI, pickled_times
 from loopback import run
 
+from protocol.errors import InspectionFailed, InternalError
+from vision_server import process_lane
 from vision_server.cameras import RequestCamera, RequestCameraSettings
 from vision_server.catalog import Catalog, InspectionInput
 from vision_server.config import ConfigError, load_config
@@ -62,25 +65,105 @@ def test_without_the_setting_it_runs_in_the_server_process() -> None:
         service.close()
 
 
-def test_the_shared_block_is_removed_after_each_run(monkeypatch: pytest.MonkeyPatch) -> None:
+def _created_blocks(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     names: list[str] = []
     real = SharedMemory.__init__
 
     def recording(self: SharedMemory, *args: object, **kwargs: object) -> None:
         real(self, *args, **kwargs)  # type: ignore[arg-type]
-        names.append(self.name)
+        if kwargs.get("create"):
+            names.append(self.name)
 
     monkeypatch.setattr(SharedMemory, "__init__", recording)
+    return names
+
+
+def _gone(name: str) -> bool:
+    try:
+        SharedMemory(name=name).close()
+    except FileNotFoundError:
+        return True
+    return False
+
+
+def test_a_worker_keeps_one_block_for_its_requests_and_shutdown_removes_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # A block per request cost ~200 page faults and a resource-tracker round trip each time.
+    names = _created_blocks(monkeypatch)
+    lane = ProcessLane(1)
+    try:
+        for shift in range(3):
+            image = (COLOR + shift).astype(np.uint8)
+            outcome = lane.run(WhereAmI(), InspectionInput(image), overlay=False)
+            assert outcome.data["mean"] == pytest.approx(float(image.mean()))
+        assert len(names) == 1
+        assert not _gone(names[0])
+        bigger = np.zeros((1200, 1000), np.uint8)  # more than the first block's 1 MiB
+        outcome = lane.run(WhereAmI(), InspectionInput(bigger), overlay=False)
+        assert outcome.data["mean"] == 0.0
+        assert len(names) == 2
+        assert _gone(names[0])  # replaced by the larger one
+    finally:
+        lane.shutdown()
+    assert all(_gone(name) for name in names)
+
+
+def test_an_image_above_the_kept_size_gets_a_block_removed_after_its_run(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(process_lane, "KEPT_BLOCK_BYTES", COLOR.nbytes // 2)
+    names = _created_blocks(monkeypatch)
     lane = ProcessLane(1)
     try:
         outcome = lane.run(WhereAmI(), InspectionInput(COLOR), overlay=False)
         assert outcome.data["mean"] == pytest.approx(float(COLOR.mean()))
+        assert len(names) == 1
+        assert _gone(names[0])
     finally:
         lane.shutdown()
-    assert names
-    for name in names:
-        with pytest.raises(FileNotFoundError):
-            SharedMemory(name=name)
+
+
+def test_an_inspection_is_pickled_once_however_often_it_runs() -> None:
+    lane = ProcessLane(1)
+    inspection = CountsItsPickles()
+    before = pickled_times()
+    try:
+        for _ in range(4):
+            lane.run(inspection, InspectionInput(COLOR), overlay=False)
+    finally:
+        lane.shutdown()
+    assert pickled_times() - before == 1
+
+
+def test_the_inspections_own_errors_come_back_typed_and_the_worker_stays() -> None:
+    lane = ProcessLane(1)
+    try:
+        lane.start()
+        pids = lane.pids
+        with pytest.raises(InspectionFailed, match="shows no part"):
+            lane.run(Misbehaving("refuse"), InspectionInput(COLOR), overlay=False)
+        with pytest.raises(FileNotFoundError, match="template.png"):
+            lane.run(Misbehaving("oserror"), InspectionInput(COLOR), overlay=False)
+        outcome = lane.run(Misbehaving("fine"), InspectionInput(COLOR), overlay=False)
+        assert [outcome.data["pid"]] == pids == lane.pids
+    finally:
+        lane.shutdown()
+
+
+def test_a_worker_that_dies_fails_its_request_and_is_replaced() -> None:
+    lane = ProcessLane(1)
+    try:
+        lane.start()
+        (first,) = lane.pids
+        with pytest.raises(InternalError, match="ended during the inspection") as failed:
+            lane.run(Misbehaving("die"), InspectionInput(COLOR), overlay=False)
+        assert "'misbehaving'" in str(failed.value)
+        outcome = lane.run(Misbehaving("fine"), InspectionInput(COLOR), overlay=False)
+        assert outcome.data["pid"] != first
+        assert lane.pids == [outcome.data["pid"]]
+    finally:
+        lane.shutdown()
 
 
 def test_a_name_that_is_no_inspection_is_a_config_error(tmp_path: Path) -> None:
@@ -137,3 +220,22 @@ def test_the_idle_policy_puts_the_worker_processes_at_sched_idle() -> None:
     finally:
         service.close()
     assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the server itself is untouched
+
+
+def test_each_process_runs_opencv_with_the_threads_left_to_it() -> None:
+    # A spawned process starts at one OpenCV thread per core; ``workers`` of them would
+    # oversubscribe the cores. The service gives each the server's per-worker count.
+    catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [WhereAmI()])
+    settings = ServiceSettings(
+        workers=2, queue_depth=0, process_inspections=("where",), opencv_threads=1
+    )
+    service = InspectionService(catalog, settings)
+
+    async def body() -> None:
+        reply = await service.inspect(InspectRequest("where", Images(COLOR)))
+        assert reply.data["opencv_threads"] == 1
+
+    try:
+        run(body(), timeout_s=120.0)
+    finally:
+        service.close()
