@@ -37,7 +37,9 @@ def cores() -> int:
 class Rate:
     """``calls`` completed by ``threads`` threads in a window of ``seconds`` (wall), with
     OpenCV's own thread count ``cv_threads`` in each; ``cpu_s``: this process's CPU time from
-    the window's start until the last call ended, ``elapsed_s`` later."""
+    the window's start until the last call ended, ``elapsed_s`` later. When a worker's first
+    call ended after the window (a loaded machine, a short window), that call counts and
+    ``seconds`` is ``elapsed_s``."""
 
     threads: int
     cv_threads: int
@@ -116,28 +118,40 @@ def rate(
         if cv_threads is not None:
             cv2.setNumThreads(cv_threads)
 
-    def loop() -> int:
+    def loop() -> tuple[int, bool]:
         for _ in range(warmup):
             call()
         barrier.wait()
-        done = 0
-        end = window["end"]
-        while time.perf_counter() < end:
-            call()
-            if time.perf_counter() <= end:
-                done += 1
-        return done
+        return _count_calls(call, window["end"])
 
     try:
         with ThreadPoolExecutor(threads, initializer=setup) as pool:
             futures = [pool.submit(loop) for _ in range(threads)]
-            calls = sum(f.result() for f in futures)
+            counts = [f.result() for f in futures]
         cpu_s = time.process_time() - window["cpu"]
         elapsed_s = time.perf_counter() - window["start"]
         in_effect = cv_threads if cv_threads is not None else previous
     finally:
         cv2.setNumThreads(previous)
-    return Rate(threads, in_effect, calls, window_s, cpu_s, elapsed_s)
+    calls = sum(done for done, _ in counts)
+    late = any(late for _, late in counts)
+    return Rate(threads, in_effect, calls, elapsed_s if late else window_s, cpu_s, elapsed_s)
+
+
+def _count_calls(call: Callable[[], Any], end: float) -> tuple[int, bool]:
+    """Call ``call`` until ``end`` (a perf_counter time) and count the calls that ended
+    before it; at least one call is counted: on a machine so loaded that not one ends inside
+    the window, the first one is counted and the window reaches to its end (the second value,
+    ``late``, says so), rather than report no rate at all."""
+    done = 0
+    late = False
+    while done == 0 or time.perf_counter() < end:
+        call()
+        if time.perf_counter() <= end:
+            done += 1
+        elif done == 0:
+            done, late = 1, True
+    return done, late
 
 
 def _process_loop(
@@ -166,13 +180,8 @@ def _process_loop(
         target.run(given, overlay=False)
     barrier.wait()
     start, cpu0 = time.perf_counter(), time.process_time()
-    end = start + window_s
-    done = 0
-    while time.perf_counter() < end:
-        target.run(given, overlay=False)
-        if time.perf_counter() <= end:
-            done += 1
-    out.put((done, time.process_time() - cpu0, time.perf_counter() - start))
+    done, late = _count_calls(lambda: target.run(given, overlay=False), start + window_s)
+    out.put((done, time.process_time() - cpu0, time.perf_counter() - start, late))
 
 
 def process_rate(
@@ -219,12 +228,13 @@ def process_rate(
             worker.join(10.0)
             if worker.is_alive():
                 worker.terminate()
+    elapsed_s = max(c[2] for c in counts)
     return Rate(
         processes,
         1,
         sum(c[0] for c in counts),
-        window_s,
+        elapsed_s if any(c[3] for c in counts) else window_s,
         sum(c[1] for c in counts),
-        max(c[2] for c in counts),
+        elapsed_s,
         model="processes",
     )
