@@ -34,6 +34,9 @@ find_driver() {
     return 1
 }
 
+# One installer at a time: parallel test workers (pytest-xdist) may all find it missing at once.
+exec 8>/tmp/cellvision-apt.lock
+flock 8
 if ! find_chromium >/dev/null || ! find_driver >/dev/null; then
     if ! command -v apt-get >/dev/null 2>&1; then
         echo "browser_setup: chromium or chromium-driver is missing and there is no apt-get to install them" >&2
@@ -53,6 +56,7 @@ if ! find_chromium >/dev/null || ! find_driver >/dev/null; then
     fi
     rm -f /tmp/browser_setup.$$.log
 fi
+exec 8>&-
 
 chromium_path="$(find_chromium)" || { echo "browser_setup: chromium not found after installing it" >&2; exit 77; }
 driver_path="$(find_driver)" || { echo "browser_setup: chromedriver not found after installing it" >&2; exit 77; }

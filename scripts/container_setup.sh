@@ -31,6 +31,9 @@ say() { echo "container-setup: $*" >&2; }
 [ "$(uname -s)" = Linux ] || skip "containers need Linux, this is $(uname -s)"
 [ "$(id -u)" = 0 ] || skip "rootful podman and debootstrap need root (running as uid $(id -u))"
 
+# One installer at a time: parallel test workers (pytest-xdist) may all find it missing at once.
+exec 8>/tmp/cellvision-apt.lock
+flock 8
 missing=()
 for tool in podman runc debootstrap; do
     command -v "$tool" >/dev/null 2>&1 || missing+=("$tool")
@@ -48,6 +51,7 @@ if [ "${#missing[@]}" -gt 0 ]; then
     fi
     rm -f "$log"
 fi
+exec 8>&-
 
 # One setup at a time: parallel test runs share podman's image store.
 exec 9>/var/lock/cellvision-container-setup.lock

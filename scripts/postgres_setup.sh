@@ -27,6 +27,9 @@ find_bindir() {
     return 1
 }
 
+# One installer at a time: parallel test workers (pytest-xdist) may all find it missing at once.
+exec 8>/tmp/cellvision-apt.lock
+flock 8
 if ! find_bindir >/dev/null; then
     if ! command -v apt-get >/dev/null 2>&1; then
         echo "postgres_setup: PostgreSQL is missing and there is no apt-get to install it" >&2
@@ -47,6 +50,7 @@ if ! find_bindir >/dev/null; then
     fi
     rm -f "$log"
 fi
+exec 8>&-
 
 bindir="$(find_bindir)" || { echo "postgres_setup: initdb not found after installing postgresql" >&2; exit 77; }
 echo "bindir=$bindir"
