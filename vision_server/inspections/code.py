@@ -139,6 +139,13 @@ def _parse_min_grade(node: Node) -> tuple[tuple[str, float], ...]:
 
 def parse_code(node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]) -> CodeInspection:
     common = parse_common(node, "code", cameras)
+    return CodeInspection(
+        common, parse_symbologies(node), parse_expect(node), _parse_min_grade(node)
+    )
+
+
+def parse_symbologies(node: Node) -> tuple[str, ...]:
+    """``symbologies:``, a non-empty list of :data:`SYMBOLOGIES` (absent: every one)."""
     symbologies: tuple[str, ...] = tuple(SYMBOLOGIES)
     if node.has("symbologies"):
         raw = node.data["symbologies"]
@@ -156,7 +163,7 @@ def parse_code(node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]
                 raise node.error(f"symbologies[{index}]: {exc}", "symbologies") from None
         node.take("symbologies", lambda value: value)
         symbologies = tuple(dict.fromkeys(names))
-    return CodeInspection(common, symbologies, parse_expect(node), _parse_min_grade(node))
+    return symbologies
 
 
 def _code_expected(data: Data) -> dict[str, Any]:
