@@ -84,8 +84,8 @@ class JobInspection(Configured):
         picture = None
         if overlay:
             picture = overlay_base(image.color, None)
-            for name, o in outcomes.items():
-                _draw_step(picture, name, o)
+            for row, (name, o) in enumerate(outcomes.items()):
+                _draw_step(picture, row, name, o)
             text = f"{len(failed)} of {len(outcomes)} steps failed" if failed else ""
             draw_verdict(picture, passed, text)
         return InspectionOutcome(passed, data, picture)
@@ -105,23 +105,24 @@ def _pixel(point: tuple[float, float]) -> tuple[int, int]:
     return int(round(point[0])), int(round(point[1]))
 
 
-def _draw_step(picture: Any, name: str, outcome: Outcome) -> None:
-    """A step's shapes, green when it passed, red when not, and its name and value."""
+def _draw_step(picture: Any, row: int, name: str, outcome: Outcome) -> None:
+    """A step's shapes, green when it passed, red when not, and its line of the legend under
+    the verdict (steps' shapes often share a point: the legend keeps their text apart)."""
     colour = GREEN if outcome.passed else RED
     for shape in outcome.shapes:
         _draw_shape(picture, shape, colour)
-    if outcome.shapes:
-        anchor = _pixel(outcome.shapes[0].points[0])
-        cv2.putText(
-            picture,
-            f"{name}: {outcome.label}".encode("ascii", "replace").decode(),
-            (anchor[0] + 4, max(12, anchor[1] - 6)),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.4,
-            colour,
-            1,
-            cv2.LINE_AA,
-        )
+    scale = max(0.4, picture.shape[1] / 2400.0)
+    top = int(30 * max(0.5, picture.shape[1] / 1400.0)) + 12
+    cv2.putText(
+        picture,
+        f"{name}: {outcome.label}".encode("ascii", "replace").decode(),
+        (10, top + int((row + 1) * 18 * scale / 0.4)),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        scale,
+        colour,
+        1,
+        cv2.LINE_AA,
+    )
 
 
 def _draw_shape(picture: Any, shape: Shape, colour: tuple[int, int, int]) -> None:

@@ -1,0 +1,356 @@
+"""``type: job``: steps chained in one inspection. A fixture makes the later ROIs follow a part
+that moved and turned (the same presence step with a fixed ROI fails there); a code is read in
+the part's frame through a real server on loopback, with every step's values in one RESULT and
+one overlay; the validator names every broken link of the chain with file, line and key path."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from loopback import client_for, run, server_in_thread
+
+from protocol import schema
+from robot_client.client import overlay_image
+from vision_server.catalog import InspectionInput
+from vision_server.config import ConfigError, load_config
+from vision_server.inspections import RESULT_KINDS, JobInspection
+from vision_server.runtime import CellRuntime
+
+ROOT = Path(__file__).resolve().parents[2]
+PLATES = ROOT / "test_inspections" / "fixtured_plate" / "images"
+
+HEAD = """\
+cameras:
+  qc: {source: request}
+inspections:
+  - name: plate
+    type: job
+    camera: qc
+    steps:
+"""
+LOCATE = """\
+      - name: big_hole
+        type: locate
+        method: circle
+        circle: {min_radius_px: 10, max_radius_px: 15, polarity: dark}
+        max_count: 1
+      - name: near
+        type: fixture
+        origin: big_hole
+      - name: small_hole
+        type: locate
+        fixture: near
+        roi: [60, -50, 80, 100]
+        method: circle
+        circle: {min_radius_px: 5, max_radius_px: 9, polarity: dark}
+        max_count: 1
+      - name: part
+        type: fixture
+        origin: big_hole
+        x_towards: small_hole
+"""
+
+
+def job(tmp_path: Path, steps: str, verdict: str | None = None) -> JobInspection:
+    text = HEAD + LOCATE + steps + (f"    verdict: {verdict}\n" if verdict else "")
+    path = tmp_path / "cell.yaml"
+    path.write_text(text, encoding="utf-8")
+    (inspection,) = load_config(path).inspections
+    assert isinstance(inspection, JobInspection)
+    return inspection
+
+
+def plate(name: str) -> np.ndarray:
+    image = cv2.imread(str(PLATES / name), cv2.IMREAD_GRAYSCALE)
+    assert image is not None, name
+    return image
+
+
+MAGNET_IN_PART = """\
+      - name: magnet
+        type: presence
+        fixture: part
+        roi: [44, 12, 12, 12]
+        measure: dark_fraction
+        threshold: 110
+        min: 0.6
+"""
+# The same ROI where the magnet is on the taught image (big hole at (110, 120), angle 0).
+MAGNET_FIXED = """\
+      - name: magnet
+        type: presence
+        roi: [154, 132, 12, 12]
+        measure: dark_fraction
+        threshold: 110
+        min: 0.6
+"""
+
+
+@pytest.mark.parametrize("name", ["moved_a.png", "moved_b.png", "moved_c.png"])
+def test_the_fixture_makes_the_roi_follow_a_moved_and_turned_part(
+    tmp_path: Path, name: str
+) -> None:
+    fixtured = job(tmp_path, MAGNET_IN_PART)
+    fixed = job(tmp_path, MAGNET_FIXED)
+    # Taught where the fixed ROI was drawn, both see the magnet.
+    for inspection in (fixtured, fixed):
+        taught = inspection.run(InspectionInput(plate("taught.png")), overlay=False)
+        assert taught.passed, taught.data["steps"]["magnet"]
+    moved = fixtured.run(InspectionInput(plate(name)), overlay=False)
+    assert moved.passed, moved.data["steps"]
+    assert moved.data["steps"]["magnet"]["value"] > 0.9
+    stuck = fixed.run(InspectionInput(plate(name)), overlay=False)
+    assert not stuck.passed
+    assert stuck.data["failed"] == ["magnet"]
+    assert stuck.data["steps"]["magnet"]["value"] < 0.3
+
+
+def test_a_missing_magnet_fails_its_step_and_a_missing_part_skips_the_chain(
+    tmp_path: Path,
+) -> None:
+    inspection = job(tmp_path, MAGNET_IN_PART, "all(big_hole, part) and magnet.value >= 0.6")
+    empty = inspection.run(InspectionInput(plate("moved_empty.png")), overlay=False)
+    assert not empty.passed
+    assert empty.data["failed"] == ["magnet"]
+    nothing = inspection.run(InspectionInput(plate("no_plate.png")), overlay=True)
+    assert not nothing.passed
+    steps = nothing.data["steps"]
+    assert steps["big_hole"]["count"] == 0
+    assert steps["near"]["reason"] == "step 'big_hole' found nothing"
+    assert steps["magnet"] == {
+        "type": "presence",
+        "passed": False,
+        "value": None,
+        "reason": "fixture 'part' was not made",
+    }
+    assert nothing.data["count"] == 0
+    assert nothing.overlay is not None
+    schema.validate_data("job", nothing.data)
+    summary = RESULT_KINDS["job"].summary(nothing.data)
+    assert summary["failed"] == 5.0
+    assert math.isnan(summary["u"])
+
+
+def test_an_roi_that_the_fixture_moves_out_of_the_image_fails_with_its_reason(
+    tmp_path: Path,
+) -> None:
+    far = MAGNET_IN_PART.replace("roi: [44, 12, 12, 12]", "roi: [300, 0, 12, 12]")
+    outcome = job(tmp_path, far).run(InspectionInput(plate("taught.png")), overlay=False)
+    assert not outcome.passed
+    assert outcome.data["steps"]["magnet"]["reason"] == (
+        "ROI [300, 0, 12, 12] in fixture 'part''s frame leaves the image"
+    )
+
+
+# ----------------------------------------------------------------------- a code, over the wire
+
+LABEL = "P-4711/07"
+PART_FROM_CANVAS = (30.0, 60.0)
+"""Where the part frame's origin (the big hole) lies on the drawn part canvas, in pixels."""
+
+
+def turned_part(u0: float, v0: float, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """A bright part with the two holes of the plate and a DataMatrix label, placed with its
+    frame at (u0, v0) turned by ``angle`` (rad) in a 400x300 image; and the label's four
+    corners in image pixels (the truth)."""
+    import zxingcpp
+
+    canvas = np.full((120, 200), 200, np.uint8)
+    ox, oy = PART_FROM_CANVAS
+    cv2.circle(canvas, (int(ox), int(oy)), 12, 40, -1, cv2.LINE_AA)
+    cv2.circle(canvas, (int(ox) + 100, int(oy)), 7, 40, -1, cv2.LINE_AA)
+    symbol = zxingcpp.create_barcode(LABEL, zxingcpp.BarcodeFormat.DataMatrix)
+    code = np.asarray(zxingcpp.write_barcode_to_image(symbol, scale=3, add_quiet_zones=False))
+    size = code.shape[0]
+    x0, y0 = int(ox) + 45, int(oy) - size // 2
+    canvas[y0 : y0 + size, x0 : x0 + size] = code
+    c, s = math.cos(angle), math.sin(angle)
+    # image = R (canvas - origin) + (u0, v0)
+    matrix = np.array([[c, -s, u0 - c * ox + s * oy], [s, c, v0 - s * ox - c * oy]])
+    image = cv2.warpAffine(canvas, matrix, (400, 300), flags=cv2.INTER_LINEAR, borderValue=40)
+    corners = (
+        np.array([[x0, y0], [x0 + size, y0], [x0 + size, y0 + size], [x0, y0 + size]], float) - 0.5
+    )
+    return image, corners @ matrix[:, :2].T + matrix[:, 2]
+
+
+CODE_CONFIG = (
+    HEAD.replace("  qc: {source: request}", "  qc: {source: request}").replace(
+        "cameras:", "server: {port: 0}\nresults: {enabled: false}\ncameras:"
+    )
+    + LOCATE.replace("[60, -50, 80, 100]", "[60, -60, 80, 120]")
+    + f"""\
+      - name: label
+        type: code
+        fixture: part
+        roi: [35, -30, 60, 60]
+        symbologies: [datamatrix]
+        expect: {LABEL}
+    verdict: all(part, label) and label.text == "{LABEL}" and small_hole.count == 1
+"""
+)
+
+
+@pytest.fixture
+def runtime(tmp_path: Path) -> Iterator[CellRuntime]:
+    path = tmp_path / "cell.yaml"
+    path.write_text(CODE_CONFIG, encoding="utf-8")
+    cell = CellRuntime(path)
+    try:
+        yield cell
+    finally:
+        cell.close()
+
+
+def test_a_code_is_read_in_the_turned_part_frame_in_one_result_with_every_step(
+    runtime: CellRuntime,
+) -> None:
+    image, truth = turned_part(215.3, 140.6, math.radians(25.0))
+
+    async def body() -> tuple[bool, dict[str, Any], Any]:
+        with server_in_thread(runtime.catalog) as server:
+            async with client_for(server) as client:
+                result = await client.inspect("plate", image, overlay=True)
+                return result.passed, dict(result.data), overlay_image(result)
+
+    passed, data, picture = run(body())
+    assert passed, data
+    schema.validate_data("job", data)
+    assert set(data["steps"]) == {"big_hole", "near", "small_hole", "part", "label"}
+    part = data["steps"]["part"]
+    assert part["u"] == pytest.approx(215.3, abs=0.3)
+    assert part["v"] == pytest.approx(140.6, abs=0.3)
+    assert part["angle"] == pytest.approx(math.radians(25.0), abs=0.01)
+    label = data["steps"]["label"]
+    assert label["text"] == LABEL
+    assert label["symbology"] == "datamatrix"
+    # zxing-cpp's corners are whole-pixel estimates of the outer modules: ~1.5 px
+    errors = np.hypot(*(np.asarray(label["corners"]) - truth).T)
+    assert errors.max() < 2.5, (label["corners"], truth.tolist())
+    assert data["verdict"].startswith("all(part, label)")
+    # The overlay shows the label's ROI where the fixture put it: a green edge along the
+    # turned ROI's top side, away from the image's axes.
+    assert picture is not None
+    assert picture.shape[:2] == image.shape
+    m = np.array(
+        [[math.cos(math.radians(25)), -math.sin(math.radians(25))],
+         [math.sin(math.radians(25)), math.cos(math.radians(25))]]
+    )  # fmt: skip
+    u, v = m @ np.array([65.0, -30.5]) + np.array([part["u"], part["v"]])
+    patch = picture[int(v) - 2 : int(v) + 3, int(u) - 2 : int(u) + 3].reshape(-1, 3)
+    green = (patch[:, 1] > 150) & (patch[:, 2] < 100) & (patch[:, 0] < 100)
+    assert green.any(), patch
+
+
+# ----------------------------------------------------------------------- the validator
+
+
+def error_of(tmp_path: Path, steps: str, verdict: str | None = None) -> ConfigError:
+    with pytest.raises(ConfigError) as info:
+        job(tmp_path, steps, verdict)
+    return info.value
+
+
+@pytest.mark.parametrize(
+    ("steps", "verdict", "marker", "path", "reason"),
+    [
+        (
+            MAGNET_IN_PART.replace("fixture: part", "fixture: parts"),
+            None,
+            "fixture: parts",
+            "inspections[0] (name='plate') -> steps[4] (name='magnet') -> fixture",
+            "no step named 'parts' (the steps are: big_hole, near, small_hole, part, magnet)",
+        ),
+        (
+            MAGNET_IN_PART.replace("fixture: part", "fixture: magnet"),
+            None,
+            "fixture: magnet",
+            "steps[4] (name='magnet') -> fixture",
+            "step 'magnet' runs later than this one: a step can use only the steps before it "
+            "(here: big_hole, near, small_hole, part)",
+        ),
+        (
+            MAGNET_IN_PART.replace("fixture: part", "fixture: small_hole"),
+            None,
+            "fixture: small_hole",
+            "steps[4] (name='magnet') -> fixture",
+            "step 'small_hole' is a locate step; fixture needs a fixture step",
+        ),
+        (
+            MAGNET_IN_PART + "      - {name: tilt, type: fixture, origin: big_hole, "
+            "angle_from: big_hole}\n",
+            None,
+            "angle_from: big_hole",
+            "steps[5] (name='tilt') -> angle_from",
+            "step 'big_hole' gives no angle (a circle has none)",
+        ),
+        (
+            MAGNET_IN_PART.replace("        roi: [44, 12, 12, 12]\n", ""),
+            None,
+            "fixture: part",
+            "steps[4] (name='magnet') -> fixture",
+            "a step in a fixture's frame needs an roi [x, y, width, height] in that frame",
+        ),
+        (
+            MAGNET_IN_PART.replace("name: magnet", "name: part"),
+            None,
+            "name: part",
+            "steps[4] (name='part') -> name",
+            "a second step named 'part'",
+        ),
+        (
+            MAGNET_IN_PART.replace("type: presence", "type: caliper"),
+            None,
+            "type: caliper",
+            "steps[4] (name='magnet') -> type",
+            "expected one of locate, fixture, presence, code, got 'caliper'",
+        ),
+        (
+            MAGNET_IN_PART.replace(
+                "measure: dark_fraction", "measure: dark_fraction\n        x: 1"
+            ),
+            None,
+            "x: 1",
+            "steps[4] (name='magnet') -> x",
+            "unknown key",
+        ),
+        (
+            MAGNET_IN_PART,
+            "magnet.count >= 1",
+            "verdict:",
+            "inspections[0] (name='plate') -> verdict",
+            "step 'magnet' has no value 'count' (column 1); it gives: passed, value",
+        ),
+        (
+            MAGNET_IN_PART,
+            "magnet and holes",
+            "verdict:",
+            "inspections[0] (name='plate') -> verdict",
+            "unknown step 'holes' at column 12",
+        ),
+        (
+            MAGNET_FIXED.replace("roi: [154, 132, 12, 12]", "roi: [-4, 132, 12, 12]"),
+            None,
+            "roi: [-4",
+            "steps[4] (name='magnet') -> roi",
+            "an ROI in the image needs u, v >= 0",
+        ),
+    ],
+)
+def test_the_validator_names_each_broken_link_with_file_line_and_key(
+    tmp_path: Path, steps: str, verdict: str | None, marker: str, path: str, reason: str
+) -> None:
+    """``marker``: text on the line the error must name (its last line holding it)."""
+    error = error_of(tmp_path, steps, verdict)
+    text = (tmp_path / "cell.yaml").read_text(encoding="utf-8").splitlines()
+    line = max(number for number, row in enumerate(text, start=1) if marker in row)
+    assert error.source == "cell.yaml"
+    assert error.line == line, str(error)
+    assert path in error.path, str(error)
+    assert reason in error.reason, str(error)
