@@ -6,6 +6,7 @@ one overlay; the validator names every broken link of the chain with file, line 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -19,7 +20,9 @@ from protocol import schema
 from robot_client.client import overlay_image
 from vision_server.catalog import InspectionInput
 from vision_server.config import ConfigError, load_config
+from vision_server.configfile import Node
 from vision_server.inspections import RESULT_KINDS, JobInspection
+from vision_server.inspections.job import STEP_TYPES
 from vision_server.runtime import CellRuntime
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -248,6 +251,23 @@ def test_a_code_is_read_in_the_turned_part_frame_in_one_result_with_every_step(
     assert green.any(), patch
 
 
+def test_a_code_below_its_minimum_grade_fails_its_step_with_the_reason(tmp_path: Path) -> None:
+    image, _ = turned_part(160.0, 150.0, math.radians(-20.0))
+    label = """\
+      - name: label
+        type: code
+        fixture: part
+        roi: [35, -30, 60, 60]
+        min_grade: {module_px: 50}
+"""
+    outcome = job(tmp_path, label).run(InspectionInput(image), overlay=False)
+    assert not outcome.passed
+    step = outcome.data["steps"]["label"]
+    assert step["text"] == LABEL
+    assert step["passed"] is False
+    assert step["reason"].startswith("grade below the minimum: module_px 3")
+
+
 # ----------------------------------------------------------------------- the validator
 
 
@@ -354,3 +374,78 @@ def test_the_validator_names_each_broken_link_with_file_line_and_key(
     assert error.line == line, str(error)
     assert path in error.path, str(error)
     assert reason in error.reason, str(error)
+
+
+# ----------------------------------------------------------------------- the docs
+
+DOC = ROOT / "docs" / "configuration.md"
+COMMON = {"name", "type", "camera", "roi", "frames", "description", "number", "output"}
+"""The keys every inspection has (docs/configuration.md, ``## inspections``)."""
+REFUSED = {"show_rejected"}
+"""Keys the docs name only to say a job's step refuses them."""
+
+
+def _job_section() -> str:
+    text = DOC.read_text(encoding="utf-8")
+    return text.split("### type: job\n", 1)[1].split("\n#### ", 1)[0]
+
+
+def test_the_docs_list_exactly_the_keys_a_job_and_its_steps_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The keys the validator looks at (given or not), by job, step and step type, against the
+    tables of docs/configuration.md's ``type: job``."""
+    read: dict[str, set[str]] = {}
+    original_take, original_sub, original_items = Node.take, Node.sub, Node.items
+    original_optional = Node.sub_optional
+
+    def section(node: Node) -> str | None:
+        path = node.path
+        if path[:1] != ("inspections",):
+            return None
+        if len(path) == 2:
+            return "job"
+        if len(path) == 4 and path[2] == "steps":
+            return f"step {node.data.get('type')}"
+        return None
+
+    def take(self: Node, key: str, convert: Any, *default: Any) -> Any:
+        if (where := section(self)) is not None:
+            read.setdefault(where, set()).add(key)
+        return original_take(self, key, convert, *default)
+
+    def sub(self: Node, key: str, *, required: bool = False) -> Node:
+        if (where := section(self)) is not None:
+            read.setdefault(where, set()).add(key)
+        return original_sub(self, key, required=required)
+
+    def items(self: Node, key: str) -> list[Node]:
+        if (where := section(self)) is not None:
+            read.setdefault(where, set()).add(key)
+        return original_items(self, key)
+
+    monkeypatch.setattr(Node, "take", take)
+    monkeypatch.setattr(Node, "sub", sub)
+
+    def sub_optional(self: Node, key: str) -> Node | None:
+        if (where := section(self)) is not None:
+            read.setdefault(where, set()).add(key)
+        return original_optional(self, key)
+
+    monkeypatch.setattr(Node, "items", items)
+    monkeypatch.setattr(Node, "sub_optional", sub_optional)
+    job(tmp_path, MAGNET_IN_PART + "      - {name: label, type: code, symbologies: [qr]}\n")
+    monkeypatch.undo()
+
+    rows: dict[str, list[str]] = {}
+    for line in _job_section().splitlines():
+        cells = [c.strip() for c in line.split("|")[1:-1]]
+        if len(cells) >= 3 and cells[0].startswith("`"):
+            rows[cells[0].strip("`")] = cells
+    step_common = {"name", "type", "fixture", "roi"}
+    documented = set(rows)
+    assert documented == (read["job"] - COMMON) | step_common | set(STEP_TYPES), documented
+    for step_type in STEP_TYPES:
+        keys = set(re.findall(r"`([a-z_]+)`", rows[step_type][1])) - REFUSED
+        got = read[f"step {step_type}"] - step_common
+        assert got == keys, f"{step_type}: validator reads {sorted(got)}, docs list {sorted(keys)}"

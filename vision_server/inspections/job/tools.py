@@ -18,7 +18,7 @@ from ...analysis.codes import read_codes
 from ...analysis.locate import Feature, Polarity, locate
 from ...analysis.presence import measure_presence
 from ...configfile import Node, string
-from ..code import parse_symbologies
+from ..code import below_grade, parse_min_grade, parse_symbologies
 from ..locate import parse_locate_settings
 from ..presence import parse_presence_settings
 from ..qr import parse_expect
@@ -222,6 +222,7 @@ def parse_presence_step(node: Node, head: Step, chain: Chain) -> Step:
 class CodeStep(Step):
     symbologies: tuple[str, ...] = ()
     expect: str | re.Pattern[str] | None = None
+    min_grade: tuple[tuple[str, float], ...] = ()
 
     type = "code"
 
@@ -248,8 +249,9 @@ class CodeStep(Step):
             return Outcome(False, values, {"reason": str(exc)}, shapes, label="no code")
         best = codes[0]
         corners = apply(region.to_image, best.corners) if region.fixtured else best.corners
+        low = below_grade(best.grade, self.min_grade)
         values.update(
-            passed=True,
+            passed=not low,
             found=True,
             text=best.text,
             symbology=best.symbology,
@@ -257,13 +259,19 @@ class CodeStep(Step):
             decode_margin=best.grade.decode_margin,
         )
         shapes.append(Shape("polygon", tuple((float(u), float(v)) for u, v in corners)))
-        detail = {"text_hri": best.text_hri, "corners": [[float(u), float(v)] for u, v in corners]}
-        return Outcome(True, values, detail, shapes, label=best.text_hri[:40])
+        detail: dict[str, Any] = {
+            "text_hri": best.text_hri,
+            "corners": [[float(u), float(v)] for u, v in corners],
+        }
+        if low:
+            detail["reason"] = "grade below the minimum: " + "; ".join(low)
+        return Outcome(not low, values, detail, shapes, label=best.text_hri[:40])
 
 
 def parse_code_step(node: Node, head: Step, chain: Chain) -> Step:
     symbologies = parse_symbologies(node)
-    return CodeStep(head.name, head.fixture, head.roi, symbologies, parse_expect(node))
+    expect = parse_expect(node)
+    return CodeStep(head.name, head.fixture, head.roi, symbologies, expect, parse_min_grade(node))
 
 
 __all__ = [
