@@ -376,6 +376,19 @@ def test_the_validator_names_each_broken_link_with_file_line_and_key(
     assert reason in error.reason, str(error)
 
 
+def test_a_template_larger_than_its_steps_roi_is_refused_at_load(tmp_path: Path) -> None:
+    """The step's ROI (in the part frame) bounds the template as an inspection's ROI does."""
+    texture = np.arange(400, dtype=np.uint8).reshape(20, 20)
+    cv2.imwrite(str(tmp_path / "magnet.png"), texture)
+    steps = MAGNET_IN_PART.replace(
+        "measure: dark_fraction\n        threshold: 110\n        min: 0.6",
+        "measure: template_score\n        template: magnet.png\n        min: 0.6",
+    )
+    error = error_of(tmp_path, steps)
+    assert error.path.endswith("steps[4] (name='magnet') -> template"), str(error)
+    assert "is larger than the 12x12 ROI it is searched in" in error.reason, str(error)
+
+
 # ----------------------------------------------------------------------- the docs
 
 DOC = ROOT / "docs" / "configuration.md"

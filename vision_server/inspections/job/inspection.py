@@ -188,7 +188,7 @@ def parse_job(node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings])
     common = parse_common(node, "job", cameras)
     if common.roi is not None:
         raise node.error("a job has no ROI of its own: give each step its roi", "roi")
-    chain = Chain(_step_names(node), base_dir)
+    chain = Chain(_step_names(node), base_dir, common)
     for step_node in node.items("steps"):
         name = step_node.take("name", _step_name)
         if name in chain.earlier:

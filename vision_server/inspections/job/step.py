@@ -9,13 +9,14 @@ turns with the part.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
 from ...configfile import Node
+from ..base import Common
 from .expression import ValueType
 from .frame import IDENTITY, Affine, Image, PartFrame, inside, outline, roi_transform, sample
 
@@ -122,10 +123,15 @@ class Chain:
     """The steps of a job as its parser reads them: each step may refer only to steps before
     it. Errors name the referring key (file, line, key path) and what is wrong."""
 
-    def __init__(self, names: tuple[str, ...], base_dir: Path) -> None:
+    def __init__(self, names: tuple[str, ...], base_dir: Path, common: Common) -> None:
         self.names = names
         self.base_dir = base_dir
+        self.common = common
         self.earlier: dict[str, Step] = {}
+
+    def region_of(self, head: Step) -> Common:
+        """The job's common keys with the step's ROI (its size bounds a template's)."""
+        return replace(self.common, roi=head.roi)
 
     def refer(self, node: Node, key: str, name: str, *, types: tuple[str, ...]) -> Step:
         """The earlier step ``name`` that ``node``'s ``key`` names, of one of ``types``."""

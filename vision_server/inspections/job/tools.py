@@ -105,7 +105,8 @@ def _feature(f: Feature) -> dict[str, Any]:
 
 
 def parse_locate_step(node: Node, head: Step, chain: Chain) -> Step:
-    method, low, high, score, options, show = parse_locate_settings(node, chain.base_dir, None)
+    region = chain.region_of(head)
+    method, low, high, score, options, show = parse_locate_settings(node, chain.base_dir, region)
     if show:
         raise node.error("show_rejected is not offered in a job's locate step", method)
     options.pop("rejected", None)
@@ -211,7 +212,7 @@ class PresenceStep(Step):
 
 
 def parse_presence_step(node: Node, head: Step, chain: Chain) -> Step:
-    settings = parse_presence_settings(node, chain.base_dir, None)
+    settings = parse_presence_settings(node, chain.base_dir, chain.region_of(head))
     return PresenceStep(head.name, head.fixture, head.roi, *settings)
 
 
