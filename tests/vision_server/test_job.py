@@ -311,6 +311,14 @@ def error_of(tmp_path: Path, steps: str, verdict: str | None = None) -> ConfigEr
             "step 'big_hole' gives no angle (a circle has none)",
         ),
         (
+            MAGNET_IN_PART
+            + "      - {name: again, type: fixture, fixture: part, origin: big_hole}\n",
+            None,
+            "name: again",
+            "steps[5] (name='again') -> fixture",
+            "a fixture step is not in another's frame",
+        ),
+        (
             MAGNET_IN_PART.replace("        roi: [44, 12, 12, 12]\n", ""),
             None,
             "fixture: part",

@@ -199,7 +199,7 @@ def parse_job(node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings])
             chain.refer(step_node, "fixture", fixture, types=("fixture",))
         if fixture is not None:
             region = step_node.take("roi", _frame_roi, None)
-            if region is None:
+            if region is None and step_type != "fixture":  # which says what it takes
                 raise step_node.error(
                     "a step in a fixture's frame needs an roi [x, y, width, height] in that frame",
                     "fixture",

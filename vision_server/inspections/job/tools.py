@@ -155,6 +155,11 @@ class FixtureStep(Step):
 def parse_fixture_step(node: Node, head: Step, chain: Chain) -> Step:
     if head.roi is not None:
         raise node.error("a fixture step has no ROI (it uses its origin step's feature)", "roi")
+    if head.fixture is not None:
+        raise node.error(
+            "a fixture step is not in another's frame: its origin's feature is in image pixels",
+            "fixture",
+        )
     origin = node.take("origin", string)
     found = chain.refer(node, "origin", origin, types=("locate",))
     towards = node.take("x_towards", string, None)
