@@ -230,6 +230,13 @@ def test_a_code_is_read_in_the_turned_part_frame_in_one_result_with_every_step(
     assert part["u"] == pytest.approx(215.3, abs=0.3)
     assert part["v"] == pytest.approx(140.6, abs=0.3)
     assert part["angle"] == pytest.approx(math.radians(25.0), abs=0.01)
+    # what a PLC (Modbus) or a robot controller (line protocol) reads of it
+    assert RESULT_KINDS["job"].summary(data) == {
+        "failed": 0.0,
+        "u": part["u"],
+        "v": part["v"],
+        "angle": part["angle"],
+    }
     label = data["steps"]["label"]
     assert label["text"] == LABEL
     assert label["symbology"] == "datamatrix"

@@ -253,13 +253,14 @@ def _job_expected(data: Data) -> dict[str, Any]:
 
 
 def _job_summary(data: Data) -> dict[str, float]:
-    first = data["features"][0] if data.get("features") else {}
+    # the last frame made: a chain of fixtures refines the part frame step by step
+    last = data["features"][-1] if data.get("features") else {}
     failed = data.get("failed")
     return {
         "failed": float("nan") if failed is None else float(len(failed)),
-        "u": as_number(first, "u"),
-        "v": as_number(first, "v"),
-        "angle": as_number(first, "angle"),
+        "u": as_number(last, "u"),
+        "v": as_number(last, "v"),
+        "angle": as_number(last, "angle"),
     }
 
 
@@ -270,6 +271,6 @@ RESULTS = ResultKind(
     units={"failed": "steps", "u": "px", "v": "px", "angle": "rad"},
 )
 """A job result: how many fixtures were made and their origins (the part's position), the
-first fixture's origin and angle and the number of failed steps in the summary."""
+last fixture's origin and angle and the number of failed steps in the summary."""
 
 __all__ = ["MAX_STEPS", "RESULTS", "JobInspection", "parse_job"]
