@@ -161,7 +161,7 @@ def parse_fixture_step(node: Node, head: Step, chain: Chain) -> Step:
             "fixture",
         )
     origin = node.take("origin", string)
-    found = chain.refer(node, "origin", origin, types=("locate",))
+    chain.refer(node, "origin", origin, types=("locate",))
     towards = node.take("x_towards", string, None)
     angle_from = node.take("angle_from", string, None)
     if towards is not None and angle_from is not None:
@@ -176,7 +176,6 @@ def parse_fixture_step(node: Node, head: Step, chain: Chain) -> Step:
                 "second feature, or a template or blob locate",
                 "angle_from",
             )
-    del found
     return FixtureStep(head.name, head.fixture, None, origin, towards, angle_from)
 
 
