@@ -275,6 +275,34 @@ def test_a_code_below_its_minimum_grade_fails_its_step_with_the_reason(tmp_path:
     assert step["reason"].startswith("grade below the minimum: module_px 3")
 
 
+def test_a_fixture_can_take_its_angle_from_a_blob(tmp_path: Path) -> None:
+    """``angle_from``: the frame turns with the plate's own orientation (its blob's second
+    moments), here without the second hole."""
+    image, _ = turned_part(190.0, 160.0, math.radians(-30.0))
+    steps = """\
+      - name: plate
+        type: locate
+        method: blob
+        blob: {polarity: bright, threshold: 120, min_area_px: 5000}
+        max_count: 1
+      - name: tilted
+        type: fixture
+        origin: big_hole
+        angle_from: plate
+      - name: label
+        type: code
+        fixture: tilted
+        roi: [35, -30, 60, 60]
+        expect: P-4711/07
+"""
+    inspection = job(tmp_path, steps, "all(tilted, label)")
+    outcome = inspection.run(InspectionInput(image), overlay=False)
+    assert outcome.passed, outcome.data["steps"]
+    tilted = outcome.data["steps"]["tilted"]
+    assert tilted["angle"] == pytest.approx(math.radians(-30.0), abs=0.03)
+    assert tilted["u"] == pytest.approx(190.0, abs=0.3)
+
+
 # ----------------------------------------------------------------------- the validator
 
 
