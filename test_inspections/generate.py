@@ -573,13 +573,94 @@ def real_case() -> None:
     write_expected("qr_real_photos", entries, {})
 
 
+# --------------------------------------------------------------------------- job: fixtured plate
+
+PLATE_SIZE = (320, 240)  # width, height of the stored image
+PLATE_HOME = (110.0, 120.0)  # the big hole's centre (u, v) when the plate lies where taught
+SUPER = 4  # drawn at 4x and area-averaged: anti-aliased edges, sub-pixel positions
+
+
+def plate_image(
+    pose: tuple[float, float, float], magnet: tuple[float, float] | None, seed: int
+) -> Array:
+    """A bright plate (grey 190) on a dark belt (40) with two through holes: the big one
+    (radius 12 px) is the part frame's origin, the small one (radius 7 px) lies 100 px along
+    its x axis; a dark magnet (30, 16x16 px) sits centred at ``magnet`` (part-frame pixels;
+    None: absent). ``pose``: the big hole's (u, v) and the x axis's angle in radians (from +u
+    towards +v). Defocus blur sigma 0.7 px and noise sigma 2 grey levels (seeded)."""
+    u0, v0, angle = pose
+    c, s = np.cos(angle), np.sin(angle)
+
+    def hi(x: float, y: float) -> tuple[int, int]:
+        u, v = u0 + c * x - s * y, v0 + s * x + c * y
+        # pixel centre i of the stored image is 4 i + 1.5 at 4x; 4 fractional bits for cv2
+        return int(round((SUPER * u + 1.5) * 16)), int(round((SUPER * v + 1.5) * 16))
+
+    width, height = PLATE_SIZE
+    canvas = np.full((height * SUPER, width * SUPER), 40, np.uint8)
+
+    def poly(corners: list[tuple[float, float]], grey: int) -> None:
+        pts = np.array([hi(x, y) for x, y in corners], np.int32)
+        cv2.fillPoly(canvas, [pts], grey, cv2.LINE_AA, shift=4)
+
+    poly([(-30, -40), (130, -40), (130, 40), (-30, 40)], 190)
+    for (x, y), radius in (((0.0, 0.0), 12.0), ((100.0, 0.0), 7.0)):
+        cv2.circle(canvas, hi(x, y), int(round(radius * SUPER * 16)), 40, -1, cv2.LINE_AA, 4)
+    if magnet is not None:
+        mx, my = magnet
+        poly([(mx - 8, my - 8), (mx + 8, my - 8), (mx + 8, my + 8), (mx - 8, my + 8)], 30)
+    small = cv2.resize(canvas, (width, height), interpolation=cv2.INTER_AREA).astype(np.float64)
+    small = cv2.GaussianBlur(small, (0, 0), 0.7)
+    noise = np.random.default_rng(seed).normal(0.0, 2.0, small.shape)
+    out: Array = np.clip(np.round(small + noise), 0, 255).astype(np.uint8)
+    return out
+
+
+POCKET = (50.0, 18.0)  # where the magnet belongs, in the part frame (px)
+
+# (file, seed, (du, dv, angle) from the taught pose, magnet in part frame or None, passes, note)
+PLATE_VIEWS: list[tuple[str, int, tuple[float, float, float] | None, Any, bool, str]] = [
+    ("taught.png", 61, (0.0, 0.0, 0.0), POCKET, True, "where the job was taught"),
+    ("moved_a.png", 62, (23.4, -14.7, 0.30), POCKET, True, "moved (23.4, -14.7) px, turned 17 deg"),
+    ("moved_b.png", 63, (-17.8, 11.2, -0.42), POCKET, True, "moved (-17.8, 11.2), turned -24 deg"),
+    ("moved_c.png", 64, (31.0, 20.5, 0.12), POCKET, True, "moved (31, 20.5) px, turned 7 deg"),
+    ("moved_empty.png", 65, (19.0, -9.0, 0.35), None, False, "moved and turned, no magnet"),
+    ("moved_beside.png", 66, (-12.0, 15.0, -0.30), (85.0, 18.0), False, "magnet 35 px off"),
+    ("no_plate.png", 67, None, None, False, "nothing there: the belt"),
+]
+
+
+def plate_case() -> None:
+    """job: locate the plate's holes, fixture a frame to them, check the magnet's pocket."""
+    entries: Entries = {}
+    for name, seed, move, magnet, passes, note in PLATE_VIEWS:
+        if move is None:
+            image = np.full(PLATE_SIZE[::-1], 40, np.uint8)
+            noise = np.random.default_rng(seed).normal(0.0, 2.0, image.shape)
+            image = np.clip(np.round(image + noise), 0, 255).astype(np.uint8)
+            entries[name] = {"verdict": "fail", "count": 0, "features": [], "note": note}
+        else:
+            du, dv, angle = move
+            origin = (PLATE_HOME[0] + du, PLATE_HOME[1] + dv)
+            image = plate_image((origin[0], origin[1], angle), magnet, seed)
+            # two fixtures (translation only, then translation + rotation), both at the big hole
+            entries[name] = {
+                "verdict": "pass" if passes else "fail",
+                "count": 2,
+                "features": r2([origin, origin]),
+                "note": note,
+            }
+        write_png(HERE / "fixtured_plate" / "images" / name, image)
+    write_expected("fixtured_plate", entries, {"tolerance_px": 0.3})
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "cases",
         nargs="*",
-        default=["caps", "qc", "qr", "qr_pose", "board", "codes", "real"],
-        help="caps, qc, qr, qr_pose, board, codes, real",
+        default=["caps", "qc", "qr", "qr_pose", "board", "codes", "real", "plate"],
+        help="caps, qc, qr, qr_pose, board, codes, real, plate",
     )
     args = parser.parse_args()
     steps = {
@@ -590,6 +671,7 @@ def main() -> int:
         "board": board_case,
         "codes": codes_case,
         "real": real_case,
+        "plate": plate_case,
     }
     for name in args.cases:
         steps[name]()

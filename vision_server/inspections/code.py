@@ -63,7 +63,7 @@ class CodeInspection(Configured):
                 }
                 for c in codes
             ]
-            low = _below_grade(best.grade, self.min_grade)
+            low = below_grade(best.grade, self.min_grade)
             if low:
                 passed = False
                 data["reason"] = "grade below the minimum: " + "; ".join(low)
@@ -114,7 +114,7 @@ def _code_data(code: Code) -> dict[str, object]:
     }
 
 
-def _below_grade(grade: Grade, minimum: tuple[tuple[str, float], ...]) -> list[str]:
+def below_grade(grade: Grade, minimum: tuple[tuple[str, float], ...]) -> list[str]:
     low = []
     for key, lowest in minimum:
         value = getattr(grade, key)
@@ -124,7 +124,7 @@ def _below_grade(grade: Grade, minimum: tuple[tuple[str, float], ...]) -> list[s
     return low
 
 
-def _parse_min_grade(node: Node) -> tuple[tuple[str, float], ...]:
+def parse_min_grade(node: Node) -> tuple[tuple[str, float], ...]:
     sub = node.sub_optional("min_grade")
     if sub is None:
         return ()
@@ -139,6 +139,13 @@ def _parse_min_grade(node: Node) -> tuple[tuple[str, float], ...]:
 
 def parse_code(node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]) -> CodeInspection:
     common = parse_common(node, "code", cameras)
+    return CodeInspection(
+        common, parse_symbologies(node), parse_expect(node), parse_min_grade(node)
+    )
+
+
+def parse_symbologies(node: Node) -> tuple[str, ...]:
+    """``symbologies:``, a non-empty list of :data:`SYMBOLOGIES` (absent: every one)."""
     symbologies: tuple[str, ...] = tuple(SYMBOLOGIES)
     if node.has("symbologies"):
         raw = node.data["symbologies"]
@@ -156,7 +163,7 @@ def parse_code(node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]
                 raise node.error(f"symbologies[{index}]: {exc}", "symbologies") from None
         node.take("symbologies", lambda value: value)
         symbologies = tuple(dict.fromkeys(names))
-    return CodeInspection(common, symbologies, parse_expect(node), _parse_min_grade(node))
+    return symbologies
 
 
 def _code_expected(data: Data) -> dict[str, Any]:

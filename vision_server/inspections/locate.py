@@ -184,6 +184,16 @@ def parse_locate(
     node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]
 ) -> LocateInspection:
     common = parse_common(node, "locate", cameras)
+    return LocateInspection(common, *parse_locate_settings(node, base_dir, common))
+
+
+LocateSettings = tuple[str, int, int, float | None, dict[str, Any], bool]
+"""``(method, min_count, max_count, min_score, options, show_rejected)``."""
+
+
+def parse_locate_settings(node: Node, base_dir: Path, common: Common | None) -> LocateSettings:
+    """The keys of a locate after the common ones (also a job's ``locate`` step's);
+    ``common`` bounds a template's size by the region searched (None: not checked)."""
     method = node.take("method", one_of("template", "circle", "blob"))
     min_count = node.take("min_count", positive_int, 1)
     max_count = node.take("max_count", positive_int, 10)
@@ -241,7 +251,7 @@ def parse_locate(
             )
         options["min_circularity"] = sub.take("min_circularity", fraction, 0.0)
     sub.finish()
-    return LocateInspection(common, method, min_count, max_count, min_score, options, show_rejected)
+    return method, min_count, max_count, min_score, options, show_rejected
 
 
 def _edge_sigma(value: Any) -> float | None:

@@ -94,6 +94,16 @@ def parse_presence(
     node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]
 ) -> PresenceInspection:
     common = parse_common(node, "presence", cameras)
+    return PresenceInspection(common, *parse_presence_settings(node, base_dir, common))
+
+
+PresenceSettings = tuple[str, float | None, float | None, float | None, Image | None, int, Polarity]
+"""``(measure, min, max, threshold, template, min_blob_area, polarity)``."""
+
+
+def parse_presence_settings(node: Node, base_dir: Path, common: Common | None) -> PresenceSettings:
+    """The keys of a presence check after the common ones (also a job's ``presence`` step's);
+    ``common`` bounds a template's size by the ROI (None: not checked)."""
     measure = node.take("measure", one_of(*MEASURES))
     for key, measures in USES.items():
         if node.has(key) and measure not in measures:
@@ -123,8 +133,7 @@ def parse_presence(
     threshold = node.take("threshold", number, None)
     if threshold is not None and not 0 <= threshold <= 255:
         raise node.error(f"expected a grey level in 0..255, got {threshold}", "threshold")
-    return PresenceInspection(
-        common,
+    return (
         measure,
         low,
         high,

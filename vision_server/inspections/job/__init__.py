@@ -1,0 +1,23 @@
+"""``type: job``: an inspection of named steps (locate, fixture, presence, code) run in order,
+with ROIs that move with a fixtured part and a verdict expression over the steps' values.
+
+Public API: :func:`parse_job`, :class:`JobInspection`, ``RESULTS``, ``STEP_TYPES`` (the step
+registry), :func:`parse_expression` / :class:`ExpressionError` (the verdict grammar) and
+:class:`PartFrame` (the fixture frame).
+"""
+
+from .expression import Expression, ExpressionError, parse_expression
+from .frame import PartFrame
+from .inspection import RESULTS, JobInspection, parse_job
+from .registry import STEP_TYPES
+
+__all__ = [
+    "RESULTS",
+    "STEP_TYPES",
+    "Expression",
+    "ExpressionError",
+    "JobInspection",
+    "PartFrame",
+    "parse_expression",
+    "parse_job",
+]

@@ -1,0 +1,276 @@
+"""``job``: an inspection made of named steps run in order, later steps using earlier results
+(locate a part, fixture a frame to it, check presence or read a code in ROIs that move with the
+part), and a verdict expression over the steps' values. One request gives one RESULT with every
+step's values and one overlay showing them all."""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from yamlfile import kind
+
+from ...analysis import AnalysisError
+from ...cameras import CameraSettings
+from ...catalog import InspectionInput, InspectionOutcome
+from ...configfile import Node, integer, string
+from ..base import (
+    GREEN,
+    RED,
+    Common,
+    Configured,
+    analysis_failed,
+    draw_verdict,
+    overlay_base,
+    parse_common,
+)
+from ..kinds import Data, ResultKind, as_number, points
+from .expression import Expression, ExpressionError, parse_expression
+from .registry import STEP_TYPES
+from .step import ROI, Chain, Outcome, Shape, Step, StepSkipped
+
+MAX_STEPS = 32
+"""Most steps in one job (a job is a short chain, not a program)."""
+STEP_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+"""A step's name: an identifier, so that ``name.value`` reads unambiguously in a verdict."""
+
+
+@dataclass(frozen=True)
+class JobInspection(Configured):
+    common: Common
+    steps: tuple[Step, ...]
+    verdict: Expression | None
+    """None: the job passes when every step passes."""
+
+    type = "job"
+    uses_depth = False
+
+    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
+        outcomes: dict[str, Outcome] = {}
+        for step in self.steps:
+            try:
+                outcome = step.run(image.color, outcomes)
+            except StepSkipped as exc:
+                values: dict[str, Any] = {key: None for key in step.produces()}
+                values["passed"] = False
+                outcome = Outcome(False, values, {"reason": str(exc)}, label="skipped")
+            except AnalysisError as exc:
+                raise analysis_failed(f"{self.common.name}.{step.name}", exc) from None
+            outcomes[step.name] = outcome
+        failed = [name for name, o in outcomes.items() if not o.passed]
+        if self.verdict is None:
+            passed = not failed
+        else:
+            passed = self.verdict.evaluate({name: o.values for name, o in outcomes.items()})
+        fixtures = [o.frame for o in outcomes.values() if o.frame is not None]
+        data: dict[str, Any] = {
+            "steps": {
+                step.name: {"type": step.type, **_plain(outcomes[step.name].values)}
+                | _plain(outcomes[step.name].detail)
+                for step in self.steps
+            },
+            "failed": failed,
+            "verdict": "every step passes" if self.verdict is None else self.verdict.text,
+            "count": len(fixtures),
+            "features": [{"u": f.u, "v": f.v, "angle": f.angle_rad} for f in fixtures],
+        }
+        picture = None
+        if overlay:
+            picture = overlay_base(image.color, None)
+            for row, (name, o) in enumerate(outcomes.items()):
+                _draw_step(picture, row, name, o)
+            text = f"{len(failed)} of {len(outcomes)} steps failed" if failed else ""
+            draw_verdict(picture, passed, text)
+        return InspectionOutcome(passed, data, picture)
+
+
+def _plain(values: Mapping[str, Any]) -> dict[str, Any]:
+    """JSON-able values (numpy scalars to floats)."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        if hasattr(value, "item") and not isinstance(value, bool | int | float | str):
+            value = value.item()
+        out[key] = value
+    return out
+
+
+def _pixel(point: tuple[float, float]) -> tuple[int, int]:
+    return int(round(point[0])), int(round(point[1]))
+
+
+def _draw_step(picture: Any, row: int, name: str, outcome: Outcome) -> None:
+    """A step's shapes, green when it passed, red when not, and its line of the legend under
+    the verdict (steps' shapes often share a point: the legend keeps their text apart)."""
+    colour = GREEN if outcome.passed else RED
+    for shape in outcome.shapes:
+        _draw_shape(picture, shape, colour)
+    scale = max(0.4, picture.shape[1] / 2400.0)
+    top = int(30 * max(0.5, picture.shape[1] / 1400.0)) + 12
+    cv2.putText(
+        picture,
+        f"{name}: {outcome.label}".encode("ascii", "replace").decode(),
+        (10, top + int((row + 1) * 18 * scale / 0.4)),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        scale,
+        colour,
+        1,
+        cv2.LINE_AA,
+    )
+
+
+def _draw_shape(picture: Any, shape: Shape, colour: tuple[int, int, int]) -> None:
+    if shape.kind == "polygon":
+        pts = np.round(np.asarray(shape.points)).astype(np.int32)
+        cv2.polylines(picture, [pts], True, colour, 1, cv2.LINE_AA)
+    elif shape.kind == "circle":
+        cv2.circle(picture, _pixel(shape.points[0]), int(round(shape.radius)), colour, 1)
+    elif shape.kind == "marker":
+        for point in shape.points:
+            cv2.drawMarker(picture, _pixel(point), colour, cv2.MARKER_CROSS, 10, 1)
+    elif shape.kind == "axes":
+        u, v = shape.points[0]
+        c, s = math.cos(shape.angle_rad), math.sin(shape.angle_rad)
+        for length, (du, dv) in ((40, (c, s)), (25, (-s, c))):
+            tip = _pixel((u + length * du, v + length * dv))
+            cv2.arrowedLine(picture, _pixel((u, v)), tip, colour, 2, cv2.LINE_AA, tipLength=0.2)
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _step_name(value: Any) -> str:
+    text = string(value)
+    if not STEP_NAME.fullmatch(text):
+        raise ValueError(
+            f"bad step name {text!r}: use letters, digits and '_', starting with a letter "
+            "(a verdict reads it as name.value)"
+        )
+    return text
+
+
+def _frame_roi(value: Any) -> ROI:
+    """``[x, y, width, height]`` in a part frame (x, y may be negative: beside the origin)."""
+    if not isinstance(value, list) or len(value) != 4:
+        raise ValueError(f"expected [x, y, width, height], got {kind(value)}")
+    x, y, w, h = (integer(item) for item in value)
+    if w <= 0 or h <= 0:
+        raise ValueError(f"an ROI needs a positive width and height, got {value!r}")
+    return x, y, w, h
+
+
+def _image_roi(value: Any) -> ROI:
+    x, y, w, h = _frame_roi(value)
+    if x < 0 or y < 0:
+        raise ValueError(
+            f"an ROI in the image needs u, v >= 0, got {value!r} (only an ROI in a fixture's "
+            "frame may start left of or above its origin)"
+        )
+    return x, y, w, h
+
+
+def _step_names(node: Node) -> tuple[str, ...]:
+    raw = node.data.get("steps")
+    if not isinstance(raw, list) or not raw:
+        raise node.error("a job needs a non-empty list of steps", "steps")
+    if len(raw) > MAX_STEPS:
+        raise node.error(f"{len(raw)} steps; at most {MAX_STEPS}", "steps")
+    return tuple(str(item.get("name")) for item in raw if isinstance(item, dict) and "name" in item)
+
+
+def parse_job(node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings]) -> JobInspection:
+    common = parse_common(node, "job", cameras)
+    if common.roi is not None:
+        raise node.error("a job has no ROI of its own: give each step its roi", "roi")
+    chain = Chain(_step_names(node), base_dir, common)
+    for step_node in node.items("steps"):
+        name = step_node.take("name", _step_name)
+        if name in chain.earlier:
+            raise step_node.error(f"a second step named {name!r}", "name")
+        step_type = step_node.take("type", _one_of_steps)
+        fixture = step_node.take("fixture", string, None)
+        if fixture is not None:
+            chain.refer(step_node, "fixture", fixture, types=("fixture",))
+        if fixture is not None:
+            region = step_node.take("roi", _frame_roi, None)
+            if region is None and step_type != "fixture":  # which says what it takes
+                raise step_node.error(
+                    "a step in a fixture's frame needs an roi [x, y, width, height] in that frame",
+                    "fixture",
+                )
+        else:
+            region = step_node.take("roi", _image_roi, None)
+            _check_inside(step_node, common, region)
+        head = Step(name, fixture, region)
+        step = STEP_TYPES[step_type](step_node, head, chain)
+        step_node.finish()
+        chain.earlier[name] = step
+    verdict = None
+    text = node.take("verdict", string, None)
+    if text is not None:
+        declared = {name: step.produces() for name, step in chain.earlier.items()}
+        try:
+            verdict = parse_expression(text, declared)
+        except ExpressionError as exc:
+            raise node.error(str(exc), "verdict") from None
+    return JobInspection(common, tuple(chain.earlier.values()), verdict)
+
+
+def _one_of_steps(value: Any) -> str:
+    if value not in STEP_TYPES:
+        raise ValueError(f"expected one of {', '.join(STEP_TYPES)}, got {value!r}")
+    return str(value)
+
+
+def _check_inside(node: Node, common: Common, region: ROI | None) -> None:
+    """An image ROI must fit the camera's declared image (when it declares one)."""
+    if region is None or common.image_size is None:
+        return
+    u, v, w, h = region
+    width, height = common.image_size
+    if u + w > width or v + h > height:
+        raise node.error(
+            f"ROI [u={u}, v={v}, width={w}, height={h}] reaches past the {width}x{height} "
+            f"image of camera {common.camera!r}",
+            "roi",
+        )
+
+
+# --------------------------------------------------------------------------- results
+
+
+def _job_expected(data: Data) -> dict[str, Any]:
+    return {
+        "count": int(data["count"]),
+        "features": points((f["u"], f["v"]) for f in data["features"]),
+    }
+
+
+def _job_summary(data: Data) -> dict[str, float]:
+    # the last frame made: a chain of fixtures refines the part frame step by step
+    last = data["features"][-1] if data.get("features") else {}
+    failed = data.get("failed")
+    return {
+        "failed": float("nan") if failed is None else float(len(failed)),
+        "u": as_number(last, "u"),
+        "v": as_number(last, "v"),
+        "angle": as_number(last, "angle"),
+    }
+
+
+RESULTS = ResultKind(
+    ("count", "features"),
+    _job_expected,
+    _job_summary,
+    units={"failed": "steps", "u": "px", "v": "px", "angle": "rad"},
+)
+"""A job result: how many fixtures were made and their origins (the part's position), the
+last fixture's origin and angle and the number of failed steps in the summary."""
+
+__all__ = ["MAX_STEPS", "RESULTS", "JobInspection", "parse_job"]

@@ -1,0 +1,26 @@
+"""The step types a job may use, by the name its ``type:`` key gives.
+
+A new step type is one entry here: a parser ``(node, head, chain) -> Step`` that reads its own
+keys (``head`` holds the common ones: name, fixture, ROI) and refers to earlier steps through
+``chain.refer``; the step declares its values (:meth:`Step.produces`) and runs
+(:meth:`Step.run`) on the image and the earlier steps' outcomes.
+"""
+
+from __future__ import annotations
+
+from .tools import (
+    StepParser,
+    parse_code_step,
+    parse_fixture_step,
+    parse_locate_step,
+    parse_presence_step,
+)
+
+STEP_TYPES: dict[str, StepParser] = {
+    "locate": parse_locate_step,
+    "fixture": parse_fixture_step,
+    "presence": parse_presence_step,
+    "code": parse_code_step,
+}
+
+__all__ = ["STEP_TYPES"]
