@@ -103,8 +103,9 @@ def eye_to_hand(seed: int) -> tuple[HandEyeResult, float, float]:
     robot = replace(scene.robot, repeatability_m=0.03e-3, repeatability_rad=math.radians(0.01))
     cell = SimCell(replace(scene, robot=robot), seed=seed)
     spec = cell.scene.camera("qc_camera")
+    vision: Any = BoardVision()  # duck-typed: only inspect() is used
     collected = collect_hand_eye_views(
-        sim_devices(cell, vision=BoardVision()),
+        sim_devices(cell, vision=vision),
         camera="qc_camera",
         inspection="board",
         intrinsics=spec.intrinsics,
