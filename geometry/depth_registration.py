@@ -17,8 +17,8 @@ scale error moves it by s at every tilt. One view cannot separate the two; views
 different directions can, by linear least squares over the views.
 
 The printed side is the only absolute reference, so the corner detector's own bias on the
-code's image side (``corner_bias_px``: measured -0.07 px on the simulated Xtion-like camera,
-i.e. each sub-pixel corner ~0.035 px towards the centre, 0.06-0.1 % of the side at 0.7-1.3 m)
+code's image side (``corner_bias_px``: -0.03 to -0.04 px on the simulated Xtion-like camera
+with today's detector, -0.07 px with an earlier one; 0.03-0.1 % of the side at 0.7-1.3 m)
 would otherwise pass for a depth scale error; it is removed as b / side_px per view. It is a
 property of the detector at the camera's blur: measured against a known reference and
 configured per inspection (qr_pose's ``corner_bias_px``, default 0), not fitted (a fit cannot
