@@ -46,6 +46,7 @@ from protocol.result_view import result_json, result_view
 from .address import add_connection_options, endpoint_from_args, ssl_context
 from .cli_commission import add_commission_commands
 from .cli_hand_eye import add_hand_eye_command
+from .cli_sensor_check import add_sensor_check_command
 from .cli_skills import add_skill_commands
 from .client import ReconnectPolicy, VisionClient, overlay_image
 from .devices import DeviceError
@@ -62,6 +63,8 @@ robot-client: talk to a vision server and run skills.
   robot-client task run FILE | taught list | taught show NAME
   robot-client calibrate-intrinsics INSPECTION (--camera TOOL_CAMERA | --fixed)
                [--config SERVER.yaml [--yes]]
+  robot-client calibrate-hand-eye INSPECTION --camera CAMERA [--config SERVER.yaml] [--yes]
+  robot-client sensor-check QR_POSE_INSPECTION --camera RGBD_CAMERA [--start X Y Z R P Y]
 
 The server: --server HOST:PORT, --token-file PATH, --tls, --ca FILE (before or after the
 command), else $CELLVISION_SERVER, $CELLVISION_TOKEN or $CELLVISION_TOKEN_FILE,
@@ -312,6 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_skill_commands(sub, common)
     add_commission_commands(sub, common)
     add_hand_eye_command(sub, common)
+    add_sensor_check_command(sub, common)
     return parser
 
 

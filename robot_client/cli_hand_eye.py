@@ -1,10 +1,14 @@
-"""``robot-client calibrate-hand-eye``: where a camera sits on the tool, from views of a board.
+"""``robot-client calibrate-hand-eye``: where a camera sits on the tool or in the cell, from
+views of a board.
 
-The robot starts where the tool camera (``--camera NAME``) sees the board; the command plans
-15 poses around the board (a spread of tilts and rolls, reachability checked: unreachable
-poses are skipped with the reason), moves through them, finds the corners with the server's
-``calibration_board`` inspection (the positional argument) and comes back. It solves
-``tool_from_camera`` (closed form, then Levenberg-Marquardt on every corner's reprojection)
+Eye-in-hand (``--camera`` a tool camera): the robot starts where the camera sees the board; the
+command plans 15 poses around the board. Eye-to-hand (``--camera`` a fixed camera): the board
+is bolted to the flange and the robot starts where the camera sees it; the command plans 15
+poses that show the board to the camera. Either way the poses are a spread of tilts and rolls,
+reachability and visibility checked (skipped poses are named with the reason); the robot moves
+through them, the server's ``calibration_board`` inspection (the positional argument) finds the
+corners, and the robot comes back. It solves ``tool_from_camera`` or ``base_from_camera`` (and
+the board on the flange) (closed form, then Levenberg-Marquardt on every corner's reprojection)
 and prints the result with the residuals per pose, the AX=XB loop consistency, the standard
 deviations and the verdict (good / check / redo, with the reason). After the user confirms
 (``--yes`` for scripts) the calibration goes into the teach store (``--store``), record
@@ -40,6 +44,8 @@ from .commissioning.hand_eye_collect import HandEyeCollected, collect_hand_eye_v
 from .skills.camera_mounts import _intrinsics_from_yaml, hand_eye_record
 
 __all__ = ["add_hand_eye_command"]
+
+_POSE_NAME = {"eye_in_hand": "tool_from_camera", "eye_to_hand": "base_from_camera"}
 
 
 def _config_intrinsics(path: Path, camera: str) -> CameraIntrinsics:
@@ -85,8 +91,8 @@ def _print_result(
 ) -> None:
     xyz, rpy = xyz_rpy_from_transform(result.camera)
     console.print(
-        f"[bold]tool_from_camera[/] of {escape(camera)} from {len(result.views)} poses "
-        f"({escape(collected.board)}):"
+        f"[bold]{_POSE_NAME[result.setup]}[/] of {escape(camera)} from {len(result.views)} "
+        f"poses ({escape(collected.board)}):"
     )
     console.print(
         "  xyz "
@@ -99,6 +105,15 @@ def _print_result(
         f"  std dev {result.sigma_translation_m * 1000:.3f} mm, "
         f"{math.degrees(result.sigma_rotation_rad):.4f} deg (largest axis)"
     )
+    if result.setup == "eye_to_hand":
+        board_xyz, board_rpy = xyz_rpy_from_transform(result.board)
+        console.print(
+            "  board on the flange (tool_from_board, OpenCV board frame): xyz "
+            + ", ".join(f"{v * 1000:.3f}" for v in board_xyz)
+            + " mm   rpy "
+            + ", ".join(f"{math.degrees(v):.4f}" for v in board_rpy)
+            + " deg"
+        )
     table = Table("pose", "corners", "translation mm", "rotation deg", "RMS px")
     for v in result.views:
         view = collected.views[v.index]
@@ -123,7 +138,9 @@ def _print_result(
         console.print(escape(f"  {reason}"), soft_wrap=True)
 
 
-def _confirmed(args: argparse.Namespace, console: Console, camera: str, store: Path) -> bool:
+def _confirmed(
+    args: argparse.Namespace, console: Console, camera: str, store: Path, pose_name: str
+) -> bool:
     if args.yes:
         return True
     if args.json or not sys.stdin.isatty():
@@ -131,7 +148,7 @@ def _confirmed(args: argparse.Namespace, console: Console, camera: str, store: P
             console.print("not stored: confirm with --yes (no terminal to ask at)")
         return False
     answer = console.input(
-        f"store this tool_from_camera for {escape(camera)!r} in {escape(str(store))}? \\[y/N] "
+        f"store this {pose_name} for {escape(camera)!r} in {escape(str(store))}? \\[y/N] "
     )
     return answer.strip().lower() in ("y", "yes")
 
@@ -159,26 +176,34 @@ def cmd_calibrate_hand_eye(args: argparse.Namespace, console: Console) -> int:
         )
     finally:
         devices.close()
-    result = solve_hand_eye(collected.views, intrinsics, "eye_in_hand")
+    result = solve_hand_eye(collected.views, intrinsics, collected.setup)
+    pose_name = _POSE_NAME[result.setup]
     figures = _figures(result, collected)
     xyz, rpy = xyz_rpy_from_transform(result.camera)
     out: dict[str, Any] = {
         "camera": args.camera,
-        "tool_from_camera": {"xyz": [float(v) for v in xyz], "rpy": [float(v) for v in rpy]},
+        "setup": result.setup,
+        pose_name: {"xyz": [float(v) for v in xyz], "rpy": [float(v) for v in rpy]},
         "verdict": result.verdict,
         "reasons": list(result.reasons),
         **figures,
     }
+    if result.setup == "eye_to_hand":
+        board_xyz, board_rpy = xyz_rpy_from_transform(result.board)
+        out["tool_from_board"] = {
+            "xyz": [float(v) for v in board_xyz],
+            "rpy": [float(v) for v in board_rpy],
+        }
     if not args.json:
         _print_result(console, result, collected, args.camera)
     if result.verdict == "redo":
         out["stored"] = {"stored": False, "reason": "verdict redo"}
         if not args.json:
             console.print("not stored: calibrate again after fixing what the verdict says")
-    elif _confirmed(args, console, args.camera, store.path):
+    elif _confirmed(args, console, args.camera, store.path, pose_name):
         record = hand_eye_record(
             args.camera,
-            "eye_in_hand",
+            result.setup,
             result.camera,
             intrinsics=intrinsics,
             verdict=result.verdict,
@@ -206,10 +231,15 @@ def add_hand_eye_command(sub: Any, common: argparse.ArgumentParser) -> None:
     cal = sub.add_parser(
         "calibrate-hand-eye",
         parents=[common, _device_options(), _store_options()],
-        help="calibrate where a camera sits on the tool (tool_from_camera) from board views",
+        help="calibrate where a camera sits on the tool (tool_from_camera) or in the cell "
+        "(base_from_camera, the board on the flange) from board views",
     )
     cal.add_argument("inspection", help="the server's calibration_board inspection")
-    cal.add_argument("--camera", required=True, help="the robot's tool camera")
+    cal.add_argument(
+        "--camera",
+        required=True,
+        help="the camera: on the tool (eye-in-hand) or fixed (eye-to-hand, board on the flange)",
+    )
     cal.add_argument("--views", type=int, default=15, help="poses to plan (default 15)")
     cal.add_argument(
         "--config",

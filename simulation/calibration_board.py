@@ -37,7 +37,9 @@ CHARUCO_MARKER_CELLS = 6
 class CalibrationBoardSpec:
     """A flat calibration board: ``kind`` 'charuco' (dictionary DICT_4X4_50, markers 0.75 of
     a square) or 'chessboard'; ``columns`` x ``rows`` squares of ``square_m`` metres; a white
-    ``margin_m`` around the squares."""
+    ``margin_m`` around the squares. ``mount`` 'fixed': ``world_from_board`` is the board's
+    pose in the cell; 'tool': the board is bolted to the flange (for eye-to-hand calibration)
+    and the same field holds ``tool_from_board`` (use :meth:`world_pose`)."""
 
     name: str
     kind: str
@@ -48,6 +50,14 @@ class CalibrationBoardSpec:
     world_from_board: FloatArray
     dark: tuple[float, float, float] = (20.0, 20.0, 20.0)
     light: tuple[float, float, float] = (235.0, 235.0, 235.0)
+    mount: str = "fixed"
+
+    def world_pose(self, world_from_tool: FloatArray) -> FloatArray:
+        """``world_from_board`` (spec frame) with the tool at ``world_from_tool``."""
+        if self.mount == "tool":
+            pose: FloatArray = world_from_tool @ self.world_from_board
+            return pose
+        return self.world_from_board.copy()
 
     @property
     def marker_m(self) -> float:

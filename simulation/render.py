@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from geometry import CameraIntrinsics, invert_transform, transform_points
-from simulation.calibration_board import board_dark_quads
+from simulation.calibration_board import CalibrationBoardSpec, board_dark_quads
 from simulation.qr import qr_modules
 from simulation.raster import SHIFT, CameraRaster, inset_polygons, to_fixed
 from simulation.scene import CameraSpec, LightSpec, PartSpec, Scene, SurfaceSpec
@@ -283,37 +283,41 @@ class Renderer:
                 )
             )
         for cb in scene.calibration_boards:
-            pose = cb.world_from_board
-            half_w = cb.size_m[0] / 2 + cb.margin_m
-            half_h = cb.size_m[1] / 2 + cb.margin_m
-            faces = [
-                _faces(
-                    _rect(pose, -half_w, half_w, -half_h, half_h, 0.0)[None],
-                    pose[:3, 2],
-                    cb.light,
-                    light,
-                )
-            ]
-            quads = transform_points(pose, board_dark_quads(cb).reshape(-1, 3))
-            dark = _shade(np.array([cb.dark]), pose[:3, 2][None], light)[0]
-            c, r = sphere(faces)
-            objs.append(
-                _Object(
-                    cb.name,
-                    LAYER_ATTACHED,
-                    c,
-                    r,
-                    fixed(faces),
-                    decals=quads.reshape(-1, 4, 3),
-                    decal_color=(float(dark[0]), float(dark[1]), float(dark[2])),
-                    budget=CALIBRATION_BOARD_BUDGET,
-                )
-            )
+            if cb.mount == "fixed":
+                objs.append(self._calibration_board_object(cb, cb.world_from_board))
         for sw in scene.switches:
             faces = [_box_faces(sw.world_from_switch, sw.size, sw.color, light, z0=-sw.size[2])]
             c, r = sphere(faces)
             objs.append(_Object(sw.name, LAYER_ATTACHED, c, r, fixed(faces)))
         return objs
+
+    def _calibration_board_object(self, cb: CalibrationBoardSpec, pose: FloatArray) -> _Object:
+        """The board ``cb`` at ``pose`` (``world_from_board``, spec frame)."""
+        light = self.scene.light
+        half_w = cb.size_m[0] / 2 + cb.margin_m
+        half_h = cb.size_m[1] / 2 + cb.margin_m
+        faces = [
+            _faces(
+                _rect(pose, -half_w, half_w, -half_h, half_h, 0.0)[None],
+                pose[:3, 2],
+                cb.light,
+                light,
+            )
+        ]
+        quads = transform_points(pose, board_dark_quads(cb).reshape(-1, 3))
+        dark = _shade(np.array([cb.dark]), pose[:3, 2][None], light)[0]
+        pts = faces[0].points.reshape(-1, 3)
+        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+        return _Object(
+            cb.name,
+            LAYER_ATTACHED,
+            centre,
+            float(np.linalg.norm(pts - centre, axis=1).max()),
+            lambda _scale: faces,
+            decals=quads.reshape(-1, 4, 3),
+            decal_color=(float(dark[0]), float(dark[1]), float(dark[2])),
+            budget=CALIBRATION_BOARD_BUDGET,
+        )
 
     def _part_object(self, spec: PartSpec, pose: FloatArray) -> _Object:
         light = self.scene.light
@@ -379,6 +383,11 @@ class Renderer:
         objects = list(self._static)
         for spec in self.scene.parts:
             objects.append(self._part_object(spec, world.part_pose(spec.name)))
+        for cb in self.scene.calibration_boards:
+            if cb.mount == "tool":  # moves with the flange: built for this frame's tool pose
+                objects.append(
+                    self._calibration_board_object(cb, cb.world_pose(world.world_from_tool()))
+                )
         in_view = []
         for obj in objects:
             c_cam = camera_from_world[:3, :3] @ obj.centre + camera_from_world[:3, 3]

@@ -618,6 +618,7 @@ def parse_scene(reader: SceneNode) -> Scene:
         if columns < 3 or rows < 3:
             raise cb.error(f"a board needs at least 3 x 3 squares, got {columns} x {rows}")
         square = cb.take("square_m", y.positive)
+        board_mount = cb.take("mount", y.one_of("fixed", "tool"), "fixed")
         calibration_boards.append(
             CalibrationBoardSpec(
                 name=name,
@@ -627,6 +628,7 @@ def parse_scene(reader: SceneNode) -> Scene:
                 square_m=square,
                 margin_m=cb.take("margin_m", y.non_negative, square / 2),
                 world_from_board=_pose(cb.sub("pose", required=True)),
+                mount=board_mount,
             )
         )
         cb.finish()

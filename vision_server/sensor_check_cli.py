@@ -20,15 +20,12 @@ import cv2
 import numpy as np
 
 from .analysis import AnalysisError
-from .analysis.depth_registration import DepthRegistration, fit_depth_registration
+from .analysis.depth_registration import fit_depth_registration, registration_advice
 from .analysis.qr_pose import qr_pose
 from .config import ConfigError, load_config
 from .inspections.qr_pose import QRPoseInspection
 
 __all__ = ["add_parser", "sensor_check"]
-
-SCALE_LIMIT = 0.002  # 0.2 %: 2 mm at 1 m, four times the QR pose goal
-SHIFT_LIMIT_PX = 1.0  # ~0.8 mm at 1 m on a board 25° off square; the fit's noise is ~0.3 px
 
 
 def add_parser(sub: Any, parents: list[argparse.ArgumentParser]) -> None:
@@ -54,20 +51,6 @@ def _read(path: str, flags: int) -> Any:
     if image is None:
         raise ValueError(f"cannot read image {path!r}")
     return image
-
-
-def _verdict(reg: DepthRegistration) -> tuple[bool, str]:
-    off = []
-    if abs(reg.scale - 1.0) > SCALE_LIMIT:
-        off.append(f"depth scale {reg.scale:.4f} (limit ±{SCALE_LIMIT:.1%})")
-    if np.isfinite(reg.shift_std_px[0]) and max(map(abs, reg.shift_px)) > SHIFT_LIMIT_PX:
-        off.append(f"shift ({reg.shift_px[0]:+.2f}, {reg.shift_px[1]:+.2f}) px")
-    if not off:
-        return True, "the sensor agrees with the board: no depth correction needed"
-    return False, (
-        "; ".join(off) + ": set the qr_pose inspection's depth_scale, depth_shift_px and their "
-        "_std keys to these values (or calibrate the sensor's depth-to-colour registration)"
-    )
 
 
 def sensor_check(args: argparse.Namespace) -> int:
@@ -119,7 +102,7 @@ def sensor_check(args: argparse.Namespace) -> int:
     except AnalysisError as exc:
         print(f"vision-server sensor-check: {exc}")
         return 2
-    ok, verdict = _verdict(reg)
+    ok, verdict = registration_advice(reg)
     report = {
         "views": reg.views,
         "depth_scale": round(reg.scale, 5),

@@ -17,7 +17,12 @@ Hand-eye (issue 18 part 2):
 - :func:`~robot_client.commissioning.hand_eye_collect.collect_hand_eye_views`: the robot
   moves a tool camera through the planned poses and the server finds the board at each
   (``robot-client calibrate-hand-eye``); the result is kept in the teach store
-  (:mod:`robot_client.skills.camera_mounts`).
+  (:mod:`robot_client.skills.camera_mounts`). A fixed camera is calibrated eye-to-hand
+  with the board on the flange (:func:`~robot_client.commissioning.hand_eye.plan_fixed_views`).
+
+Sensor check (issue 18 part 3): :func:`~robot_client.commissioning.sensor_check.check_sensor`
+turns the RGB-D tool camera about the QR code and fits its depth scale and shift
+(``robot-client sensor-check``).
 """
 
 from .coverage import Coverage, board_coverage

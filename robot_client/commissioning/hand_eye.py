@@ -364,9 +364,7 @@ def _verdict(
     return "good", (f"reprojection RMS {rms_px:.2f} px over {len(views)} views",)
 
 
-def plan_views(
-    base_from_board: FloatArray,
-    tool_from_camera: FloatArray,
+def view_spread(
     *,
     count: int = 15,
     distance_m: float = 0.35,
@@ -374,18 +372,13 @@ def plan_views(
     roll_rad: float = math.radians(60.0),
     depth_spread: float = 0.3,
 ) -> list[FloatArray]:
-    """Tool poses (``base_from_tool``) for an eye-in-hand calibration: the camera about
-    ``distance_m`` (+/- ``depth_spread`` of it) from the board's origin, looking at it, tilted
-    by up to ``tilt_rad`` towards directions spread by the golden angle and rolled by up to
-    ``roll_rad`` about its optical axis, so that the relative rotations turn about three axes.
-    ``tool_from_camera`` may be a rough guess.
-
-    The defaults are measured (tests/geometry/test_hand_eye.py, 20 seeds, 15 views, robot
-    repeatability 0.03 mm / 0.01 deg, 0.1 px corner noise): tilts of 25 deg and rolls of 40
-    deg left the camera's rotation at 0.09 deg p95; 40 and 60 deg bring it to 0.04 deg. The
-    rotation of X is only as good as the spread of the views' rotations."""
+    """Camera poses ``centre_from_camera`` (4x4) about a board's centre frame (origin at the
+    board's centre, z out of the print towards the camera): about ``distance_m`` (+/-
+    ``depth_spread`` of it) away, looking at the centre, tilted by up to ``tilt_rad`` towards
+    directions spread by the golden angle and rolled by up to ``roll_rad`` about the optical
+    axis, so that the relative rotations turn about three axes. Eye-in-hand moves the camera
+    through them (:func:`plan_views`), eye-to-hand the board (:func:`plan_fixed_views`)."""
     poses = []
-    camera_from_tool = invert_transform(tool_from_camera)
     golden = math.pi * (3.0 - math.sqrt(5.0))
     for k in range(count):
         fraction = (k + 0.5) / count
@@ -401,9 +394,67 @@ def plan_views(
         rotation = board_from_view @ flip @ rotation_from_axis_angle([0.0, 0.0, 1.0], roll)
         distance = distance_m * (1.0 + depth_spread * math.cos(2.3 * k))
         position = rotation @ np.array([0.0, 0.0, -distance])
-        board_from_camera = make_transform(rotation, position)
-        poses.append(base_from_board @ board_from_camera @ camera_from_tool)
+        poses.append(make_transform(rotation, position))
     return poses
+
+
+def plan_views(
+    base_from_board: FloatArray,
+    tool_from_camera: FloatArray,
+    *,
+    count: int = 15,
+    distance_m: float = 0.35,
+    tilt_rad: float = math.radians(40.0),
+    roll_rad: float = math.radians(60.0),
+    depth_spread: float = 0.3,
+) -> list[FloatArray]:
+    """Tool poses (``base_from_tool``) for an eye-in-hand calibration: the camera at each of
+    :func:`view_spread` about ``base_from_board`` (the board's centre frame, z towards the
+    camera). ``tool_from_camera`` may be a rough guess.
+
+    The defaults are measured (tests/geometry/test_hand_eye.py, 20 seeds, 15 views, robot
+    repeatability 0.03 mm / 0.01 deg, 0.1 px corner noise): tilts of 25 deg and rolls of 40
+    deg left the camera's rotation at 0.09 deg p95; 40 and 60 deg bring it to 0.04 deg. The
+    rotation of X is only as good as the spread of the views' rotations."""
+    camera_from_tool = invert_transform(tool_from_camera)
+    return [
+        base_from_board @ centre_from_camera @ camera_from_tool
+        for centre_from_camera in view_spread(
+            count=count,
+            distance_m=distance_m,
+            tilt_rad=tilt_rad,
+            roll_rad=roll_rad,
+            depth_spread=depth_spread,
+        )
+    ]
+
+
+def plan_fixed_views(
+    base_from_camera: FloatArray,
+    tool_from_centre: FloatArray,
+    *,
+    count: int = 15,
+    distance_m: float = 0.35,
+    tilt_rad: float = math.radians(40.0),
+    roll_rad: float = math.radians(60.0),
+    depth_spread: float = 0.3,
+) -> list[FloatArray]:
+    """Tool poses (``base_from_tool``) for an eye-to-hand calibration: the board the tool
+    holds shown to the fixed camera at ``base_from_camera`` as if the camera were at each of
+    :func:`view_spread` about the board's centre (``tool_from_centre``: z out of the print).
+    Both may be rough guesses: an error turns and shifts the whole set a little, the board
+    stays in front of the camera."""
+    centre_from_tool = invert_transform(tool_from_centre)
+    return [
+        base_from_camera @ invert_transform(centre_from_camera) @ centre_from_tool
+        for centre_from_camera in view_spread(
+            count=count,
+            distance_m=distance_m,
+            tilt_rad=tilt_rad,
+            roll_rad=roll_rad,
+            depth_spread=depth_spread,
+        )
+    ]
 
 
 __all__ = [
@@ -413,6 +464,8 @@ __all__ = [
     "Setup",
     "Verdict",
     "ViewResidual",
+    "plan_fixed_views",
     "plan_views",
     "solve_hand_eye",
+    "view_spread",
 ]

@@ -102,3 +102,47 @@ def test_without_yes_nothing_is_stored(server: Server, tmp_path: Path) -> None:
     result = _calibrate(server, tmp_path)
     assert result["stored"] == {"stored": False, "reason": "not confirmed"}
     assert not (tmp_path / "taught.yaml").exists()
+
+
+def test_a_fixed_camera_is_calibrated_eye_to_hand_and_stored(
+    server: Server, tmp_path: Path
+) -> None:
+    """``--camera`` a fixed camera: the board on the flange (examples/scenes/eye_to_hand_cell
+    .yaml), ``base_from_camera`` stored as an eye_to_hand record near the scene's truth."""
+    text = (ROOT / "examples" / "scenes" / "eye_to_hand_cell.yaml").read_text(encoding="utf-8")
+    line = "  docking_error: {xy_m: 0.02, yaw: 0.03}\n"
+    scene = tmp_path / "eye_to_hand.yaml"
+    scene.write_text(
+        text.replace(line, line + "  repeatability: {m: 0.00003, rad: 0.000175}\n", 1),
+        encoding="utf-8",
+    )
+    done = tool(
+        "robot-client",
+        "calibrate-hand-eye",
+        "board_tool",
+        "--camera",
+        "qc_camera",
+        "--scene",
+        str(scene),
+        "--state-file",
+        str(tmp_path / "world.json"),
+        "--fresh",
+        "--server",
+        server.address,
+        "--store",
+        str(tmp_path / "taught.yaml"),
+        "--json",
+        "--yes",
+    )
+    assert done.returncode == 0, done.stderr + done.stdout
+    result = json.loads(done.stdout)
+    assert result["setup"] == "eye_to_hand"
+    assert "tool_from_board" in result
+    assert result["verdict"] == "good", result["reasons"]
+    stored = stored_hand_eye(TeachStore(tmp_path / "taught.yaml").records(), "qc_camera")
+    assert stored is not None
+    assert stored.setup == "eye_to_hand"
+    # The QC camera's truth in the base frame (world_from_base is 0.8 m up): looking down from
+    # (0.15, 0.65, 0.6) with the image's up along +x.
+    assert np.linalg.norm(stored.pose[:3, 3] - [0.15, 0.65, 0.6]) <= 0.3e-3
+    assert stored.pose[:3, 2] @ np.array([0.0, 0.0, -1.0]) > math.cos(math.radians(0.05))

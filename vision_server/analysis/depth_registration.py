@@ -1,61 +1,20 @@
-"""The sensor check: a depth camera's scale error and misregistration against colour, measured
-on a QR board of known printed side.
-
-Each ``qr_pose`` view of the board gives one number, ``depth_vs_side`` (how much further the
-depth puts the board than its printed side does, relative) and its gain per pixel of
-misregistration, ``shift_sensitivity`` (see :class:`.qr_pose.QRPoseQuality`):
-
-    depth_vs_side_k = s + g_k · (du, dv) + noise
-
-where s is the depth scale error (depth reads (1 + s) z) and (du, dv) px the shift (depth
-pixel (u, v) saw colour pixel (u - du, v - dv)). Why this model: a plane's inverse depth is
-linear in the normalised image coordinates, so shifting the depth image by (du, dv) moves the
-fitted plane's distance by (n_x du / fx + n_y dv / fy) / n_z, which depends on the tilt; a
-scale error moves it by s at every tilt. One view cannot separate the two; views tilted in
-different directions can, by linear least squares over the views.
-
-The printed side is the only absolute reference, so the corner detector's own bias on the
-code's image side (``corner_bias_px``: measured -0.07 px on the simulated Xtion-like camera,
-i.e. each sub-pixel corner ~0.035 px towards the centre, 0.06-0.1 % of the side at 0.7-1.3 m)
-would otherwise pass for a depth scale error; it is removed as b / side_px per view. It is a
-property of the detector at the camera's blur: measured against a known reference and
-configured per inspection (qr_pose's ``corner_bias_px``, default 0), not fitted (a fit cannot
-separate it from the scale over the usual range of distances).
-"""
+"""The sensor check's fit for the server (:mod:`geometry.depth_registration` holds the model,
+shared with the robot client): the same fit, its errors as :class:`AnalysisError`."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
-import numpy as np
-from numpy.typing import NDArray
+from geometry.depth_registration import (
+    DepthRegistration,
+    FloatArray,
+    registration_advice,
+)
+from geometry.depth_registration import fit_depth_registration as _fit
 
 from .errors import AnalysisError
 
-__all__ = ["DepthRegistration", "fit_depth_registration"]
-
-FloatArray = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class DepthRegistration:
-    """The fitted sensor errors.
-
-    ``scale``: depth reads ``scale`` times the true z (1 + s). ``shift_px`` (du, dv): depth
-    pixel (u, v) saw colour pixel (u - du, v - dv). ``scale_std`` and ``shift_std_px``: their
-    standard errors from the fit's residuals (NaN for the shift when the views' tilts do not
-    determine it). ``residual_rms``: RMS of the per-view residuals (relative). ``views``: how
-    many views were used. These are what ``qr_pose``'s ``depth_scale`` and ``depth_shift_px``
-    take to correct the sensor.
-    """
-
-    scale: float
-    shift_px: tuple[float, float]
-    scale_std: float
-    shift_std_px: tuple[float, float]
-    residual_rms: float
-    views: int
+__all__ = ["DepthRegistration", "fit_depth_registration", "registration_advice"]
 
 
 def fit_depth_registration(
@@ -66,52 +25,14 @@ def fit_depth_registration(
     corner_bias_px: float = 0.0,
     min_tilt_spread: float = 2e-4,
 ) -> DepthRegistration:
-    """Least-squares fit of scale and shift over N views (see the module's docstring).
-
-    ``depth_vs_side`` (N,), ``shift_sensitivity`` (N, 2) and ``side_px`` (N,) from each
-    view's quality report; with ``side_px``, the detector's ``corner_bias_px`` on the side is
-    removed first (None: not removed).
-    ``min_tilt_spread``: the smallest spread (std, per pixel) of the sensitivities below which
-    the shift is not determined; it is then taken as (0, 0) with NaN uncertainty and only
-    the scale is fitted.
-
-    Raises AnalysisError with fewer than 2 finite views.
-    """
-    r = np.asarray(depth_vs_side, np.float64).reshape(-1)
-    g = np.asarray(shift_sensitivity, np.float64).reshape(-1, 2)
-    if r.size != g.shape[0]:
-        raise AnalysisError(f"{r.size} ratios but {g.shape[0]} sensitivities")
-    if side_px is not None:
-        px = np.asarray(side_px, np.float64).reshape(-1)
-        if px.size != r.size:
-            raise AnalysisError(f"{r.size} ratios but {px.size} image sides")
-        # the detector measured side_m (1 + bias / px): the depth's part is the rest
-        r = (1.0 + r) / (1.0 + corner_bias_px / px) - 1.0
-    ok = np.isfinite(r) & np.all(np.isfinite(g), axis=1)
-    r, g = r[ok], g[ok]
-    if r.size < 2:
-        raise AnalysisError(
-            f"the sensor check needs at least 2 views of the board with its side_m, got {r.size}"
+    """:func:`geometry.depth_registration.fit_depth_registration`, raising AnalysisError."""
+    try:
+        return _fit(
+            depth_vs_side,
+            shift_sensitivity,
+            side_px,
+            corner_bias_px=corner_bias_px,
+            min_tilt_spread=min_tilt_spread,
         )
-    spread = g.std(axis=0)
-    fit_shift = bool(r.size >= 4 and np.all(spread >= min_tilt_spread))
-    design = np.column_stack([np.ones(r.size), g]) if fit_shift else np.ones((r.size, 1))
-    x, *_ = np.linalg.lstsq(design, r, rcond=None)
-    residual = r - design @ x
-    dof = max(r.size - design.shape[1], 1)
-    sigma2 = float(residual @ residual) / dof
-    cov = sigma2 * np.linalg.pinv(design.T @ design)
-    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    if fit_shift:
-        shift = (float(x[1]), float(x[2]))
-        shift_std = (float(std[1]), float(std[2]))
-    else:
-        shift, shift_std = (0.0, 0.0), (float("nan"), float("nan"))
-    return DepthRegistration(
-        scale=1.0 + float(x[0]),
-        shift_px=shift,
-        scale_std=float(std[0]),
-        shift_std_px=shift_std,
-        residual_rms=float(np.sqrt(np.mean(residual**2))),
-        views=int(r.size),
-    )
+    except ValueError as exc:
+        raise AnalysisError(str(exc)) from None
