@@ -55,6 +55,9 @@ FloatArray = NDArray[np.float64]
 GrayImage = NDArray[np.uint8]
 Expect = str | re.Pattern[str] | None
 
+_NEXT = [1, 2, 3, 0]  # the corner after each one (side k runs from corner k to _NEXT[k])
+_PREV = [3, 0, 1, 2]
+
 
 @dataclass(frozen=True)
 class QRCode:
@@ -237,7 +240,7 @@ def _adaptive(gray: GrayImage) -> GrayImage:
 def _clockwise(quad: FloatArray) -> FloatArray:
     """The quad in clockwise order on the screen (v down), starting from its first corner."""
     x, y = quad[:, 0], quad[:, 1]
-    area2 = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    area2 = float(np.sum(x * y[_NEXT] - x[_NEXT] * y))
     # With v pointing down, a positive shoelace sum is clockwise on the screen.
     if area2 < 0:
         return np.asarray(quad[[0, 3, 2, 1]], np.float64)
@@ -365,42 +368,60 @@ def _line_fits(
     return lines
 
 
+def _median_rows(values: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The median of each row (as np.median, whose generic path costs several times a sort of
+    these short rows)."""
+    ordered = np.sort(values, axis=1)
+    n = ordered.shape[1]
+    return np.asarray((ordered[:, (n - 1) // 2] + ordered[:, n // 2]) / 2, np.float32)
+
+
 def _edge_points(
-    gray: NDArray[np.float32], q: FloatArray, outward: FloatArray, reach: float
+    gray: NDArray[np.float32], q: FloatArray, outward: FloatArray, reach: float, longest: float
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Sub-pixel mid-level crossings on profiles across the four sides q[k] -> q[k+1]
-    (outside to inside): points (4, n, 2) and which of them were found (4, n)."""
-    lengths = np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1)
-    n_samples = int(min(max(float(lengths.max()) / 1.5, 12.0), 120.0))
-    t = np.linspace(0.06, 0.94, n_samples)
+    (outside to inside): points (4, n, 2) and which of them were found (4, n).
+
+    Written for few array operations: the cost of this and of :func:`_line_fits` is mostly
+    per-call overhead on small arrays (issue 19's speed goal)."""
+    n_samples = int(min(max(longest / 1.5, 12.0), 120.0))
+    t = 0.06 + (0.88 / (n_samples - 1)) * np.arange(n_samples)
     step = 0.25
-    s = np.arange(-reach, reach + step / 2, step)  # s > 0 outward
-    s_rev = s[::-1]  # outside first
-    a = q
-    b = np.roll(q, -1, axis=0)
-    base = a[:, None, :] + t[None, :, None] * (b - a)[:, None, :]  # (4, n, 2)
-    offsets = s_rev.astype(np.float32)[None, None, :]
-    shape = (4 * n_samples, len(s))
-    mx = (base[:, :, 0:1] + offsets * outward[:, None, None, 0]).astype(np.float32).reshape(shape)
-    my = (base[:, :, 1:2] + offsets * outward[:, None, None, 1]).astype(np.float32).reshape(shape)
-    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    nq = max(2, len(s) // 5)
-    light = np.median(prof[:, :nq], axis=1)
+    # offsets -reach, -reach + step, ... up to reach (inclusive within half a step), taken
+    # outside first (s > 0 outward)
+    n_steps = math.ceil((2.0 * reach + step / 2) / step)
+    s_rev = (-reach + step * (n_steps - 1)) - step * np.arange(n_steps)
+    base = q[:, None, :] + t[None, :, None] * (q[_NEXT] - q)[:, None, :]  # (4, n, 2)
+    # one two-channel map of every sample position, (4 n, steps, 2) for cv2.remap, built in
+    # float32 in place (the positions lie in a crop: float32 keeps them to 1e-4 px)
+    xy = np.empty((4, n_samples, n_steps, 2), np.float32)
+    np.multiply(
+        s_rev.astype(np.float32)[None, None, :, None],
+        outward.astype(np.float32)[:, None, None, :],
+        out=xy,
+    )
+    xy += base.astype(np.float32)[:, :, None, :]
+    maps = xy.reshape(4 * n_samples, n_steps, 2)
+    # (the stubs lack map2=None, the form for a single two-channel map)
+    prof = cv2.remap(gray, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)  # type: ignore[call-overload]
+    nq = max(2, n_steps // 5)
+    light = _median_rows(prof[:, :nq])
     dark = prof.min(axis=1)
     contrast = (light - dark).reshape(4, n_samples)
-    good_contrast = contrast > 0.5 * np.median(contrast, axis=1, keepdims=True)
+    good_contrast = contrast > 0.5 * _median_rows(contrast)[:, None]
     level = (light + dark) / 2
     below = prof < level[:, None]
     first = np.argmax(below, axis=1)
-    valid = good_contrast.reshape(-1) & below.any(axis=1) & (first > 0)
+    # first > 0 also says that some sample is below the level (argmax is 0 when none is)
+    valid = good_contrast.reshape(-1) & (first > 0)
     rows = np.arange(prof.shape[0])
     i1 = np.maximum(first, 1)
     v0 = prof[rows, i1 - 1]
     v1 = prof[rows, i1]
     frac = np.clip((v0 - level) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
-    s_cross = s_rev[i1 - 1] + frac * (s_rev[i1] - s_rev[i1 - 1])
+    s_cross = s_rev[i1 - 1] - frac * step
     points = base + s_cross.reshape(4, n_samples)[:, :, None] * outward[:, None, :]
-    return np.asarray(points, np.float64), valid.reshape(4, n_samples)
+    return points, valid.reshape(4, n_samples)
 
 
 def refine_corners(
@@ -411,7 +432,11 @@ def refine_corners(
     Returns the rough corners unchanged where a side has too few edge points.
     """
     q = np.asarray(corners, np.float64)
-    side = float(np.mean(np.linalg.norm(q - np.roll(q, -1, axis=0), axis=1)))
+    edge = q[_NEXT] - q
+    lengths = np.sqrt((edge * edge).sum(axis=1))
+    side = float(lengths.mean())
+    if float(lengths.min()) < 1e-9:
+        return q.copy()
     module = side / (modules if modules else 25)
     # (plain min/max: np.clip on scalars costs as much as an array operation)
     reach = min(max(2.5, 0.8 * module, 0.03 * side), max(2.5, 0.2 * side))
@@ -419,43 +444,33 @@ def refine_corners(
     # cost several times the decode itself (issue 19's speed goal).
     margin = reach + 3.0
     height, width = gray.shape
-    low = q.min(axis=0) - margin
-    high = q.max(axis=0) + margin
-    u0 = min(max(math.floor(low[0]), 0), width - 1)
-    v0 = min(max(math.floor(low[1]), 0), height - 1)
-    u1 = min(max(math.ceil(high[0]) + 1, u0 + 1), width)
-    v1 = min(max(math.ceil(high[1]) + 1, v0 + 1), height)
+    (lu, lv), (hu, hv) = q.min(axis=0).tolist(), q.max(axis=0).tolist()
+    u0 = min(max(math.floor(lu - margin), 0), width - 1)
+    v0 = min(max(math.floor(lv - margin), 0), height - 1)
+    u1 = min(max(math.ceil(hu + margin) + 1, u0 + 1), width)
+    v1 = min(max(math.ceil(hv + margin) + 1, v0 + 1), height)
     origin = np.array([u0, v0], np.float64)
     g = gray[v0:v1, u0:u1].astype(np.float32)
     q = q - origin
-    direction = np.roll(q, -1, axis=0) - q
-    lengths = np.linalg.norm(direction, axis=1)
-    if np.any(lengths < 1e-9):
-        return q + origin
-    direction /= lengths[:, None]
-    outward = np.stack([direction[:, 1], -direction[:, 0]], axis=1)
-    midpoints = (q + np.roll(q, -1, axis=0)) / 2 - q.mean(axis=0)
-    outward *= np.where(np.einsum("ki,ki->k", outward, midpoints) < 0, -1.0, 1.0)[:, None]
-    points, valid = _edge_points(g, q, outward, reach)
+    # the normal (dv, -du) of each side points outward for a clockwise quad on the screen;
+    # the test against the centre keeps a counter-clockwise one right as well
+    outward = edge[:, ::-1] * np.array([1.0, -1.0]) / lengths[:, None]
+    midpoints = q + 0.5 * edge - q.mean(axis=0)
+    outward *= np.where((outward * midpoints).sum(axis=1) < 0, -1.0, 1.0)[:, None]
+    points, valid = _edge_points(g, q, outward, reach, float(lengths.max()))
     lines = _line_fits(points, valid, outward, tol=max(0.35, 0.3 * module))
     if lines is None:
         return q + origin
     # corner i is where the sides i - 1 and i meet: the cross product of their lines
-    l1, l2 = np.roll(lines, 1, axis=0), lines
-    hom = np.stack(
-        [
-            l1[:, 1] * l2[:, 2] - l1[:, 2] * l2[:, 1],
-            l1[:, 2] * l2[:, 0] - l1[:, 0] * l2[:, 2],
-            l1[:, 0] * l2[:, 1] - l1[:, 1] * l2[:, 0],
-        ],
-        axis=1,
-    )
-    if np.any(np.abs(hom[:, 2]) < 1e-12):
+    hom = np.cross(lines[_PREV], lines)
+    if float(np.abs(hom[:, 2]).min()) < 1e-12:
         return q + origin
     out = hom[:, :2] / hom[:, 2:3]
-    if np.max(np.linalg.norm(out - q, axis=1)) > max(3.0, 0.1 * side):
+    moved = out - q
+    if float((moved * moved).sum(axis=1).max()) > max(3.0, 0.1 * side) ** 2:
         return q + origin
-    return out + origin
+    result: FloatArray = out + origin
+    return result
 
 
 # --- the reader ----------------------------------------------------------------------------
@@ -511,7 +526,10 @@ def _matches(text: str, expect: Expect) -> bool:
 
 def _merge(found: list[_Raw], new: list[_Raw]) -> None:
     for r in new:
-        side = float(np.mean(np.linalg.norm(r.quad - np.roll(r.quad, -1, axis=0), axis=1)))
+        if not found:  # the common case: nothing to compare with
+            found.append(r)
+            continue
+        side = float(np.mean(np.linalg.norm(r.quad - r.quad[_NEXT], axis=1)))
         for f in found:
             if f.text == r.text and np.linalg.norm(f.quad.mean(0) - r.quad.mean(0)) < 0.5 * side:
                 f.hits += 1
@@ -586,8 +604,8 @@ def read_qr(
         if r.decoder.startswith("zxing") and "rot" not in r.decoder:
             # zxing-cpp reports the corners in symbol order (top-left = the finder pattern
             # opposite the corner without one): the image test would only repeat it, at twice
-            # the cost of the decode.
-            ordered = _start_at(_clockwise(r.quad), r.quad[0])
+            # the cost of the decode. (_clockwise keeps the first corner first.)
+            ordered = _clockwise(r.quad)
         else:
             ordered, confident = order_corners(gray, r.quad)
             if not confident and r.decoder.startswith("opencv") and "rot" not in r.decoder:
