@@ -24,9 +24,8 @@ def repo_root() -> Path:
 
 @pytest.fixture(scope="session")
 def qr_real_dir() -> Path:
-    """The real QR photographs (../shared/data/qr_real, or ``$CELLVISION_QR_REAL`` as for the
-    bench); the test is skipped where absent."""
-    path = Path(os.environ.get("CELLVISION_QR_REAL", SHARED_DATA / "qr_real"))
+    """The real QR photographs (../shared/data/qr_real); the test is skipped where absent."""
+    path = SHARED_DATA / "qr_real"
     if not (path / "manifest.json").is_file():
         pytest.skip(f"real QR photographs not found at {path} (shared/ sits beside the clone)")
     return path
