@@ -55,6 +55,9 @@ FloatArray = NDArray[np.float64]
 GrayImage = NDArray[np.uint8]
 Expect = str | re.Pattern[str] | None
 
+_NEXT = [1, 2, 3, 0]  # the corner after each one (side k runs from corner k to _NEXT[k])
+_PREV = [3, 0, 1, 2]
+
 
 @dataclass(frozen=True)
 class QRCode:
@@ -237,7 +240,7 @@ def _adaptive(gray: GrayImage) -> GrayImage:
 def _clockwise(quad: FloatArray) -> FloatArray:
     """The quad in clockwise order on the screen (v down), starting from its first corner."""
     x, y = quad[:, 0], quad[:, 1]
-    area2 = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    area2 = float(np.sum(x * y[_NEXT] - x[_NEXT] * y))
     # With v pointing down, a positive shoelace sum is clockwise on the screen.
     if area2 < 0:
         return np.asarray(quad[[0, 3, 2, 1]], np.float64)
@@ -317,90 +320,117 @@ def _line_fits(
     normal, fitted to ``points`` (4, n, 2) where ``valid`` (4, n), with one-sided outlier
     removal (outliers lie inwards); None when a side keeps fewer than 4 points.
 
-    The four sides are fitted together (one array operation for all), so that the cost does
-    not grow with Python calls per side (issue 19's speed goal); each side stops at its own
-    convergence, as a fit of that side alone would.
+    The sums over each side's points are array operations on all four sides at once; the
+    per-side line from its six sums is plain float arithmetic, which for four sides costs a
+    fraction of the dozens of array operations on (4,)-arrays it replaces (issue 19's speed
+    goal). Each side stops at its own convergence, as a fit of that side alone would.
     """
     keep = valid.copy()
     # Coordinates relative to each side's mean point (no cancellation in the moments below);
     # the weighted sums of 1, u, v, uu, vv, uv of every side then take one matrix product
     # per iteration.
     ref = points.mean(axis=1)
-    pu = points[..., 0] - ref[:, 0:1]
-    pv = points[..., 1] - ref[:, 1:2]
-    moments = np.stack([np.ones_like(pu), pu, pv, pu * pu, pv * pv, pu * pv], axis=2)
+    rel = points - ref[:, None, :]
+    pu, pv = rel[..., 0], rel[..., 1]
+    ones = np.ones_like(pu)
+    moments = np.stack([ones, pu, pv, pu * pu, pv * pv, pu * pv], axis=2)
+    homogeneous = moments[:, :, :3]  # (1, u, v): a line (c, a, b) gives the distance
+    normals = outward.tolist()
     done = np.zeros(4, bool)
-    lines = np.zeros((4, 3))  # in the shifted coordinates until the end
+    lines = [[0.0, 0.0, 0.0] for _ in range(4)]  # (a, b, c), shifted coordinates
     for it in range(6):
-        sums = np.matmul(keep.astype(np.float64)[:, None, :], moments)[:, 0, :]  # (4, 6)
-        count = sums[:, 0]
-        if np.any(count[~done] < 4):
-            return None
-        safe = np.maximum(count, 1.0)
-        cu, cv = sums[:, 1] / safe, sums[:, 2] / safe
-        suu = sums[:, 3] - safe * cu * cu
-        svv = sums[:, 4] - safe * cv * cv
-        suv = sums[:, 5] - safe * cu * cv
-        # the 2x2 scatter's major axis is at 0.5 * atan2(2 suv, suu - svv): the line's
-        # direction; the normal is perpendicular to it
-        theta = 0.5 * np.arctan2(2.0 * suv, suu - svv)
-        nu, nv = -np.sin(theta), np.cos(theta)
-        flip = np.where(nu * outward[:, 0] + nv * outward[:, 1] < 0, -1.0, 1.0)
-        nu, nv = nu * flip, nv * flip
-        fitted = np.stack([nu, nv, -(nu * cu + nv * cv)], axis=1)
-        lines[~done] = fitted[~done]
-        dist = pu * lines[:, 0:1] + pv * lines[:, 1:2] + lines[:, 2:3]  # > 0 outward
+        sums = np.matmul(keep.astype(np.float64)[:, None, :], moments)[:, 0, :].tolist()
+        finished = done.tolist()
+        for k in range(4):
+            if finished[k]:
+                continue
+            count, su, sv, suu, svv, suv = sums[k]
+            if count < 4:
+                return None
+            cu, cv = su / count, sv / count
+            suu -= count * cu * cu
+            svv -= count * cv * cv
+            suv -= count * cu * cv
+            # the 2x2 scatter's major axis is at 0.5 * atan2(2 suv, suu - svv): the line's
+            # direction; the normal is perpendicular to it, turned outward
+            theta = 0.5 * math.atan2(2.0 * suv, suu - svv)
+            nu, nv = -math.sin(theta), math.cos(theta)
+            if nu * normals[k][0] + nv * normals[k][1] < 0:
+                nu, nv = -nu, -nv
+            lines[k] = [nu, nv, -(nu * cu + nv * cv)]
+        cab = np.array([[c, a, b] for a, b, c in lines])
+        dist = np.matmul(homogeneous, cab[:, :, None])[:, :, 0]  # (4, n), > 0 outward
         limit = max(tol, 3.0 * (0.5**it) * tol * 4)
         new_keep = valid & (dist > -limit)
         if it > 0:
             # symmetric clean-up of outward noise (bad samples near glare, clutter)
             new_keep &= dist < 3.0 * limit
         if it > 2:
-            done |= np.all(new_keep == keep, axis=1)
+            done |= (new_keep == keep).all(axis=1)
             if done.all():
                 break
         keep = np.where(done[:, None], keep, new_keep)
     # back to the points' own coordinates: n . (p - ref) + c = n . p + (c - n . ref)
-    lines[:, 2] -= lines[:, 0] * ref[:, 0] + lines[:, 1] * ref[:, 1]
-    return lines
+    out = np.array(lines)
+    out[:, 2] -= out[:, 0] * ref[:, 0] + out[:, 1] * ref[:, 1]
+    return out
+
+
+def _median_rows(values: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The median of each row (as np.median, whose generic path costs several times a sort of
+    these short rows)."""
+    ordered = np.sort(values, axis=1)
+    n = ordered.shape[1]
+    return np.asarray((ordered[:, (n - 1) // 2] + ordered[:, n // 2]) / 2, np.float32)
 
 
 def _edge_points(
-    gray: NDArray[np.float32], q: FloatArray, outward: FloatArray, reach: float
+    gray: NDArray[np.float32], q: FloatArray, outward: FloatArray, reach: float, longest: float
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Sub-pixel mid-level crossings on profiles across the four sides q[k] -> q[k+1]
-    (outside to inside): points (4, n, 2) and which of them were found (4, n)."""
-    lengths = np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1)
-    n_samples = int(min(max(float(lengths.max()) / 1.5, 12.0), 120.0))
-    t = np.linspace(0.06, 0.94, n_samples)
+    (outside to inside): points (4, n, 2) and which of them were found (4, n).
+
+    Written for few array operations: the cost of this and of :func:`_line_fits` is mostly
+    per-call overhead on small arrays (issue 19's speed goal)."""
+    n_samples = int(min(max(longest / 1.5, 12.0), 120.0))
+    t = 0.06 + (0.88 / (n_samples - 1)) * np.arange(n_samples)
     step = 0.25
-    s = np.arange(-reach, reach + step / 2, step)  # s > 0 outward
-    s_rev = s[::-1]  # outside first
-    a = q
-    b = np.roll(q, -1, axis=0)
-    base = a[:, None, :] + t[None, :, None] * (b - a)[:, None, :]  # (4, n, 2)
-    offsets = s_rev.astype(np.float32)[None, None, :]
-    shape = (4 * n_samples, len(s))
-    mx = (base[:, :, 0:1] + offsets * outward[:, None, None, 0]).astype(np.float32).reshape(shape)
-    my = (base[:, :, 1:2] + offsets * outward[:, None, None, 1]).astype(np.float32).reshape(shape)
-    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    nq = max(2, len(s) // 5)
-    light = np.median(prof[:, :nq], axis=1)
+    # offsets -reach, -reach + step, ... up to reach (inclusive within half a step), taken
+    # outside first (s > 0 outward)
+    n_steps = math.ceil((2.0 * reach + step / 2) / step)
+    s_rev = (-reach + step * (n_steps - 1)) - step * np.arange(n_steps)
+    base = q[:, None, :] + t[None, :, None] * (q[_NEXT] - q)[:, None, :]  # (4, n, 2)
+    # the sample positions as two maps (4 n, steps) for cv2.remap: an outer sum per side of
+    # the base points and the offsets along its normal, in float32 (the positions lie in a
+    # crop: float32 keeps them to 1e-4 px); broadcast with the offsets innermost, where
+    # numpy's loops are fast
+    base32 = base.astype(np.float32)
+    # (2, 4, 1, steps): the offset of every step along each side's normal, u then v
+    along = outward.T.astype(np.float32)[:, :, None, None] * s_rev.astype(np.float32)
+    shape = (4 * n_samples, n_steps)
+    mx = (base32[:, :, 0:1] + along[0]).reshape(shape)
+    my = (base32[:, :, 1:2] + along[1]).reshape(shape)
+    prof = np.asarray(
+        cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), np.float32
+    )
+    nq = max(2, n_steps // 5)
+    light = _median_rows(prof[:, :nq])
     dark = prof.min(axis=1)
     contrast = (light - dark).reshape(4, n_samples)
-    good_contrast = contrast > 0.5 * np.median(contrast, axis=1, keepdims=True)
+    good_contrast = contrast > 0.5 * _median_rows(contrast)[:, None]
     level = (light + dark) / 2
     below = prof < level[:, None]
     first = np.argmax(below, axis=1)
-    valid = good_contrast.reshape(-1) & below.any(axis=1) & (first > 0)
+    # first > 0 also says that some sample is below the level (argmax is 0 when none is)
+    valid = good_contrast.reshape(-1) & (first > 0)
     rows = np.arange(prof.shape[0])
     i1 = np.maximum(first, 1)
     v0 = prof[rows, i1 - 1]
     v1 = prof[rows, i1]
     frac = np.clip((v0 - level) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
-    s_cross = s_rev[i1 - 1] + frac * (s_rev[i1] - s_rev[i1 - 1])
+    s_cross = s_rev[i1 - 1] - frac * step
     points = base + s_cross.reshape(4, n_samples)[:, :, None] * outward[:, None, :]
-    return np.asarray(points, np.float64), valid.reshape(4, n_samples)
+    return points, valid.reshape(4, n_samples)
 
 
 def refine_corners(
@@ -411,7 +441,11 @@ def refine_corners(
     Returns the rough corners unchanged where a side has too few edge points.
     """
     q = np.asarray(corners, np.float64)
-    side = float(np.mean(np.linalg.norm(q - np.roll(q, -1, axis=0), axis=1)))
+    edge = q[_NEXT] - q
+    lengths = np.sqrt((edge * edge).sum(axis=1))
+    side = float(lengths.mean())
+    if float(lengths.min()) < 1e-9:
+        return q.copy()
     module = side / (modules if modules else 25)
     # (plain min/max: np.clip on scalars costs as much as an array operation)
     reach = min(max(2.5, 0.8 * module, 0.03 * side), max(2.5, 0.2 * side))
@@ -419,43 +453,39 @@ def refine_corners(
     # cost several times the decode itself (issue 19's speed goal).
     margin = reach + 3.0
     height, width = gray.shape
-    low = q.min(axis=0) - margin
-    high = q.max(axis=0) + margin
-    u0 = min(max(math.floor(low[0]), 0), width - 1)
-    v0 = min(max(math.floor(low[1]), 0), height - 1)
-    u1 = min(max(math.ceil(high[0]) + 1, u0 + 1), width)
-    v1 = min(max(math.ceil(high[1]) + 1, v0 + 1), height)
+    (lu, lv), (hu, hv) = q.min(axis=0).tolist(), q.max(axis=0).tolist()
+    u0 = min(max(math.floor(lu - margin), 0), width - 1)
+    v0 = min(max(math.floor(lv - margin), 0), height - 1)
+    u1 = min(max(math.ceil(hu + margin) + 1, u0 + 1), width)
+    v1 = min(max(math.ceil(hv + margin) + 1, v0 + 1), height)
     origin = np.array([u0, v0], np.float64)
     g = gray[v0:v1, u0:u1].astype(np.float32)
     q = q - origin
-    direction = np.roll(q, -1, axis=0) - q
-    lengths = np.linalg.norm(direction, axis=1)
-    if np.any(lengths < 1e-9):
-        return q + origin
-    direction /= lengths[:, None]
-    outward = np.stack([direction[:, 1], -direction[:, 0]], axis=1)
-    midpoints = (q + np.roll(q, -1, axis=0)) / 2 - q.mean(axis=0)
-    outward *= np.where(np.einsum("ki,ki->k", outward, midpoints) < 0, -1.0, 1.0)[:, None]
-    points, valid = _edge_points(g, q, outward, reach)
+    # the normal (dv, -du) of each side points outward for a clockwise quad on the screen;
+    # the test against the centre keeps a counter-clockwise one right as well
+    outward = edge[:, ::-1] * np.array([1.0, -1.0]) / lengths[:, None]
+    midpoints = q + 0.5 * edge - q.mean(axis=0)
+    outward *= np.where((outward * midpoints).sum(axis=1) < 0, -1.0, 1.0)[:, None]
+    points, valid = _edge_points(g, q, outward, reach, float(lengths.max()))
     lines = _line_fits(points, valid, outward, tol=max(0.35, 0.3 * module))
     if lines is None:
         return q + origin
-    # corner i is where the sides i - 1 and i meet: the cross product of their lines
-    l1, l2 = np.roll(lines, 1, axis=0), lines
-    hom = np.stack(
-        [
-            l1[:, 1] * l2[:, 2] - l1[:, 2] * l2[:, 1],
-            l1[:, 2] * l2[:, 0] - l1[:, 0] * l2[:, 2],
-            l1[:, 0] * l2[:, 1] - l1[:, 1] * l2[:, 0],
-        ],
-        axis=1,
-    )
-    if np.any(np.abs(hom[:, 2]) < 1e-12):
+    # corner i is where the sides i - 1 and i meet: the cross product of their lines (in
+    # plain floats: np.cross on four rows costs more than the whole arithmetic)
+    rows = lines.tolist()
+    meets = []
+    for i in range(4):
+        (a1, b1, c1), (a2, b2, c2) = rows[_PREV[i]], rows[i]
+        w = a1 * b2 - b1 * a2
+        if abs(w) < 1e-12:
+            return q + origin
+        meets.append([(b1 * c2 - c1 * b2) / w, (c1 * a2 - a1 * c2) / w])
+    out = np.array(meets)
+    moved = out - q
+    if float((moved * moved).sum(axis=1).max()) > max(3.0, 0.1 * side) ** 2:
         return q + origin
-    out = hom[:, :2] / hom[:, 2:3]
-    if np.max(np.linalg.norm(out - q, axis=1)) > max(3.0, 0.1 * side):
-        return q + origin
-    return out + origin
+    result: FloatArray = out + origin
+    return result
 
 
 # --- the reader ----------------------------------------------------------------------------
@@ -511,7 +541,10 @@ def _matches(text: str, expect: Expect) -> bool:
 
 def _merge(found: list[_Raw], new: list[_Raw]) -> None:
     for r in new:
-        side = float(np.mean(np.linalg.norm(r.quad - np.roll(r.quad, -1, axis=0), axis=1)))
+        if not found:  # the common case: nothing to compare with
+            found.append(r)
+            continue
+        side = float(np.mean(np.linalg.norm(r.quad - r.quad[_NEXT], axis=1)))
         for f in found:
             if f.text == r.text and np.linalg.norm(f.quad.mean(0) - r.quad.mean(0)) < 0.5 * side:
                 f.hits += 1
@@ -586,8 +619,8 @@ def read_qr(
         if r.decoder.startswith("zxing") and "rot" not in r.decoder:
             # zxing-cpp reports the corners in symbol order (top-left = the finder pattern
             # opposite the corner without one): the image test would only repeat it, at twice
-            # the cost of the decode.
-            ordered = _start_at(_clockwise(r.quad), r.quad[0])
+            # the cost of the decode. (_clockwise keeps the first corner first.)
+            ordered = _clockwise(r.quad)
         else:
             ordered, confident = order_corners(gray, r.quad)
             if not confident and r.decoder.startswith("opencv") and "rot" not in r.decoder:
