@@ -78,10 +78,10 @@ def render_flat_part(
     rays = camera.undistort_pixels(np.stack([us.ravel(), vs.ravel()], axis=1))
     covered = shape(rays[:, 0] * distance_mm, rays[:, 1] * distance_mm).reshape(us.shape)
     cover = covered.reshape(h, s, w, s).mean(axis=(1, 3))
-    image = np.full((camera.height, camera.width), ground, np.float64)
+    image: NDArray[np.float64] = np.full((camera.height, camera.width), ground, np.float64)
     image[v0 : v0 + h, u0 : u0 + w] += cover * (part - ground)
     if blur_sigma_px > 0:
-        image = cv2.GaussianBlur(image, (0, 0), blur_sigma_px)
+        image = np.asarray(cv2.GaussianBlur(image, (0, 0), blur_sigma_px), np.float64)
     if noise_sigma > 0:
         image = image + np.random.default_rng(seed).normal(0.0, noise_sigma, image.shape)
     return np.asarray(np.clip(np.rint(image), 0, 255), np.uint8)

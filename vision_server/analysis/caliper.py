@@ -174,14 +174,17 @@ def _profile(
     return np.asarray(samples, np.float64).mean(axis=0), offsets, stretch
 
 
-def _derivative(profile: FloatArray, smoothing: float) -> tuple[FloatArray, int]:
-    """Gaussian-derivative slope of ``profile`` (grey levels per sample) where the kernel
-    fits, and the index of its first value in ``profile``."""
+def _derivative(profile: FloatArray, smoothing: float) -> FloatArray:
+    """Gaussian-derivative slope of ``profile`` (grey levels per sample), one per sample.
+
+    The profile is extended by repeating its end values, so that a short band (a search
+    window of a few px) still has a slope everywhere; an edge the band cuts reads weaker
+    near its ends, and no edge is reported at the end samples themselves."""
     reach = max(1, int(math.ceil(_KERNEL_REACH * smoothing)))
     x = np.arange(-reach, reach + 1, dtype=np.float64)
     weights = x * np.exp(-0.5 * (x / smoothing) ** 2)
     weights /= float(np.sum(x * weights))  # a ramp of slope g reads g
-    return np.correlate(profile, weights, mode="valid"), reach
+    return np.correlate(np.pad(profile, reach, mode="edge"), weights, mode="valid")
 
 
 def _peak(left: float, centre: float, right: float) -> tuple[float, float]:
@@ -244,7 +247,7 @@ def find_edges(
         raise ValueError(f"min_strength must be > 0 grey levels per px, got {min_strength!r}")
     matrix = _affine(image_from_part)
     profile, offsets, stretch = _profile(_check_image(image), band, matrix)
-    slope, first = _derivative(profile, smoothing)
+    slope = _derivative(profile, smoothing)
     if polarity == "dark_to_light":
         signal = slope
     elif polarity == "light_to_dark":
@@ -257,7 +260,7 @@ def find_edges(
         if top < min_strength or top <= signal[i - 1] or top < signal[i + 1]:
             continue
         shift, spread = _peak(float(signal[i - 1]), top, float(signal[i + 1]))
-        at = float(offsets[first + i]) + shift  # samples are 1 part px apart
+        at = float(offsets[i]) + shift  # samples are 1 part px apart
         u, v = band.point(at)
         edges.append(
             Edge(
@@ -302,8 +305,9 @@ def find_pairs(
     Candidates are every such ordered pair; with ``expected_width`` (image px) those within
     ``width_tolerance`` px of it (all, without a tolerance), ranked by closeness to it, else
     by the weaker edge's strength. ``select``: the best ranked (``strongest``), the one that
-    starts first or ends last along the scan, or ``all`` (best ranked first, those that do
-    not overlap a better one; returned in scan order).
+    starts first or ends last along the scan, or ``all``: every ``first`` edge with the
+    nearest ``second`` edge after it, in scan order, none overlapping (each part across the
+    scan).
 
     Raises
     ------
@@ -359,10 +363,18 @@ def find_pairs(
         return [min(ranked, key=lambda p: p.first.offset)]
     if select == "last":
         return [max(ranked, key=lambda p: p.second.offset)]
+    # every part (or gap) across the scan: each first-polarity edge with the next
+    # second-polarity edge after it, in scan order, none overlapping an earlier one
     kept: list[EdgePair] = []
-    for pair in ranked:
-        if all(
-            pair.second.offset < k.first.offset or pair.first.offset > k.second.offset for k in kept
+    for pair in sorted(candidates, key=lambda p: (p.first.offset, p.second.offset)):
+        if kept and pair.first.offset <= kept[-1].second.offset:
+            continue
+        if any(
+            e is not pair.first
+            and pair.first.offset < e.offset < pair.second.offset
+            and second in ("any", e.polarity)
+            for e in edges
         ):
-            kept.append(pair)
-    return sorted(kept, key=lambda p: p.first.offset)
+            continue  # not the nearest closing edge
+        kept.append(pair)
+    return kept
