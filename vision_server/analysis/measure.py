@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -150,6 +150,8 @@ class Measurement:
     circle: Circle | None = None
     line: Line | None = None
     extra: dict[str, float] = field(default_factory=dict)
+    reason: str = ""
+    """Why nothing was measured (``value`` NaN, not passed); empty when it was."""
 
 
 def _within(value: float, low: float | None, high: float | None) -> bool:
@@ -175,6 +177,14 @@ def _apply(matrix: Affine | None, point: tuple[float, float]) -> tuple[float, fl
         float(m[0, 0] * point[0] + m[0, 1] * point[1] + m[0, 2]),
         float(m[1, 0] * point[0] + m[1, 1] * point[1] + m[1, 2]),
     )
+
+
+def _part_from_image(matrix: Affine | None, point: tuple[float, float]) -> tuple[float, float]:
+    if matrix is None:
+        return point
+    m = np.asarray(matrix, np.float64)
+    u, v = np.linalg.solve(m[:, :2], np.asarray(point) - m[:, 2])
+    return float(u), float(v)
 
 
 def _one(edges: list[Edge], what: str) -> Edge:
@@ -307,12 +317,20 @@ def unbias_circle(points: FloatArray, inset: float) -> FloatArray:
 def _circle(
     image: NDArray[np.generic], spec: CircleSpec, m: Affine | None, units: Units
 ) -> Measurement:
-    points, inset = circle_points(image, spec, m)
     needed = max(5, spec.rays // 2)
+    points, inset = circle_points(image, spec, m)
     if len(points) < needed:
         raise NotFoundError(
             f"circle {spec.name!r}: an edge on {len(points)} of {spec.rays} rays (needs {needed})"
         )
+    # Scan again along true radii: a ray that misses the centre meets a blurred edge
+    # obliquely and reads it a little off, which would show as out-of-roundness.
+    rough = fit_circle(points)
+    u, v = _part_from_image(m, (rough.x, rough.y))
+    again = replace(spec, u=u, v=v, radius=rough.radius, search=min(spec.search, 4.0))
+    redone, redone_inset = circle_points(image, again, m)
+    if len(redone) >= needed:
+        points, inset = redone, redone_inset
     points = unbias_circle(points, inset)
     in_image = fit_circle(points)
     on_plane = fit_circle(units.to_plane(points))
@@ -407,6 +425,9 @@ def _distance(spec: DistanceSpec, done: dict[str, Measurement], units: Units) ->
         raise ValueError(
             f"distance {spec.name!r}: to {spec.to!r} is a {done[spec.to].kind}, not a line"
         )
+    for name in (spec.source, spec.to):
+        if done[name].reason:
+            raise NotFoundError(f"{name!r} was not measured ({done[name].reason})")
     line = _anchor(done, spec.to, units)
     source = _anchor(done, spec.source, units)
     assert isinstance(line, Line)
@@ -442,25 +463,35 @@ def measure(
     """Run ``specs`` in order on ``image`` (gray or BGR), geometry in the part frame mapped by
     ``image_from_part`` (None: the image's pixels), values in ``units`` (default: px).
 
+    A measurement that finds no edge, pair, circle or line (or uses one that found none)
+    comes back with a NaN value, not passed, and the ``reason``.
+
     Raises
     ------
-    NotFoundError
-        A measurement found no edge, pair, circle or line (names which).
     RoiError
         A band leaves the image.
     """
     chosen: Units = units if units is not None else PixelUnits()
     done: dict[str, Measurement] = {}
     for spec in specs:
-        if isinstance(spec, EdgeSpec):
-            result = _edge(image, spec, image_from_part, chosen)
-        elif isinstance(spec, WidthSpec):
-            result = _width(image, spec, image_from_part, chosen)
-        elif isinstance(spec, CircleSpec):
-            result = _circle(image, spec, image_from_part, chosen)
-        elif isinstance(spec, LineSpec):
-            result = _line(image, spec, image_from_part, chosen)
-        else:
-            result = _distance(spec, done, chosen)
+        try:
+            if isinstance(spec, EdgeSpec):
+                result = _edge(image, spec, image_from_part, chosen)
+            elif isinstance(spec, WidthSpec):
+                result = _width(image, spec, image_from_part, chosen)
+            elif isinstance(spec, CircleSpec):
+                result = _circle(image, spec, image_from_part, chosen)
+            elif isinstance(spec, LineSpec):
+                result = _line(image, spec, image_from_part, chosen)
+            else:
+                result = _distance(spec, done, chosen)
+        except NotFoundError as exc:
+            kind = type(spec).__name__.removesuffix("Spec").lower()
+            unit = (
+                "rad" if isinstance(spec, DistanceSpec) and spec.value == "angle" else chosen.unit
+            )
+            result = Measurement(
+                spec.name, kind, math.nan, unit, False, spec.low, spec.high, reason=str(exc)
+            )
         done[spec.name] = result
     return list(done.values())

@@ -4,14 +4,15 @@ image analysis of :mod:`vision_server.analysis` on the images of one request.
 Types: ``locate`` (feature locate: template, circle, blob), ``presence`` (ROI presence check),
 ``qr`` (QR read), ``code`` (DataMatrix, QR, Aztec, PDF417 and 1D codes: read, verify,
 grade), ``qr_pose`` (pose of a QR code from colour + depth), ``calibration_board``
-(corners of a ChArUco board or chessboard, for camera calibration).
+(corners of a ChArUco board or chessboard, for camera calibration), ``caliper`` (edges,
+widths, circles, lines and distances with tolerances, in px or mm).
 
 Public API: :func:`parse_inspection` (configuration → an :class:`~vision_server.catalog.
 Inspection`), ``INSPECTION_TYPES``, ``RESULT_KINDS`` (each type's :class:`ResultKind`: its
 golden expectations and summary values), and the classes :class:`LocateInspection`,
 :class:`PresenceInspection`, :class:`QRInspection`, :class:`CodeInspection`,
 :class:`QRPoseInspection`,
-:class:`CalibrationBoardInspection`.
+:class:`CalibrationBoardInspection`, :class:`CaliperInspection`.
 """
 
 from __future__ import annotations
@@ -23,9 +24,10 @@ from pathlib import Path
 from ..cameras import CameraSettings
 from ..catalog import Inspection
 from ..configfile import Node, one_of, positive_int
-from . import calibration_board, code, locate, presence, qr, qr_pose
+from . import calibration_board, caliper, code, locate, presence, qr, qr_pose
 from .base import Configured
 from .calibration_board import CalibrationBoardInspection, parse_calibration_board
+from .caliper import CaliperInspection, parse_caliper
 from .code import CodeInspection, parse_code
 from .kinds import ResultKind
 from .locate import LocateInspection, parse_locate
@@ -43,6 +45,7 @@ INSPECTION_TYPES: dict[str, Parser] = {
     "code": parse_code,
     "qr_pose": parse_qr_pose,
     "calibration_board": parse_calibration_board,
+    "caliper": parse_caliper,
 }
 
 RESULT_KINDS: dict[str, ResultKind] = {
@@ -52,6 +55,7 @@ RESULT_KINDS: dict[str, ResultKind] = {
     "code": code.RESULTS,
     "qr_pose": qr_pose.RESULTS,
     "calibration_board": calibration_board.RESULTS,
+    "caliper": caliper.RESULTS,
 }
 """Each type's result shape (golden expectations, summary values), declared by the type."""
 
@@ -87,6 +91,7 @@ def parse_inspection(
 __all__ = [
     "INSPECTION_TYPES",
     "CalibrationBoardInspection",
+    "CaliperInspection",
     "CodeInspection",
     "RESULT_KINDS",
     "InspectionSpec",
