@@ -30,7 +30,15 @@ from ..frames import as_integer
 ID_PREFIX = "urn:cellvision:protocol:1:schema:"
 """The ``$id`` of every schema is this prefix and its path without ``.json``, ``/`` → ``:``."""
 
-DATA_TYPES: tuple[str, ...] = ("locate", "presence", "qr", "code", "qr_pose", "calibration_board")
+DATA_TYPES: tuple[str, ...] = (
+    "locate",
+    "presence",
+    "qr",
+    "code",
+    "qr_pose",
+    "calibration_board",
+    "caliper",
+)
 """The inspection types whose RESULT ``data`` has a schema (SPEC §6.3)."""
 
 INSTALL_HINT = "pip install 'cellvision[conformance]' (or: pip install jsonschema)"
