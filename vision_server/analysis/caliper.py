@@ -19,7 +19,9 @@ Gaussian-shaped derivative of a blurred step; a parabola where a neighbour has t
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any, Literal
 
 import cv2
@@ -35,7 +37,9 @@ __all__ = [
     "Polarity",
     "Selection",
     "find_edges",
+    "find_edges_in_bands",
     "find_pairs",
+    "gray_float",
     "select_edges",
 ]
 
@@ -122,7 +126,9 @@ class EdgePair:
         return (self.first.u + self.second.u) / 2.0, (self.first.v + self.second.v) / 2.0
 
 
-def _check_image(given: NDArray[np.generic]) -> NDArray[np.float32]:
+def gray_float(given: NDArray[np.generic]) -> NDArray[np.float32]:
+    """``given`` (gray or BGR, uint8, uint16 or float) as a float32 gray image; a float32 gray
+    image is returned as it is, so that a caller running many scans converts it once."""
     if not isinstance(given, np.ndarray) or given.size == 0:
         raise BadImageError("image must be a non-empty numpy array")
     image: NDArray[Any] = given
@@ -147,44 +153,74 @@ def _affine(image_from_part: Affine | None) -> Affine:
     return matrix
 
 
-def _profile(
-    gray: NDArray[np.float32], band: Band, matrix: Affine
-) -> tuple[FloatArray, FloatArray, float]:
-    """The band's profile (mean across, 1 part-px steps), the part-frame offsets of its
-    samples, and the image px per part px along the scan."""
-    count = int(math.floor(band.length)) + 1
-    offsets = np.arange(count, dtype=np.float64) + (band.length - (count - 1)) / 2.0
-    lanes = max(1, int(round(band.width)))
-    across = np.linspace(-(band.width - 1) / 2.0, (band.width - 1) / 2.0, lanes)
-    c, s = band.direction
-    t = offsets - band.length / 2.0
-    x = band.u + t[None, :] * c - across[:, None] * s
-    y = band.v + t[None, :] * s + across[:, None] * c
+def _profiles(
+    gray: NDArray[np.float32], bands: Sequence[Band], matrix: Affine
+) -> tuple[FloatArray, FloatArray, list[float]]:
+    """The bands' profiles ``(len(bands), samples)`` (mean across, 1 part-px steps; the
+    bands share length and width), the part-frame offsets of the samples, and each band's
+    image px per part px along the scan. One remap for all of them."""
+    length, band_width = bands[0].length, bands[0].width
+    count = int(math.floor(length)) + 1
+    offsets = np.arange(count, dtype=np.float64) + (length - (count - 1)) / 2.0
+    lanes = max(1, int(round(band_width)))
+    across = np.linspace(-(band_width - 1) / 2.0, (band_width - 1) / 2.0, lanes)
+    t = offsets - length / 2.0
+    c = np.array([math.cos(b.angle_rad) for b in bands])[:, None, None]
+    s = np.array([math.sin(b.angle_rad) for b in bands])[:, None, None]
+    bu = np.array([b.u for b in bands])[:, None, None]
+    bv = np.array([b.v for b in bands])[:, None, None]
+    x = bu + t[None, None, :] * c - across[None, :, None] * s
+    y = bv + t[None, None, :] * s + across[None, :, None] * c
     u = matrix[0, 0] * x + matrix[0, 1] * y + matrix[0, 2]
     v = matrix[1, 0] * x + matrix[1, 1] * y + matrix[1, 2]
     height, width = gray.shape
-    if u.min() < 0 or v.min() < 0 or u.max() > width - 1 or v.max() > height - 1:
+    outside = (u.min(axis=(1, 2)) < 0) | (v.min(axis=(1, 2)) < 0)
+    outside |= (u.max(axis=(1, 2)) > width - 1) | (v.max(axis=(1, 2)) > height - 1)
+    if outside.any():
+        k = int(np.flatnonzero(outside)[0])
+        band = bands[k]
         raise RoiError(
             f"band at ({band.u:.1f}, {band.v:.1f}) length {band.length:g} width {band.width:g} "
             f"angle {band.angle_rad:.3f} rad reaches outside the {width}x{height} image "
-            f"(u {u.min():.1f}..{u.max():.1f}, v {v.min():.1f}..{v.max():.1f})"
+            f"(u {u[k].min():.1f}..{u[k].max():.1f}, v {v[k].min():.1f}..{v[k].max():.1f})"
         )
-    samples = cv2.remap(gray, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR)
-    stretch = math.hypot(matrix[0, 0] * c + matrix[0, 1] * s, matrix[1, 0] * c + matrix[1, 1] * s)
-    return np.asarray(samples, np.float64).mean(axis=0), offsets, stretch
+    samples = cv2.remap(
+        gray,
+        u.reshape(-1, count).astype(np.float32),
+        v.reshape(-1, count).astype(np.float32),
+        cv2.INTER_LINEAR,
+    )
+    profiles = np.asarray(samples, np.float64).reshape(len(bands), lanes, count).mean(axis=1)
+    stretch = [
+        math.hypot(matrix[0, 0] * b.direction[0] + matrix[0, 1] * b.direction[1],
+                   matrix[1, 0] * b.direction[0] + matrix[1, 1] * b.direction[1])
+        for b in bands
+    ]  # fmt: skip
+    return profiles, offsets, stretch
 
 
-def _derivative(profile: FloatArray, smoothing: float) -> FloatArray:
-    """Gaussian-derivative slope of ``profile`` (grey levels per sample), one per sample.
-
-    The profile is extended by repeating its end values, so that a short band (a search
-    window of a few px) still has a slope everywhere; an edge the band cuts reads weaker
-    near its ends, and no edge is reported at the end samples themselves."""
+@lru_cache(maxsize=32)
+def _kernel(smoothing: float) -> NDArray[np.float64]:
+    """The Gaussian-derivative weights (1, 2 reach + 1), scaled so that a ramp of slope g
+    reads g."""
     reach = max(1, int(math.ceil(_KERNEL_REACH * smoothing)))
     x = np.arange(-reach, reach + 1, dtype=np.float64)
     weights = x * np.exp(-0.5 * (x / smoothing) ** 2)
-    weights /= float(np.sum(x * weights))  # a ramp of slope g reads g
-    return np.correlate(np.pad(profile, reach, mode="edge"), weights, mode="valid")
+    weights /= float(np.sum(x * weights))
+    return weights[None, :]
+
+
+def _derivative(profiles: FloatArray, smoothing: float) -> FloatArray:
+    """Gaussian-derivative slope of each profile (row; grey levels per sample), one per sample.
+
+    The profiles are extended by repeating their end values, so that a short band (a search
+    window of a few px) still has a slope everywhere; an edge the band cuts reads weaker
+    near its ends, and no edge is reported at the end samples themselves."""
+    kernel = _kernel(smoothing)
+    reach = kernel.shape[1] // 2
+    padded = np.pad(profiles, ((0, 0), (reach, reach)), mode="edge")
+    slope = cv2.filter2D(padded, cv2.CV_64F, kernel, borderType=cv2.BORDER_REPLICATE)
+    return np.asarray(slope[:, reach : reach + profiles.shape[1]], np.float64)
 
 
 def _peak(left: float, centre: float, right: float) -> tuple[float, float]:
@@ -237,6 +273,29 @@ def find_edges(
     ------
     BadImageError, RoiError (the band leaves the image), ValueError (bad options).
     """
+    return find_edges_in_bands(
+        image,
+        [band],
+        polarity=polarity,
+        min_strength=min_strength,
+        smoothing=smoothing,
+        select=select,
+        image_from_part=image_from_part,
+    )[0]
+
+
+def find_edges_in_bands(
+    image: NDArray[np.generic],
+    bands: Sequence[Band],
+    *,
+    polarity: Polarity = "any",
+    min_strength: float = 5.0,
+    smoothing: float = 1.0,
+    select: Selection = "all",
+    image_from_part: Affine | None = None,
+) -> list[list[Edge]]:
+    """:func:`find_edges` on each of ``bands`` (of one length and width, e.g. the radial
+    scans of a circle), sampled together: the edges of each, in order."""
     if polarity not in POLARITIES:
         raise ValueError(f"polarity must be one of {', '.join(POLARITIES)}, got {polarity!r}")
     if select not in SELECTIONS:
@@ -245,33 +304,39 @@ def find_edges(
         raise ValueError(f"smoothing must be a sigma in 0.3..20 px, got {smoothing!r}")
     if not (math.isfinite(min_strength) and min_strength > 0):
         raise ValueError(f"min_strength must be > 0 grey levels per px, got {min_strength!r}")
+    if not bands:
+        return []
+    if any(b.length != bands[0].length or b.width != bands[0].width for b in bands):
+        raise ValueError("bands scanned together must share their length and width")
     matrix = _affine(image_from_part)
-    profile, offsets, stretch = _profile(_check_image(image), band, matrix)
-    slope = _derivative(profile, smoothing)
+    profiles, offsets, stretches = _profiles(gray_float(image), bands, matrix)
+    slope = _derivative(profiles, smoothing)
     if polarity == "dark_to_light":
         signal = slope
     elif polarity == "light_to_dark":
         signal = -slope
     else:
         signal = np.abs(slope)
-    edges: list[Edge] = []
-    for i in range(1, len(signal) - 1):
-        top = float(signal[i])
-        if top < min_strength or top <= signal[i - 1] or top < signal[i + 1]:
-            continue
-        shift, spread = _peak(float(signal[i - 1]), top, float(signal[i + 1]))
+    middle = signal[:, 1:-1]
+    peaks = (middle >= min_strength) & (middle > signal[:, :-2]) & (middle >= signal[:, 2:])
+    found: list[list[Edge]] = [[] for _ in bands]
+    for k, j in zip(*np.nonzero(peaks), strict=True):
+        i = int(j) + 1
+        row = signal[k]
+        shift, spread = _peak(float(row[i - 1]), float(row[i]), float(row[i + 1]))
         at = float(offsets[i]) + shift  # samples are 1 part px apart
+        band, stretch = bands[k], stretches[k]
         u, v = band.point(at)
-        edges.append(
+        found[k].append(
             Edge(
                 float(matrix[0, 0] * u + matrix[0, 1] * v + matrix[0, 2]),
                 float(matrix[1, 0] * u + matrix[1, 1] * v + matrix[1, 2]),
                 at * stretch,
-                float(slope[i]) / stretch,
+                float(slope[k, i]) / stretch,
                 spread * stretch,
             )
         )
-    return select_edges(edges, select)
+    return [select_edges(edges, select) for edges in found]
 
 
 def select_edges(edges: list[Edge], select: Selection) -> list[Edge]:

@@ -19,7 +19,16 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from .caliper import Affine, Band, Edge, Polarity, find_edges, find_pairs
+from .caliper import (
+    Affine,
+    Band,
+    Edge,
+    Polarity,
+    find_edges,
+    find_edges_in_bands,
+    find_pairs,
+    gray_float,
+)
 from .errors import NotFoundError
 from .fit2d import Circle, Line, fit_circle, fit_line, line_line, point_line_distance
 from .plane_units import PixelUnits, Units
@@ -266,29 +275,27 @@ def circle_points(
         raise ValueError("a circle's radius and search must be > 0 px")
     full = abs(spec.arc_to_rad - spec.arc_from_rad) >= 2.0 * math.pi - 1e-9
     angles = np.linspace(spec.arc_from_rad, spec.arc_to_rad, spec.rays, endpoint=not full)
-    points: list[tuple[float, float]] = []
-    blur2: list[float] = []
-    for angle in angles:
-        c, s = math.cos(angle), math.sin(angle)
-        band = Band(
-            spec.u + spec.radius * c,
-            spec.v + spec.radius * s,
+    bands = [
+        Band(
+            spec.u + spec.radius * math.cos(angle),
+            spec.v + spec.radius * math.sin(angle),
             max(3.0, 2.0 * spec.search),
             spec.band_width,
             float(angle),
         )
-        edges = find_edges(
-            image,
-            band,
-            polarity=spec.polarity,
-            min_strength=spec.min_strength,
-            smoothing=spec.smoothing,
-            select=spec.select,
-            image_from_part=m,
-        )
-        if edges:
-            points.append((edges[0].u, edges[0].v))
-            blur2.append(edges[0].spread ** 2 - spec.smoothing**2)
+        for angle in angles
+    ]
+    found = find_edges_in_bands(
+        image,
+        bands,
+        polarity=spec.polarity,
+        min_strength=spec.min_strength,
+        smoothing=spec.smoothing,
+        select=spec.select,
+        image_from_part=m,
+    )
+    points = [(edges[0].u, edges[0].v) for edges in found if edges]
+    blur2 = [edges[0].spread ** 2 - spec.smoothing**2 for edges in found if edges]
     lanes = max(1, int(round(spec.band_width)))
     across = (lanes * lanes - 1) / 12.0 if lanes > 1 else 0.0
     finite = [b for b in blur2 if math.isfinite(b)]
@@ -360,21 +367,21 @@ def line_points(image: NDArray[np.generic], spec: LineSpec, m: Affine | None = N
             f"line {spec.name!r}: {spec.segments} strips across a {band.width:g} px band are "
             "narrower than 1 px"
         )
-    points: list[tuple[float, float]] = []
+    strips = []
     for k in range(spec.segments):
         across = (k + 0.5) * strip - band.width / 2.0
         u, v = band.point(band.length / 2.0, across)
-        edges = find_edges(
-            image,
-            Band(u, v, band.length, strip, band.angle_rad),
-            polarity=spec.polarity,
-            min_strength=spec.min_strength,
-            smoothing=spec.smoothing,
-            select=spec.select,
-            image_from_part=m,
-        )
-        if edges:
-            points.append((edges[0].u, edges[0].v))
+        strips.append(Band(u, v, band.length, strip, band.angle_rad))
+    found = find_edges_in_bands(
+        image,
+        strips,
+        polarity=spec.polarity,
+        min_strength=spec.min_strength,
+        smoothing=spec.smoothing,
+        select=spec.select,
+        image_from_part=m,
+    )
+    points = [(edges[0].u, edges[0].v) for edges in found if edges]
     return np.asarray(points, np.float64).reshape(-1, 2)
 
 
@@ -472,6 +479,7 @@ def measure(
         A band leaves the image.
     """
     chosen: Units = units if units is not None else PixelUnits()
+    image = gray_float(image)  # once, not once per scan
     done: dict[str, Measurement] = {}
     for spec in specs:
         try:
