@@ -3,8 +3,9 @@
 millimetres on the measuring plane; passes when every measurement is within its ``min`` and
 ``max`` (docs/configuration.md, "caliper").
 
-The measurement keys are read by :func:`parse_measurements`, which a job's caliper step can
-call as it is; the analysis is :func:`vision_server.analysis.measure.measure`.
+A job's caliper step needs one entry: read its keys with :func:`parse_units` and
+:func:`parse_measurements` (without ``image_size``: its geometry is in the part frame), and run
+:func:`vision_server.analysis.measure.measure` with the fixture's 2x3 ``image_from_part``.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from ..analysis.measure import (
     measure,
 )
 from ..analysis.plane_units import PixelUnits, PlaneUnits, ScaleUnits, Units
-from ..cameras import CameraSettings
+from ..cameras import CameraSettings, Intrinsics
 from ..catalog import InspectionInput, InspectionOutcome
 from ..configfile import Node, name, number, numbers, one_of, positive, positive_int
 from .base import (
@@ -369,9 +370,9 @@ def parse_measurements(
     return tuple(specs)
 
 
-def parse_units(node: Node, common: Common) -> Units:
-    """``units: px`` (default), or ``units: mm`` with ``plane_distance_m`` (the camera's
-    intrinsics) or ``mm_per_px`` (a reference's scale)."""
+def parse_units(node: Node, camera: str, intrinsics: Intrinsics | None) -> Units:
+    """``units: px`` (default), or ``units: mm`` with ``plane_distance_m`` (through
+    ``intrinsics``, camera ``camera``'s) or ``mm_per_px`` (a reference's scale)."""
     unit = node.take("units", one_of("px", "mm"), "px")
     distance = node.take("plane_distance_m", positive, None)
     scale = node.take("mm_per_px", positive, None)
@@ -389,17 +390,17 @@ def parse_units(node: Node, common: Common) -> Units:
     if scale is not None:
         return ScaleUnits(scale)
     assert distance is not None
-    if common.intrinsics is None:
+    if intrinsics is None:
         raise node.error(
-            f"plane_distance_m needs the intrinsics of camera {common.camera!r}: set "
-            f"cameras.{common.camera}.intrinsics, or give mm_per_px instead",
+            f"plane_distance_m needs the intrinsics of camera {camera!r}: set "
+            f"cameras.{camera}.intrinsics, or give mm_per_px instead",
             "plane_distance_m",
         )
     try:
-        camera = common.intrinsics.to_geometry()
+        lens = intrinsics.to_geometry()
     except ValueError as exc:
-        raise node.error(f"camera {common.camera!r}: {exc}", "plane_distance_m") from None
-    return PlaneUnits(camera, distance * 1000.0)
+        raise node.error(f"camera {camera!r}: {exc}", "plane_distance_m") from None
+    return PlaneUnits(lens, distance * 1000.0)
 
 
 def parse_caliper(
@@ -408,7 +409,7 @@ def parse_caliper(
     if node.has("roi"):
         raise node.error("a caliper reads where its measurements' bands are; it has no roi", "roi")
     common = parse_common(node, "caliper", cameras)
-    units = parse_units(node, common)
+    units = parse_units(node, common.camera, common.intrinsics)
     specs = parse_measurements(node, image_size=common.image_size)
     return CaliperInspection(common, specs, units)
 

@@ -132,6 +132,33 @@ def test_a_fixture_moves_the_band_with_the_part() -> None:
     assert pair.centre == pytest.approx(origin, abs=0.1)
 
 
+def test_measurements_given_in_the_part_frame_follow_a_turned_part() -> None:
+    """A job's caliper step: the same specs (part frame) on a part moved by a sub-pixel
+    amount and turned 0.5 rad, with the fixture saying so, measure the same."""
+    specs = [
+        WidthSpec("bar", Band(0, 12, 50, 7)),  # across the bar, 12 px along it
+        CircleSpec("hole", 0, 0, 6, search=4, polarity="dark_to_light"),
+    ]
+    values = []
+    for angle, origin in ((0.0, (64.0, 48.0)), (0.5, (70.3, 44.6))):
+        bar_image = render_bar(origin, 24, angle, seed=11)
+        hole = np.zeros((96 * SUPERSAMPLE, 128 * SUPERSAMPLE), np.float32)
+        centre = ((origin[0] + 0.5) * SUPERSAMPLE - 0.5, (origin[1] + 0.5) * SUPERSAMPLE - 0.5)
+        cv2.circle(hole, (int(centre[0] * 16), int(centre[1] * 16)), 6 * SUPERSAMPLE * 16, 1.0,
+                   -1, cv2.LINE_8, 4)  # fmt: skip
+        cover = cv2.resize(hole, (128, 96), interpolation=cv2.INTER_AREA)
+        image = np.asarray(bar_image * (1.0 - cover) + 60.0 * cover, np.uint8)
+        c, s = math.cos(angle), math.sin(angle)
+        image_from_part = np.array([[c, -s, origin[0]], [s, c, origin[1]]])
+        got = measure(image, specs, image_from_part=image_from_part)
+        assert all(m.passed for m in got), [m.reason for m in got]
+        assert got[1].circle is not None
+        assert (got[1].circle.x, got[1].circle.y) == pytest.approx(origin, abs=0.1)
+        values.append([m.value for m in got])
+    assert values[0][0] == pytest.approx(24.0, abs=0.1)
+    assert values[1] == pytest.approx(values[0], abs=0.1)
+
+
 def test_width_in_millimetres_at_the_tool_camera() -> None:
     """Bars 6..12 mm wide anywhere in the tool camera's 1024x768 image (barrel distortion
     included), 350 mm away: width error p95 <= 0.02 mm (0.08 px)."""
