@@ -10,7 +10,6 @@ supersampled (the part must lie inside it); the rest is the ground's grey.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import cv2
@@ -29,7 +28,7 @@ Shape = Callable[[FloatArray, FloatArray], NDArray[np.bool_]]
 def bar(centre_mm: tuple[float, float], width_mm: float, angle_rad: float) -> Shape:
     """An infinitely long bar ``width_mm`` wide through ``centre_mm`` whose width runs along
     ``angle_rad`` (from plane x towards y)."""
-    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    c, s = float(np.cos(angle_rad)), float(np.sin(angle_rad))
 
     def inside(x: FloatArray, y: FloatArray) -> NDArray[np.bool_]:
         return np.abs((x - centre_mm[0]) * c + (y - centre_mm[1]) * s) <= width_mm / 2.0
