@@ -13,25 +13,25 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
-from typing import Literal
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .caliper import (
-    Affine,
-    Band,
-    Edge,
-    Polarity,
-    find_edges,
-    find_edges_in_bands,
-    find_pairs,
-    gray_float,
-)
+from .caliper import Affine, Edge, find_edges, find_pairs, gray_float
 from .errors import NotFoundError
-from .fit2d import Circle, Line, fit_circle, fit_line, line_line, point_line_distance
+from .fit2d import Line, fit_circle, fit_line, line_line, point_line_distance
+from .measure_specs import (
+    CircleSpec,
+    DistanceSpec,
+    EdgeSpec,
+    LineSpec,
+    Measurement,
+    Spec,
+    WidthSpec,
+)
 from .plane_units import PixelUnits, Units
+from .shape_edges import circle_points, line_points, unbias_circle
 
 __all__ = [
     "CircleSpec",
@@ -45,122 +45,6 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
-Pick = Literal["first", "last", "strongest"]
-
-
-@dataclass(frozen=True)
-class EdgeSpec:
-    """One edge across ``band``; its value is the distance from the band's start to it."""
-
-    name: str
-    band: Band
-    polarity: Polarity = "any"
-    select: Pick = "strongest"
-    min_strength: float = 5.0
-    smoothing: float = 1.0
-    low: float | None = None
-    high: float | None = None
-
-
-@dataclass(frozen=True)
-class WidthSpec:
-    """The width between a ``first``-polarity edge and a following ``second``-polarity edge
-    across ``band``. ``expected`` and ``tolerance`` (in the measurement's unit) choose among
-    candidate pairs."""
-
-    name: str
-    band: Band
-    first: Polarity = "dark_to_light"
-    second: Polarity = "light_to_dark"
-    expected: float | None = None
-    tolerance: float | None = None
-    select: Pick = "strongest"
-    min_strength: float = 5.0
-    smoothing: float = 1.0
-    low: float | None = None
-    high: float | None = None
-
-
-@dataclass(frozen=True)
-class CircleSpec:
-    """A circle (or arc) found on ``rays`` radial scans from ``(u, v)``, each ``2 search`` px
-    long around ``radius`` and ``band_width`` wide, spread from ``arc_from_rad`` to
-    ``arc_to_rad`` (from +u towards +v). ``polarity`` is along the outward scan (a bright
-    disc on a dark ground: light_to_dark). Its value is the ``diameter`` or the
-    ``roundness`` (max - min radius)."""
-
-    name: str
-    u: float
-    v: float
-    radius: float
-    search: float = 10.0
-    rays: int = 32
-    band_width: float = 3.0
-    arc_from_rad: float = 0.0
-    arc_to_rad: float = 2.0 * math.pi
-    polarity: Polarity = "any"
-    select: Pick = "strongest"
-    min_strength: float = 5.0
-    smoothing: float = 1.0
-    value: Literal["diameter", "roundness"] = "diameter"
-    low: float | None = None
-    high: float | None = None
-
-
-@dataclass(frozen=True)
-class LineSpec:
-    """A straight edge: one edge in each of ``segments`` strips across ``band`` (each as long
-    as the band, ``width / segments`` wide), a line fitted through them. Its value is the
-    straightness (max - min distance of the edge points from the line)."""
-
-    name: str
-    band: Band
-    segments: int = 8
-    polarity: Polarity = "any"
-    select: Pick = "strongest"
-    min_strength: float = 5.0
-    smoothing: float = 1.0
-    low: float | None = None
-    high: float | None = None
-
-
-@dataclass(frozen=True)
-class DistanceSpec:
-    """Distance from an earlier measurement ``source`` (an edge point, a width's midpoint, a
-    circle's centre, or a line) to the earlier line ``to``; ``value``: ``distance`` (signed,
-    see :func:`.fit2d.point_line_distance`; a line's centre for a line) or ``angle`` between
-    two lines (rad)."""
-
-    name: str
-    source: str
-    to: str
-    value: Literal["distance", "angle"] = "distance"
-    low: float | None = None
-    high: float | None = None
-
-
-Spec = EdgeSpec | WidthSpec | CircleSpec | LineSpec | DistanceSpec
-
-
-@dataclass(frozen=True)
-class Measurement:
-    """One measured value, ``unit`` stated (``px``, ``mm`` or ``rad``). ``points``: the image
-    points (px) it was measured from (for the overlay); ``circle``/``line``: the fitted shape
-    in image pixels, where there is one."""
-
-    name: str
-    kind: str
-    value: float
-    unit: str
-    passed: bool
-    low: float | None = None
-    high: float | None = None
-    points: tuple[tuple[float, float], ...] = ()
-    circle: Circle | None = None
-    line: Line | None = None
-    extra: dict[str, float] = field(default_factory=dict)
-    reason: str = ""
-    """Why nothing was measured (``value`` NaN, not passed); empty when it was."""
 
 
 def _within(value: float, low: float | None, high: float | None) -> bool:
@@ -263,64 +147,6 @@ def _width(
     )
 
 
-def circle_points(
-    image: NDArray[np.generic], spec: CircleSpec, m: Affine | None = None
-) -> tuple[FloatArray, float]:
-    """Image points (px) of the circle's edge, one per radial scan that found one, and how
-    far (px) the strongest slope of a curved edge lies inside the true edge at radius 1 px
-    (divide by the radius): see :func:`unbias_circle`."""
-    if spec.rays < 3:
-        raise ValueError(f"a circle needs 3 rays or more, got {spec.rays}")
-    if not spec.search > 0 or not spec.radius > 0:
-        raise ValueError("a circle's radius and search must be > 0 px")
-    full = abs(spec.arc_to_rad - spec.arc_from_rad) >= 2.0 * math.pi - 1e-9
-    angles = np.linspace(spec.arc_from_rad, spec.arc_to_rad, spec.rays, endpoint=not full)
-    bands = [
-        Band(
-            spec.u + spec.radius * math.cos(angle),
-            spec.v + spec.radius * math.sin(angle),
-            max(3.0, 2.0 * spec.search),
-            spec.band_width,
-            float(angle),
-        )
-        for angle in angles
-    ]
-    found = find_edges_in_bands(
-        image,
-        bands,
-        polarity=spec.polarity,
-        min_strength=spec.min_strength,
-        smoothing=spec.smoothing,
-        select=spec.select,
-        image_from_part=m,
-    )
-    points = [(edges[0].u, edges[0].v) for edges in found if edges]
-    blur2 = [edges[0].spread ** 2 - spec.smoothing**2 for edges in found if edges]
-    lanes = max(1, int(round(spec.band_width)))
-    across = (lanes * lanes - 1) / 12.0 if lanes > 1 else 0.0
-    finite = [b for b in blur2 if math.isfinite(b)]
-    blur = max(float(np.median(finite)), 0.0) if finite else 0.0
-    return np.asarray(points, np.float64).reshape(-1, 2), (blur + across) / 2.0
-
-
-def unbias_circle(points: FloatArray, inset: float) -> FloatArray:
-    """``points`` of a curved edge moved outwards by ``inset / r`` px from the fitted centre.
-
-    On an edge of radius ``r`` blurred by a Gaussian of ``sigma`` px the slope is steepest
-    about ``sigma**2 / (2 r)`` inside the true edge, and a scan band ``w`` px wide across a
-    ray sees the circle ``(w**2 - 1) / (24 r)`` px nearer on average: ``inset`` is their sum
-    times r (:func:`circle_points`). Left alone, a 40 px disc blurred by 1 px reads about
-    0.07 px small in diameter.
-    """
-    if inset <= 0 or len(points) < 3:
-        return points
-    rough = fit_circle(points)
-    offset = points - np.array([rough.x, rough.y])
-    distance = np.hypot(offset[:, 0], offset[:, 1])
-    moved: FloatArray = points + offset / distance[:, None] * (inset / rough.radius)
-    return moved
-
-
 def _circle(
     image: NDArray[np.generic], spec: CircleSpec, m: Affine | None, units: Units
 ) -> Measurement:
@@ -354,35 +180,6 @@ def _circle(
         circle=in_image,
         extra={"diameter": on_plane.diameter, "roundness": on_plane.roundness},
     )
-
-
-def line_points(image: NDArray[np.generic], spec: LineSpec, m: Affine | None = None) -> FloatArray:
-    """Image points (px) of the straight edge, one per strip that found one."""
-    if spec.segments < 2:
-        raise ValueError(f"a line needs 2 segments or more, got {spec.segments}")
-    band = spec.band
-    strip = band.width / spec.segments
-    if strip < 1.0:
-        raise ValueError(
-            f"line {spec.name!r}: {spec.segments} strips across a {band.width:g} px band are "
-            "narrower than 1 px"
-        )
-    strips = []
-    for k in range(spec.segments):
-        across = (k + 0.5) * strip - band.width / 2.0
-        u, v = band.point(band.length / 2.0, across)
-        strips.append(Band(u, v, band.length, strip, band.angle_rad))
-    found = find_edges_in_bands(
-        image,
-        strips,
-        polarity=spec.polarity,
-        min_strength=spec.min_strength,
-        smoothing=spec.smoothing,
-        select=spec.select,
-        image_from_part=m,
-    )
-    points = [(edges[0].u, edges[0].v) for edges in found if edges]
-    return np.asarray(points, np.float64).reshape(-1, 2)
 
 
 def _line(
