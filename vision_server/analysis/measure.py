@@ -113,7 +113,7 @@ def _edge(
         spec.low,
         spec.high,
         ((edge.u, edge.v),),
-        extra={"strength": edge.strength},
+        extra={"strength_grey_per_px": edge.strength},
     )
 
 
