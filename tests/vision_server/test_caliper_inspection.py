@@ -183,3 +183,22 @@ def test_bad_measurements_name_file_line_and_key(tmp_path: Path, entry: str, wan
     message = error(tmp_path, f"  - {entry}\n")
     assert "cell.yaml:8" in message
     assert wanted in message
+
+
+def test_a_band_outside_a_smaller_image_is_a_bad_image_that_names_it(tmp_path: Path) -> None:
+    from protocol import BadImage
+    from vision_server.catalog import InspectionInput
+
+    path = tmp_path / "cell.yaml"
+    path.write_text(
+        CAMERA + "inspections:\n  - {name: c, type: caliper, camera: plain, measurements: "
+        f"[{{name: e, kind: edge, {BAND}}}]}}\n",
+        encoding="utf-8",
+    )
+    runtime = CellRuntime(path)
+    try:
+        inspection = runtime.catalog.inspections["c"]
+        with pytest.raises(BadImage, match=r"band at \(100.0, 100.0\).*outside the 64x48 image"):
+            inspection.run(InspectionInput(np.zeros((48, 64), np.uint8)), overlay=False)
+    finally:
+        runtime.close()
