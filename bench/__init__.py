@@ -13,6 +13,7 @@ from types import ModuleType
 
 from . import (
     calibration,
+    caliper,
     compute,
     console,
     hand_eye,
@@ -45,6 +46,7 @@ SECTIONS: tuple[ModuleType, ...] = (
     render,
     results_page,
     locate_blur,
+    caliper,
 )
 
 __all__ = ["SECTIONS"]

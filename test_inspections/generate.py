@@ -541,6 +541,55 @@ def codes_case() -> None:
     write_expected("label_codes", entries, {"tolerance_px": 1.5})
 
 
+# --------------------------------------------------------------------------- caliper: a bracket
+
+BRACKET_CROP = (600, 400, 240, 180)  # u, v, width, height of the stored window (tool camera)
+BRACKET_ANGLE = 0.2  # rad: the direction the bracket's width runs in, from plane x towards y
+
+
+def bracket(width_mm: float, hole_mm: float, shift_mm: float = 0.0) -> Any:
+    """A flat bracket (a bar ``width_mm`` wide) with a round hole, seen by the tool camera
+    350 mm away, centred on the stored window's centre (moved ``shift_mm`` along its length)."""
+    from simulation.flat_parts import bar, disc, plane_point
+    from simulation.scene import camera_preset
+
+    camera, _, _ = camera_preset("dmk31bf03")
+    u0, v0, w, h = BRACKET_CROP
+    cx, cy = plane_point(camera, 350.0, (u0 + w / 2 - 0.5, v0 + h / 2 - 0.5))
+    along = (-np.sin(BRACKET_ANGLE) * shift_mm, np.cos(BRACKET_ANGLE) * shift_mm)
+    centre = (cx + along[0], cy + along[1])
+    plate, hole = bar(centre, width_mm, BRACKET_ANGLE), disc(centre, hole_mm)
+    return camera, lambda x, y: plate(x, y) & ~hole(x, y)
+
+
+def caliper_case() -> None:
+    """caliper in mm: a bracket's width and its hole's diameter against tolerances; the
+    expected value (the width) is the rendered part's, exactly."""
+    from simulation.flat_parts import render_flat_part
+
+    out = HERE / "caliper_bracket" / "images"
+    entries: Entries = {}
+    u0, v0, w, h = BRACKET_CROP
+    cases = [
+        ("nominal.png", 12.0, 6.0, {}, "pass", "12.00 mm wide, 6.00 mm hole"),
+        ("wide.png", 12.3, 6.0, {}, "fail", "12.30 mm wide: over max 12.1"),
+        ("small_hole.png", 12.0, 5.8, {}, "fail", "hole 5.80 mm: under min 5.95"),
+        ("moved_along.png", 11.95, 6.02, {"shift": 1.0}, "pass", "moved 1 mm along its length"),
+        ("blurred.png", 12.05, 5.98, {"blur_sigma_px": 1.6}, "pass", "defocus blur sigma 1.6 px"),
+        ("dim.png", 11.92, 6.0, {"ground": 70.0, "part": 120.0}, "pass", "dim: 50 grey levels"),
+    ]
+    for seed, (file, width_mm, hole_mm, extra, verdict, note) in enumerate(cases):
+        camera, shape = bracket(width_mm, hole_mm, float(extra.pop("shift", 0.0)))
+        image = render_flat_part(camera, 350.0, shape, BRACKET_CROP, seed=seed, **extra)
+        write_png(out / file, image[v0 : v0 + h, u0 : u0 + w])
+        entries[file] = {"verdict": verdict, "value": round(width_mm, 4), "note": note}
+    rng = np.random.default_rng(11)
+    empty = 60.0 + rng.normal(0.0, 1.5, (h, w))
+    write_png(out / "no_part.png", np.clip(np.rint(empty), 0, 255).astype(np.uint8))
+    entries["no_part.png"] = {"verdict": "fail", "note": "nothing there: nothing measured"}
+    write_expected("caliper_bracket", entries, {"tolerance_value": 0.02})
+
+
 # --------------------------------------------------------------------------- real photographs
 
 REAL_SUBSET = [  # 13 of the 179 across the six sets (qrcode-4: blur, glare, tilt)
@@ -659,8 +708,8 @@ def main() -> int:
     parser.add_argument(
         "cases",
         nargs="*",
-        default=["caps", "qc", "qr", "qr_pose", "board", "codes", "real", "plate"],
-        help="caps, qc, qr, qr_pose, board, codes, real, plate",
+        default=["caps", "qc", "qr", "qr_pose", "board", "codes", "caliper", "real", "plate"],
+        help="caps, qc, qr, qr_pose, board, codes, caliper, real, plate",
     )
     args = parser.parse_args()
     steps = {
@@ -670,6 +719,7 @@ def main() -> int:
         "qr_pose": qr_pose_case,
         "board": board_case,
         "codes": codes_case,
+        "caliper": caliper_case,
         "real": real_case,
         "plate": plate_case,
     }

@@ -38,6 +38,7 @@ DATA_TYPES: tuple[str, ...] = (
     "qr_pose",
     "calibration_board",
     "job",
+    "caliper",
 )
 """The inspection types whose RESULT ``data`` has a schema (SPEC §6.3)."""
 

@@ -641,6 +641,8 @@ def test_docs_list_exactly_the_keys_the_validator_reads(
             return "mount pose"
         if path[:1] == ("inspections",) and len(path) == 2:
             return f"type: {node.data.get('type')}"
+        if path[:1] == ("inspections",) and path[2:3] == ("measurements",):
+            return "caliper.band" if path[4:] == ("band",) else "caliper.measurements"
         if path[:1] == ("inspections",) and len(path) == 3:
             return f"locate.{path[2]}"
         return "top"
@@ -653,9 +655,15 @@ def test_docs_list_exactly_the_keys_the_validator_reads(
         read.setdefault(section(self), set()).add(key)
         return original_sub(self, key, required=required)
 
+    def recording_items(self: Node, key: str) -> list[Node]:
+        read.setdefault(section(self), set()).add(key)
+        return original_items(self, key)
+
     original_sub = Node.sub
+    original_items = Node.items
     monkeypatch.setattr(Node, "take", recording_take)
     monkeypatch.setattr(Node, "sub", recording_sub)
+    monkeypatch.setattr(Node, "items", recording_items)
 
     template = tmp_path / "t.png"
     cv2.imwrite(str(template), np.arange(81, dtype=np.uint8).reshape(9, 9))
@@ -691,6 +699,18 @@ inspections:
   - {{name: q, type: qr, camera: req}}
   - {{name: k, type: code, camera: req, symbologies: [datamatrix, code128], expect: x,
       min_grade: {{module_px: 2, contrast: 0.2, decode_margin: 0.3, quiet_zone_modules: 1}}}}
+  - {{name: cal, type: caliper, camera: req, units: mm, plane_distance_m: 0.3,
+      measurements: [
+        {{name: e, kind: edge, band: {{center: [30, 20], length: 20, width: 3, angle_rad: 0}},
+         polarity: any, select: first, min_strength: 5, smoothing: 1, min: 0, max: 9}},
+        {{name: w, kind: width, band: {{center: [30, 20], length: 20}}, first: any,
+         second: any, expected: 5, tolerance: 1}},
+        {{name: c, kind: circle, center: [30, 24], radius: 5, search: 2, rays: 16,
+         band_width: 3, arc_rad: [0, 3], value: roundness}},
+        {{name: l, kind: line, band: {{center: [30, 20], length: 10, width: 8}}, segments: 4}},
+        {{name: d, kind: distance, from: e, to: l, value: distance}}]}}
+  - {{name: cal2, type: caliper, camera: req, units: mm, mm_per_px: 0.1,
+      measurements: [{{name: e, kind: edge, band: {{center: [30, 20], length: 20}}}}]}}
   - {{name: qp, type: qr_pose, camera: req, number: 9,
       output: {{fields: [found, {{name: x, decimals: 1, scale: 1000}}], decimals: 2,
                scale: {{found: 1}}, missing: -1}}}}
@@ -718,8 +738,10 @@ modbus: {{enabled: true, host: 0.0.0.0, port: 0, unit_id: 3, word_order: low_fir
         },
         **{
             f"type: {t}": docs["inspections"] | docs[f"type: {t}"]
-            for t in ("locate", "presence", "qr", "code", "qr_pose")
+            for t in ("locate", "presence", "qr", "code", "qr_pose", "caliper")
         },
+        "caliper.measurements": docs["caliper.measurements"],
+        "caliper.band": docs["caliper.band"],
         **{f"locate.{m}": docs[f"locate.{m}"] for m in ("template", "circle", "blob")},
     }
     read.pop("top", None)

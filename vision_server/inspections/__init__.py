@@ -5,14 +5,15 @@ Types: ``locate`` (feature locate: template, circle, blob), ``presence`` (ROI pr
 ``qr`` (QR read), ``code`` (DataMatrix, QR, Aztec, PDF417 and 1D codes: read, verify,
 grade), ``qr_pose`` (pose of a QR code from colour + depth), ``calibration_board``
 (corners of a ChArUco board or chessboard, for camera calibration), ``job`` (named steps:
-locate, fixture, presence, code, with ROIs that move with the part and a verdict expression).
+locate, fixture, presence, code, with ROIs that move with the part and a verdict expression),
+``caliper`` (edges, widths, circles, lines and distances with tolerances, in px or mm).
 
 Public API: :func:`parse_inspection` (configuration → an :class:`~vision_server.catalog.
 Inspection`), ``INSPECTION_TYPES``, ``RESULT_KINDS`` (each type's :class:`ResultKind`: its
 golden expectations and summary values), and the classes :class:`LocateInspection`,
 :class:`PresenceInspection`, :class:`QRInspection`, :class:`CodeInspection`,
 :class:`QRPoseInspection`, :class:`JobInspection`,
-:class:`CalibrationBoardInspection`.
+:class:`CalibrationBoardInspection`, :class:`CaliperInspection`.
 """
 
 from __future__ import annotations
@@ -24,9 +25,10 @@ from pathlib import Path
 from ..cameras import CameraSettings
 from ..catalog import Inspection
 from ..configfile import Node, one_of, positive_int
-from . import calibration_board, code, job, locate, presence, qr, qr_pose
+from . import calibration_board, caliper, code, job, locate, presence, qr, qr_pose
 from .base import Configured
 from .calibration_board import CalibrationBoardInspection, parse_calibration_board
+from .caliper import CaliperInspection, parse_caliper
 from .code import CodeInspection, parse_code
 from .job import JobInspection, parse_job
 from .kinds import ResultKind
@@ -46,6 +48,7 @@ INSPECTION_TYPES: dict[str, Parser] = {
     "qr_pose": parse_qr_pose,
     "calibration_board": parse_calibration_board,
     "job": parse_job,
+    "caliper": parse_caliper,
 }
 
 RESULT_KINDS: dict[str, ResultKind] = {
@@ -56,6 +59,7 @@ RESULT_KINDS: dict[str, ResultKind] = {
     "qr_pose": qr_pose.RESULTS,
     "calibration_board": calibration_board.RESULTS,
     "job": job.RESULTS,
+    "caliper": caliper.RESULTS,
 }
 """Each type's result shape (golden expectations, summary values), declared by the type."""
 
@@ -91,6 +95,7 @@ def parse_inspection(
 __all__ = [
     "INSPECTION_TYPES",
     "CalibrationBoardInspection",
+    "CaliperInspection",
     "CodeInspection",
     "RESULT_KINDS",
     "InspectionSpec",
