@@ -15,8 +15,12 @@ lint: bootstrap
 typecheck: bootstrap
 	$(PY) -m mypy
 
+# One pytest worker per core (pytest-xdist), each test file in one worker (its module fixtures
+# start once): much of the suite waits on servers, browsers and processes it starts, and the
+# whole suite must stay under 15 minutes on a 2-core machine. PYTEST_WORKERS=0: in this process.
+PYTEST_WORKERS ?= auto
 pytest: bootstrap
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadfile
 
 # The server from the built wheel, outside any container.
 wheel-check: bootstrap
