@@ -18,7 +18,7 @@ from .record import ParamType
 from .world import distance_to_polyline
 
 if TYPE_CHECKING:
-    from .base import Args, SkillContext
+    from .context import Args, SkillContext
 
 __all__ = [
     "CalibrationValid",
