@@ -33,7 +33,9 @@ from .errors import BadImageError, NotFoundError, RoiError, TemplateError
 from .template_align import Alignment, align_template
 
 __all__ = [
+    "MAX_SCALE",
     "METHODS",
+    "MIN_SCALE",
     "Feature",
     "Rejection",
     "crop_roi",
