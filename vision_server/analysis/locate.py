@@ -389,10 +389,13 @@ def locate_template(
         ``score`` is the NCC at that pose: 1.0 an exact copy of the template up to brightness
         and contrast (gain and offset), 0 no linear relation, negative an inverted copy. Noise
         and blur lower it a little. An occluder hiding a fraction ``f`` of the correlated area
-        lowers it to about ``sqrt(1 - f) / sqrt(1 + f * d**2 / var)``, where ``d`` is the
-        occluder's grey level minus the template's mean and ``var`` the template's variance:
-        ~0.87 for a quarter hidden by a surface of the template's mean grey, less for a much
-        brighter or darker (or textured) occluder (``docs/configuration.md``, locate.template).
+        lowers it to the NCC of the template with a copy whose hidden pixels show the occluder:
+        roughly ``sqrt(1 - f) / sqrt(1 + f * d**2 / var)``, ``d`` the occluder's grey level
+        minus the template's mean and ``var`` the template's variance: ~0.87 for a quarter
+        hidden by a surface of the template's mean grey, less for a much brighter or darker (or
+        textured) occluder (``docs/configuration.md``, locate.template). ``visible`` is the
+        share of the template found not hidden (None where the alignment failed and the pose
+        is the correlation peak's).
 
     Raises
     ------
