@@ -43,9 +43,11 @@ def test_scaled_and_turned_parts_to_a_fiftieth_of_a_pixel() -> None:
         )
         assert math.hypot(best.u - u, best.v - v) < 0.1
         assert abs(best.angle - angle) < 0.005
-        assert best.scale is not None and abs(best.scale - scale) < 0.005
+        assert best.scale is not None
+        assert abs(best.scale - scale) < 0.005
         assert best.score > 0.98
-        assert best.visible is not None and best.visible > 0.95
+        assert best.visible is not None
+        assert best.visible > 0.95
 
 
 def _quarter_hidden(u: float, v: float, scale: float, grey: float) -> tuple[float, ...]:
@@ -99,7 +101,8 @@ def test_a_quarter_hidden_does_not_drag_a_scale_search() -> None:
     )
     best = _found(found, u, v)
     assert math.hypot(best.u - u, best.v - v) < 0.1
-    assert best.scale is not None and abs(best.scale - scale) < 0.005
+    assert best.scale is not None
+    assert abs(best.scale - scale) < 0.005
 
 
 def test_without_a_scale_search_no_scale_is_reported() -> None:
