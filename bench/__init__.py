@@ -20,6 +20,7 @@ from . import (
     latency,
     line,
     locate_blur,
+    locate_template,
     mixed,
     pick,
     qr_real,
@@ -45,6 +46,7 @@ SECTIONS: tuple[ModuleType, ...] = (
     render,
     results_page,
     locate_blur,
+    locate_template,
 )
 
 __all__ = ["SECTIONS"]

@@ -338,6 +338,7 @@ def locate_template(
     scale_step: float = 0.02,
     min_distance: float | None = None,
     pyramid_levels: int | None = None,
+    align: bool = True,
 ) -> list[Feature]:
     """Find instances of a gray template by normalised cross-correlation, over rotation and
     scale.
@@ -377,6 +378,9 @@ def locate_template(
         least 32 px, 2 when at least 64 px, provided the search region holds at least 16
         templates; else 0 (exhaustive). Much faster; a template with only very fine texture
         may need 0.
+    align : bool
+        Refine each instance's pose by robust alignment (:mod:`.template_align`; default).
+        False keeps the correlation peak's pose, which an occluder pulls (for comparison).
 
     Returns
     -------
@@ -442,7 +446,7 @@ def locate_template(
         dy = dy if 0 < y < height - 1 else 0.0
         u, v, score = x + dx + (tw - 1) / 2.0, y + dy + (th - 1) / 2.0, float(local[1, 1])
         visible = None
-        aligned = _align(search, tmpl, grid, (u, v, angle, scale))
+        aligned = _align(search, tmpl, grid, (u, v, angle, scale)) if align else None
         if aligned is not None:
             u, v, angle, scale = aligned.u, aligned.v, aligned.angle, aligned.scale
             score, visible = aligned.score, aligned.visible
@@ -499,26 +503,42 @@ def _align(
     search: Gray, tmpl: Gray, grid: _Grid, start: tuple[float, float, float, float]
 ) -> Alignment | None:
     """The correlation's pose refined by robust alignment (:mod:`.template_align`), or None
-    where that fails or leaves the searched angles or scales by more than a step."""
+    where that fails or leaves the searched angles or scales by more than a step.
+
+    With a scale search the alignment also starts from the middle and the far end of the
+    scales searched: under occlusion correlation can put the scale at one end of its range, too
+    far for the alignment to find its way back. The start whose alignment leaves the smallest
+    disagreement among the pixels not hidden wins.
+    """
     fit_angle, fit_scale = len(grid.angles) > 1, len(grid.scales) > 1
-    aligned = align_template(
-        search,
-        tmpl,
-        start,
-        disc=grid.rotating,
-        fit_angle=fit_angle,
-        fit_scale=fit_scale,
-        max_move=max(3.0, 0.1 * min(tmpl.shape) * float(grid.scales[-1])),
-    )
-    if aligned is None:
-        return None
+    u, v, angle, scale = start
+    scales = [scale]
+    if fit_scale:
+        lo, hi = float(grid.scales[0]), float(grid.scales[-1])
+        far = lo if abs(scale - hi) < abs(scale - lo) else hi
+        scales += [s for s in (0.5 * (lo + hi), far) if abs(s - scale) > 0.5 * (hi - lo) / 4]
     slack_a = float(grid.angles[1] - grid.angles[0]) if fit_angle else 0.0
     slack_s = float(grid.scales[1] - grid.scales[0]) if fit_scale else 0.0
-    if not grid.angles[0] - slack_a <= aligned.angle <= grid.angles[-1] + slack_a:
-        return None
-    if not grid.scales[0] - slack_s <= aligned.scale <= grid.scales[-1] + slack_s:
-        return None
-    return aligned
+    best: Alignment | None = None
+    for begin in scales:
+        aligned = align_template(
+            search,
+            tmpl,
+            (u, v, angle, begin),
+            disc=grid.rotating,
+            fit_angle=fit_angle,
+            fit_scale=fit_scale,
+            max_move=max(3.0, 0.1 * min(tmpl.shape) * float(grid.scales[-1])),
+        )
+        if aligned is None:
+            continue
+        if not grid.angles[0] - slack_a <= aligned.angle <= grid.angles[-1] + slack_a:
+            continue
+        if not grid.scales[0] - slack_s <= aligned.scale <= grid.scales[-1] + slack_s:
+            continue
+        if best is None or aligned.spread < best.spread:
+            best = aligned
+    return best
 
 
 def _auto_levels(template: tuple[int, int], search: tuple[int, int]) -> int:

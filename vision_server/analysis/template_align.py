@@ -19,6 +19,7 @@ Coordinates: ``(u, v)`` is where the template's centre lies, in the pixels of th
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -51,7 +52,8 @@ class Alignment:
     correlated area (hidden pixels included, so occlusion lowers it). ``visible``: the share
     (0..1) of the template's pixels not found hidden (:func:`_hidden`): about the share not
     covered by an occluder (hidden pixels whose grey happens to match the template count as
-    visible).
+    visible). ``spread``: the robust standard deviation (grey levels) of the residuals of the
+    pixels not hidden: about the camera noise at the right pose, much more at a wrong one.
     """
 
     u: float
@@ -60,10 +62,11 @@ class Alignment:
     scale: float
     score: float
     visible: float
+    spread: float
 
 
 def _points(
-    template: NDArray[np.uint8], disc: bool
+    template: NDArray[Any], disc: bool
 ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
     """Template pixels correlated (its inscribed disc, or all), as offsets from its centre, their
     grey levels, and the mask (h, w) that picks them."""
@@ -110,56 +113,38 @@ def _hidden(outlier: NDArray[np.bool_], keep: NDArray[np.bool_]) -> NDArray[np.b
     return np.asarray(wide[labels[keep]], dtype=bool)
 
 
-def align_template(
-    image: NDArray[np.uint8],
-    template: NDArray[np.uint8],
-    start: tuple[float, float, float, float],
+@dataclass
+class _State:
+    """The pose being aligned, in the patch's pixels, and the image's gain and offset."""
+
+    u: float
+    v: float
+    angle: float
+    scale: float
+    gain: float = 1.0
+    offset: float = 0.0
+    hidden: NDArray[np.bool_] | None = None
+    spread: float = np.inf
+
+
+def _gauss_newton(
+    patch: NDArray[np.float32],
+    points: tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]],
+    state: _State,
     *,
-    disc: bool,
-    fit_angle: bool,
-    fit_scale: bool,
+    free: list[bool],
+    origin: tuple[float, float],
     max_move: float,
-    iterations: int = 40,
-) -> Alignment | None:
-    """Refine a template's pose ``start`` = ``(u, v, angle, scale)`` in ``image``.
-
-    Parameters
-    ----------
-    image, template : ndarray
-        ``uint8`` gray ``(H, W)`` and ``(h, w)``.
-    start : (float, float, float, float)
-        The pose found by correlation (module docstring for the frame and units).
-    disc : bool
-        Align only the template's inscribed disc (as a rotation search correlates it).
-    fit_angle, fit_scale : bool
-        Whether the angle and scale are refined; else they stay as in ``start``.
-    max_move : float
-        Farthest (px) the refined centre may lie from ``start``'s.
-    iterations : int
-        Most Gauss-Newton steps.
-
-    Returns
-    -------
-    Alignment or None
-        None when the alignment leaves the image, does not settle, or moves more than
-        ``max_move`` px (the caller keeps the correlation's pose).
-    """
-    qx, qy, tv, keep = _points(template, disc)
-    u, v, angle, scale = (float(x) for x in start)
-    reach = 0.5 * float(np.hypot(*template.shape)) * scale * 1.2 + max_move + 4.0
-    height, width = image.shape
-    x0, y0 = max(int(u - reach), 0), max(int(v - reach), 0)
-    x1, y1 = min(int(u + reach) + 2, width), min(int(v + reach) + 2, height)
-    patch = np.ascontiguousarray(image[y0:y1, x0:x1], dtype=np.float32)
+    iterations: int,
+) -> _State | None:
+    """Align template points to ``patch`` from ``state``; the settled state, or None."""
+    qx, qy, tv, keep = points
     grad_x = cv2.Sobel(patch, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
     grad_y = cv2.Sobel(patch, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
     stack = cv2.merge([patch, grad_x, grad_y])
-    u, v = u - x0, v - y0
-    gain, offset = 1.0, 0.0
-    start_uv = (u, v)
-    free = [True, True, fit_angle, fit_scale, True, True]
-    settled = False
-    hidden = np.zeros(tv.shape, bool)
+    u, v, angle, scale = state.u, state.v, state.angle, state.scale
+    gain, offset = state.gain, state.offset
+    rim = 0.5 * float(np.hypot(np.ptp(qx), np.ptp(qy))) / np.sqrt(2.0)
     for it in range(iterations):
         c, s = np.cos(angle), np.sin(angle)
         rx, ry = c * qx - s * qy, s * qx + c * qy  # R q
@@ -177,12 +162,11 @@ def align_template(
         if inside.mean() < 0.9:
             return None  # most of the template off the image: not ours to refine
         grey, gx, gy = (sampled[:, k].astype(np.float64) for k in range(3))
-        if it == 0:
+        if it == 0 and state.hidden is None:
             gain, offset = _robust_levels(tv[inside], grey[inside])
         residual = np.where(inside, grey - (gain * tv + offset), 0.0)
         spread = max(1.4826 * float(np.median(np.abs(residual[inside]))), NOISE_FLOOR)
-        cut = OUTLIER * spread
-        hidden = _hidden(np.abs(residual) > cut, keep)
+        hidden = _hidden(np.abs(residual) > OUTLIER * spread, keep)
         weights = np.where(inside & ~hidden, 1.0, 0.0)
         columns = np.stack(
             [
@@ -202,23 +186,77 @@ def align_template(
             return None
         full = np.zeros(6)
         full[free] = step
+        if not (np.all(np.isfinite(full)) and scale + full[3] > 0):
+            return None
         u, v, angle, scale = u + full[0], v + full[1], angle + full[2], scale + full[3]
         gain, offset = gain + full[4], offset + full[5]
-        if not (np.all(np.isfinite(full)) and scale > 0):
-            return None
-        if np.hypot(u - start_uv[0], v - start_uv[1]) > max_move:
+        if np.hypot(u - origin[0], v - origin[1]) > max_move:
             return None
         # Re-weighting makes the last steps shrink geometrically rather than quadratically:
-        # stop when a step moves the template's rim by under 0.003 px.
-        rim = 0.5 * max(template.shape) * scale
-        if (
-            it >= 1
-            and max(abs(full[0]), abs(full[1])) + rim * (abs(full[2]) + abs(full[3])) < SETTLED
-        ):
-            settled = True
-            break
-    if not settled:
+        # stop when a step moves the template's rim by under SETTLED px.
+        moved = max(abs(full[0]), abs(full[1])) + rim * scale * (abs(full[2]) + abs(full[3]))
+        if it >= 1 and moved < SETTLED:
+            agree = residual[inside & ~hidden]
+            spread = 1.4826 * float(np.median(np.abs(agree))) if len(agree) else np.inf
+            return _State(u, v, angle, scale, gain, offset, hidden, spread)
+    return None
+
+
+def align_template(
+    image: NDArray[np.uint8],
+    template: NDArray[np.uint8],
+    start: tuple[float, float, float, float],
+    *,
+    disc: bool,
+    fit_angle: bool,
+    fit_scale: bool,
+    max_move: float,
+    iterations: int = 40,
+) -> Alignment | None:
+    """Refine a template's pose ``start`` = ``(u, v, angle, scale)`` in ``image``.
+
+    From a start far off (correlation under occlusion can put the scale 0.15 off) this may
+    settle on a wrong pose that explains the occluder as texture; such a pose leaves a large
+    ``spread``: the caller tries several starts and keeps the one with the smallest.
+
+    Parameters
+    ----------
+    image, template : ndarray
+        ``uint8`` gray ``(H, W)`` and ``(h, w)``.
+    start : (float, float, float, float)
+        The pose found by correlation (module docstring for the frame and units).
+    disc : bool
+        Align only the template's inscribed disc (as a rotation search correlates it).
+    fit_angle, fit_scale : bool
+        Whether the angle and scale are refined; else they stay as in ``start``.
+    max_move : float
+        Farthest (px) the refined centre may lie from ``start``'s.
+    iterations : int
+        Most Gauss-Newton steps per pass.
+
+    Returns
+    -------
+    Alignment or None
+        None when the alignment leaves the image, does not settle, or moves more than
+        ``max_move`` px (the caller keeps the correlation's pose).
+    """
+    points = _points(template, disc)
+    u, v, angle, scale = (float(x) for x in start)
+    reach = 0.5 * float(np.hypot(*template.shape)) * scale * 1.2 + max_move + 4.0
+    height, width = image.shape
+    x0, y0 = max(int(u - reach), 0), max(int(v - reach), 0)
+    x1, y1 = min(int(u + reach) + 2, width), min(int(v + reach) + 2, height)
+    patch = np.ascontiguousarray(image[y0:y1, x0:x1], dtype=np.float32)
+    free = [True, True, fit_angle, fit_scale, True, True]
+    origin = (u - x0, v - y0)
+    first = _State(origin[0], origin[1], angle, scale)
+    state = _gauss_newton(
+        patch, points, first, free=free, origin=origin, max_move=max_move, iterations=iterations
+    )
+    if state is None or state.hidden is None:
         return None
+    u, v, angle, scale, hidden = state.u, state.v, state.angle, state.scale, state.hidden
+    qx, qy, tv, _ = points
     c, s = np.cos(angle), np.sin(angle)
     px = u + scale * (c * qx - s * qy)
     py = v + scale * (s * qx + c * qy)
@@ -237,4 +275,5 @@ def align_template(
         scale=float(scale),
         score=score if np.isfinite(score) else -1.0,
         visible=float(1.0 - hidden.mean()),
+        spread=state.spread,
     )
