@@ -4,7 +4,8 @@ Three methods, one function each, and :func:`locate` to dispatch by name (what t
 configuration names):
 
 - :func:`locate_template` -- normalised cross-correlation with a gray template, optionally
-  searching over rotation; several instances with non-maximum suppression.
+  searching over rotation and scale; several instances with non-maximum suppression; each
+  pose refined by robust alignment (:mod:`.template_align`), which occlusion does not pull.
 - :func:`locate_circles` -- bright (or dark) round features such as rotor caps seen from above:
   Hough candidates refined by a circle fit to sub-pixel edge points.
 - :func:`locate_blobs` -- threshold and connected components, filtered by area and circularity;
