@@ -53,7 +53,7 @@ def _trial(
 def _accuracy(section: Section, cfg: RunConfig) -> dict[str, tuple[float, float]]:
     from vision_server.analysis.locate import locate_template
 
-    seeds = cfg.n(20, 2)
+    seeds = cfg.n(20, 1)
     part = random_part(7)
     template = part.template()
     table = Table(
@@ -128,13 +128,13 @@ def _timing(section: Section, cfg: RunConfig) -> None:
 
     part = random_part(7)
     template = part.template()
-    width, height = 1024, 768
-    poses = [(200.5, 180.25, 0.1, 1.0), (700.75, 500.5, -0.15, 1.05)]
+    width, height = (1024, 768) if not cfg.quick else (400, 300)
+    poses = [(100.5, 90.25, 0.1, 1.0), (width - 120.25, height - 100.5, -0.15, 1.05)]
     image = part.scene(poses, size=(width, height), seed=1)
     discs = image.copy()
-    for u, v, r in ((300, 560, 40), (820, 200, 32), (520, 360, 28)):
+    for u, v, r in ((width // 4, height * 3 // 4, 40), (width * 3 // 4, height // 4, 32)):
         cv2.circle(discs, (u, v), r, 220, -1, cv2.LINE_AA)
-    repeat = cfg.n(15, 2)
+    repeat = cfg.n(15, 1)
     tools: list[tuple[str, str, Callable[[], object]]] = [
         ("blur3", "3x3 box blur (cv2.blur), the reference", lambda: cv2.blur(image, (3, 3))),
         (
