@@ -21,6 +21,7 @@ from . import (
     latency,
     line,
     locate_blur,
+    locate_template,
     mixed,
     pick,
     qr_real,
@@ -47,6 +48,7 @@ SECTIONS: tuple[ModuleType, ...] = (
     results_page,
     locate_blur,
     caliper,
+    locate_template,
 )
 
 __all__ = ["SECTIONS"]

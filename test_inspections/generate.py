@@ -590,6 +590,59 @@ def caliper_case() -> None:
     write_expected("caliper_bracket", entries, {"tolerance_value": 0.02})
 
 
+# ----------------------------------------------------------------- textured part: template
+
+PART_SEED = 7  # simulation.textured_part.random_part's seed: a 65 px textured part
+PART_SIZE = (320, 240)
+PartPose = tuple[float, float, float, float]  # u, v, angle, scale
+Occluder = tuple[float, float, float, float, float]  # u0, v0, u1, v1, grey
+
+
+def template_scale_case() -> None:
+    """locate/template with a scale and rotation search on a flat textured part whose pose is
+    known exactly (simulation.textured_part): nearer and farther (+-10 %), turned, a quarter
+    hidden by a dark finger and by a bright one, another part, nothing."""
+    from simulation.textured_part import random_part
+
+    part = random_part(PART_SEED)
+    case = HERE / "part_locate_template_scaled"
+    write_png(case / "part_template.png", part.template())
+    entries: Entries = {}
+    # name: (poses (u, v, angle, scale), occluders (u0, v0, u1, v1, grey), note)
+    scenes: dict[str, tuple[list[PartPose], list[Occluder], str]] = {
+        "nominal.png": ([(160.4, 118.7, 0.0, 1.0)], [], "as taught"),
+        "nearer.png": ([(150.2, 121.6, 0.12, 1.1)], [], "10 % nearer (larger), turned 0.12 rad"),
+        "farther.png": ([(171.7, 112.3, -0.2, 0.9)], [], "10 % farther (smaller), turned -0.2"),
+        "finger_dark.png": (
+            [(158.3, 120.9, 0.05, 1.04)],
+            [(158.3 + 17.0, 40.0, 320.0, 200.0, 25.0)],
+            "a quarter hidden by a dark gripper finger, 4 % nearer",
+        ),
+        "finger_bright.png": (
+            [(163.8, 117.4, -0.1, 0.93)],
+            [(0.0, 0.0, 320.0, 117.4 - 15.0, 205.0)],
+            "a quarter hidden by a bright sheet, 7 % farther",
+        ),
+        "other_part.png": ([], [], "a different part in its place"),
+        "empty.png": ([], [], "nothing there"),
+    }
+    for name, (poses, occluders, note) in scenes.items():
+        if name == "other_part.png":
+            image = random_part(PART_SEED + 1).scene(
+                [(160.0, 120.0, 0.0, 1.0)], size=PART_SIZE, seed=41
+            )
+        else:
+            image = part.scene(poses, size=PART_SIZE, seed=40 + len(entries), occluders=occluders)
+        write_png(case / "images" / name, image)
+        entries[name] = {
+            "verdict": "pass" if poses else "fail",
+            "count": len(poses),
+            "features": r2([p[:2] for p in poses]) if poses else [],
+            "note": note,
+        }
+    write_expected("part_locate_template_scaled", entries, {"tolerance_px": 0.2})
+
+
 # --------------------------------------------------------------------------- real photographs
 
 REAL_SUBSET = [  # 13 of the 179 across the six sets (qrcode-4: blur, glare, tilt)
@@ -708,8 +761,8 @@ def main() -> int:
     parser.add_argument(
         "cases",
         nargs="*",
-        default=["caps", "qc", "qr", "qr_pose", "board", "codes", "caliper", "real", "plate"],
-        help="caps, qc, qr, qr_pose, board, codes, caliper, real, plate",
+        default=["caps", "qc", "qr", "qr_pose", "board", "codes", "caliper", "template", "real", "plate"],
+        help="caps, qc, qr, qr_pose, board, codes, caliper, template, real, plate",
     )
     args = parser.parse_args()
     steps = {
@@ -720,6 +773,7 @@ def main() -> int:
         "board": board_case,
         "codes": codes_case,
         "caliper": caliper_case,
+        "template": template_scale_case,
         "real": real_case,
         "plate": plate_case,
     }

@@ -506,6 +506,22 @@ def test_check_config_accepts_the_working_cell_and_merge_keys(cell_dir: Path) ->
             r"10001 rotations per request",
         ),
         (
+            "{name: t, type: locate, camera: tool, method: template, "
+            "template: {image: cap.png, scale_min: 1.1, scale_max: 0.9}}",
+            r"scale_max \(0.9\) is below scale_min \(1.1\)",
+        ),
+        (
+            "{name: t, type: locate, camera: tool, method: template, "
+            "template: {image: cap.png, scale_min: 0.3}}",
+            r"scale_min.*expected a scale \(part size / template size\) in 0.5..2, got 0.3",
+        ),
+        (
+            "{name: t, type: locate, camera: tool, method: template, "
+            "template: {image: cap.png, angle_max: 1, angle_step: 0.01, scale_min: 0.9, "
+            "scale_max: 1.1, scale_step: 0.005}}",
+            r"101 rotations x 41 scales = 4141 poses per request: more than 3600",
+        ),
+        (
             "{name: t, type: presence, camera: tool, measure: mean_intensity, min: 300}",
             r"min 300 is out of range for measure mean_intensity: its value is a grey level",
         ),

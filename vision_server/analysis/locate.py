@@ -4,7 +4,8 @@ Three methods, one function each, and :func:`locate` to dispatch by name (what t
 configuration names):
 
 - :func:`locate_template` -- normalised cross-correlation with a gray template, optionally
-  searching over rotation; several instances with non-maximum suppression.
+  searching over rotation and scale; several instances with non-maximum suppression; each
+  pose refined by robust alignment (:mod:`.template_align`), which occlusion does not pull.
 - :func:`locate_circles` -- bright (or dark) round features such as rotor caps seen from above:
   Hough candidates refined by a circle fit to sub-pixel edge points.
 - :func:`locate_blobs` -- threshold and connected components, filtered by area and circularity;
@@ -30,9 +31,12 @@ from numpy.typing import NDArray
 
 from .edge_width import SHARP_SIGMA, edge_sigma
 from .errors import BadImageError, NotFoundError, RoiError, TemplateError
+from .template_align import Alignment, align_template
 
 __all__ = [
+    "MAX_SCALE",
     "METHODS",
+    "MIN_SCALE",
     "Feature",
     "Rejection",
     "crop_roi",
@@ -66,6 +70,11 @@ class Feature:
         Circle radius in pixels (``circle`` only).
     area : float or None
         Blob area in px² (``blob`` only).
+    scale : float or None
+        Size relative to the template (``template`` with a scale search only).
+    visible : float or None
+        ``template`` only: the share (0..1) of the template's pixels that agree with the image
+        at the refined pose (hidden ones do not), None where the alignment failed.
     """
 
     u: float
@@ -74,6 +83,8 @@ class Feature:
     score: float = 0.0
     radius: float | None = None
     area: float | None = None
+    scale: float | None = None
+    visible: float | None = None
 
 
 # --- shared input checks ----------------------------------------------------------------------
@@ -186,16 +197,54 @@ def _quadratic_peak(patch: FloatArray) -> tuple[float, float]:
 # --- template ---------------------------------------------------------------------------------
 
 
-def _rotated(template: Gray, angle: float) -> Gray:
-    """``template`` rotated by ``angle`` (rad, +u towards +v) about its centre, same size."""
+def _posed_size(side: int, scale: float) -> int:
+    """A template side scaled by ``scale``, rounded to keep its parity (so that the scaled
+    template's centre stays on the same pixel grid as the original's) and at least 3 px."""
+    grown = side + 2 * int(round((scale - 1.0) * side / 2.0))
+    return max(grown, 3 if side % 2 else 4)
+
+
+@dataclass(frozen=True)
+class _Posed:
+    """The template turned and scaled for one pose of the search.
+
+    ``image`` is the posed template, ``mask`` its inscribed disc (None: the whole rectangle is
+    correlated), ``shift`` = ``(dx, dy)``: the posed template's top-left at ``(x, y)`` puts its
+    centre where the original template's top-left at ``(x + dx, y + dy)`` would put its own.
+    """
+
+    image: Gray
+    mask: Gray | None
+    shift: tuple[int, int]
+
+
+def _posed(template: Gray, angle: float, scale: float, rotating: bool) -> _Posed:
+    """``template`` turned by ``angle`` (rad, +u towards +v) and scaled by ``scale`` about its
+    centre. With rotation only its inscribed disc is correlated, so that scores compare between
+    angles; without, the whole (scaled) rectangle."""
     h, w = template.shape
-    centre = ((w - 1) / 2.0, (h - 1) / 2.0)
-    # OpenCV's positive angle turns counter-clockwise on the screen; ours turns clockwise.
-    matrix = cv2.getRotationMatrix2D(centre, -math.degrees(angle), 1.0)
-    out = cv2.warpAffine(
-        template, matrix, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    hs, ws = _posed_size(h, scale), _posed_size(w, scale)
+    c, s = math.cos(angle) * scale, math.sin(angle) * scale
+    src = ((w - 1) / 2.0, (h - 1) / 2.0)
+    dst = ((ws - 1) / 2.0, (hs - 1) / 2.0)
+    # dst = centre' + s R (p - centre), R turning +u towards +v (clockwise on the screen).
+    matrix = np.array(
+        [
+            [c, -s, dst[0] - (c * src[0] - s * src[1])],
+            [s, c, dst[1] - (s * src[0] + c * src[1])],
+        ]
     )
-    return np.asarray(out, np.uint8)
+    if angle == 0.0 and scale == 1.0:
+        image = template
+    else:
+        image = np.asarray(
+            cv2.warpAffine(
+                template, matrix, (ws, hs), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+            ),
+            np.uint8,
+        )
+    mask = _disc_mask((hs, ws)) if rotating else None
+    return _Posed(image, mask, ((ws - w) // 2, (hs - h) // 2))
 
 
 def _disc_mask(shape: tuple[int, int]) -> Gray:
@@ -215,19 +264,66 @@ def _match(image: Gray, template: Gray, mask: Gray | None) -> NDArray[np.float32
     return out
 
 
-def _angles(angle_range: tuple[float, float], angle_step: float) -> FloatArray:
-    lo, hi = float(angle_range[0]), float(angle_range[1])
+def _steps(value_range: tuple[float, float], step: float, what: str) -> FloatArray:
+    """``low``, ``low + step``, ... up to ``high`` (always included)."""
+    lo, hi = float(value_range[0]), float(value_range[1])
     if not (math.isfinite(lo) and math.isfinite(hi)) or hi < lo:
-        raise ValueError(f"angle_range must be (low, high) with low <= high, not {angle_range}")
+        raise ValueError(f"{what}_range must be (low, high) with low <= high, not {value_range}")
     if hi == lo:
         return np.array([lo])
-    if not angle_step > 0:
-        raise ValueError(f"angle_step must be > 0, not {angle_step}")
-    n = int(math.floor((hi - lo) / angle_step + 1e-9)) + 1
-    angles = lo + angle_step * np.arange(n, dtype=np.float64)
-    if hi - angles[-1] > 1e-9:
-        angles = np.append(angles, hi)
-    return np.asarray(angles, np.float64)
+    if not step > 0:
+        raise ValueError(f"{what}_step must be > 0, not {step}")
+    n = int(math.floor((hi - lo) / step + 1e-9)) + 1
+    values = lo + step * np.arange(n, dtype=np.float64)
+    if hi - values[-1] > 1e-9:
+        values = np.append(values, hi)
+    return np.asarray(values, np.float64)
+
+
+def _angles(angle_range: tuple[float, float], angle_step: float) -> FloatArray:
+    return _steps(angle_range, angle_step, "angle")
+
+
+MIN_SCALE, MAX_SCALE = 0.5, 2.0
+"""Scales a template search may try (a wider range is a different template)."""
+
+
+def _scales(scale_range: tuple[float, float], scale_step: float) -> FloatArray:
+    scales = _steps(scale_range, scale_step, "scale")
+    if scales[0] < MIN_SCALE or scales[-1] > MAX_SCALE:
+        raise ValueError(
+            f"scale_range must lie within {MIN_SCALE:g}..{MAX_SCALE:g}, not {scale_range}"
+        )
+    return scales
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """The poses searched: every angle at every scale; pose index ``k = i * len(scales) + j``
+    for ``angles[i]``, ``scales[j]``."""
+
+    angles: FloatArray
+    scales: FloatArray
+    rotating: bool
+
+    def __len__(self) -> int:
+        return len(self.angles) * len(self.scales)
+
+    def pose(self, k: int) -> tuple[float, float]:
+        i, j = divmod(k, len(self.scales))
+        return float(self.angles[i]), float(self.scales[j])
+
+    def near(self, k: int) -> list[int]:
+        """Pose ``k`` and its neighbours one step away in angle and scale."""
+        i, j = divmod(k, len(self.scales))
+        return [
+            a * len(self.scales) + b
+            for a in range(max(i - 1, 0), min(i + 2, len(self.angles)))
+            for b in range(max(j - 1, 0), min(j + 2, len(self.scales)))
+        ]
+
+    def posed(self, template: Gray, angle: float, scale: float) -> _Posed:
+        return _posed(template, angle, scale, self.rotating)
 
 
 def locate_template(
@@ -239,10 +335,14 @@ def locate_template(
     max_count: int = 1,
     angle_range: tuple[float, float] = (0.0, 0.0),
     angle_step: float = math.radians(5.0),
+    scale_range: tuple[float, float] = (1.0, 1.0),
+    scale_step: float = 0.02,
     min_distance: float | None = None,
     pyramid_levels: int | None = None,
+    align: bool = True,
 ) -> list[Feature]:
-    """Find instances of a gray template by normalised cross-correlation.
+    """Find instances of a gray template by normalised cross-correlation, over rotation and
+    scale.
 
     Parameters
     ----------
@@ -253,7 +353,7 @@ def locate_template(
         The located point is the template's centre, ``((w - 1) / 2, (h - 1) / 2)`` in template
         pixels.
     roi : [u, v, width, height], optional
-        Search region in full-image pixels; the whole template must fit inside it.
+        Search region in full-image pixels; the whole (posed) template must fit inside it.
     min_score : float
         Lowest NCC score (``cv2.TM_CCOEFF_NORMED``, -1..1) reported.
     max_count : int
@@ -265,21 +365,42 @@ def locate_template(
         so scores are comparable between angles.
     angle_step : float
         Rotation step in radians. The reported angle is interpolated between steps.
+    scale_range : (float, float)
+        Scales searched (image size of the part / template size), within 0.5..2. ``(1, 1)``
+        (default): no scale search. The template is resized about its centre at every step.
+    scale_step : float
+        Scale step; the reported scale is interpolated between steps. NCC tolerates a scale
+        error of about ``1 / (template side in px)`` with little loss of score.
     min_distance : float, optional
         Closest two instances may be, in pixels (default: half the template's smaller side).
     pyramid_levels : int, optional
-        Search first on the image halved this many times (over all angles), then only around
+        Search first on the image halved this many times (over all poses), then only around
         the coarse peaks at full size. None (default): 1 when the template's smaller side is at
         least 32 px, 2 when at least 64 px, provided the search region holds at least 16
         templates; else 0 (exhaustive). Much faster; a template with only very fine texture
         may need 0.
+    align : bool
+        Refine each instance's pose by robust alignment (:mod:`.template_align`; default).
+        False keeps the correlation peak's pose, which an occluder pulls (for comparison).
 
     Returns
     -------
     list of Feature
-        Best first. ``score`` is the NCC at the refined angle (-1..1); ``angle`` the rotation
-        of the instance relative to the template (0 without a rotation search).
-        Position: integer NCC peak refined by a 2D quadratic fit of its 3x3 neighbourhood.
+        Best first. ``angle`` is the rotation of the instance relative to the template (0
+        without a rotation search), ``scale`` its size relative to the template (None without
+        a scale search). Position: integer NCC peak refined by a 2D quadratic fit of its 3x3
+        neighbourhood, at the interpolated angle and scale.
+
+        ``score`` is the NCC at that pose: 1.0 an exact copy of the template up to brightness
+        and contrast (gain and offset), 0 no linear relation, negative an inverted copy. Noise
+        and blur lower it a little. An occluder hiding a fraction ``f`` of the correlated area
+        lowers it to the NCC of the template with a copy whose hidden pixels show the occluder:
+        roughly ``sqrt(1 - f) / sqrt(1 + f * d**2 / var)``, ``d`` the occluder's grey level
+        minus the template's mean and ``var`` the template's variance: ~0.87 for a quarter
+        hidden by a surface of the template's mean grey, less for a much brighter or darker (or
+        textured) occluder (``docs/configuration.md``, locate.template). ``visible`` is the
+        share of the template found not hidden (None where the alignment failed and the pose
+        is the correlation peak's).
 
     Raises
     ------
@@ -301,39 +422,43 @@ def locate_template(
     if max_count < 1:
         return []
     angles = _angles(angle_range, angle_step)
-    rotating = len(angles) > 1 or angles[0] != 0.0
-    mask = _disc_mask(tmpl.shape) if rotating else None
+    scales = _scales(scale_range, scale_step)
+    grid = _Grid(angles, scales, rotating=len(angles) > 1 or angles[0] != 0.0)
     spacing = min(th, tw) / 2.0 if min_distance is None else float(min_distance)
     levels = _auto_levels(tmpl.shape, search.shape) if pyramid_levels is None else pyramid_levels
     if levels < 0:
         raise ValueError(f"pyramid_levels must be >= 0, not {pyramid_levels}")
 
     if levels == 0:
-        best, best_index = _best_over_angles(search, tmpl, mask, angles, rotating)
+        best, best_index = _best_over_poses(search, tmpl, grid, range(len(grid)))
         candidates = [
             (x, y, int(best_index[y, x])) for x, y in _peaks(best, min_score, spacing, max_count)
         ]
     else:
-        candidates = _coarse_to_fine(
-            search, tmpl, mask, angles, rotating, levels, min_score, spacing, max_count
-        )
+        candidates = _coarse_to_fine(search, tmpl, grid, levels, min_score, spacing, max_count)
 
     height, width = search.shape[0] - th + 1, search.shape[1] - tw + 1
     features = []
-    for x, y, k in candidates:
-        angle = float(angles[k])
-        if rotating and len(angles) > 1:
-            angle = _refine_angle(search, tmpl, mask, angles, k, x, y)
-        local = _local_scores(search, _rotated(tmpl, angle) if rotating else tmpl, mask, x, y)
+    for x, y, k in _worth_refining(search, tmpl, grid, candidates, min_score, spacing, max_count):
+        angle, scale = _refine_pose(search, tmpl, grid, k, x, y)
+        local = _local_scores(search, grid.posed(tmpl, angle, scale), x, y)
         dx, dy = _quadratic_peak(local)
         dx = dx if 0 < x < width - 1 else 0.0
         dy = dy if 0 < y < height - 1 else 0.0
+        u, v, score = x + dx + (tw - 1) / 2.0, y + dy + (th - 1) / 2.0, float(local[1, 1])
+        visible = None
+        aligned = _align(search, tmpl, grid, (u, v, angle, scale)) if align else None
+        if aligned is not None:
+            u, v, angle, scale = aligned.u, aligned.v, aligned.angle, aligned.scale
+            score, visible = aligned.score, aligned.visible
         features.append(
             Feature(
-                u=u0 + x + dx + (tw - 1) / 2.0,
-                v=v0 + y + dy + (th - 1) / 2.0,
+                u=u0 + u,
+                v=v0 + v,
                 angle=angle,
-                score=float(min(local[1, 1], 1.0)),
+                score=min(score, 1.0),
+                scale=scale if len(scales) > 1 or scales[0] != 1.0 else None,
+                visible=visible,
             )
         )
     features.sort(key=lambda f: -f.score)
@@ -344,6 +469,77 @@ def locate_template(
         ):
             kept.append(f)
     return kept[:max_count]
+
+
+ALIGN_MARGIN = 0.1
+"""Candidates whose correlation is this far below ``min_score`` are still aligned: alignment
+moves the score by a few hundredths (the sub-pixel pose), never by more."""
+
+
+def _worth_refining(
+    search: Gray,
+    tmpl: Gray,
+    grid: _Grid,
+    candidates: list[tuple[int, int, int]],
+    min_score: float,
+    spacing: float,
+    max_count: int,
+) -> list[tuple[int, int, int]]:
+    """The candidates worth the (costlier) refinement: best correlation first, one per place,
+    at most ``max_count + 2`` of those within ``ALIGN_MARGIN`` of ``min_score``."""
+    scored = []
+    for x, y, k in candidates:
+        score = float(_local_scores(search, grid.posed(tmpl, *grid.pose(k)), x, y)[1, 1])
+        if score >= min_score - ALIGN_MARGIN:
+            scored.append((score, x, y, k))
+    scored.sort(key=lambda c: -c[0])
+    kept: list[tuple[int, int, int]] = []
+    for _, x, y, k in scored:
+        if all((x - a) ** 2 + (y - b) ** 2 >= spacing**2 for a, b, _ in kept):
+            kept.append((x, y, k))
+    return kept[: max_count + 2]
+
+
+def _align(
+    search: Gray, tmpl: Gray, grid: _Grid, start: tuple[float, float, float, float]
+) -> Alignment | None:
+    """The correlation's pose refined by robust alignment (:mod:`.template_align`), or None
+    where that fails or leaves the searched angles or scales by more than a step.
+
+    With a scale search the alignment also starts from the middle and the far end of the
+    scales searched: under occlusion correlation can put the scale at one end of its range, too
+    far for the alignment to find its way back. The start whose alignment leaves the smallest
+    disagreement among the pixels not hidden wins.
+    """
+    fit_angle, fit_scale = len(grid.angles) > 1, len(grid.scales) > 1
+    u, v, angle, scale = start
+    scales = [scale]
+    if fit_scale:
+        lo, hi = float(grid.scales[0]), float(grid.scales[-1])
+        far = lo if abs(scale - hi) < abs(scale - lo) else hi
+        scales += [s for s in (0.5 * (lo + hi), far) if abs(s - scale) > 0.5 * (hi - lo) / 4]
+    slack_a = float(grid.angles[1] - grid.angles[0]) if fit_angle else 0.0
+    slack_s = float(grid.scales[1] - grid.scales[0]) if fit_scale else 0.0
+    best: Alignment | None = None
+    for begin in scales:
+        aligned = align_template(
+            search,
+            tmpl,
+            (u, v, angle, begin),
+            disc=grid.rotating,
+            fit_angle=fit_angle,
+            fit_scale=fit_scale,
+            max_move=max(3.0, 0.1 * min(tmpl.shape) * float(grid.scales[-1])),
+        )
+        if aligned is None:
+            continue
+        if not grid.angles[0] - slack_a <= aligned.angle <= grid.angles[-1] + slack_a:
+            continue
+        if not grid.scales[0] - slack_s <= aligned.scale <= grid.scales[-1] + slack_s:
+            continue
+        if best is None or aligned.spread < best.spread:
+            best = aligned
+    return best
 
 
 def _auto_levels(template: tuple[int, int], search: tuple[int, int]) -> int:
@@ -357,22 +553,37 @@ def _auto_levels(template: tuple[int, int], search: tuple[int, int]) -> int:
     return levels
 
 
-def _best_over_angles(
-    search: Gray, tmpl: Gray, mask: Gray | None, angles: FloatArray, rotating: bool
+def _best_over_poses(
+    search: Gray, tmpl: Gray, grid: _Grid, poses: Sequence[int] | range
 ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
-    """Best NCC map over the angles, and the index of the angle giving it."""
-    best: NDArray[np.float32] | None = None
-    best_index = np.zeros((1, 1), np.int32)
-    for k, angle in enumerate(angles):
-        scores = _match(search, _rotated(tmpl, float(angle)) if rotating else tmpl, mask)
-        if best is None:
-            best = scores
-            best_index = np.zeros(scores.shape, np.int32)
-        else:
-            better = scores > best
-            best = np.where(better, scores, best)
-            best_index[better] = k
-    assert best is not None
+    """Best NCC map over the ``poses`` (indices into ``grid``), and the pose giving it.
+
+    The maps are indexed like the unposed template's: ``[y, x]`` is the score of the instance
+    whose centre is where ``tmpl``'s would be with its top-left at ``(x, y)``. Where a (larger)
+    posed template does not fit, its score is -1.
+    """
+    th, tw = tmpl.shape
+    sh, sw = search.shape
+    best = np.full((sh - th + 1, sw - tw + 1), -1.0, np.float32)
+    best_index = np.full(best.shape, poses[0], np.int32)
+    for k in poses:
+        posed = grid.posed(tmpl, *grid.pose(k))
+        ph, pw = posed.image.shape
+        if ph > sh or pw > sw:
+            continue
+        scores = _match(search, posed.image, posed.mask)
+        dx, dy = posed.shift
+        # scores[yp, xp] belongs at best[yp + dy, xp + dx].
+        x0, y0 = max(dx, 0), max(dy, 0)
+        x1 = min(best.shape[1], scores.shape[1] + dx)
+        y1 = min(best.shape[0], scores.shape[0] + dy)
+        if x1 <= x0 or y1 <= y0:
+            continue
+        part = scores[y0 - dy : y1 - dy, x0 - dx : x1 - dx]
+        target = best[y0:y1, x0:x1]
+        better = part > target
+        target[better] = part[better]
+        best_index[y0:y1, x0:x1][better] = k
     return best, best_index
 
 
@@ -396,16 +607,15 @@ def _peaks(
 def _coarse_to_fine(
     search: Gray,
     tmpl: Gray,
-    mask: Gray | None,
-    angles: FloatArray,
-    rotating: bool,
+    grid: _Grid,
     levels: int,
     min_score: float,
     spacing: float,
     max_count: int,
 ) -> list[tuple[int, int, int]]:
-    """Candidates (x, y, angle index) found on a ``levels`` times halved image, then located
-    again at full size within ``2**levels + 2`` px and one angle step of the coarse peak."""
+    """Candidates (x, y, pose index) found on a ``levels`` times halved image, then located
+    again at full size within ``2**levels + 2`` px and one angle and scale step of the coarse
+    peak."""
     small_search, small_tmpl = search, tmpl
     for _ in range(levels):
         if min(small_tmpl.shape) < 16:
@@ -413,12 +623,13 @@ def _coarse_to_fine(
         small_search = np.asarray(cv2.pyrDown(small_search), np.uint8)
         small_tmpl = np.asarray(cv2.pyrDown(small_tmpl), np.uint8)
     scale = search.shape[1] / small_search.shape[1]
-    small_mask = _disc_mask(small_tmpl.shape) if mask is not None else None
-    best, best_index = _best_over_angles(small_search, small_tmpl, small_mask, angles, rotating)
+    best, best_index = _best_over_poses(small_search, small_tmpl, grid, range(len(grid)))
     # Halving blurs the texture, which changes the scores: be generous, decide at full size.
     coarse = _peaks(best, min_score - 0.25, spacing / scale, 2 * max_count + 4)
     th, tw = tmpl.shape
     sth, stw = small_tmpl.shape
+    # The largest posed template decides how far the window must reach beyond the template.
+    grow = max(_posed_size(max(th, tw), float(grid.scales[-1])) - max(th, tw), 0) // 2 + 1
     reach = int(math.ceil(scale)) + 2
     out = []
     for cx, cy in coarse:
@@ -429,44 +640,63 @@ def _coarse_to_fine(
         y1 = min(y + reach, search.shape[0] - th)
         if x1 < x0 or y1 < y0:
             continue
-        k = int(best_index[cy, cx])
-        ks = np.arange(max(k - 1, 0), min(k + 2, len(angles)))
-        window = search[y0 : y1 + th, x0 : x1 + tw]
-        local, local_index = _best_over_angles(window, tmpl, mask, angles[ks], rotating)
-        j, i = np.unravel_index(int(np.argmax(local)), local.shape)
-        out.append((x0 + int(i), y0 + int(j), int(ks[int(local_index[j, i])])))
+        # The window keeps a margin of `grow` px round the unposed template's footprint where
+        # the search region has it, so that larger poses are scored at the same centres.
+        mx0, my0 = min(grow, x0), min(grow, y0)
+        wx1 = min(x1 + tw + grow, search.shape[1])
+        wy1 = min(y1 + th + grow, search.shape[0])
+        window = search[y0 - my0 : wy1, x0 - mx0 : wx1]
+        local, local_index = _best_over_poses(
+            window, tmpl, grid, grid.near(int(best_index[cy, cx]))
+        )
+        # Only the offsets inside [x0, x1] x [y0, y1] of the full search.
+        inside = local[my0 : my0 + y1 - y0 + 1, mx0 : mx0 + x1 - x0 + 1]
+        j, i = np.unravel_index(int(np.argmax(inside)), inside.shape)
+        out.append((x0 + int(i), y0 + int(j), int(local_index[my0 + j, mx0 + i])))
     return out
 
 
-def _local_scores(search: Gray, tmpl: Gray, mask: Gray | None, x: int, y: int) -> FloatArray:
-    """NCC scores (3, 3) of ``tmpl`` at offsets (x-1..x+1, y-1..y+1); edges replicate."""
-    th, tw = tmpl.shape
+def _local_scores(search: Gray, posed: _Posed, x: int, y: int) -> FloatArray:
+    """NCC scores (3, 3) of a posed template whose centre is where the unposed template's is
+    with its top-left at (x-1..x+1, y-1..y+1); edges replicate, -1 where it does not fit."""
+    th, tw = posed.image.shape
     sh, sw = search.shape
-    x0, y0 = max(x - 1, 0), max(y - 1, 0)
-    x1, y1 = min(x + 1, sw - tw), min(y + 1, sh - th)
+    px, py = x - posed.shift[0], y - posed.shift[1]
+    x0, y0 = max(px - 1, 0), max(py - 1, 0)
+    x1, y1 = min(px + 1, sw - tw), min(py + 1, sh - th)
+    if x1 < x0 or y1 < y0:
+        return np.full((3, 3), -1.0)
     patch = search[y0 : y1 + th, x0 : x1 + tw]
-    scores = _match(patch, tmpl, mask).astype(np.float64)
+    scores = _match(patch, posed.image, posed.mask).astype(np.float64)
     out = np.empty((3, 3))
     for j in range(3):
         for i in range(3):
-            yy = min(max(y - 1 + j, y0), y1) - y0
-            xx = min(max(x - 1 + i, x0), x1) - x0
+            yy = min(max(py - 1 + j, y0), y1) - y0
+            xx = min(max(px - 1 + i, x0), x1) - x0
             out[j, i] = scores[yy, xx]
     return out
 
 
-def _refine_angle(
-    search: Gray, tmpl: Gray, mask: Gray | None, angles: FloatArray, k: int, x: int, y: int
-) -> float:
-    """Interpolate the angle by a parabola through the best local score at steps k-1, k, k+1."""
-    if k == 0 or k == len(angles) - 1:
-        return float(angles[k])
-    s = [
-        float(_local_scores(search, _rotated(tmpl, float(angles[j])), mask, x, y).max())
-        for j in (k - 1, k, k + 1)
-    ]
-    step = float(angles[k + 1] - angles[k])
-    return float(angles[k] + step * _parabola_offset(s[0], s[1], s[2]))
+def _refine_pose(
+    search: Gray, tmpl: Gray, grid: _Grid, k: int, x: int, y: int
+) -> tuple[float, float]:
+    """The angle and scale of pose ``k`` interpolated by a parabola through the best local
+    score one step either side (angle at the pose's scale, then scale at the refined angle)."""
+    i, j = divmod(k, len(grid.scales))
+    angle, scale = float(grid.angles[i]), float(grid.scales[j])
+
+    def best_at(a: float, s: float) -> float:
+        return float(_local_scores(search, grid.posed(tmpl, a, s), x, y).max())
+
+    if 0 < i < len(grid.angles) - 1:
+        s3 = [best_at(float(grid.angles[n]), scale) for n in (i - 1, i, i + 1)]
+        step = float(grid.angles[i + 1] - grid.angles[i])
+        angle = float(grid.angles[i] + step * _parabola_offset(*s3))
+    if 0 < j < len(grid.scales) - 1:
+        s3 = [best_at(angle, float(grid.scales[n])) for n in (j - 1, j, j + 1)]
+        step = float(grid.scales[j + 1] - grid.scales[j])
+        scale = float(grid.scales[j] + step * _parabola_offset(*s3))
+    return angle, scale
 
 
 # --- circles ----------------------------------------------------------------------------------

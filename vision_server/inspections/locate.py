@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from ..analysis import AnalysisError
-from ..analysis.locate import Feature, Rejection, locate
+from ..analysis.locate import MAX_SCALE, MIN_SCALE, Feature, Rejection, locate
 from ..cameras import CameraSettings
 from ..catalog import InspectionInput, InspectionOutcome
 from ..configfile import Node, boolean, fraction, number, one_of, positive, positive_int
@@ -97,6 +97,10 @@ def _feature_dict(feature: Feature) -> dict[str, Any]:
         out["radius"] = float(feature.radius)
     if feature.area is not None:
         out["area"] = float(feature.area)
+    if feature.scale is not None:
+        out["scale"] = float(feature.scale)
+    if feature.visible is not None:
+        out["visible"] = float(feature.visible)
     return out
 
 
@@ -165,8 +169,9 @@ SCORE_RANGES: dict[str, tuple[float, float, str]] = {
 }
 """What ``min_score`` means for each method, and its range (docs/configuration.md)."""
 
-MAX_ANGLES = 3600
-"""Most rotations a template search may try per request (2π in steps of 0.1°)."""
+MAX_POSES = 3600
+"""Most poses (rotations x scales) a template search may try per request (2π in steps of
+0.1°, or a tenth of that at each of ten scales)."""
 
 
 def _min_score(node: Node, method: str) -> float | None:
@@ -219,14 +224,16 @@ def parse_locate_settings(node: Node, base_dir: Path, common: Common | None) -> 
                 f"angle_max - angle_min is {high - low:.3f} rad, more than a full turn (2π)",
                 "angle_max",
             )
-        if (high - low) / step + 1 > MAX_ANGLES:
+        rotations = (high - low) / step + 1
+        if rotations > MAX_POSES:
             raise sub.error(
-                f"{(high - low) / step + 1:.0f} rotations per request: more than {MAX_ANGLES} "
+                f"{rotations:.0f} rotations per request: more than {MAX_POSES} "
                 f"(make angle_step larger)",
                 "angle_step",
             )
         options["angle_range"] = (low, high)
         options["angle_step"] = step
+        _template_scale_options(sub, options, rotations)
     elif method == "circle":
         low_r = sub.take("min_radius_px", positive)
         high_r = sub.take("max_radius_px", positive)
@@ -252,6 +259,36 @@ def parse_locate_settings(node: Node, base_dir: Path, common: Common | None) -> 
         options["min_circularity"] = sub.take("min_circularity", fraction, 0.0)
     sub.finish()
     return method, min_count, max_count, min_score, options, show_rejected
+
+
+def _scale(value: Any) -> float:
+    out = number(value)
+    if not MIN_SCALE <= out <= MAX_SCALE:
+        raise ValueError(
+            f"expected a scale (part size / template size) in {MIN_SCALE:g}..{MAX_SCALE:g}, "
+            f"got {value!r}"
+        )
+    return out
+
+
+def _template_scale_options(sub: Node, options: dict[str, Any], rotations: float) -> None:
+    """The template search's scales (docs/configuration.md, locate.template)."""
+    low = sub.take("scale_min", _scale, 1.0)
+    high = sub.take("scale_max", _scale, 1.0)
+    step = sub.take("scale_step", positive, 0.02)
+    if high < low:
+        raise sub.error(f"scale_max ({high:g}) is below scale_min ({low:g})", "scale_max")
+    scales = math.floor((high - low) / step + 1e-9) + 1
+    if high - (low + step * (scales - 1)) > 1e-9:
+        scales += 1  # the search always tries scale_max too
+    if rotations * scales > MAX_POSES:
+        raise sub.error(
+            f"{rotations:.0f} rotations x {scales} scales = {rotations * scales:.0f} poses per "
+            f"request: more than {MAX_POSES} (make scale_step or angle_step larger)",
+            "scale_step",
+        )
+    options["scale_range"] = (low, high)
+    options["scale_step"] = step
 
 
 def _edge_sigma(value: Any) -> float | None:
