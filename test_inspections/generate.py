@@ -761,7 +761,18 @@ def main() -> int:
     parser.add_argument(
         "cases",
         nargs="*",
-        default=["caps", "qc", "qr", "qr_pose", "board", "codes", "caliper", "template", "real", "plate"],
+        default=[
+            "caps",
+            "qc",
+            "qr",
+            "qr_pose",
+            "board",
+            "codes",
+            "caliper",
+            "template",
+            "real",
+            "plate",
+        ],
         help="caps, qc, qr, qr_pose, board, codes, caliper, template, real, plate",
     )
     args = parser.parse_args()
