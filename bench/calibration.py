@@ -260,19 +260,23 @@ def _corner_bias(views: int) -> tuple[float, float]:
 
 
 def _sensor_check(
-    views: int, evaluated: int, corner_bias_px: float
+    views: int,
+    evaluated: int,
+    corner_bias_px: float,
+    sensors: tuple[Sensor, ...] = SENSORS,
 ) -> dict[Sensor, dict[str, Any]]:
     """The sensor check and its correction, in process (the analysis the server runs): per
-    sensor, ``views`` views fit scale and shift (fit_depth_registration), then ``evaluated``
-    other views are measured by the plane method without and with that correction. Errors of
-    camera_from_qr against the simulation's truth: translation mm, rotation degrees."""
+    sensor of ``sensors``, ``views`` views fit scale and shift (fit_depth_registration), then
+    ``evaluated`` other views are measured by the plane method without and with that
+    correction. Errors of camera_from_qr against the simulation's truth: translation mm,
+    rotation degrees."""
     from robot_client.vision_geometry import rotation_error_rad
     from simulation import SimCell
     from vision_server.analysis.depth_registration import fit_depth_registration
     from vision_server.analysis.qr_pose import qr_pose
 
     out: dict[Sensor, dict[str, Any]] = {}
-    for sensor in SENSORS:
+    for sensor in sensors:
         cell = SimCell(_scene(sensor), seed=37)
         rng = np.random.default_rng(79)  # the same views for both sensors
         side = float(cell.scene.qr_boards[0].side_m)
