@@ -9,7 +9,8 @@ method, or ``station_pose_corners`` = the paper's corner method, then base_from_
 base_from_camera @ camera_from_qr). Errors against the simulation's ground truth: translation
 and rotation of base_from_qr, and the position error at the switch 0.5 m from the code (a point
 taught in the QR frame). Two sensors: the example scene's (noise only) and the same with
-systematic errors (depth misregistered against colour, depth scale bias).
+systematic errors (depth misregistered against colour, depth scale bias of +0.5 % and the
+goal's corners, -1 % and +1 %); the sensor-checked goal is judged on the worst of them.
 
 Duration: the ``qr_calibration`` skill end to end at its view pose (no robot motion) with N
 depth frames: camera time at 30 fps for 1 + N frames (a real camera cannot deliver faster;
@@ -36,6 +37,7 @@ from geometry import (
     rotation_from_rpy,
     transform_points,
 )
+from geometry.depth_registration import registration_advice
 
 from .cell import QR_TEXT, QR_VIEW, require
 from .common import SCENE, Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
@@ -62,7 +64,9 @@ REFERENCE = "corners, depth only (paper)"
 DISTANCE_M = (0.6, 1.5)
 BANDS = ((0.6, 0.9), (0.9, 1.2), (1.2, 1.5))
 MISREGISTRATION_PX = (2.0, 1.0)
-SCALE_BIAS = 0.005
+SCALE_BIASES = (0.005, -0.01, 0.01)
+"""The depth scale errors measured with ``MISREGISTRATION_PX``: the issue's example (+0.5 %)
+and the goal's corners (+/-1 %); the goal is judged on the worst of them."""
 PAPER_MM = 10.0
 PAPER_S = 1.0
 GOAL_T_MM, GOAL_R_DEG = 0.5, 0.2
@@ -70,27 +74,61 @@ GOAL_S, GOAL_COMPUTE_MS = 0.4, 40.0
 FloatArray = NDArray[np.float64]
 
 
-def _scene(systematic: bool) -> Any:
+@dataclasses.dataclass(frozen=True)
+class Sensor:
+    """The RGB-D camera's systematic errors: depth shifted ``misregistration_px`` (du, dv)
+    against colour and read ``1 + scale_bias`` times the true z (None: the example scene's
+    sensor, noise only). ``key`` names its bench values."""
+
+    label: str
+    key: str
+    misregistration_px: tuple[float, float] | None = None
+    scale_bias: float = 0.0
+
+    @property
+    def systematic(self) -> bool:
+        return self.misregistration_px is not None
+
+
+def _bias_key(bias: float) -> str:
+    """The report key of a sensor with ``MISREGISTRATION_PX`` and ``bias``: +0.5 % keeps its
+    earlier key ("systematic") so that the report's values stay comparable across runs."""
+    if bias == 0.005:
+        return "systematic"
+    return f"systematic_{'plus' if bias > 0 else 'minus'}{abs(bias) * 100:g}pct".replace(".", "p")
+
+
+SENSORS = (
+    Sensor("noise only", "noise"),
+    *(
+        Sensor(
+            f"+ misregistration {MISREGISTRATION_PX} px, depth bias {bias:+.1%}",
+            _bias_key(bias),
+            MISREGISTRATION_PX,
+            bias,
+        )
+        for bias in SCALE_BIASES
+    ),
+)
+
+
+def _scene(sensor: Sensor) -> Any:
     from simulation.scene import load_scene
 
     scene = load_scene(SCENE)
-    if not systematic:
+    if sensor.misregistration_px is None:
         return scene
     cameras = []
     for cam in scene.cameras:
         if cam.name == "rgbd" and cam.depth is not None:
             depth = dataclasses.replace(
-                cam.depth, misregistration_px=MISREGISTRATION_PX, scale_bias=SCALE_BIAS
+                cam.depth,
+                misregistration_px=sensor.misregistration_px,
+                scale_bias=sensor.scale_bias,
             )
             cam = dataclasses.replace(cam, depth=depth)
         cameras.append(cam)
     return dataclasses.replace(scene, cameras=tuple(cameras))
-
-
-CONDITIONS = {
-    "noise only": False,
-    f"+ misregistration {MISREGISTRATION_PX} px, depth bias {SCALE_BIAS:+.1%}": True,
-}
 
 
 def _view(cell: Any, rng: np.random.Generator) -> tuple[FloatArray, float] | None:
@@ -131,7 +169,7 @@ def _client(port: int) -> Iterator[Any]:
 
 
 def _accuracy(
-    cfg: RunConfig, port: int, systematic: bool, views: int
+    cfg: RunConfig, port: int, sensor: Sensor, views: int
 ) -> dict[str, dict[str, list[float]]]:
     from protocol import CellvisionError
     from robot_client.devices.sim import sim_devices
@@ -141,7 +179,7 @@ def _accuracy(
     from robot_client.vision_geometry import rotation_error_rad
     from simulation import SimCell
 
-    cell = SimCell(_scene(systematic), seed=31)
+    cell = SimCell(_scene(sensor), seed=31)
     base_from_world = invert_transform(cell.robot.world_from_base)
     truth = base_from_world @ cell.render("rgbd").truth.qr_codes["qr_station"].world_from_qr
     switch_world = cell.scene.switches[0].world_from_switch[:3, 3]
@@ -201,7 +239,7 @@ def _corner_bias(views: int) -> tuple[float, float]:
     from simulation import SimCell
     from vision_server.analysis.qr_pose import qr_pose
 
-    cell = SimCell(_scene(False), seed=53)
+    cell = SimCell(_scene(SENSORS[0]), seed=53)
     rng = np.random.default_rng(83)
     side = float(cell.scene.qr_boards[0].side_m)
     bias: list[float] = []
@@ -221,19 +259,25 @@ def _corner_bias(views: int) -> tuple[float, float]:
     return float(np.mean(bias)), float(np.std(bias) / np.sqrt(len(bias)))
 
 
-def _sensor_check(views: int, evaluated: int, corner_bias_px: float) -> dict[str, dict[str, Any]]:
+def _sensor_check(
+    views: int,
+    evaluated: int,
+    corner_bias_px: float,
+    sensors: tuple[Sensor, ...] = SENSORS,
+) -> dict[Sensor, dict[str, Any]]:
     """The sensor check and its correction, in process (the analysis the server runs): per
-    sensor, ``views`` views fit scale and shift (fit_depth_registration), then ``evaluated``
-    other views are measured by the plane method without and with that correction. Errors of
-    camera_from_qr against the simulation's truth: translation mm, rotation degrees."""
+    sensor of ``sensors``, ``views`` views fit scale and shift (fit_depth_registration), then
+    ``evaluated`` other views are measured by the plane method without and with that
+    correction. Errors of camera_from_qr against the simulation's truth: translation mm,
+    rotation degrees."""
     from robot_client.vision_geometry import rotation_error_rad
     from simulation import SimCell
     from vision_server.analysis.depth_registration import fit_depth_registration
     from vision_server.analysis.qr_pose import qr_pose
 
-    out: dict[str, dict[str, Any]] = {}
-    for label, systematic in CONDITIONS.items():
-        cell = SimCell(_scene(systematic), seed=37)
+    out: dict[Sensor, dict[str, Any]] = {}
+    for sensor in sensors:
+        cell = SimCell(_scene(sensor), seed=37)
         rng = np.random.default_rng(79)  # the same views for both sensors
         side = float(cell.scene.qr_boards[0].side_m)
         measured: list[tuple[Any, Any, FloatArray]] = []
@@ -280,7 +324,7 @@ def _sensor_check(views: int, evaluated: int, corner_bias_px: float) -> dict[str
                 t.append(float(np.linalg.norm(pose[:3, 3] - truth[:3, 3])) * 1e3)
                 r.append(float(np.degrees(rotation_error_rad(pose, truth))))
             rows[name] = {"t": t, "r": r}
-        out[label] = rows
+        out[sensor] = rows
     return out
 
 
@@ -334,10 +378,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
     if missing:
         require(env.catalog, *missing)
     views = cfg.n(40, 2)
-    results = {
-        label: _accuracy(cfg, server.port, systematic, views)
-        for label, systematic in CONDITIONS.items()
-    }
+    results = {sensor: _accuracy(cfg, server.port, sensor, views) for sensor in SENSORS}
     table = Table(
         [
             "sensor",
@@ -352,7 +393,8 @@ def run(cfg: RunConfig, env: Env) -> Section:
             "rescaled to the side",
         ]
     )
-    for label, by_method in results.items():
+    for sensor, by_method in results.items():
+        label = sensor.label
         paper_poi = Stats.of(by_method[REFERENCE]["poi"]).p95
         for method, s in by_method.items():
             t, r, poi = Stats.of(s["t"]), Stats.of(s["r"]), Stats.of(s["poi"])
@@ -369,7 +411,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
                 f"{int(sum(s['rescaled']))} of {len(s['rescaled'])}",
             )
             short = {"plane": "plane", "corners + side": "corners_side"}.get(method, "paper")
-            key = f"{'systematic' if CONDITIONS[label] else 'noise'}_{short}"
+            key = f"{sensor.key}_{short}"
             section.value(f"{key}_t_p95_mm", t.p95)
             section.value(f"{key}_r_p95_deg", r.p95)
             section.value(f"{key}_poi_p95_mm", poi.p95)
@@ -395,14 +437,14 @@ def run(cfg: RunConfig, env: Env) -> Section:
         ["sensor", "method", *[f"{a}-{b} m: n, switch p95 mm" for a, b in BANDS]],
         caption="By distance to the code:",
     )
-    for label, by_method in results.items():
+    for sensor, by_method in results.items():
         for method, s in by_method.items():
             d, poi_mm = np.asarray(s["d"]), np.asarray(s["poi"])
             cells = []
             for lo, hi in BANDS:
                 sel = poi_mm[(d >= lo) & (d < hi)]
                 cells.append(f"{sel.size}, {fmt(Stats.of(sel).p95)}")
-            bands.add(label, method, *cells)
+            bands.add(sensor.label, method, *cells)
 
     bias_px, bias_se = _corner_bias(cfg.n(BIAS_VIEWS, 2))
     section.value("corner_bias_px", bias_px)
@@ -421,44 +463,58 @@ def run(cfg: RunConfig, env: Env) -> Section:
         "the check's views are not the evaluated ones):",
     )
     clean_p95 = float("nan")
-    for label, rows in checked.items():
+    advised: dict[Sensor, tuple[str, Stats, Stats]] = {}
+    for sensor, rows in checked.items():
         reg = rows["registration"]
         fitted = (
             f"{reg.scale:.4f} ± {reg.scale_std:.4f}, ({reg.shift_px[0]:+.2f}, "
             f"{reg.shift_px[1]:+.2f}) ± ({reg.shift_std_px[0]:.2f}, {reg.shift_std_px[1]:.2f})"
         )
-        systematic = CONDITIONS[label]
+        # what an integrator configures: the correction only when the check asks for it
+        within, _ = registration_advice(reg)
+        chosen = "plane, uncorrected" if within else "plane, sensor-checked"
         for method in ("plane, uncorrected", "plane, sensor-checked"):
             t, r = Stats.of(rows[method]["t"]), Stats.of(rows[method]["r"])
             check_table.add(
-                label,
+                sensor.label,
                 fitted,
-                method,
+                method + (" (advised)" if method == chosen else ""),
                 t.n,
                 f"{fmt(t.p50)} / {fmt(t.p95)}",
                 fmt(r.p95),
                 ratio(t.p95, GOAL_T_MM),
             )
-            key = f"check_{'systematic' if systematic else 'noise'}_{method.split(', ')[1]}"
+            key = f"check_{sensor.key}_{method.split(', ')[1]}"
             section.value(f"{key}_t_p95_mm".replace("-", "_"), t.p95)
             section.value(f"{key}_r_p95_deg".replace("-", "_"), r.p95)
-        if not systematic:
+            if method == chosen:
+                advised[sensor] = (method, t, r)
+        if not sensor.systematic:
             clean_p95 = Stats.of(rows["plane, uncorrected"]["t"]).p95
         else:
-            t95 = Stats.of(rows["plane, sensor-checked"]["t"]).p95
-            r95 = Stats.of(rows["plane, sensor-checked"]["r"]).p95
-            section.goals.append(
-                Goal(
-                    f"sensor-checked plane method p95 <= {GOAL_T_MM} mm and <= {GOAL_R_DEG}° "
-                    f"({label})",
-                    f"{fmt(t95)} mm, {fmt(r95)}° (uncorrected "
-                    f"{fmt(Stats.of(rows['plane, uncorrected']['t']).p95)} mm)",
-                    t95 <= GOAL_T_MM and r95 <= GOAL_R_DEG,
-                )
-            )
-            section.value("check_scale", reg.scale)
-            section.value("check_shift_u_px", reg.shift_px[0])
-            section.value("check_shift_v_px", reg.shift_px[1])
+            section.value(f"check_{sensor.key}_scale", reg.scale)
+            section.value(f"check_{sensor.key}_shift_u_px", reg.shift_px[0])
+            section.value(f"check_{sensor.key}_shift_v_px", reg.shift_px[1])
+    # the goal holds at its corners, so it is judged on the worst sensor, not on each alone
+    worst_t = max(advised, key=lambda k: advised[k][1].p95)
+    worst_r = max(advised, key=lambda k: advised[k][2].p95)
+    t95, r95 = advised[worst_t][1].p95, advised[worst_r][2].p95
+    section.value("check_worst_t_p95_mm", t95)
+    section.value("check_worst_r_p95_deg", r95)
+    section.goals.append(
+        Goal(
+            f"plane method as the sensor check advises, p95 <= {GOAL_T_MM} mm and "
+            f"<= {GOAL_R_DEG}° on every sensor (worst of {len(advised)}: misregistration up to "
+            f"{MISREGISTRATION_PX} px, depth scale {', '.join(f'{b:+.1%}' for b in SCALE_BIASES)}"
+            ", and noise only)",
+            f"worst {fmt(t95)} mm ({worst_t.label}), {fmt(r95)}° ({worst_r.label}); "
+            + "; ".join(
+                f"{k.label}: {m.split(', ')[1]} {fmt(t.p95)} mm, {fmt(r.p95)}°"
+                for k, (m, t, r) in advised.items()
+            ),
+            t95 <= GOAL_T_MM and r95 <= GOAL_R_DEG,
+        )
+    )
     section.notes.append(
         "Sensor check: `fit_depth_registration` over the check's views fits the depth scale and "
         "the depth-to-colour shift against the printed side (what `vision-server sensor-check` "
@@ -534,8 +590,10 @@ def run(cfg: RunConfig, env: Env) -> Section:
         "`station_pose_corners` (the corner method with the same side) "
         "and `station_pose_paper` (the paper's equations 1-4 exactly: the corners' depths, no "
         "rescaling; the reference). Ground truth from the simulation. "
-        "The systematic sensor shifts depth by "
-        f"{MISREGISTRATION_PX} px against colour and scales it by {1 + SCALE_BIAS:g}."
+        "The systematic sensors shift depth by "
+        f"{MISREGISTRATION_PX} px against colour and scale it by "
+        f"{', '.join(f'{1 + b:g}' for b in SCALE_BIASES)} (the issue's example and the goal's "
+        "corners)."
     )
     section.tables += [table, bands, check_table, timing]
     section.notes.append(
@@ -552,10 +610,10 @@ def run(cfg: RunConfig, env: Env) -> Section:
         if plt is None:
             return []
         fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-        for label, by_method in results.items():
+        for sensor, by_method in results.items():
             for method, s in by_method.items():
                 style = {"plane": "o", "corners + side": "+"}.get(method, "x")
-                short = "systematic" if CONDITIONS[label] else "noise only"
+                short = sensor.key.replace("_", " ")
                 axes[0].plot(s["d"], s["t"], style, ms=4, label=f"{method}, {short}")
                 axes[1].plot(s["d"], s["poi"], style, ms=4, label=f"{method}, {short}")
         for ax, what in zip(

@@ -50,7 +50,9 @@ def default_frame_name(text: str) -> str:
 class QRMeasurement:
     """One measurement: ``base_from_qr`` (mount base frame), ``camera_from_qr`` and
     ``base_from_camera`` it came from, the code's ``text``, the server's ``method`` and
-    ``quality`` numbers, the number of depth frames and the colour attempts needed."""
+    ``quality`` numbers, the number of depth frames and the colour attempts needed, and the
+    server's ``warnings`` on the measurement (e.g. the depth disagreeing with the printed side:
+    the inspection passes, but the sensor needs its check)."""
 
     base_from_qr: FloatArray
     camera_from_qr: FloatArray
@@ -60,6 +62,7 @@ class QRMeasurement:
     quality: dict[str, float]
     depth_frames: int
     attempts: int
+    warnings: tuple[str, ...] = ()
 
 
 def _rigid(value: Any) -> FloatArray | None:
@@ -136,7 +139,16 @@ def measure_qr_frame(
             f"inspection {pose_inspection!r} measured the code {read!r}, not {text!r}",
             {"read": read},
         )
-    quality = _numbers(dict(data.get("quality") or {}))
+    raw_quality = dict(data.get("quality") or {})
+    quality = _numbers(raw_quality)
+    # the numbers go into the calibration; the server's warnings (strings) would be lost with
+    # them, and a sensor that drifted would calibrate silently
+    raw_warnings = raw_quality.get("warnings")
+    warnings = tuple(
+        str(w) for w in (raw_warnings if isinstance(raw_warnings, list) else []) if str(w)
+    )
+    for warning in warnings:
+        ctx.report(f"warning: {warning}", 0.6)
     if not result.passed:
         fail(
             FailureReason.POOR_QUALITY,
@@ -159,6 +171,7 @@ def measure_qr_frame(
         quality=quality,
         depth_frames=len(cap.depth),
         attempts=max(used, 1),
+        warnings=warnings,
     )
 
 
@@ -299,6 +312,8 @@ class QRCalibration(Skill):
             "quality": dict(cal.quality),
             "attempts": m.attempts,
         }
+        if m.warnings:
+            data["warnings"] = list(m.warnings)
         taught = args["taught_base_from_qr"]
         if taught is not None:
             delta = invert_transform(taught) @ m.base_from_qr

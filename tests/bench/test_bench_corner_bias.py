@@ -7,15 +7,26 @@ from __future__ import annotations
 
 import pytest
 
-from bench.calibration import _corner_bias, _sensor_check
+from bench.calibration import MISREGISTRATION_PX, SENSORS, _corner_bias, _sensor_check
+
+
+def test_the_bench_measures_the_qr_pose_goals_corners() -> None:
+    """Issue 18's goal holds up to (2, 1) px and +/-1 % depth scale: both ends are measured,
+    beside the perfect sensor, and each has its own report key."""
+    biases = {s.scale_bias for s in SENSORS if s.misregistration_px == MISREGISTRATION_PX}
+    assert MISREGISTRATION_PX == (2.0, 1.0)
+    assert {-0.01, 0.01} <= biases
+    assert any(not s.systematic for s in SENSORS)
+    assert len({s.key for s in SENSORS}) == len(SENSORS)
 
 
 def test_a_perfect_sensor_checked_with_the_measured_bias_reads_true() -> None:
     bias_px, standard_error = _corner_bias(6)
     assert -0.15 < bias_px < 0.0  # corners pulled a little inwards, as on any blurred edge
     assert standard_error < 0.02
-    checked = _sensor_check(6, 0, bias_px)
-    perfect = checked["noise only"]["registration"]
-    assert perfect.scale == pytest.approx(1.0, abs=2e-4)
-    systematic = next(rows for label, rows in checked.items() if label != "noise only")
-    assert systematic["registration"].scale == pytest.approx(1.005, abs=2e-4)
+    perfect = SENSORS[0]
+    low = next(s for s in SENSORS if s.scale_bias == -0.01)  # a corner of the goal
+    checked = _sensor_check(6, 0, bias_px, (perfect, low))
+    assert not perfect.systematic
+    assert checked[perfect]["registration"].scale == pytest.approx(1.0, abs=2e-4)
+    assert checked[low]["registration"].scale == pytest.approx(0.99, abs=2e-4)

@@ -233,6 +233,28 @@ def test_bad_measurements_fail_with_a_reason(
     assert FRAME not in ctx.world.calibrations
 
 
+def test_the_servers_depth_warning_reaches_the_calibration_outcome() -> None:
+    """A sensor whose depth disagrees with the printed side still calibrates (the inspection
+    passes), but its warning must not be dropped with the quality's non-numbers."""
+    ctx, cell, vision = truth_ctx()
+    skill = REG.get("qr_calibration")
+    record = skill.teach("station", {"view_pose": VIEW}, ctx)
+    warning = "depth puts the code +0.99 % from where its printed side does (limit 0.30 %)"
+    truth = true_base_from_qr(cell)
+    camera_from_qr = invert_transform(ctx.camera("rgbd").capture().base_from_camera) @ truth
+    vision.pose_data = {
+        "found": True,
+        "text": TEXT,
+        "method": "plane",
+        "camera_from_qr": camera_from_qr.tolist(),
+        "quality": {"plane_rms_m": 0.0012, "depth_vs_side": 0.0099, "warnings": [warning]},
+    }
+    outcome = execute(skill, record, ctx)
+    assert outcome.ok, outcome.message
+    assert outcome.data["warnings"] == [warning]
+    assert outcome.data["quality"]["depth_vs_side"] == pytest.approx(0.0099)
+
+
 def test_rotation_error_rad() -> None:
     a = rotation_from_rpy(0.1, 0.2, 0.3)
     b = a @ rotation_from_rpy(0.0, 0.0, 0.01)

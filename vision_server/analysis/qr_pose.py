@@ -369,9 +369,11 @@ def qr_pose(
 
 # The noise of the code's mean image side from the sub-pixel corner detector (read_qr), std in
 # pixels, measured against the simulated camera's truth at 0.7-1.3 m. The detector's *bias* on
-# the side depends on the camera's blur and is configured per camera (``corner_bias_px``,
-# measured against a known reference: -0.07 px on the simulated Xtion-like camera), not
-# assumed here.
+# the side depends on the camera's blur and on the detector itself, so it is configured per
+# camera (``corner_bias_px``, measured against a known reference), not assumed here: on the
+# simulated Xtion-like camera about -0.03 px (bench/calibration.py measures it each run against
+# the renderer's truth; -0.07 px was an earlier detector's, and configuring it today
+# over-corrects the depth scale by ~0.04 %).
 SIDE_NOISE_PX = 0.024
 
 
