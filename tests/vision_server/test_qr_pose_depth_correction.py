@@ -47,7 +47,7 @@ def test_correction_from_the_yaml_and_the_warning(tmp_path: Path) -> None:
     for label, extra in {
         "raw": "",
         "corrected": ", depth_scale: 1.01, depth_shift_px: [2, 1], max_depth_vs_side: 0.004, "
-        "depth_scale_std: 0.0001, depth_shift_std_px: [0.25, 0.25], corner_bias_px: -0.07",
+        "depth_scale_std: 0.0001, depth_shift_std_px: [0.25, 0.25], corner_bias_px: -0.03",
     }.items():
         inspection, config = _inspection(tmp_path, extra)
         intr = config.cameras["rgbd"].intrinsics
