@@ -198,3 +198,13 @@ def test_the_validator_names_a_bad_caliper_step_with_file_line_and_key(
     assert error.line == line, str(error)
     assert path in error.path, str(error)
     assert reason in error.reason, str(error)
+
+
+def test_a_band_the_part_moves_out_of_the_image_fails_the_step_not_the_job(
+    tmp_path: Path,
+) -> None:
+    far = GAUGE.replace("[75, 0]", "[300, 0]")
+    outcome = job(tmp_path, far).run(InspectionInput(plate("taught.png")), overlay=False)
+    assert outcome.data["failed"] == ["gauge"]
+    reason = outcome.data["steps"]["gauge"]["reason"]
+    assert reason.startswith("a measurement in fixture 'part''s frame leaves the image: "), reason
