@@ -7,6 +7,10 @@ and the RGB-D camera at the station (``qr``, ``qr_pose`` with 5 depth frames), e
 at its camera's own size and resized to the other size (depth: nearest neighbour); the
 inspections at the other size use scaled intrinsics (bench/cell.py). The reference is a 5x5
 Gaussian blur of an image of the same size, measured in the same run.
+
+A second table (:mod:`.compute_tools`) times each tool at 1024x768 on one drawn image (locate:
+circle, blob, template; presence; code: DataMatrix, Code 128; qr; caliper; a job chaining them)
+beside a 3x3 box blur of that image.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from typing import Any
 
 from .cell import SIZES, require, resized
 from .common import RunConfig, Section, Stats, Table, fmt, ratio, time_calls, yardstick_ms
+from .compute_tools import add_tool_table
 from .env import Env
 from .plots import log_scale_if_positive, pyplot, save
 
@@ -109,6 +114,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
         "the time it takes)."
     )
     section.tables.append(table)
+    add_tool_table(cfg, section)
 
     def plot(directory: Path) -> list[Path]:
         plt = pyplot()

@@ -683,13 +683,18 @@ SUPER = 4  # drawn at 4x and area-averaged: anti-aliased edges, sub-pixel positi
 
 
 def plate_image(
-    pose: tuple[float, float, float], magnet: tuple[float, float] | None, seed: int
+    pose: tuple[float, float, float],
+    magnet: tuple[float, float] | None,
+    seed: int,
+    half_width: float = 40.0,
 ) -> Array:
     """A bright plate (grey 190) on a dark belt (40) with two through holes: the big one
     (radius 12 px) is the part frame's origin, the small one (radius 7 px) lies 100 px along
     its x axis; a dark magnet (30, 16x16 px) sits centred at ``magnet`` (part-frame pixels;
-    None: absent). ``pose``: the big hole's (u, v) and the x axis's angle in radians (from +u
-    towards +v). Defocus blur sigma 0.7 px and noise sigma 2 grey levels (seeded)."""
+    None: absent). The plate spans x -30..130 and y -``half_width``..``half_width`` of the part
+    frame (drawn, it comes out about 0.4 px wider: the 4x fill covers its boundary pixels).
+    ``pose``: the big hole's (u, v) and the x axis's angle in radians (from +u towards +v).
+    Defocus blur sigma 0.7 px and noise sigma 2 grey levels (seeded)."""
     u0, v0, angle = pose
     c, s = np.cos(angle), np.sin(angle)
 
@@ -705,7 +710,8 @@ def plate_image(
         pts = np.array([hi(x, y) for x, y in corners], np.int32)
         cv2.fillPoly(canvas, [pts], grey, cv2.LINE_AA, shift=4)
 
-    poly([(-30, -40), (130, -40), (130, 40), (-30, 40)], 190)
+    hw = half_width
+    poly([(-30, -hw), (130, -hw), (130, hw), (-30, hw)], 190)
     for (x, y), radius in (((0.0, 0.0), 12.0), ((100.0, 0.0), 7.0)):
         cv2.circle(canvas, hi(x, y), int(round(radius * SUPER * 16)), 40, -1, cv2.LINE_AA, 4)
     if magnet is not None:
@@ -729,11 +735,16 @@ PLATE_VIEWS: list[tuple[str, int, tuple[float, float, float] | None, Any, bool, 
     ("moved_empty.png", 65, (19.0, -9.0, 0.35), None, False, "moved and turned, no magnet"),
     ("moved_beside.png", 66, (-12.0, 15.0, -0.30), (85.0, 18.0), False, "magnet 35 px off"),
     ("no_plate.png", 67, None, None, False, "nothing there: the belt"),
+    ("moved_narrow.png", 68, (-21.0, -12.0, 0.38), POCKET, False, "plate 74 px wide, not 80"),
 ]
+PLATE_HALF_WIDTH = {"moved_narrow.png": 37.0}
+"""Views of a plate cut too narrow (part-frame px; the others are 40): the caliper step's
+width fails there while everything else passes."""
 
 
 def plate_case() -> None:
-    """job: locate the plate's holes, fixture a frame to them, check the magnet's pocket."""
+    """job: locate the plate's holes, fixture a frame to them, check the magnet's pocket and
+    measure the plate's width with a caliper in the part frame."""
     entries: Entries = {}
     for name, seed, move, magnet, passes, note in PLATE_VIEWS:
         if move is None:
@@ -744,7 +755,8 @@ def plate_case() -> None:
         else:
             du, dv, angle = move
             origin = (PLATE_HOME[0] + du, PLATE_HOME[1] + dv)
-            image = plate_image((origin[0], origin[1], angle), magnet, seed)
+            half = PLATE_HALF_WIDTH.get(name, 40.0)
+            image = plate_image((origin[0], origin[1], angle), magnet, seed, half)
             # two fixtures (translation only, then translation + rotation), both at the big hole
             entries[name] = {
                 "verdict": "pass" if passes else "fail",

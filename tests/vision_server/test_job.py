@@ -368,11 +368,11 @@ def error_of(tmp_path: Path, steps: str, verdict: str | None = None) -> ConfigEr
             "a second step named 'part'",
         ),
         (
-            MAGNET_IN_PART.replace("type: presence", "type: caliper"),
+            MAGNET_IN_PART.replace("type: presence", "type: gauge"),
             None,
-            "type: caliper",
+            "type: gauge",
             "steps[4] (name='magnet') -> type",
-            "expected one of locate, fixture, presence, code, got 'caliper'",
+            "expected one of locate, fixture, presence, code, caliper, got 'gauge'",
         ),
         (
             MAGNET_IN_PART.replace(
@@ -490,7 +490,12 @@ def test_the_docs_list_exactly_the_keys_a_job_and_its_steps_read(
 
     monkeypatch.setattr(Node, "items", items)
     monkeypatch.setattr(Node, "sub_optional", sub_optional)
-    job(tmp_path, MAGNET_IN_PART + "      - {name: label, type: code, symbologies: [qr]}\n")
+    caliper = (
+        "      - {name: gauge, type: caliper, fixture: part, measurements: [{name: w,"
+        " kind: width, band: {center: [75, 0], length: 100}}]}\n"
+    )
+    code = "      - {name: label, type: code, symbologies: [qr]}\n"
+    job(tmp_path, MAGNET_IN_PART + code + caliper)
     monkeypatch.undo()
 
     rows: dict[str, list[str]] = {}

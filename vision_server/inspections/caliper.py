@@ -71,7 +71,7 @@ class CaliperInspection(Configured):
             "units": self.units.unit,
             "failed": sum(not m.passed for m in results),
             "value": _number(results[0].value),
-            "measurements": [_measurement_dict(m) for m in results],
+            "measurements": [measurement_dict(m) for m in results],
         }
         picture = None
         if overlay:
@@ -89,7 +89,9 @@ def _number(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-def _measurement_dict(m: Measurement) -> dict[str, Any]:
+def measurement_dict(m: Measurement) -> dict[str, Any]:
+    """One measurement as the RESULT gives it (a caliper inspection's and a job's caliper
+    step's): name, kind, value in its unit, tolerance, and where it was found (image px)."""
     out: dict[str, Any] = {
         "name": m.name,
         "kind": m.kind,

@@ -1,5 +1,6 @@
-"""``type: job``: an inspection of named steps (locate, fixture, presence, code) run in order,
-with ROIs that move with a fixtured part and a verdict expression over the steps' values.
+"""``type: job``: an inspection of named steps (locate, fixture, presence, code, caliper) run
+in order, with ROIs that move with a fixtured part and a verdict expression over the steps'
+values.
 
 Public API: :func:`parse_job`, :class:`JobInspection`, ``RESULTS``, ``STEP_TYPES`` (the step
 registry), :func:`parse_expression` / :class:`ExpressionError` (the verdict grammar) and

@@ -33,7 +33,7 @@ from ..base import (
 )
 from ..kinds import Data, ResultKind, as_number, points
 from .expression import Expression, ExpressionError, parse_expression
-from .registry import STEP_TYPES
+from .registry import STEP_TYPES, WITHOUT_ROI
 from .step import ROI, Chain, Outcome, Shape, Step, StepSkipped
 
 MAX_STEPS = 32
@@ -199,7 +199,7 @@ def parse_job(node: Node, base_dir: Path, cameras: Mapping[str, CameraSettings])
             chain.refer(step_node, "fixture", fixture, types=("fixture",))
         if fixture is not None:
             region = step_node.take("roi", _frame_roi, None)
-            if region is None and step_type != "fixture":  # which says what it takes
+            if region is None and step_type not in WITHOUT_ROI:  # which say what they take
                 raise step_node.error(
                     "a step in a fixture's frame needs an roi [x, y, width, height] in that frame",
                     "fixture",

@@ -8,6 +8,7 @@ keys (``head`` holds the common ones: name, fixture, ROI) and refers to earlier 
 
 from __future__ import annotations
 
+from .caliper_step import parse_caliper_step
 from .tools import (
     StepParser,
     parse_code_step,
@@ -21,6 +22,11 @@ STEP_TYPES: dict[str, StepParser] = {
     "fixture": parse_fixture_step,
     "presence": parse_presence_step,
     "code": parse_code_step,
+    "caliper": parse_caliper_step,
 }
 
-__all__ = ["STEP_TYPES"]
+WITHOUT_ROI = ("fixture", "caliper")
+"""Step types that take no ``roi`` even in a fixture's frame (a fixture uses its origin's
+feature; a caliper's bands and circles are its geometry)."""
+
+__all__ = ["STEP_TYPES", "WITHOUT_ROI"]

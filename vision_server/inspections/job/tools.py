@@ -1,4 +1,5 @@
-"""The step types of a job: ``locate``, ``fixture``, ``presence``, ``code``.
+"""The step types of a job: ``locate``, ``fixture``, ``presence``, ``code`` (``caliper``: its own
+module, :mod:`.caliper_step`).
 
 Each reuses the analysis of the inspection of the same name (:mod:`vision_server.analysis`)
 and that inspection's key reading; a step run in a fixture's frame analyses the ROI sampled in
