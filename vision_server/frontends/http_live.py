@@ -6,17 +6,24 @@ cached JPEG, and viewers asking at once wait for the same capture. Request camer
 last image a robot sent, and triggered cameras (a GenICam camera with a software or hardware
 trigger) the last frame an inspection took, learnt from the service's observers of results and
 encoded only when someone looks (and at most ``max_fps`` times per second).
+
+The view is best effort: its JPEG encoding (the live view's main cost, several ms a frame at
+1024x768) runs in one thread of its own at the lowest priority (niceness 19 on Linux), below
+the main lane and its worker processes, so that on a saturated cell an open console slows its
+own frames, not the inspections (bench section 2d measures both).
 """
 
 from __future__ import annotations
 
 import asyncio
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
 import cv2
 
+from vision_server.cpu_priority import MAX_NICE, lower_this_thread
 from vision_server.service import (
     CaptureRequest,
     ImageLoader,
@@ -62,10 +69,17 @@ class LiveView:
         self._locks: dict[str, asyncio.Lock] = {}
         self._sent: dict[str, _Sent] = {}
         self._rates: dict[str, tuple[float, int, float | None]] = {}
+        self._encoder = ThreadPoolExecutor(
+            1, thread_name_prefix="live-view", initializer=lower_this_thread, initargs=(MAX_NICE,)
+        )
         self._unsubscribe = service.subscribe(self._on_result)
 
     def close(self) -> None:
         self._unsubscribe()
+        self._encoder.shutdown(wait=False, cancel_futures=True)
+
+    async def _encode(self, fn: Any, *args: Any) -> Any:
+        return await asyncio.get_running_loop().run_in_executor(self._encoder, fn, *args)
 
     def _on_result(self, record: InspectionRecord) -> None:
         camera = self.service.catalog.cameras.get(record.reply.camera)
@@ -120,11 +134,12 @@ class LiveView:
             return fresh
 
     async def _captured(self, name: str, started: float) -> LiveFrame:
-        reply = await self.service.capture(CaptureRequest(name, encoding="jpeg"))
+        # Raw from the service (a cheap grab), encoded here at the view's low priority.
+        reply = await self.service.capture(CaptureRequest(name))
         frame = reply.frames[0]
-        assert frame.encoded is not None
         height, width = frame.color.shape[:2]
-        return LiveFrame(frame.encoded, width, height, frame.timestamp, started)
+        jpeg = await self._encode(_jpeg, frame.color)
+        return LiveFrame(jpeg, width, height, frame.timestamp, started)
 
     async def _sent_frame(self, name: str, cached: LiveFrame | None) -> LiveFrame | None:
         sent = self._sent.get(name)
@@ -134,7 +149,8 @@ class LiveView:
             return cached
         max_pixels = self.service.settings.max_image_pixels
         needs = ImageNeeds(sent.inspection, True, max_pixels)
-        return await asyncio.to_thread(_encode_sent, sent, needs)
+        frame: LiveFrame = await self._encode(_encode_sent, sent, needs)
+        return frame
 
 
 def _encode_sent(sent: _Sent, needs: ImageNeeds) -> LiveFrame:
