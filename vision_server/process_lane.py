@@ -74,7 +74,11 @@ class _Worker:
     conn: Connection
     block: SharedMemory | None = None
     known: OrderedDict[int, None] = field(default_factory=OrderedDict)
-    """The inspection numbers this process holds, oldest first (mirrors the process's cache)."""
+    """The inspection numbers this process holds, oldest first (mirrors the process's cache;
+    a process that lacks one says so and is sent its pickle)."""
+    sequence: int = 0
+    """The number of the last message sent: a reply to an earlier one (left unread when its
+    thread was interrupted) is recognised and dropped."""
 
 
 class ProcessLane:
@@ -101,7 +105,9 @@ class ProcessLane:
         self.policy = policy
         """``nice`` or ``idle`` (:data:`vision_server.cpu_priority.POLICIES`)."""
         self._context = multiprocessing.get_context("spawn")
-        self._idle: queue.SimpleQueue[_Worker] = queue.SimpleQueue()
+        self._idle: queue.SimpleQueue[_Worker | None] = queue.SimpleQueue()
+        """Workers free to take a request; None once the lane is stopped (each waiter that
+        takes it puts it back for the next)."""
         self._workers: list[_Worker] = []
         self._lock = threading.Lock()
         self._started = False
@@ -152,6 +158,7 @@ class ProcessLane:
         with self._lock:
             self._closed = True
             workers, self._workers = self._workers, []
+        self._idle.put(None)  # threads waiting for a worker get SHUTTING_DOWN
         for worker in workers:
             with contextlib.suppress(OSError):
                 worker.conn.close()
@@ -171,6 +178,9 @@ class ProcessLane:
         self.start()
         number, pickled = self._number(inspection)
         worker = self._idle.get()
+        if worker is None:
+            self._idle.put(None)
+            raise ShuttingDown("the worker processes are stopped")
         try:
             status, payload = self._run_on(worker, number, pickled, image, overlay)
         except (EOFError, OSError) as exc:
@@ -209,20 +219,44 @@ class ProcessLane:
         try:
             for (offset, shape, dtype), array in zip(layout, arrays, strict=True):
                 np.ndarray(shape, dtype, buffer=block.buf, offset=offset)[...] = array
-            if number in worker.known:
-                worker.known.move_to_end(number)
-                sent: bytes | None = None
-            else:
-                sent = pickled
-                worker.known[number] = None
-                if len(worker.known) > CACHED_INSPECTIONS:
-                    worker.known.popitem(last=False)
-            worker.conn.send((number, sent, block.name, tuple(layout), image.intrinsics, overlay))
-            reply: tuple[str, Any] = worker.conn.recv()
-            return reply
+            message = (block.name, tuple(layout), image.intrinsics, overlay)
+            status, payload = self._exchange(worker, number, pickled, message, force=False)
+            if status == "missing":  # the process lost it (its unpickling failed): send it
+                status, payload = self._exchange(worker, number, pickled, message, force=True)
+            return status, payload
         finally:
             if one_off:
                 _remove(block)
+
+    def _exchange(
+        self,
+        worker: _Worker,
+        number: int,
+        pickled: bytes,
+        message: tuple[str, Layout, Any, bool],
+        *,
+        force: bool,
+    ) -> tuple[str, Any]:
+        """One message to ``worker`` and its reply. The inspection goes as its pickle when the
+        process is not known to hold it, or ``force``; it counts as held once sent."""
+        sent: bytes | None = pickled
+        if not force and number in worker.known:
+            worker.known.move_to_end(number)
+            sent = None
+        worker.sequence += 1
+        sequence = worker.sequence
+        worker.conn.send((sequence, number, sent, *message))
+        if sent is not None:
+            worker.known[number] = None
+            worker.known.move_to_end(number)
+            if len(worker.known) > CACHED_INSPECTIONS:
+                worker.known.popitem(last=False)
+        while True:
+            answered, status, payload = worker.conn.recv()
+            if answered == sequence:
+                if status == "missing":
+                    worker.known.pop(number, None)
+                return status, payload
 
     def _block(self, worker: _Worker, size: int) -> SharedMemory:
         """The worker's own block, replaced by a larger one when ``size`` does not fit."""
@@ -297,10 +331,17 @@ def _child_main(
             message = conn.recv()
         except (EOFError, OSError):
             return
+        sequence, body = message[0], message[1:]
         try:
-            reply: tuple[str, Any] = ("ok", _run_in_child(message, inspections, attached))
+            reply: tuple[int, str, Any] = (
+                sequence,
+                "ok",
+                _run_in_child(body, inspections, attached),
+            )
+        except _Missing:
+            reply = (sequence, "missing", None)
         except Exception as exc:  # an inspection's error goes back to the request it failed
-            reply = ("error", exc)
+            reply = (sequence, "error", exc)
         try:
             conn.send(reply)
         except (EOFError, OSError):
@@ -308,6 +349,7 @@ def _child_main(
         except Exception as exc:  # an outcome or error that does not pickle
             conn.send(
                 (
+                    sequence,
                     "error",
                     InternalError(
                         f"the inspection's outcome could not be sent back: {exc}",
@@ -316,8 +358,12 @@ def _child_main(
             )
 
 
+class _Missing(Exception):
+    """The process does not hold the inspection it was sent by number."""
+
+
 def _run_in_child(
-    message: tuple[int, bytes | None, str, Layout, Any, bool],
+    message: tuple[Any, ...],
     inspections: OrderedDict[int, Inspection],
     attached: dict[str, SharedMemory],
 ) -> InspectionOutcome:
@@ -326,8 +372,10 @@ def _run_in_child(
         inspections[number] = pickle.loads(pickled)
         if len(inspections) > CACHED_INSPECTIONS:
             inspections.popitem(last=False)
-    else:
+    elif number in inspections:
         inspections.move_to_end(number)
+    else:
+        raise _Missing
     inspection = inspections[number]
     block = _attach(block_name, attached)
     images = [

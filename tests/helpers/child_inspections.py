@@ -87,3 +87,26 @@ class CountsItsPickles:
 
 def pickled_times() -> int:
     return _pickled_times[0]
+
+
+def _refuse_outside(parent: int) -> CountsItsPickles:
+    if os.getpid() != parent:
+        raise ValueError("this inspection cannot be unpickled in a worker process")
+    return CountsItsPickles()
+
+
+@dataclass(frozen=True)
+class UnpicklableInWorkers:
+    """Pickles in the server, but its unpickling fails in any other process."""
+
+    name: str = "unpicklable"
+    camera: str = "tool"
+    type: str = "test_unpicklable"
+    uses_depth: bool = False
+    frames: int = 1
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_refuse_outside, (os.getpid(),))
+
+    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
+        return InspectionOutcome(True, {}, None)

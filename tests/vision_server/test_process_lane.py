@@ -7,15 +7,22 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 from multiprocessing.shared_memory import SharedMemory
 from pathlib import Path
 
 import numpy as np
 import pytest
-from child_inspections import CountsItsPickles, Misbehaving, WhereAmI, pickled_times
+from child_inspections import (
+    CountsItsPickles,
+    Misbehaving,
+    UnpicklableInWorkers,
+    WhereAmI,
+    pickled_times,
+)
 from loopback import run
 
-from protocol.errors import InspectionFailed, InternalError
+from protocol.errors import InspectionFailed, InternalError, ShuttingDown
 from vision_server import process_lane
 from vision_server.cameras import RequestCamera, RequestCameraSettings
 from vision_server.catalog import Catalog, InspectionInput
@@ -239,3 +246,72 @@ def test_each_process_runs_opencv_with_the_threads_left_to_it() -> None:
         run(body(), timeout_s=120.0)
     finally:
         service.close()
+
+
+class Interrupted(Exception):
+    """What an interrupted thread sees between sending a request and reading its reply."""
+
+
+def test_a_reply_left_unread_by_an_interrupted_thread_is_not_taken_for_the_next_one() -> None:
+    lane = ProcessLane(1)
+    try:
+        lane.start()
+        conn = lane._workers[0].conn
+        real_recv = conn.recv
+        interrupted = [False]
+
+        def recv_interrupted_once() -> object:
+            if not interrupted[0]:
+                interrupted[0] = True
+                raise Interrupted
+            return real_recv()
+
+        conn.recv = recv_interrupted_once  # type: ignore[method-assign]
+        with pytest.raises(Interrupted):
+            lane.run(WhereAmI(), InspectionInput(COLOR, (DEPTH,)), overlay=False)
+        # The image lies in the shared block, which the next request overwrites: the layout
+        # that travels with each message (a depth frame, then none) tells the replies apart.
+        darker = (COLOR // 2).astype(np.uint8)
+        outcome = lane.run(WhereAmI(), InspectionInput(darker), overlay=False)
+        assert outcome.data["depth"] == []
+        assert outcome.data["mean"] == pytest.approx(float(darker.mean()))
+    finally:
+        lane.shutdown()
+
+
+def test_a_thread_waiting_for_a_worker_when_the_lane_stops_gets_shutting_down() -> None:
+    lane = ProcessLane(1)
+    lane.start()
+    taken = lane._idle.get()  # the only worker is busy
+    assert taken is not None
+    outcome: list[BaseException] = []
+
+    def wait_for_a_worker() -> None:
+        try:
+            lane.run(WhereAmI(), InspectionInput(COLOR), overlay=False)
+        except BaseException as exc:  # noqa: BLE001 - the test reads what it was
+            outcome.append(exc)
+
+    waiter = threading.Thread(target=wait_for_a_worker)
+    waiter.start()
+    lane.shutdown()
+    waiter.join(60.0)
+    assert not waiter.is_alive()
+    assert len(outcome) == 1
+    assert isinstance(outcome[0], ShuttingDown)
+
+
+def test_a_process_that_could_not_unpickle_an_inspection_is_sent_it_again() -> None:
+    # The server counts an inspection as held once sent; a process whose unpickling failed
+    # says it lacks it, and the next request sends the pickle again (the same error, not a
+    # lookup error of the process's cache).
+    lane = ProcessLane(1)
+    inspection = UnpicklableInWorkers()
+    try:
+        for _ in range(2):
+            with pytest.raises(ValueError, match="cannot be unpickled in a worker"):
+                lane.run(inspection, InspectionInput(COLOR), overlay=False)
+        outcome = lane.run(WhereAmI(), InspectionInput(COLOR), overlay=False)
+        assert outcome.data["mean"] == pytest.approx(float(COLOR.mean()))
+    finally:
+        lane.shutdown()
