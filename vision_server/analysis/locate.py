@@ -1260,22 +1260,33 @@ def _moment_centres(
     (the ROI, whose top-left is ``origin``); every other found circle is a neighbour."""
     u0, v0 = origin
     circles = [(f.u - u0, f.v - v0, f.radius or 0.0) for f in features]
+    sigmas = [
+        edge_sigma_px
+        if edge_sigma_px is not None
+        else edge_sigma(sample, (cx, cy), r, polarity=polarity) or SHARP_SIGMA
+        for cx, cy, r in circles
+    ]
+    # Two rounds: the second sees its neighbours as their moments put them (their size then
+    # no longer depends on the blur either).
+    found: list[tuple[float, float, float] | str] = list(circles)
+    for _ in range(2):
+        neighbours = [c if isinstance(c, tuple) else e for c, e in zip(found, circles, strict=True)]
+        found = [
+            moment_centre(
+                sample,
+                circle,
+                blur_sigma_px=sigma,
+                polarity=polarity,
+                others=neighbours[:index] + neighbours[index + 1 :],
+            )
+            for index, (circle, sigma) in enumerate(zip(circles, sigmas, strict=True))
+        ]
     moved: list[Feature] = []
-    for index, (cx, cy, r) in enumerate(circles):
-        sigma = edge_sigma_px
-        if sigma is None:
-            sigma = edge_sigma(sample, (cx, cy), r, polarity=polarity) or SHARP_SIGMA
-        found = moment_centre(
-            sample,
-            (cx, cy, r),
-            blur_sigma_px=sigma,
-            polarity=polarity,
-            others=circles[:index] + circles[index + 1 :],
-        )
-        if isinstance(found, str):
-            reject(cx, cy, r, f"centre by moments: {found}")
-            continue
-        moved.append(replace(features[index], u=u0 + found[0], v=v0 + found[1]))
+    for feature, circle, result in zip(features, circles, found, strict=True):
+        if isinstance(result, str):
+            reject(*circle, f"centre by moments: {result}")
+        else:
+            moved.append(replace(feature, u=u0 + result[0], v=v0 + result[1]))
     return moved
 
 
