@@ -308,6 +308,11 @@ def test_camera_sources_become_their_settings(tmp_path: Path) -> None:
             r"circle -> min_edge_contrast: expected a grey-level step",
         ),
         (
+            "{name: a, type: locate, camera: tool, method: circle, circle: {min_radius_px: 5, "
+            "max_radius_px: 9, centre: centroid}}",
+            r"circle -> centre: expected one of edge, moments",
+        ),
+        (
             "{name: a, type: locate, camera: tool, method: blob, blob: {}, circle: {}}",
             r"'circle' options given, but method is 'blob'",
         ),

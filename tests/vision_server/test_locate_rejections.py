@@ -50,6 +50,7 @@ def test_the_settings_reach_the_locate(tmp_path: Path) -> None:
     assert inspection.options["rays"] == 120
     assert inspection.options["edge_sigma_px"] is None  # auto
     assert inspection.options["max_edge_sigma_px"] == 6.0
+    assert inspection.options["centre"] == "edge"
 
 
 def test_a_rejected_candidate_is_reported_with_its_reason(tmp_path: Path) -> None:

@@ -22,18 +22,20 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .circle_moments import moment_centre
 from .edge_width import SHARP_SIGMA, edge_sigma
 from .errors import BadImageError, NotFoundError, RoiError, TemplateError
 from .template_align import Alignment, align_template
 
 __all__ = [
+    "CENTRES",
     "MAX_SCALE",
     "METHODS",
     "MIN_SCALE",
@@ -52,6 +54,9 @@ Gray = NDArray[np.uint8]
 FloatArray = NDArray[np.float64]
 Roi = tuple[int, int, int, int]
 Polarity = Literal["bright", "dark"]
+Centre = Literal["edge", "moments"]
+CENTRES: tuple[Centre, ...] = ("edge", "moments")
+"""How :func:`locate_circles` reads a circle's centre (its ``centre`` option)."""
 
 
 @dataclass(frozen=True)
@@ -1103,6 +1108,7 @@ def locate_circles(
     hough_threshold: float = 0.6,
     edge_sigma_px: float | None = None,
     max_edge_sigma_px: float = 6.0,
+    centre: Centre = "edge",
     rejected: list[Rejection] | None = None,
 ) -> list[Feature]:
     """Find round features (e.g. rotor caps seen from above) with sub-pixel centres.
@@ -1142,6 +1148,13 @@ def locate_circles(
         The edges' blur as a Gaussian sigma in px; None (default): measured per candidate.
     max_edge_sigma_px : float
         Largest blur accepted (px); a candidate whose measured edge is wider is rejected.
+    centre : {'edge', 'moments'}
+        ``'edge'`` (default): the centre of the circle fitted to the edge points, the part's
+        outline. ``'moments'``: the first moment of the background-subtracted intensity around
+        each fitted circle, taken at a common blur (:func:`.circle_moments.moment_centre`):
+        blur does not move it, but it is the centre of the part's light, not of its outline
+        (a part lit from one side reads off towards the light). A part whose moments cannot be
+        taken is rejected with the reason. ``radius`` and ``score`` stay the edge fit's.
     rejected : list, optional
         When given, a :class:`Rejection` is appended for every Hough candidate not reported.
 
@@ -1157,6 +1170,8 @@ def locate_circles(
     BadImageError, RoiError
     """
     _check_polarity(polarity)
+    if centre not in CENTRES:
+        raise ValueError(f"centre must be one of {CENTRES}, not {centre!r}")
     gray = to_gray(image)
     search, (u0, v0, _, _) = crop_roi(gray, roi)
     r_lo, r_hi = float(radius_range[0]), float(radius_range[1])
@@ -1217,10 +1232,62 @@ def locate_circles(
             reject(cx, cy, r, "the same circle as a better candidate")
             continue
         features.append(Feature(u=u0 + fx, v=v0 + fy, angle=0.0, score=score, radius=fr))
+    if centre == "moments":
+        features = _moment_centres(
+            sample,
+            features,
+            (u0, v0),
+            polarity=polarity,
+            edge_sigma_px=edge_sigma_px,
+            reject=reject,
+        )
     features.sort(key=lambda f: -f.score)
     for extra in features[max_count:]:
         reject(extra.u - u0, extra.v - v0, extra.radius or 0.0, f"beyond max_count {max_count}")
     return features[:max_count]
+
+
+def _moment_centres(
+    sample: FloatArray,
+    features: list[Feature],
+    origin: tuple[int, int],
+    *,
+    polarity: Polarity,
+    edge_sigma_px: float | None,
+    reject: Callable[[float, float, float, str], None],
+) -> list[Feature]:
+    """``features`` (full-image px) with their centres read as intensity moments in ``sample``
+    (the ROI, whose top-left is ``origin``); every other found circle is a neighbour."""
+    u0, v0 = origin
+    circles = [(f.u - u0, f.v - v0, f.radius or 0.0) for f in features]
+    sigmas = [
+        edge_sigma_px
+        if edge_sigma_px is not None
+        else edge_sigma(sample, (cx, cy), r, polarity=polarity) or SHARP_SIGMA
+        for cx, cy, r in circles
+    ]
+    # Two rounds: the second sees its neighbours as their moments put them (their size then
+    # no longer depends on the blur either).
+    found: list[tuple[float, float, float] | str] = list(circles)
+    for _ in range(2):
+        neighbours = [c if isinstance(c, tuple) else e for c, e in zip(found, circles, strict=True)]
+        found = [
+            moment_centre(
+                sample,
+                circle,
+                blur_sigma_px=sigma,
+                polarity=polarity,
+                others=neighbours[:index] + neighbours[index + 1 :],
+            )
+            for index, (circle, sigma) in enumerate(zip(circles, sigmas, strict=True))
+        ]
+    moved: list[Feature] = []
+    for feature, circle, result in zip(features, circles, found, strict=True):
+        if isinstance(result, str):
+            reject(*circle, f"centre by moments: {result}")
+        else:
+            moved.append(replace(feature, u=u0 + result[0], v=v0 + result[1]))
+    return moved
 
 
 # --- blobs ------------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from ..analysis import AnalysisError
-from ..analysis.locate import MAX_SCALE, MIN_SCALE, Feature, Rejection, locate
+from ..analysis.locate import CENTRES, MAX_SCALE, MIN_SCALE, Feature, Rejection, locate
 from ..cameras import CameraSettings
 from ..catalog import InspectionInput, InspectionOutcome
 from ..configfile import Node, boolean, fraction, number, one_of, positive, positive_int
@@ -325,6 +325,7 @@ def _circle_edge_options(sub: Node, options: dict[str, Any]) -> None:
         )
     options["min_contrast"] = sub.take("min_edge_contrast", _grey_level, 15.0)
     options["rays"] = sub.take("rays", _rays, 180)
+    options["centre"] = sub.take("centre", one_of(*CENTRES), "edge")
 
 
 def _locate_expected(data: Data) -> dict[str, Any]:
