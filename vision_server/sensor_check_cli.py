@@ -98,7 +98,9 @@ def sensor_check(args: argparse.Namespace) -> int:
         gains.append([float(g) for g in q.shift_sensitivity])
         sides.append(q.side_px)
     try:
-        reg = fit_depth_registration(ratios, gains, sides, corner_bias_px=inspection.corner_bias_px)
+        reg = fit_depth_registration(
+            ratios, gains, sides, corner_bias_px=inspection.corner_bias_px or 0.0
+        )
     except AnalysisError as exc:
         print(f"vision-server sensor-check: {exc}")
         return 2

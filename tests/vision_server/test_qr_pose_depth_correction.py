@@ -74,3 +74,15 @@ def test_bad_correction_keys_are_named(tmp_path: Path) -> None:
         _inspection(tmp_path, ", depth_scale: 0")
     with pytest.raises(ConfigError, match=r"corner_bias_px.*within \+/-1 px"):
         _inspection(tmp_path, ", corner_bias_px: 5")
+
+
+def test_unchecked_sensor_keys_are_validated_and_named(tmp_path: Path) -> None:
+    inspection, _ = _inspection(tmp_path)
+    assert (inspection.unchecked_scale_std, inspection.unchecked_shift_std_px) == (0.01, 2.0)
+    assert inspection.corner_bias_px is None  # not measured unless configured
+    inspection, _ = _inspection(tmp_path, ", unchecked_scale_std: 0.005, unchecked_shift_std_px: 3")
+    assert (inspection.unchecked_scale_std, inspection.unchecked_shift_std_px) == (0.005, 3.0)
+    with pytest.raises(ConfigError, match=r"unchecked_scale_std.*0.01 = 1 %"):
+        _inspection(tmp_path, ", unchecked_scale_std: 1")  # 1 for 1 %: a typo
+    with pytest.raises(ConfigError, match="unchecked_shift_std_px"):
+        _inspection(tmp_path, ", unchecked_shift_std_px: -2")

@@ -32,13 +32,19 @@ in-plane angle comes from the image corners. Why this is robust on a Kinect-like
   not move the plane (the quad is eroded so no pixel near the board's edge is used), whereas
   the corners method samples the wrong spot;
 - a depth scale bias (z read as (1 + b) z) scales the plane about the camera centre and with
-  it the corners. With ``side_m`` (the printed side of the symbol) the corners are rescaled
-  along their rays so the mean measured side equals ``side_m``: the image size of the code
-  plus its known size fixes the distance, independent of depth bias. But the image-based
-  distance is noisier than unbiased depth (about corner error / side in px of the range,
-  ~0.06 % = 0.6 mm at 1 m, against < 0.1 mm from the plane), so ``scale="auto"`` (default)
-  rescales only when the sides disagree with ``side_m`` by more than ``side_tolerance``
-  (0.4 %), i.e. when the depth is evidently biased; "side" and "depth" force either.
+  it the corners, and a misregistration on a tilted board moves the plane along the rays by
+  (n_x du / fx + n_y dv / fy) / n_z of the range; neither turns the plane. With ``side_m`` (the
+  printed side of the symbol) the image size of the code fixes the distance independently of
+  both: the corners are rescaled along their rays so the mean measured side equals ``side_m``.
+  The printed side is noisier than unbiased depth (about 0.02 px / side in px of the range,
+  ~0.03 % = 0.3 mm at 1 m, against < 0.05 mm from the plane), so with ``scale="auto"``
+  (default) the two distances are fused by their uncertainties (:func:`_fused_factor`): the
+  depth's is its configured correction's (the sensor check's standard errors) or, when no
+  check is configured, the typical systematic errors of an unchecked RGB-D sensor
+  (``unchecked_scale_std`` 1 %, ``unchecked_shift_std_px`` 2 px; :func:`_unchecked_factor`).
+  Then the printed side carries the distance along the ray and the depth the orientation,
+  unless the depth agrees with the side within the side's noise, when it is kept: a sensor
+  without systematic errors loses nothing of its precision.
 """
 
 from __future__ import annotations
@@ -57,7 +63,21 @@ from geometry import CameraIntrinsics, fit_plane, orthonormalize
 from .errors import BadImageError, DepthError, NotFoundError
 from .qr import Expect, read_qr
 
-__all__ = ["QRPose", "QRPoseQuality", "qr_pose", "QR_CORNERS_QR"]
+__all__ = [
+    "QRPose",
+    "QRPoseQuality",
+    "qr_pose",
+    "QR_CORNERS_QR",
+    "UNCHECKED_SCALE_STD",
+    "UNCHECKED_SHIFT_STD_PX",
+]
+
+UNCHECKED_SCALE_STD = 0.01
+"""Depth scale error (relative std) assumed of a sensor whose check is not configured: RGB-D
+cameras out of the box read 0.5-1 % off (issue 18; the sensor check measures the real one)."""
+UNCHECKED_SHIFT_STD_PX = 2.0
+"""Depth-to-colour misregistration (std per axis, pixels) assumed of an unchecked sensor: a
+factory registration is typically off by 1-3 px."""
 
 FloatArray = NDArray[np.float64]
 Method = Literal["plane", "corners"]
@@ -219,7 +239,6 @@ def qr_pose(
     roi: Sequence[int] | None = None,
     side_m: float | None = None,
     scale: Literal["auto", "side", "depth"] = "auto",
-    side_tolerance: float = 0.004,
     erode: float = 0.08,
     window_px: int = 1,
     ransac_threshold_m: float | None = None,
@@ -229,7 +248,9 @@ def qr_pose(
     depth_shift_px: tuple[float, float] = (0.0, 0.0),
     depth_scale_std: float | None = None,
     depth_shift_std_px: tuple[float, float] = (0.0, 0.0),
-    corner_bias_px: float = 0.0,
+    corner_bias_px: float | None = None,
+    unchecked_scale_std: float = UNCHECKED_SCALE_STD,
+    unchecked_shift_std_px: float = UNCHECKED_SHIFT_STD_PX,
 ) -> QRPose:
     """``camera_from_qr`` of the QR code in ``color`` (or at the given ``corners``).
 
@@ -238,9 +259,8 @@ def qr_pose(
     ``corners`` (4, 2): c0..c3 in pixels (then ``color`` may be None); otherwise the code is
     read with :func:`read_qr` (``expect``, ``roi`` select it). ``side_m``: the printed side
     of the symbol; ``scale`` "side" rescales the corners along their rays so their mean side
-    is ``side_m``, "depth" keeps the depth's distance, "auto" (default) rescales only when the
-    measured side differs from ``side_m`` by more than ``side_tolerance`` (relative; 0.4 %
-    is well above the image-based noise of ~0.1 % and catches a depth scale bias).
+    is ``side_m``, "depth" keeps the depth's distance, "auto" (default) fuses the two
+    distances by their uncertainties (``depth_scale_std``, ``unchecked_scale_std``).
     ``erode``: fraction of the side removed around the quad's edge before the plane fit.
     ``window_px``: the corners method's half window. ``ransac_threshold_m``: default from
     the sensor noise at that range.
@@ -255,9 +275,15 @@ def qr_pose(
     a perfect sensor. ``depth_scale_std`` and ``depth_shift_std_px``: their uncertainties (the
     check's standard errors); given with ``side_m`` and ``scale="auto"``, the distance is the
     fusion of the corrected depth's and the printed side's by their variances (see
-    :func:`_fused_factor`) instead of the ``side_tolerance`` switch. ``corner_bias_px``: how
-    much too long the corner detector reads the code's image side on this camera (negative:
-    too short), removed from the side before the fusion (0: none assumed).
+    :func:`_fused_factor`). ``corner_bias_px``: how much too long the corner detector reads
+    the code's image side on this camera (negative: too short), removed from the side before
+    the fusion (None: not measured, so the side's uncertainty includes
+    UNMEASURED_CORNER_BIAS_STD_PX). ``unchecked_scale_std`` (relative) and
+    ``unchecked_shift_std_px`` (pixels, each axis): the systematic errors assumed of a sensor
+    whose check is not configured (no ``depth_scale``, ``depth_shift_px`` or
+    ``depth_scale_std``), typical of an RGB-D camera out
+    of the box (scale 0.5-1 %, registration a few pixels); 0 and 0 keep the depth's distance
+    as it is. See :func:`_unchecked_factor`.
 
     Raises NotFoundError (no code), DepthError (a corner without depth, too few depth pixels,
     degenerate geometry), BadImageError (bad depth frames).
@@ -272,6 +298,10 @@ def qr_pose(
         raise ValueError("scale='side' needs side_m")
     if not depth_scale > 0:
         raise ValueError(f"depth_scale must be positive, got {depth_scale}")
+    if not (unchecked_scale_std >= 0 and np.isfinite(unchecked_scale_std)):
+        raise ValueError(f"unchecked_scale_std must be >= 0, got {unchecked_scale_std}")
+    if not (unchecked_shift_std_px >= 0 and np.isfinite(unchecked_shift_std_px)):
+        raise ValueError(f"unchecked_shift_std_px must be >= 0, got {unchecked_shift_std_px}")
     shape = (intrinsics.height, intrinsics.width)
     depth = _depth_stack(depth_frames, shape)
     correction = DepthCorrection(
@@ -318,21 +348,32 @@ def qr_pose(
     factor = 1.0
     side_px = float(np.mean(_sides(corners_uv)))
     sensitivity = _shift_sensitivity(corners_cam, intrinsics)
-    if side_m is not None and scale == "auto" and depth_scale_std is not None:
-        factor = _fused_factor(
-            float(sides.mean()) / side_m - 1.0,
-            side_px,
-            sensitivity,
-            depth_scale_std,
-            depth_shift_std_px,
-            corner_bias_px,
-        )
+    if side_m is not None and scale == "auto":
+        disagreement = float(sides.mean()) / side_m - 1.0
+        checked = depth_scale_std is not None or correction != DepthCorrection()
+        if checked:
+            # a correction without its standard errors is taken as exact
+            factor = _fused_factor(
+                disagreement,
+                side_px,
+                sensitivity,
+                depth_scale_std or 0.0,
+                depth_shift_std_px,
+                corner_bias_px or 0.0,
+            )
+        else:
+            factor = _unchecked_factor(
+                disagreement,
+                side_px,
+                sensitivity,
+                unchecked_scale_std,
+                unchecked_shift_std_px,
+                corner_bias_px,
+            )
+        corners_cam = corners_cam * factor  # along the rays through the camera centre
+    elif side_m is not None and scale == "side":
+        factor = side_m / float(sides.mean())
         corners_cam = corners_cam * factor
-    elif side_m is not None and scale != "depth":
-        ratio = side_m / float(sides.mean())
-        if scale == "side" or abs(ratio - 1.0) > side_tolerance:
-            factor = ratio
-            corners_cam = corners_cam * factor  # along the rays through the camera centre
 
     if method == "corners":
         x = corners_cam[0] - corners_cam[3]
@@ -375,6 +416,10 @@ def qr_pose(
 # the renderer's truth; -0.07 px was an earlier detector's, and configuring it today
 # over-corrects the depth scale by ~0.04 %).
 SIDE_NOISE_PX = 0.024
+UNMEASURED_CORNER_BIAS_STD_PX = 0.05
+"""The uncertainty of the corner detector's bias on the side when ``corner_bias_px`` is not
+configured: the simulated camera's was -0.07 px with an earlier detector and is -0.03 px with
+today's, so a camera nobody measured is assumed within about +/-0.05 px (1 std)."""
 
 
 def _shift_sensitivity(corners_cam: FloatArray, intr: CameraIntrinsics) -> FloatArray:
@@ -409,6 +454,45 @@ def _fused_factor(
         return 1.0
     w = var_depth / (var_depth + var_side)
     return 1.0 / (1.0 + w * r)
+
+
+def _unchecked_factor(
+    depth_vs_side: float,
+    side_px: float,
+    sensitivity: FloatArray,
+    scale_std: float,
+    shift_std_px: float,
+    corner_bias_px: float | None,
+) -> float:
+    """The factor on the uncorrected depth's corners when no sensor check is configured.
+
+    The depth's systematic error is unknown: either the sensor has none worth naming (its
+    distance is then far more precise than the printed side's) or it has the typical error
+    of an unchecked RGB-D camera, relative std sqrt(scale_std² + (g · shift_std_px)²) with g
+    the view's shift sensitivity (per pixel). The two hypotheses, equally likely beforehand,
+    are weighed by how well each explains the disagreement r with the printed side (relative
+    std SIDE_NOISE_PX / side_px, with UNMEASURED_CORNER_BIAS_STD_PX when ``corner_bias_px`` is
+    None): the first wins while |r| is within ~2.5-3 side stds. The
+    result is the posterior mean of the depth's error, so the distance is the side's when the
+    depth evidently disagrees, the depth's when it agrees, and in between a blend (no
+    threshold that a view just below it escapes with the whole bias, as the old 0.4 %
+    switch let a +0.5 % sensor misregistered (2, 1) px keep 4 mm).
+    """
+    if corner_bias_px is None:
+        r = depth_vs_side
+        var_side = (SIDE_NOISE_PX**2 + UNMEASURED_CORNER_BIAS_STD_PX**2) / side_px**2
+    else:
+        r = (1.0 + depth_vs_side) / (1.0 + corner_bias_px / side_px) - 1.0
+        var_side = (SIDE_NOISE_PX / side_px) ** 2
+    var_sys = scale_std**2 + float(np.sum((sensitivity * shift_std_px) ** 2))
+    if not (np.isfinite(r) and np.isfinite(var_sys)) or var_sys <= 0 or var_side <= 0:
+        return 1.0
+    var_both = var_sys + var_side
+    # log-likelihood ratio of "no systematic error" to "a typical one" given r
+    log_ratio = 0.5 * r * r * (1.0 / var_both - 1.0 / var_side) + 0.5 * np.log(var_both / var_side)
+    p_sys = 1.0 / (1.0 + float(np.exp(min(log_ratio, 700.0))))
+    error = p_sys * var_sys / var_both * r
+    return 1.0 / (1.0 + error)
 
 
 def _corners_method(

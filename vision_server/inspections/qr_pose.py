@@ -17,7 +17,12 @@ from yamlfile import non_negative, numbers
 from yamlfile import number as to_number
 
 from ..analysis import AnalysisError, DepthError, NotFoundError
-from ..analysis.qr_pose import QRPoseQuality, qr_pose
+from ..analysis.qr_pose import (
+    UNCHECKED_SCALE_STD,
+    UNCHECKED_SHIFT_STD_PX,
+    QRPoseQuality,
+    qr_pose,
+)
 from ..cameras import CameraSettings
 from ..catalog import InspectionInput, InspectionOutcome
 from ..configfile import Node, fraction, one_of, positive
@@ -27,6 +32,10 @@ from .qr import parse_expect
 
 MAX_CORNER_BIAS_PX = 1.0
 """A detector off by more than this is broken, not biased."""
+
+MAX_UNCHECKED_SCALE_STD = 0.2
+MAX_UNCHECKED_SHIFT_STD_PX = 50.0
+"""Beyond these the depth is not a depth sensor's: a typo (1 for 1 %), not a sensor."""
 
 RED = (0, 0, 255)
 AXIS_COLOURS = ((0, 0, 255), (0, 200, 0), (255, 0, 0))  # x red, y green, z blue (BGR)
@@ -45,7 +54,9 @@ class QRPoseInspection(Configured):
     max_depth_vs_side: float = 0.003
     depth_scale_std: float | None = None
     depth_shift_std_px: tuple[float, float] = (0.0, 0.0)
-    corner_bias_px: float = 0.0
+    corner_bias_px: float | None = None
+    unchecked_scale_std: float = UNCHECKED_SCALE_STD
+    unchecked_shift_std_px: float = UNCHECKED_SHIFT_STD_PX
 
     type = "qr_pose"
     uses_depth = True
@@ -73,6 +84,8 @@ class QRPoseInspection(Configured):
                 depth_scale_std=self.depth_scale_std,
                 depth_shift_std_px=self.depth_shift_std_px,
                 corner_bias_px=self.corner_bias_px,
+                unchecked_scale_std=self.unchecked_scale_std,
+                unchecked_shift_std_px=self.unchecked_shift_std_px,
             )
         except (NotFoundError, DepthError) as exc:
             picture = None
@@ -195,7 +208,9 @@ def parse_qr_pose(
         node.take("max_depth_vs_side", positive, 0.003),
         node.take("depth_scale_std", non_negative, None),
         _pair(node.take("depth_shift_std_px", numbers(2, each=non_negative), (0.0, 0.0))),
-        node.take("corner_bias_px", _corner_bias, 0.0),
+        node.take("corner_bias_px", _corner_bias, None),
+        node.take("unchecked_scale_std", _unchecked_scale_std, UNCHECKED_SCALE_STD),
+        node.take("unchecked_shift_std_px", _unchecked_shift_std, UNCHECKED_SHIFT_STD_PX),
     )
 
 
@@ -205,6 +220,27 @@ def _corner_bias(value: Any) -> float:
     if not math.isfinite(bias) or abs(bias) > MAX_CORNER_BIAS_PX:
         raise ValueError(f"expected a bias within +/-{MAX_CORNER_BIAS_PX:g} px, got {value!r}")
     return bias
+
+
+def _unchecked_scale_std(value: Any) -> float:
+    """The relative depth scale std assumed of an unchecked sensor (0.01 = 1 %)."""
+    std = non_negative(value)
+    if not math.isfinite(std) or std > MAX_UNCHECKED_SCALE_STD:
+        raise ValueError(
+            f"expected a relative std from 0 to {MAX_UNCHECKED_SCALE_STD:g} (0.01 = 1 %), "
+            f"got {value!r}"
+        )
+    return float(std)
+
+
+def _unchecked_shift_std(value: Any) -> float:
+    """The depth-to-colour registration std assumed of an unchecked sensor, pixels."""
+    std = non_negative(value)
+    if not math.isfinite(std) or std > MAX_UNCHECKED_SHIFT_STD_PX:
+        raise ValueError(
+            f"expected a std from 0 to {MAX_UNCHECKED_SHIFT_STD_PX:g} px, got {value!r}"
+        )
+    return float(std)
 
 
 def _pair(values: tuple[float, ...]) -> tuple[float, float]:
