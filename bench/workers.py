@@ -168,9 +168,11 @@ def run(cfg: RunConfig, env: Env) -> Section:
         f"on the sample image of its "
         f"camera, no protocol; OpenCV's own pool at its default "
         f"({models[0].one_default.cv_threads} threads) or set to 1 inside each worker. "
-        "The server today runs every inspection in threads (two lanes: docs/configuration.md, "
-        "Overload), with OpenCV's pool set to cores ÷ workers threads (`opencv_threads`); the "
-        "process model this table recommends for some inspections is not built yet."
+        "The server runs inspections in threads (two lanes: docs/configuration.md, Overload), "
+        "with OpenCV's pool set to cores ÷ workers threads (`opencv_threads`), and those named "
+        "in `process_inspections` in worker processes with their images in shared memory "
+        "(vision_server/process_lane.py); the bench's servers name the ones this table's rule "
+        "chose on the development machine (bench/servers.py)."
     )
     table = Table(
         [
