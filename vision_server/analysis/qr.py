@@ -312,6 +312,17 @@ def order_corners(gray: GrayImage, quad: FloatArray) -> tuple[FloatArray, bool]:
 
 # --- sub-pixel corners ---------------------------------------------------------------------
 
+# The sampling of the edge profiles. Their cost is most of the refinement's, and the corner
+# error they give was measured against their number on rendered codes with known corners
+# (bench/qr_sampling.py; docs/BENCHMARKS.md): the values are the cheapest within noise of the
+# denser sampling that came before them.
+_PROFILE_SPACING = 1.5  # px along a side between two profiles across it
+_MIN_PROFILES = 12  # per side
+_MAX_PROFILES = 120  # per side
+_STEP = 0.5  # px between two samples along a profile
+_FIT_ROUNDS = 6  # of the one-sided robust line fit, at most
+_REACH_MODULES = 0.5  # the band's half-width across a side, in modules (at least 2.5 px)
+
 
 def _line_fits(
     points: FloatArray, valid: NDArray[np.bool_], outward: FloatArray, tol: float
@@ -338,7 +349,7 @@ def _line_fits(
     normals = outward.tolist()
     done = np.zeros(4, bool)
     lines = [[0.0, 0.0, 0.0] for _ in range(4)]  # (a, b, c), shifted coordinates
-    for it in range(6):
+    for it in range(_FIT_ROUNDS):
         sums = np.matmul(keep.astype(np.float64)[:, None, :], moments)[:, 0, :].tolist()
         finished = done.tolist()
         for k in range(4):
@@ -385,33 +396,33 @@ def _median_rows(values: NDArray[np.float32]) -> NDArray[np.float32]:
 
 
 def _edge_points(
-    gray: NDArray[np.float32], q: FloatArray, outward: FloatArray, reach: float, longest: float
+    gray: GrayImage, q: FloatArray, outward: FloatArray, reach: float, longest: float
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Sub-pixel mid-level crossings on profiles across the four sides q[k] -> q[k+1]
     (outside to inside): points (4, n, 2) and which of them were found (4, n).
 
     Written for few array operations: the cost of this and of :func:`_line_fits` is mostly
     per-call overhead on small arrays (issue 19's speed goal)."""
-    n_samples = int(min(max(longest / 1.5, 12.0), 120.0))
+    n_samples = int(min(max(longest / _PROFILE_SPACING, _MIN_PROFILES), _MAX_PROFILES))
     t = 0.06 + (0.88 / (n_samples - 1)) * np.arange(n_samples)
-    step = 0.25
+    step = _STEP
     # offsets -reach, -reach + step, ... up to reach (inclusive within half a step), taken
     # outside first (s > 0 outward)
     n_steps = math.ceil((2.0 * reach + step / 2) / step)
     s_rev = (-reach + step * (n_steps - 1)) - step * np.arange(n_steps)
     base = q[:, None, :] + t[None, :, None] * (q[_NEXT] - q)[:, None, :]  # (4, n, 2)
     # the sample positions as two maps (4 n, steps) for cv2.remap: an outer sum per side of
-    # the base points and the offsets along its normal, in float32 (the positions lie in a
-    # crop: float32 keeps them to 1e-4 px); broadcast with the offsets innermost, where
-    # numpy's loops are fast
+    # the base points and the offsets along its normal, in float32 (in a photograph of a few
+    # thousand pixels a side float32 keeps them to 5e-4 px); broadcast with the offsets
+    # innermost, where numpy's loops are fast
     base32 = base.astype(np.float32)
     # (2, 4, 1, steps): the offset of every step along each side's normal, u then v
     along = outward.T.astype(np.float32)[:, :, None, None] * s_rev.astype(np.float32)
     shape = (4 * n_samples, n_steps)
     mx = (base32[:, :, 0:1] + along[0]).reshape(shape)
     my = (base32[:, :, 1:2] + along[1]).reshape(shape)
-    prof = np.asarray(
-        cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), np.float32
+    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(
+        np.float32
     )
     nq = max(2, n_steps // 5)
     light = _median_rows(prof[:, :nq])
@@ -440,52 +451,50 @@ def refine_corners(
 
     Returns the rough corners unchanged where a side has too few edge points.
     """
-    q = np.asarray(corners, np.float64)
-    edge = q[_NEXT] - q
-    lengths = np.sqrt((edge * edge).sum(axis=1))
-    side = float(lengths.mean())
-    if float(lengths.min()) < 1e-9:
-        return q.copy()
+    rough = np.array(corners, np.float64)  # a copy: returned when a side is not found
+    # The quad's geometry in plain floats: for four corners, numpy's per-call overhead is
+    # most of the cost (issue 19's speed goal).
+    q = rough.tolist()
+    edges = [(q[j][0] - q[i][0], q[j][1] - q[i][1]) for i, j in enumerate(_NEXT)]
+    lengths = [math.hypot(du, dv) for du, dv in edges]
+    if min(lengths) < 1e-9:
+        return rough
+    side = sum(lengths) / 4.0
     module = side / (modules if modules else 25)
-    # (plain min/max: np.clip on scalars costs as much as an array operation)
-    reach = min(max(2.5, 0.8 * module, 0.03 * side), max(2.5, 0.2 * side))
-    # Convert only the code's neighbourhood to float: converting a multi-megapixel photograph
-    # cost several times the decode itself (issue 19's speed goal).
-    margin = reach + 3.0
-    height, width = gray.shape
-    (lu, lv), (hu, hv) = q.min(axis=0).tolist(), q.max(axis=0).tolist()
-    u0 = min(max(math.floor(lu - margin), 0), width - 1)
-    v0 = min(max(math.floor(lv - margin), 0), height - 1)
-    u1 = min(max(math.ceil(hu + margin) + 1, u0 + 1), width)
-    v1 = min(max(math.ceil(hv + margin) + 1, v0 + 1), height)
-    origin = np.array([u0, v0], np.float64)
-    g = gray[v0:v1, u0:u1].astype(np.float32)
-    q = q - origin
-    # the normal (dv, -du) of each side points outward for a clockwise quad on the screen;
-    # the test against the centre keeps a counter-clockwise one right as well
-    outward = edge[:, ::-1] * np.array([1.0, -1.0]) / lengths[:, None]
-    midpoints = q + 0.5 * edge - q.mean(axis=0)
-    outward *= np.where((outward * midpoints).sum(axis=1) < 0, -1.0, 1.0)[:, None]
-    points, valid = _edge_points(g, q, outward, reach, float(lengths.max()))
+    reach = min(max(2.5, _REACH_MODULES * module, 0.03 * side), max(2.5, 0.2 * side))
+    # The profiles are read from the uint8 image itself (cv2.remap reads only the sampled
+    # positions): converting even the code's neighbourhood to float cost more than the
+    # sampling (issue 19's speed goal); the interpolated values are then whole grey levels,
+    # a quantisation far below the image noise at an edge (measured: bench/qr_sampling.py).
+    # The normal (dv, -du) of each side points outward for a clockwise quad on the screen;
+    # the test against the centre keeps a counter-clockwise one right as well.
+    cu = sum(p[0] for p in q) / 4.0
+    cv = sum(p[1] for p in q) / 4.0
+    normals = []
+    for (u, v), (du, dv), length in zip(q, edges, lengths, strict=True):
+        nu, nv = dv / length, -du / length
+        if nu * (u + 0.5 * du - cu) + nv * (v + 0.5 * dv - cv) < 0:
+            nu, nv = -nu, -nv
+        normals.append((nu, nv))
+    outward = np.array(normals)
+    points, valid = _edge_points(gray, rough, outward, reach, max(lengths))
     lines = _line_fits(points, valid, outward, tol=max(0.35, 0.3 * module))
     if lines is None:
-        return q + origin
-    # corner i is where the sides i - 1 and i meet: the cross product of their lines (in
-    # plain floats: np.cross on four rows costs more than the whole arithmetic)
+        return rough
+    # corner i is where the sides i - 1 and i meet: the cross product of their lines
     rows = lines.tolist()
     meets = []
+    limit = max(3.0, 0.1 * side) ** 2  # px², the furthest a corner may move
     for i in range(4):
         (a1, b1, c1), (a2, b2, c2) = rows[_PREV[i]], rows[i]
         w = a1 * b2 - b1 * a2
         if abs(w) < 1e-12:
-            return q + origin
-        meets.append([(b1 * c2 - c1 * b2) / w, (c1 * a2 - a1 * c2) / w])
-    out = np.array(meets)
-    moved = out - q
-    if float((moved * moved).sum(axis=1).max()) > max(3.0, 0.1 * side) ** 2:
-        return q + origin
-    result: FloatArray = out + origin
-    return result
+            return rough
+        u, v = (b1 * c2 - c1 * b2) / w, (c1 * a2 - a1 * c2) / w
+        if (u - q[i][0]) ** 2 + (v - q[i][1]) ** 2 > limit:
+            return rough
+        meets.append((u, v))
+    return np.array(meets)
 
 
 # --- the reader ----------------------------------------------------------------------------
