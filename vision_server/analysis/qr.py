@@ -321,6 +321,8 @@ _MIN_PROFILES = 12  # per side
 _MAX_PROFILES = 120  # per side
 _STEP = 0.5  # px between two samples along a profile
 _FIT_ROUNDS = 6  # of the one-sided robust line fit, at most
+_FIT_SHRINK = 0.5  # of its inward outlier limit per round, from 12 tolerances down to one
+_FIT_SETTLE = 2  # the round after which a side whose points stay the same is done
 _REACH_MODULES = 0.5  # the band's half-width across a side, in modules (at least 2.5 px)
 
 
@@ -371,12 +373,12 @@ def _line_fits(
             lines[k] = [nu, nv, -(nu * cu + nv * cv)]
         cab = np.array([[c, a, b] for a, b, c in lines])
         dist = np.matmul(homogeneous, cab[:, :, None])[:, :, 0]  # (4, n), > 0 outward
-        limit = max(tol, 3.0 * (0.5**it) * tol * 4)
+        limit = max(tol, 12.0 * tol * _FIT_SHRINK**it)
         new_keep = valid & (dist > -limit)
         if it > 0:
             # symmetric clean-up of outward noise (bad samples near glare, clutter)
             new_keep &= dist < 3.0 * limit
-        if it > 2:
+        if it > _FIT_SETTLE:
             done |= (new_keep == keep).all(axis=1)
             if done.all():
                 break
@@ -411,33 +413,33 @@ def _edge_points(
     n_steps = math.ceil((2.0 * reach + step / 2) / step)
     s_rev = (-reach + step * (n_steps - 1)) - step * np.arange(n_steps)
     base = q[:, None, :] + t[None, :, None] * (q[_NEXT] - q)[:, None, :]  # (4, n, 2)
-    # the sample positions as two maps (4 n, steps) for cv2.remap: an outer sum per side of
-    # the base points and the offsets along its normal, in float32 (in a photograph of a few
-    # thousand pixels a side float32 keeps them to 5e-4 px); broadcast with the offsets
-    # innermost, where numpy's loops are fast
-    base32 = base.astype(np.float32)
-    # (2, 4, 1, steps): the offset of every step along each side's normal, u then v
-    along = outward.T.astype(np.float32)[:, :, None, None] * s_rev.astype(np.float32)
-    shape = (4 * n_samples, n_steps)
-    mx = (base32[:, :, 0:1] + along[0]).reshape(shape)
-    my = (base32[:, :, 1:2] + along[1]).reshape(shape)
-    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(
-        np.float32
-    )
+    # The sample positions as two maps (steps, 4 n) for cv2.remap, float32 (in a photograph
+    # of a few thousand pixels a side it keeps them to 5e-4 px). One row per offset along
+    # the normals: the reductions along each profile then run across rows, element-wise on
+    # contiguous rows, where along short rows numpy's per-row overhead cost several times
+    # as much (issue 19's speed goal).
+    flat = base.reshape(4 * n_samples, 2).T.astype(np.float32)  # (2, 4 n)
+    normal = np.repeat(outward.T.astype(np.float32), n_samples, axis=1)  # (2, 4 n)
+    offsets = s_rev.astype(np.float32)[:, None]
+    mx = flat[0] + offsets * normal[0]
+    my = flat[1] + offsets * normal[1]
+    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     nq = max(2, n_steps // 5)
-    light = _median_rows(prof[:, :nq])
-    dark = prof.min(axis=1)
+    # the quiet zone's level: the median of the outermost samples (robust to a glint)
+    quiet = np.sort(prof[:nq], axis=0)
+    light = (quiet[(nq - 1) // 2].astype(np.float32) + quiet[nq // 2]) / 2
+    dark = prof.min(axis=0)
     contrast = (light - dark).reshape(4, n_samples)
     good_contrast = contrast > 0.5 * _median_rows(contrast)[:, None]
     level = (light + dark) / 2
-    below = prof < level[:, None]
-    first = np.argmax(below, axis=1)
+    below = prof < level
+    first = np.argmax(below, axis=0)
     # first > 0 also says that some sample is below the level (argmax is 0 when none is)
     valid = good_contrast.reshape(-1) & (first > 0)
-    rows = np.arange(prof.shape[0])
+    cols = np.arange(prof.shape[1])
     i1 = np.maximum(first, 1)
-    v0 = prof[rows, i1 - 1]
-    v1 = prof[rows, i1]
+    v0 = prof[i1 - 1, cols].astype(np.float32)
+    v1 = prof[i1, cols]
     frac = np.clip((v0 - level) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
     s_cross = s_rev[i1 - 1] - frac * step
     points = base + s_cross.reshape(4, n_samples)[:, :, None] * outward[:, None, :]
