@@ -28,11 +28,14 @@ FloatArray = NDArray[np.float64]
 Render = tuple[NDArray[np.uint8], FloatArray, int, FloatArray]  # image, rough, modules, truth
 SUPERSAMPLE = 4
 TEXTS = ("cellvision", "https://example.com/station/42", "A" * 60)
-OLD_FIT = {"_FIT_SHRINK": 0.5, "_FIT_SETTLE": 2}  # the line fit's schedule before part 2
+OLD_FIT = {"_FIT_SHRINK": 0.5, "_FIT_SETTLE": 2, "_FIT_SEEDED": 0}  # the fit before part 2
 SETTINGS: list[dict[str, Any]] = [
     {"_STEP": 0.25, "_REACH_MODULES": 0.8, **OLD_FIT},  # the sampling before part 2
     {"_STEP": 0.25, "_REACH_MODULES": 0.5, **OLD_FIT},
-    {"_STEP": 0.5, "_REACH_MODULES": 0.5, **OLD_FIT},  # the module's
+    {"_STEP": 0.5, "_REACH_MODULES": 0.5, **OLD_FIT},
+    # the rough sides (zxing-cpp's) as the line fit's first two rounds: the same corners
+    {"_STEP": 0.5, "_REACH_MODULES": 0.5, **OLD_FIT, "_FIT_SEEDED": 2},  # the module's
+    {"_STEP": 0.5, "_REACH_MODULES": 0.5, **OLD_FIT, "_FIT_SEEDED": 3},
     {"_STEP": 0.5, "_REACH_MODULES": 0.5, "_MAX_PROFILES": 60, **OLD_FIT},
     {"_STEP": 0.5, "_REACH_MODULES": 0.5, "_MAX_PROFILES": 40, **OLD_FIT},
     {"_STEP": 0.5, "_REACH_MODULES": 0.5, "_PROFILE_SPACING": 3.0, "_MAX_PROFILES": 60, **OLD_FIT},
@@ -40,9 +43,23 @@ SETTINGS: list[dict[str, Any]] = [
     # A faster shrinking outlier limit: a side settles a round or two earlier, and the error
     # here is lower; rejected all the same: the calibration bench's sensor check (depth-to-
     # colour shift fitted from the corners) got noisier with it (shift std 0.14 -> 0.22 px).
-    {"_STEP": 0.5, "_REACH_MODULES": 0.5, "_FIT_SHRINK": 0.33, "_FIT_SETTLE": 1},
-    {"_STEP": 0.5, "_REACH_MODULES": 0.5, "_FIT_SHRINK": 0.33, "_FIT_SETTLE": 1, "_FIT_ROUNDS": 5},
-    {"_STEP": 0.5, "_REACH_MODULES": 0.5, "_FIT_SHRINK": 0.33, "_FIT_SETTLE": 1, "_FIT_ROUNDS": 4},
+    {"_STEP": 0.5, "_REACH_MODULES": 0.5, "_FIT_SHRINK": 0.33, "_FIT_SETTLE": 1, "_FIT_SEEDED": 0},
+    {
+        "_STEP": 0.5,
+        "_REACH_MODULES": 0.5,
+        "_FIT_SHRINK": 0.33,
+        "_FIT_SETTLE": 1,
+        "_FIT_ROUNDS": 5,
+        "_FIT_SEEDED": 0,
+    },
+    {
+        "_STEP": 0.5,
+        "_REACH_MODULES": 0.5,
+        "_FIT_SHRINK": 0.33,
+        "_FIT_SETTLE": 1,
+        "_FIT_ROUNDS": 4,
+        "_FIT_SEEDED": 0,
+    },
     {
         "_STEP": 0.5,
         "_REACH_MODULES": 0.5,

@@ -323,11 +323,16 @@ _STEP = 0.5  # px between two samples along a profile
 _FIT_ROUNDS = 6  # of the one-sided robust line fit, at most
 _FIT_SHRINK = 0.5  # of its inward outlier limit per round, from 12 tolerances down to one
 _FIT_SETTLE = 2  # the round after which a side whose points stay the same is done
+_FIT_SEEDED = 2  # rounds whose lines are the rough sides' (zxing-cpp's corners)
 _REACH_MODULES = 0.5  # the band's half-width across a side, in modules (at least 2.5 px)
 
 
 def _line_fits(
-    points: FloatArray, valid: NDArray[np.bool_], outward: FloatArray, tol: float
+    points: FloatArray,
+    valid: NDArray[np.bool_],
+    outward: FloatArray,
+    tol: float,
+    offsets: FloatArray | None = None,
 ) -> FloatArray | None:
     """Lines (4, 3) ``(a, b, c)`` with a*u + b*v + c = 0, (a, b) = each side's outward unit
     normal, fitted to ``points`` (4, n, 2) where ``valid`` (4, n), with one-sided outlier
@@ -337,8 +342,16 @@ def _line_fits(
     per-side line from its six sums is plain float arithmetic, which for four sides costs a
     fraction of the dozens of array operations on (4,)-arrays it replaces (issue 19's speed
     goal). Each side stops at its own convergence, as a fit of that side alone would.
+
+    ``offsets`` (4, n), the points' distances (px, > 0 outward) from the rough sides, lets the
+    rough sides stand in for the first ``_FIT_SEEDED`` rounds' lines.
     """
-    keep = valid.copy()
+    first = _FIT_SEEDED if offsets is not None else 0
+    if offsets is None or first == 0:
+        keep = valid.copy()
+    else:
+        seed_limit = max(tol, 12.0 * tol * _FIT_SHRINK ** (first - 1))
+        keep = valid & (offsets > -seed_limit) & (offsets < 3.0 * seed_limit)
     # Coordinates relative to each side's mean point (no cancellation in the moments below);
     # the weighted sums of 1, u, v, uu, vv, uv of every side then take one matrix product
     # per iteration.
@@ -351,7 +364,7 @@ def _line_fits(
     normals = outward.tolist()
     done = np.zeros(4, bool)
     lines = [[0.0, 0.0, 0.0] for _ in range(4)]  # (a, b, c), shifted coordinates
-    for it in range(_FIT_ROUNDS):
+    for it in range(first, _FIT_ROUNDS):
         sums = np.matmul(keep.astype(np.float64)[:, None, :], moments)[:, 0, :].tolist()
         finished = done.tolist()
         for k in range(4):
@@ -399,9 +412,10 @@ def _median_rows(values: NDArray[np.float32]) -> NDArray[np.float32]:
 
 def _edge_points(
     gray: GrayImage, q: FloatArray, outward: FloatArray, reach: float, longest: float
-) -> tuple[FloatArray, NDArray[np.bool_]]:
+) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
     """Sub-pixel mid-level crossings on profiles across the four sides q[k] -> q[k+1]
-    (outside to inside): points (4, n, 2) and which of them were found (4, n).
+    (outside to inside): points (4, n, 2), which of them were found (4, n) and their
+    distances from the sides (4, n) in px, > 0 outward.
 
     Written for few array operations: the cost of this and of :func:`_line_fits` is mostly
     per-call overhead on small arrays (issue 19's speed goal)."""
@@ -442,8 +456,9 @@ def _edge_points(
     v1 = prof[i1, cols]
     frac = np.clip((v0 - level) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
     s_cross = s_rev[i1 - 1] - frac * step
-    points = base + s_cross.reshape(4, n_samples)[:, :, None] * outward[:, None, :]
-    return points, valid.reshape(4, n_samples)
+    offsets = s_cross.reshape(4, n_samples)
+    points = base + offsets[:, :, None] * outward[:, None, :]
+    return points, valid.reshape(4, n_samples), offsets
 
 
 def refine_corners(
@@ -479,8 +494,8 @@ def refine_corners(
             nu, nv = -nu, -nv
         normals.append((nu, nv))
     outward = np.array(normals)
-    points, valid = _edge_points(gray, rough, outward, reach, max(lengths))
-    lines = _line_fits(points, valid, outward, tol=max(0.35, 0.3 * module))
+    points, valid, offsets = _edge_points(gray, rough, outward, reach, max(lengths))
+    lines = _line_fits(points, valid, outward, max(0.35, 0.3 * module), offsets)
     if lines is None:
         return rough
     # corner i is where the sides i - 1 and i meet: the cross product of their lines
