@@ -324,6 +324,7 @@ _FIT_ROUNDS = 6  # of the one-sided robust line fit, at most
 _FIT_SHRINK = 0.5  # of its inward outlier limit per round, from 12 tolerances down to one
 _FIT_SETTLE = 2  # the round after which a side whose points stay the same is done
 _FIT_SEEDED = 2  # rounds whose lines are the rough sides' (zxing-cpp's corners)
+_REMAP_MAX_COLS = 32767  # cv2.remap's output is narrower than SHRT_MAX columns
 _REACH_MODULES = 0.5  # the band's half-width across a side, in modules (at least 2.5 px)
 
 
@@ -437,7 +438,15 @@ def _edge_points(
     offsets = s_rev.astype(np.float32)[:, None]
     mx = flat[0] + offsets * normal[0]
     my = flat[1] + offsets * normal[1]
-    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    if mx.size < _REMAP_MAX_COLS:
+        # One row: OpenCV splits a remap of several rows across its threads, and on a busy
+        # machine waiting for them cost about as much as the sampling itself (issue 19's
+        # speed goal); the samples are the same.
+        flat_x, flat_y = mx.reshape(1, -1), my.reshape(1, -1)
+        prof = cv2.remap(gray, flat_x, flat_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        prof = prof.reshape(mx.shape)
+    else:  # a very large code: rows, each narrower than cv2.remap's limit
+        prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     nq = max(2, n_steps // 5)
     # the quiet zone's level: the median of the outermost samples (robust to a glint)
     quiet = np.sort(prof[:nq], axis=0)
@@ -477,6 +486,8 @@ def refine_corners(
     if min(lengths) < 1e-9:
         return rough
     side = sum(lengths) / 4.0
+    if max(gray.shape) >= _REMAP_MAX_COLS:
+        return _refine_in_view(gray, rough, side, modules)
     module = side / (modules if modules else 25)
     reach = min(max(2.5, _REACH_MODULES * module, 0.03 * side), max(2.5, 0.2 * side))
     # The profiles are read from the uint8 image itself (cv2.remap reads only the sampled
@@ -512,6 +523,25 @@ def refine_corners(
             return rough
         meets.append((u, v))
     return np.array(meets)
+
+
+def _refine_in_view(
+    gray: GrayImage, rough: FloatArray, side: float, modules: int | None
+) -> FloatArray:
+    """:func:`refine_corners` in a view of the code's neighbourhood, for an image too large
+    for cv2.remap (SHRT_MAX pixels a side); the rough corners when even that view is."""
+    margin = 0.25 * side + 4.0  # beyond the widest band the refinement samples
+    height, width = gray.shape
+    u0 = max(math.floor(float(rough[:, 0].min()) - margin), 0)
+    v0 = max(math.floor(float(rough[:, 1].min()) - margin), 0)
+    u1 = min(math.ceil(float(rough[:, 0].max()) + margin) + 1, width)
+    v1 = min(math.ceil(float(rough[:, 1].max()) + margin) + 1, height)
+    if max(u1 - u0, v1 - v0) >= _REMAP_MAX_COLS or u1 <= u0 or v1 <= v0:
+        return rough
+    origin = np.array([u0, v0], np.float64)
+    refined = refine_corners(gray[v0:v1, u0:u1], rough - origin, modules=modules)
+    result: FloatArray = refined + origin
+    return result
 
 
 # --- the reader ----------------------------------------------------------------------------

@@ -3,6 +3,7 @@ line fit's first rounds without changing the corners it converges to."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -30,3 +31,25 @@ def test_seeded_fit_converges_to_the_corners_of_the_full_fit(
             full = qr.refine_corners(img, rough)
         np.testing.assert_allclose(seeded, full, atol=1e-9)
         assert float(np.abs(seeded - truth).max()) < 0.25
+
+
+def test_a_code_too_large_for_one_row_of_samples_is_refined() -> None:
+    # 1000 px a side: 480 profiles of 121 samples, more than cv2.remap's 32767 columns, so
+    # the samples are read in rows (the one-row read of smaller codes would raise here).
+    img = np.full((1100, 1100), 220, np.uint8)
+    cv2.rectangle(img, (50, 50), (1049, 1049), 30, thickness=-1)
+    truth = np.array([[49.5, 49.5], [1049.5, 49.5], [1049.5, 1049.5], [49.5, 1049.5]])
+    rough = truth + np.array([[1.0, -1.0], [-1.0, 1.0], [1.0, 1.0], [-1.0, -1.0]])
+    refined = qr.refine_corners(img, rough, modules=25)
+    np.testing.assert_allclose(refined, truth, atol=0.05)
+
+
+def test_an_image_too_large_for_cv2_remap_is_refined_in_a_view() -> None:
+    # cv2.remap reads images under 32767 pixels a side: a code in a wider image is refined
+    # in a view of its neighbourhood (without it, cv2.remap raises).
+    img = np.full((240, 33000), 220, np.uint8)
+    cv2.rectangle(img, (32700, 60), (32849, 209), 30, thickness=-1)
+    truth = np.array([[32699.5, 59.5], [32849.5, 59.5], [32849.5, 209.5], [32699.5, 209.5]])
+    rough = truth + np.array([[1.0, -1.0], [-1.0, 1.0], [1.0, 1.0], [-1.0, -1.0]])
+    refined = qr.refine_corners(img, rough, modules=25)
+    np.testing.assert_allclose(refined, truth, atol=0.05)
