@@ -66,6 +66,7 @@ SETTINGS: list[dict[str, Any]] = [
         "_FIT_SHRINK": 0.33,
         "_FIT_SETTLE": 1,
         "_MAX_PROFILES": 60,
+        "_FIT_SEEDED": 0,
     },
 ]
 

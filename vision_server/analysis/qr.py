@@ -312,10 +312,12 @@ def order_corners(gray: GrayImage, quad: FloatArray) -> tuple[FloatArray, bool]:
 
 # --- sub-pixel corners ---------------------------------------------------------------------
 
-# The sampling of the edge profiles. Their cost is most of the refinement's, and the corner
-# error they give was measured against their number on rendered codes with known corners
-# (bench/qr_sampling.py; docs/BENCHMARKS.md): the values are the cheapest within noise of the
-# denser sampling that came before them.
+# The sampling of the edge profiles and the line fit's schedule. Their cost is most of the
+# refinement's; the corner error they give was measured against each of them on rendered codes
+# with known corners (bench/qr_sampling.py, the acceptance criterion in its docstring) and
+# checked on the calibration bench's sensor check, which relies on the corners' noise: these
+# are the cheapest values found within that criterion. Fewer profiles per side, or a faster
+# shrinking outlier limit, failed one or the other.
 _PROFILE_SPACING = 1.5  # px along a side between two profiles across it
 _MIN_PROFILES = 12  # per side
 _MAX_PROFILES = 120  # per side
