@@ -330,79 +330,57 @@ _REMAP_MAX_COLS = 32767  # cv2.remap's output is narrower than SHRT_MAX columns
 _REACH_MODULES = 0.5  # the band's half-width across a side, in modules (at least 2.5 px)
 
 
-def _line_fits(
-    points: FloatArray,
-    valid: NDArray[np.bool_],
-    outward: FloatArray,
-    tol: float,
-    offsets: FloatArray | None = None,
-) -> FloatArray | None:
-    """Lines (4, 3) ``(a, b, c)`` with a*u + b*v + c = 0, (a, b) = each side's outward unit
-    normal, fitted to ``points`` (4, n, 2) where ``valid`` (4, n), with one-sided outlier
-    removal (outliers lie inwards); None when a side keeps fewer than 4 points.
+def _offset_fits(
+    t: FloatArray, offsets: FloatArray, valid: NDArray[np.bool_], tol: float
+) -> list[tuple[float, float]] | None:
+    """Per side, the line ``s = a + b t`` (px) through the edge points, in the rough side's own
+    coordinates: ``t`` (n,) the fraction along the rough side, ``offsets`` (4, n) the points'
+    distances from it along its outward normal (px). One-sided outlier removal (outliers lie
+    inwards); None when a side keeps fewer than 4 points.
 
-    The sums over each side's points are array operations on all four sides at once; the
-    per-side line from its six sums is plain float arithmetic, which for four sides costs a
-    fraction of the dozens of array operations on (4,)-arrays it replaces (issue 19's speed
-    goal). Each side stops at its own convergence, as a fit of that side alone would.
-
-    ``offsets`` (4, n), the points' distances (px, > 0 outward) from the rough sides, lets the
-    rough sides stand in for the first ``_FIT_SEEDED`` rounds' lines.
+    The profiles run along the rough side's normal, so an edge point's error lies along it:
+    a least-squares line of the offsets over ``t`` is the fit, and the moments of ``t`` are
+    the same for the four sides. The rough side itself (zxing-cpp's) stands in for the first
+    ``_FIT_SEEDED`` rounds' lines (issue 19's speed goal). Each side stops at its own
+    convergence, as a fit of that side alone would.
     """
-    first = _FIT_SEEDED if offsets is not None else 0
-    if offsets is None or first == 0:
+    first = _FIT_SEEDED
+    if first == 0:
         keep = valid.copy()
     else:
         seed_limit = max(tol, 12.0 * tol * _FIT_SHRINK ** (first - 1))
         keep = valid & (offsets > -seed_limit) & (offsets < 3.0 * seed_limit)
-    # Coordinates relative to each side's mean point (no cancellation in the moments below);
-    # the weighted sums of 1, u, v, uu, vv, uv of every side then take one matrix product
-    # per iteration.
-    ref = points.mean(axis=1)
-    rel = points - ref[:, None, :]
-    pu, pv = rel[..., 0], rel[..., 1]
-    ones = np.ones_like(pu)
-    moments = np.stack([ones, pu, pv, pu * pu, pv * pv, pu * pv], axis=2)
-    homogeneous = moments[:, :, :3]  # (1, u, v): a line (c, a, b) gives the distance
-    normals = outward.tolist()
+    basis = np.stack([np.ones_like(t), t, t * t], axis=1)  # (n, 3): 1, t, t²
     done = np.zeros(4, bool)
-    lines = [[0.0, 0.0, 0.0] for _ in range(4)]  # (a, b, c), shifted coordinates
+    coef = [(0.0, 0.0)] * 4
     for it in range(first, _FIT_ROUNDS):
-        sums = np.matmul(keep.astype(np.float64)[:, None, :], moments)[:, 0, :].tolist()
+        weights = keep.astype(np.float64)
+        moments = (weights @ basis).tolist()  # per side: count, sum t, sum t²
+        sums = ((weights * offsets) @ basis[:, :2]).tolist()  # per side: sum s, sum t s
         finished = done.tolist()
         for k in range(4):
             if finished[k]:
                 continue
-            count, su, sv, suu, svv, suv = sums[k]
-            if count < 4:
+            count, st, stt = moments[k]
+            ss, sts = sums[k]
+            det = count * stt - st * st
+            if count < 4 or det <= 1e-12 * count * count:
                 return None
-            cu, cv = su / count, sv / count
-            suu -= count * cu * cu
-            svv -= count * cv * cv
-            suv -= count * cu * cv
-            # the 2x2 scatter's major axis is at 0.5 * atan2(2 suv, suu - svv): the line's
-            # direction; the normal is perpendicular to it, turned outward
-            theta = 0.5 * math.atan2(2.0 * suv, suu - svv)
-            nu, nv = -math.sin(theta), math.cos(theta)
-            if nu * normals[k][0] + nv * normals[k][1] < 0:
-                nu, nv = -nu, -nv
-            lines[k] = [nu, nv, -(nu * cu + nv * cv)]
-        cab = np.array([[c, a, b] for a, b, c in lines])
-        dist = np.matmul(homogeneous, cab[:, :, None])[:, :, 0]  # (4, n), > 0 outward
+            slope = (count * sts - st * ss) / det
+            coef[k] = ((ss - slope * st) / count, slope)
+        line = np.array(coef)
+        residual = offsets - line[:, :1] - line[:, 1:] * t  # (4, n), > 0 outward
         limit = max(tol, 12.0 * tol * _FIT_SHRINK**it)
-        new_keep = valid & (dist > -limit)
+        new_keep = valid & (residual > -limit)
         if it > 0:
             # symmetric clean-up of outward noise (bad samples near glare, clutter)
-            new_keep &= dist < 3.0 * limit
+            new_keep &= residual < 3.0 * limit
         if it > _FIT_SETTLE:
             done |= (new_keep == keep).all(axis=1)
             if done.all():
                 break
         keep = np.where(done[:, None], keep, new_keep)
-    # back to the points' own coordinates: n . (p - ref) + c = n . p + (c - n . ref)
-    out = np.array(lines)
-    out[:, 2] -= out[:, 0] * ref[:, 0] + out[:, 1] * ref[:, 1]
-    return out
+    return coef
 
 
 def _median_rows(values: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -415,15 +393,15 @@ def _median_rows(values: NDArray[np.float32]) -> NDArray[np.float32]:
 
 def _edge_points(
     gray: GrayImage, q: FloatArray, outward: FloatArray, reach: float, longest: float
-) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
     """Sub-pixel mid-level crossings on profiles across the four sides q[k] -> q[k+1]
-    (outside to inside): points (4, n, 2), which of them were found (4, n) and their
-    distances from the sides (4, n) in px, > 0 outward.
+    (outside to inside): the profiles' fractions along each side ``t`` (n,), the crossings'
+    distances from the sides (4, n) in px, > 0 outward, and which of them were found (4, n).
 
     Written for few array operations: the cost of this and of :func:`_line_fits` is mostly
     per-call overhead on small arrays (issue 19's speed goal)."""
     n_samples = int(min(max(longest / _PROFILE_SPACING, _MIN_PROFILES), _MAX_PROFILES))
-    t = 0.06 + (0.88 / (n_samples - 1)) * np.arange(n_samples)
+    t = np.arange(n_samples, dtype=np.float64) * (0.88 / (n_samples - 1)) + 0.06
     step = _STEP
     # offsets -reach, -reach + step, ... up to reach (inclusive within half a step), taken
     # outside first (s > 0 outward)
@@ -467,9 +445,7 @@ def _edge_points(
     v1 = prof[i1, cols]
     frac = np.clip((v0 - level) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
     s_cross = s_rev[i1 - 1] - frac * step
-    offsets = s_cross.reshape(4, n_samples)
-    points = base + offsets[:, :, None] * outward[:, None, :]
-    return points, valid.reshape(4, n_samples), offsets
+    return t, s_cross.reshape(4, n_samples), valid.reshape(4, n_samples)
 
 
 def refine_corners(
@@ -507,12 +483,22 @@ def refine_corners(
             nu, nv = -nu, -nv
         normals.append((nu, nv))
     outward = np.array(normals)
-    points, valid, offsets = _edge_points(gray, rough, outward, reach, max(lengths))
-    lines = _line_fits(points, valid, outward, max(0.35, 0.3 * module), offsets)
-    if lines is None:
+    t, offsets, valid = _edge_points(gray, rough, outward, reach, max(lengths))
+    coef = _offset_fits(t, offsets, valid, max(0.35, 0.3 * module))
+    if coef is None:
         return rough
+    # each side's line a u + b v + c = 0, (a, b) its outward unit normal: through the rough
+    # side's ends moved out by s(0) and s(1)
+    rows = []
+    for k, ((s0, slope), (nu, nv)) in enumerate(zip(coef, normals, strict=True)):
+        (u0, v0), (du, dv) = q[k], edges[k]
+        du, dv = du + slope * nu, dv + slope * nv  # the fitted line's direction
+        length = math.hypot(du, dv)
+        a, b = dv / length, -du / length
+        if a * nu + b * nv < 0:
+            a, b = -a, -b
+        rows.append((a, b, -(a * (u0 + s0 * nu) + b * (v0 + s0 * nv))))
     # corner i is where the sides i - 1 and i meet: the cross product of their lines
-    rows = lines.tolist()
     meets = []
     limit = max(3.0, 0.1 * side) ** 2  # px², the furthest a corner may move
     for i in range(4):
