@@ -392,11 +392,13 @@ def _median_rows(values: NDArray[np.float32]) -> NDArray[np.float32]:
 
 
 def _edge_points(
-    gray: GrayImage, q: FloatArray, outward: FloatArray, reach: float, longest: float
+    gray: GrayImage, sides: FloatArray, reach: float, longest: float
 ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
-    """Sub-pixel mid-level crossings on profiles across the four sides q[k] -> q[k+1]
-    (outside to inside): the profiles' fractions along each side ``t`` (n,), the crossings'
-    distances from the sides (4, n) in px, > 0 outward, and which of them were found (4, n).
+    """Sub-pixel mid-level crossings on profiles across the four sides (outside to inside),
+    ``sides`` (4, 6) rows ``(u, v, du, dv, nu, nv)``: each side's start q[k] and its vector to
+    q[k + 1] (px) and its outward unit normal. Returns the profiles' fractions along each
+    side ``t`` (n,), the crossings' distances from the sides (4, n) in px, > 0 outward, and
+    which of them were found (4, n).
 
     Written for few array operations: the cost of this and of :func:`_line_fits` is mostly
     per-call overhead on small arrays (issue 19's speed goal)."""
@@ -407,17 +409,20 @@ def _edge_points(
     # outside first (s > 0 outward)
     n_steps = math.ceil((2.0 * reach + step / 2) / step)
     s_rev = (-reach + step * (n_steps - 1)) - step * np.arange(n_steps)
-    base = q[:, None, :] + t[None, :, None] * (q[_NEXT] - q)[:, None, :]  # (4, n, 2)
     # The sample positions as two maps (steps, 4 n) for cv2.remap, float32 (in a photograph
     # of a few thousand pixels a side it keeps them to 5e-4 px). One row per offset along
     # the normals: the reductions along each profile then run across rows, element-wise on
     # contiguous rows, where along short rows numpy's per-row overhead cost several times
     # as much (issue 19's speed goal).
-    flat = base.reshape(4 * n_samples, 2).T.astype(np.float32)  # (2, 4 n)
-    normal = np.repeat(outward.T.astype(np.float32), n_samples, axis=1)  # (2, 4 n)
+    # (Built from contiguous float32 rows: a (4, n, 2) array of the profiles' feet cost
+    # more than the rest of the maps, numpy's loops being slow on a last axis of 2.)
+    side32 = sides.astype(np.float32)
+    t32 = t.astype(np.float32)
+    foot_u = (side32[:, 0:1] + side32[:, 2:3] * t32).reshape(-1)  # (4 n,) on the sides
+    foot_v = (side32[:, 1:2] + side32[:, 3:4] * t32).reshape(-1)
     offsets = s_rev.astype(np.float32)[:, None]
-    mx = flat[0] + offsets * normal[0]
-    my = flat[1] + offsets * normal[1]
+    mx = foot_u + offsets * np.repeat(side32[:, 4], n_samples)
+    my = foot_v + offsets * np.repeat(side32[:, 5], n_samples)
     if mx.size < _REMAP_MAX_COLS:
         # One row: OpenCV splits a remap of several rows across its threads, and on a busy
         # machine waiting for them cost about as much as the sampling itself (issue 19's
@@ -439,7 +444,7 @@ def _edge_points(
     first = np.argmax(below, axis=0)
     # first > 0 also says that some sample is below the level (argmax is 0 when none is)
     valid = good_contrast.reshape(-1) & (first > 0)
-    cols = np.arange(prof.shape[1])
+    cols = np.arange(4 * n_samples)
     i1 = np.maximum(first, 1)
     v0 = prof[i1 - 1, cols].astype(np.float32)
     v1 = prof[i1, cols]
@@ -482,8 +487,8 @@ def refine_corners(
         if nu * (u + 0.5 * du - cu) + nv * (v + 0.5 * dv - cv) < 0:
             nu, nv = -nu, -nv
         normals.append((nu, nv))
-    outward = np.array(normals)
-    t, offsets, valid = _edge_points(gray, rough, outward, reach, max(lengths))
+    sides = np.array([(*p, *e, *n) for p, e, n in zip(q, edges, normals, strict=True)])
+    t, offsets, valid = _edge_points(gray, sides, reach, max(lengths))
     coef = _offset_fits(t, offsets, valid, max(0.35, 0.3 * module))
     if coef is None:
         return rough
