@@ -312,75 +312,68 @@ def order_corners(gray: GrayImage, quad: FloatArray) -> tuple[FloatArray, bool]:
 
 # --- sub-pixel corners ---------------------------------------------------------------------
 
-# The sampling of the edge profiles and the line fit's schedule. Their cost is most of the
-# refinement's; the corner error they give was measured against each of them on rendered codes
-# with known corners (bench/qr_sampling.py, the acceptance criterion in its docstring) and
-# checked on the calibration bench's sensor check, which relies on the corners' noise: these
-# are the cheapest values found within that criterion. Fewer profiles per side, or a faster
-# shrinking outlier limit, failed one or the other.
-_PROFILE_SPACING = 1.5  # px along a side between two profiles across it
-_MIN_PROFILES = 12  # per side
-_MAX_PROFILES = 120  # per side
-_STEP = 0.5  # px between two samples along a profile
-_FIT_ROUNDS = 6  # of the one-sided robust line fit, at most
-_FIT_SHRINK = 0.5  # of its inward outlier limit per round, from 12 tolerances down to one
-_FIT_SETTLE = 2  # the round after which a side whose points stay the same is done
-_FIT_SEEDED = 2  # rounds whose lines are the rough sides' (zxing-cpp's corners)
-_REMAP_MAX_COLS = 32767  # cv2.remap's output is narrower than SHRT_MAX columns
-_REACH_MODULES = 0.5  # the band's half-width across a side, in modules (at least 2.5 px)
 
+def _line_fits(
+    points: FloatArray, valid: NDArray[np.bool_], outward: FloatArray, tol: float
+) -> FloatArray | None:
+    """Lines (4, 3) ``(a, b, c)`` with a*u + b*v + c = 0, (a, b) = each side's outward unit
+    normal, fitted to ``points`` (4, n, 2) where ``valid`` (4, n), with one-sided outlier
+    removal (outliers lie inwards); None when a side keeps fewer than 4 points.
 
-def _offset_fits(
-    t: FloatArray, offsets: FloatArray, valid: NDArray[np.bool_], tol: float
-) -> list[tuple[float, float]] | None:
-    """Per side, the line ``s = a + b t`` (px) through the edge points, in the rough side's own
-    coordinates: ``t`` (n,) the fraction along the rough side, ``offsets`` (4, n) the points'
-    distances from it along its outward normal (px). One-sided outlier removal (outliers lie
-    inwards); None when a side keeps fewer than 4 points.
-
-    The profiles run along the rough side's normal, so an edge point's error lies along it:
-    a least-squares line of the offsets over ``t`` is the fit, and the moments of ``t`` are
-    the same for the four sides. The rough side itself (zxing-cpp's) stands in for the first
-    ``_FIT_SEEDED`` rounds' lines (issue 19's speed goal). Each side stops at its own
-    convergence, as a fit of that side alone would.
+    The sums over each side's points are array operations on all four sides at once; the
+    per-side line from its six sums is plain float arithmetic, which for four sides costs a
+    fraction of the dozens of array operations on (4,)-arrays it replaces (issue 19's speed
+    goal). Each side stops at its own convergence, as a fit of that side alone would.
     """
-    first = _FIT_SEEDED
-    if first == 0:
-        keep = valid.copy()
-    else:
-        seed_limit = max(tol, 12.0 * tol * _FIT_SHRINK ** (first - 1))
-        keep = valid & (offsets > -seed_limit) & (offsets < 3.0 * seed_limit)
-    basis = np.stack([np.ones_like(t), t, t * t], axis=1)  # (n, 3): 1, t, t²
+    keep = valid.copy()
+    # Coordinates relative to each side's mean point (no cancellation in the moments below);
+    # the weighted sums of 1, u, v, uu, vv, uv of every side then take one matrix product
+    # per iteration.
+    ref = points.mean(axis=1)
+    rel = points - ref[:, None, :]
+    pu, pv = rel[..., 0], rel[..., 1]
+    ones = np.ones_like(pu)
+    moments = np.stack([ones, pu, pv, pu * pu, pv * pv, pu * pv], axis=2)
+    homogeneous = moments[:, :, :3]  # (1, u, v): a line (c, a, b) gives the distance
+    normals = outward.tolist()
     done = np.zeros(4, bool)
-    coef = [(0.0, 0.0)] * 4
-    for it in range(first, _FIT_ROUNDS):
-        weights = keep.astype(np.float64)
-        moments = (weights @ basis).tolist()  # per side: count, sum t, sum t²
-        sums = ((weights * offsets) @ basis[:, :2]).tolist()  # per side: sum s, sum t s
+    lines = [[0.0, 0.0, 0.0] for _ in range(4)]  # (a, b, c), shifted coordinates
+    for it in range(6):
+        sums = np.matmul(keep.astype(np.float64)[:, None, :], moments)[:, 0, :].tolist()
         finished = done.tolist()
         for k in range(4):
             if finished[k]:
                 continue
-            count, st, stt = moments[k]
-            ss, sts = sums[k]
-            det = count * stt - st * st
-            if count < 4 or det <= 1e-12 * count * count:
+            count, su, sv, suu, svv, suv = sums[k]
+            if count < 4:
                 return None
-            slope = (count * sts - st * ss) / det
-            coef[k] = ((ss - slope * st) / count, slope)
-        line = np.array(coef)
-        residual = offsets - line[:, :1] - line[:, 1:] * t  # (4, n), > 0 outward
-        limit = max(tol, 12.0 * tol * _FIT_SHRINK**it)
-        new_keep = valid & (residual > -limit)
+            cu, cv = su / count, sv / count
+            suu -= count * cu * cu
+            svv -= count * cv * cv
+            suv -= count * cu * cv
+            # the 2x2 scatter's major axis is at 0.5 * atan2(2 suv, suu - svv): the line's
+            # direction; the normal is perpendicular to it, turned outward
+            theta = 0.5 * math.atan2(2.0 * suv, suu - svv)
+            nu, nv = -math.sin(theta), math.cos(theta)
+            if nu * normals[k][0] + nv * normals[k][1] < 0:
+                nu, nv = -nu, -nv
+            lines[k] = [nu, nv, -(nu * cu + nv * cv)]
+        cab = np.array([[c, a, b] for a, b, c in lines])
+        dist = np.matmul(homogeneous, cab[:, :, None])[:, :, 0]  # (4, n), > 0 outward
+        limit = max(tol, 3.0 * (0.5**it) * tol * 4)
+        new_keep = valid & (dist > -limit)
         if it > 0:
             # symmetric clean-up of outward noise (bad samples near glare, clutter)
-            new_keep &= residual < 3.0 * limit
-        if it > _FIT_SETTLE:
+            new_keep &= dist < 3.0 * limit
+        if it > 2:
             done |= (new_keep == keep).all(axis=1)
             if done.all():
                 break
         keep = np.where(done[:, None], keep, new_keep)
-    return coef
+    # back to the points' own coordinates: n . (p - ref) + c = n . p + (c - n . ref)
+    out = np.array(lines)
+    out[:, 2] -= out[:, 0] * ref[:, 0] + out[:, 1] * ref[:, 1]
+    return out
 
 
 def _median_rows(values: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -392,65 +385,52 @@ def _median_rows(values: NDArray[np.float32]) -> NDArray[np.float32]:
 
 
 def _edge_points(
-    gray: GrayImage, sides: FloatArray, reach: float, longest: float
-) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
-    """Sub-pixel mid-level crossings on profiles across the four sides (outside to inside),
-    ``sides`` (4, 6) rows ``(u, v, du, dv, nu, nv)``: each side's start q[k] and its vector to
-    q[k + 1] (px) and its outward unit normal. Returns the profiles' fractions along each
-    side ``t`` (n,), the crossings' distances from the sides (4, n) in px, > 0 outward, and
-    which of them were found (4, n).
+    gray: NDArray[np.float32], q: FloatArray, outward: FloatArray, reach: float, longest: float
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Sub-pixel mid-level crossings on profiles across the four sides q[k] -> q[k+1]
+    (outside to inside): points (4, n, 2) and which of them were found (4, n).
 
     Written for few array operations: the cost of this and of :func:`_line_fits` is mostly
     per-call overhead on small arrays (issue 19's speed goal)."""
-    n_samples = int(min(max(longest / _PROFILE_SPACING, _MIN_PROFILES), _MAX_PROFILES))
-    t = np.arange(n_samples, dtype=np.float64) * (0.88 / (n_samples - 1)) + 0.06
-    step = _STEP
+    n_samples = int(min(max(longest / 1.5, 12.0), 120.0))
+    t = 0.06 + (0.88 / (n_samples - 1)) * np.arange(n_samples)
+    step = 0.25
     # offsets -reach, -reach + step, ... up to reach (inclusive within half a step), taken
     # outside first (s > 0 outward)
     n_steps = math.ceil((2.0 * reach + step / 2) / step)
     s_rev = (-reach + step * (n_steps - 1)) - step * np.arange(n_steps)
-    # The sample positions as two maps (steps, 4 n) for cv2.remap, float32 (in a photograph
-    # of a few thousand pixels a side it keeps them to 5e-4 px). One row per offset along
-    # the normals: the reductions along each profile then run across rows, element-wise on
-    # contiguous rows, where along short rows numpy's per-row overhead cost several times
-    # as much (issue 19's speed goal).
-    # (Built from contiguous float32 rows: a (4, n, 2) array of the profiles' feet cost
-    # more than the rest of the maps, numpy's loops being slow on a last axis of 2.)
-    side32 = sides.astype(np.float32)
-    t32 = t.astype(np.float32)
-    foot_u = (side32[:, 0:1] + side32[:, 2:3] * t32).reshape(-1)  # (4 n,) on the sides
-    foot_v = (side32[:, 1:2] + side32[:, 3:4] * t32).reshape(-1)
-    offsets = s_rev.astype(np.float32)[:, None]
-    mx = foot_u + offsets * np.repeat(side32[:, 4], n_samples)
-    my = foot_v + offsets * np.repeat(side32[:, 5], n_samples)
-    if mx.size < _REMAP_MAX_COLS:
-        # One row: OpenCV splits a remap of several rows across its threads, and on a busy
-        # machine waiting for them cost about as much as the sampling itself (issue 19's
-        # speed goal); the samples are the same.
-        flat_x, flat_y = mx.reshape(1, -1), my.reshape(1, -1)
-        prof = cv2.remap(gray, flat_x, flat_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        prof = prof.reshape(mx.shape)
-    else:  # a very large code: rows, each narrower than cv2.remap's limit
-        prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    base = q[:, None, :] + t[None, :, None] * (q[_NEXT] - q)[:, None, :]  # (4, n, 2)
+    # the sample positions as two maps (4 n, steps) for cv2.remap: an outer sum per side of
+    # the base points and the offsets along its normal, in float32 (the positions lie in a
+    # crop: float32 keeps them to 1e-4 px); broadcast with the offsets innermost, where
+    # numpy's loops are fast
+    base32 = base.astype(np.float32)
+    # (2, 4, 1, steps): the offset of every step along each side's normal, u then v
+    along = outward.T.astype(np.float32)[:, :, None, None] * s_rev.astype(np.float32)
+    shape = (4 * n_samples, n_steps)
+    mx = (base32[:, :, 0:1] + along[0]).reshape(shape)
+    my = (base32[:, :, 1:2] + along[1]).reshape(shape)
+    prof = np.asarray(
+        cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), np.float32
+    )
     nq = max(2, n_steps // 5)
-    # the quiet zone's level: the median of the outermost samples (robust to a glint)
-    quiet = np.sort(prof[:nq], axis=0)
-    light = (quiet[(nq - 1) // 2].astype(np.float32) + quiet[nq // 2]) / 2
-    dark = prof.min(axis=0)
+    light = _median_rows(prof[:, :nq])
+    dark = prof.min(axis=1)
     contrast = (light - dark).reshape(4, n_samples)
     good_contrast = contrast > 0.5 * _median_rows(contrast)[:, None]
     level = (light + dark) / 2
-    below = prof < level
-    first = np.argmax(below, axis=0)
+    below = prof < level[:, None]
+    first = np.argmax(below, axis=1)
     # first > 0 also says that some sample is below the level (argmax is 0 when none is)
     valid = good_contrast.reshape(-1) & (first > 0)
-    cols = np.arange(4 * n_samples)
+    rows = np.arange(prof.shape[0])
     i1 = np.maximum(first, 1)
-    v0 = prof[i1 - 1, cols].astype(np.float32)
-    v1 = prof[i1, cols]
+    v0 = prof[rows, i1 - 1]
+    v1 = prof[rows, i1]
     frac = np.clip((v0 - level) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
     s_cross = s_rev[i1 - 1] - frac * step
-    return t, s_cross.reshape(4, n_samples), valid.reshape(4, n_samples)
+    points = base + s_cross.reshape(4, n_samples)[:, :, None] * outward[:, None, :]
+    return points, valid.reshape(4, n_samples)
 
 
 def refine_corners(
@@ -460,80 +440,51 @@ def refine_corners(
 
     Returns the rough corners unchanged where a side has too few edge points.
     """
-    rough = np.array(corners, np.float64)  # a copy: returned when a side is not found
-    # The quad's geometry in plain floats: for four corners, numpy's per-call overhead is
-    # most of the cost (issue 19's speed goal).
-    q = rough.tolist()
-    edges = [(q[j][0] - q[i][0], q[j][1] - q[i][1]) for i, j in enumerate(_NEXT)]
-    lengths = [math.hypot(du, dv) for du, dv in edges]
-    if min(lengths) < 1e-9:
-        return rough
-    side = sum(lengths) / 4.0
-    if max(gray.shape) >= _REMAP_MAX_COLS:
-        return _refine_in_view(gray, rough, side, modules)
+    q = np.asarray(corners, np.float64)
+    edge = q[_NEXT] - q
+    lengths = np.sqrt((edge * edge).sum(axis=1))
+    side = float(lengths.mean())
+    if float(lengths.min()) < 1e-9:
+        return q.copy()
     module = side / (modules if modules else 25)
-    reach = min(max(2.5, _REACH_MODULES * module, 0.03 * side), max(2.5, 0.2 * side))
-    # The profiles are read from the uint8 image itself (cv2.remap reads only the sampled
-    # positions): converting even the code's neighbourhood to float cost more than the
-    # sampling (issue 19's speed goal); the interpolated values are then whole grey levels,
-    # a quantisation far below the image noise at an edge (measured: bench/qr_sampling.py).
-    # The normal (dv, -du) of each side points outward for a clockwise quad on the screen;
-    # the test against the centre keeps a counter-clockwise one right as well.
-    cu = sum(p[0] for p in q) / 4.0
-    cv = sum(p[1] for p in q) / 4.0
-    normals = []
-    for (u, v), (du, dv), length in zip(q, edges, lengths, strict=True):
-        nu, nv = dv / length, -du / length
-        if nu * (u + 0.5 * du - cu) + nv * (v + 0.5 * dv - cv) < 0:
-            nu, nv = -nu, -nv
-        normals.append((nu, nv))
-    sides = np.array([(*p, *e, *n) for p, e, n in zip(q, edges, normals, strict=True)])
-    t, offsets, valid = _edge_points(gray, sides, reach, max(lengths))
-    coef = _offset_fits(t, offsets, valid, max(0.35, 0.3 * module))
-    if coef is None:
-        return rough
-    # each side's line a u + b v + c = 0, (a, b) its outward unit normal: through the rough
-    # side's ends moved out by s(0) and s(1)
-    rows = []
-    for k, ((s0, slope), (nu, nv)) in enumerate(zip(coef, normals, strict=True)):
-        (u0, v0), (du, dv) = q[k], edges[k]
-        du, dv = du + slope * nu, dv + slope * nv  # the fitted line's direction
-        length = math.hypot(du, dv)
-        a, b = dv / length, -du / length
-        if a * nu + b * nv < 0:
-            a, b = -a, -b
-        rows.append((a, b, -(a * (u0 + s0 * nu) + b * (v0 + s0 * nv))))
-    # corner i is where the sides i - 1 and i meet: the cross product of their lines
+    # (plain min/max: np.clip on scalars costs as much as an array operation)
+    reach = min(max(2.5, 0.8 * module, 0.03 * side), max(2.5, 0.2 * side))
+    # Convert only the code's neighbourhood to float: converting a multi-megapixel photograph
+    # cost several times the decode itself (issue 19's speed goal).
+    margin = reach + 3.0
+    height, width = gray.shape
+    (lu, lv), (hu, hv) = q.min(axis=0).tolist(), q.max(axis=0).tolist()
+    u0 = min(max(math.floor(lu - margin), 0), width - 1)
+    v0 = min(max(math.floor(lv - margin), 0), height - 1)
+    u1 = min(max(math.ceil(hu + margin) + 1, u0 + 1), width)
+    v1 = min(max(math.ceil(hv + margin) + 1, v0 + 1), height)
+    origin = np.array([u0, v0], np.float64)
+    g = gray[v0:v1, u0:u1].astype(np.float32)
+    q = q - origin
+    # the normal (dv, -du) of each side points outward for a clockwise quad on the screen;
+    # the test against the centre keeps a counter-clockwise one right as well
+    outward = edge[:, ::-1] * np.array([1.0, -1.0]) / lengths[:, None]
+    midpoints = q + 0.5 * edge - q.mean(axis=0)
+    outward *= np.where((outward * midpoints).sum(axis=1) < 0, -1.0, 1.0)[:, None]
+    points, valid = _edge_points(g, q, outward, reach, float(lengths.max()))
+    lines = _line_fits(points, valid, outward, tol=max(0.35, 0.3 * module))
+    if lines is None:
+        return q + origin
+    # corner i is where the sides i - 1 and i meet: the cross product of their lines (in
+    # plain floats: np.cross on four rows costs more than the whole arithmetic)
+    rows = lines.tolist()
     meets = []
-    limit = max(3.0, 0.1 * side) ** 2  # px², the furthest a corner may move
     for i in range(4):
         (a1, b1, c1), (a2, b2, c2) = rows[_PREV[i]], rows[i]
         w = a1 * b2 - b1 * a2
         if abs(w) < 1e-12:
-            return rough
-        u, v = (b1 * c2 - c1 * b2) / w, (c1 * a2 - a1 * c2) / w
-        if (u - q[i][0]) ** 2 + (v - q[i][1]) ** 2 > limit:
-            return rough
-        meets.append((u, v))
-    return np.array(meets)
-
-
-def _refine_in_view(
-    gray: GrayImage, rough: FloatArray, side: float, modules: int | None
-) -> FloatArray:
-    """:func:`refine_corners` in a view of the code's neighbourhood, for an image too large
-    for cv2.remap (SHRT_MAX pixels a side); the rough corners when even that view is."""
-    margin = 0.25 * side + 4.0  # beyond the widest band the refinement samples
-    height, width = gray.shape
-    u0 = max(math.floor(float(rough[:, 0].min()) - margin), 0)
-    v0 = max(math.floor(float(rough[:, 1].min()) - margin), 0)
-    u1 = min(math.ceil(float(rough[:, 0].max()) + margin) + 1, width)
-    v1 = min(math.ceil(float(rough[:, 1].max()) + margin) + 1, height)
-    if max(u1 - u0, v1 - v0) >= _REMAP_MAX_COLS or u1 <= u0 or v1 <= v0:
-        return rough
-    origin = np.array([u0, v0], np.float64)
-    refined = refine_corners(gray[v0:v1, u0:u1], rough - origin, modules=modules)
-    result: FloatArray = refined + origin
+            return q + origin
+        meets.append([(b1 * c2 - c1 * b2) / w, (c1 * a2 - a1 * c2) / w])
+    out = np.array(meets)
+    moved = out - q
+    if float((moved * moved).sum(axis=1).max()) > max(3.0, 0.1 * side) ** 2:
+        return q + origin
+    result: FloatArray = out + origin
     return result
 
 
