@@ -485,7 +485,8 @@ class TcpSession:
                         await self._drain()
                         return False
                     received = waits.poll()
-                    assert received is not None  # the read is done
+                    if received is None:
+                        continue  # woken with nothing to take (as receive() loops): wait again
                 over = await self._take_events(received, group)
                 if over is not None:
                     return over
