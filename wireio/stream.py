@@ -132,22 +132,11 @@ class WireStream(asyncio.BufferedProtocol):
         frame's body only once its header has been seen. Raises the OSError that broke the
         connection, once what arrived before it has been returned.
         """
-        if self._waiter is not None and not self._waiter.done():
-            raise RuntimeError("receive() is already being awaited on this stream")
         while True:
-            if self._fresh:
-                fresh, self._fresh = self._fresh, 0
-                return fresh
-            if self._eof:
-                return 0
-            if self._error is not None:
-                raise self._error
-            if self._lost:
-                return 0
-            self._gate = False
-            self._apply_reading()
-            waiter = self._loop.create_future()
-            self._waiter = waiter
+            received = self.poll_received()
+            if received is not None:
+                return received
+            waiter = self.wait_received()
             try:
                 await waiter
             finally:
