@@ -132,57 +132,26 @@ class WireStream(asyncio.BufferedProtocol):
         frame's body only once its header has been seen. Raises the OSError that broke the
         connection, once what arrived before it has been returned.
         """
+        if self._waiter is not None:
+            raise RuntimeError("receive() is already being awaited on this stream")
         while True:
-            received = self.poll_received()
-            if received is not None:
-                return received
-            waiter = self.wait_received()
+            if self._fresh:
+                fresh, self._fresh = self._fresh, 0
+                return fresh
+            if self._eof:
+                return 0
+            if self._error is not None:
+                raise self._error
+            if self._lost:
+                return 0
+            self._gate = False
+            self._apply_reading()
+            waiter = self._loop.create_future()
+            self._waiter = waiter
             try:
                 await waiter
             finally:
                 self._waiter = None
-
-    def poll_received(self) -> int | None:
-        """What :meth:`receive` would return at once, without waiting: the bytes that have
-        gone into the connection since the last call (0: the peer closed its side), or None
-        when it would have to wait. Raises as :meth:`receive` does. Not while a
-        :meth:`receive` is being awaited."""
-        if self._waiter is not None:
-            if not self._waiter.done():
-                raise RuntimeError("receive() is already being awaited on this stream")
-            self._waiter = None  # a finished wait_received(): its news is taken now
-        if self._fresh:
-            fresh, self._fresh = self._fresh, 0
-            return fresh
-        if self._eof:
-            return 0
-        if self._error is not None:
-            raise self._error
-        if self._lost:
-            return 0
-        return None
-
-    def wait_received(self) -> asyncio.Future[None]:
-        """A future done when :meth:`poll_received` has something to say (bytes, the end of
-        the stream or an error): :meth:`receive` without a coroutine, for an owner that waits
-        on several things at once and must not make a task for each wait. Call it only after
-        :meth:`poll_received` returned None; cancel it to stop waiting."""
-        if self._waiter is not None and not self._waiter.done():
-            raise RuntimeError("receive() is already being awaited on this stream")
-        self._gate = False
-        self._apply_reading()
-        waiter = self._loop.create_future()
-        self._waiter = waiter
-        return waiter
-
-    @property
-    def must_drain(self) -> bool:
-        """True when :meth:`drain` would not return at once: the transport's buffer is above
-        its high-water mark, or the connection is closing or lost (drain then raises)."""
-        transport = self._transport
-        return (
-            self._write_paused or self._lost or (transport is not None and transport.is_closing())
-        )
 
     def pause_reading(self) -> None:
         """Read nothing more until :meth:`resume_reading` (TCP backpressure on the peer)."""

@@ -287,6 +287,7 @@ class TcpSession:
         self._reading_over = asyncio.Event()
         """Set once nothing more is read: the client sent CLOSE or ended its stream."""
         self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks_done = asyncio.Event()
         """Set when the last request task of the connection has finished."""
         self._frame_admission: Admission | None = None
         self._held: set[Admission] = set()
@@ -457,91 +458,96 @@ class TcpSession:
 
     async def _read_loop(self, group: asyncio.TaskGroup) -> bool:
         """Read and dispatch until the peer closes (True) or broke the protocol (False)."""
-        # Waiting for bytes, for shutdown and for the last answer are futures that live until
-        # they fire, not new tasks each turn: a request used to cost eight tasks made and
-        # cancelled (bench section 1: 0.6 ms of the server's CPU per INSPECT).
-        waits = _ReadWaits(self)
-        try:
+        while True:
+            # Backpressure: do not read more while the peer is not reading our answers.
+            await self._drain()
+            read = asyncio.ensure_future(self.stream.receive())
+            stop = asyncio.ensure_future(self._shutdown.wait())
+            timeout, why = self._read_timeout()
+            waiters = {read, stop}
+            # With requests in flight there is no idle timeout; wake up when the last one is
+            # answered, so that a client that then goes silent is closed after idle_timeout_s.
+            woken: asyncio.Future[Any] | None = None
+            if timeout is None and self._tasks:
+                self._tasks_done.clear()
+                woken = asyncio.ensure_future(self._tasks_done.wait())
+                waiters.add(woken)
+            try:
+                done, _ = await asyncio.wait(
+                    waiters, timeout=timeout, return_when=asyncio.FIRST_COMPLETED
+                )
+            except asyncio.CancelledError:  # a request task failed: leave nothing pending
+                read.cancel()
+                stop.cancel()
+                if woken is not None:
+                    woken.cancel()
+                raise
+            if woken is not None:
+                woken.cancel()
+                if woken in done and read not in done and stop not in done:
+                    read.cancel()
+                    stop.cancel()
+                    with contextlib.suppress(asyncio.CancelledError, ConnectionError):
+                        await read
+                    continue
+            if read not in done:
+                read.cancel()
+                with contextlib.suppress(asyncio.CancelledError, ConnectionError):
+                    await read
+                if stop not in done:  # silent for too long
+                    stop.cancel()
+                    log.info("%s: %s; closing", self.peer, why)
+                    self._write(Close(reason=why))
+                    await self._drain()
+                    return False
+                await self._shutdown_session()
+                return True
+            stop.cancel()
+            # The bytes are in the connection already (read into its frame body).
+            if read.result() and self._frame_started is None:
+                self._frame_started = time.monotonic()
+            frame_ended = False
             while True:
-                # Backpressure: do not read more while the peer is not reading our answers.
-                await self._drain()
-                received = waits.poll()
-                if received is None:
-                    timeout, why = self._read_timeout()
-                    # With requests in flight there is no idle timeout: look again after
-                    # idle_timeout_s (the idle time then counts from the last answer sent).
-                    outcome = await waits.wait(
-                        self.settings.idle_timeout_s if timeout is None else timeout
-                    )
-                    if outcome == "timeout" and timeout is None:
-                        continue
-                    if outcome == "shutdown":
-                        waits.stop_reading()
-                        await self._shutdown_session()
-                        return True
-                    if outcome == "timeout":
-                        log.info("%s: %s; closing", self.peer, why)
-                        self._write(Close(reason=why))
+                try:
+                    event = self.conn.next_event()
+                except CellvisionError as exc:
+                    frame_ended = True
+                    self._release(self._take_frame_admission())
+                    log.info("%s: %s: %s", self.peer, exc.code.name, exc.message)
+                    if exc.fatal:
+                        self.stream.writelines(_late_error(self.conn, exc))
                         await self._drain()
                         return False
-                    received = waits.poll()
-                    if received is None:
-                        continue  # woken with nothing to take (as receive() loops): wait again
-                over = await self._take_events(received, group)
-                if over is not None:
-                    return over
-        finally:
-            await waits.close()
-
-    async def _take_events(self, received: int, group: asyncio.TaskGroup) -> bool | None:
-        """Hand the connection's events to their handlers after ``received`` bytes came in
-        (0: the peer closed). None: read on; else reading is over, True when gracefully."""
-        # The bytes are in the connection already (read into its frame body).
-        if received and self._frame_started is None:
-            self._frame_started = time.monotonic()
-        frame_ended = False
-        while True:
-            try:
-                event = self.conn.next_event()
-            except CellvisionError as exc:
+                    # Request id 0 (e.g. a request sent with id 0) gets a connection-level
+                    # ERROR: SPEC §6.1 and §7 want an answer even then.
+                    self._write(Error.from_exception(exc))
+                    continue
+                if event is NEED_DATA:
+                    break
+                if event is PAUSED:
+                    await self._wait_for_admission()
+                    continue
                 frame_ended = True
-                self._release(self._take_frame_admission())
-                log.info("%s: %s: %s", self.peer, exc.code.name, exc.message)
-                if exc.fatal:
-                    self.stream.writelines(_late_error(self.conn, exc))
-                    await self._drain()
-                    return False  # broken: not graceful
-                # Request id 0 (e.g. a request sent with id 0) gets a connection-level
-                # ERROR: SPEC §6.1 and §7 want an answer even then.
-                self._write(Error.from_exception(exc))
-                continue
-            if event is NEED_DATA:
-                break
-            if event is PAUSED:
-                await self._wait_for_admission()
-                continue
-            frame_ended = True
-            if isinstance(event, ConnectionClosed):
-                return True  # the peer closed: graceful
-            assert isinstance(event, Message)
-            # The whole frame is in: a request's deadline counts from now (SPEC §6.1).
-            arrived = self._last_activity = time.monotonic()
-            admission = self._take_frame_admission()
-            try:
-                keep_going = self._dispatch(event, group, admission, arrived)
-            except BaseException:
-                self._release(admission)
-                raise
-            if not keep_going:
-                return self.conn.state is not State.CLOSED
-        # The frame timeout counts from a frame's first byte: bytes that trickle in keep
-        # the same start (a slow sender must not hold the connection by dribbling), a new
-        # frame begun in this chunk starts now.
-        if not self.conn.receiving_frame:
-            self._frame_started = None
-        elif frame_ended:
-            self._frame_started = time.monotonic()
-        return None  # read on
+                if isinstance(event, ConnectionClosed):
+                    return True
+                assert isinstance(event, Message)
+                # The whole frame is in: a request's deadline counts from now (SPEC §6.1).
+                arrived = self._last_activity = time.monotonic()
+                admission = self._take_frame_admission()
+                try:
+                    keep_going = self._dispatch(event, group, admission, arrived)
+                except BaseException:
+                    self._release(admission)
+                    raise
+                if not keep_going:
+                    return self.conn.state is not State.CLOSED
+            # The frame timeout counts from a frame's first byte: bytes that trickle in keep
+            # the same start (a slow sender must not hold the connection by dribbling), a new
+            # frame begun in this chunk starts now.
+            if not self.conn.receiving_frame:
+                self._frame_started = None
+            elif frame_ended:
+                self._frame_started = time.monotonic()
 
     def _dispatch(
         self,
@@ -595,6 +601,8 @@ class TcpSession:
 
     def _task_done(self, task: asyncio.Task[None]) -> None:
         self._tasks.discard(task)
+        if not self._tasks:
+            self._tasks_done.set()
 
     def _handshake(self, hello: Hello) -> bool:
         version = negotiate_version(hello.versions, self.conn.versions)
@@ -836,8 +844,8 @@ class TcpSession:
 
     async def _drain(self) -> None:
         """Wait until the client has taken our answers; drop a client that does not read."""
-        if self.stream.is_closing() or not self.stream.must_drain:
-            return  # the common case: no timer, no await
+        if self.stream.is_closing():
+            return
         try:
             async with asyncio.timeout(self.settings.write_timeout_s):
                 await self.stream.drain()
@@ -849,63 +857,6 @@ class TcpSession:
             )
             self.stream.abort()
             raise ConnectionAbortedError("slow reader dropped") from None
-
-
-class _ReadWaits:
-    """What a session's read loop waits for: bytes from the peer (a future of the stream's,
-    no task) and the server's shutdown (one task for the connection's life), instead of
-    tasks made and cancelled on every turn of the loop."""
-
-    def __init__(self, session: TcpSession) -> None:
-        self._session = session
-        self._read: asyncio.Future[None] | None = None
-        self._stop: asyncio.Task[Any] | None = None
-
-    def poll(self) -> int | None:
-        """The bytes received (as :meth:`WireStream.receive` returns them) if they are there
-        now; None when the loop must wait. Raises what broke the connection."""
-        if self._read is not None:
-            if not self._read.done():
-                return None
-            self._read = None
-        return self._session.stream.poll_received()
-
-    async def wait(self, limit_s: float) -> str:
-        """Wait for bytes (``"read"``: :meth:`poll` has them), the server's shutdown
-        (``"shutdown"``) or ``limit_s`` seconds (``"timeout"``); bytes first when several
-        came at once."""
-        if self._read is None:
-            self._read = self._session.stream.wait_received()
-        if self._stop is None:
-            self._stop = asyncio.ensure_future(self._session._shutdown.wait())
-        done, _ = await asyncio.wait(
-            (self._read, self._stop), timeout=limit_s, return_when=asyncio.FIRST_COMPLETED
-        )
-        if self._read in done:
-            return "read"
-        return "shutdown" if self._stop in done else "timeout"
-
-    def stop_reading(self) -> None:
-        if self._read is not None:
-            self._read.cancel()
-            self._read = None
-
-    async def close(self) -> None:
-        """Stop waiting."""
-        self.stop_reading()
-        _cancel(self._stop)
-        self._stop = None
-
-
-def _cancel(task: asyncio.Task[Any] | None) -> None:
-    if task is None:
-        return
-    if task.done():
-        if not task.cancelled():
-            task.exception()  # retrieved: no "exception never retrieved" at collection
-        return
-    task.cancel()
-    task.add_done_callback(lambda t: None if t.cancelled() else t.exception())
 
 
 def result_message(request_id: int, reply: InspectReply) -> Result:
