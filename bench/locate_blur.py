@@ -63,11 +63,14 @@ def _skimage_data() -> Path | None:
 def _degrade(
     image: NDArray[Any], shift: tuple[float, float], sigma: float, gain: float
 ) -> NDArray[np.uint8]:
+    # Bilinear: its kernel's centroid is exactly the shift asked for. OpenCV's Lanczos4 tables
+    # (1/32 px steps) move the image by (0.325, 0.675) px for (0.3, 0.7): an error of 0.036 px
+    # in every coin's answer, both methods', that was the bench's, not the locate's.
     moved = cv2.warpAffine(
         image.astype(np.float32),
         np.array([[1, 0, shift[0]], [0, 1, shift[1]]], np.float32),
         (image.shape[1], image.shape[0]),
-        flags=cv2.INTER_LANCZOS4,
+        flags=cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_REFLECT,
     )
     if sigma > 0:
