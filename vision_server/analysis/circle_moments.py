@@ -44,6 +44,8 @@ clear of the image's border and of neighbours (coins at sigma 4: worst 0.5 px fr
 answer with 2 sigmas, 0.9 px with 3)."""
 _WINDOW_PAD = 2.0  # px
 _RING_PX = 4.0  # px: width of the background ring outside the window
+_TAPER_PX = 5.0  # px: width of every window's smooth edge
+_BORDER_PX = 0.0  # px: how far the window's tapered edge keeps inside the image's border
 _ITERATIONS = 4
 _MIN_STEP = 2.0  # grey levels: below it a pixel's coverage is mostly noise
 _MAX_GROWTH = 1.45
@@ -88,8 +90,11 @@ def moment_centre(
     new centroid. The background is a plane fitted (least squares, refitted once without
     outliers) to a ring ``_RING_PX`` wide just outside it, so a lighting gradient across the
     part does not move the centroid. Weights are ``I - background`` unclipped (clipping is not
-    linear and would lose the blur invariance); dark parts use ``background - I``. The window
-    is cut at the image's border.
+    linear and would lose the blur invariance); dark parts use ``background - I``. Every edge
+    of the window (its disc, the line shared with a neighbour, the image's border) is a smooth
+    ``_TAPER_PX`` wide ramp that moves with the centre, so the answer follows a sub-pixel move
+    of the image continuously. Near the image's border the window is cut alike on both sides
+    of the centre (:func:`_border_cut`).
     """
     u, v, r = circle
     scale = max(scale_px, blur_sigma_px)
@@ -114,30 +119,36 @@ def moment_centre(
     for _ in range(_ITERATIONS):
         reach = r + pad
         outer = reach + _RING_PX
-        # Cut at the image's border: the part's light beyond it is lost alike at every blur.
-        x0, y0 = max(int(math.floor(u - outer)), bx0), max(int(math.floor(v - outer)), by0)
-        x1 = min(int(math.ceil(u + outer)) + 1, bx1)
-        y1 = min(int(math.ceil(v + outer)) + 1, by1)
+        x0, y0 = (
+            max(int(math.floor(u - outer - _TAPER_PX)), bx0),
+            max(int(math.floor(v - outer - _TAPER_PX)), by0),
+        )
+        x1 = min(int(math.ceil(u + outer + _TAPER_PX)) + 1, bx1)
+        y1 = min(int(math.ceil(v + outer + _TAPER_PX)) + 1, by1)
         ys, xs = np.mgrid[y0:y1, x0:x1].astype(np.float64)
         values = patch[y0 - by0 : y1 - by0, x0 - bx0 : x1 - bx0]
         rho = np.hypot(xs - u, ys - v)
-        # A pixel belongs to the part whose edge is nearer (the bisector of the gap between two
-        # parts): at the common scale as much of a like neighbour's light crosses that line as
-        # of ours.
-        ours = np.ones(values.shape, dtype=bool)
-        clear = np.ones(values.shape, dtype=bool)
+        # Every mask is a smooth weight that moves with (u, v): a hard one gains or loses a
+        # whole column of pixels as the image moves by a fraction of one, which moved the
+        # centroid by up to 0.2 px on the coins with no blur at all.
+        ours = _taper(reach - rho)
+        clear = _taper(rho - reach) * _taper(outer - rho)
         for ou, ov, orad in others:
-            if math.hypot(ou - u, ov - v) - orad > outer + pad:
+            if math.hypot(ou - u, ov - v) - orad > outer + pad + _TAPER_PX:
                 continue  # too far to share a pixel of this window or its ring
             theirs = np.hypot(xs - ou, ys - ov) - orad
-            ours &= rho - r <= theirs
-            clear &= theirs > reach - r
-        inside = ours & (rho <= reach)
-        ring = clear & (rho > reach) & (rho <= outer)
+            # A pixel belongs to the part whose edge is nearer (the bisector of the gap between
+            # two parts): at the common scale as much of a like neighbour's light crosses that
+            # line as of ours. Tapered both ways, so the two parts' weights sum to one.
+            ours *= _taper(theirs - (rho - r))
+            clear *= _taper(theirs - (reach - r))
+        cut = _border_cut(xs, ys, (u, v), (width, height), reach)
+        ring = clear > 0.5
         if ring.sum() < 12:
             return "neighbours hide the background ring around the part"
         background = _plane(xs[ring], ys[ring], values[ring])
-        core = inside & (rho <= max(r - 2.0 * scale, 0.5 * r))
+        inside = ours > 0.0
+        core = (ours > 0.5) & (rho <= max(r - 2.0 * scale, 0.5 * r))
         level = float(np.median(values[core])) if core.any() else math.nan
         behind = background(xs[inside], ys[inside])
         # An opaque part hides the background behind it: with the background sloping, the
@@ -149,7 +160,8 @@ def moment_centre(
                 f"the part is not {_MIN_STEP:g} grey levels {'brighter' if sign > 0 else 'darker'}"
                 " than its background everywhere behind it"
             )
-        weights = sign * (values[inside] - behind) / step
+        coverage = ours[inside] * sign * (values[inside] - behind) / step
+        weights = cut[inside] * coverage
         mass = float(weights.sum())
         if not mass > 0:
             return "no light above the background in the moment window"
@@ -158,8 +170,10 @@ def moment_centre(
         if math.hypot(u_new - circle[0], v_new - circle[1]) > _MAX_DRIFT * r:
             return "the intensity centroid lies more than half a radius from the edge's centre"
         # The window follows the part's own size: its coverage's area, which blur keeps (the
-        # edge fit's radius shrinks with blur, by up to 3 px on a worn coin at sigma 4).
-        r_new = math.sqrt(mass / math.pi)
+        # edge fit's radius shrinks with blur, by up to 3 px on a worn coin at sigma 4). Taken
+        # without the border's mirrored cut, which would shrink it: only the image's border
+        # cuts it then, in the blurred edge's faint outer tail at most.
+        r_new = math.sqrt(max(float(coverage.sum()), 0.0) / math.pi)
         if not circle[2] / _MAX_GROWTH <= r_new <= circle[2] * _MAX_GROWTH:
             return (
                 f"the part's light covers a disc of radius {r_new:.1f} px, not about the edge's "
@@ -170,6 +184,34 @@ def moment_centre(
         if settled:
             break
     return u, v, r
+
+
+def _taper(distance: FloatArray) -> FloatArray:
+    """Weight 0..1 rising smoothly (raised cosine, ``_TAPER_PX`` wide) as ``distance`` (px)
+    goes from ``-_TAPER_PX / 2`` to ``+_TAPER_PX / 2``: 0.5 on the line itself."""
+    t = np.clip(distance / _TAPER_PX, -0.5, 0.5)
+    return np.asarray(0.5 + 0.5 * np.sin(math.pi * t), np.float64)
+
+
+def _border_cut(
+    xs: FloatArray,
+    ys: FloatArray,
+    centre: tuple[float, float],
+    size: tuple[int, int],
+    reach: float,
+) -> FloatArray:
+    """Weights that keep the window clear of the image's border, cut alike on both sides of
+    the centre (mirrored about it): light lost beyond one border is then given up on the
+    other side too, so a part symmetric about its centre still reads it; all ones when the
+    window does not come near the border."""
+    u, v = centre
+    width, height = size
+    weights = np.ones(xs.shape, np.float64)
+    for offset, low, high in ((xs - u, u, width - 1 - u), (ys - v, v, height - 1 - v)):
+        half = min(low, high) - _BORDER_PX - _TAPER_PX / 2
+        if half < reach + _TAPER_PX / 2:
+            weights *= _taper(half - np.abs(offset))
+    return weights
 
 
 def _plane(xs: FloatArray, ys: FloatArray, values: FloatArray) -> PlaneFn:
