@@ -125,6 +125,19 @@ def test_every_coin_found_through_blur_and_dimming(coins: NDArray[np.uint8], sig
     assert max(errors) <= 0.3 + 0.45 * sigma
 
 
+def test_a_coin_close_to_its_neighbour_is_found_at_full_contrast_and_sigma_4(
+    coins: NDArray[np.uint8],
+) -> None:
+    # The coin at (276, 53) is 10 px from its neighbour: read with the usual smoothing, its
+    # levels 2 seen sigmas from the edge reach the neighbour: 36 of 180 rays read flat, and it was
+    # rejected (at 40 % contrast the flatness check's fixed 4 grey levels let it through).
+    sharp = locate_circles(coins, **COIN_OPTIONS)  # type: ignore[arg-type]
+    moved = degrade(coins, shift=SHIFT, sigma=4.0, gain=1.0)
+    found = locate_circles(moved, **COIN_OPTIONS)  # type: ignore[arg-type]
+    assert len(found) == 24
+    assert max(nearest(found, f.u + SHIFT[0], f.v + SHIFT[1]) for f in sharp) < 3.0
+
+
 def test_no_part_on_unrelated_photographs() -> None:
     if sample_gray("coins.png") is None:
         pytest.skip(MISSING)
