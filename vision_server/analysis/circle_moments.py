@@ -23,6 +23,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .edge_width import edge_sigma
+
 __all__ = ["COMMON_SCALE_PX", "WINDOW_SIGMAS", "moment_centre"]
 
 FloatArray = NDArray[np.float64]
@@ -34,8 +36,9 @@ COMMON_SCALE_PX = 4.5
 are taken: the most blur the centre is meant to be consistent through (4 px) and a margin for
 the measured sigma's error. Moments alone would not need it for an isolated part; with a
 neighbour a few px away, or background texture that the window's edge cuts, they do: the same
-scale makes the sharp and the blurred image the same image, so what is left differs only by
-the error of the blur measured."""
+scale makes the sharp and the blurred image the same image. The scale reached is measured
+again on the smoothed image and corrected (:func:`_at_common_scale`): the blur measured on the
+input is not exact enough for that."""
 WINDOW_SIGMAS = 2.0
 """How far beyond the part's radius the window reaches, in sigmas of the common scale (plus
 ``_WINDOW_PAD``). At the common scale the sharp and the blurred image are the same image, so
@@ -46,6 +49,9 @@ _WINDOW_PAD = 2.0  # px
 _RING_PX = 4.0  # px: width of the background ring outside the window
 _TAPER_PX = 5.0  # px: width of every window's smooth edge
 _BORDER_PX = 0.0  # px: how far the window's tapered edge keeps inside the image's border
+_SCALE_ROUNDS = 3  # re-measurements of the blur at the common scale
+_SCALE_TOLERANCE = 0.02  # px of sigma: close enough to the common scale
+_SCALE_REACH = 3.0  # sigmas either side of the edge searched when measuring it
 _ITERATIONS = 4
 _MIN_STEP = 2.0  # grey levels: below it a pixel's coverage is mostly noise
 _MAX_GROWTH = 1.45
@@ -106,15 +112,13 @@ def moment_centre(
     margin = (_MAX_GROWTH + _MAX_DRIFT) * r + pad + _RING_PX + 3.0 * extra + 2.0
     bx0, by0 = max(int(u - margin), 0), max(int(v - margin), 0)
     bx1, by1 = min(int(u + margin) + 2, width), min(int(v + margin) + 2, height)
-    patch = np.ascontiguousarray(image[by0:by1, bx0:bx1], np.float64)
-    if extra > 0.05:
-        # OpenCV's default border (mirrored about the edge pixel), so that an image blurred by
-        # OpenCV, as the bench's are, and this blur compose into one. A part whose light
-        # reaches the image's border still reads up to 0.3 px apart when the image moves (the
-        # mirrored light moves the other way): no border rule makes that consistent.
-        patch = np.asarray(
-            cv2.GaussianBlur(patch, (0, 0), extra, borderType=cv2.BORDER_REFLECT_101), np.float64
-        )
+    patch = _at_common_scale(
+        np.ascontiguousarray(image[by0:by1, bx0:bx1], np.float64),
+        (u - bx0, v - by0, r),
+        extra=extra,
+        target=scale if scale_px >= blur_sigma_px else None,
+        polarity=polarity,
+    )
     sign = 1.0 if polarity == "bright" else -1.0
     for _ in range(_ITERATIONS):
         reach = r + pad
@@ -184,6 +188,49 @@ def moment_centre(
         if settled:
             break
     return u, v, r
+
+
+def _at_common_scale(
+    patch: FloatArray,
+    circle: Circle,
+    *,
+    extra: float,
+    target: float | None,
+    polarity: Literal["bright", "dark"],
+) -> FloatArray:
+    """``patch`` smoothed by ``extra`` px, then by more or less until its edge around
+    ``circle`` (px, in the patch) measures ``target`` px (None: ``extra`` as given).
+
+    The blur measured before (:func:`.edge_width.edge_sigma`) is floored at 1 px on a sharp
+    image and reads 0.1..0.2 px under the true one on a blurred coin, so the sharp and the
+    blurred image were brought to scales 0.2..0.3 px apart: enough, with a neighbour 8 px away,
+    to move a coin's centre by 0.1 px at sigma 4. Measured again at the common scale, the same
+    part reads alike whatever the blur it came with, so the two end at one scale.
+    """
+    smoothed = _smoothed(patch, extra)
+    if target is None:
+        return smoothed
+    reach = _SCALE_REACH * target
+    for _ in range(_SCALE_ROUNDS):
+        seen = edge_sigma(
+            smoothed, circle[:2], circle[2], polarity=polarity, reach=reach, interpolate=True
+        )
+        if seen is None or abs(seen - target) < _SCALE_TOLERANCE:
+            break
+        extra = math.sqrt(max(extra**2 + target**2 - seen**2, 0.0))
+        smoothed = _smoothed(patch, extra)
+    return smoothed
+
+
+def _smoothed(patch: FloatArray, sigma: float) -> FloatArray:
+    """``patch`` blurred by a Gaussian of ``sigma`` px (as it is below 0.05 px).
+
+    OpenCV's default border (mirrored about the edge pixel), so that an image blurred by
+    OpenCV, as the bench's are, and this blur compose into one."""
+    if sigma <= 0.05:
+        return patch
+    blurred = cv2.GaussianBlur(patch, (0, 0), sigma, borderType=cv2.BORDER_REFLECT_101)
+    return np.asarray(blurred, np.float64)
 
 
 def _taper(distance: FloatArray) -> FloatArray:

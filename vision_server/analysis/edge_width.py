@@ -36,6 +36,7 @@ def edge_sigma(
     polarity: Literal["bright", "dark"],
     rays: int = 64,
     reach: float | None = None,
+    interpolate: bool = False,
 ) -> float | None:
     """Median edge sigma (px) of a roughly circular edge near ``radius`` around ``centre``.
 
@@ -57,6 +58,10 @@ def edge_sigma(
         Rays cast.
     reach : float, optional
         Half-width (px) of the radial window searched, default ``max(8, 0.35 * radius)``.
+    interpolate : bool
+        Place each half-maximum crossing by linear interpolation between samples, so that the
+        answer varies continuously with the blur (default: counted in whole samples, which
+        steps by 0.1 px of sigma) and is not raised to :data:`SHARP_SIGMA`.
 
     Returns
     -------
@@ -99,7 +104,15 @@ def edge_sigma(
             right += 1
         if left == 0 or right == len(slope) - 1:
             continue  # the peak runs off the window: not an edge we can measure
-        widths.append((right - left + 1) * _STEP / _FWHM_PER_SIGMA)
+        if interpolate:
+            half_top = 0.5 * top
+            first = left - 1 + (half_top - slope[left - 1]) / (slope[left] - slope[left - 1])
+            last = right + (slope[right] - half_top) / (slope[right] - slope[right + 1])
+            widths.append(float(last - first) * _STEP / _FWHM_PER_SIGMA)
+        else:
+            widths.append((right - left + 1) * _STEP / _FWHM_PER_SIGMA)
     if len(widths) < max(4, rays // 4):
         return None
+    if interpolate:
+        return float(np.median(widths))
     return max(float(np.median(widths)), SHARP_SIGMA)

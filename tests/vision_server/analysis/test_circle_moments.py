@@ -152,3 +152,36 @@ def test_the_moments_centre_follows_a_sub_pixel_move_smoothly() -> None:
         assert not isinstance(found, str)
         readings.append(found[0] - offset)
     assert max(readings) - min(readings) < 0.03
+
+
+def lit_disc_beside_a_brighter_one(sigma: float) -> NDArray[np.uint8]:
+    """140x100 px, 4x supersampled: a disc (r 22 px, 150, its +u rim 3 px wide at 210) and a
+    brighter one (230) 8 px beside it on +u, on 40, blurred by ``sigma`` px."""
+    s, width, height = 4, 140, 100
+    ys, xs = np.mgrid[0 : height * s, 0 : width * s].astype(np.float32)
+    xs, ys = (xs + 0.5) / s - 0.5, (ys + 0.5) / s - 0.5
+    rho = np.hypot(xs - 45.3, ys - 50.6)
+    part, neighbour = rho <= 22.0, np.hypot(xs - 97.3, ys - 50.6) <= 22.0
+    rim = part & (rho > 19.0) & (xs > 45.3)
+    fine = np.where(part, 150.0 + 60.0 * rim, np.where(neighbour, 230.0, 40.0))
+    image = cv2.resize(fine.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+    if sigma > 0:
+        image = cv2.GaussianBlur(image, (0, 0), sigma)
+    return np.asarray(np.clip(np.rint(image), 0, 255), np.uint8)
+
+
+def test_a_close_neighbour_does_not_move_the_moments_centre_through_blur() -> None:
+    # The blur measured on the input is floored at 1 px when sharp and reads low when blurred,
+    # so the two images reached different scales and the light shared with the neighbour
+    # differed: 0.033 px apart here. Measured again at the common scale: 0.005 px.
+    read = []
+    for sigma in (0.0, 4.0):
+        found = locate_circles(
+            lit_disc_beside_a_brighter_one(sigma),
+            radius_range=(15.0, 30.0),
+            max_count=4,
+            min_score=0.2,
+            centre="moments",
+        )
+        read.append(min(((f.u, f.v) for f in found), key=lambda c: math.dist(c, (45.3, 50.6))))
+    assert math.dist(read[0], read[1]) < 0.015
