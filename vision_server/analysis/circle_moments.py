@@ -52,6 +52,7 @@ _BORDER_PX = 0.0  # px: how far the window's tapered edge keeps inside the image
 _SCALE_ROUNDS = 3  # re-measurements of the blur at the common scale
 _SCALE_TOLERANCE = 0.02  # px of sigma: close enough to the common scale
 _SCALE_REACH = 3.0  # sigmas either side of the edge searched when measuring it
+_SCALE_RAYS = 32  # rays the blur is measured on at the common scale
 _ITERATIONS = 4
 _MIN_STEP = 2.0  # grey levels: below it a pixel's coverage is mostly noise
 _MAX_GROWTH = 1.45
@@ -213,7 +214,13 @@ def _at_common_scale(
     reach = _SCALE_REACH * target
     for _ in range(_SCALE_ROUNDS):
         seen = edge_sigma(
-            smoothed, circle[:2], circle[2], polarity=polarity, reach=reach, interpolate=True
+            smoothed,
+            circle[:2],
+            circle[2],
+            polarity=polarity,
+            rays=_SCALE_RAYS,
+            reach=reach,
+            interpolate=True,
         )
         if seen is None or abs(seen - target) < _SCALE_TOLERANCE:
             break
@@ -234,10 +241,10 @@ def _smoothed(patch: FloatArray, sigma: float) -> FloatArray:
 
 
 def _taper(distance: FloatArray) -> FloatArray:
-    """Weight 0..1 rising smoothly (raised cosine, ``_TAPER_PX`` wide) as ``distance`` (px)
+    """Weight 0..1 rising smoothly (smoothstep, ``_TAPER_PX`` wide) as ``distance`` (px)
     goes from ``-_TAPER_PX / 2`` to ``+_TAPER_PX / 2``: 0.5 on the line itself."""
-    t = np.clip(distance / _TAPER_PX, -0.5, 0.5)
-    return np.asarray(0.5 + 0.5 * np.sin(math.pi * t), np.float64)
+    t = np.clip(distance * (1.0 / _TAPER_PX) + 0.5, 0.0, 1.0)
+    return np.asarray(t * t * (3.0 - 2.0 * t), np.float64)
 
 
 def _border_cut(
