@@ -118,9 +118,19 @@ def test_coins_centres_by_moments_hold_through_a_4_px_blur() -> None:
     errors = [
         min(math.hypot(f.u - s.u - shift[0], f.v - s.v - shift[1]) for f in found) for s in sharp
     ]
-    # Measured: median 0.05 px, worst 0.3 px (coins whose window the image's border cuts).
-    assert float(np.median(errors)) <= 0.1
-    assert max(errors) <= 0.4
+    height, width = coins.shape
+    inner = [
+        e
+        for e, s in zip(errors, sharp, strict=True)
+        if min(s.u, s.v, width - 1 - s.u, height - 1 - s.v) - (s.radius or 0.0) >= 5.0
+    ]
+    # Measured: median 0.011 px; worst 0.05 px over the 22 coins whose outline is 5 px or more
+    # from the image's border, 0.15 px for the one 3.4 px from it (its light mirrored at the
+    # border moves the other way when the image moves).
+    assert float(np.median(errors)) <= 0.03
+    assert len(inner) == 22
+    assert max(inner) <= 0.1
+    assert max(errors) <= 0.25
 
 
 def two_close_discs(offset: float) -> NDArray[np.float64]:
