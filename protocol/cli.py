@@ -60,6 +60,8 @@ class ExitCode(enum.IntEnum):
     could not listen."""
     SERVER = 4
     """The server answered with an ERROR (NOT_AUTHENTICATED, UNKNOWN_INSPECTION, BUSY, ...)."""
+    INTERRUPTED = 130
+    """Stopped by Ctrl-C (SIGINT); a shell's code for a command that SIGINT ended."""
 
 
 class ErrorKind(enum.Enum):

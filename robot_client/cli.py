@@ -374,6 +374,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     Console.on_broken_pipe = _broken_pipe  # type: ignore[method-assign,assignment]
     try:
         return _main(argv)
+    except KeyboardInterrupt:
+        # Ctrl-C: one line, not a traceback (a task says where it stopped before this).
+        print("robot-client: interrupted", file=sys.stderr)
+        return ExitCode.INTERRUPTED
     except BrokenPipeError:
         # The reader of stdout went away (`| head`): no traceback. stdout now points at
         # /dev/null so that Python's flush at exit does not fail again; the exit code is a

@@ -13,6 +13,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -34,7 +35,7 @@ from .operator import DEFAULT_DEADLINE_S, ConsoleOperator, task_operator
 from .skills import Outcome, SkillContext, default_registry, execute
 from .skills import Progress as SkillProgress
 from .skills.world import WorldModel
-from .tasks import OperatorDecision, Step, StepReport, TaskRunner, load_task
+from .tasks import OperatorDecision, Step, StepReport, TaskRunner, check_task, load_task
 from .teach_check import check_inspection_names
 from .teach_store import TeachStore
 
@@ -42,6 +43,10 @@ __all__ = ["add_skill_commands"]
 
 STORE_ENV = "CELLVISION_TEACH_STORE"
 SIM_STATE_ENV = "CELLVISION_SIM_STATE"
+DEFAULT_SIM_STATE = "demo-output/world-state.json"
+"""The world-state file examples/cell.yaml's simulated cameras read (relative to the directory
+the commands run in, the repository's root in the README): the robot and the server then see
+the same world."""
 DEFAULT_SCENE = "examples/scenes/grundfos_cell.yaml"
 
 
@@ -76,7 +81,7 @@ def _devices(args: argparse.Namespace) -> Devices:
         return connect_ur(args.robot_host, vision=vision)
     from .devices.sim import sim_devices
 
-    state = args.state_file or os.environ.get(SIM_STATE_ENV) or "/tmp/cellvision/world.json"
+    state = args.state_file or os.environ.get(SIM_STATE_ENV) or DEFAULT_SIM_STATE
     return sim_devices(
         args.scene, seed=args.seed, state_path=state, vision=vision, fresh=args.fresh
     )
@@ -279,6 +284,9 @@ def cmd_task_run(args: argparse.Namespace, console: Console) -> int:
     task = load_task(args.file)
     registry = default_registry()
     store = _store(args)
+    # Checked before the devices exist: a refused task must not have reset the sim's world
+    # (--fresh) or moved anything.
+    check_task(task, registry, store)
 
     def on_step(step: StepReport) -> None:
         if args.json:
@@ -298,17 +306,48 @@ def cmd_task_run(args: argparse.Namespace, console: Console) -> int:
         else:
             decide = _operator(args.operator, console)
         runner = TaskRunner(registry, store, ctx, operator=decide, on_step=on_step)
-        report = runner.run(task)
+        started = time.monotonic()
+        try:
+            report = runner.run(task)
+        except KeyboardInterrupt:
+            _interrupted(runner, console)
+            raise
     if args.json:
         print(json.dumps(report.to_dict()))
     else:
         verdict = "[green]done[/]" if report.ok else "[red]failed[/]"
         console.print(
             f"task {escape(report.task)}: {verdict}, {_count(len(report.steps), 'step')}, "
-            f"{len(report.failures)} failed, {report.duration_s:.2f} s"
+            f"{len(report.failures)} failed, "
+            + _duration(report.duration_s, time.monotonic() - started, sim=args.backend == "sim")
             + (escape(f", stopped at {report.stopped_at}") if report.stopped_at else "")
         )
     return ExitCode.OK if report.ok else ExitCode.FAILED
+
+
+def _duration(clock_s: float, wall_s: float, *, sim: bool) -> str:
+    """A task's duration as the skills' clock measured it. In the sim that clock is simulated
+    time (the arm's motions and waits; the vision requests take none of it), which is not the
+    cycle time a cell would have: say so, with the wall-clock time beside it."""
+    if sim:
+        return f"{clock_s:.2f} s of simulated robot time ({wall_s:.2f} s wall clock)"
+    return f"{clock_s:.2f} s"
+
+
+def _interrupted(runner: TaskRunner, console: Console) -> None:
+    """Ctrl-C during a task: where it stopped, on stderr (the CLI then exits 130)."""
+    report = runner.report
+    done = 0 if report is None else len(report.steps)
+    where = "between steps"
+    if runner.current is not None:
+        step, iteration = runner.current
+        it = "".join(f"#{i}" for i in iteration)
+        where = f"during step {step.path}{it} {step.skill}/{step.record}"
+    Console(stderr=True).print(
+        f"[red]interrupted[/] {escape(where)}, after {_count(done, 'finished step')}; "
+        "the robot was not sent further commands (check where it stands before running again)",
+        soft_wrap=True,
+    )
 
 
 def cmd_taught_list(args: argparse.Namespace, console: Console) -> int:
@@ -382,7 +421,7 @@ def _device_options() -> argparse.ArgumentParser:
         "--state-file",
         default=None,
         help=f"the sim's shared world-state file (default ${SIM_STATE_ENV} or "
-        "/tmp/cellvision/world.json)",
+        f"{DEFAULT_SIM_STATE}, the file examples/cell.yaml's simulated cameras read)",
     )
     group.add_argument("--robot-host", default=None, help="UR controller address (--backend ur)")
     group.add_argument("--world-file", default=None, help="calibrations kept between runs")

@@ -59,6 +59,7 @@ __all__ = [
     "TaskError",
     "TaskReport",
     "TaskRunner",
+    "check_task",
     "load_task",
     "task_from_text",
 ]
@@ -312,6 +313,14 @@ class _Stop(Exception):
     pass
 
 
+def check_task(task: Task, registry: SkillRegistry, store: TeachStore) -> None:
+    """Raise :class:`TaskError` if ``task`` names skills or records that ``registry`` and
+    ``store`` do not have (before anything moves)."""
+    problems = task.problems(registry, store)
+    if problems:
+        raise TaskError(f"{task.source}: " + "; ".join(problems))
+
+
 class TaskRunner:
     """Runs tasks: skills from ``registry``, records from ``store``, on ``ctx``.
     ``operator(step, outcome)`` decides for the ``operator`` policy; ``on_step(report)`` is
@@ -328,14 +337,18 @@ class TaskRunner:
     ) -> None:
         self.registry, self.store, self.ctx = registry, store, ctx
         self.operator, self.on_step = operator, on_step
+        self.current: tuple[Step, tuple[int, ...]] | None = None
+        """The step running now and its iteration (None between steps): where a task that
+        was interrupted (Ctrl-C) stopped."""
+        self.report: TaskReport | None = None
+        """The report of the task running or last run, complete up to the step running."""
 
     def run(self, task: Task) -> TaskReport:
         """Run ``task``; raises :class:`TaskError` before moving anything if it names unknown
         skills or records."""
-        problems = task.problems(self.registry, self.store)
-        if problems:
-            raise TaskError(f"{task.source}: " + "; ".join(problems))
+        check_task(task, self.registry, self.store)
         report = TaskReport(task.name)
+        self.report = report
         start = self.ctx.clock.now()
         try:
             self._group(task.body, task.on_failure, (), report)
@@ -371,6 +384,7 @@ class TaskRunner:
     def _step(
         self, step: Step, policy: OnFailure, iteration: tuple[int, ...], report: TaskReport
     ) -> None:
+        self.current = (step, iteration)
         start = self.ctx.clock.now()
         attempts = 0
         retries_left = policy.retries
@@ -411,6 +425,7 @@ class TaskRunner:
             decision,
         )
         report.steps.append(result)
+        self.current = None
         if self.on_step is not None:
             self.on_step(result)
         if not outcome.ok and stop:

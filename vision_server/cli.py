@@ -765,6 +765,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     Console.on_broken_pipe = _broken_pipe  # type: ignore[method-assign,assignment]
     try:
         return _main(argv)
+    except KeyboardInterrupt:
+        # Ctrl-C in a command (serve ends cleanly on its own): one line, not a traceback.
+        print("vision-server: interrupted", file=sys.stderr)
+        return int(ExitCode.INTERRUPTED)
     except BrokenPipeError:
         return quiet_broken_pipe()
 

@@ -77,6 +77,66 @@ def test_task_run(opts: list[str], tmp_path: Path, capsys: pytest.CaptureFixture
     assert "task shuttle: done, 4 steps, 0 failed" in " ".join(capsys.readouterr().out.split())
 
 
+def test_task_run_says_the_sim_time_is_simulated(
+    opts: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    main(["teach", "move_to", "a", "pose=0.3,-0.3,0.3,3.14159265,0,0", *opts])
+    task = tmp_path / "task.yaml"
+    task.write_text("task: once\nsteps: [{move_to: a}]\n")
+    capsys.readouterr()
+    assert main(["task", "run", str(task), *opts]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "s of simulated robot time (" in out
+    assert "s wall clock)" in out
+
+
+def test_a_refused_task_leaves_the_sim_world_as_it_was(
+    opts: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A typo found when the task is checked: nothing was attempted, so --fresh must not have
+    reset the simulated world either."""
+    assert main(["teach", "move_to", "a", "pose=0.3,-0.3,0.3,3.14159265,0,0", *opts]) == 0
+    assert main(["run", "move_to", "a", *opts]) == 0  # the arm moved: the world file says so
+    world = Path(opts[opts.index("--state-file") + 1])
+    before = world.read_bytes()
+    task = tmp_path / "typo.yaml"
+    task.write_text("task: typo\nsteps: [{move_to: a}, {presss: a}]\n")
+    capsys.readouterr()
+    assert main(["task", "run", str(task), "--fresh", *opts]) == 2
+    assert "no skill 'presss'" in _err(capsys)
+    assert world.read_bytes() == before
+
+
+def test_ctrl_c_in_a_task_says_where_it_stopped_and_exits_130(
+    opts: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import robot_client.tasks as tasks
+
+    main(["teach", "move_to", "a", "pose=0.3,-0.3,0.3,3.14159265,0,0", *opts])
+    main(["teach", "move_to", "b", "pose=0.5,-0.3,0.3,3.14159265,0,0", *opts])
+    task = tmp_path / "task.yaml"
+    task.write_text("task: shuttle\nsteps: [{move_to: a}, {move_to: b}]\n")
+    real = tasks.TaskRunner._attempt
+
+    def attempt(self: tasks.TaskRunner, step: tasks.Step) -> object:
+        if step.record == "b":
+            raise KeyboardInterrupt  # the operator's Ctrl-C while the arm moves to b
+        return real(self, step)
+
+    monkeypatch.setattr(tasks.TaskRunner, "_attempt", attempt)
+    capsys.readouterr()
+    assert main(["task", "run", str(task), *opts]) == 130
+    err = _err(capsys)
+    assert "interrupted during step" in err
+    assert "move_to/b" in err
+    assert "after 1 finished step" in err
+    assert "Traceback" not in err
+    assert "robot-client: interrupted" in err
+
+
 def test_usage_errors_exit_2(
     opts: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -233,3 +233,19 @@ def test_parser_defaults() -> None:
     assert (args.host, args.port, args.token_file, args.config) == (None, None, None, None)
     with pytest.raises(UsageError, match="required: command"):
         build_parser().parse_args([])
+
+
+def test_ctrl_c_in_a_command_is_one_line_and_exit_130(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C in a long command (here the golden cases, interrupted in their first case): no
+    traceback, the shell's exit code for SIGINT."""
+    import vision_server.cli as cli
+
+    def interrupted(*args: object, **kwargs: object) -> int:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_test_inspections", interrupted)
+    assert cli.main(["test-inspections", str(tmp_path)]) == 130
+    err = capsys.readouterr().err
+    assert err.strip() == "vision-server: interrupted"
