@@ -166,7 +166,7 @@ def _depth_stack(depth_frames: object, shape: tuple[int, int]) -> NDArray[np.uin
     if stack.shape[1:] != shape:
         raise BadImageError(
             f"depth {stack.shape[2]}x{stack.shape[1]} is not registered to the "
-            f"{shape[1]}x{shape[0]} colour image"
+            f"{shape[1]}x{shape[0]} colour image and intrinsics"
         )
     return np.asarray(stack, np.uint16)
 
@@ -303,6 +303,15 @@ def qr_pose(
     if not (unchecked_shift_std_px >= 0 and np.isfinite(unchecked_shift_std_px)):
         raise ValueError(f"unchecked_shift_std_px must be >= 0, got {unchecked_shift_std_px}")
     shape = (intrinsics.height, intrinsics.width)
+    if color is not None and np.asarray(color).shape[:2] != shape:
+        # Before the depth: a depth frame of the colour image's size is registered to it; the
+        # two differ from the camera's intrinsics, which is what must be said.
+        got = np.asarray(color).shape[:2]
+        raise BadImageError(
+            f"the colour image is {got[1]}x{got[0]}, the camera's intrinsics are for "
+            f"{shape[1]}x{shape[0]}: send the camera's full frames (a crop or another "
+            "resolution needs intrinsics of its own)"
+        )
     depth = _depth_stack(depth_frames, shape)
     correction = DepthCorrection(
         float(depth_scale), (float(depth_shift_px[0]), float(depth_shift_px[1]))
@@ -311,10 +320,6 @@ def qr_pose(
     if corners is None:
         if color is None:
             raise NotFoundError("neither a colour image nor corners given")
-        if np.asarray(color).shape[:2] != shape:
-            raise BadImageError(
-                f"colour image {np.asarray(color).shape[:2]} does not match the intrinsics {shape}"
-            )
         code = read_qr(color, roi=roi, expect=expect)[0]
         corners_uv, text = code.corners, code.text
     else:

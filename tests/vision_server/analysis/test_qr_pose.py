@@ -119,3 +119,8 @@ def test_given_corners_and_typed_failures(views: list[tuple[Any, list[Any]]]) ->
         qr_pose(frame.color, [d.astype(np.float32) for d in depth], intr)  # type: ignore[misc]
     with pytest.raises(BadImageError):
         qr_pose(frame.color, [d[:100] for d in depth], intr)
+    # A crop of colour and depth together: registered to each other, not to the intrinsics.
+    # The error names the colour image's size and the intrinsics', not the depth.
+    crop = frame.color[:192, :224]
+    with pytest.raises(BadImageError, match=r"colour image is 224x192, the camera's intrinsics"):
+        qr_pose(crop, [d[:192, :224] for d in depth], intr)
