@@ -286,6 +286,12 @@ def _check_config(args: argparse.Namespace) -> int:
         print(json.dumps(_summary(config)))
         return 0
     table = Table(title=Text(f"{args.file}: valid (config hash {config.config_hash})"))
+    if not config.inspections:
+        Console(stderr=True).print(
+            Text("warning: ", style="yellow")
+            + Text("no inspections: the server would answer every INSPECT UNKNOWN_INSPECTION"),
+            soft_wrap=True,
+        )
     for column in ("inspection", "type", "camera", "source", "roi"):
         table.add_column(column)
     for inspection in config.inspections:

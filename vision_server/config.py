@@ -130,6 +130,13 @@ def load_server_settings(path: Path | str) -> ServerSettings:
 def parse_config(
     root: Node, *, text: str, base_dir: Path, source: Path | None = None
 ) -> CellConfig:
+    if not root.data:
+        # An empty file (or only comments) is a truncated copy or the wrong file far more often
+        # than a server meant to serve nothing.
+        raise root.error(
+            "the file is empty: a configuration lists at least its cameras and inspections "
+            "(docs/configuration.md)"
+        )
     server_node = root.sub("server")
     server = _server(server_node, base_dir)
     results = _results(root.sub("results"), base_dir)

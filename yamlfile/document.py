@@ -209,6 +209,26 @@ def read_document(
     shown = str(path) if source is None else source
     try:
         text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise node_type.error_type(f"cannot read the file: {exc}", source=str(path)) from None
+    except OSError as exc:
+        raise node_type.error_type(
+            f"cannot read the file: {_os_reason(exc)}", source=str(path)
+        ) from None
+    except UnicodeDecodeError as exc:
+        raise node_type.error_type(
+            f"cannot read the file: not a YAML text file (byte 0x{exc.object[exc.start]:02x} at "
+            f"offset {exc.start} is not UTF-8 text: an image or another binary file?)",
+            source=str(path),
+        ) from None
     return parse_document(text, source=shown, node_type=node_type), text
+
+
+def _os_reason(exc: OSError) -> str:
+    """Why a file could not be read, in words (``[Errno 2] No such file...: 'p'`` names the
+    file again, which the error's source already does)."""
+    if isinstance(exc, FileNotFoundError):
+        return "no such file"
+    if isinstance(exc, IsADirectoryError):
+        return "it is a directory, not a file"
+    if isinstance(exc, PermissionError):
+        return "permission denied"
+    return exc.strerror or str(exc)

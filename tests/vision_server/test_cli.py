@@ -249,3 +249,41 @@ def test_ctrl_c_in_a_command_is_one_line_and_exit_130(
     assert cli.main(["test-inspections", str(tmp_path)]) == 130
     err = capsys.readouterr().err
     assert err.strip() == "vision-server: interrupted"
+
+
+def test_check_config_names_what_is_wrong_with_the_file_itself(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An empty file, a file of comments only and an image given by mistake are invalid, each
+    with its cause in words (not a Python exception's text)."""
+    from vision_server.cli import main
+
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    comments = tmp_path / "comments.yaml"
+    comments.write_text("# the cell\n# nothing yet\n")
+    image = tmp_path / "cell.png"
+    image.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+    for path in (empty, comments):
+        assert main(["check-config", str(path)]) == 1
+        assert "the file is empty" in " ".join(capsys.readouterr().err.split())
+    assert main(["check-config", str(image)]) == 1
+    err = " ".join(capsys.readouterr().err.split())
+    assert "not a YAML text file" in err
+    assert "codec" not in err
+    missing = tmp_path / "missing.yaml"
+    assert main(["serve", "--config", str(missing)]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "cannot read the file: no such file" in err
+    assert "Errno" not in err
+
+
+def test_check_config_warns_of_a_file_without_inspections(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from vision_server.cli import main
+
+    config = tmp_path / "cell.yaml"
+    config.write_text("cameras: {tool: {source: request}}\ninspections: []\n")
+    assert main(["check-config", str(config)]) == 0
+    assert "warning: no inspections" in capsys.readouterr().err
