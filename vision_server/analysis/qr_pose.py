@@ -61,7 +61,8 @@ from numpy.typing import NDArray
 from geometry import CameraIntrinsics, fit_plane, orthonormalize
 
 from .errors import BadImageError, DepthError, NotFoundError
-from .qr import Expect, read_qr
+from .qr import Expect, gray_for_code, read_qr
+from .qr_finders import finder_centres
 
 __all__ = [
     "QRPose",
@@ -133,6 +134,7 @@ class QRPoseQuality:
     depth_vs_side: float = float("nan")
     side_px: float = float("nan")
     shift_sensitivity: FloatArray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
+    depth_vs_finders: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -316,12 +318,13 @@ def qr_pose(
                 f"colour image {np.asarray(color).shape[:2]} does not match the intrinsics {shape}"
             )
         code = read_qr(color, roi=roi, expect=expect)[0]
-        corners_uv, text = code.corners, code.text
+        corners_uv, text, modules = code.corners, code.text, code.modules
     else:
         corners_uv = np.asarray(corners, np.float64)
         if corners_uv.shape != (4, 2):
             raise ValueError(f"corners must have shape (4, 2), got {corners_uv.shape}")
         text = expect if isinstance(expect, str) else ""
+        modules = None  # corners from elsewhere: the finders are not looked for
     _check_corners(corners_uv, intrinsics)
 
     if method == "corners":
@@ -346,6 +349,7 @@ def qr_pose(
         raise DepthError(f"degenerate QR geometry: side lengths {sides.tolist()} m")
     orthogonality = _orthogonality(corners_cam)
     factor = 1.0
+    depth_vs_finders = float("nan")
     side_px = float(np.mean(_sides(corners_uv)))
     sensitivity = _shift_sensitivity(corners_cam, intrinsics)
     if side_m is not None and scale == "auto":
@@ -362,14 +366,33 @@ def qr_pose(
                 corner_bias_px or 0.0,
             )
         else:
-            factor = _unchecked_factor(
-                disagreement,
-                side_px,
-                sensitivity,
-                unchecked_scale_std,
-                unchecked_shift_std_px,
-                corner_bias_px,
+            finders = (
+                None
+                if color is None or modules is None
+                else _finder_disagreement(
+                    color, corners_uv, corners_cam, modules, intrinsics, side_m, side_px
+                )
             )
+            if finders is not None:
+                depth_vs_finders, var_finders = finders
+                factor = _unchecked_factor(
+                    depth_vs_finders,
+                    side_px,
+                    sensitivity,
+                    unchecked_scale_std,
+                    unchecked_shift_std_px,
+                    0.0,
+                    side_noise_px=float(np.sqrt(var_finders)) * side_px,
+                )
+            else:
+                factor = _unchecked_factor(
+                    disagreement,
+                    side_px,
+                    sensitivity,
+                    unchecked_scale_std,
+                    unchecked_shift_std_px,
+                    corner_bias_px,
+                )
         corners_cam = corners_cam * factor  # along the rays through the camera centre
     elif side_m is not None and scale == "side":
         factor = side_m / float(sides.mean())
@@ -404,6 +427,7 @@ def qr_pose(
         depth_vs_side=depth_vs_side,
         side_px=side_px,
         shift_sensitivity=sensitivity,
+        depth_vs_finders=depth_vs_finders,
     )
     return QRPose(camera_from_qr, text, corners_uv.copy(), corners_cam, method, quality)
 
@@ -420,6 +444,74 @@ UNMEASURED_CORNER_BIAS_STD_PX = 0.05
 """The uncertainty of the corner detector's bias on the side when ``corner_bias_px`` is not
 configured: the simulated camera's was -0.07 px with an earlier detector and is -0.03 px with
 today's, so a camera nobody measured is assumed within about +/-0.05 px (1 std)."""
+
+
+FINDER_AXIS_NOISE_PX = 0.022
+"""The error of the code's size measured by its finder patterns' centres (:mod:`.qr_finders`)
+in one direction on the code, std in pixels of the side it implies: 0.021-0.022 px (mean
+-0.005 px: no bias worth configuring) against the simulated camera's truth on two sets of 40
+views at 0.6-1.5 m along the plane's tilt axis, which the bench does not evaluate
+(bench/calibration.py's view generator, seeds 53 and 59). The corners' side has 0.020 px
+around a -0.033 px bias (both directions averaged)."""
+PLANE_NORMAL_STD_RAD = float(np.radians(0.1))
+"""The depth plane's normal error (std) at 0.6-1.5 m over 5 frames: the plane method's
+rotation p95 is 0.11-0.15° on the bench (docs/BENCHMARKS.md section 4)."""
+
+
+def _finder_disagreement(
+    color: NDArray[np.generic],
+    corners_uv: FloatArray,
+    corners_cam: FloatArray,
+    modules: int,
+    intr: CameraIntrinsics,
+    side_m: float,
+    side_px: float,
+) -> tuple[float, float] | None:
+    """How much further the depth puts the code than its finder patterns' image size does
+    (relative, like ``depth_vs_side``), and that figure's variance (relative²).
+
+    The finders' centres are cast onto the plane of ``corners_cam`` (camera frame, m), and
+    the code's module length on that plane is measured in two directions: along the plane's
+    tilt axis (the in-plane direction square to the camera's ray through the code) and across
+    it. Why two: the plane's normal is off by ~0.1° (depth noise, PLANE_NORMAL_STD_RAD), and
+    a normal error d stretches lengths across the tilt axis by tan(tilt) d (0.07 % at 20° and
+    0.18°: 1 mm at 1.4 m) but not along it; each direction has the finders' own noise
+    (FINDER_AXIS_NOISE_PX / ``side_px``). The two are weighed by their variances. None when
+    the finders are not found."""
+    try:
+        centres_uv = finder_centres(gray_for_code(color), corners_uv, modules)
+    except (BadImageError, ValueError):
+        return None
+    if centres_uv is None:
+        return None
+    normal = np.cross(corners_cam[2] - corners_cam[0], corners_cam[3] - corners_cam[1])
+    normal /= np.linalg.norm(normal)
+    centre = corners_cam.mean(axis=0)
+    rays = intr.pixel_rays(centres_uv)
+    denom = rays @ normal
+    if np.any(np.abs(denom) < 1e-12):
+        return None
+    points = rays * (float(centre @ normal) / denom)[:, None]
+    # the affine map (3, 2) from the code's module coordinates (x right, y down on the print)
+    # to the plane, per module: the finders sit at (3.5, 3.5), (N - 3.5, 3.5), (3.5, N - 3.5)
+    per_module = np.column_stack([points[1] - points[0], points[2] - points[0]]) / (modules - 7)
+    ray = centre / np.linalg.norm(centre)
+    along = np.cross(normal, ray)
+    sin_tilt = float(np.linalg.norm(along))
+    if sin_tilt < 1e-6:  # square to the camera: any in-plane direction is a tilt axis
+        along = per_module[:, 0] - (per_module[:, 0] @ normal) * normal
+        sin_tilt = 0.0
+    along /= np.linalg.norm(along)
+    across = np.cross(normal, along)
+    expected = side_m / modules
+    r_along = float(np.linalg.norm(along @ per_module)) / expected - 1.0
+    r_across = float(np.linalg.norm(across @ per_module)) / expected - 1.0
+    var_finders = (FINDER_AXIS_NOISE_PX / side_px) ** 2
+    tan_tilt = sin_tilt / max(float(np.sqrt(1.0 - sin_tilt**2)), 1e-6)
+    w_along = 1.0 / var_finders
+    w_across = 1.0 / (var_finders + (tan_tilt * PLANE_NORMAL_STD_RAD) ** 2)
+    r = (w_along * r_along + w_across * r_across) / (w_along + w_across)
+    return r, 1.0 / (w_along + w_across)
 
 
 def _shift_sensitivity(corners_cam: FloatArray, intr: CameraIntrinsics) -> FloatArray:
@@ -463,6 +555,8 @@ def _unchecked_factor(
     scale_std: float,
     shift_std_px: float,
     corner_bias_px: float | None,
+    *,
+    side_noise_px: float = SIDE_NOISE_PX,
 ) -> float:
     """The factor on the uncorrected depth's corners when no sensor check is configured.
 
@@ -483,7 +577,7 @@ def _unchecked_factor(
         var_side = (SIDE_NOISE_PX**2 + UNMEASURED_CORNER_BIAS_STD_PX**2) / side_px**2
     else:
         r = (1.0 + depth_vs_side) / (1.0 + corner_bias_px / side_px) - 1.0
-        var_side = (SIDE_NOISE_PX / side_px) ** 2
+        var_side = (side_noise_px / side_px) ** 2
     var_sys = scale_std**2 + float(np.sum((sensitivity * shift_std_px) ** 2))
     if not (np.isfinite(r) and np.isfinite(var_sys)) or var_sys <= 0 or var_side <= 0:
         return 1.0
