@@ -44,7 +44,13 @@ in-plane angle comes from the image corners. Why this is robust on a Kinect-like
   (``unchecked_scale_std`` 1 %, ``unchecked_shift_std_px`` 2 px; :func:`_unchecked_factor`).
   Then the printed side carries the distance along the ray and the depth the orientation,
   unless the depth agrees with the side within the side's noise, when it is kept: a sensor
-  without systematic errors loses nothing of its precision.
+  without systematic errors loses nothing of its precision. Without a sensor check the
+  code's image size is taken from its finder patterns' centres (:mod:`.qr_finders`, when the
+  decoder reports the symbol's version): the corners read the side ~0.03 px short with a
+  ~0.02 px spread from view to view, which no number of frames averages out, and the
+  finders' centres are symmetric and free of it. They are measured on the depth's plane
+  mostly along its tilt axis, where the plane's own normal error (~0.1°) does not stretch
+  lengths (:func:`_finder_disagreement`).
 """
 
 from __future__ import annotations
@@ -119,7 +125,10 @@ class QRPoseQuality:
     ~0.03 %). ``shift_sensitivity`` (2,): that gain per pixel of misregistration, from the
     plane's tilt (n_x / (n_z fx), n_y / (n_z fy)); a view square to the camera has (0, 0),
     so one view cannot tell a shift from a scale: the sensor check fits several views.
-    ``side_px``: the code's mean side in the image, pixels.
+    ``side_px``: the code's mean side in the image, pixels. ``depth_vs_finders``: the same
+    disagreement from the finder patterns' centres (see :func:`_finder_disagreement`; what
+    the unchecked fusion uses), NaN when not measured (a sensor check is configured, the
+    corners were given, or a finder was not found).
     """
 
     corner_depth_std_m: FloatArray
