@@ -45,12 +45,12 @@ in-plane angle comes from the image corners. Why this is robust on a Kinect-like
   Then the printed side carries the distance along the ray and the depth the orientation,
   unless the depth agrees with the side within the side's noise, when it is kept: a sensor
   without systematic errors loses nothing of its precision. Without a sensor check the
-  code's image size is taken from its finder patterns' centres (:mod:`.qr_finders`, when the
-  decoder reports the symbol's version): the corners read the side ~0.03 px short with a
-  ~0.02 px spread from view to view, which no number of frames averages out, and the
-  finders' centres are symmetric and free of it. They are measured on the depth's plane
-  mostly along its tilt axis, where the plane's own normal error (~0.1°) does not stretch
-  lengths (:func:`_finder_disagreement`).
+  code's image size is taken from its whole module grid (:mod:`.qr_grid`, when the decoder
+  reports the symbol's version): the corners read the side ~0.03 px short with a ~0.02 px
+  spread from view to view, which no number of frames averages out; the grid's hundreds of
+  module edges give it to ~0.01 px without that bias. It is measured on the depth's plane
+  mostly along the plane's tilt axis, where the plane's own normal error (~0.1°) does not
+  stretch lengths (:func:`_grid_disagreement`).
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ from geometry import CameraIntrinsics, fit_plane, orthonormalize
 
 from .errors import BadImageError, DepthError, NotFoundError
 from .qr import Expect, gray_for_code, read_qr
-from .qr_finders import finder_centres
+from .qr_grid import grid_corners
 
 __all__ = [
     "QRPose",
@@ -125,10 +125,10 @@ class QRPoseQuality:
     ~0.03 %). ``shift_sensitivity`` (2,): that gain per pixel of misregistration, from the
     plane's tilt (n_x / (n_z fx), n_y / (n_z fy)); a view square to the camera has (0, 0),
     so one view cannot tell a shift from a scale: the sensor check fits several views.
-    ``side_px``: the code's mean side in the image, pixels. ``depth_vs_finders``: the same
-    disagreement from the finder patterns' centres (see :func:`_finder_disagreement`; what
-    the unchecked fusion uses), NaN when not measured (a sensor check is configured, the
-    corners were given, or a finder was not found).
+    ``side_px``: the code's mean side in the image, pixels. ``depth_vs_grid``: the same
+    disagreement from the code's module grid (see :func:`_grid_disagreement`; what the
+    unchecked fusion uses), NaN when not measured (a sensor check is configured, the corners
+    were given, or the grid was not found).
     """
 
     corner_depth_std_m: FloatArray
@@ -143,7 +143,7 @@ class QRPoseQuality:
     depth_vs_side: float = float("nan")
     side_px: float = float("nan")
     shift_sensitivity: FloatArray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
-    depth_vs_finders: float = float("nan")
+    depth_vs_grid: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -333,7 +333,7 @@ def qr_pose(
         if corners_uv.shape != (4, 2):
             raise ValueError(f"corners must have shape (4, 2), got {corners_uv.shape}")
         text = expect if isinstance(expect, str) else ""
-        modules = None  # corners from elsewhere: the finders are not looked for
+        modules = None  # corners from elsewhere: the module grid is not looked for
     _check_corners(corners_uv, intrinsics)
 
     if method == "corners":
@@ -358,7 +358,7 @@ def qr_pose(
         raise DepthError(f"degenerate QR geometry: side lengths {sides.tolist()} m")
     orthogonality = _orthogonality(corners_cam)
     factor = 1.0
-    depth_vs_finders = float("nan")
+    depth_vs_grid = float("nan")
     side_px = float(np.mean(_sides(corners_uv)))
     sensitivity = _shift_sensitivity(corners_cam, intrinsics)
     if side_m is not None and scale == "auto":
@@ -375,23 +375,23 @@ def qr_pose(
                 corner_bias_px or 0.0,
             )
         else:
-            finders = (
+            grid = (
                 None
                 if color is None or modules is None
-                else _finder_disagreement(
+                else _grid_disagreement(
                     color, corners_uv, corners_cam, modules, intrinsics, side_m, side_px
                 )
             )
-            if finders is not None:
-                depth_vs_finders, var_finders = finders
+            if grid is not None:
+                depth_vs_grid, var_grid = grid
                 factor = _unchecked_factor(
-                    depth_vs_finders,
+                    depth_vs_grid,
                     side_px,
                     sensitivity,
                     unchecked_scale_std,
                     unchecked_shift_std_px,
                     0.0,
-                    side_noise_px=float(np.sqrt(var_finders)) * side_px,
+                    side_noise_px=float(np.sqrt(var_grid)) * side_px,
                 )
             else:
                 factor = _unchecked_factor(
@@ -436,7 +436,7 @@ def qr_pose(
         depth_vs_side=depth_vs_side,
         side_px=side_px,
         shift_sensitivity=sensitivity,
-        depth_vs_finders=depth_vs_finders,
+        depth_vs_grid=depth_vs_grid,
     )
     return QRPose(camera_from_qr, text, corners_uv.copy(), corners_cam, method, quality)
 
@@ -455,19 +455,18 @@ configured: the simulated camera's was -0.07 px with an earlier detector and is 
 today's, so a camera nobody measured is assumed within about +/-0.05 px (1 std)."""
 
 
-FINDER_AXIS_NOISE_PX = 0.022
-"""The error of the code's size measured by its finder patterns' centres (:mod:`.qr_finders`)
-in one direction on the code, std in pixels of the side it implies: 0.021-0.022 px (mean
--0.005 px: no bias worth configuring) against the simulated camera's truth on two sets of 40
-views at 0.6-1.5 m along the plane's tilt axis, which the bench does not evaluate
-(bench/calibration.py's view generator, seeds 53 and 59). The corners' side has 0.020 px
-around a -0.033 px bias (both directions averaged)."""
+GRID_AXIS_NOISE_PX = 0.010
+"""The error of the code's size measured by its module grid (:mod:`.qr_grid`) in one
+direction on the code's plane, std in pixels of the side it implies: 0.009-0.0105 px (mean
+-0.002 to -0.004 px: no bias worth configuring) against the simulated camera's truth on two
+sets of 40 views at 0.6-1.5 m that the bench does not evaluate (bench/calibration.py's view
+generator, seeds 53 and 59). The corners' side has 0.018-0.020 px around a -0.033 px bias."""
 PLANE_NORMAL_STD_RAD = float(np.radians(0.1))
 """The depth plane's normal error (std) at 0.6-1.5 m over 5 frames: the plane method's
 rotation p95 is 0.11-0.15° on the bench (docs/BENCHMARKS.md section 4)."""
 
 
-def _finder_disagreement(
+def _grid_disagreement(
     color: NDArray[np.generic],
     corners_uv: FloatArray,
     corners_cam: FloatArray,
@@ -476,34 +475,36 @@ def _finder_disagreement(
     side_m: float,
     side_px: float,
 ) -> tuple[float, float] | None:
-    """How much further the depth puts the code than its finder patterns' image size does
+    """How much further the depth puts the code than its module grid's image size does
     (relative, like ``depth_vs_side``), and that figure's variance (relative²).
 
-    The finders' centres are cast onto the plane of ``corners_cam`` (camera frame, m), and
-    the code's module length on that plane is measured in two directions: along the plane's
-    tilt axis (the in-plane direction square to the camera's ray through the code) and across
-    it. Why two: the plane's normal is off by ~0.1° (depth noise, PLANE_NORMAL_STD_RAD), and
-    a normal error d stretches lengths across the tilt axis by tan(tilt) d (0.07 % at 20° and
-    0.18°: 1 mm at 1.4 m) but not along it; each direction has the finders' own noise
-    (FINDER_AXIS_NOISE_PX / ``side_px``). The two are weighed by their variances. None when
-    the finders are not found."""
+    The grid's corners (:func:`.qr_grid.grid_corners`) are cast onto the plane of
+    ``corners_cam`` (camera frame, m), and the code's module length on that plane is measured
+    in two directions: along the plane's tilt axis (the in-plane direction square to the
+    camera's ray through the code) and across it. Why two: the plane's normal is off by ~0.1°
+    (depth noise, PLANE_NORMAL_STD_RAD), and a normal error d stretches lengths across the tilt
+    axis by tan(tilt) d (0.07 % at 20° and 0.18°: 1 mm at 1.4 m) but not along it; each
+    direction has the grid's own noise (GRID_AXIS_NOISE_PX / ``side_px``). The two are weighed
+    by their variances. None when the grid is not found."""
     try:
-        centres_uv = finder_centres(gray_for_code(color), corners_uv, modules)
+        grid_uv = grid_corners(gray_for_code(color), corners_uv, modules)
     except (BadImageError, ValueError):
         return None
-    if centres_uv is None:
+    if grid_uv is None:
         return None
     normal = np.cross(corners_cam[2] - corners_cam[0], corners_cam[3] - corners_cam[1])
     normal /= np.linalg.norm(normal)
     centre = corners_cam.mean(axis=0)
-    rays = intr.pixel_rays(centres_uv)
+    rays = intr.pixel_rays(grid_uv)
     denom = rays @ normal
     if np.any(np.abs(denom) < 1e-12):
         return None
     points = rays * (float(centre @ normal) / denom)[:, None]
-    # the affine map (3, 2) from the code's module coordinates (x right, y down on the print)
-    # to the plane, per module: the finders sit at (3.5, 3.5), (N - 3.5, 3.5), (3.5, N - 3.5)
-    per_module = np.column_stack([points[1] - points[0], points[2] - points[0]]) / (modules - 7)
+    # the affine map (3, 2) per module from the code's module coordinates (x right, y down on
+    # the print; the corners at 0 and N) to the plane, least squares over the four corners
+    model = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]) * modules
+    model -= model.mean(axis=0)
+    per_module = (points - points.mean(axis=0)).T @ np.linalg.pinv(model.T)
     ray = centre / np.linalg.norm(centre)
     along = np.cross(normal, ray)
     sin_tilt = float(np.linalg.norm(along))
@@ -515,10 +516,10 @@ def _finder_disagreement(
     expected = side_m / modules
     r_along = float(np.linalg.norm(along @ per_module)) / expected - 1.0
     r_across = float(np.linalg.norm(across @ per_module)) / expected - 1.0
-    var_finders = (FINDER_AXIS_NOISE_PX / side_px) ** 2
+    var_grid = (GRID_AXIS_NOISE_PX / side_px) ** 2
     tan_tilt = sin_tilt / max(float(np.sqrt(1.0 - sin_tilt**2)), 1e-6)
-    w_along = 1.0 / var_finders
-    w_across = 1.0 / (var_finders + (tan_tilt * PLANE_NORMAL_STD_RAD) ** 2)
+    w_along = 1.0 / var_grid
+    w_across = 1.0 / (var_grid + (tan_tilt * PLANE_NORMAL_STD_RAD) ** 2)
     r = (w_along * r_along + w_across * r_across) / (w_along + w_across)
     return r, 1.0 / (w_along + w_across)
 
