@@ -49,17 +49,19 @@ def _crossings(profile: FloatArray, level: float) -> FloatArray:
     return result
 
 
-def _edge_centroid(profile: FloatArray, crossing: float, p: int) -> float:
-    """The edge near ``crossing`` (samples) of ``profile`` as the centroid of the absolute
-    slope within half a module (``p`` / 2 samples) of it (see the module's docstring)."""
-    slope = np.abs(np.diff(profile))  # slope[i] lies between samples i and i + 1
-    lo = max(int(np.ceil(crossing - 0.5 * p - 0.5)), 0)
-    hi = min(int(np.floor(crossing + 0.5 * p - 0.5)), slope.size - 1)
-    w = slope[lo : hi + 1]
-    total = float(w.sum())
-    if not total > 0:
-        return crossing
-    return float((w * (np.arange(lo, hi + 1) + 0.5)).sum()) / total
+def _edge_centroids(slope: FloatArray, crossings: FloatArray, p: int) -> FloatArray:
+    """The edges near ``crossings`` (samples) of a profile, each the centroid of its absolute
+    ``slope`` (``slope[i]`` = |profile[i + 1] - profile[i]|, between those samples) within
+    half a module (``p`` / 2 samples) of it (see the module's docstring); by cumulative sums,
+    all at once."""
+    lo = np.clip(np.ceil(crossings - 0.5 * p - 0.5).astype(np.int64), 0, slope.size - 1)
+    hi = np.clip(np.floor(crossings + 0.5 * p - 0.5).astype(np.int64), 0, slope.size - 1)
+    mass = np.concatenate([[0.0], np.cumsum(slope)])
+    moment = np.concatenate([[0.0], np.cumsum(slope * (np.arange(slope.size) + 0.5))])
+    total = mass[hi + 1] - mass[lo]
+    first = moment[hi + 1] - moment[lo]
+    result: FloatArray = np.where(total > 0, first / np.where(total > 0, total, 1.0), crossings)
+    return result
 
 
 def _fit_axis(
@@ -79,18 +81,18 @@ def _fit_axis(
     for j in range(n):
         band = slice(int((margin + j + 0.25) * p), int((margin + j + 0.75) * p))
         profile = rect[band, :].mean(axis=0) if axis == 0 else rect[:, band].mean(axis=1)
-        for c in _crossings(profile, level):
-            crossings += 1
-            u = _edge_centroid(profile, float(c), p) / p - margin
-            k = round(u)
-            if abs(u - k) > 0.35 or not 0 <= k <= n:
-                continue  # not on a module boundary: noise or a damaged module
-            i = int(c)
-            rising = profile[min(i + 1, profile.size - 1)] > profile[i]
-            ks.append(float(k))
-            ts.append(j + 0.5 - 0.5 * n)
-            pos.append(u)
-            pol.append(1.0 if rising else -1.0)
+        found = _crossings(profile, level)
+        crossings += found.size
+        u = _edge_centroids(np.abs(np.diff(profile)), found, p) / p - margin
+        k = np.rint(u)
+        # off a module boundary: noise or a damaged module
+        on = (np.abs(u - k) <= 0.35) & (k >= 0) & (k <= n)
+        i = found.astype(np.int64)
+        rising = profile[np.minimum(i + 1, profile.size - 1)] > profile[i]
+        ks.extend(k[on].tolist())
+        ts.extend([j + 0.5 - 0.5 * n] * int(on.sum()))
+        pos.extend(u[on].tolist())
+        pol.extend(np.where(rising[on], 1.0, -1.0).tolist())
     # a wrong module count puts most crossings off the grid
     if len(ks) < MIN_EDGES or len(ks) < 0.8 * crossings:
         return None
