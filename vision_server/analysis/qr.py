@@ -63,11 +63,14 @@ _PREV = [3, 0, 1, 2]
 class QRCode:
     """A decoded QR code: ``text``; ``corners`` (4, 2) float64 full-image pixels ``(u, v)`` in
     the order c0 top-left, c1 top-right, c2 bottom-right, c3 bottom-left (as printed);
-    ``decoder`` names the decoder and the preprocessing that found it (e.g. ``"zxing+up2"``)."""
+    ``decoder`` names the decoder and the preprocessing that found it (e.g. ``"zxing+up2"``);
+    ``modules``: the symbol's modules across (17 + 4 version) when the decoder reports its
+    version, else None."""
 
     text: str
     corners: FloatArray
     decoder: str
+    modules: int | None = None
 
 
 @dataclass
@@ -626,11 +629,11 @@ def read_qr(
             if not confident and r.decoder.startswith("opencv") and "rot" not in r.decoder:
                 # OpenCV reports corners in symbol order too: trust it when the test is unsure
                 ordered = _start_at(_clockwise(r.quad), r.quad[0])
+        modules = 17 + 4 * r.version if r.version else None
         if refine:
-            modules = 17 + 4 * r.version if r.version else None
             ordered = refine_corners(gray, ordered, modules=modules)
         area = float(cv2.contourArea(ordered.astype(np.float32)))
-        codes.append((r.hits, area, QRCode(r.text, ordered + offset, r.decoder)))
+        codes.append((r.hits, area, QRCode(r.text, ordered + offset, r.decoder, modules)))
     if not codes:
         what = "any QR code" if expect is None else f"a QR code matching {_describe(expect)}"
         seen = sorted({r.text for r in found})

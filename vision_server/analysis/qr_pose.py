@@ -44,7 +44,13 @@ in-plane angle comes from the image corners. Why this is robust on a Kinect-like
   (``unchecked_scale_std`` 1 %, ``unchecked_shift_std_px`` 2 px; :func:`_unchecked_factor`).
   Then the printed side carries the distance along the ray and the depth the orientation,
   unless the depth agrees with the side within the side's noise, when it is kept: a sensor
-  without systematic errors loses nothing of its precision.
+  without systematic errors loses nothing of its precision. Without a sensor check the
+  code's image size is taken from its whole module grid (:mod:`.qr_grid`, when the decoder
+  reports the symbol's version): the corners read the side ~0.03 px short with a ~0.02 px
+  spread from view to view, which no number of frames averages out; the grid's hundreds of
+  module edges give it to ~0.01 px without that bias. It is measured on the depth's plane
+  mostly along the plane's tilt axis, where the plane's own normal error (~0.1°) does not
+  stretch lengths (:func:`_grid_disagreement`).
 """
 
 from __future__ import annotations
@@ -61,7 +67,8 @@ from numpy.typing import NDArray
 from geometry import CameraIntrinsics, fit_plane, orthonormalize
 
 from .errors import BadImageError, DepthError, NotFoundError
-from .qr import Expect, read_qr
+from .qr import Expect, gray_for_code, read_qr
+from .qr_grid import grid_corners
 
 __all__ = [
     "QRPose",
@@ -118,7 +125,10 @@ class QRPoseQuality:
     ~0.03 %). ``shift_sensitivity`` (2,): that gain per pixel of misregistration, from the
     plane's tilt (n_x / (n_z fx), n_y / (n_z fy)); a view square to the camera has (0, 0),
     so one view cannot tell a shift from a scale: the sensor check fits several views.
-    ``side_px``: the code's mean side in the image, pixels.
+    ``side_px``: the code's mean side in the image, pixels. ``depth_vs_grid``: the same
+    disagreement from the code's module grid (see :func:`_grid_disagreement`; what the
+    unchecked fusion uses), NaN when not measured (a sensor check is configured, the corners
+    were given, or the grid was not found).
     """
 
     corner_depth_std_m: FloatArray
@@ -133,6 +143,7 @@ class QRPoseQuality:
     depth_vs_side: float = float("nan")
     side_px: float = float("nan")
     shift_sensitivity: FloatArray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
+    depth_vs_grid: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -321,12 +332,13 @@ def qr_pose(
         if color is None:
             raise NotFoundError("neither a colour image nor corners given")
         code = read_qr(color, roi=roi, expect=expect)[0]
-        corners_uv, text = code.corners, code.text
+        corners_uv, text, modules = code.corners, code.text, code.modules
     else:
         corners_uv = np.asarray(corners, np.float64)
         if corners_uv.shape != (4, 2):
             raise ValueError(f"corners must have shape (4, 2), got {corners_uv.shape}")
         text = expect if isinstance(expect, str) else ""
+        modules = None  # corners from elsewhere: the module grid is not looked for
     _check_corners(corners_uv, intrinsics)
 
     if method == "corners":
@@ -351,6 +363,7 @@ def qr_pose(
         raise DepthError(f"degenerate QR geometry: side lengths {sides.tolist()} m")
     orthogonality = _orthogonality(corners_cam)
     factor = 1.0
+    depth_vs_grid = float("nan")
     side_px = float(np.mean(_sides(corners_uv)))
     sensitivity = _shift_sensitivity(corners_cam, intrinsics)
     if side_m is not None and scale == "auto":
@@ -367,14 +380,33 @@ def qr_pose(
                 corner_bias_px or 0.0,
             )
         else:
-            factor = _unchecked_factor(
-                disagreement,
-                side_px,
-                sensitivity,
-                unchecked_scale_std,
-                unchecked_shift_std_px,
-                corner_bias_px,
+            grid = (
+                None
+                if color is None or modules is None
+                else _grid_disagreement(
+                    color, corners_uv, corners_cam, modules, intrinsics, side_m, side_px
+                )
             )
+            if grid is not None:
+                depth_vs_grid, var_grid = grid
+                factor = _unchecked_factor(
+                    depth_vs_grid,
+                    side_px,
+                    sensitivity,
+                    unchecked_scale_std,
+                    unchecked_shift_std_px,
+                    0.0,
+                    side_noise_px=float(np.sqrt(var_grid)) * side_px,
+                )
+            else:
+                factor = _unchecked_factor(
+                    disagreement,
+                    side_px,
+                    sensitivity,
+                    unchecked_scale_std,
+                    unchecked_shift_std_px,
+                    corner_bias_px,
+                )
         corners_cam = corners_cam * factor  # along the rays through the camera centre
     elif side_m is not None and scale == "side":
         factor = side_m / float(sides.mean())
@@ -409,6 +441,7 @@ def qr_pose(
         depth_vs_side=depth_vs_side,
         side_px=side_px,
         shift_sensitivity=sensitivity,
+        depth_vs_grid=depth_vs_grid,
     )
     return QRPose(camera_from_qr, text, corners_uv.copy(), corners_cam, method, quality)
 
@@ -425,6 +458,75 @@ UNMEASURED_CORNER_BIAS_STD_PX = 0.05
 """The uncertainty of the corner detector's bias on the side when ``corner_bias_px`` is not
 configured: the simulated camera's was -0.07 px with an earlier detector and is -0.03 px with
 today's, so a camera nobody measured is assumed within about +/-0.05 px (1 std)."""
+
+
+GRID_AXIS_NOISE_PX = 0.010
+"""The error of the code's size measured by its module grid (:mod:`.qr_grid`) in one
+direction on the code's plane, std in pixels of the side it implies: 0.009-0.0105 px (mean
+-0.002 to -0.004 px: no bias worth configuring) against the simulated camera's truth on two
+sets of 40 views at 0.6-1.5 m that the bench does not evaluate (bench/calibration.py's view
+generator, seeds 53 and 59). The corners' side has 0.018-0.020 px around a -0.033 px bias."""
+PLANE_NORMAL_STD_RAD = float(np.radians(0.1))
+"""The depth plane's normal error (std) at 0.6-1.5 m over 5 frames: the plane method's
+rotation p95 is 0.11-0.15° on the bench (docs/BENCHMARKS.md section 4)."""
+
+
+def _grid_disagreement(
+    color: NDArray[np.generic],
+    corners_uv: FloatArray,
+    corners_cam: FloatArray,
+    modules: int,
+    intr: CameraIntrinsics,
+    side_m: float,
+    side_px: float,
+) -> tuple[float, float] | None:
+    """How much further the depth puts the code than its module grid's image size does
+    (relative, like ``depth_vs_side``), and that figure's variance (relative²).
+
+    The grid's corners (:func:`.qr_grid.grid_corners`) are cast onto the plane of
+    ``corners_cam`` (camera frame, m), and the code's module length on that plane is measured
+    in two directions: along the plane's tilt axis (the in-plane direction square to the
+    camera's ray through the code) and across it. Why two: the plane's normal is off by ~0.1°
+    (depth noise, PLANE_NORMAL_STD_RAD), and a normal error d stretches lengths across the tilt
+    axis by tan(tilt) d (0.07 % at 20° and 0.18°: 1 mm at 1.4 m) but not along it; each
+    direction has the grid's own noise (GRID_AXIS_NOISE_PX / ``side_px``). The two are weighed
+    by their variances. None when the grid is not found."""
+    try:
+        grid_uv = grid_corners(gray_for_code(color), corners_uv, modules)
+    except (BadImageError, ValueError):
+        return None
+    if grid_uv is None:
+        return None
+    normal = np.cross(corners_cam[2] - corners_cam[0], corners_cam[3] - corners_cam[1])
+    normal /= np.linalg.norm(normal)
+    centre = corners_cam.mean(axis=0)
+    rays = intr.pixel_rays(grid_uv)
+    denom = rays @ normal
+    if np.any(np.abs(denom) < 1e-12):
+        return None
+    points = rays * (float(centre @ normal) / denom)[:, None]
+    # the affine map (3, 2) per module from the code's module coordinates (x right, y down on
+    # the print; the corners at 0 and N) to the plane, least squares over the four corners
+    model = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]) * modules
+    model -= model.mean(axis=0)
+    per_module = (points - points.mean(axis=0)).T @ np.linalg.pinv(model.T)
+    ray = centre / np.linalg.norm(centre)
+    along = np.cross(normal, ray)
+    sin_tilt = float(np.linalg.norm(along))
+    if sin_tilt < 1e-6:  # square to the camera: any in-plane direction is a tilt axis
+        along = per_module[:, 0] - (per_module[:, 0] @ normal) * normal
+        sin_tilt = 0.0
+    along /= np.linalg.norm(along)
+    across = np.cross(normal, along)
+    expected = side_m / modules
+    r_along = float(np.linalg.norm(along @ per_module)) / expected - 1.0
+    r_across = float(np.linalg.norm(across @ per_module)) / expected - 1.0
+    var_grid = (GRID_AXIS_NOISE_PX / side_px) ** 2
+    tan_tilt = sin_tilt / max(float(np.sqrt(1.0 - sin_tilt**2)), 1e-6)
+    w_along = 1.0 / var_grid
+    w_across = 1.0 / (var_grid + (tan_tilt * PLANE_NORMAL_STD_RAD) ** 2)
+    r = (w_along * r_along + w_across * r_across) / (w_along + w_across)
+    return r, 1.0 / (w_along + w_across)
 
 
 def _shift_sensitivity(corners_cam: FloatArray, intr: CameraIntrinsics) -> FloatArray:
@@ -468,6 +570,8 @@ def _unchecked_factor(
     scale_std: float,
     shift_std_px: float,
     corner_bias_px: float | None,
+    *,
+    side_noise_px: float = SIDE_NOISE_PX,
 ) -> float:
     """The factor on the uncorrected depth's corners when no sensor check is configured.
 
@@ -488,7 +592,7 @@ def _unchecked_factor(
         var_side = (SIDE_NOISE_PX**2 + UNMEASURED_CORNER_BIAS_STD_PX**2) / side_px**2
     else:
         r = (1.0 + depth_vs_side) / (1.0 + corner_bias_px / side_px) - 1.0
-        var_side = (SIDE_NOISE_PX / side_px) ** 2
+        var_side = (side_noise_px / side_px) ** 2
     var_sys = scale_std**2 + float(np.sum((sensitivity * shift_std_px) ** 2))
     if not (np.isfinite(r) and np.isfinite(var_sys)) or var_sys <= 0 or var_side <= 0:
         return 1.0

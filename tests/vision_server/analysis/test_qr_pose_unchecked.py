@@ -48,10 +48,27 @@ def test_unchecked_sensor_the_printed_side_carries_the_distance() -> None:
     assert max(r) < 0.2  # the depth still fixes the orientation
 
 
+@pytest.mark.parametrize("bias", [-0.01, 0.01])
+def test_unchecked_sensor_meets_the_goal_at_one_percent(bias: float) -> None:
+    # the goal's corners: misregistered (2, 1) px, scale -1 % or +1 %. The corners' image
+    # side (read 0.03 px short, with a 0.02 px spread from view to view) left up to 1.0 mm on
+    # these views (mean 0.6 mm); the module grid's, measured mostly along the plane's tilt
+    # axis, leaves 0.04-0.23 mm (mean 0.09 mm)
+    t, r, depth_only = _errors(6, seed=1, misregistration_px=(2.0, 1.0), scale_bias=bias)
+    assert min(depth_only) > 0.005  # the sensor really is off
+    assert float(np.mean(t)) <= 0.0002
+    assert max(t) <= 0.0003
+    assert max(r) < 0.2
+
+
 def test_a_sensor_without_systematic_errors_keeps_the_depth_precision() -> None:
     t, r, depth_only = _errors(6, seed=1)
     assert max(depth_only) < 0.0001
-    assert max(t) < 0.0002  # the side's noise does not replace the depth's distance
+    # the side's noise does not replace the depth's distance: the module grid's image size
+    # agrees with the depth within its noise and the depth is kept (0.03-0.08 mm; the corners'
+    # side, before the grid, pulled these views up to 0.13 mm, median 0.08 mm)
+    assert float(np.median(t)) < 0.00006
+    assert max(t) < 0.0001
     assert max(r) < 0.2
 
 
