@@ -105,8 +105,10 @@ def demo_config(output: Path) -> Path:
     qc = doc["cameras"]["qc"]
     qc["scene"] = str((CONFIG.parent / qc["scene"]).resolve())
     qc["state_file"] = str(output / "world-state.json")
-    if "console" in doc and output.resolve() != DEFAULT_OUTPUT.resolve():
-        doc["console"]["port"] = 0  # a copy may run beside another demo: any free port
+    if "console" in doc:
+        # Any free port (the demo prints the address): 7880 may be taken by another server
+        # or demo on this machine, and the demo must not depend on it.
+        doc["console"]["port"] = 0
     doc["inspections"].append(dict(BOARD_INSPECTION))
     path = output / "cell.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
