@@ -133,7 +133,9 @@ class Task:
         found: list[str] = []
         for step in self.steps():
             if step.skill not in registry:
-                found.append(f"{step.path}: no skill {step.skill!r} (skills: {registry.names()})")
+                found.append(
+                    f"{step.path}: no skill {step.skill!r} (skills: {', '.join(registry.names())})"
+                )
                 continue
             try:
                 store.get(step.skill, step.record)
@@ -221,7 +223,7 @@ def _step(node: _TaskNode) -> Step | Group:
     else:
         raise node.error(
             f"a step is 'SKILL: RECORD' or {{skill: ..., record: ...}}, got keys "
-            f"{sorted(map(str, node.data))}"
+            f"{', '.join(sorted(map(str, node.data))) or 'none'}"
         )
     node.finish()
     return Step(skill, record, on_failure, _where(node))

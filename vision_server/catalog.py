@@ -287,7 +287,8 @@ class Catalog:
             return self.inspections[name]
         except KeyError:
             raise UnknownInspection(
-                f"no inspection named {name!r}; configured: {sorted(self.inspections)}"
+                f"no inspection named {name!r}; configured: "
+                f"{', '.join(sorted(self.inspections)) or 'none'}"
             ) from None
 
     def camera(self, name: str) -> Camera:
@@ -295,7 +296,7 @@ class Catalog:
             return self.cameras[name]
         except KeyError:
             raise UnknownCamera(
-                f"no camera named {name!r}; configured: {sorted(self.cameras)}"
+                f"no camera named {name!r}; configured: {', '.join(sorted(self.cameras)) or 'none'}"
             ) from None
 
     def inspection_descriptors(self) -> tuple[dict[str, Any], ...]:

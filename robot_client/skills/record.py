@@ -90,7 +90,10 @@ def pose_from_yaml(value: Any, what: str = "pose") -> FloatArray:
             return transform_from_xyz_rpy(xyz, rpy)
         if keys == {"matrix"}:
             return pose_from_yaml(value["matrix"], f"{what}.matrix")
-        raise ParamError(f"{what}: a pose has keys xyz and rpy (or matrix), got {sorted(keys)}")
+        raise ParamError(
+            f"{what}: a pose has keys xyz and rpy (or matrix), got "
+            f"{', '.join(sorted(keys)) or 'none'}"
+        )
     elif isinstance(value, list | tuple) and len(value) == 4:
         mat = np.array([_numbers(row, 4, f"{what} row {i}") for i, row in enumerate(value)])
     else:

@@ -113,7 +113,7 @@ def test_loopback_and_client_host() -> None:
 
 
 def test_exit_codes_and_the_json_error_shape() -> None:
-    assert [int(c) for c in ExitCode] == [0, 1, 2, 3, 4]
+    assert [int(c) for c in ExitCode] == [0, 1, 2, 3, 4, 130]
     assert ErrorKind.SERVER.exit_code == ExitCode.SERVER
     assert json_error(ErrorKind.SERVER, "no", "BUSY") == {
         "error": {"kind": "server", "message": "no", "code": "BUSY"}

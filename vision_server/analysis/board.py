@@ -74,7 +74,8 @@ class BoardSpec:
                 )
             if self.dictionary not in DICTIONARIES:
                 raise ValueError(
-                    f"unknown dictionary {self.dictionary!r}; known: {sorted(DICTIONARIES)}"
+                    f"unknown dictionary {self.dictionary!r}; known: "
+                    f"{', '.join(sorted(DICTIONARIES))}"
                 )
             markers = (self.columns * self.rows) // 2
             size = int(

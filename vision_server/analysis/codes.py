@@ -268,7 +268,7 @@ def _formats(symbologies: Sequence[str]) -> list[zxingcpp.BarcodeFormat]:
     out: list[zxingcpp.BarcodeFormat] = []
     for name in symbologies:
         if name not in SYMBOLOGIES:
-            raise ValueError(f"unknown symbology {name!r}; known: {sorted(SYMBOLOGIES)}")
+            raise ValueError(f"unknown symbology {name!r}; known: {', '.join(sorted(SYMBOLOGIES))}")
         out.extend(SYMBOLOGIES[name])
     if not out:
         raise ValueError("symbologies is empty: name at least one")

@@ -611,7 +611,7 @@ def read_qr(
     """
     for name in decoders:
         if name not in DECODERS:
-            raise ValueError(f"unknown decoder {name!r}; known: {sorted(DECODERS)}")
+            raise ValueError(f"unknown decoder {name!r}; known: {', '.join(sorted(DECODERS))}")
     gray_full = gray_for_code(image)
     gray, offset = crop_for_code(gray_full, roi)
     found, tried = decode_raw(gray, decoders, expect)

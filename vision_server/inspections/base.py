@@ -74,7 +74,8 @@ def parse_common(
     camera = node.take("camera", name)
     if camera not in cameras:
         raise node.error(
-            f"no camera named {camera!r}; configured: {sorted(cameras) or 'none'}", "camera"
+            f"no camera named {camera!r}; configured: {', '.join(sorted(cameras)) or 'none'}",
+            "camera",
         )
     settings = cameras[camera]
     has_depth = bool(getattr(settings, "depth", False)) or type(settings).__name__ == (
