@@ -521,6 +521,17 @@ def _results(args: argparse.Namespace) -> int:
         if not config.results.enabled:
             return _fail(args, ErrorKind.USAGE, "the result log is disabled in the configuration")
         db = config.results.url or config.results.path
+        names = [i.name for i in config.inspections]
+        if args.inspection is not None and args.inspection not in names:
+            # Still asked: the log may hold an inspection that has since been renamed.
+            Console(stderr=True).print(
+                Text("warning: ", style="yellow")
+                + Text(
+                    f"{args.inspection!r} is not an inspection of {config_path} "
+                    f"(its inspections: {', '.join(names) or 'none'})"
+                ),
+                soft_wrap=True,
+            )
     return results_command(
         db,
         since=args.since,

@@ -287,3 +287,27 @@ def test_check_config_warns_of_a_file_without_inspections(
     config.write_text("cameras: {tool: {source: request}}\ninspections: []\n")
     assert main(["check-config", str(config)]) == 0
     assert "warning: no inspections" in capsys.readouterr().err
+
+
+def test_results_of_an_inspection_the_configuration_lacks_warns(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A typo in --inspection showed '0 of 0' as if the inspection had simply not run."""
+    from vision_server.cli import main
+
+    config = tmp_path / "cell.yaml"
+    config.write_text(
+        "results: {path: results.sqlite3}\n"
+        "cameras: {tool: {source: request}}\n"
+        "inspections:\n"
+        "  - {name: bright, type: presence, camera: tool, measure: mean_intensity, min: 0}\n"
+    )
+    from vision_server.results import ResultLog
+
+    ResultLog(tmp_path / "results.sqlite3").close()  # an empty log, as serve creates it
+    assert main(["results", "--config", str(config), "--inspection", "brigth"]) == 0
+    err = " ".join(capsys.readouterr().err.split())
+    assert "warning: 'brigth' is not an inspection of" in err
+    assert "(its inspections: bright)" in err
+    assert main(["results", "--config", str(config), "--inspection", "bright"]) == 0
+    assert "warning" not in capsys.readouterr().err
