@@ -73,6 +73,8 @@ def format_number(name: str, value: Any) -> str:
         return "yes" if value else "no"
     if isinstance(value, int):
         return str(value)
+    if isinstance(value, str):
+        return _visible(value)
     if not isinstance(value, float):
         return str(value)
     if not math.isfinite(value):
@@ -89,6 +91,14 @@ def format_number(name: str, value: Any) -> str:
     if last.endswith("_ms"):
         return f"{value:.1f}"
     return f"{value:.4g}" if abs(value) < 1e6 else f"{value:.0f}"
+
+
+def _visible(text: str) -> str:
+    """``text`` with its control characters written as escapes (``\\x1d``): a payload's GS
+    or RS (GS1, ISO 15434) would otherwise move a terminal's cursor or vanish."""
+    if text.isprintable():
+        return text
+    return "".join(ch if ch.isprintable() or ch == " " else f"\\x{ord(ch):02x}" for ch in text)
 
 
 def result_json(result: Result, *, image: str | None) -> dict[str, Any]:
