@@ -297,8 +297,10 @@ class VisionClient:
                     try:
                         event = conn.next_event()
                     except CellvisionError as exc:
-                        log.warning("bad data from the server: %s", exc)
                         if exc.fatal:
+                            # Reported once, by the request or connect() it ends (a warning
+                            # here printed it twice in the command-line tools).
+                            log.debug("bad data from the server: %s", exc)
                             if isinstance(exc, UnsupportedVersion):
                                 # E.g. a WELCOME of a version we do not speak: connect() must
                                 # say so, not report a mere lost connection.
@@ -310,6 +312,8 @@ class VisionClient:
                         future = self._pending.pop(exc.request_id, None)
                         if future is not None and not future.done():
                             future.set_exception(exc)
+                        else:  # no request to report it: the log is its only trace
+                            log.warning("bad data from the server: %s", exc)
                         continue
                     if event is NEED_DATA:
                         break

@@ -636,3 +636,29 @@ def test_sync_client_that_cannot_connect_leaves_no_thread() -> None:
     with holder, pytest.raises(ConnectionLost):
         SyncVisionClient("127.0.0.1", port, connect_timeout_s=2.0)
     assert _client_threads() == threads_before
+
+
+def test_a_peer_that_is_not_a_cellvision_server_is_reported_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """An HTTP port (the web console's) given as the server: connect() fails with the protocol
+    error, and nothing else is printed about it (a warning from the read loop showed it twice)."""
+
+    async def http(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        await reader.read(64)
+        writer.write(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n")
+        await writer.drain()
+        writer.close()
+
+    async def body() -> None:
+        server = await asyncio.start_server(http, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        async with server:
+            client = VisionClient("127.0.0.1", port, connect_timeout_s=5.0)
+            with pytest.raises(ConnectionLost, match="bad magic"):
+                await client.connect()
+            await client.close()
+
+    with caplog.at_level("WARNING", logger="robot_client"):
+        run(body())
+    assert not [r for r in caplog.records if "bad data" in r.getMessage()]
