@@ -79,6 +79,7 @@ from .app import App
 from .builtin import builtin_catalog
 from .catalog import Catalog
 from .config import CellConfig, ConfigError, load_config
+from .listeners import PortClash, check_distinct, enabled_listeners
 from .malloc_env import PROCESS_ENV
 from .offline import file_request, image_payload, offline_service
 from .results_cli import describe_health, results_command
@@ -149,6 +150,19 @@ def _serve(args: argparse.Namespace) -> int:
         if runtime is not None:
             runtime.close()
         return _fail(args, ErrorKind.USAGE, str(exc))
+    if runtime is not None:
+        try:  # --host and --port may move the binary protocol onto another front-end's port
+            check_distinct(
+                enabled_listeners(
+                    settings,
+                    console=runtime.config.console,
+                    line=runtime.config.line,
+                    modbus=runtime.config.modbus,
+                )
+            )
+        except PortClash as exc:
+            runtime.close()
+            return _fail(args, ErrorKind.USAGE, f"invalid configuration with --host/--port: {exc}")
     decoder_limits.ensure(settings.max_image_pixels, argv=args.reexec_argv, process_env=PROCESS_ENV)
 
     def reload() -> Catalog:

@@ -1,0 +1,105 @@
+"""Every front-end has its own default port, listed once in docs/configuration.md, and a
+configuration that puts two enabled front-ends on one host:port is refused before anything
+binds (check-config and serve), with both keys named."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from vision_server.cli import main
+from vision_server.config import ConfigError, load_config
+from vision_server.listeners import PortClash, check_distinct, enabled_listeners
+from vision_server.settings import ConsoleSettings, LineSettings, ModbusSettings, ServerSettings
+
+ROOT = Path(__file__).resolve().parents[2]
+CELL = """\
+cameras:
+  tool: {source: request}
+inspections:
+  - {name: bright, type: presence, camera: tool, measure: mean_intensity, min: 10}
+"""
+
+
+def _defaults() -> dict[str, int]:
+    return {
+        listener.key: listener.port
+        for listener in enabled_listeners(
+            ServerSettings(),
+            console=ConsoleSettings(enabled=True),
+            line=LineSettings(enabled=True),
+            modbus=ModbusSettings(enabled=True),
+        )
+    }
+
+
+def test_every_front_end_has_its_own_default_port_as_documented() -> None:
+    """The README's "line: {enabled: true}" beside the example's console made the console fail
+    to listen: both defaulted to 7880."""
+    check_distinct(
+        enabled_listeners(
+            ServerSettings(),
+            console=ConsoleSettings(enabled=True),
+            line=LineSettings(enabled=True),
+            modbus=ModbusSettings(enabled=True),
+        )
+    )
+    text = (ROOT / "docs" / "configuration.md").read_text(encoding="utf-8")
+    ports = text.split("## Ports", 1)[1].split("\n## ", 1)[0]
+    documented = {k: int(p) for k, p in re.findall(r"\| `([a-z]+\.port)` \| (\d+) \|", ports)}
+    assert documented == _defaults()
+
+
+CLASHES = [
+    ("console: {enabled: true, port: 7880}\nline: {enabled: true, port: 7880}\n",
+     "console", "line"),
+    ("line: {enabled: true, host: 0.0.0.0, port: 7885}\nmodbus: {enabled: true, port: 7885}\n",
+     "line", "modbus"),
+    ("server: {port: 7890}\nconsole: {enabled: true, host: 0.0.0.0, port: 7890}\n",
+     "server", "console"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("sections", "first", "second"), CLASHES)
+def test_two_front_ends_on_one_port_are_a_config_error_naming_both(
+    tmp_path: Path, sections: str, first: str, second: str
+) -> None:
+    path = tmp_path / "cell.yaml"
+    path.write_text(CELL + sections, encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    message = str(info.value)
+    assert f"{second} -> port: {second}.port" in message, message
+    assert f"is also {first}.port" in message, message
+
+
+def test_the_same_port_on_two_distinct_hosts_is_allowed(tmp_path: Path) -> None:
+    path = tmp_path / "cell.yaml"
+    path.write_text(
+        CELL + "line: {enabled: true, host: 127.0.0.2, port: 7885}\n"
+        "modbus: {enabled: true, host: 127.0.0.1, port: 7885}\n",
+        encoding="utf-8",
+    )
+    load_config(path)
+
+
+def test_serve_refuses_a_port_option_onto_another_front_end(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--port`` moves the binary protocol after the file was checked: serve checks again
+    before it binds anything (exit 2, both keys named)."""
+    path = tmp_path / "cell.yaml"
+    path.write_text(CELL + "line: {enabled: true, port: 7886}\n", encoding="utf-8")
+    code = main(["serve", "--config", str(path), "--port", "7886"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "line.port 127.0.0.1:7886 is also server.port" in err, err
+
+
+def test_a_clash_names_the_later_key() -> None:
+    clash = PortClash(
+        *enabled_listeners(ServerSettings(port=5), line=LineSettings(enabled=True, port=5))
+    )
+    assert str(clash).startswith("line.port 127.0.0.1:5 is also server.port (127.0.0.1:5)")
