@@ -17,7 +17,7 @@ import asyncio
 import contextlib
 import logging
 import signal
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -29,6 +29,7 @@ from .catalog import Catalog
 from .frontends.http import HttpFrontend
 from .frontends.line import LineFrontend
 from .frontends.tcp import TcpFrontend
+from .listeners import Listener, ListenError
 from .operator_desk import OperatorDesk
 from .results_store import ResultStore
 from .service import InspectionService
@@ -127,40 +128,51 @@ class App:
         if self.service.processes is not None:
             # The worker processes start before the server listens (spawn imports for seconds).
             await asyncio.to_thread(self.service.processes.start)
-        await self.tcp.start()
+        started: list[Callable[[], Awaitable[None]]] = []
+        try:
+            for listener, start, stop in self._listeners():
+                try:
+                    await start()
+                except OSError as exc:
+                    # One rule for every enabled front-end, the console included: a robot
+                    # cell half-served (the PLC's port silently missing) is worse than a
+                    # server that does not start and says which port and why.
+                    raise ListenError(listener, exc) from exc
+                started.append(stop)
+        except BaseException:
+            for stop in reversed(started):
+                await stop()
+            raise
+
+    def _listeners(
+        self,
+    ) -> list[tuple[Listener, Callable[[], Awaitable[None]], Callable[[], Awaitable[None]]]]:
+        """Each enabled front-end: its configured address, start and stop."""
+        tcp = self.tcp.settings
+        listeners: list[
+            tuple[Listener, Callable[[], Awaitable[None]], Callable[[], Awaitable[None]]]
+        ] = [
+            (
+                Listener("server.port", "the binary protocol", tcp.host, tcp.port),
+                self.tcp.start,
+                self.tcp.stop,
+            )
+        ]
         if self.line is not None:
-            try:
-                await self.line.start()
-            except BaseException:
-                await self.tcp.stop()
-                raise
+            line = self.line.settings
+            where = Listener("line.port", "the line protocol", line.host, line.port)
+            listeners.append((where, self.line.start, self.line.stop))
         if self.modbus is not None:
-            try:
-                await self.modbus.start()
-            except BaseException:
-                if self.line is not None:
-                    await self.line.stop()
-                await self.tcp.stop()
-                raise
+            modbus = self.modbus
+            where = Listener(
+                "modbus.port", "Modbus TCP", modbus.settings.host, modbus.settings.port
+            )
+            listeners.append((where, modbus.start, lambda: modbus.stop(0.0)))
         if self.http is not None:
-            try:
-                await self.http.start()
-            except OSError as exc:
-                # The console is a convenience beside the robots' protocol: a port that is
-                # taken must not stop the cell. Said loudly, served without it.
-                settings = self.http.settings
-                log.error(
-                    "the web console cannot listen on %s:%s (%s); serving without it",
-                    settings.host,
-                    settings.port,
-                    exc,
-                )
-                await self.http.stop()
-                self.http = None
-                self.tcp.operator_desk = None
-            except BaseException:
-                await self.tcp.stop()
-                raise
+            http = self.http.settings
+            where = Listener("console.port", "the web console", http.host, http.port)
+            listeners.append((where, self.http.start, self.http.stop))
+        return listeners
 
     def _console_info(self) -> dict[str, Any]:
         """What the console's server page shows of the TCP front-end."""

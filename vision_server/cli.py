@@ -79,7 +79,7 @@ from .app import App
 from .builtin import builtin_catalog
 from .catalog import Catalog
 from .config import CellConfig, ConfigError, load_config
-from .listeners import PortClash, check_distinct, enabled_listeners
+from .listeners import ListenError, PortClash, check_distinct, enabled_listeners
 from .malloc_env import PROCESS_ENV
 from .offline import file_request, image_payload, offline_service
 from .results_cli import describe_health, results_command
@@ -189,11 +189,8 @@ def _serve(args: argparse.Namespace) -> int:
         app.service.on_reloaded = announce_reload
         try:
             await app.start()
-        except OSError as exc:  # port in use, address not on this machine, no permission
-            print(
-                f"vision-server: cannot listen on {settings.host}:{settings.port}: {exc}",
-                file=sys.stderr,
-            )
+        except ListenError as exc:  # port in use, address not on this machine, no permission
+            print(f"{PROG}: {exc}", file=sys.stderr)
             return int(ExitCode.CONNECTION)
         _warn_if_exposed(settings)
         if runtime is None:

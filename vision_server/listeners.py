@@ -9,6 +9,7 @@ the server starts; :func:`check_distinct` refuses such a configuration before an
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -55,6 +56,24 @@ class PortClash(ValueError):
         self.second = second
 
 
+class ListenError(OSError):
+    """An enabled front-end could not listen (port taken, address not on this machine, no
+    permission): ``str()`` names the front-end, its key and its own address once, and why."""
+
+    def __init__(self, listener: Listener, cause: OSError) -> None:
+        # asyncio's message repeats the address ("error while attempting to bind on address
+        # ('127.0.0.1', 7885): address already in use"): the errno's text is the cause alone.
+        reason = os.strerror(cause.errno) if cause.errno else str(cause)
+        super().__init__(
+            cause.errno,
+            f"{listener.frontend} ({listener.key}) cannot listen on {listener.address}: {reason}",
+        )
+        self.listener = listener
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
 def _normal(host: str) -> str:
     return "127.0.0.1" if host == "localhost" else host
 
@@ -87,4 +106,11 @@ def check_distinct(listeners: Iterable[Listener]) -> None:
         seen.append(listener)
 
 
-__all__ = ["WILDCARD_HOSTS", "Listener", "PortClash", "check_distinct", "enabled_listeners"]
+__all__ = [
+    "WILDCARD_HOSTS",
+    "ListenError",
+    "Listener",
+    "PortClash",
+    "check_distinct",
+    "enabled_listeners",
+]

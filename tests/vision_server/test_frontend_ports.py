@@ -4,14 +4,21 @@ binds (check-config and serve), with both keys named."""
 
 from __future__ import annotations
 
+import asyncio
 import re
+import socket
+import subprocess
+import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from vision_server.app import App
+from vision_server.builtin import builtin_catalog
 from vision_server.cli import main
 from vision_server.config import ConfigError, load_config
-from vision_server.listeners import PortClash, check_distinct, enabled_listeners
+from vision_server.listeners import ListenError, PortClash, check_distinct, enabled_listeners
 from vision_server.settings import ConsoleSettings, LineSettings, ModbusSettings, ServerSettings
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -103,3 +110,79 @@ def test_a_clash_names_the_later_key() -> None:
         *enabled_listeners(ServerSettings(port=5), line=LineSettings(enabled=True, port=5))
     )
     assert str(clash).startswith("line.port 127.0.0.1:5 is also server.port (127.0.0.1:5)")
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def _app(main_port: int, frontend: str, port: int) -> App:
+    enabled: dict[str, Any] = {
+        "line": {"line": LineSettings(enabled=True, port=port)},
+        "modbus": {"modbus": ModbusSettings(enabled=True, port=port)},
+        "console": {"console": ConsoleSettings(enabled=True, port=port)},
+    }[frontend]
+    return App(builtin_catalog(), ServerSettings(port=main_port, workers=1), **enabled)
+
+
+@pytest.mark.parametrize(
+    ("frontend", "named"),
+    [
+        ("line", "the line protocol (line.port)"),
+        ("modbus", "Modbus TCP (modbus.port)"),
+        ("console", "the web console (console.port)"),
+    ],
+)
+def test_a_busy_front_end_port_stops_the_server_naming_its_own_address(
+    frontend: str, named: str
+) -> None:
+    """Line 7885 taken was reported as "cannot listen on 127.0.0.1:7909 (the free main port):
+    ... ('127.0.0.1', 7885)"; a taken console port was skipped with a log line. Now every
+    enabled front-end follows one rule: the server stops, the error names the front-end and
+    its own address once, and nothing is left listening."""
+    main_port = _free_port()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        app = _app(main_port, frontend, port)
+
+        async def body() -> None:
+            with pytest.raises(ListenError) as info:
+                await app.start()
+            message = str(info.value)
+            assert message.startswith(f"{named} cannot listen on 127.0.0.1:{port}: "), message
+            assert message.count(str(port)) == 1, message
+            assert str(main_port) not in message, message
+            with pytest.raises(ConnectionRefusedError):  # the main port was closed again
+                await asyncio.open_connection("127.0.0.1", main_port)
+
+        try:
+            asyncio.run(body())
+        finally:
+            app.service.close()
+
+
+def test_serve_exits_3_when_the_line_port_is_taken(tmp_path: Path) -> None:
+    """The command line's side of the rule: exit 3 and one line on stderr."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        path = tmp_path / "cell.yaml"
+        path.write_text(CELL + f"line: {{enabled: true, port: {port}}}\n", encoding="utf-8")
+        done = subprocess.run(
+            [sys.executable, "-m", "vision_server", "serve", "--config", str(path), "--port", "0"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    assert done.returncode == 3, done.stderr
+    assert done.stdout == ""
+    assert done.stderr == (
+        f"vision-server: the line protocol (line.port) cannot listen on 127.0.0.1:{port}: "
+        "Address already in use\n"
+    )
