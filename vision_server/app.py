@@ -174,6 +174,20 @@ class App:
             listeners.append((where, self.http.start, self.http.stop))
         return listeners
 
+    def listening(self) -> list[Listener]:
+        """Each started front-end's configured host and bound port (after :meth:`start`)."""
+        return [
+            Listener(where.key, where.frontend, where.host, port)
+            for (where, _, _), port in zip(self._listeners(), self._bound_ports(), strict=True)
+        ]
+
+    def _bound_ports(self) -> list[int]:
+        ports = [self.tcp.port]
+        ports += [self.line.port] if self.line is not None else []
+        ports += [self.modbus.port] if self.modbus is not None else []
+        ports += [self.http.port] if self.http is not None else []
+        return ports
+
     def _console_info(self) -> dict[str, Any]:
         """What the console's server page shows of the TCP front-end."""
         host, port = self.tcp.address

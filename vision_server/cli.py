@@ -63,7 +63,6 @@ from protocol.cli import (
     ParserError,
     UsageError,
     env_token_layer,
-    is_loopback,
     json_error,
     resolve_token,
     version_text,
@@ -79,6 +78,7 @@ from .app import App
 from .builtin import builtin_catalog
 from .catalog import Catalog
 from .config import CellConfig, ConfigError, load_config
+from .exposure import exposure_warnings
 from .listeners import ListenError, PortClash, check_distinct, enabled_listeners
 from .malloc_env import PROCESS_ENV
 from .offline import file_request, image_payload, offline_service
@@ -192,7 +192,8 @@ def _serve(args: argparse.Namespace) -> int:
         except ListenError as exc:  # port in use, address not on this machine, no permission
             print(f"{PROG}: {exc}", file=sys.stderr)
             return int(ExitCode.CONNECTION)
-        _warn_if_exposed(settings)
+        for warning in exposure_warnings(settings, app.listening()):
+            log.warning("%s", warning)
         if runtime is None:
             names = ", ".join(sorted(catalog.inspections))
             print(
@@ -245,27 +246,6 @@ def _serve_settings(args: argparse.Namespace, base: ServerSettings) -> ServerSet
     if source is not None:
         log.info("clients must present the token from %s", source)
     return ServerSettings(**{**base.__dict__, **overrides})
-
-
-def _warn_if_exposed(settings: ServerSettings) -> None:
-    """One warning line each when the server is reachable from the network without a token
-    or without TLS (the container's default is both)."""
-    if is_loopback(settings.host):
-        return
-    where = f"{settings.host or '*'}:{settings.port}"
-    if settings.auth_token is None:
-        log.warning(
-            "listening on %s beyond loopback WITHOUT A TOKEN: anyone on the network may "
-            "inspect%s; set server.auth_token_file or $CELLVISION_TOKEN_FILE",
-            where,
-            " and reload" if settings.allow_reload else "",
-        )
-    if settings.tls_cert is None:
-        log.warning(
-            "listening on %s beyond loopback WITHOUT TLS: images, results and the token "
-            "cross the network in clear; set server.tls",
-            where,
-        )
 
 
 # ----------------------------------------------------------------------------- check-config

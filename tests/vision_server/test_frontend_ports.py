@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import re
+import signal
 import socket
 import subprocess
 import sys
@@ -18,7 +19,14 @@ from vision_server.app import App
 from vision_server.builtin import builtin_catalog
 from vision_server.cli import main
 from vision_server.config import ConfigError, load_config
-from vision_server.listeners import ListenError, PortClash, check_distinct, enabled_listeners
+from vision_server.exposure import exposure_warnings
+from vision_server.listeners import (
+    Listener,
+    ListenError,
+    PortClash,
+    check_distinct,
+    enabled_listeners,
+)
 from vision_server.settings import ConsoleSettings, LineSettings, ModbusSettings, ServerSettings
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -186,3 +194,45 @@ def test_serve_exits_3_when_the_line_port_is_taken(tmp_path: Path) -> None:
         f"vision-server: the line protocol (line.port) cannot listen on 127.0.0.1:{port}: "
         "Address already in use\n"
     )
+
+
+def test_serve_warns_for_every_front_end_open_beyond_loopback(tmp_path: Path) -> None:
+    """The line and Modbus ports listened on 0.0.0.0 without a token, without a word; the
+    guide promises a warning for what listens beyond loopback unprotected."""
+    path = tmp_path / "cell.yaml"
+    path.write_text(
+        CELL + "line: {enabled: true, host: 0.0.0.0, port: 0}\n"
+        "modbus: {enabled: true, host: 0.0.0.0, port: 0}\n",
+        encoding="utf-8",
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "vision_server", "serve", "--config", str(path), "--port", "0"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        # The warnings are written before this line (serve warns once it listens).
+        assert proc.stdout.readline().startswith("vision-server listening on 127.0.0.1:")
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    warnings = [line.split(" WARNING ", 1)[1] for line in err.splitlines() if " WARNING " in line]
+    assert len(warnings) == 2, err  # the binary protocol is on loopback: nothing about it
+    line, modbus = warnings
+    assert line.startswith("the line protocol listening on 0.0.0.0:"), line
+    assert "WITHOUT A TOKEN" in line
+    assert "set server.auth_token_file" in line
+    assert modbus.startswith("Modbus TCP listening on 0.0.0.0:"), modbus
+    assert "WITHOUT AUTHENTICATION (Modbus TCP has none in the standard)" in modbus
+    assert "modbus.host" in modbus
+
+
+def test_no_warning_for_front_ends_on_loopback_or_behind_a_token() -> None:
+    listeners = [
+        Listener("line.port", "the line protocol", "0.0.0.0", 7879),
+        Listener("console.port", "the web console", "127.0.0.1", 7880),
+    ]
+    assert exposure_warnings(ServerSettings(auth_token="t"), listeners) == []
