@@ -139,6 +139,8 @@ class App:
                     # server that does not start and says which port and why.
                     raise ListenError(listener, exc) from exc
                 started.append(stop)
+            if self.line is not None:  # named to a controller that sends its text to the TCP port
+                self.tcp.line_port = self.line.port
         except BaseException:
             for stop in reversed(started):
                 await stop()
