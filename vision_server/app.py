@@ -40,6 +40,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("vision_server")
 
+_FrontendSteps = tuple[Listener, Callable[[], Awaitable[None]], Callable[[], Awaitable[None]]]
+"""A front-end's configured address, its start and its stop."""
+
 
 class App:
     """A cellvision server: ``async with App(...) as app`` or start()/stop().
@@ -146,14 +149,10 @@ class App:
                 await stop()
             raise
 
-    def _listeners(
-        self,
-    ) -> list[tuple[Listener, Callable[[], Awaitable[None]], Callable[[], Awaitable[None]]]]:
+    def _listeners(self) -> list[_FrontendSteps]:
         """Each enabled front-end: its configured address, start and stop."""
         tcp = self.tcp.settings
-        listeners: list[
-            tuple[Listener, Callable[[], Awaitable[None]], Callable[[], Awaitable[None]]]
-        ] = [
+        listeners: list[_FrontendSteps] = [
             (
                 Listener("server.port", "the binary protocol", tcp.host, tcp.port),
                 self.tcp.start,
