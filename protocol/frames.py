@@ -205,11 +205,24 @@ class Header:
         return HEADER_SIZE + self.body_length
 
 
+def check_magic(prefix: bytes | bytearray | memoryview) -> None:
+    """Raise MALFORMED_FRAME when the first bytes of a frame (any number, up to the whole
+    header) cannot begin :data:`MAGIC` (SPEC §3.1): a peer that speaks another protocol is
+    refused at its first byte, not after 24 of them (a line-protocol ``T 1\n`` has 4).
+
+    ``details["text"]`` is True when those bytes are printable ASCII (another text protocol,
+    such as the line protocol or HTTP, sent to this port), so that the receiver can say so."""
+    received = bytes(prefix[: len(MAGIC)])
+    if MAGIC.startswith(received):
+        return
+    text = all(0x20 <= byte < 0x7F or byte in b"\t\r\n" for byte in received)
+    raise MalformedFrame(f"bad magic {received!r}, expected {MAGIC!r}", details={"text": text})
+
+
 def parse_header(data: bytes | bytearray | memoryview, limits: Limits) -> Header:
     """Parse and check the first 24 bytes of a frame (``data`` may be longer)."""
-    magic, major, minor, mtype, flags, blobs, rid, meta_len, body_len = HEADER.unpack_from(data)
-    if magic != MAGIC:
-        raise MalformedFrame(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
+    check_magic(data)
+    _, major, minor, mtype, flags, blobs, rid, meta_len, body_len = HEADER.unpack_from(data)
     header = Header(major, minor, mtype, flags, blobs, rid, meta_len, body_len)
     limit = limits.max_frame_bytes
     if header.frame_length > limit:
@@ -426,6 +439,7 @@ class FrameDecoder:
         if self._header is None:
             if self._checked is None:
                 if len(self._buffer) < HEADER_SIZE:
+                    check_magic(self._buffer)  # another protocol: refused at its first byte
                     if self._eof and self._buffer:
                         raise MalformedFrame(
                             f"connection closed after {len(self._buffer)} bytes of a 24-byte header"

@@ -17,7 +17,7 @@ import asyncio
 import contextlib
 import logging
 import signal
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -29,6 +29,7 @@ from .catalog import Catalog
 from .frontends.http import HttpFrontend
 from .frontends.line import LineFrontend
 from .frontends.tcp import TcpFrontend
+from .listeners import Listener, ListenError
 from .operator_desk import OperatorDesk
 from .results_store import ResultStore
 from .service import InspectionService
@@ -38,6 +39,9 @@ if TYPE_CHECKING:
     from .frontends.modbus import ModbusFrontend
 
 log = logging.getLogger("vision_server")
+
+_FrontendSteps = tuple[Listener, Callable[[], Awaitable[None]], Callable[[], Awaitable[None]]]
+"""A front-end's configured address, its start and its stop."""
 
 
 class App:
@@ -127,40 +131,63 @@ class App:
         if self.service.processes is not None:
             # The worker processes start before the server listens (spawn imports for seconds).
             await asyncio.to_thread(self.service.processes.start)
-        await self.tcp.start()
+        started: list[Callable[[], Awaitable[None]]] = []
+        try:
+            for listener, start, stop in self._listeners():
+                try:
+                    await start()
+                except OSError as exc:
+                    # One rule for every enabled front-end, the console included: a robot
+                    # cell half-served (the PLC's port silently missing) is worse than a
+                    # server that does not start and says which port and why.
+                    raise ListenError(listener, exc) from exc
+                started.append(stop)
+            if self.line is not None:  # named to a controller that sends its text to the TCP port
+                self.tcp.line_port = self.line.port
+        except BaseException:
+            for stop in reversed(started):
+                await stop()
+            raise
+
+    def _listeners(self) -> list[_FrontendSteps]:
+        """Each enabled front-end: its configured address, start and stop."""
+        tcp = self.tcp.settings
+        listeners: list[_FrontendSteps] = [
+            (
+                Listener("server.port", "the binary protocol", tcp.host, tcp.port),
+                self.tcp.start,
+                self.tcp.stop,
+            )
+        ]
         if self.line is not None:
-            try:
-                await self.line.start()
-            except BaseException:
-                await self.tcp.stop()
-                raise
+            line = self.line.settings
+            where = Listener("line.port", "the line protocol", line.host, line.port)
+            listeners.append((where, self.line.start, self.line.stop))
         if self.modbus is not None:
-            try:
-                await self.modbus.start()
-            except BaseException:
-                if self.line is not None:
-                    await self.line.stop()
-                await self.tcp.stop()
-                raise
+            modbus = self.modbus
+            where = Listener(
+                "modbus.port", "Modbus TCP", modbus.settings.host, modbus.settings.port
+            )
+            listeners.append((where, modbus.start, lambda: modbus.stop(0.0)))
         if self.http is not None:
-            try:
-                await self.http.start()
-            except OSError as exc:
-                # The console is a convenience beside the robots' protocol: a port that is
-                # taken must not stop the cell. Said loudly, served without it.
-                settings = self.http.settings
-                log.error(
-                    "the web console cannot listen on %s:%s (%s); serving without it",
-                    settings.host,
-                    settings.port,
-                    exc,
-                )
-                await self.http.stop()
-                self.http = None
-                self.tcp.operator_desk = None
-            except BaseException:
-                await self.tcp.stop()
-                raise
+            http = self.http.settings
+            where = Listener("console.port", "the web console", http.host, http.port)
+            listeners.append((where, self.http.start, self.http.stop))
+        return listeners
+
+    def listening(self) -> list[Listener]:
+        """Each started front-end's configured host and bound port (after :meth:`start`)."""
+        return [
+            Listener(where.key, where.frontend, where.host, port)
+            for (where, _, _), port in zip(self._listeners(), self._bound_ports(), strict=True)
+        ]
+
+    def _bound_ports(self) -> list[int]:
+        ports = [self.tcp.port]
+        ports += [self.line.port] if self.line is not None else []
+        ports += [self.modbus.port] if self.modbus is not None else []
+        ports += [self.http.port] if self.http is not None else []
+        return ports
 
     def _console_info(self) -> dict[str, Any]:
         """What the console's server page shows of the TCP front-end."""

@@ -63,7 +63,6 @@ from protocol.cli import (
     ParserError,
     UsageError,
     env_token_layer,
-    is_loopback,
     json_error,
     resolve_token,
     version_text,
@@ -79,6 +78,8 @@ from .app import App
 from .builtin import builtin_catalog
 from .catalog import Catalog
 from .config import CellConfig, ConfigError, load_config
+from .exposure import exposure_warnings
+from .listeners import ListenError, PortClash, check_distinct, enabled_listeners
 from .malloc_env import PROCESS_ENV
 from .offline import file_request, image_payload, offline_service
 from .results_cli import describe_health, results_command
@@ -149,6 +150,19 @@ def _serve(args: argparse.Namespace) -> int:
         if runtime is not None:
             runtime.close()
         return _fail(args, ErrorKind.USAGE, str(exc))
+    if runtime is not None:
+        try:  # --host and --port may move the binary protocol onto another front-end's port
+            check_distinct(
+                enabled_listeners(
+                    settings,
+                    console=runtime.config.console,
+                    line=runtime.config.line,
+                    modbus=runtime.config.modbus,
+                )
+            )
+        except PortClash as exc:
+            runtime.close()
+            return _fail(args, ErrorKind.USAGE, f"invalid configuration with --host/--port: {exc}")
     decoder_limits.ensure(settings.max_image_pixels, argv=args.reexec_argv, process_env=PROCESS_ENV)
 
     def reload() -> Catalog:
@@ -175,13 +189,11 @@ def _serve(args: argparse.Namespace) -> int:
         app.service.on_reloaded = announce_reload
         try:
             await app.start()
-        except OSError as exc:  # port in use, address not on this machine, no permission
-            print(
-                f"vision-server: cannot listen on {settings.host}:{settings.port}: {exc}",
-                file=sys.stderr,
-            )
+        except ListenError as exc:  # port in use, address not on this machine, no permission
+            print(f"{PROG}: {exc}", file=sys.stderr)
             return int(ExitCode.CONNECTION)
-        _warn_if_exposed(settings)
+        for warning in exposure_warnings(settings, app.listening()):
+            log.warning("%s", warning)
         if runtime is None:
             names = ", ".join(sorted(catalog.inspections))
             print(
@@ -234,27 +246,6 @@ def _serve_settings(args: argparse.Namespace, base: ServerSettings) -> ServerSet
     if source is not None:
         log.info("clients must present the token from %s", source)
     return ServerSettings(**{**base.__dict__, **overrides})
-
-
-def _warn_if_exposed(settings: ServerSettings) -> None:
-    """One warning line each when the server is reachable from the network without a token
-    or without TLS (the container's default is both)."""
-    if is_loopback(settings.host):
-        return
-    where = f"{settings.host or '*'}:{settings.port}"
-    if settings.auth_token is None:
-        log.warning(
-            "listening on %s beyond loopback WITHOUT A TOKEN: anyone on the network may "
-            "inspect%s; set server.auth_token_file or $CELLVISION_TOKEN_FILE",
-            where,
-            " and reload" if settings.allow_reload else "",
-        )
-    if settings.tls_cert is None:
-        log.warning(
-            "listening on %s beyond loopback WITHOUT TLS: images, results and the token "
-            "cross the network in clear; set server.tls",
-            where,
-        )
 
 
 # ----------------------------------------------------------------------------- check-config

@@ -46,6 +46,7 @@ from .configfile import (
 from .cpu_priority import MAX_NICE, POLICIES
 from .inspections import InspectionSpec, parse_inspection
 from .inspections.output import numbers_by_position
+from .listeners import PortClash, check_distinct, enabled_listeners
 from .settings import (
     LINE_FORMATS,
     MODBUS_WORD_ORDERS,
@@ -167,7 +168,8 @@ def parse_config(
                 "process_inspections",
             )
     line = _line(root.sub("line"), server)
-    modbus = _modbus(root.sub("modbus"), server, line)
+    modbus = _modbus(root.sub("modbus"))
+    _check_ports(root, server, console, line, modbus)
     root.finish()
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
     tuner = Tuner(written, base_dir, cameras)
@@ -335,15 +337,11 @@ def _line(node: Node, server: ServerSettings) -> LineSettings:
         raise node.error(
             "tls: true needs the server's certificate (server: tls: {cert, key})", "tls"
         )
-    if settings.enabled and settings.port == server.port and settings.port != 0:
-        raise node.error(
-            f"port {port} is the server's port: the line protocol needs its own", "port"
-        )
     node.finish()
     return settings
 
 
-def _modbus(node: Node, server: ServerSettings, line: LineSettings) -> ModbusSettings:
+def _modbus(node: Node) -> ModbusSettings:
     defaults = ModbusSettings()
     port = node.take("port", integer, defaults.port)
     if not 0 <= port < 65536:
@@ -365,13 +363,24 @@ def _modbus(node: Node, server: ServerSettings, line: LineSettings) -> ModbusSet
             "enabled: true needs the optional extra: pip install 'cellvision[modbus]'",
             "enabled",
         )
-    taken = {server.port: "the server's port"}
-    if line.enabled:
-        taken[line.port] = "the line protocol's port"
-    if settings.enabled and settings.port != 0 and settings.port in taken:
-        raise node.error(f"port {port} is {taken[settings.port]}: Modbus needs its own", "port")
     node.finish()
     return settings
+
+
+def _check_ports(
+    root: Node,
+    server: ServerSettings,
+    console: ConsoleSettings,
+    line: LineSettings,
+    modbus: ModbusSettings,
+) -> None:
+    """No two enabled front-ends on one host:port: the error is at the later one's port."""
+    listeners = enabled_listeners(server, console=console, line=line, modbus=modbus)
+    try:
+        check_distinct(listeners)
+    except PortClash as exc:
+        section = exc.second.key.split(".")[0]
+        raise root.sub(section).error(str(exc), "port") from None
 
 
 def _console(node: Node, server: ServerSettings) -> ConsoleSettings:

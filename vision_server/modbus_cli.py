@@ -4,26 +4,98 @@ opened, pymodbus is not needed."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
+from .analysis.measure_specs import CircleSpec, DistanceSpec, EdgeSpec, LineSpec, WidthSpec
+from .cameras import RequestCameraSettings
 from .config import CellConfig
 from .frontends.modbus_map import (
     ERROR_MEANINGS,
     FIXED_ROWS,
     REFUSAL_MEANINGS,
+    MappedInspection,
     RegisterMap,
     Row,
     config_map,
     value_rows,
 )
+from .inspections.caliper import SUMMARY_VALUES, CaliperInspection
+
+NOT_TRIGGERABLE = (
+    "not triggerable over Modbus: its camera takes images in the request "
+    "(a trigger is answered with ERROR_CODE 12)"
+)
+"""Said of an inspection whose camera is ``source: request``: a PLC sends no image."""
 
 
 def register_map(config: CellConfig) -> RegisterMap:
     return config_map(config.inspections, config.modbus.word_order)
+
+
+def triggerable(config: CellConfig, name: str) -> bool:
+    """Whether a Modbus trigger can run inspection ``name``: its camera is the server's."""
+    spec = next(i for i in config.inspections if i.name == name)
+    return not isinstance(config.cameras.get(spec.camera), RequestCameraSettings)
+
+
+def described_rows(config: CellConfig, mapped: MappedInspection) -> list[Row]:
+    """The value rows of ``mapped``, with the names and units its type knows from the
+    configuration (a caliper's measurements) in place of the summary's generic ones."""
+    rows = value_rows(mapped)
+    spec = next(i for i in config.inspections if i.name == mapped.target.name)
+    describe = DESCRIBERS.get(mapped.target.type)
+    if describe is None:
+        return rows
+    known = describe(spec)
+    out = []
+    for row, value in zip(rows, mapped.values, strict=True):
+        if value.name not in known:
+            out.append(row)
+            continue
+        meaning, unit = known[value.name]
+        scale = value.field.scale
+        units = unit if scale == 1.0 or not unit else f"{unit} x {scale:g}"
+        out.append(replace(row, meaning=meaning, units=units))
+    return out
+
+
+def _caliper_values(spec: Any) -> dict[str, tuple[str, str]]:
+    """``failed`` and ``value_k``: the k-th measurement's name, what it measures and its unit
+    (``rad`` for an angle, else the caliper's ``units``)."""
+    assert isinstance(spec, CaliperInspection)
+    known = {"failed": ("failed: measurements out of tolerance or not measured", "")}
+    for k, m in enumerate(spec.specs[:SUMMARY_VALUES], start=1):
+        what, unit = _measures(m), spec.units.unit
+        if isinstance(m, DistanceSpec) and m.value == "angle":
+            unit = "rad"
+        known[f"value_{k}"] = (f"value_{k}: {m.name} ({what})", unit)
+    for k in range(len(spec.specs) + 1, SUMMARY_VALUES + 1):
+        known[f"value_{k}"] = (f"value_{k}: no measurement (always the output's missing)", "")
+    return known
+
+
+def _measures(m: Any) -> str:
+    if isinstance(m, EdgeSpec):
+        return "edge position along its band"
+    if isinstance(m, WidthSpec):
+        return "width"
+    if isinstance(m, CircleSpec):
+        return f"circle {m.value}"
+    if isinstance(m, LineSpec):
+        return "line straightness"
+    if isinstance(m, DistanceSpec):
+        return f"{m.value} from {m.source} to {m.to}"
+    return type(m).__name__
+
+
+DESCRIBERS: dict[str, Callable[[Any], dict[str, tuple[str, str]]]] = {"caliper": _caliper_values}
+"""Inspection type -> the names and units of its summary values, read from its settings."""
 
 
 def map_json(config: CellConfig) -> dict[str, Any]:
@@ -53,6 +125,7 @@ def map_json(config: CellConfig) -> dict[str, Any]:
                 "number": number,
                 "name": m.target.name,
                 "type": m.target.type,
+                "triggerable": triggerable(config, m.target.name),
                 "values": [
                     {
                         **row(r),
@@ -60,7 +133,7 @@ def map_json(config: CellConfig) -> dict[str, Any]:
                         "scale": v.field.scale,
                         "decimals": v.field.decimals,
                     }
-                    for r, v in zip(value_rows(m), m.values, strict=True)
+                    for r, v in zip(described_rows(config, m), m.values, strict=True)
                 ],
             }
             for number, m in sorted(mapped.inspections.items())
@@ -97,8 +170,12 @@ def print_map(config: CellConfig, source: str, console: Console) -> None:
     console.print(_table("hand-shake", list(FIXED_ROWS)))
     for number, m in sorted(mapped.inspections.items()):
         title = f"inspection {number} = {m.target.name} ({m.target.type}): result values"
-        rows = value_rows(m)
-        if rows:
+        rows = described_rows(config, m)
+        if not triggerable(config, m.target.name):
+            # Its registers would never hold a result: no table a PLC programmer might use.
+            name = f"inspection {number} = {m.target.name} ({m.target.type})"
+            console.print(Text(f"{name}: {NOT_TRIGGERABLE}"))
+        elif rows:
             console.print(_table(title, rows))
         else:
             console.print(Text(f"{title}: none (verdict only)"))
@@ -113,4 +190,11 @@ def print_map(config: CellConfig, source: str, console: Console) -> None:
     console.print(codes)
 
 
-__all__ = ["map_json", "print_map", "register_map"]
+__all__ = [
+    "NOT_TRIGGERABLE",
+    "described_rows",
+    "map_json",
+    "print_map",
+    "register_map",
+    "triggerable",
+]

@@ -108,8 +108,11 @@ class TcpSettings:
 
 LINE_FORMATS = ("text", "ur", "abb", "kuka", "fanuc")
 """How a line-protocol trigger answer is written (protocol/LINE.md §5)."""
-DEFAULT_LINE_PORT = 7880
-"""The line protocol's port when ``line:`` enables it without one (protocol/LINE.md)."""
+DEFAULT_LINE_PORT = 7879
+"""The line protocol's port when ``line:`` enables it without one (protocol/LINE.md): its own,
+beside the binary protocol's 7878 and the web console's 7880 (docs/configuration.md, "Ports")."""
+DEFAULT_CONSOLE_PORT = 7880
+"""The web console's port (and its ``/metrics``) when ``console:`` enables it without one."""
 
 
 @dataclass(frozen=True)
@@ -246,7 +249,7 @@ class ConsoleSettings:
 
     enabled: bool = False
     host: str = "127.0.0.1"
-    port: int = 7880
+    port: int = DEFAULT_CONSOLE_PORT
     max_view_fps: float = 10.0
     """The highest rate (frames per second) at which the live view reads a server camera,
     however many browsers watch it."""
@@ -305,6 +308,7 @@ def welcome_limits(tcp: TcpSettings, service: ServiceSettings) -> dict[str, int]
 
 
 __all__ = [
+    "DEFAULT_CONSOLE_PORT",
     "DEFAULT_LINE_PORT",
     "LINE_FORMATS",
     "SERVER_VERSION",

@@ -1264,6 +1264,19 @@ def _garbage(ctx: Context) -> None:
 
 
 @check(
+    "wrong_magic_at_once",
+    "§3.1",
+    "another protocol's short text line before HELLO: MALFORMED_FRAME at once (not after a "
+    "24-byte header or the handshake timeout), then close",
+)
+def _wrong_magic_at_once(ctx: Context) -> None:
+    with ctx.peer() as peer:
+        peer.send_raw(b"T 1\n")  # a line-protocol trigger: 4 bytes, the stream stays open
+        peer.expect_error(E.MALFORMED_FRAME, fatal=True)
+        peer.expect_closed()
+
+
+@check(
     "inconsistent_lengths", "§3.3", "blob lengths that do not add up: MALFORMED_FRAME, then close"
 )
 def _inconsistent(ctx: Context) -> None:

@@ -298,3 +298,24 @@ def test_an_integral_number_is_an_integer_also_when_written_with_a_fraction() ->
     assert as_integer(3.5) is None
     assert as_integer(True) is None
     assert as_integer(float(2**60)) is None
+
+
+@pytest.mark.parametrize(
+    ("first", "text"),
+    [(b"T", True), (b"T 1\n", True), (b"GET /", True), (b"\x00", False), (b"CVIX", True)],
+)
+def test_a_wrong_magic_is_refused_at_its_first_differing_byte(first: bytes, text: bool) -> None:
+    """A controller's line-protocol ``T 1\\n`` (4 bytes) was held until a full 24-byte header
+    arrived (or the handshake timed out): the decoder refuses the prefix at once, and says
+    whether it reads as text."""
+    decoder = FrameDecoder()
+    decoder.feed(first)
+    with pytest.raises(MalformedFrame, match="bad magic") as info:
+        decoder.next_frame()
+    assert info.value.details == {"text": text}
+
+
+def test_a_partial_magic_waits_for_more() -> None:
+    decoder = FrameDecoder()
+    decoder.feed(b"CV")
+    assert decoder.next_frame() is None

@@ -222,7 +222,9 @@ def test_a_port_in_use_is_a_clear_error() -> None:
         )
     assert done.returncode == 3  # the connection-error code
     assert done.stdout == ""
-    assert done.stderr.startswith(f"vision-server: cannot listen on 127.0.0.1:{port}: ")
+    assert done.stderr.startswith(
+        f"vision-server: the binary protocol (server.port) cannot listen on 127.0.0.1:{port}: "
+    )
     assert "Traceback" not in done.stderr
 
 

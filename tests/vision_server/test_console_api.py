@@ -4,9 +4,7 @@ real sockets on loopback, port 0, the configuration file's runtime (save and rel
 
 from __future__ import annotations
 
-import asyncio
 import http.client
-import socket
 import struct
 import time
 import zlib
@@ -26,10 +24,8 @@ from console_server import (
     multipart,
 )
 
-from vision_server.app import App
 from vision_server.frontends.http_auth import COOKIE
 from vision_server.results import ResultEntry
-from vision_server.runtime import CellRuntime
 
 
 @pytest.fixture(scope="module")
@@ -394,34 +390,3 @@ def test_the_console_is_off_unless_enabled(tmp_path: Path) -> None:
     text = config.read_text().replace("console:\n  enabled: true\n", "console:\n")
     config.write_text(text)
     assert not load_config(config).console.enabled
-
-
-def test_a_taken_console_port_does_not_stop_the_server(tmp_path: Path) -> None:
-    with socket.socket() as taken:
-        taken.bind(("127.0.0.1", 0))
-        taken.listen()
-        port = taken.getsockname()[1]
-        config = example_config(tmp_path)
-        config.write_text(
-            config.read_text().replace(
-                "  port: 0\n  max_view_fps", f"  port: {port}\n  max_view_fps"
-            )
-        )
-        runtime = CellRuntime(config)
-        try:
-
-            async def body() -> None:
-                app = App(
-                    runtime.catalog,
-                    runtime.config.server,
-                    console=runtime.config.console,
-                    config_path=config,
-                )
-                async with app:
-                    assert app.http is None
-                    _, writer = await asyncio.open_connection("127.0.0.1", app.port)
-                    writer.close()
-
-            asyncio.run(body())
-        finally:
-            runtime.close()

@@ -188,7 +188,11 @@ class HttpFrontend:
             self.settings.port,
             ssl_context=self.settings.ssl_context(),
         )
-        await self._site.start()
+        try:
+            await self._site.start()
+        except BaseException:  # a port that is taken: leave nothing set up behind
+            await self.stop()
+            raise
 
     async def stop(self) -> None:
         if self._runner is not None:

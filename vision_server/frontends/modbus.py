@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from typing import Any
 
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusServerContext
@@ -96,8 +97,9 @@ class ModbusFrontend:
             # hostile or broken client must not fill the server's log (-v shows them).
             logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
         server = _Server(self, address=(self.settings.host, self.settings.port))
-        if not await server.listen():  # pymodbus logs why; say it as an OSError, as asyncio
-            raise OSError(f"cannot listen on {self.settings.host}:{self.settings.port}")
+        if not await server.listen():
+            # The server's message adds the front-end and its address to the cause.
+            raise server.listen_error or OSError("pymodbus could not listen")
         self._server = server
         log.info("Modbus TCP listening on %s:%d", self.settings.host, self.port)
 
@@ -220,6 +222,18 @@ class _Server(ModbusTcpServer):
         self.bank = _Bank(frontend)
         super().__init__(self.bank, address=address)
         self.frontend = frontend
+        self.listen_error: OSError | None = None
+        """Why listening failed: pymodbus's listen() only logs it and returns False."""
+        create = self.call_create
+
+        async def create_keeping_the_error() -> Any:
+            try:
+                return await create()
+            except OSError as exc:
+                self.listen_error = exc
+                raise
+
+        self.call_create = create_keeping_the_error
 
     def callback_new_connection(self) -> _Connection:
         return _Connection(self)

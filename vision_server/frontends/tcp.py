@@ -51,6 +51,7 @@ from protocol import (
     Limits,
     ListInspections,
     LocalProtocolError,
+    MalformedFrame,
     Message,
     NotAuthenticated,
     OperatorAnswer,
@@ -85,7 +86,7 @@ from ..service import (
     capture_key,
     deadline_after,
 )
-from ..settings import SERVER_VERSION, TcpSettings, welcome_limits
+from ..settings import DEFAULT_LINE_PORT, SERVER_VERSION, TcpSettings, welcome_limits
 from .images import payload_loader
 
 log = logging.getLogger("vision_server")
@@ -119,6 +120,25 @@ class TcpFrontend:
         self._stopping = asyncio.Event()
         self.operator_desk: OperatorDesk | None = None
         """Where OPERATOR_CALLs wait for a person (the console's); None: refused (SPEC §6.6)."""
+        self.line_port: int | None = None
+        """The line protocol's bound port when it is enabled: named to a peer that sends it
+        text here (:meth:`explain`)."""
+
+    def explain(self, exc: CellvisionError) -> CellvisionError:
+        """``exc``, or for a bad magic that reads as text (a controller that sends the line
+        protocol's ``T 1`` to this port) the same error saying which port this is."""
+        if not (isinstance(exc, MalformedFrame) and exc.details.get("text")):
+            return exc
+        if self.line_port is not None:
+            where = f"port {self.line_port}"
+        else:
+            where = f"its own port (line.port, default {DEFAULT_LINE_PORT}) when enabled"
+        return MalformedFrame(
+            f"this is the binary protocol's port; the line protocol listens on {where} "
+            f"({exc.message})",
+            request_id=exc.request_id,
+            details=exc.details,
+        )
 
     @property
     def started(self) -> bool:
@@ -510,9 +530,10 @@ class TcpSession:
             while True:
                 try:
                     event = self.conn.next_event()
-                except CellvisionError as exc:
+                except CellvisionError as refused:
                     frame_ended = True
                     self._release(self._take_frame_admission())
+                    exc = self.frontend.explain(refused)
                     log.info("%s: %s: %s", self.peer, exc.code.name, exc.message)
                     if exc.fatal:
                         self.stream.writelines(_late_error(self.conn, exc))

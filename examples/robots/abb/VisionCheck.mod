@@ -1,7 +1,7 @@
 MODULE VisionCheck
   ! cellvision line protocol from an ABB controller (RAPID, RobotWare 6/7 with the socket
   ! messaging option). Triggers inspection number 1 and acts on its verdict and value.
-  ! Server side (cell.yaml):   line: {enabled: true, host: 0.0.0.0, port: 7880}
+  ! Server side (cell.yaml):   line: {enabled: true, host: 0.0.0.0, port: 7879}
   !   inspection 1 answers one value, e.g. presence: output: {fields: [value], decimals: 2}
   ! cellvision: format abb, numbers 2 (verdict, value)
   ! The answer to "T 1" in the abb format is "<verdict>,<value>" CR LF, at most 80 characters
@@ -21,7 +21,7 @@ MODULE VisionCheck
     VAR bool ok;
 
     SocketCreate vision;
-    SocketConnect vision, "192.168.0.10", 7880 \Time:=5;
+    SocketConnect vision, "192.168.0.10", 7879 \Time:=5;
     SocketSend vision \Str:="F abb\0A";
     ReceiveLine;
     SocketSend vision \Str:="T 1\0A";
