@@ -5,7 +5,8 @@ Public API:
 - :class:`VisionClient` (asyncio: ``connect``, ``ping``, ``list_inspections``, ``inspect``,
   ``capture``, ``close``), :class:`SyncVisionClient` (the same, blocking),
   :class:`ReconnectPolicy`, :func:`overlay_image`, :func:`wait_for_server`.
-- Local errors: :class:`ClientError`, :class:`ConnectionLost`, :class:`RequestTimeout`,
+- Local errors: :class:`ClientError`, :class:`ConnectionLost` (:class:`NotCellvision`: the
+  address speaks another protocol), :class:`RequestTimeout`,
   :class:`ClientClosed`. Errors the server sends are :class:`protocol.CellvisionError`
   subclasses (``protocol.UnknownInspection``, ``protocol.Busy``, ...).
 - :func:`resolve_server`, :func:`parse_address`: where the server is.
@@ -45,7 +46,7 @@ from .devices import (
 )
 from .devices.sim import sim_devices
 from .devices.vision import LazyVision, ServerCamera
-from .errors import ClientClosed, ClientError, ConnectionLost, RequestTimeout
+from .errors import ClientClosed, ClientError, ConnectionLost, NotCellvision, RequestTimeout
 from .skills import (
     Calibration,
     CalibrationValid,
@@ -111,6 +112,7 @@ __all__ = [
     "ClientClosed",
     "ClientError",
     "ConnectionLost",
+    "NotCellvision",
     "ReconnectPolicy",
     "RequestTimeout",
     "SyncVisionClient",

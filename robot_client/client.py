@@ -65,7 +65,7 @@ from protocol import (
 )
 from wireio import WireStream, open_connection
 
-from .errors import ClientClosed, ConnectionLost, RequestTimeout
+from .errors import ClientClosed, ConnectionLost, NotCellvision, RequestTimeout
 
 log = logging.getLogger("robot_client")
 _T = TypeVar("_T")
@@ -212,6 +212,9 @@ class VisionClient:
             raise ConnectionLost(
                 f"{self.host}:{self.port} did not answer HELLO within {self.connect_timeout_s} s"
             ) from None
+        except NotCellvision:
+            await self._drop_connection(ConnectionLost("handshake failed"))
+            raise
         except ConnectionLost as exc:
             await self._drop_connection(ConnectionLost("handshake failed"))
             if self.ssl is None:
@@ -305,6 +308,11 @@ class VisionClient:
                                 # E.g. a WELCOME of a version we do not speak: connect() must
                                 # say so, not report a mere lost connection.
                                 reason = exc
+                            elif exc.details.get("text"):
+                                reason = NotCellvision(
+                                    f"{self.host}:{self.port} is not a cellvision server: it "
+                                    f"answered in text ({exc.message}){_text_peer_hint(exc)}"
+                                )
                             else:
                                 reason = ConnectionLost(f"protocol error from the server: {exc}")
                             return
@@ -566,6 +574,16 @@ class VisionClient:
         )
         assert isinstance(answer, OperatorAnswer)
         return answer
+
+
+def _text_peer_hint(exc: CellvisionError) -> str:
+    """What a text answer to HELLO suggests: the port of another front-end."""
+    if "HTTP" in exc.message:
+        return (
+            ": an HTTP server, e.g. the web console (default port 7880); the binary protocol's "
+            "port is the one `vision-server serve` prints as 'listening on' (default 7878)"
+        )
+    return ": another text protocol (the line protocol's port, default 7879?)"
 
 
 def retry_after_s(busy: Busy) -> float | None:

@@ -15,6 +15,11 @@ class ConnectionLost(ClientError, ConnectionError):
     """
 
 
+class NotCellvision(ConnectionLost):
+    """The address answered in another protocol (HTTP: the web console's port; the line
+    protocol's text): a wrong port, not a broken connection or a TLS server."""
+
+
 class RequestTimeout(ClientError, TimeoutError):
     """No answer within the client-side timeout."""
 

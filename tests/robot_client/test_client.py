@@ -49,7 +49,7 @@ from robot_client.client import (
     overlay_image,
     wait_for_server,
 )
-from robot_client.errors import ClientClosed, ConnectionLost, RequestTimeout
+from robot_client.errors import ClientClosed, ConnectionLost, NotCellvision, RequestTimeout
 from vision_server.builtin import MeanIntensityPresence, builtin_catalog
 from vision_server.cameras import (
     RequestCamera,
@@ -655,7 +655,7 @@ def test_a_peer_that_is_not_a_cellvision_server_is_reported_once(
         port = server.sockets[0].getsockname()[1]
         async with server:
             client = VisionClient("127.0.0.1", port, connect_timeout_s=5.0)
-            with pytest.raises(ConnectionLost, match="bad magic"):
+            with pytest.raises(NotCellvision, match="not a cellvision server.*HTTP server"):
                 await client.connect()
             await client.close()
 
