@@ -37,7 +37,7 @@ from rich.table import Table
 from geometry import CameraIntrinsics, xyz_rpy_from_transform
 from protocol.cli import ExitCode
 
-from .cli_commission import _inspection_camera
+from .cli_commission import server_camera
 from .cli_skills import _device_options, _devices, _store, _store_options
 from .commissioning import HandEyeResult, solve_hand_eye
 from .commissioning.hand_eye_collect import HandEyeCollected, collect_hand_eye_views
@@ -173,8 +173,7 @@ def cmd_calibrate_hand_eye(args: argparse.Namespace, console: Console) -> int:
     devices = _devices(args)
     try:
         if args.config:
-            server_camera = args.server_camera or _inspection_camera(devices, args.inspection)
-            intrinsics = _config_intrinsics(Path(args.config), server_camera)
+            intrinsics = _config_intrinsics(Path(args.config), server_camera(devices, args))
         else:
             intrinsics = devices.camera(args.camera).intrinsics
         collected = collect_hand_eye_views(
@@ -271,7 +270,8 @@ def add_hand_eye_command(sub: Any, common: argparse.ArgumentParser) -> None:
     cal.add_argument(
         "--server-camera",
         default=None,
-        help="the camera in --config (default: the inspection's camera)",
+        help="the server camera in --config the images are of (default: the inspection's "
+        "camera, which must be --camera's: NAME or NAME without '_camera')",
     )
     cal.add_argument(
         "--arm-repeatability",
