@@ -5,8 +5,10 @@ length 1.4 % off every view's board pose is scaled, the refinement absorbs most 
 camera's mount, and the reprojection RMS stays well under a pixel. The AX=XB loop does show it,
 but only against what it would be from noise alone. This module gives that yardstick:
 
-- the corners' noise: the residual of each view's board pose fitted freely (perspective-n-point,
-  6 unknowns per view), one variance for all views (pixels squared);
+- the corners' noise: from the residuals of each view's board pose fitted freely
+  (perspective-n-point), as the differences between neighbouring corners' residuals (a model
+  error is smooth over the board and cancels there; noise does not), one variance for all
+  views (pixels squared);
 - the arm's repeatability: one standard deviation of where the tool truly ends against where
   the robot reports it (metres; radians of a turn about a random axis), as issue 18 and the
   simulated cell define it;
@@ -109,14 +111,16 @@ def expected_residuals(
             return invert_transform(perturbed(invert_transform(m), delta))
         return perturbed(m, delta)
 
-    squares, dof = 0.0, 0
+    squares, count_pairs = 0.0, 0
     jacobians = []
     for pose, board, uv in zip(boards, corners_board, corners_uv, strict=True):
         r0, jacobian = _board_pose_jacobian(pose, board, uv, intrinsics)
-        squares += float(r0 @ r0)
-        dof += r0.size - 6
+        total, pairs = _neighbour_differences(r0.reshape(-1, 2), board)
+        squares += total
+        count_pairs += pairs
         jacobians.append(jacobian)
-    variance = squares / max(dof, 1)
+    # |r_a - r_b|^2 of two neighbours holds 2 coordinates of twice the variance each.
+    variance = squares / max(4 * count_pairs, 1)
     board_covs = [variance * np.linalg.pinv(j.T @ j) for j in jacobians]
     # The robot's error as :func:`perturbed` applies it: a turn of ``rad`` about a random axis
     # (rad^2 / 3 per axis) and ``m`` per axis.
@@ -170,6 +174,21 @@ def expected_residuals(
         math.sqrt(float(np.mean(loop_r))) if loop_r else 0.0,
         rms_px,
     )
+
+
+def _neighbour_differences(residual: FloatArray, corners_board: FloatArray) -> tuple[float, int]:
+    """Sum of ``|r_a - r_b|^2`` (pixels squared) over neighbouring corners a, b (one square
+    apart on the board) and the number of such pairs. A wrong model (intrinsics a little off)
+    leaves residuals that change smoothly over the board, which a neighbour's cancels; the
+    corners' noise does not cancel: so this measures the noise alone, where the residuals' own
+    RMS would count the model's error as noise and excuse it."""
+    if len(corners_board) < 2:
+        return 0.0, 0
+    gaps = np.linalg.norm(corners_board[:, None, :] - corners_board[None, :, :], axis=2)
+    spacing = float(np.min(gaps[gaps > 0])) if np.any(gaps > 0) else 0.0
+    a, b = np.nonzero(np.triu((gaps > 0) & (gaps < 1.01 * spacing)))
+    differences = residual[a] - residual[b]
+    return float(np.sum(differences**2)), len(a)
 
 
 def _skew(v: FloatArray) -> FloatArray:
