@@ -8,7 +8,9 @@ come from the server's ``calibration_board`` inspection (the positional argument
 solution is printed (intrinsics with standard deviations, RMS, per-view errors, coverage) and,
 with ``--config FILE`` (the server's configuration), written as the camera's ``intrinsics``
 after the user confirms (``--yes`` for scripts) and the server reloaded; a reload the server
-refuses puts the previous file back. Views that leave image regions or board tilts uncovered
+refuses puts the previous file back, and one that leaves the server serving other intrinsics
+(it runs another file) is an error (exit 2). The camera written is the one the images are of
+(:func:`server_camera`). Views that leave image regions or board tilts uncovered
 give intrinsics that cannot be trusted: they are reported, not written (unless
 ``--accept-incomplete``), and the command exits 1.
 """

@@ -54,8 +54,8 @@ DEFAULT_REPEATABILITY = Repeatability(0.03e-3, math.radians(0.01))
 @dataclass(frozen=True)
 class ExpectedResiduals:
     """The residuals noise alone gives: ``corner_noise_px`` (one standard deviation of a
-    corner coordinate, from the free board poses), ``loop_translation_m`` and
-    ``loop_rotation_rad`` (RMS over the pairs of views, as
+    corner coordinate, from neighbouring corners' residuals of the free board poses),
+    ``loop_translation_m`` and ``loop_rotation_rad`` (RMS over the pairs of views, as
     :class:`~robot_client.commissioning.hand_eye.HandEyeResult` reports the measured ones)
     and ``rms_px`` (the reprojection RMS of the joint solution)."""
 
