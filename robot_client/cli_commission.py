@@ -8,7 +8,9 @@ come from the server's ``calibration_board`` inspection (the positional argument
 solution is printed (intrinsics with standard deviations, RMS, per-view errors, coverage) and,
 with ``--config FILE`` (the server's configuration), written as the camera's ``intrinsics``
 after the user confirms (``--yes`` for scripts) and the server reloaded; a reload the server
-refuses puts the previous file back. Views that leave image regions or board tilts uncovered
+refuses puts the previous file back, and one that leaves the server serving other intrinsics
+(it runs another file) is an error (exit 2). The camera written is the one the images are of
+(:func:`server_camera`). Views that leave image regions or board tilts uncovered
 give intrinsics that cannot be trusted: they are reported, not written (unless
 ``--accept-incomplete``), and the command exits 1.
 """
@@ -35,15 +37,16 @@ from .cli_skills import _device_options, _devices
 from .client import ReconnectPolicy, VisionClient
 from .commissioning import IntrinsicsSolution, solve_intrinsics
 from .commissioning.collect import Collected, collect_fixed_views, collect_tool_views
-from .commissioning.config_file import write_intrinsics
+from .commissioning.config_file import file_hash, served_mismatch, write_intrinsics
 from .commissioning.coverage import Coverage
 from .devices import Devices
 
-__all__ = ["add_commission_commands"]
+__all__ = ["add_commission_commands", "server_camera"]
 
 
-def _inspection_camera(devices: Devices, inspection: str) -> str:
-    """The server camera of ``inspection``, which must be a ``calibration_board``."""
+def _inspection_camera(devices: Devices, inspection: str) -> tuple[str, str]:
+    """The server camera of ``inspection``, which must be a ``calibration_board``, and where
+    its images come from (SPEC §5.2 ``camera_source``: ``request`` or a server-side source)."""
     assert devices.vision is not None
     for item in devices.vision.list_inspections():
         if item.get("name") == inspection:
@@ -51,8 +54,37 @@ def _inspection_camera(devices: Devices, inspection: str) -> str:
                 raise ValueError(
                     f"inspection {inspection!r} is a {item.get('type')}, not a calibration_board"
                 )
-            return str(item.get("camera"))
+            return str(item.get("camera")), str(item.get("camera_source", ""))
     raise ValueError(f"the server has no inspection named {inspection!r}")
+
+
+def server_camera(devices: Devices, args: argparse.Namespace) -> str:
+    """The server camera whose ``intrinsics`` in ``--config`` a commissioning command writes
+    (``calibrate-intrinsics``) or reads (``calibrate-hand-eye``): the camera the images are of.
+
+    One rule: ``--server-camera NAME`` is the user saying which it is; with ``--fixed`` the
+    images are the inspection's own camera's; else they come from the robot's camera
+    ``--camera ROBOT``, which is the server camera ``ROBOT`` or ``ROBOT`` without a
+    ``_camera`` suffix (``tool_camera`` is ``tool``), and the inspection must run on that
+    camera. Anything else would put one camera's intrinsics under another's name: a
+    ``ValueError`` (exit 2) naming both, before the robot moves."""
+    camera, source = _inspection_camera(devices, args.inspection)
+    if args.server_camera:
+        return str(args.server_camera)
+    if getattr(args, "fixed", False) or not args.camera:
+        return camera
+    robot = str(args.camera)
+    if camera in (robot, robot.removesuffix("_camera")):
+        return camera
+    own = f", which takes its own images ({source})" if source and source != "request" else ""
+    raise ValueError(
+        f"the images come from the robot's camera {robot!r} but inspection "
+        f"{args.inspection!r} runs on the server camera {camera!r}{own}: {robot!r} is the "
+        f"server camera {robot.removesuffix('_camera')!r} (the robot's camera NAME is the "
+        f"server's NAME or NAME without '_camera'); use a calibration_board inspection on "
+        f"that camera, or, if {robot!r} really is {camera!r}, say so with "
+        f"--server-camera {camera}"
+    )
 
 
 def _ask_next(console: Console, interactive: bool) -> Any:
@@ -181,14 +213,42 @@ def _write(
                 soft_wrap=True,
             )
         raise
+    # A reload re-reads the file the server was started with, which need not be --config:
+    # only the intrinsics it now serves say whether it took the new ones.
+    mismatch = served_mismatch(reloaded.cameras, camera, solution.intrinsics)
+    if mismatch is not None:
+        raise ValueError(
+            f"wrote the intrinsics of camera {camera!r} into {path} (config hash "
+            f"{file_hash(path)}; previous file: {backup}), but the server reloaded another "
+            f"configuration (config hash {reloaded.config_hash}): {mismatch}. The server "
+            f"re-reads the file it was started with: give that file to --config, or restart "
+            f"the server with {path} (vision-server serve --config {path})"
+        )
+    written_hash = file_hash(path)
+    if written_hash == reloaded.config_hash:
+        served = f"the server reloaded it and serves them (config hash {reloaded.config_hash})"
+    else:
+        # The same intrinsics, from another file (e.g. a second pass over a copy): true today,
+        # but later edits of --config will not reach the server.
+        served = (
+            f"the server serves them, but from another file (its config hash "
+            f"{reloaded.config_hash} is not {path}'s {written_hash}): later edits of {path} "
+            "will not reach it"
+        )
     if not args.json:
         console.print(
             escape(
                 f"wrote the intrinsics of camera {camera!r} into {path} (previous file: "
-                f"{backup}); server reloaded, config hash {reloaded.config_hash}"
-            )
+                f"{backup}); {served}"
+            ),
+            soft_wrap=True,
         )
-    return {"written": True, "config": str(path), "config_hash": reloaded.config_hash}
+    return {
+        "written": True,
+        "config": str(path),
+        "config_hash": reloaded.config_hash,
+        "file_hash": written_hash,
+    }
 
 
 def cmd_calibrate_intrinsics(args: argparse.Namespace, console: Console) -> int:
@@ -196,7 +256,7 @@ def cmd_calibrate_intrinsics(args: argparse.Namespace, console: Console) -> int:
         raise ValueError(f"--views must be >= 4, got {args.views}")
     devices = _devices(args)
     try:
-        server_camera = args.server_camera or _inspection_camera(devices, args.inspection)
+        camera = server_camera(devices, args) if args.config else ""
         if args.fixed:
             interactive = not args.yes and not args.json and sys.stdin.isatty()
             collected = collect_fixed_views(
@@ -238,7 +298,7 @@ def cmd_calibrate_intrinsics(args: argparse.Namespace, console: Console) -> int:
                 soft_wrap=True,
             )
     if args.config and (coverage.complete or args.accept_incomplete):
-        out["config"] = _write(args, console, solution, collected, server_camera)
+        out["config"] = _write(args, console, solution, collected, camera)
     elif args.config:
         out["config"] = {"written": False, "reason": "coverage incomplete"}
         if not args.json:
@@ -273,7 +333,8 @@ def add_commission_commands(sub: Any, common: argparse.ArgumentParser) -> None:
     cal.add_argument(
         "--server-camera",
         default=None,
-        help="the camera in --config to write (default: the inspection's camera)",
+        help="the server camera in --config the images are of, to write (default: the "
+        "inspection's camera, which must be --camera's: NAME or NAME without '_camera')",
     )
     cal.add_argument("--yes", action="store_true", help="write without asking")
     cal.add_argument(

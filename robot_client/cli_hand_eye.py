@@ -37,10 +37,11 @@ from rich.table import Table
 from geometry import CameraIntrinsics, xyz_rpy_from_transform
 from protocol.cli import ExitCode
 
-from .cli_commission import _inspection_camera
+from .cli_commission import server_camera
 from .cli_skills import _device_options, _devices, _store, _store_options
 from .commissioning import HandEyeResult, solve_hand_eye
 from .commissioning.hand_eye_collect import HandEyeCollected, collect_hand_eye_views
+from .commissioning.hand_eye_noise import DEFAULT_REPEATABILITY, Repeatability
 from .skills.camera_mounts import _intrinsics_from_yaml, hand_eye_record
 
 __all__ = ["add_hand_eye_command"]
@@ -72,6 +73,12 @@ def _figures(result: HandEyeResult, collected: HandEyeCollected) -> dict[str, An
         "loop_rotation_rad": round(result.loop_rotation_rad, 7),
         "sigma_translation_m": round(result.sigma_translation_m, 7),
         "sigma_rotation_rad": round(result.sigma_rotation_rad, 7),
+        "expected": {
+            "corner_noise_px": round(result.expected.corner_noise_px, 4),
+            "rms_px": round(result.expected.rms_px, 4),
+            "loop_translation_m": round(result.expected.loop_translation_m, 7),
+            "loop_rotation_rad": round(result.expected.loop_rotation_rad, 7),
+        },
         "board": collected.board,
         "poses": [
             {
@@ -101,8 +108,11 @@ def _print_result(
         + ", ".join(f"{math.degrees(v):.4f}" for v in rpy)
         + " deg"
     )
+    # The covariance counts the corners' noise only: it is the solve's statistical spread,
+    # not a bound on the error, which the loop below judges.
     console.print(
-        f"  std dev {result.sigma_translation_m * 1000:.3f} mm, "
+        f"  statistical spread of the solve (corner noise only, not the error) "
+        f"{result.sigma_translation_m * 1000:.3f} mm, "
         f"{math.degrees(result.sigma_rotation_rad):.4f} deg (largest axis)"
     )
     if result.setup == "eye_to_hand":
@@ -127,10 +137,13 @@ def _print_result(
     console.print(table)
     for label, reason in collected.skipped:
         console.print(escape(f"not taken: {label}: {reason}"), soft_wrap=True)
+    expected = result.expected
     console.print(
-        f"reprojection RMS [bold]{result.rms_px:.3f} px[/]; AX=XB loop "
-        f"{result.loop_translation_m * 1000:.3f} mm, "
-        f"{math.degrees(result.loop_rotation_rad):.4f} deg (RMS over the pairs of poses)"
+        f"reprojection RMS [bold]{result.rms_px:.3f} px[/] (noise explains "
+        f"{expected.rms_px:.3f} px); AX=XB loop {result.loop_translation_m * 1000:.3f} mm, "
+        f"{math.degrees(result.loop_rotation_rad):.4f} deg (RMS over the pairs of poses; noise "
+        f"explains {expected.loop_translation_m * 1000:.3f} mm, "
+        f"{math.degrees(expected.loop_rotation_rad):.4f} deg)"
     )
     colour = {"good": "green", "check": "yellow", "redo": "red"}[result.verdict]
     console.print(f"verdict: [{colour}]{result.verdict}[/]")
@@ -160,8 +173,7 @@ def cmd_calibrate_hand_eye(args: argparse.Namespace, console: Console) -> int:
     devices = _devices(args)
     try:
         if args.config:
-            server_camera = args.server_camera or _inspection_camera(devices, args.inspection)
-            intrinsics = _config_intrinsics(Path(args.config), server_camera)
+            intrinsics = _config_intrinsics(Path(args.config), server_camera(devices, args))
         else:
             intrinsics = devices.camera(args.camera).intrinsics
         collected = collect_hand_eye_views(
@@ -176,7 +188,15 @@ def cmd_calibrate_hand_eye(args: argparse.Namespace, console: Console) -> int:
         )
     finally:
         devices.close()
-    result = solve_hand_eye(collected.views, intrinsics, collected.setup)
+    mm, deg = args.arm_repeatability
+    if mm <= 0 or deg <= 0:
+        raise ValueError(f"--arm-repeatability must be positive, got {mm} mm {deg} deg")
+    result = solve_hand_eye(
+        collected.views,
+        intrinsics,
+        collected.setup,
+        repeatability=Repeatability(mm / 1000.0, math.radians(deg)),
+    )
     pose_name = _POSE_NAME[result.setup]
     figures = _figures(result, collected)
     xyz, rpy = xyz_rpy_from_transform(result.camera)
@@ -250,7 +270,17 @@ def add_hand_eye_command(sub: Any, common: argparse.ArgumentParser) -> None:
     cal.add_argument(
         "--server-camera",
         default=None,
-        help="the camera in --config (default: the inspection's camera)",
+        help="the server camera in --config the images are of (default: the inspection's "
+        "camera, which must be --camera's: NAME or NAME without '_camera')",
+    )
+    cal.add_argument(
+        "--arm-repeatability",
+        nargs=2,
+        type=float,
+        metavar=("MM", "DEG"),
+        default=(DEFAULT_REPEATABILITY.m * 1000.0, math.degrees(DEFAULT_REPEATABILITY.rad)),
+        help="the arm's repeatability (one sigma, mm and deg) the verdict allows for in the "
+        "residuals (default 0.03 mm, 0.01 deg)",
     )
     cal.add_argument("--yes", action="store_true", help="store without asking")
     cal.set_defaults(func=cmd_calibrate_hand_eye, sync=True)

@@ -9,14 +9,25 @@ places YAML's parser locates, never re-dumped.
 
 from __future__ import annotations
 
+import hashlib
+import math
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import yaml
 
 from geometry import CameraIntrinsics
 
-__all__ = ["MARKER", "intrinsics_text", "replace_intrinsics", "write_intrinsics"]
+__all__ = [
+    "MARKER",
+    "file_hash",
+    "intrinsics_text",
+    "replace_intrinsics",
+    "served_mismatch",
+    "write_intrinsics",
+]
 
 MARKER = "# intrinsics calibrated"  # the comment line this module writes (and replaces)
 
@@ -125,3 +136,45 @@ def write_intrinsics(path: Path, camera: str, intrinsics: CameraIntrinsics, note
     tmp.write_text(new, encoding="utf-8")
     os.replace(tmp, path)
     return backup
+
+
+def file_hash(path: Path) -> str:
+    """The configuration hash the reference server reports for the file at ``path`` (the
+    first 16 hex digits of the SHA-256 of its UTF-8 text): for messages, never a verdict."""
+    return hashlib.sha256(path.read_text(encoding="utf-8").encode("utf-8")).hexdigest()[:16]
+
+
+def served_mismatch(
+    cameras: Sequence[Mapping[str, Any]], camera: str, intrinsics: CameraIntrinsics
+) -> str | None:
+    """How the server's camera descriptors (RELOADED's or WELCOME's ``cameras``, SPEC §5.2)
+    disagree with ``intrinsics`` written for ``camera`` (pixels, to the 3 decimals the file
+    holds); None when the server serves them."""
+    served = next((c for c in cameras if c.get("name") == camera), None)
+    if served is None:
+        names = ", ".join(str(c.get("name")) for c in cameras) or "none"
+        return f"the server has no camera {camera!r} (its cameras: {names})"
+    got = served.get("intrinsics")
+    if not isinstance(got, Mapping):
+        return f"the server's camera {camera!r} reports no intrinsics"
+    wanted = {
+        "width": intrinsics.width,
+        "height": intrinsics.height,
+        "fx": intrinsics.fx,
+        "fy": intrinsics.fy,
+        "cx": intrinsics.cx,
+        "cy": intrinsics.cy,
+    }
+    for key, value in wanted.items():
+        other = got.get(key)
+        # The file holds 3 decimals of the focal lengths and the principal point.
+        if not isinstance(other, int | float) or not math.isclose(other, value, abs_tol=1e-3):
+            return f"the server's camera {camera!r} has {key} {other}, the file {value:.3f}"
+    dist = list(got.get("dist") or [])
+    if len(dist) < 5 or any(
+        not math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-9)
+        for a, b in zip(dist, intrinsics.dist, strict=False)
+    ):
+        written = list(intrinsics.dist)
+        return f"the server's camera {camera!r} has distortion {dist}, the file {written}"
+    return None

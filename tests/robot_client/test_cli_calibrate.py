@@ -273,3 +273,116 @@ def test_views_that_miss_regions_and_tilts_are_not_written(tmp_path: Path) -> No
         assert "tilted left" in done.stdout
         assert "not written" in done.stdout
         assert config.read_text(encoding="utf-8") == text
+
+
+def test_a_reload_that_does_not_serve_the_written_file_fails(
+    server: Server, tmp_path: Path
+) -> None:
+    """Integrator finding 2: --config names a copy, the server runs its own file. The copy is
+    written, the server reloads its unchanged file: that is an error naming both files'
+    hashes and what to do, not "server reloaded"."""
+    copy = tmp_path / "copy.yaml"
+    copy.write_text(CONFIG, encoding="utf-8")
+    done = tool(
+        "robot-client",
+        "calibrate-intrinsics",
+        "board_tool",
+        "--camera",
+        "tool_camera",
+        "--scene",
+        "examples/scenes/intrinsics_cell.yaml",
+        "--state-file",
+        str(tmp_path / "world.json"),
+        "--fresh",
+        "--server",
+        server.address,
+        "--config",
+        str(copy),
+        "--yes",
+    )
+    assert done.returncode == 2, done.stderr + done.stdout
+    err = " ".join(done.stderr.split())
+    assert "but the server reloaded another configuration" in err, err
+    assert str(copy) in err
+    assert "the server's camera 'tool' has fx 1350" in err
+    assert "give that file to --config" in err
+    assert "server reloaded, config hash" not in done.stdout
+    assert "# intrinsics calibrated" in copy.read_text(encoding="utf-8")
+    assert server.config.read_text(encoding="utf-8") == CONFIG
+    served = run(_served_intrinsics(server.address))
+    assert served is not None
+    assert served["fx"] == 1350
+
+
+def test_images_of_one_camera_are_not_written_under_another(tmp_path: Path) -> None:
+    """Integrator finding 3: the tool camera's views through the overhead camera's inspection
+    would be written as the overhead camera's intrinsics. Refused (exit 2, both cameras
+    named) before the robot moves; nothing written."""
+    scene = Path("examples/scenes/intrinsics_cell.yaml").resolve()
+    config = tmp_path / "cell.yaml"
+    text = CONFIG + (
+        "  - name: board_overhead\n    type: calibration_board\n    camera: overhead\n"
+        "    board: {kind: charuco, columns: 11, rows: 8, square_m: 0.03, marker_m: 0.0225}\n"
+    )
+    text = text.replace(
+        "inspections:\n",
+        f"  overhead: {{source: sim, scene: '{scene}', camera: fixed_camera}}\ninspections:\n",
+    )
+    config.write_text(text, encoding="utf-8")
+    for server in _serve(config):
+        done = tool(
+            "robot-client",
+            "calibrate-intrinsics",
+            "board_overhead",
+            "--camera",
+            "tool_camera",
+            "--scene",
+            str(scene),
+            "--state-file",
+            str(tmp_path / "world.json"),
+            "--fresh",
+            "--server",
+            server.address,
+            "--config",
+            str(config),
+            "--yes",
+        )
+        assert done.returncode == 2, done.stderr + done.stdout
+        err = " ".join(done.stderr.split())
+        assert "the images come from the robot's camera 'tool_camera'" in err, err
+        assert "runs on the server camera 'overhead', which takes its own images" in err
+        assert "--server-camera overhead" in err
+        assert "view 1" not in done.stdout  # refused before the robot moved
+        assert config.read_text(encoding="utf-8") == text
+
+
+class _Vision:
+    def list_inspections(self) -> tuple[dict[str, object], ...]:
+        return (
+            {"name": "board_tool", "type": "calibration_board", "camera": "tool"},
+            {"name": "board_wrist", "type": "calibration_board", "camera": "wrist"},
+        )
+
+
+def test_the_server_camera_rule() -> None:
+    """One rule for calibrate-intrinsics and calibrate-hand-eye: --server-camera is explicit;
+    --fixed is the inspection's camera; --camera ROBOT is ROBOT or ROBOT without _camera."""
+    import argparse
+
+    from robot_client.cli_commission import server_camera
+
+    class _Devices:
+        vision = _Vision()
+
+    def args(inspection: str, **kw: object) -> argparse.Namespace:
+        base = {"server_camera": None, "fixed": False, "camera": None}
+        return argparse.Namespace(inspection=inspection, **{**base, **kw})
+
+    devices: object = _Devices()
+    assert server_camera(devices, args("board_tool", camera="tool_camera")) == "tool"  # type: ignore[arg-type]
+    assert server_camera(devices, args("board_wrist", camera="wrist")) == "wrist"  # type: ignore[arg-type]
+    assert server_camera(devices, args("board_wrist", fixed=True)) == "wrist"  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="'tool_camera'.*'wrist'"):
+        server_camera(devices, args("board_wrist", camera="tool_camera"))  # type: ignore[arg-type]
+    explicit = args("board_wrist", camera="tool_camera", server_camera="wrist")
+    assert server_camera(devices, explicit) == "wrist"  # type: ignore[arg-type]

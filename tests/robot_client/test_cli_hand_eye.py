@@ -146,3 +146,39 @@ def test_a_fixed_camera_is_calibrated_eye_to_hand_and_stored(
     # (0.15, 0.65, 0.6) with the image's up along +x.
     assert np.linalg.norm(stored.pose[:3, 3] - [0.15, 0.65, 0.6]) <= 0.3e-3
     assert stored.pose[:3, 2] @ np.array([0.0, 0.0, -1.0]) > math.cos(math.radians(0.05))
+
+
+def test_intrinsics_a_little_off_give_no_good_verdict(server: Server, tmp_path: Path) -> None:
+    """Integrator finding 1: --config with fx = fy = 1380 (truth 1400). The reprojection RMS
+    stays well under 1 px, but the AX=XB loop is several times what noise explains: the
+    verdict is not good and names the likely causes; the std dev is called what it is."""
+    c1380 = tmp_path / "c1380.yaml"
+    c1380.write_text(
+        CONFIG.replace("fx: 1400.0, fy: 1400.0", "fx: 1380.0, fy: 1380.0"), encoding="utf-8"
+    )
+    done = tool(
+        "robot-client",
+        "calibrate-hand-eye",
+        "board_tool",
+        "--camera",
+        "tool_camera",
+        "--scene",
+        str(_scene(tmp_path)),
+        "--state-file",
+        str(tmp_path / "world.json"),
+        "--fresh",
+        "--server",
+        server.address,
+        "--store",
+        str(tmp_path / "taught.yaml"),
+        "--config",
+        str(c1380),
+        "--yes",
+    )
+    assert done.returncode == 0, done.stderr + done.stdout  # a check is stored, as before
+    out = " ".join(done.stdout.split())  # rich wraps long lines
+    assert "verdict: check" in out, out
+    assert "noise explains" in out
+    assert "camera's intrinsics" in out
+    assert "robot's poses" in out
+    assert "statistical spread of the solve (corner noise only, not the error)" in out

@@ -148,3 +148,25 @@ def test_poses_that_turn_about_one_axis_only_are_refused_with_the_reason() -> No
 def test_too_few_views_is_an_error_naming_the_count() -> None:
     with pytest.raises(HandEyeError, match="2 view"):
         solve_hand_eye(eye_in_hand_views(0, count=2), INTRINSICS)
+
+
+def test_intrinsics_a_little_off_are_not_called_good() -> None:
+    """Integrator finding 1: with fx and fy 1.4 % off the reprojection RMS stays below 1 px
+    while the mount is millimetres off; the AX=XB loop against what the noise explains shows
+    it, and the verdict names the likely causes. The same views with the true intrinsics are
+    good (their loop is what noise explains)."""
+    views = eye_in_hand_views(1)
+    right = solve_hand_eye(views, INTRINSICS)
+    assert right.verdict == "good", right.reasons
+    assert right.loop_translation_m < 2.0 * right.expected.loop_translation_m
+    scaled = CameraIntrinsics(
+        1024, 768, 900.0 * 0.986, 902.0 * 0.986, 515.0, 381.0, INTRINSICS.dist
+    )
+    wrong = solve_hand_eye(views, scaled)
+    assert errors(wrong.camera, TOOL_FROM_CAMERA)[0] > 3e-3  # the case is real: 4 mm off
+    assert wrong.rms_px < 1.0  # and the old rule (RMS > 1 px) let it through
+    assert wrong.verdict in ("check", "redo")
+    reason = " ".join(wrong.reasons)
+    assert "intrinsics" in reason
+    assert "robot's poses" in reason
+    assert "AX=XB loop" in reason
