@@ -6,6 +6,7 @@ server's file and the server reloaded, so that a new client sees them in WELCOME
 from __future__ import annotations
 
 import json
+import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -42,23 +43,29 @@ def server(tmp_path: Path) -> Iterator[Server]:
     yield from _serve(config)
 
 
-def _calibrate(server: Server, tmp_path: Path, *extra: str) -> dict[str, object]:
-    done = tool(
+TOOL_VIEWS = ("--camera", "tool_camera", "--scene", "examples/scenes/intrinsics_cell.yaml")
+"""The robot's tool camera over the board of the intrinsics scene."""
+
+
+def _intrinsics(
+    server: Server, tmp_path: Path, inspection: str, *args: str
+) -> subprocess.CompletedProcess[str]:
+    """``robot-client calibrate-intrinsics INSPECTION ARGS`` on ``server``, the simulated
+    world in ``tmp_path``."""
+    return tool(
         "robot-client",
         "calibrate-intrinsics",
-        "board_tool",
-        "--camera",
-        "tool_camera",
-        "--scene",
-        "examples/scenes/intrinsics_cell.yaml",
+        inspection,
+        *args,
         "--state-file",
         str(tmp_path / "world.json"),
-        "--fresh",
         "--server",
         server.address,
-        "--json",
-        *extra,
     )
+
+
+def _calibrate(server: Server, tmp_path: Path, *extra: str) -> dict[str, object]:
+    done = _intrinsics(server, tmp_path, "board_tool", *TOOL_VIEWS, "--fresh", "--json", *extra)
     assert done.returncode == 0, done.stderr + done.stdout
     result: dict[str, object] = json.loads(done.stdout)
     return result
@@ -142,19 +149,15 @@ def test_a_fixed_camera_is_calibrated_from_the_views_the_operator_shows(tmp_path
         encoding="utf-8",
     )
     for server in _serve(config):
-        done = tool(
-            "robot-client",
-            "calibrate-intrinsics",
+        done = _intrinsics(
+            server,
+            tmp_path,
             "board_overhead",
             "--fixed",
             "--views",
             "15",
             "--scene",
             "examples/scenes/intrinsics_cell.yaml",
-            "--state-file",
-            str(tmp_path / "world.json"),
-            "--server",
-            server.address,
             "--config",
             str(config),
             "--yes",
@@ -188,19 +191,15 @@ def test_a_file_the_server_refuses_is_put_back(tmp_path: Path) -> None:
     )
     config.write_text(text, encoding="utf-8")
     for server in _serve(config):
-        done = tool(
-            "robot-client",
-            "calibrate-intrinsics",
+        done = _intrinsics(
+            server,
+            tmp_path,
             "board_tool",
             "--camera",
             "tool_camera",
             "--scene",
             "examples/scenes/intrinsics_cell.yaml",
-            "--state-file",
-            str(tmp_path / "world.json"),
             "--fresh",
-            "--server",
-            server.address,
             "--config",
             str(config),
             "--yes",
@@ -251,19 +250,15 @@ def test_views_that_miss_regions_and_tilts_are_not_written(tmp_path: Path) -> No
     )
     config.write_text(text, encoding="utf-8")
     for server in _serve(config):
-        done = tool(
-            "robot-client",
-            "calibrate-intrinsics",
+        done = _intrinsics(
+            server,
+            tmp_path,
             "board_overhead",
             "--fixed",
             "--views",
             "4",
             "--scene",
             str(scene),
-            "--state-file",
-            str(tmp_path / "world.json"),
-            "--server",
-            server.address,
             "--config",
             str(config),
             "--yes",
@@ -283,19 +278,15 @@ def test_a_reload_that_does_not_serve_the_written_file_fails(
     hashes and what to do, not "server reloaded"."""
     copy = tmp_path / "copy.yaml"
     copy.write_text(CONFIG, encoding="utf-8")
-    done = tool(
-        "robot-client",
-        "calibrate-intrinsics",
+    done = _intrinsics(
+        server,
+        tmp_path,
         "board_tool",
         "--camera",
         "tool_camera",
         "--scene",
         "examples/scenes/intrinsics_cell.yaml",
-        "--state-file",
-        str(tmp_path / "world.json"),
         "--fresh",
-        "--server",
-        server.address,
         "--config",
         str(copy),
         "--yes",
@@ -330,19 +321,15 @@ def test_images_of_one_camera_are_not_written_under_another(tmp_path: Path) -> N
     )
     config.write_text(text, encoding="utf-8")
     for server in _serve(config):
-        done = tool(
-            "robot-client",
-            "calibrate-intrinsics",
+        done = _intrinsics(
+            server,
+            tmp_path,
             "board_overhead",
             "--camera",
             "tool_camera",
             "--scene",
             str(scene),
-            "--state-file",
-            str(tmp_path / "world.json"),
             "--fresh",
-            "--server",
-            server.address,
             "--config",
             str(config),
             "--yes",
