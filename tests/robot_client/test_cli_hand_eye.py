@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -56,8 +57,12 @@ def _scene(tmp_path: Path) -> Path:
     return path
 
 
-def _calibrate(server: Server, tmp_path: Path, *extra: str) -> dict[str, Any]:
-    done = tool(
+def _hand_eye(
+    server: Server, tmp_path: Path, config: Path, *extra: str
+) -> subprocess.CompletedProcess[str]:
+    """``robot-client calibrate-hand-eye board_tool`` with the tool camera on ``server``,
+    intrinsics from ``config``, the world and the store in ``tmp_path``."""
+    return tool(
         "robot-client",
         "calibrate-hand-eye",
         "board_tool",
@@ -73,10 +78,13 @@ def _calibrate(server: Server, tmp_path: Path, *extra: str) -> dict[str, Any]:
         "--store",
         str(tmp_path / "taught.yaml"),
         "--config",
-        str(server.config),
-        "--json",
+        str(config),
         *extra,
     )
+
+
+def _calibrate(server: Server, tmp_path: Path, *extra: str) -> dict[str, Any]:
+    done = _hand_eye(server, tmp_path, server.config, "--json", *extra)
     assert done.returncode == 0, done.stderr + done.stdout
     result: dict[str, Any] = json.loads(done.stdout)
     return result
@@ -156,25 +164,7 @@ def test_intrinsics_a_little_off_give_no_good_verdict(server: Server, tmp_path: 
     c1380.write_text(
         CONFIG.replace("fx: 1400.0, fy: 1400.0", "fx: 1380.0, fy: 1380.0"), encoding="utf-8"
     )
-    done = tool(
-        "robot-client",
-        "calibrate-hand-eye",
-        "board_tool",
-        "--camera",
-        "tool_camera",
-        "--scene",
-        str(_scene(tmp_path)),
-        "--state-file",
-        str(tmp_path / "world.json"),
-        "--fresh",
-        "--server",
-        server.address,
-        "--store",
-        str(tmp_path / "taught.yaml"),
-        "--config",
-        str(c1380),
-        "--yes",
-    )
+    done = _hand_eye(server, tmp_path, c1380, "--yes")
     assert done.returncode == 0, done.stderr + done.stdout  # a check is stored, as before
     out = " ".join(done.stdout.split())  # rich wraps long lines
     assert "verdict: check" in out, out
