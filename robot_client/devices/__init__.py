@@ -30,6 +30,7 @@ __all__ = [
     "Gripper",
     "MonotonicClock",
     "Robot",
+    "UnknownDevice",
     "Unreachable",
     "Vision",
 ]
@@ -39,6 +40,11 @@ FloatArray = NDArray[np.float64]
 
 class DeviceError(RuntimeError):
     """A device could not do what it was asked (the message says which device and why)."""
+
+
+class UnknownDevice(DeviceError, LookupError):
+    """A device named that this robot does not have (a camera name mistyped): the caller's
+    mistake, reported as a usage error by the command line, still a DeviceError for a skill."""
 
 
 class Unreachable(DeviceError):
@@ -183,7 +189,7 @@ class Devices:
             return self.cameras[name]
         except KeyError:
             known = ", ".join(sorted(self.cameras)) or "none"
-            raise DeviceError(f"no camera {name!r} on this robot (cameras: {known})") from None
+            raise UnknownDevice(f"no camera {name!r} on this robot (cameras: {known})") from None
 
     def close(self) -> None:
         """Close what can be closed (the vision client, robot connections)."""

@@ -135,3 +135,22 @@ def test_server_intrinsics_keep_their_distortion_on_the_client() -> None:
     )  # fmt: skip
     with pytest.raises(DeviceError, match="k4 and on"):
         intrinsics_from_dict(rational.to_dict())
+
+
+def test_a_camera_the_robot_lacks_is_a_usage_error_in_the_cli(tmp_path: Path) -> None:
+    """A mistyped --camera was reported as a device error (exit 3, like a robot that does not
+    answer); it is the caller's mistake (exit 2), and still a DeviceError for a skill."""
+    from protocol.cli import ErrorKind
+    from robot_client.cli import _classify
+    from robot_client.devices import DeviceError, UnknownDevice
+
+    devices = sim_devices(SCENE, state_path=tmp_path / "world.json")
+    try:
+        with pytest.raises(UnknownDevice, match="no camera 'nosuch' on this robot") as excinfo:
+            devices.camera("nosuch")
+    finally:
+        devices.close()
+    assert isinstance(excinfo.value, DeviceError)
+    classified = _classify(excinfo.value)
+    assert classified is not None
+    assert classified[0] is ErrorKind.USAGE
