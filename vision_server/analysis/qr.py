@@ -332,7 +332,9 @@ def _line_fits(
     arithmetic (issue 19's speed goal). Each side stops at its own convergence, as a fit of
     that side alone would.
     """
-    keep = valid
+    # the kept points' weights, 1.0 or 0.0 (float: the moments' product takes them as they are)
+    valid_w = valid.astype(np.float64)
+    keep = valid_w
     moments = np.empty(x.shape + (6,))
     moments[:, :, 0] = 1.0
     moments[:, :, 1] = x
@@ -344,7 +346,7 @@ def _line_fits(
     done = [False] * 4
     lines = [(0.0, 0.0, 0.0)] * 4  # (a, b, c)
     for it in range(6):
-        sums = np.matmul(keep.astype(np.float64)[:, None, :], moments).tolist()
+        sums = np.matmul(keep[:, None, :], moments).tolist()
         for k in range(4):
             if done[k]:
                 continue
@@ -362,15 +364,15 @@ def _line_fits(
             if nv < 0:
                 nu, nv = -nu, -nv
             lines[k] = (nu, nv, -(nu * cu + nv * cv))
-        cab = np.array([[[c], [a], [b]] for a, b, c in lines])
+        cab = np.array([v for a, b, c in lines for v in (c, a, b)]).reshape(4, 3, 1)
         dist = np.matmul(homogeneous, cab)[:, :, 0]  # (4, n), > 0 outward
         limit = max(tol, 3.0 * (0.5**it) * tol * 4)
         if it > 0:
             # symmetric clean-up of outward noise (bad samples near glare, clutter):
             # -limit < dist < 3 limit
-            new_keep = valid & (np.abs(dist - limit) < 2.0 * limit)
+            new_keep = valid_w * (np.abs(dist - limit) < 2.0 * limit)
         else:
-            new_keep = valid & (dist > -limit)
+            new_keep = valid_w * (dist > -limit)
         if it > 2:
             same = (new_keep == keep).all(axis=1).tolist()
             done = [d or e for d, e in zip(done, same, strict=True)]
@@ -449,7 +451,8 @@ def _edge_points(
     ).reshape(n_steps, n_prof)
     # light: the median of the outer fifth (the quiet zone); dark: the profile's minimum
     nq = max(2, n_steps // 5)
-    outer = np.sort(prof[:nq], axis=0)
+    # (OpenCV's column sort takes half the time of np.sort along the first axis)
+    outer = np.asarray(cv2.sort(prof[:nq], cv2.SORT_EVERY_COLUMN | cv2.SORT_ASCENDING))
     light = (outer[(nq - 1) // 2] + outer[nq // 2]) / 2
     dark = prof.min(axis=0)
     contrast = (light - dark).reshape(n_samples, 4)
