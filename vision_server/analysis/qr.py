@@ -397,60 +397,57 @@ def _line_fits(
     return lines
 
 
-def _fractions(n_samples: int) -> FloatArray:
-    """Where the profiles cross a side: fractions of its length from its first corner (the
-    ends are left out, where the neighbouring side's quiet zone would be sampled)."""
-    fractions: FloatArray = 0.06 + (0.88 / (n_samples - 1)) * np.arange(n_samples, dtype=np.float64)
-    return fractions
-
-
 # Sample spacing along a profile (px) and remap's limit on a map's columns (OpenCV's SHRT_MAX).
 _STEP = 0.25
 _REMAP_COLS = 32767
 
 
+@dataclass(frozen=True)
+class _Layout:
+    """Constants of a profile layout, cached since the same few sizes recur (issue 19's speed
+    goal): ``n_samples`` profiles across each side at the fractions ``t`` of its length from its
+    first corner (the ends are left out, where the neighbouring side's quiet zone would be
+    sampled), ``n_steps`` samples on each."""
+
+    grid: NDArray[np.float32]  # rows (1, t_i, j), (n_steps * n_samples, 3), offset j major
+    columns: NDArray[np.intp]  # the profile indices 0 .. 4 n_samples - 1
+    along: FloatArray  # t - 1/2: the profiles' positions from a side's midpoint, in sides
+
+
 @lru_cache(maxsize=256)
-def _profile_grid(n_samples: int, n_steps: int) -> tuple[NDArray[np.float32], NDArray[np.intp]]:
-    """Constants of a profile layout, cached since the same few sizes recur: the rows
-    ``(1, t_i, j)`` (n_steps * n_samples, 3) of the sample positions, offset index j (outside
-    first) major, t_i the fraction along the side; and the profile indices 0 .. 4 n_samples - 1.
-    """
-    t = _fractions(n_samples)
+def _layout(n_samples: int, n_steps: int) -> _Layout:
+    t = 0.06 + (0.88 / (n_samples - 1)) * np.arange(n_samples, dtype=np.float64)
     grid = np.empty((n_steps, n_samples, 3), np.float32)
     grid[:, :, 0] = 1.0
     grid[:, :, 1] = t[None, :]
     grid[:, :, 2] = np.arange(n_steps)[:, None]
-    columns = np.arange(4 * n_samples)
-    grid.flags.writeable = False
-    columns.flags.writeable = False
-    return grid.reshape(n_steps * n_samples, 3), columns
+    layout = _Layout(grid.reshape(n_steps * n_samples, 3), np.arange(4 * n_samples), t - 0.5)
+    for array in (layout.grid, layout.columns, layout.along):
+        array.flags.writeable = False
+    return layout
 
 
-def _edge_points(
-    gray: NDArray[np.float32], q: FloatArray, outward: FloatArray, reach: float, n_samples: int
+def _edge_offsets(
+    gray: NDArray[np.float32], coef: list[float], s_first: float, layout: _Layout
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Sub-pixel mid-level crossings on ``n_samples`` profiles across each of the four sides
-    q[k] -> q[k+1] (outside to inside), at the fractions :func:`_fractions` along it: the
-    crossings' offsets (4, n) in px along ``outward`` (the sides' outward unit normals) from
-    the rough side, and which of them were found (4, n).
+    """Sub-pixel mid-level crossings on the profiles of ``layout`` across the four sides
+    (outside to inside): their offsets (4, n) in px outward from the rough side, and which of
+    them were found (4, n).
+
+    ``coef`` (24 floats) holds three rows of (u, v) for sides 0..3: the sides' first corners
+    moved ``s_first`` px outward (the outermost offset), the side vectors, and the step between
+    samples (``-_STEP`` times the outward unit normals); the sample j of profile i of side k
+    lies at row0 + t_i row1 + j row2 (px in ``gray``).
 
     Its cost is per-call overhead on small arrays (issue 19's speed goal), so the four sides
-    are one array all along: the sample positions are one matrix product of a cached grid
-    ``(1, t, j)`` with each side's (start + outermost offset, side vector, offset step), read by
-    one cv2.remap into (offsets, profiles) with profile i * 4 + k for sample i of side k;
-    every per-profile statistic is then a reduction across rows.
+    are one array all along: the sample positions are one matrix product of the cached grid
+    ``(1, t, j)`` with ``coef``, read by one cv2.remap into (offsets, profiles) with profile
+    i * 4 + k for sample i of side k; every per-profile statistic is a reduction across rows.
     """
-    # offsets from s_first = -reach + step (n_steps - 1) (outside, s > 0 outward) down to
-    # -reach (inside)
-    n_steps = math.ceil((2.0 * reach + _STEP / 2) / _STEP)
-    s_first = -reach + _STEP * (n_steps - 1)
-    grid, columns = _profile_grid(n_samples, n_steps)
-    coef = np.empty((3, 4, 2), np.float32)
-    coef[0] = q + s_first * outward
-    coef[1] = q[_NEXT] - q
-    coef[2] = -_STEP * outward
+    n_steps = layout.grid.shape[0] // layout.along.size
+    n_samples = layout.along.size
     n_prof = 4 * n_samples
-    positions = np.matmul(grid, coef.reshape(3, 8))  # (n_steps * n_samples, 8): u, v per side
+    positions = np.matmul(layout.grid, np.array(coef, np.float32).reshape(3, 8))
     # one row when it fits: OpenCV splits a remap of several rows across its threads, and on
     # a loaded machine waiting for them costs more than the read
     total = n_steps * n_prof
@@ -462,28 +459,28 @@ def _edge_points(
         ),
         np.float32,
     ).reshape(n_steps, n_prof)
-    # light: the median of the outer fifth (the quiet zone); dark: the profile's minimum
+    # light: the median of the outer fifth (the quiet zone); dark: the profile's minimum.
+    # (OpenCV's column sort takes half the time of np.sort along the first axis.)
     nq = max(2, n_steps // 5)
-    # (OpenCV's column sort takes half the time of np.sort along the first axis)
     outer = np.asarray(cv2.sort(prof[:nq], cv2.SORT_EVERY_COLUMN | cv2.SORT_ASCENDING))
     light = (outer[(nq - 1) // 2] + outer[nq // 2]) / 2
     dark = prof.min(axis=0)
     contrast = (light - dark).reshape(n_samples, 4)
-    ranked = np.sort(contrast, axis=0)
+    ranked = np.asarray(cv2.sort(contrast, cv2.SORT_EVERY_COLUMN | cv2.SORT_ASCENDING))
     typical = (ranked[(n_samples - 1) // 2] + ranked[n_samples // 2]) / 2
-    good_contrast = contrast > 0.5 * typical
     level = (light + dark) / 2
     first = np.argmax(prof < level, axis=0)
     # first > 0 also says that some sample is below the level (argmax is 0 when none is)
-    valid = good_contrast.reshape(n_prof) & (first > 0)
-    i1 = np.maximum(first, 1)
-    flat = prof.reshape(total)
-    at = i1 * n_prof + columns
-    v1 = flat[at]
-    v0 = flat[at - n_prof]
-    frac = np.clip((v0 - level) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
-    s_cross = (s_first + _STEP) - _STEP * (i1.astype(np.float64) + frac)
-    return s_cross.reshape(n_samples, 4).T, valid.reshape(n_samples, 4).T
+    valid = (contrast > 0.5 * typical) & (first > 0).reshape(n_samples, 4)
+    # the samples first - 1 (at or above the level) and first (below it), by flat index; where
+    # first is 0 the index wraps to the last row: a finite value for a point not found
+    at = first * n_prof + layout.columns
+    v1 = prof.reshape(total)[at]
+    v0 = prof.reshape(total)[at - n_prof]
+    # v0 >= level > v1 where found, so the fraction lies in [0, 1] there without a clip
+    frac = (v0 - level) / np.maximum(v0 - v1, 1e-6)
+    s_cross = (s_first + _STEP) - _STEP * (first + frac)
+    return s_cross.reshape(n_samples, 4).T, valid.T
 
 
 def refine_corners(
@@ -514,21 +511,27 @@ def refine_corners(
     u1 = min(max(math.ceil(max(us) + margin) + 1, u0 + 1), width)
     v1 = min(max(math.ceil(max(vs) + margin) + 1, v0 + 1), height)
     g = gray[v0:v1, u0:u1].astype(np.float32)
-    local = [(u - u0, v - v0) for u, v in pts]
+    # profiles from s_first = -reach + step (n_steps - 1) (outside, s > 0 outward) down to
+    # -reach (inside)
+    n_steps = math.ceil((2.0 * reach + _STEP / 2) / _STEP)
+    s_first = -reach + _STEP * (n_steps - 1)
     # the normal (dv, -du) of each side points outward for a clockwise quad on the screen;
     # the test against the centre keeps a counter-clockwise one right as well
-    cu, cv = sum(us) / 4 - u0, sum(vs) / 4 - v0
+    cu, cv = sum(us) / 4, sum(vs) / 4
     outward = []
-    for (pu, pv), (du, dv), length in zip(local, edges, lengths, strict=True):
+    starts, vectors, steps = [], [], []
+    for (pu, pv), (du, dv), length in zip(pts, edges, lengths, strict=True):
         nu, nv = dv / length, -du / length
         if nu * (pu + 0.5 * du - cu) + nv * (pv + 0.5 * dv - cv) < 0:
             nu, nv = -nu, -nv
         outward.append((nu, nv))
-    n_samples = int(min(max(max(lengths) / 1.5, 12.0), 120.0))
-    offsets, valid = _edge_points(g, np.array(local), np.array(outward), reach, n_samples)
+        starts += [pu - u0 + s_first * nu, pv - v0 + s_first * nv]
+        vectors += [du, dv]
+        steps += [-_STEP * nu, -_STEP * nv]
+    layout = _layout(int(min(max(max(lengths) / 1.5, 12.0), 120.0)), n_steps)
+    offsets, valid = _edge_offsets(g, starts + vectors + steps, s_first, layout)
     # each side's own frame: x along it from its midpoint, y = the offset outward
-    along = _fractions(n_samples) - 0.5
-    x = along[None, :] * np.array(lengths)[:, None]
+    x = np.array(lengths)[:, None] * layout.along
     fits = _line_fits(x, offsets, valid, tol=max(0.35, 0.3 * module))
     if fits is None:
         return q.copy()
