@@ -402,60 +402,57 @@ _STEP = 0.25
 _REMAP_COLS = 32767
 
 
-@dataclass(frozen=True)
-class _Layout:
-    """Constants of a profile layout, cached since the same few sizes recur (issue 19's speed
-    goal): ``n_samples`` profiles across each side at the fractions ``t`` of its length from its
-    first corner (the ends are left out, where the neighbouring side's quiet zone would be
-    sampled), ``n_steps`` samples on each."""
-
-    grid: NDArray[np.float32]  # rows (1, t_i, j), (n_steps * n_samples, 3), offset j major
-    columns: NDArray[np.intp]  # the profile indices 0 .. 4 n_samples - 1
-    along: FloatArray  # t - 1/2: the profiles' positions from a side's midpoint, in sides
-
-
-@lru_cache(maxsize=256)
-def _layout(n_samples: int, n_steps: int) -> _Layout:
+@lru_cache(maxsize=128)
+def _fractions(n_samples: int) -> FloatArray:
+    """Where ``n_samples`` profiles cross a side: fractions of its length from its first corner
+    (the ends are left out, where the neighbouring side's quiet zone would be sampled); cached,
+    since the same few counts recur (issue 19's speed goal)."""
     t = 0.06 + (0.88 / (n_samples - 1)) * np.arange(n_samples, dtype=np.float64)
-    grid = np.empty((n_steps, n_samples, 3), np.float32)
-    grid[:, :, 0] = 1.0
-    grid[:, :, 1] = t[None, :]
-    grid[:, :, 2] = np.arange(n_steps)[:, None]
-    layout = _Layout(grid.reshape(n_steps * n_samples, 3), np.arange(4 * n_samples), t - 0.5)
-    for array in (layout.grid, layout.columns, layout.along):
-        array.flags.writeable = False
-    return layout
+    t.flags.writeable = False
+    return t
+
+
+# the sample indices along a profile, sliced for the profiles of all but huge codes
+_STEPS = np.arange(1024, dtype=np.float32).reshape(1, -1, 1, 1)
+_STEPS.flags.writeable = False
 
 
 def _edge_offsets(
-    gray: NDArray[np.float32], coef: list[float], s_first: float, layout: _Layout
+    gray: NDArray[np.float32], coef: list[float], s_first: float, n_steps: int, n_samples: int
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Sub-pixel mid-level crossings on the profiles of ``layout`` across the four sides
-    (outside to inside): their offsets (4, n) in px outward from the rough side, and which of
-    them were found (4, n).
+    """Sub-pixel mid-level crossings on ``n_samples`` profiles across each of the four sides at
+    :func:`_fractions` along them (outside to inside, ``n_steps`` samples each): their offsets
+    (4, n) in px outward from the rough side, and which of them were found (4, n).
 
-    ``coef`` (24 floats) holds three rows of (u, v) for sides 0..3: the sides' first corners
-    moved ``s_first`` px outward (the outermost offset), the side vectors, and the step between
-    samples (``-_STEP`` times the outward unit normals); the sample j of profile i of side k
-    lies at row0 + t_i row1 + j row2 (px in ``gray``).
+    ``coef`` (24 floats) holds three (2, 4) blocks, u row then v row, one column per side: the
+    sides' first corners moved ``s_first`` px outward (the outermost offset), the side vectors,
+    and the step between samples (``-_STEP`` times the outward unit normals); sample j of
+    profile i of side k lies at block0 + t_i block1 + j block2 (px in ``gray``).
 
-    Its cost is per-call overhead on small arrays (issue 19's speed goal), so the four sides
-    are one array all along: the sample positions are one matrix product of the cached grid
-    ``(1, t, j)`` with ``coef``, read by one cv2.remap into (offsets, profiles) with profile
-    i * 4 + k for sample i of side k; every per-profile statistic is a reduction across rows.
+    Its cost is per-call overhead (issue 19's speed goal), so the four sides are one array all
+    along, laid out (offsets, profiles) with profile k n + i for sample i of side k: the long
+    axis innermost, where numpy's loops are fast, and every per-profile statistic a reduction
+    across rows. One cv2.remap reads all samples.
     """
-    n_steps = layout.grid.shape[0] // layout.along.size
-    n_samples = layout.along.size
     n_prof = 4 * n_samples
-    positions = np.matmul(layout.grid, np.array(coef, np.float32).reshape(3, 8))
+    blocks = np.array(coef, np.float32).reshape(3, 2, 4, 1)
+    feet = blocks[0] + blocks[1] * _fractions(n_samples).astype(np.float32)  # (2, 4, n)
+    if n_steps <= _STEPS.shape[1]:
+        steps = _STEPS[:, :n_steps]
+    else:
+        steps = np.arange(n_steps, dtype=np.float32).reshape(1, -1, 1, 1)
+    positions = feet[:, None] + steps * blocks[2][:, None]  # (2, n_steps, 4, n): u, v
     # one row when it fits: OpenCV splits a remap of several rows across its threads, and on
     # a loaded machine waiting for them costs more than the read
     total = n_steps * n_prof
-    shape = (1, total, 2) if total <= _REMAP_COLS else (n_steps, n_prof, 2)
+    shape = (1, total) if total <= _REMAP_COLS else (n_steps, n_prof)
     prof = np.asarray(
-        # one interleaved (u, v) map; OpenCV's stubs do not know that map2 may then be None
-        cv2.remap(  # type: ignore[call-overload]
-            gray, positions.reshape(shape), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        cv2.remap(
+            gray,
+            positions[0].reshape(shape),
+            positions[1].reshape(shape),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
         ),
         np.float32,
     ).reshape(n_steps, n_prof)
@@ -465,22 +462,22 @@ def _edge_offsets(
     outer = np.asarray(cv2.sort(prof[:nq], cv2.SORT_EVERY_COLUMN | cv2.SORT_ASCENDING))
     light = (outer[(nq - 1) // 2] + outer[nq // 2]) / 2
     dark = prof.min(axis=0)
-    contrast = (light - dark).reshape(n_samples, 4)
-    ranked = np.asarray(cv2.sort(contrast, cv2.SORT_EVERY_COLUMN | cv2.SORT_ASCENDING))
-    typical = (ranked[(n_samples - 1) // 2] + ranked[n_samples // 2]) / 2
+    contrast = (light - dark).reshape(4, n_samples)
+    ranked = np.asarray(cv2.sort(contrast, cv2.SORT_EVERY_ROW | cv2.SORT_ASCENDING))
+    typical = (ranked[:, (n_samples - 1) // 2] + ranked[:, n_samples // 2]) / 2
     level = (light + dark) / 2
     first = np.argmax(prof < level, axis=0)
     # first > 0 also says that some sample is below the level (argmax is 0 when none is)
-    valid = (contrast > 0.5 * typical) & (first > 0).reshape(n_samples, 4)
+    valid = (contrast > 0.5 * typical[:, None]) & (first > 0).reshape(4, n_samples)
     # the samples first - 1 (at or above the level) and first (below it), by flat index; where
     # first is 0 the index wraps to the last row: a finite value for a point not found
-    at = first * n_prof + layout.columns
+    at = first * n_prof + np.arange(n_prof)
     v1 = prof.reshape(total)[at]
     v0 = prof.reshape(total)[at - n_prof]
     # v0 >= level > v1 where found, so the fraction lies in [0, 1] there without a clip
     frac = (v0 - level) / np.maximum(v0 - v1, 1e-6)
     s_cross = (s_first + _STEP) - _STEP * (first + frac)
-    return s_cross.reshape(n_samples, 4).T, valid.T
+    return s_cross.reshape(4, n_samples), valid
 
 
 def refine_corners(
@@ -519,19 +516,21 @@ def refine_corners(
     # the test against the centre keeps a counter-clockwise one right as well
     cu, cv = sum(us) / 4, sum(vs) / 4
     outward = []
-    starts, vectors, steps = [], [], []
+    starts_u, starts_v, steps_u, steps_v = [], [], [], []
     for (pu, pv), (du, dv), length in zip(pts, edges, lengths, strict=True):
         nu, nv = dv / length, -du / length
         if nu * (pu + 0.5 * du - cu) + nv * (pv + 0.5 * dv - cv) < 0:
             nu, nv = -nu, -nv
         outward.append((nu, nv))
-        starts += [pu - u0 + s_first * nu, pv - v0 + s_first * nv]
-        vectors += [du, dv]
-        steps += [-_STEP * nu, -_STEP * nv]
-    layout = _layout(int(min(max(max(lengths) / 1.5, 12.0), 120.0)), n_steps)
-    offsets, valid = _edge_offsets(g, starts + vectors + steps, s_first, layout)
+        starts_u.append(pu - u0 + s_first * nu)
+        starts_v.append(pv - v0 + s_first * nv)
+        steps_u.append(-_STEP * nu)
+        steps_v.append(-_STEP * nv)
+    coef = starts_u + starts_v + [e[0] for e in edges] + [e[1] for e in edges] + steps_u + steps_v
+    n_samples = int(min(max(max(lengths) / 1.5, 12.0), 120.0))
+    offsets, valid = _edge_offsets(g, coef, s_first, n_steps, n_samples)
     # each side's own frame: x along it from its midpoint, y = the offset outward
-    x = np.array(lengths)[:, None] * layout.along
+    x = np.array(lengths)[:, None] * (_fractions(n_samples) - 0.5)
     fits = _line_fits(x, offsets, valid, tol=max(0.35, 0.3 * module))
     if fits is None:
         return q.copy()
