@@ -358,11 +358,18 @@ def _line_fits(
     homogeneous = moments[:, :, :3]  # (1, x, y): a line (c, a, b) gives the distance
     done = [False] * 4
     lines = [(0.0, 0.0, 0.0)] * 4  # (a, b, c)
+    # A side is done when a round's band keeps the very points its line was fitted to; that
+    # shows as the next round's sums equal to this round's (no comparison of the point sets)
+    previous: list[list[list[float]]] | None = None
+    last = len(_BAND_SCHEDULE) - 1
     for it, factor in enumerate(_BAND_SCHEDULE):
         # (the kept points' weights are the booleans as 1.0 and 0.0)
         sums = np.matmul(keep[:, None, :], moments).tolist()
         for k in range(4):
             if done[k]:
+                continue
+            if previous is not None and sums[k] == previous[k]:
+                done[k] = True
                 continue
             count, su, sv, suu, svv, suv = sums[k][0]
             if count < 4:
@@ -378,6 +385,9 @@ def _line_fits(
             if nv < 0:
                 nu, nv = -nu, -nv
             lines[k] = (nu, nv, -(nu * cu + nv * cv))
+        if it == last or all(done):
+            break
+        previous = sums if it >= _FIRST_CHECK else None
         limit = factor * tol
         # the band: -limit < distance (> 0 outward) in the first round; from the second on
         # also < 3 limit, a symmetric clean-up of outward noise (bad samples near glare,
@@ -385,15 +395,7 @@ def _line_fits(
         shift = -limit if it > 0 else limit
         cab = np.array([v for a, b, c in lines for v in (c + shift, a, b)]).reshape(4, 3, 1)
         shifted = np.matmul(homogeneous, cab)[:, :, 0]  # (4, n)
-        new_keep = np.abs(shifted) < 2.0 * limit if it > 0 else shifted > 0.0
-        if it >= _FIRST_CHECK:
-            same = (new_keep == keep).all(axis=1).tolist()
-            done = [d or e for d, e in zip(done, same, strict=True)]
-            if all(done):
-                break
-            if any(done):
-                new_keep[done] = keep[done]
-        keep = new_keep
+        keep = np.abs(shifted) < 2.0 * limit if it > 0 else shifted > 0.0
     return lines
 
 
@@ -408,6 +410,13 @@ def _fractions(n_samples: int) -> FloatArray:
     (the ends are left out, where the neighbouring side's quiet zone would be sampled); cached,
     since the same few counts recur (issue 19's speed goal)."""
     t = 0.06 + (0.88 / (n_samples - 1)) * np.arange(n_samples, dtype=np.float64)
+    t.flags.writeable = False
+    return t
+
+
+@lru_cache(maxsize=128)
+def _fractions32(n_samples: int) -> NDArray[np.float32]:
+    t = _fractions(n_samples).astype(np.float32)
     t.flags.writeable = False
     return t
 
@@ -436,7 +445,7 @@ def _edge_offsets(
     """
     n_prof = 4 * n_samples
     blocks = np.array(coef, np.float32).reshape(3, 2, 4, 1)
-    feet = blocks[0] + blocks[1] * _fractions(n_samples).astype(np.float32)  # (2, 4, n)
+    feet = blocks[0] + blocks[1] * _fractions32(n_samples)  # (2, 4, n)
     if n_steps <= _STEPS.shape[1]:
         steps = _STEPS[:, :n_steps]
     else:
