@@ -318,15 +318,12 @@ def order_corners(gray: GrayImage, quad: FloatArray) -> tuple[FloatArray, bool]:
 
 
 # The line fit's band half-widths, in units of its tolerance, round by round (the distances
-# kept are -limit < d in the first round, -limit < d < 3 limit after it), and the first round
-# at which a side whose kept points no longer change is done. The schedule was
-# 12, 6, 3, 1.5, 1, 1 (halving from 12 with a floor of 1, converged from the 1.5 round on); the
-# 6 round is left out: on the 171 zxing-cpp reads of the QR photographs and 192 renders the
-# fits of every side were the same to the last bit without it, one round (~1/6 of the fit)
-# cheaper (issue 19's speed goal). Leaving out any other round, or checking for convergence
-# earlier, changed corners by up to 2.7 px (measured, rejected).
-_BAND_SCHEDULE = (12.0, 3.0, 1.5, 1.0, 1.0)
-_FIRST_CHECK = 2
+# kept are -limit < d in the first round, -limit < d < 3 limit after it: halving from 12 with
+# a floor of 1), and the first round at which a side whose kept points no longer change is
+# done. Leaving out the 6 round gave the same fits on the QR photographs and renders but not on
+# synthetic sides with deep outliers (test_qr_refine): kept (measured, rejected).
+_BAND_SCHEDULE = (12.0, 6.0, 3.0, 1.5, 1.0, 1.0)
+_FIRST_CHECK = 3
 
 
 def _line_fits(
