@@ -40,6 +40,7 @@ import math
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -316,38 +317,58 @@ def order_corners(gray: GrayImage, quad: FloatArray) -> tuple[FloatArray, bool]:
 # --- sub-pixel corners ---------------------------------------------------------------------
 
 
-def _line_fits(
-    points: FloatArray, valid: NDArray[np.bool_], outward: FloatArray, tol: float
-) -> FloatArray | None:
-    """Lines (4, 3) ``(a, b, c)`` with a*u + b*v + c = 0, (a, b) = each side's outward unit
-    normal, fitted to ``points`` (4, n, 2) where ``valid`` (4, n), with one-sided outlier
-    removal (outliers lie inwards); None when a side keeps fewer than 4 points.
+# The line fit's band half-widths, in units of its tolerance, round by round (the distances
+# kept are -limit < d in the first round, -limit < d < 3 limit after it: halving from 12 with
+# a floor of 1), and the first round at which a side whose kept points no longer change is
+# done. Leaving out the 6 round gave the same fits on the QR photographs and renders but not on
+# synthetic sides with deep outliers (test_qr_refine): kept (measured, rejected).
+_BAND_SCHEDULE = (12.0, 6.0, 3.0, 1.5, 1.0, 1.0)
+_FIRST_CHECK = 3
 
-    The sums over each side's points are array operations on all four sides at once; the
-    per-side line from its six sums is plain float arithmetic, which for four sides costs a
-    fraction of the dozens of array operations on (4,)-arrays it replaces (issue 19's speed
-    goal). Each side stops at its own convergence, as a fit of that side alone would.
+
+def _line_fits(
+    x: FloatArray, y: FloatArray, valid: NDArray[np.bool_], tol: float
+) -> list[tuple[float, float, float]] | None:
+    """Lines ``(a, b, c)`` with a*x + b*y + c = 0, (a, b) a unit normal with b >= 0, fitted
+    (orthogonal least squares) to each side's points ``(x, y)`` (4, n) where ``valid`` (4, n)
+    with one-sided outlier removal; None when a side keeps fewer than 4 points.
+
+    Coordinates are each side's own: x along it, y (px) outward across it, so outliers (the
+    crossings a module or more inside, where the outermost module is light) have y well
+    below the line. A side's fit is invariant to that rigid change of frame: the lines are
+    those a fit in image coordinates would give. The moments and distances of all four sides
+    are one matrix product per round, the line from a side's six moments plain float
+    arithmetic (issue 19's speed goal). Each side stops at its own convergence, as a fit of
+    that side alone would.
     """
-    keep = valid.copy()
-    # Coordinates relative to each side's mean point (no cancellation in the moments below);
-    # the weighted sums of 1, u, v, uu, vv, uv of every side then take one matrix product
-    # per iteration.
-    ref = points.mean(axis=1)
-    rel = points - ref[:, None, :]
-    pu, pv = rel[..., 0], rel[..., 1]
-    ones = np.ones_like(pu)
-    moments = np.stack([ones, pu, pv, pu * pu, pv * pv, pu * pv], axis=2)
-    homogeneous = moments[:, :, :3]  # (1, u, v): a line (c, a, b) gives the distance
-    normals = outward.tolist()
-    done = np.zeros(4, bool)
-    lines = [[0.0, 0.0, 0.0] for _ in range(4)]  # (a, b, c), shifted coordinates
-    for it in range(6):
-        sums = np.matmul(keep.astype(np.float64)[:, None, :], moments)[:, 0, :].tolist()
-        finished = done.tolist()
+    # the points without a crossing are put far inside, where no round's band keeps them:
+    # the kept set is then the band test alone (one array operation fewer per round)
+    y = np.where(valid, y, -1e6)
+    keep = valid
+    moments = np.empty(x.shape + (6,))
+    moments[:, :, 0] = 1.0
+    moments[:, :, 1] = x
+    moments[:, :, 2] = y
+    np.multiply(x, x, out=moments[:, :, 3])
+    np.multiply(y, y, out=moments[:, :, 4])
+    np.multiply(x, y, out=moments[:, :, 5])
+    homogeneous = moments[:, :, :3]  # (1, x, y): a line (c, a, b) gives the distance
+    done = [False] * 4
+    lines = [(0.0, 0.0, 0.0)] * 4  # (a, b, c)
+    # A side is done when a round's band keeps the very points its line was fitted to; that
+    # shows as the next round's sums equal to this round's (no comparison of the point sets)
+    previous: list[list[list[float]]] | None = None
+    last = len(_BAND_SCHEDULE) - 1
+    for it, factor in enumerate(_BAND_SCHEDULE):
+        # (the kept points' weights are the booleans as 1.0 and 0.0)
+        sums = np.matmul(keep[:, None, :], moments).tolist()
         for k in range(4):
-            if finished[k]:
+            if done[k]:
                 continue
-            count, su, sv, suu, svv, suv = sums[k]
+            if previous is not None and sums[k] == previous[k]:
+                done[k] = True
+                continue
+            count, su, sv, suu, svv, suv = sums[k][0]
             if count < 4:
                 return None
             cu, cv = su / count, sv / count
@@ -355,85 +376,114 @@ def _line_fits(
             svv -= count * cv * cv
             suv -= count * cu * cv
             # the 2x2 scatter's major axis is at 0.5 * atan2(2 suv, suu - svv): the line's
-            # direction; the normal is perpendicular to it, turned outward
+            # direction; the normal is perpendicular to it, turned outward (b >= 0)
             theta = 0.5 * math.atan2(2.0 * suv, suu - svv)
             nu, nv = -math.sin(theta), math.cos(theta)
-            if nu * normals[k][0] + nv * normals[k][1] < 0:
+            if nv < 0:
                 nu, nv = -nu, -nv
-            lines[k] = [nu, nv, -(nu * cu + nv * cv)]
-        cab = np.array([[c, a, b] for a, b, c in lines])
-        dist = np.matmul(homogeneous, cab[:, :, None])[:, :, 0]  # (4, n), > 0 outward
-        limit = max(tol, 3.0 * (0.5**it) * tol * 4)
-        new_keep = valid & (dist > -limit)
-        if it > 0:
-            # symmetric clean-up of outward noise (bad samples near glare, clutter)
-            new_keep &= dist < 3.0 * limit
-        if it > 2:
-            done |= (new_keep == keep).all(axis=1)
-            if done.all():
-                break
-        keep = np.where(done[:, None], keep, new_keep)
-    # back to the points' own coordinates: n . (p - ref) + c = n . p + (c - n . ref)
-    out = np.array(lines)
-    out[:, 2] -= out[:, 0] * ref[:, 0] + out[:, 1] * ref[:, 1]
-    return out
+            lines[k] = (nu, nv, -(nu * cu + nv * cv))
+        if it == last or all(done):
+            break
+        previous = sums if it >= _FIRST_CHECK else None
+        limit = factor * tol
+        # the band: -limit < distance (> 0 outward) in the first round; from the second on
+        # also < 3 limit, a symmetric clean-up of outward noise (bad samples near glare,
+        # clutter), i.e. |distance - limit| < 2 limit. The shift is folded into the lines.
+        shift = -limit if it > 0 else limit
+        cab = np.array([v for a, b, c in lines for v in (c + shift, a, b)]).reshape(4, 3, 1)
+        shifted = np.matmul(homogeneous, cab)[:, :, 0]  # (4, n)
+        keep = np.abs(shifted) < 2.0 * limit if it > 0 else shifted > 0.0
+    return lines
 
 
-def _median_rows(values: NDArray[np.float32]) -> NDArray[np.float32]:
-    """The median of each row (as np.median, whose generic path costs several times a sort of
-    these short rows)."""
-    ordered = np.sort(values, axis=1)
-    n = ordered.shape[1]
-    return np.asarray((ordered[:, (n - 1) // 2] + ordered[:, n // 2]) / 2, np.float32)
+# Sample spacing along a profile (px) and remap's limit on a map's columns (OpenCV's SHRT_MAX).
+_STEP = 0.25
+_REMAP_COLS = 32767
 
 
-def _edge_points(
-    gray: NDArray[np.float32], q: FloatArray, outward: FloatArray, reach: float, longest: float
+@lru_cache(maxsize=128)
+def _fractions(n_samples: int) -> FloatArray:
+    """Where ``n_samples`` profiles cross a side: fractions of its length from its first corner
+    (the ends are left out, where the neighbouring side's quiet zone would be sampled); cached,
+    since the same few counts recur (issue 19's speed goal)."""
+    t = 0.06 + (0.88 / (n_samples - 1)) * np.arange(n_samples, dtype=np.float64)
+    t.flags.writeable = False
+    return t
+
+
+@lru_cache(maxsize=128)
+def _fractions32(n_samples: int) -> NDArray[np.float32]:
+    t = _fractions(n_samples).astype(np.float32)
+    t.flags.writeable = False
+    return t
+
+
+# the sample indices along a profile, sliced for the profiles of all but huge codes
+_STEPS = np.arange(1024, dtype=np.float32).reshape(1, -1, 1, 1)
+_STEPS.flags.writeable = False
+
+
+def _edge_offsets(
+    gray: NDArray[np.float32], coef: list[float], s_first: float, n_steps: int, n_samples: int
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Sub-pixel mid-level crossings on profiles across the four sides q[k] -> q[k+1]
-    (outside to inside): points (4, n, 2) and which of them were found (4, n).
+    """Sub-pixel mid-level crossings on ``n_samples`` profiles across each of the four sides at
+    :func:`_fractions` along them (outside to inside, ``n_steps`` samples each): their offsets
+    (4, n) in px outward from the rough side, and which of them were found (4, n).
 
-    Written for few array operations: the cost of this and of :func:`_line_fits` is mostly
-    per-call overhead on small arrays (issue 19's speed goal)."""
-    n_samples = int(min(max(longest / 1.5, 12.0), 120.0))
-    t = 0.06 + (0.88 / (n_samples - 1)) * np.arange(n_samples)
-    step = 0.25
-    # offsets -reach, -reach + step, ... up to reach (inclusive within half a step), taken
-    # outside first (s > 0 outward)
-    n_steps = math.ceil((2.0 * reach + step / 2) / step)
-    s_rev = (-reach + step * (n_steps - 1)) - step * np.arange(n_steps)
-    base = q[:, None, :] + t[None, :, None] * (q[_NEXT] - q)[:, None, :]  # (4, n, 2)
-    # the sample positions as two maps (4 n, steps) for cv2.remap: an outer sum per side of
-    # the base points and the offsets along its normal, in float32 (the positions lie in a
-    # crop: float32 keeps them to 1e-4 px); broadcast with the offsets innermost, where
-    # numpy's loops are fast
-    base32 = base.astype(np.float32)
-    # (2, 4, 1, steps): the offset of every step along each side's normal, u then v
-    along = outward.T.astype(np.float32)[:, :, None, None] * s_rev.astype(np.float32)
-    shape = (4 * n_samples, n_steps)
-    mx = (base32[:, :, 0:1] + along[0]).reshape(shape)
-    my = (base32[:, :, 1:2] + along[1]).reshape(shape)
+    ``coef`` (24 floats) holds three (2, 4) blocks, u row then v row, one column per side: the
+    sides' first corners moved ``s_first`` px outward (the outermost offset), the side vectors,
+    and the step between samples (``-_STEP`` times the outward unit normals); sample j of
+    profile i of side k lies at block0 + t_i block1 + j block2 (px in ``gray``).
+
+    Its cost is per-call overhead (issue 19's speed goal), so the four sides are one array all
+    along, laid out (offsets, profiles) with profile k n + i for sample i of side k: the long
+    axis innermost, where numpy's loops are fast, and every per-profile statistic a reduction
+    across rows. One cv2.remap reads all samples.
+    """
+    n_prof = 4 * n_samples
+    blocks = np.array(coef, np.float32).reshape(3, 2, 4, 1)
+    feet = blocks[0] + blocks[1] * _fractions32(n_samples)  # (2, 4, n)
+    if n_steps <= _STEPS.shape[1]:
+        steps = _STEPS[:, :n_steps]
+    else:
+        steps = np.arange(n_steps, dtype=np.float32).reshape(1, -1, 1, 1)
+    positions = feet[:, None] + steps * blocks[2][:, None]  # (2, n_steps, 4, n): u, v
+    # one row when it fits: OpenCV splits a remap of several rows across its threads, and on
+    # a loaded machine waiting for them costs more than the read
+    total = n_steps * n_prof
+    shape = (1, total) if total <= _REMAP_COLS else (n_steps, n_prof)
     prof = np.asarray(
-        cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), np.float32
-    )
+        cv2.remap(
+            gray,
+            positions[0].reshape(shape),
+            positions[1].reshape(shape),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        ),
+        np.float32,
+    ).reshape(n_steps, n_prof)
+    # light: the median of the outer fifth (the quiet zone); dark: the profile's minimum.
+    # (OpenCV's column sort takes half the time of np.sort along the first axis.)
     nq = max(2, n_steps // 5)
-    light = _median_rows(prof[:, :nq])
-    dark = prof.min(axis=1)
+    outer = np.asarray(cv2.sort(prof[:nq], cv2.SORT_EVERY_COLUMN | cv2.SORT_ASCENDING))
+    light = (outer[(nq - 1) // 2] + outer[nq // 2]) / 2
+    dark = prof.min(axis=0)
     contrast = (light - dark).reshape(4, n_samples)
-    good_contrast = contrast > 0.5 * _median_rows(contrast)[:, None]
+    ranked = np.asarray(cv2.sort(contrast, cv2.SORT_EVERY_ROW | cv2.SORT_ASCENDING))
+    typical = (ranked[:, (n_samples - 1) // 2] + ranked[:, n_samples // 2]) / 2
     level = (light + dark) / 2
-    below = prof < level[:, None]
-    first = np.argmax(below, axis=1)
+    first = np.argmax(prof < level, axis=0)
     # first > 0 also says that some sample is below the level (argmax is 0 when none is)
-    valid = good_contrast.reshape(-1) & (first > 0)
-    rows = np.arange(prof.shape[0])
-    i1 = np.maximum(first, 1)
-    v0 = prof[rows, i1 - 1]
-    v1 = prof[rows, i1]
-    frac = np.clip((v0 - level) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
-    s_cross = s_rev[i1 - 1] - frac * step
-    points = base + s_cross.reshape(4, n_samples)[:, :, None] * outward[:, None, :]
-    return points, valid.reshape(4, n_samples)
+    valid = (contrast > 0.5 * typical[:, None]) & (first > 0).reshape(4, n_samples)
+    # the samples first - 1 (at or above the level) and first (below it), by flat index; where
+    # first is 0 the index wraps to the last row: a finite value for a point not found
+    at = first * n_prof + np.arange(n_prof)
+    v1 = prof.reshape(total)[at]
+    v0 = prof.reshape(total)[at - n_prof]
+    # v0 >= level > v1 where found, so the fraction lies in [0, 1] there without a clip
+    frac = (v0 - level) / np.maximum(v0 - v1, 1e-6)
+    s_cross = (s_first + _STEP) - _STEP * (first + frac)
+    return s_cross.reshape(4, n_samples), valid
 
 
 def refine_corners(
@@ -444,51 +494,74 @@ def refine_corners(
     Returns the rough corners unchanged where a side has too few edge points.
     """
     q = np.asarray(corners, np.float64)
-    edge = q[_NEXT] - q
-    lengths = np.sqrt((edge * edge).sum(axis=1))
-    side = float(lengths.mean())
-    if float(lengths.min()) < 1e-9:
+    # the quad's geometry in plain floats: a dozen numpy operations on (4, 2) arrays cost
+    # more than the arithmetic (issue 19's speed goal)
+    pts = q.tolist()
+    edges = [(pts[j][0] - pts[i][0], pts[j][1] - pts[i][1]) for i, j in enumerate(_NEXT)]
+    lengths = [math.hypot(du, dv) for du, dv in edges]
+    if min(lengths) < 1e-9:
         return q.copy()
+    side = sum(lengths) / 4
     module = side / (modules if modules else 25)
-    # (plain min/max: np.clip on scalars costs as much as an array operation)
     reach = min(max(2.5, 0.8 * module, 0.03 * side), max(2.5, 0.2 * side))
     # Convert only the code's neighbourhood to float: converting a multi-megapixel photograph
     # cost several times the decode itself (issue 19's speed goal).
     margin = reach + 3.0
     height, width = gray.shape
-    (lu, lv), (hu, hv) = q.min(axis=0).tolist(), q.max(axis=0).tolist()
-    u0 = min(max(math.floor(lu - margin), 0), width - 1)
-    v0 = min(max(math.floor(lv - margin), 0), height - 1)
-    u1 = min(max(math.ceil(hu + margin) + 1, u0 + 1), width)
-    v1 = min(max(math.ceil(hv + margin) + 1, v0 + 1), height)
-    origin = np.array([u0, v0], np.float64)
+    us, vs = [p[0] for p in pts], [p[1] for p in pts]
+    u0 = min(max(math.floor(min(us) - margin), 0), width - 1)
+    v0 = min(max(math.floor(min(vs) - margin), 0), height - 1)
+    u1 = min(max(math.ceil(max(us) + margin) + 1, u0 + 1), width)
+    v1 = min(max(math.ceil(max(vs) + margin) + 1, v0 + 1), height)
     g = gray[v0:v1, u0:u1].astype(np.float32)
-    q = q - origin
+    # profiles from s_first = -reach + step (n_steps - 1) (outside, s > 0 outward) down to
+    # -reach (inside)
+    n_steps = math.ceil((2.0 * reach + _STEP / 2) / _STEP)
+    s_first = -reach + _STEP * (n_steps - 1)
     # the normal (dv, -du) of each side points outward for a clockwise quad on the screen;
     # the test against the centre keeps a counter-clockwise one right as well
-    outward = edge[:, ::-1] * np.array([1.0, -1.0]) / lengths[:, None]
-    midpoints = q + 0.5 * edge - q.mean(axis=0)
-    outward *= np.where((outward * midpoints).sum(axis=1) < 0, -1.0, 1.0)[:, None]
-    points, valid = _edge_points(g, q, outward, reach, float(lengths.max()))
-    lines = _line_fits(points, valid, outward, tol=max(0.35, 0.3 * module))
-    if lines is None:
-        return q + origin
-    # corner i is where the sides i - 1 and i meet: the cross product of their lines (in
-    # plain floats: np.cross on four rows costs more than the whole arithmetic)
-    rows = lines.tolist()
+    cu, cv = sum(us) / 4, sum(vs) / 4
+    outward = []
+    starts_u, starts_v, steps_u, steps_v = [], [], [], []
+    for (pu, pv), (du, dv), length in zip(pts, edges, lengths, strict=True):
+        nu, nv = dv / length, -du / length
+        if nu * (pu + 0.5 * du - cu) + nv * (pv + 0.5 * dv - cv) < 0:
+            nu, nv = -nu, -nv
+        outward.append((nu, nv))
+        starts_u.append(pu - u0 + s_first * nu)
+        starts_v.append(pv - v0 + s_first * nv)
+        steps_u.append(-_STEP * nu)
+        steps_v.append(-_STEP * nv)
+    coef = starts_u + starts_v + [e[0] for e in edges] + [e[1] for e in edges] + steps_u + steps_v
+    n_samples = int(min(max(max(lengths) / 1.5, 12.0), 120.0))
+    offsets, valid = _edge_offsets(g, coef, s_first, n_steps, n_samples)
+    # each side's own frame: x along it from its midpoint, y = the offset outward
+    x = np.array(lengths)[:, None] * (_fractions(n_samples) - 0.5)
+    fits = _line_fits(x, offsets, valid, tol=max(0.35, 0.3 * module))
+    if fits is None:
+        return q.copy()
+    # back to image coordinates: p = m + x e + y o (m the side's midpoint, e its unit
+    # direction, o the outward normal), so the line is (a e + b o) . (p - m) + c = 0
+    rows = []
+    for (pu, pv), (du, dv), length, (ou, ov), (a, b, c) in zip(
+        pts, edges, lengths, outward, fits, strict=True
+    ):
+        nu = a * du / length + b * ou
+        nv = a * dv / length + b * ov
+        rows.append((nu, nv, c - nu * (pu + 0.5 * du) - nv * (pv + 0.5 * dv)))
+    # corner i is where the sides i - 1 and i meet: the cross product of their lines
     meets = []
+    limit2 = max(3.0, 0.1 * side) ** 2
     for i in range(4):
         (a1, b1, c1), (a2, b2, c2) = rows[_PREV[i]], rows[i]
         w = a1 * b2 - b1 * a2
         if abs(w) < 1e-12:
-            return q + origin
-        meets.append([(b1 * c2 - c1 * b2) / w, (c1 * a2 - a1 * c2) / w])
-    out = np.array(meets)
-    moved = out - q
-    if float((moved * moved).sum(axis=1).max()) > max(3.0, 0.1 * side) ** 2:
-        return q + origin
-    result: FloatArray = out + origin
-    return result
+            return q.copy()
+        mu, mv = (b1 * c2 - c1 * b2) / w, (c1 * a2 - a1 * c2) / w
+        if (mu - pts[i][0]) ** 2 + (mv - pts[i][1]) ** 2 > limit2:
+            return q.copy()
+        meets.append((mu, mv))
+    return np.array(meets)
 
 
 # --- the reader ----------------------------------------------------------------------------
