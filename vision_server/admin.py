@@ -60,11 +60,25 @@ def config_layer(path: str | None) -> Layer:
 
 
 def resolve(cli: Layer, config_path: str | None, env: Mapping[str, str] | None = None) -> Endpoint:
-    """The endpoint: command line > environment > configuration file > default."""
+    """The endpoint: command line > environment > configuration file > default. A
+    configuration whose ``server.port`` is 0 does not say where its server listens: without
+    ``--server`` or ``$CELLVISION_SERVER`` that is a usage error, not the default port (which may
+    be another server's)."""
+    environment = env_layer(os.environ if env is None else env)
+    configured = config_layer(config_path)
+    if (
+        config_path is not None
+        and configured.server is None
+        and not (cli.server or environment.server)
+    ):
+        raise UsageError(
+            f"{config_path} has server.port 0 (any free port): it does not say which port its "
+            "server took; give --server HOST:PORT (serve prints it as 'listening on')"
+        )
     return resolve_endpoint(
         cli,
-        env_layer(os.environ if env is None else env),
-        config_layer(config_path),
+        environment,
+        configured,
         read_text=lambda path: Path(path).read_text(encoding="utf-8"),
     )
 

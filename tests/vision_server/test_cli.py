@@ -313,3 +313,20 @@ def test_results_of_an_inspection_the_configuration_lacks_warns(
     assert "(its inspections: bright)" in err
     assert main(["results", "--config", str(config), "--inspection", "bright"]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_ping_with_a_configuration_on_port_0_asks_for_the_address(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """server.port 0 says nothing of where the server listens: ping and reload used the default
+    port 7878, which may be another server's; now they ask for --server."""
+    from vision_server.cli import main
+
+    monkeypatch.delenv("CELLVISION_SERVER", raising=False)
+    config = tmp_path / "cell.yaml"
+    config.write_text("server: {port: 0}\ncameras: {tool: {source: request}}\ninspections: []\n")
+    for command in ("ping", "reload"):
+        assert main([command, "--config", str(config)]) == 2
+        err = " ".join(capsys.readouterr().err.split())
+        assert "has server.port 0 (any free port)" in err
+        assert "give --server HOST:PORT" in err
