@@ -43,14 +43,14 @@ in-plane angle comes from the image corners. Why this is robust on a Kinect-like
   check is configured, the typical systematic errors of an unchecked RGB-D sensor
   (``unchecked_scale_std`` 1 %, ``unchecked_shift_std_px`` 2 px; :func:`_unchecked_factor`).
   Then the printed side carries the distance along the ray and the depth the orientation,
-  unless the depth agrees with the side within the side's noise, when it is kept: a sensor
-  without systematic errors loses nothing of its precision. Without a sensor check the
-  code's image size is taken from its whole module grid (:mod:`.qr_grid`, when the decoder
-  reports the symbol's version): the corners read the side ~0.03 px short with a ~0.02 px
-  spread from view to view, which no number of frames averages out; the grid's hundreds of
-  module edges give it to ~0.01 px without that bias. It is measured on the depth's plane
-  mostly along the plane's tilt axis, where the plane's own normal error (~0.1°) does not
-  stretch lengths (:func:`_grid_disagreement`).
+  unless the depth agrees with the side within AGREEMENT_SIGMAS of the side's noise, when its
+  distance is kept exactly: a sensor without systematic errors loses nothing of its precision.
+  Without a sensor check the code's image size is taken from its whole module grid
+  (:mod:`.qr_grid`, when the decoder reports the symbol's version): the corners read the side
+  ~0.03 px short with a ~0.02 px spread from view to view, which no number of frames averages
+  out; the grid's hundreds of module edges give it to ~0.01 px without that bias. It is
+  measured on the depth's plane mostly along the plane's tilt axis, where the plane's own
+  normal error (~0.1°) does not stretch lengths (:func:`_grid_disagreement`).
 """
 
 from __future__ import annotations
@@ -470,6 +470,16 @@ PLANE_NORMAL_STD_RAD = float(np.radians(0.1))
 """The depth plane's normal error (std) at 0.6-1.5 m over 5 frames: the plane method's
 rotation p95 is 0.11-0.15° on the bench (docs/BENCHMARKS.md section 4)."""
 
+AGREEMENT_SIGMAS = 3.0
+"""Without a sensor check, the depth's distance is kept while it disagrees with the printed
+side (the module grid's size) by at most this many of the side's stds (:func:`_unchecked_factor`).
+Measured on a sensor without systematic errors (the simulated Xtion-like camera, 0.6-1.5 m,
+1-5 depth frames): the disagreement is 0.74-0.95 of its stated std, 4 of 532 views beyond
+2.5 stds, 1 beyond 3 (3.3); on (2, 1) px with +0.5 % or +-1 % scale it is 27-196 stds."""
+AGREEMENT_RAMP_SIGMAS = 1.0
+"""Over this many stds beyond AGREEMENT_SIGMAS the test's verdict goes from 'agrees' to
+'disagrees', so that the distance does not jump at the test's edge."""
+
 
 def _grid_disagreement(
     color: NDArray[np.generic],
@@ -578,14 +588,26 @@ def _unchecked_factor(
     The depth's systematic error is unknown: either the sensor has none worth naming (its
     distance is then far more precise than the printed side's) or it has the typical error
     of an unchecked RGB-D camera, relative std sqrt(scale_std² + (g · shift_std_px)²) with g
-    the view's shift sensitivity (per pixel). The two hypotheses, equally likely beforehand,
-    are weighed by how well each explains the disagreement r with the printed side (relative
-    std SIDE_NOISE_PX / side_px, with UNMEASURED_CORNER_BIAS_STD_PX when ``corner_bias_px`` is
-    None): the first wins while |r| is within ~2.5-3 side stds. The
-    result is the posterior mean of the depth's error, so the distance is the side's when the
-    depth evidently disagrees, the depth's when it agrees, and in between a blend (no
-    threshold that a view just below it escapes with the whole bias, as the old 0.4 %
-    switch let a +0.5 % sensor misregistered (2, 1) px keep 4 mm).
+    the view's shift sensitivity (per pixel). The disagreement r with the printed side
+    (relative std SIDE_NOISE_PX / side_px, or the module grid's ``side_noise_px``; with
+    UNMEASURED_CORNER_BIAS_STD_PX when ``corner_bias_px`` is None) decides, in two steps:
+
+    - an agreement test: while |r| is within AGREEMENT_SIGMAS of the side's std, the depth
+      agrees with the side as well as a sensor without systematic errors does, and its
+      distance is kept exactly (it is ~5-10 times more precise than the side's);
+    - beyond it, the two hypotheses, equally likely beforehand, are weighed by how well each
+      explains r, and the depth's error is their posterior mean (the side's distance when the
+      depth evidently disagrees). The test's verdict is ramped in over AGREEMENT_RAMP_SIGMAS,
+      so the distance does not jump at the test's edge.
+
+    Why the test before the posterior: the posterior alone already moved views whose side
+    disagreed by 2-3 stds (weight 0.27 at 2.56 stds), which a perfect sensor shows on ~1 % of
+    its views (the side's own tail), and then the side's error replaced the depth's: on the
+    bench's perfect sensor one view went 0.057 -> 0.138 mm and the p95 0.084 -> 0.096 mm. A
+    sensor whose systematic error on a view is within the test keeps about AGREEMENT_SIGMAS
+    side stds of it at most (with the module grid 0.02-0.045 %, 0.1-0.65 mm at 0.6-1.5 m,
+    against ~1.6 stds with the posterior alone); a typical unchecked sensor is 27-196 stds
+    off and is unaffected.
     """
     if corner_bias_px is None:
         r = depth_vs_side
@@ -596,11 +618,16 @@ def _unchecked_factor(
     var_sys = scale_std**2 + float(np.sum((sensitivity * shift_std_px) ** 2))
     if not (np.isfinite(r) and np.isfinite(var_sys)) or var_sys <= 0 or var_side <= 0:
         return 1.0
+    # the agreement test: 0 while the depth agrees with the side, 1 from a clear disagreement
+    sigmas = abs(r) / float(np.sqrt(var_side))
+    disagrees = min(max((sigmas - AGREEMENT_SIGMAS) / AGREEMENT_RAMP_SIGMAS, 0.0), 1.0)
+    if disagrees == 0.0:
+        return 1.0
     var_both = var_sys + var_side
     # log-likelihood ratio of "no systematic error" to "a typical one" given r
     log_ratio = 0.5 * r * r * (1.0 / var_both - 1.0 / var_side) + 0.5 * np.log(var_both / var_side)
     p_sys = 1.0 / (1.0 + float(np.exp(min(log_ratio, 700.0))))
-    error = p_sys * var_sys / var_both * r
+    error = disagrees * p_sys * var_sys / var_both * r
     return 1.0 / (1.0 + error)
 
 
