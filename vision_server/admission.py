@@ -164,6 +164,25 @@ class Lane:
         # A request heavier than the whole bound is still admitted into an empty lane.
         return self.admitted == 0 or self.admitted_cost_ms + cost_ms <= self.max_cost_ms
 
+    def full_because(self, cost_ms: float) -> str:
+        """Why a request of ``cost_ms`` finds no room, in words: the slot count or the queued
+        work's bound (``max_queue_ms``), whichever refuses it (for BUSY's message)."""
+        if self.admitted >= self.capacity:
+            return (
+                f"all {self.capacity} inspection slots of the {self.name} lane are taken "
+                f"({self.threads} running + queue_depth)"
+            )
+        if self.admitted and self.admitted_cost_ms + cost_ms > self.max_cost_ms:
+            return (
+                f"the {self.name} lane holds {self.admitted_cost_ms:.0f} ms of measured work in "
+                f"{self.admitted} request(s); one more of about {cost_ms:.0f} ms would pass its "
+                f"bound of {self.max_cost_ms:.0f} ms (max_queue_ms x {self.threads} threads)"
+            )
+        return (
+            f"{len(self.waiters)} request(s) already wait for the {self.name} lane (first come, "
+            "first served)"
+        )
+
     def expected_wait_ms(self, cost_ms: float) -> float:
         """When a slot is likely to be free for one more request: the queued work ahead
         (admitted and waiting) spread over the lane's threads; at least
@@ -229,6 +248,12 @@ class WorkPool:
         lane, cost = self.lane_for(key)
         with self._lock:
             return lane.expected_wait_ms(cost)
+
+    def full_because(self, key: str | None) -> str:
+        """Why a request for ``key`` finds its lane full (see :meth:`Lane.full_because`)."""
+        lane, cost = self.lane_for(key)
+        with self._lock:
+            return lane.full_because(cost)
 
     # ----------------------------------------------------------------- admission
 

@@ -417,10 +417,9 @@ class InspectionService:
 
     def _busy(self, key: str | None, *, waited: bool = False) -> Busy:
         self.busy_count += 1
-        lane, _ = self.pool.lane_for(key)
         how = f" after waiting {self.settings.admission_wait_s:g} s" if waited else ""
         return Busy(
-            f"all {lane.capacity} inspection slots are taken ({lane.name} lane){how}; try again",
+            f"{self.pool.full_because(key)}{how}; try again",
             details={"retry_after_ms": self.retry_after_ms(key)},
         )
 

@@ -56,6 +56,10 @@ def test_a_lane_admits_by_cost_not_only_by_count() -> None:
     first = pool.try_reserve("heavy")
     assert first is not None
     assert pool.try_reserve("heavy") is None  # 120 ms of work > 100 ms: refused, 10 places free
+    # BUSY's reason names the bound that refused it, not the slots (10 of 11 are free).
+    why = pool.full_because("heavy")
+    assert "holds 60 ms of measured work in 1 request(s)" in why
+    assert "bound of 100 ms (max_queue_ms x 1 threads)" in why
     light = pool.try_reserve("light")  # 70 ms fits
     assert light is not None
     assert pool.main.admitted_cost_ms == pytest.approx(70.0)

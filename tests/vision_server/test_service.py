@@ -64,7 +64,7 @@ def test_a_full_service_answers_busy_and_takes_requests_again_once_a_slot_is_fre
     async def body() -> None:
         service = make_service()
         held = service.admit()  # what a front-end does at a frame's header
-        with pytest.raises(Busy, match="all 1 inspection slots are taken"):
+        with pytest.raises(Busy, match="all 1 inspection slots of the main lane are taken"):
             service.admit()
         with pytest.raises(Busy):
             await service.inspect(InspectRequest("brightness", Images(GRAY)))
