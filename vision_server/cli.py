@@ -266,7 +266,18 @@ def _check_config(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         if args.json:
             print(
-                json.dumps({"valid": False, "error": str(exc), "line": exc.line, "path": exc.path})
+                # The one error shape of --json (docs/integrator-guide.md §6), with the file's
+                # line and key path beside the message.
+                json.dumps(
+                    {
+                        "valid": False,
+                        "error": {
+                            **json_error(ErrorKind.USAGE, str(exc))["error"],
+                            "line": exc.line,
+                            "path": exc.path,
+                        },
+                    }
+                )
             )
         else:
             Console(stderr=True).print(

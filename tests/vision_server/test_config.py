@@ -447,8 +447,11 @@ def test_check_config_refuses_what_cannot_work(
     assert done.returncode == 1, done.stdout
     report = json.loads(done.stdout)
     assert report["valid"] is False
-    assert re.search(expected, report["error"]), report["error"]
-    assert report["error"].startswith(f"cell.yaml:{line} "), report["error"]
+    error = report["error"]  # the one error shape of --json, with line and key path
+    assert error["kind"] == "usage"
+    assert error["line"] == line
+    assert re.search(expected, error["message"]), error["message"]
+    assert error["message"].startswith(f"cell.yaml:{line} "), error["message"]
 
 
 def test_check_config_accepts_the_working_cell_and_merge_keys(cell_dir: Path) -> None:
