@@ -40,6 +40,7 @@ from protocol import (
     ImageTooLarge,
     InvalidArgument,
 )
+from vision_server import tries
 from vision_server.console import static_dir
 from vision_server.operator_desk import OperatorDesk
 from vision_server.results_store import ResultLogError
@@ -52,6 +53,7 @@ from vision_server.service import (
     check_images,
 )
 from vision_server.settings import SERVER_VERSION, ConsoleSettings
+from vision_server.tries import TRY_PEER_PREFIX
 
 from . import http_save
 from .http_auth import COOKIE, Sessions
@@ -87,7 +89,6 @@ MAX_JSON_PART = 64 * 1024
 """The largest ``request`` part of a try, bytes."""
 FORM_OVERHEAD = 64 * 1024
 """Bytes of a try's form besides the image (boundaries, the request part)."""
-TRY_PEER_PREFIX = "console "
 FRAME_TIMESTAMP_HEADER = "X-Frame-Timestamp"
 """The live view's frame.jpg header: the frame's capture time, Unix seconds."""
 SECURITY_HEADERS = {
@@ -470,18 +471,26 @@ class HttpFrontend:
                 raise HttpError(400, "BAD_REQUEST", "source must be 'camera', 'upload' or 'result'")
             extras: dict[str, Any] = {}
             loader = _with_extras(images, merged, extras)
-            peer = _peer(request)
-            reply = await self.service.inspect(
-                InspectRequest(
-                    name,
-                    images=loader,
-                    overlay=".png" if spec.get("overlay", True) else None,
-                    options=tuned,
-                    arrived=arrived,
-                    peer=TRY_PEER_PREFIX + peer,
-                ),
-                admission=admission,
-            )
+            # The row this try leaves in the result log is marked as a try, with its options
+            # (vision_server.tries): never a production result.
+            peer = TRY_PEER_PREFIX + _peer(request)
+            request_id = tries.next_request_id()
+            tries.announce(peer, request_id, options)
+            try:
+                reply = await self.service.inspect(
+                    InspectRequest(
+                        name,
+                        images=loader,
+                        overlay=".png" if spec.get("overlay", True) else None,
+                        options=tuned,
+                        arrived=arrived,
+                        peer=peer,
+                        request_id=request_id,
+                    ),
+                    admission=admission,
+                )
+            finally:
+                tries.withdraw(peer, request_id)
         finally:
             admission.release()
         overlay = None
@@ -852,6 +861,7 @@ def _row_json(row: Any) -> dict[str, Any]:
         "passed": row.passed,
         "duration_ms": row.duration_ms,
         "peer": row.peer,
+        "try": row.is_try,
         "request_id": row.request_id,
         "config_hash": row.config_hash,
         "has_image": row.image_path is not None and row.image_path.is_file(),
