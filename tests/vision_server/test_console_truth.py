@@ -3,18 +3,29 @@ the real server with the example cell.
 
 - a console try lands in the result log only as a try (its options in its row, marked in the
   API and the CLI) and counts in no production figure (/api/stats, Prometheus);
+- viewing (or trying on) a folder camera takes none of its frames: the robot's next inspection
+  gets the next file;
 """
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import io
+import threading
 from collections.abc import Iterator
+from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 from console_server import Browserless, RunningConsole, console_server
 from rich.console import Console
 
+from robot_client.client import SyncVisionClient
+from vision_server.app import App
 from vision_server.results_cli import results_command
+from vision_server.runtime import CellRuntime
 
 
 @pytest.fixture(scope="module")
@@ -79,3 +90,79 @@ def test_a_try_is_recorded_only_as_a_try(server: RunningConsole, client: Browser
     assert status == 0
     row_line = next(line for line in out.getvalue().splitlines() if "magnet_check" in line)
     assert " try " in row_line, out.getvalue()
+
+
+# ----------------------------------------------------------------------------- folder cameras
+
+REPLAY_CELL = """\
+server: {port: 0, name: replay-cell}
+console: {enabled: true, port: 0}
+results: {path: results.sqlite3}
+cameras:
+  replay: {source: folder, path: frames, color: gray}
+inspections:
+  - {name: replay_job, type: presence, camera: replay, measure: mean_intensity, min: 0}
+"""
+
+
+@contextlib.contextmanager
+def replay_cell(folder: Path) -> Iterator[App]:
+    """A cell with one folder camera over img1..img4 (grey levels 10, 20, 30, 40)."""
+    (folder / "frames").mkdir()
+    for index in range(1, 5):
+        cv2.imwrite(
+            str(folder / "frames" / f"img{index}.png"), np.full((8, 8), 10 * index, np.uint8)
+        )
+    config = folder / "cell.yaml"
+    config.write_text(REPLAY_CELL, encoding="utf-8")
+    runtime = CellRuntime(config)
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, name="replay-cell", daemon=True)
+    thread.start()
+
+    async def make() -> App:
+        return App(
+            runtime.catalog,
+            runtime.config.server,
+            results=runtime.results,
+            reloader=runtime.reload,
+            console=runtime.config.console,
+            config_path=config,
+        )
+
+    app = asyncio.run_coroutine_threadsafe(make(), loop).result(10.0)
+    try:
+        asyncio.run_coroutine_threadsafe(app.start(), loop).result(20.0)
+        yield app
+    finally:
+        with contextlib.suppress(RuntimeError):
+            asyncio.run_coroutine_threadsafe(app.stop(), loop).result(30.0)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(10.0)
+        loop.close()
+        runtime.close()
+
+
+def test_viewing_a_folder_camera_takes_none_of_its_frames(tmp_path: Path) -> None:
+    with replay_cell(tmp_path) as app:
+        assert app.http is not None
+        console = Browserless(app.http.url)
+        listing = console.get("/api/cameras").json()["cameras"]
+        assert listing[0]["view"] == "last_taken"
+        # Before any inspection there is nothing to show, and looking takes nothing.
+        assert console.get("/api/cameras/replay/frame.jpg").status == 404
+        robot = SyncVisionClient("127.0.0.1", app.port, request_timeout_s=10.0)
+        try:
+            first = robot.inspect("replay_job")
+            assert first.data["source_files"] == ["img1.png"]
+            for _ in range(3):
+                view = console.get("/api/cameras/replay/frame.jpg")
+                assert view.status == 200, view.body
+            # A try on the camera's frame runs on the frame the robot's inspection took.
+            tried = console.try_("replay_job", {"source": "camera", "options": {}})
+            assert tried.status == 200, tried.body
+            assert tried.json()["data"]["value"] == pytest.approx(10.0)
+            second = robot.inspect("replay_job")
+        finally:
+            robot.close()
+        assert second.data["source_files"] == ["img2.png"]

@@ -390,6 +390,13 @@ class HttpFrontend:
                     "height": height,
                     "fps": None if request_camera else self.live.measured_fps(name, frames),
                     "view_fps": None if request_camera else self.settings.max_view_fps,
+                    # What the live image is: the camera's own frames, or (a camera whose
+                    # frames the console must not take) the last one the cell took or sent.
+                    "view": "live"
+                    if camera.view_takes_frames and not request_camera
+                    else "last_sent"
+                    if request_camera
+                    else "last_taken",
                     "frame_age_s": None
                     if newest is None
                     else round(max(time.time() - newest.timestamp, 0.0), 3),
@@ -547,14 +554,27 @@ class HttpFrontend:
             raise HttpError(400, "BAD_REQUEST", "the form has no 'request' part")
         return spec, upload
 
-    async def _camera_images(self, camera: str) -> Images:
-        """The camera's current frame through the service's capture (or, for a request
-        camera, the last image a robot sent)."""
+    async def _camera_images(self, camera: str) -> Images | Callable[[ImageNeeds], Images]:
+        """The camera's current frame through the service's capture; for a triggered camera
+        or a sequence (a folder replay), the frame the last inspection took: a try must not
+        take a frame the cell's next inspection would then miss."""
+        assert self.live is not None
         catalog = self.service.catalog
-        if catalog.camera(camera).source == "request":
+        source = catalog.camera(camera)
+        if source.source == "request":
             raise HttpError(
                 404, "NOT_FOUND", f"camera {camera!r} gets its images from robots; upload one"
             )
+        if not source.view_takes_frames:
+            taken = self.live.last_taken(camera)
+            if taken is None:
+                raise HttpError(
+                    404,
+                    "NOT_FOUND",
+                    f"camera {camera!r} ({source.source}): the console takes no frame of it and "
+                    "no inspection has taken one yet; upload an image",
+                )
+            return taken
         reply = await self.service.capture(CaptureRequest(camera))
         return Images(reply.frames[0].color)
 
