@@ -5,6 +5,8 @@ the real server with the example cell.
   API and the CLI) and counts in no production figure (/api/stats, Prometheus);
 - viewing (or trying on) a folder camera takes none of its frames: the robot's next inspection
   gets the next file;
+- a save says what else its reload changed (hand edits go live with it), and a refusal caused
+  by another inspection's invalid hand edit says that the saved values are not at fault;
 """
 
 from __future__ import annotations
@@ -166,3 +168,35 @@ def test_viewing_a_folder_camera_takes_none_of_its_frames(tmp_path: Path) -> Non
         finally:
             robot.close()
         assert second.data["source_files"] == ["img2.png"]
+
+
+# ----------------------------------------------------------------------------- save
+
+
+def test_a_save_says_what_else_its_reload_changed(tmp_path: Path) -> None:
+    with console_server(tmp_path) as running:
+        c = Browserless(running.url)
+        assert c.login().status == 200
+        # A hand edit of another inspection, not loaded yet.
+        text = running.config.read_text(encoding="utf-8")
+        running.config.write_text(
+            text.replace("    min_count: 1\n", "    min_count: 2\n"), encoding="utf-8"
+        )
+        saved = c.post_json("/api/inspections/magnet_check/save", {"options": {"threshold": 100}})
+        assert saved.status == 200, saved.body
+        assert saved.json()["also_changed"] == ["cap_locate"]
+        assert "2 inspections changed: cap_locate, magnet_check" in saved.json()["notes"]
+        reload = c.get("/api/server").json()["reloads"][0]
+        assert reload["message"] == "2 inspections changed: cap_locate, magnet_check"
+
+        # Another inspection made invalid by hand: the refusal says the saved part is fine.
+        text = running.config.read_text(encoding="utf-8")
+        running.config.write_text(
+            text.replace("    min_count: 2\n", "    min_count: -5\n"), encoding="utf-8"
+        )
+        refused = c.post_json("/api/inspections/magnet_check/save", {"options": {"min": 0.3}})
+        assert refused.status == 422, refused.body
+        message = refused.json()["error"]["message"]
+        assert "already invalid" in message
+        assert "'magnet_check''s values are not the invalid part" in message
+        assert "min_count" in message

@@ -605,6 +605,7 @@ class HttpFrontend:
         if not self.settings.allow_save:
             raise HttpError(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
         async with self._save_lock:
+            served = self._all_written()
             old, backup = await asyncio.to_thread(_save_file, path, name, options)
             try:
                 catalog = await self.service.reload()
@@ -613,7 +614,27 @@ class HttpFrontend:
                 # open): put the old text back so that file and server agree.
                 await asyncio.to_thread(http_save.replace_file, path, old)
                 raise HttpError(422, "CONFIG_REFUSED", exc.message) from None
-        return web.json_response({"config_hash": catalog.config_hash, "backup": backup.name})
+        # The reload applies the whole file: hand edits made since the last reload go live
+        # with this save, and whoever saves is told which (not silently).
+        now = self._all_written()
+        also = [
+            other
+            for other in sorted(set(served) | set(now))
+            if other != name and served.get(other) != now.get(other)
+        ]
+        return web.json_response(
+            {
+                "config_hash": catalog.config_hash,
+                "backup": backup.name,
+                "also_changed": also,
+                "notes": list(catalog.notes),
+            }
+        )
+
+    def _all_written(self) -> dict[str, Any]:
+        """Every inspection as written in the configuration served (empty when unknown)."""
+        written = getattr(self.service.catalog.tune, "written", None)
+        return dict(written) if isinstance(written, Mapping) else {}
 
     # ------------------------------------------------------------------ results
 
@@ -768,6 +789,20 @@ def _save_file(path: Path, name: str, options: Mapping[str, Any]) -> tuple[bytes
     try:
         old = path.read_bytes()
         text = old.decode("utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise HttpError(500, "CONFIG_REFUSED", f"cannot read {path.name}: {exc}") from None
+    try:
+        # The file as it is now first: when a hand edit (not loaded yet) made it invalid, the
+        # refusal must say that the fault is there, not in the values being saved.
+        http_save.validate(text, path)
+    except (http_save.SaveRefused, http_save.ConfigError) as exc:
+        message = (
+            f"{path.name} is already invalid before {name!r}'s values are written (an edit "
+            f"made outside the console, not loaded yet; {name!r}'s values are not the "
+            f"invalid part): {exc}"
+        )
+        raise HttpError(422, "CONFIG_REFUSED", message) from None
+    try:
         new = http_save.edited_text(text, path.name, name, options)
         http_save.validate(new, path)
         backup = http_save.write_with_backup(path, new)
