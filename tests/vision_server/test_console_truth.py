@@ -7,6 +7,8 @@ the real server with the example cell.
   gets the next file;
 - a save says what else its reload changed (hand edits go live with it), and a refusal caused
   by another inspection's invalid hand edit says that the saved values are not at fault;
+- an upload takes any format OpenCV reads (BMP, TIFF, ...), with the pixel limit checked from
+  the header before decoding;
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import io
+import struct
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -200,3 +203,45 @@ def test_a_save_says_what_else_its_reload_changed(tmp_path: Path) -> None:
         assert "already invalid" in message
         assert "'magnet_check''s values are not the invalid part" in message
         assert "min_count" in message
+
+
+# ----------------------------------------------------------------------------- uploads
+
+
+@pytest.mark.parametrize("suffix", [".bmp", ".tiff"])
+def test_an_upload_takes_any_format_opencv_reads(client: Browserless, suffix: str) -> None:
+    image = np.full((16, 16, 3), 255, np.uint8)
+    image[:8, :8] = 0  # a dark square: dark_fraction 1.0 inside it, 0.0 outside
+    ok, encoded = cv2.imencode(suffix, image)
+    assert ok
+    spec = {"source": "upload", "options": {"roi": [0, 0, 8, 8]}}
+    dark = client.try_("magnet_check", spec, encoded.tobytes())
+    assert dark.status == 200, dark.body
+    assert dark.json()["data"]["value"] == pytest.approx(1.0)
+    spec = {"source": "upload", "options": {"roi": [8, 8, 8, 8]}}
+    bright = client.try_("magnet_check", spec, encoded.tobytes())
+    assert bright.json()["data"]["value"] == pytest.approx(0.0)
+
+
+def _bmp_header(width: int, height: int) -> bytes:
+    info = struct.pack("<IiiHHIIiiII", 40, width, height, 1, 24, 0, 0, 2835, 2835, 0, 0)
+    return b"BM" + struct.pack("<IHHI", 14 + len(info), 0, 0, 14 + len(info)) + info
+
+
+def _tiff_header(width: int, height: int) -> bytes:
+    entries = struct.pack("<HHII", 256, 4, 1, width) + struct.pack("<HHII", 257, 4, 1, height)
+    return b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 2) + entries + b"\x00" * 4
+
+
+@pytest.mark.parametrize("header", [_bmp_header, _tiff_header])
+def test_an_upload_too_large_is_refused_from_its_header(
+    client: Browserless, header: object
+) -> None:
+    assert callable(header)
+    huge = client.try_("magnet_check", {"source": "upload"}, header(100_000, 100_000))
+    assert huge.status == 413, huge.body
+    assert huge.json()["error"]["code"] == "IMAGE_TOO_LARGE"
+    assert "100000x100000" in huge.json()["error"]["message"]
+    damaged = client.try_("magnet_check", {"source": "upload"}, b"BM" + b"\x00" * 10)
+    assert damaged.status == 400
+    assert damaged.json()["error"]["code"] == "BAD_IMAGE"

@@ -32,7 +32,6 @@ from aiohttp import BodyPartReader, web
 from aiohttp.http_exceptions import HttpProcessingError
 
 from protocol import (
-    BadImage,
     CellvisionError,
     ErrorCode,
     ImageEncoding,
@@ -61,6 +60,7 @@ from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
 from .http_operator import OperatorRoutes
 from .images import decode_payloads
+from .uploads import upload_loader
 
 log = logging.getLogger("vision_server")
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
@@ -471,7 +471,7 @@ class HttpFrontend:
             elif source == "upload":
                 if upload is None:
                     raise HttpError(400, "BAD_REQUEST", "source 'upload' needs an 'image' part")
-                images = _upload_loader(upload)
+                images = upload_loader(upload)
             elif source == "result":
                 images = self._result_loader(spec.get("result_id"))
             else:
@@ -811,21 +811,6 @@ def _save_file(path: Path, name: str, options: Mapping[str, Any]) -> tuple[bytes
     except (OSError, UnicodeDecodeError) as exc:
         raise HttpError(500, "CONFIG_REFUSED", f"cannot write {path.name}: {exc}") from None
     return old, backup
-
-
-def _upload_loader(data: bytes) -> Callable[[ImageNeeds], Images]:
-    """Decodes an uploaded PNG or JPEG in a worker, with the protocol's header checks."""
-    if data.startswith(b"\x89PNG\r\n\x1a\n"):
-        encoding = ImageEncoding.PNG
-    elif data.startswith(b"\xff\xd8"):
-        encoding = ImageEncoding.JPEG
-    else:
-        raise BadImage("the uploaded file is not a PNG or JPEG image")
-
-    def load(needs: ImageNeeds) -> Images:
-        return decode_payloads([ImagePayload(encoding, 0, 0, data)], needs)
-
-    return load
 
 
 def _with_extras(
