@@ -9,6 +9,7 @@ the real server with the example cell.
   by another inspection's invalid hand edit says that the saved values are not at fault;
 - an upload takes any format OpenCV reads (BMP, TIFF, ...), with the pixel limit checked from
   the header before decoding;
+- the parameters the page offers to tune are only keys a try and a save both take;
 """
 
 from __future__ import annotations
@@ -106,7 +107,8 @@ results: {path: results.sqlite3}
 cameras:
   replay: {source: folder, path: frames, color: gray}
 inspections:
-  - {name: replay_job, type: presence, camera: replay, measure: mean_intensity, min: 0}
+  - {name: replay_job, type: presence, camera: replay, measure: mean_intensity, min: 0,
+     number: 3}
 """
 
 
@@ -245,3 +247,18 @@ def test_an_upload_too_large_is_refused_from_its_header(
     damaged = client.try_("magnet_check", {"source": "upload"}, b"BM" + b"\x00" * 10)
     assert damaged.status == 400
     assert damaged.json()["error"]["code"] == "BAD_IMAGE"
+
+
+# ----------------------------------------------------------------------------- parameters
+
+
+def test_only_keys_that_can_be_tried_and_saved_are_tunable(tmp_path: Path) -> None:
+    with replay_cell(tmp_path) as app:
+        assert app.http is not None
+        console = Browserless(app.http.url)
+        listed = console.get("/api/inspections").json()["inspections"][0]
+        assert listed["config"]["number"] == 3  # configured, shown, but fixed
+        keys = [p["key"] for p in listed["parameters"]]
+        assert keys == ["min"]
+        saved = console.post_json("/api/inspections/replay_job/save", {"options": {"min": 1}})
+        assert saved.status == 200, saved.body

@@ -40,6 +40,7 @@ from protocol import (
     InvalidArgument,
 )
 from vision_server import tries
+from vision_server.config import FIXED_BY_THE_CONFIGURATION
 from vision_server.console import static_dir
 from vision_server.operator_desk import OperatorDesk
 from vision_server.results_store import ResultLogError
@@ -726,11 +727,14 @@ class HttpFrontend:
 
 
 def parameters(config: Mapping[str, Any]) -> list[dict[str, Any]]:
-    """The numeric keys of an inspection's configuration the page may tune (nested: dotted)."""
+    """The numeric keys of an inspection's configuration the page may tune (nested: dotted):
+    only keys a try's options and a save both take, never one fixed by the configuration
+    (``number``, ``output``, ...: a request cannot change them, the save refuses them)."""
     out: list[dict[str, Any]] = []
     measure = config.get("measure")
     for key, value in config.items():
-        if key in ("roi", "name", "type", "camera", "frames"):
+        # roi has its own editor; frames changes what is acquired, not what is measured.
+        if key in ("roi", "frames") or key in FIXED_BY_THE_CONFIGURATION:
             continue
         if isinstance(value, dict):
             for sub, inner in value.items():
