@@ -9,7 +9,8 @@ the real server with the example cell.
   by another inspection's invalid hand edit says that the saved values are not at fault;
 - an upload takes any format OpenCV reads (BMP, TIFF, ...), with the pixel limit checked from
   the header before decoding;
-- the parameters the page offers to tune are only keys a try and a save both take;
+- the parameters the page offers to tune are only keys a try and a save both take (the Results
+  page's plural rules are in test_console_results_browser.py).
 """
 
 from __future__ import annotations
