@@ -734,13 +734,14 @@ class ResultLog:
     def timings(
         self, *, inspection: str, since: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The time (Unix seconds), verdict (bool) and duration (ms) of every result of
-        ``inspection`` with ``time >= since``, oldest first: what statistics are made of.
+        """The time (Unix seconds), verdict (bool) and duration (ms) of every production result
+        of ``inspection`` with ``time >= since`` (console tries left out), oldest first: what
+        statistics are made of.
 
         Three columns read from one covering index, without parsing any row's data, so that a
         window of 100,000 results costs tens of milliseconds.
         """
-        where, params = _where(since, inspection, None, mark="?", boolean=int)
+        where, params = _where(since, inspection, None, mark="?", boolean=int, production=True)
         sql = f"SELECT time, passed, duration_ms FROM results{where} ORDER BY time"
         with self._lock:
             self._check_open()

@@ -476,7 +476,7 @@ class PgResultLog:
         self, *, inspection: str, since: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """As :meth:`vision_server.results.ResultLog.timings`."""
-        where, params = where_sql(since, inspection, None, mark="%s", boolean=bool)
+        where, params = where_sql(since, inspection, None, mark="%s", boolean=bool, production=True)
         sql = f"SELECT time, passed::int, duration_ms FROM results{where} ORDER BY time"
         table = np.array(self._read(sql, params), dtype=float).reshape(-1, 3)
         return table[:, 0], table[:, 1] != 0, table[:, 2]

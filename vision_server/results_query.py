@@ -12,6 +12,8 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from .tries import TRY_PEER_PREFIX
+
 __all__ = ["COLUMNS", "KeyLookup", "page_sql", "where_sql"]
 
 COLUMNS = (
@@ -30,11 +32,17 @@ def where_sql(
     *,
     mark: str,
     boolean: Callable[[bool], Any],
+    production: bool = False,
 ) -> tuple[str, tuple[Any, ...]]:
     """`` WHERE ...`` (or ``""``) and its parameters; ``boolean`` converts ``passed`` to the
-    database's type (SQLite stores 0/1, PostgreSQL a boolean)."""
+    database's type (SQLite stores 0/1, PostgreSQL a boolean). ``production`` leaves out the
+    console's tries (their peer prefix, as a range like the peer filter's)."""
     clauses: list[str] = []
     params: list[Any] = []
+    if production:
+        prefix = TRY_PEER_PREFIX
+        clauses.append(f"NOT (peer >= {mark} AND peer < {mark})")
+        params.extend((prefix, prefix[:-1] + chr(ord(prefix[-1]) + 1)))
     if since is not None:
         if not math.isfinite(since):
             raise ValueError(f"since must be a finite Unix time, got {since}")

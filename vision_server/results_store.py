@@ -20,6 +20,8 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 
+from . import tries
+
 __all__ = [
     "ImagePolicy",
     "ResultEntry",
@@ -84,6 +86,11 @@ class StoredResult:
     image_path: Path | None
     overlay_path: Path | None = None
 
+    @property
+    def is_try(self) -> bool:
+        """Whether this row is a console try (see :mod:`vision_server.tries`)."""
+        return tries.is_try(self.peer)
+
     def to_json(self) -> dict[str, Any]:
         """A JSON-able dict (``time`` as Unix seconds and as ISO 8601 UTC, ``verdict``)."""
         return {
@@ -98,6 +105,7 @@ class StoredResult:
             "config_hash": self.config_hash,
             "request_id": self.request_id,
             "peer": self.peer,
+            "try": self.is_try,
             "error": self.error,
             "image_path": str(self.image_path) if self.image_path is not None else None,
             "overlay_path": str(self.overlay_path) if self.overlay_path is not None else None,
@@ -197,7 +205,7 @@ def row_values(entry: ResultEntry) -> tuple[Any, ...]:
         str(entry.inspection),
         str(entry.camera),
         bool(entry.passed),
-        data_json(entry.data),
+        data_json(tries.marked_data(str(entry.peer), int(entry.request_id), entry.data)),
         float(entry.duration_ms),
         str(entry.config_hash),
         int(entry.request_id),

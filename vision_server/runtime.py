@@ -22,6 +22,7 @@ from pathlib import Path
 from .cameras import Camera, CameraSettings, make_camera
 from .catalog import Catalog
 from .config import CellConfig, ConfigError, load_config
+from .config_changes import NOTHING_CHANGED, describe_changes
 from .configfile import read_document
 from .results_open import check_result_store, open_result_store
 from .results_store import ResultLogError, ResultStore
@@ -133,20 +134,26 @@ class CellRuntime:
         on it finish with its cameras, which are closed after the last of them if the new
         catalog does not keep them. Never waits for a camera to close.
 
-        The catalog's ``notes`` name the sections whose changes wait for a restart, compared
-        with what the process started with (so a second reload still says so).
+        The catalog's ``notes`` say what the reload changed (inspections and cameras changed,
+        added, removed: vision_server.config_changes), then the sections whose changes wait
+        for a restart, compared with what the process started with (so a second reload
+        still says so); "no inspection or camera changed" when there is nothing to say.
         """
         with self._lock:
             if self._closed:
                 raise RuntimeError("the cell runtime is closed")
             config = load_config(self.path)
-            notes = tuple(
+            # What the reload applies (also hand edits made since the last one), then what
+            # waits for a restart; a reload that changes nothing says so.
+            changes = describe_changes(self.config, config)
+            restart = tuple(
                 f"{self.path.name}: changes under '{section}:' take effect after a restart"
                 for section in ("server", "results", "line")
                 if getattr(config, section) != getattr(self._started, section)
             )
-            for note in notes:
+            for note in restart:
                 log.warning("%s", note)
+            notes = changes + restart or (NOTHING_CHANGED,)
             previous = self.catalog
             self.catalog = self._build(config, notes)
             self.config = config

@@ -213,6 +213,10 @@ def test_the_statistics_show_count_pass_rate_and_timing_over_the_window(
     for n in range(10):
         seed(server, "station_qr", age_s=60 + n, passed=n < 7, peer="r:1", duration_ms=n + 1.0)
     seed(server, "station_qr", age_s=7200, passed=False, peer="r:1", duration_ms=50.0)
+    # magnet_check: one result ("1 result", not "1 results"), and a console try that no
+    # statistic counts (docs/console.md, "Tries in the result log").
+    seed(server, "magnet_check", age_s=30, passed=True, peer="r:1")
+    tried = seed(server, "magnet_check", age_s=20, passed=True, peer="console 127.0.0.1:1")
 
     sign_in(driver, server, "results")
     Select(driver.find_element(By.ID, "stats-window")).select_by_value("3600")
@@ -227,6 +231,20 @@ def test_the_statistics_show_count_pass_rate_and_timing_over_the_window(
     assert "p99 9.91 ms" in text
     bars = driver.find_elements(By.CSS_SELECTOR, ".stat-card[data-inspection=station_qr] svg")
     assert len(bars) == 2  # pass rate per period, p50/p99 per period
+    one = driver.find_element(By.CSS_SELECTOR, ".stat-card[data-inspection=magnet_check]").text
+    assert "1 result\n" in one + "\n", one
+    assert "1 results" not in one, one
+
+    # The try's row says it is one; the production row beside it does not.
+    def chips(d: WebDriver) -> list[int]:
+        return list(
+            d.execute_script(
+                "return [...document.querySelectorAll('#results-body tr')]"
+                ".filter((r) => r.querySelector('.try-chip')).map((r) => Number(r.dataset.id));"
+            )
+        )
+
+    wait_for(driver, lambda d: chips(d) == [tried], "the try's chip")
     Select(driver.find_element(By.ID, "stats-window")).select_by_value("28800")
     text = wait_for(driver, lambda d: "11 results" in (t := card_text(d)) and t, "8 hour stats")
     assert "63.6 %" in text  # 7 of 11

@@ -176,6 +176,19 @@ class Camera(ABC):
         cell's work. Such a camera's view shows the last frame an inspection took."""
         return False
 
+    @property
+    def sequence(self) -> bool:
+        """True when every grab takes the next frame of a fixed sequence (a folder replay): a
+        frame read only to be looked at would be skipped by the cell's next inspection. Such a
+        camera's view also shows the last frame an inspection took."""
+        return False
+
+    @property
+    def view_takes_frames(self) -> bool:
+        """Whether a viewer (the console) may grab frames of its own: not from a triggered
+        camera nor from a sequence, whose frames belong to the cell's inspections."""
+        return not (self.triggered or self.sequence)
+
     def descriptor(self) -> dict[str, Any]:
         """JSON-able description: name, source, depth, intrinsics (when known)."""
         desc: dict[str, Any] = {"name": self.name, "source": self.source, "depth": self.has_depth}

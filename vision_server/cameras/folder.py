@@ -51,6 +51,11 @@ class FolderCamera(Camera):
 
     source = "folder"
 
+    @property
+    def sequence(self) -> bool:
+        # Each grab reads the next file: a grab to look at one would skip it for the cell.
+        return True
+
     def __init__(
         self,
         name: str,

@@ -32,7 +32,6 @@ from aiohttp import BodyPartReader, web
 from aiohttp.http_exceptions import HttpProcessingError
 
 from protocol import (
-    BadImage,
     CellvisionError,
     ErrorCode,
     ImageEncoding,
@@ -40,6 +39,8 @@ from protocol import (
     ImageTooLarge,
     InvalidArgument,
 )
+from vision_server import tries
+from vision_server.config import FIXED_BY_THE_CONFIGURATION
 from vision_server.console import static_dir
 from vision_server.operator_desk import OperatorDesk
 from vision_server.results_store import ResultLogError
@@ -52,6 +53,7 @@ from vision_server.service import (
     check_images,
 )
 from vision_server.settings import SERVER_VERSION, ConsoleSettings
+from vision_server.tries import TRY_PEER_PREFIX
 
 from . import http_save
 from .http_auth import COOKIE, Sessions
@@ -59,6 +61,7 @@ from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
 from .http_operator import OperatorRoutes
 from .images import decode_payloads
+from .uploads import upload_loader
 
 log = logging.getLogger("vision_server")
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
@@ -87,7 +90,6 @@ MAX_JSON_PART = 64 * 1024
 """The largest ``request`` part of a try, bytes."""
 FORM_OVERHEAD = 64 * 1024
 """Bytes of a try's form besides the image (boundaries, the request part)."""
-TRY_PEER_PREFIX = "console "
 FRAME_TIMESTAMP_HEADER = "X-Frame-Timestamp"
 """The live view's frame.jpg header: the frame's capture time, Unix seconds."""
 SECURITY_HEADERS = {
@@ -389,6 +391,13 @@ class HttpFrontend:
                     "height": height,
                     "fps": None if request_camera else self.live.measured_fps(name, frames),
                     "view_fps": None if request_camera else self.settings.max_view_fps,
+                    # What the live image is: the camera's own frames, or (a camera whose
+                    # frames the console must not take) the last one the cell took or sent.
+                    "view": "live"
+                    if camera.view_takes_frames and not request_camera
+                    else "last_sent"
+                    if request_camera
+                    else "last_taken",
                     "frame_age_s": None
                     if newest is None
                     else round(max(time.time() - newest.timestamp, 0.0), 3),
@@ -463,25 +472,33 @@ class HttpFrontend:
             elif source == "upload":
                 if upload is None:
                     raise HttpError(400, "BAD_REQUEST", "source 'upload' needs an 'image' part")
-                images = _upload_loader(upload)
+                images = upload_loader(upload)
             elif source == "result":
                 images = self._result_loader(spec.get("result_id"))
             else:
                 raise HttpError(400, "BAD_REQUEST", "source must be 'camera', 'upload' or 'result'")
             extras: dict[str, Any] = {}
             loader = _with_extras(images, merged, extras)
-            peer = _peer(request)
-            reply = await self.service.inspect(
-                InspectRequest(
-                    name,
-                    images=loader,
-                    overlay=".png" if spec.get("overlay", True) else None,
-                    options=tuned,
-                    arrived=arrived,
-                    peer=TRY_PEER_PREFIX + peer,
-                ),
-                admission=admission,
-            )
+            # The row this try leaves in the result log is marked as a try, with its options
+            # (vision_server.tries): never a production result.
+            peer = TRY_PEER_PREFIX + _peer(request)
+            request_id = tries.next_request_id()
+            tries.announce(peer, request_id, options)
+            try:
+                reply = await self.service.inspect(
+                    InspectRequest(
+                        name,
+                        images=loader,
+                        overlay=".png" if spec.get("overlay", True) else None,
+                        options=tuned,
+                        arrived=arrived,
+                        peer=peer,
+                        request_id=request_id,
+                    ),
+                    admission=admission,
+                )
+            finally:
+                tries.withdraw(peer, request_id)
         finally:
             admission.release()
         overlay = None
@@ -538,14 +555,27 @@ class HttpFrontend:
             raise HttpError(400, "BAD_REQUEST", "the form has no 'request' part")
         return spec, upload
 
-    async def _camera_images(self, camera: str) -> Images:
-        """The camera's current frame through the service's capture (or, for a request
-        camera, the last image a robot sent)."""
+    async def _camera_images(self, camera: str) -> Images | Callable[[ImageNeeds], Images]:
+        """The camera's current frame through the service's capture; for a triggered camera
+        or a sequence (a folder replay), the frame the last inspection took: a try must not
+        take a frame the cell's next inspection would then miss."""
+        assert self.live is not None
         catalog = self.service.catalog
-        if catalog.camera(camera).source == "request":
+        source = catalog.camera(camera)
+        if source.source == "request":
             raise HttpError(
                 404, "NOT_FOUND", f"camera {camera!r} gets its images from robots; upload one"
             )
+        if not source.view_takes_frames:
+            taken = self.live.last_taken(camera)
+            if taken is None:
+                raise HttpError(
+                    404,
+                    "NOT_FOUND",
+                    f"camera {camera!r} ({source.source}): the console takes no frame of it and "
+                    "no inspection has taken one yet; upload an image",
+                )
+            return taken
         reply = await self.service.capture(CaptureRequest(camera))
         return Images(reply.frames[0].color)
 
@@ -576,6 +606,7 @@ class HttpFrontend:
         if not self.settings.allow_save:
             raise HttpError(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
         async with self._save_lock:
+            served = self._all_written()
             old, backup = await asyncio.to_thread(_save_file, path, name, options)
             try:
                 catalog = await self.service.reload()
@@ -584,7 +615,27 @@ class HttpFrontend:
                 # open): put the old text back so that file and server agree.
                 await asyncio.to_thread(http_save.replace_file, path, old)
                 raise HttpError(422, "CONFIG_REFUSED", exc.message) from None
-        return web.json_response({"config_hash": catalog.config_hash, "backup": backup.name})
+        # The reload applies the whole file: hand edits made since the last reload go live
+        # with this save, and whoever saves is told which (not silently).
+        now = self._all_written()
+        also = [
+            other
+            for other in sorted(set(served) | set(now))
+            if other != name and served.get(other) != now.get(other)
+        ]
+        return web.json_response(
+            {
+                "config_hash": catalog.config_hash,
+                "backup": backup.name,
+                "also_changed": also,
+                "notes": list(catalog.notes),
+            }
+        )
+
+    def _all_written(self) -> dict[str, Any]:
+        """Every inspection as written in the configuration served (empty when unknown)."""
+        written = getattr(self.service.catalog.tune, "written", None)
+        return dict(written) if isinstance(written, Mapping) else {}
 
     # ------------------------------------------------------------------ results
 
@@ -676,11 +727,14 @@ class HttpFrontend:
 
 
 def parameters(config: Mapping[str, Any]) -> list[dict[str, Any]]:
-    """The numeric keys of an inspection's configuration the page may tune (nested: dotted)."""
+    """The numeric keys of an inspection's configuration the page may tune (nested: dotted):
+    only keys a try's options and a save both take, never one fixed by the configuration
+    (``number``, ``output``, ...: a request cannot change them, the save refuses them)."""
     out: list[dict[str, Any]] = []
     measure = config.get("measure")
     for key, value in config.items():
-        if key in ("roi", "name", "type", "camera", "frames"):
+        # roi has its own editor; frames changes what is acquired, not what is measured.
+        if key in ("roi", "frames") or key in FIXED_BY_THE_CONFIGURATION:
             continue
         if isinstance(value, dict):
             for sub, inner in value.items():
@@ -739,6 +793,20 @@ def _save_file(path: Path, name: str, options: Mapping[str, Any]) -> tuple[bytes
     try:
         old = path.read_bytes()
         text = old.decode("utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise HttpError(500, "CONFIG_REFUSED", f"cannot read {path.name}: {exc}") from None
+    try:
+        # The file as it is now first: when a hand edit (not loaded yet) made it invalid, the
+        # refusal must say that the fault is there, not in the values being saved.
+        http_save.validate(text, path)
+    except (http_save.SaveRefused, http_save.ConfigError) as exc:
+        message = (
+            f"{path.name} is already invalid before {name!r}'s values are written (an edit "
+            f"made outside the console, not loaded yet; {name!r}'s values are not the "
+            f"invalid part): {exc}"
+        )
+        raise HttpError(422, "CONFIG_REFUSED", message) from None
+    try:
         new = http_save.edited_text(text, path.name, name, options)
         http_save.validate(new, path)
         backup = http_save.write_with_backup(path, new)
@@ -747,21 +815,6 @@ def _save_file(path: Path, name: str, options: Mapping[str, Any]) -> tuple[bytes
     except (OSError, UnicodeDecodeError) as exc:
         raise HttpError(500, "CONFIG_REFUSED", f"cannot write {path.name}: {exc}") from None
     return old, backup
-
-
-def _upload_loader(data: bytes) -> Callable[[ImageNeeds], Images]:
-    """Decodes an uploaded PNG or JPEG in a worker, with the protocol's header checks."""
-    if data.startswith(b"\x89PNG\r\n\x1a\n"):
-        encoding = ImageEncoding.PNG
-    elif data.startswith(b"\xff\xd8"):
-        encoding = ImageEncoding.JPEG
-    else:
-        raise BadImage("the uploaded file is not a PNG or JPEG image")
-
-    def load(needs: ImageNeeds) -> Images:
-        return decode_payloads([ImagePayload(encoding, 0, 0, data)], needs)
-
-    return load
 
 
 def _with_extras(
@@ -852,6 +905,7 @@ def _row_json(row: Any) -> dict[str, Any]:
         "passed": row.passed,
         "duration_ms": row.duration_ms,
         "peer": row.peer,
+        "try": row.is_try,
         "request_id": row.request_id,
         "config_hash": row.config_hash,
         "has_image": row.image_path is not None and row.image_path.is_file(),

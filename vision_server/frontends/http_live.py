@@ -4,8 +4,9 @@ Server cameras are read through the service's capture (admission, the pool, the 
 timeout), at most ``max_fps`` times per second per camera: a viewer asking sooner gets the
 cached JPEG, and viewers asking at once wait for the same capture. Request cameras show the
 last image a robot sent, and triggered cameras (a GenICam camera with a software or hardware
-trigger) the last frame an inspection took, learnt from the service's observers of results and
-encoded only when someone looks (and at most ``max_fps`` times per second).
+trigger) and sequences (a folder replay, whose every grab takes the next file) the last frame an
+inspection took, learnt from the service's observers of results and encoded only when someone
+looks (and at most ``max_fps`` times per second): looking never takes a frame of theirs.
 
 The view is best effort: its JPEG encoding (the live view's main cost, several ms a frame at
 1024x768) runs in one thread of its own at the lowest priority (niceness 19 on Linux), below
@@ -87,12 +88,18 @@ class LiveView:
             return
         if camera.source == "request":
             images = record.request.images
-        elif camera.triggered:
+        elif not camera.view_takes_frames:
             images = record.captured
         else:
             return  # a stored image run through a fixed camera's inspection is not its view
         if images is not None:
             self._sent[record.reply.camera] = _Sent(images, record.reply.inspection, time.time())
+
+    def last_taken(self, camera: str) -> Images | ImageLoader | None:
+        """The images the last inspection took from ``camera`` (or a robot sent for it), None
+        before any: what a try on a camera the console must not read runs on."""
+        sent = self._sent.get(camera)
+        return None if sent is None else sent.images
 
     def newest(self, camera: str) -> LiveFrame | None:
         """The last frame shown of ``camera`` (None before any)."""
@@ -123,9 +130,10 @@ class LiveView:
             # timer jitter: a page asking every interval gets a new frame each time.
             if cached is not None and started - cached.read_at < 0.9 * self.min_interval_s:
                 return cached
-            if camera.source == "request" or camera.triggered:
-                # Never a read of its own for a triggered camera: it would fire a trigger, or
-                # take a frame the cell's trigger line started for a robot's inspection.
+            if camera.source == "request" or not camera.view_takes_frames:
+                # Never a read of its own for a triggered camera (it would fire a trigger, or
+                # take a frame the cell's trigger line started for a robot's inspection) nor
+                # for a sequence (the robot's next inspection would skip the frame read).
                 fresh = await self._sent_frame(name, cached)
             else:
                 fresh = await self._captured(name, started)

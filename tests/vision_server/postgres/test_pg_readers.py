@@ -12,6 +12,7 @@ import sys
 import threading
 from pathlib import Path
 
+import cv2
 import numpy as np
 from console_server import Browserless
 from postgres import Cluster
@@ -75,6 +76,18 @@ def test_the_console_lists_and_shows_results_from_postgresql(
         assert len(failed) == 1
         one = browser.get(f"/api/results/{failed[0]['id']}").json()
         assert one["data"]["value"] == 50.0
+        stats = browser.get("/api/stats?inspection=bright").json()["inspections"][0]
+        assert (stats["count"], stats["pass"], stats["fail"]) == (3, 2, 1)
+        # A console try is stored as a try, with its options, and counted in no statistic
+        # (docs/console.md, "Tries in the result log"), as in the SQLite log.
+        ok, png = cv2.imencode(".png", np.full((8, 8), 90, np.uint8))
+        assert ok
+        tried = browser.try_("bright", {"source": "upload", "options": {"min": 80}}, png.tobytes())
+        assert tried.json()["verdict"] == "pass", tried.body
+        newest = browser.get("/api/results?limit=1").json()["results"][0]
+        assert newest["try"] is True
+        shown = browser.get(f"/api/results/{newest['id']}").json()
+        assert shown["data"]["try"] == {"options": {"min": 80}}
         stats = browser.get("/api/stats?inspection=bright").json()["inspections"][0]
         assert (stats["count"], stats["pass"], stats["fail"]) == (3, 2, 1)
         assert browser.get(f"/api/results/{failed[0]['id']}/image.png").status == 404

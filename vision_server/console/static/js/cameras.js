@@ -26,6 +26,9 @@ class CameraCard {
     this.fps = el("span", { class: "metric" });
     this.size = el("span", { class: "metric" });
     this.age = el("span", { class: "metric" });
+    // Cameras the console must not read (a triggered camera, a folder replay: each frame
+    // belongs to the cell's next inspection) show the last frame an inspection took; say so.
+    this.note = el("p", { class: "camera-note muted" });
     this.pauseButton = el("button", { type: "button", class: "btn", onclick: () => this.togglePause() }, "Pause");
     this.saveButton = el("button", { type: "button", class: "btn", disabled: true, onclick: () => this.save() }, "Save frame");
     this.node = el("article", { class: "card camera-card", dataset: { camera: info.name } },
@@ -34,6 +37,7 @@ class CameraCard {
         el("span", { class: "tag" }, info.source ?? "camera"),
         info.depth ? el("span", { class: "tag" }, "depth") : null),
       el("div", { class: "camera-view" }, this.image, this.placeholder),
+      this.note,
       el("div", { class: "card-foot" },
         el("div", { class: "metrics" }, this.fps, this.size, this.age),
         el("div", { class: "actions" }, this.pauseButton, this.saveButton)));
@@ -55,6 +59,9 @@ class CameraCard {
     this.size.textContent = info.width && info.height ? `${info.width} × ${info.height}` : "size —";
     this.age.textContent = typeof info.frame_age_s === "number"
       ? `frame ${formatNumber(info.frame_age_s, 2)} s old` : "";
+    this.note.textContent = info.view === "last_taken"
+      ? "Shows the last frame an inspection took: watching takes no frame of this camera." : "";
+    this.note.hidden = info.view !== "last_taken";
     if (this.poller) this.poller.intervalMs = this.intervalMs();
   }
 
@@ -70,7 +77,8 @@ class CameraCard {
     }
     if (response.status === 404) {
       this.showMessage(this.info.source === "request"
-        ? "no image yet: a robot has not sent one" : "no frame yet");
+        ? "no image yet: a robot has not sent one"
+        : this.info.view === "last_taken" ? "no frame yet: no inspection has taken one" : "no frame yet");
       return;
     }
     if (response.status === 401) {

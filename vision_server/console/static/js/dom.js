@@ -111,3 +111,8 @@ export function debounce(fn, waitMs) {
   debounced.cancel = () => clearTimeout(timer);
   return debounced;
 }
+
+/** "1 result", "0 results", "2 results": a count with the noun in the number it takes. */
+export function countText(n, one, many) {
+  return `${n} ${n === 1 ? one : many}`;
+}

@@ -305,8 +305,14 @@ export class InspectionsPage {
     byId("save-config").disabled = true;
     try {
       const saved = await api.save(name, { ...this.changes });
+      // The reload applies the whole file: say what else it changed (hand edits made since
+      // the last reload go live with this save) and the reload's own notes.
+      const also = saved.also_changed ?? [];
+      const notes = saved.notes ?? [];
       ok.textContent = `Saved and reloaded: configuration ${String(saved.config_hash).slice(0, 12)}; ` +
-        `the previous file is kept as ${saved.backup}.`;
+        `the previous file is kept as ${saved.backup}.` +
+        (also.length ? ` The reload also applied edits made outside the console to: ${also.join(", ")}.` : "") +
+        (notes.length ? ` Reload: ${notes.join("; ")}.` : "");
       this.changes = {};
       await this.load();
     } catch (exc) {

@@ -4,7 +4,7 @@
 
 import { api, ApiError } from "./api.js";
 import { lines, rateBars } from "./charts.js";
-import { byId, el, fillKeyValues, formatNumber, formatTime, replaceChildren } from "./dom.js";
+import { byId, countText, el, fillKeyValues, formatNumber, formatTime, replaceChildren } from "./dom.js";
 import { Poller } from "./poll.js";
 
 const PAGE_SIZE = 50;
@@ -136,7 +136,9 @@ export class ResultsPage {
     el("td", { class: "num" }, String(r.id)),
     el("td", {}, formatTime(r.time)),
     el("td", {}, r.inspection),
-    el("td", {}, el("span", { class: "verdict-chip", dataset: { verdict } }, verdict)),
+    el("td", {}, el("span", { class: "verdict-chip", dataset: { verdict } }, verdict),
+      // A console try is not a production result (docs/console.md): say so on its row.
+      r.try ? el("span", { class: "try-chip", title: "a console try, not counted in the statistics" }, "try") : ""),
     el("td", {}, r.camera ?? ""),
     el("td", {}, r.peer ?? ""),
     el("td", { class: "num" }, typeof r.duration_ms === "number" ? formatNumber(r.duration_ms, 3) : "—"));
@@ -219,7 +221,7 @@ export class ResultsPage {
       const rate = typeof s.pass_rate === "number" ? `${formatNumber(s.pass_rate * 100, 3)} %` : "—";
       return el("article", { class: "card stat-card", dataset: { inspection: s.name } },
         el("header", { class: "card-head" }, el("h3", {}, s.name),
-          el("span", { class: "stat-big" }, rate), el("span", { class: "muted" }, `${s.count} results`)),
+          el("span", { class: "stat-big" }, rate), el("span", { class: "muted" }, countText(s.count, "result", "results"))),
         el("div", { class: "stat-row" },
           el("span", { class: "stat-label" }, "pass rate"),
           rateBars(series.map((b) => (b.count > 0 ? b.pass_rate : null)), { label: `Pass rate of ${s.name}` })),

@@ -1,7 +1,7 @@
 // Server: identity, health, workers and queue, connections and reloads, refreshed every 2 s.
 
 import { api, ApiError } from "./api.js";
-import { byId, el, fillKeyValues, formatDuration, formatTime, replaceChildren } from "./dom.js";
+import { byId, countText, el, fillKeyValues, formatDuration, formatTime, replaceChildren } from "./dom.js";
 import { Poller } from "./poll.js";
 
 /** The status pill's text and level ("ok", "warn", "bad") from GET /api/server. */
@@ -49,7 +49,7 @@ export class ServerPage {
       ["queued", `${pool.queued ?? "—"} of ${pool.queue_depth ?? "—"} per lane`],
       ["waiting unread (backpressure)", pool.waiting_unread],
       ...(pool.lanes ?? []).map((l) => [`${l.lane} lane`,
-        `${l.threads} thread(s), ${l.admitted} of ${l.capacity} admitted, ${l.waiting} waiting, ` +
+        `${countText(l.threads, "thread", "threads")}, ${l.admitted} of ${l.capacity} admitted, ${l.waiting} waiting, ` +
         `expected wait ${l.expected_wait_ms} ms`]),
       ...Object.entries(pool.costs_ms ?? {}).map(([name, ms]) => [`cost of ${name}`, `${ms} ms`]),
       ["BUSY answers", pool.busy_count], ["requests answered", pool.answered],
