@@ -63,6 +63,9 @@ class ResultEntry:
     image: np.ndarray | None = field(default=None, repr=False, compare=False)
     error: str | None = None
     overlay: np.ndarray | None = field(default=None, repr=False, compare=False)
+    options: Mapping[str, Any] = field(default_factory=dict)
+    """The request's own parameters (SPEC §6.3) the inspection ran with; stored with a
+    console try's row (:mod:`vision_server.tries`)."""
 
 
 @dataclass(frozen=True)
@@ -205,7 +208,7 @@ def row_values(entry: ResultEntry) -> tuple[Any, ...]:
         str(entry.inspection),
         str(entry.camera),
         bool(entry.passed),
-        data_json(tries.marked_data(str(entry.peer), int(entry.request_id), entry.data)),
+        data_json(tries.marked_data(str(entry.peer), entry.options, entry.data)),
         float(entry.duration_ms),
         str(entry.config_hash),
         int(entry.request_id),

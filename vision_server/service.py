@@ -498,6 +498,7 @@ class InspectionService:
                 request_id=request.request_id,
                 peer=request.peer,
                 image=image.color,
+                options=request.options,
             )
             # The log stores the overlay beside the input it keeps (drawing costs ~0.1 ms; the
             # policy's pass/fail choice is only known after the run). Not for very large

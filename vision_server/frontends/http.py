@@ -39,7 +39,6 @@ from protocol import (
     ImageTooLarge,
     InvalidArgument,
 )
-from vision_server import tries
 from vision_server.config import FIXED_BY_THE_CONFIGURATION
 from vision_server.console import static_dir
 from vision_server.operator_desk import OperatorDesk
@@ -479,26 +478,19 @@ class HttpFrontend:
                 raise HttpError(400, "BAD_REQUEST", "source must be 'camera', 'upload' or 'result'")
             extras: dict[str, Any] = {}
             loader = _with_extras(images, merged, extras)
-            # The row this try leaves in the result log is marked as a try, with its options
-            # (vision_server.tries): never a production result.
-            peer = TRY_PEER_PREFIX + _peer(request)
-            request_id = tries.next_request_id()
-            tries.announce(peer, request_id, options)
-            try:
-                reply = await self.service.inspect(
-                    InspectRequest(
-                        name,
-                        images=loader,
-                        overlay=".png" if spec.get("overlay", True) else None,
-                        options=tuned,
-                        arrived=arrived,
-                        peer=peer,
-                        request_id=request_id,
-                    ),
-                    admission=admission,
-                )
-            finally:
-                tries.withdraw(peer, request_id)
+            # The row this try leaves in the result log is marked as a try by its peer, with
+            # its options (vision_server.tries): never a production result.
+            reply = await self.service.inspect(
+                InspectRequest(
+                    name,
+                    images=loader,
+                    overlay=".png" if spec.get("overlay", True) else None,
+                    options=tuned,
+                    arrived=arrived,
+                    peer=TRY_PEER_PREFIX + _peer(request),
+                ),
+                admission=admission,
+            )
         finally:
             admission.release()
         overlay = None
