@@ -541,7 +541,9 @@ def _results(args: argparse.Namespace) -> int:
         json_out=args.json,
         limit=args.limit,
         failed_only=args.failed,
-        console=Console(),
+        # Into a file or a pipe, Rich would assume 80 columns and cut the names and times
+        # ("inspecti…"); there the table is as wide as it needs.
+        console=Console() if sys.stdout.isatty() else Console(width=400),
     )
 
 

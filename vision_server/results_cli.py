@@ -152,7 +152,9 @@ def _table(rows: list[StoredResult], total: int, db: Path | str) -> Table:
     table.add_column("inspection")
     table.add_column("camera")
     table.add_column("verdict")
-    table.add_column("try")
+    tries = any(row.is_try for row in rows)
+    if tries:  # the column only when a console try is among the rows
+        table.add_column("try")
     table.add_column("measures")
     table.add_column("ms", justify="right")
     table.add_column("image", overflow="fold")
@@ -164,7 +166,7 @@ def _table(rows: list[StoredResult], total: int, db: Path | str) -> Table:
             Text(row.camera),
             _verdict(row),
             # A console try (its options are under "try" in the measures), not production.
-            Text("try", style="yellow") if row.is_try else Text(""),
+            *([Text("try", style="yellow") if row.is_try else Text("")] if tries else []),
             Text(_summarise(row.data)),
             f"{row.duration_ms:.1f}",
             Text(str(row.image_path) if row.image_path is not None else ""),

@@ -330,3 +330,25 @@ def test_ping_with_a_configuration_on_port_0_asks_for_the_address(
         err = " ".join(capsys.readouterr().err.split())
         assert "has server.port 0 (any free port)" in err
         assert "give --server HOST:PORT" in err
+
+
+def test_results_into_a_pipe_keep_names_and_times_whole(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Into a file or pipe Rich assumed 80 columns and cut 'inspecti…' and '2026-11-…'."""
+    import time
+
+    from vision_server.cli import main
+    from vision_server.results import ResultLog
+    from vision_server.results_store import ResultEntry
+
+    name = "bracket_plate_width_check_station_3"
+    log = ResultLog(tmp_path / "results.sqlite3")
+    data = {"width_mm": 125.2, "hole_mm": 2.83, "count": 3}
+    log.record(ResultEntry(time.time(), name, "overhead_camera", True, data, 12.3, "abc"))
+    log.close()
+    assert main(["results", "--db", str(tmp_path / "results.sqlite3")]) == 0
+    out = capsys.readouterr().out
+    assert name in out
+    assert "overhead_camera" in out
+    assert "…" not in out
