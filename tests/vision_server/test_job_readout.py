@@ -1,0 +1,206 @@
+"""What can be tested and read out of a job: a golden case's expected entry names the failed
+steps, step values and the part frame's angle; a PLC (Modbus) and a robot (line protocol) read
+a step's measurement as ``STEP.VALUE``; no reader sees a negative zero."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import shutil
+import struct
+from pathlib import Path
+
+import pytest
+from controllers import read_line
+from loopback import run
+from plc import Plc
+
+from protocol.result_view import format_number
+from vision_server.app import App
+from vision_server.config import ConfigError, load_config
+from vision_server.frontends.modbus_map import Status
+from vision_server.golden import run_case
+from vision_server.runtime import CellRuntime
+from vision_server.settings import ServerSettings
+
+ROOT = Path(__file__).resolve().parents[2]
+PLATE_CASE = ROOT / "test_inspections" / "fixtured_plate"
+PLATES = PLATE_CASE / "images"
+
+
+def plate_job() -> str:
+    """The fixtured_plate case's job entry (locate, fixture, presence, caliper), as YAML text
+    indented for ``inspections:``."""
+    text = (PLATE_CASE / "inspection.yaml").read_text(encoding="utf-8")
+    entry = text[text.index("inspection:\n") + len("inspection:\n") :]
+    lines = ["  " + line if line.strip() else line for line in entry.splitlines()]
+    return "  - " + "\n".join(lines).lstrip()
+
+
+# ----------------------------------------------------------------------------- golden
+
+
+def golden_case(tmp_path: Path, entry: str) -> Path:
+    """A case over the plate images (a pool) whose expected.yaml holds ``entry`` for
+    moved_narrow.png (a plate 74 px wide: the caliper step fails)."""
+    case = tmp_path / "case"
+    case.mkdir(parents=True)
+    inspection = (PLATE_CASE / "inspection.yaml").read_text(encoding="utf-8")
+    (case / "inspection.yaml").write_text(inspection + f"images: {PLATES}\n", encoding="utf-8")
+    (case / "expected.yaml").write_text(
+        "images:\n  moved_narrow.png:\n    verdict: fail\n" + entry, encoding="utf-8"
+    )
+    return case
+
+
+def test_a_job_golden_entry_checks_failed_steps_step_values_and_angle(tmp_path: Path) -> None:
+    right = (
+        "    failed: [gauge]\n"
+        "    angle: 0.3803\n"
+        "    steps: {gauge: {plate_width: 74.27, failed: 1, passed: false}, magnet: {value: 1.0}}\n"
+    )
+    report = run_case(golden_case(tmp_path / "right", right))
+    assert report.error is None, report.error
+    assert [(i.status, i.problems) for i in report.images] == [("pass", [])]
+
+    wrong = (
+        "    failed: [magnet]\n"
+        "    angle: -0.2\n"
+        "    tolerance_value: 0.05\n"
+        "    steps: {gauge: {plate_width: 79.0}}\n"
+    )
+    report = run_case(golden_case(tmp_path / "wrong", wrong))
+    assert report.error is None, report.error
+    (image,) = report.images
+    assert image.status == "regression"
+    assert image.problems == [
+        "angle 0.3803 rad, expected -0.2 ± 0.01 rad",
+        "failed steps: gauge; expected: magnet",
+        "gauge.plate_width 74.270, expected 79.0 ± 0.05",
+    ]
+
+
+@pytest.mark.parametrize(
+    ("entry", "message"),
+    [
+        (
+            "    value: 74.3\n",
+            "'value' is not a result of a job inspection (a job's expected entry checks: "
+            "count, features, angle, failed, steps)",
+        ),
+        (
+            "    tolerance_m: 0.1\n",
+            "unknown key (allowed here: angle, count, error, failed, features, note, steps, "
+            "tolerance_px, tolerance_rad, tolerance_value, verdict)",
+        ),
+        ("    failed: [gage]\n", "no step named 'gage' (the steps are: big_hole, near,"),
+        (
+            "    steps: {gauge: {width: 74.3}}\n",
+            "step 'gauge' has no value 'width' (it has: passed, failed, plate_width)",
+        ),
+        ("    steps: {gauge: {plate_width: wide}}\n", "gauge.plate_width is a number value"),
+    ],
+)
+def test_a_job_golden_entry_takes_exactly_what_a_job_gives(
+    tmp_path: Path, entry: str, message: str
+) -> None:
+    report = run_case(golden_case(tmp_path, entry))
+    assert report.error is not None
+    assert message in report.error
+    assert "expected.yaml" in report.error
+
+
+# ----------------------------------------------------------------------------- read-out
+
+
+def readout_cell(tmp_path: Path, fields: str) -> Path:
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    shutil.copy(PLATES / "taught.png", folder / "taught.png")
+    path = tmp_path / "cell.yaml"
+    path.write_text(
+        "server: {port: 0}\n"
+        "results: {enabled: false}\n"
+        "cameras:\n"
+        "  qc: {source: folder, path: imgs}\n"
+        "inspections:\n"
+        f"{plate_job()}\n"
+        f"    output: {{fields: {fields}, decimals: 3}}\n"
+        "line: {enabled: true, port: 0}\n"
+        "modbus: {enabled: true, port: 0, word_order: high_first}\n",
+        encoding="utf-8",
+    )
+    return path
+
+
+def test_a_plc_and_a_robot_read_a_jobs_step_values_without_a_negative_zero(
+    tmp_path: Path,
+) -> None:
+    # taught.png: the plate at its taught place, 80.4 px wide; the part frame's angle is
+    # -0.00017 rad, which rounds to a zero that must not be negative
+    path = readout_cell(tmp_path, "[failed, gauge.plate_width, magnet.value, part.angle, angle]")
+
+    async def body() -> None:
+        runtime = CellRuntime(path)
+        app = App(
+            runtime.catalog,
+            ServerSettings(port=0),
+            line=runtime.config.line,
+            modbus=runtime.config.modbus,
+        )
+        try:
+            async with app:
+                assert app.line is not None
+                reader, writer = await asyncio.open_connection("127.0.0.1", app.line.port)
+                writer.write(b"T plate_magnet\r\n")
+                answer = await read_line(reader)
+                assert answer == "OK 1 0.000 80.398 1.000 0.000 0.000"
+                writer.close()
+                assert app.modbus is not None
+                plc = await Plc(app.modbus.port, "high_first").connect()
+                result = await plc.run(1)
+                assert result.status == Status.DONE | Status.PASS
+                assert result.values[0] == 0.0
+                assert result.values[1] == pytest.approx(80.398, abs=1e-4)
+                assert result.values[2] == 1.0
+                signs = [math.copysign(1.0, v) for v in result.values[3:]]
+                assert result.values[3:] == [0.0, 0.0]
+                assert signs == [1.0, 1.0], "a negative zero reached the registers"
+                plc.close()
+        finally:
+            runtime.close()
+
+    run(body())
+
+
+def test_an_output_names_only_step_values_a_register_can_hold(tmp_path: Path) -> None:
+    (tmp_path / "a").mkdir()
+    path = readout_cell(tmp_path / "a", "[gauge.width]")
+    with pytest.raises(ConfigError) as unknown:
+        load_config(path)
+    message = str(unknown.value)
+    assert "job results have no summary value 'gauge.width'" in message
+    assert "gauge.plate_width" in message
+    assert "magnet.value" in message
+    assert "-> output -> fields[0]" in message
+
+    # a code's payload is text: said so at load, not sent as a number
+    (tmp_path / "b").mkdir()
+    text = readout_cell(tmp_path / "b", "[label.text]").read_text(encoding="utf-8")
+    label = (
+        "\n      - name: label\n        type: code\n        symbologies: [datamatrix]"
+        "\n        roi: [0, 0, 100, 100]\n    verdict:"
+    )
+    path = tmp_path / "b" / "cell.yaml"
+    path.write_text(text.replace("\n    verdict:", label, 1), encoding="utf-8")
+    with pytest.raises(ConfigError) as textual:
+        load_config(path)
+    assert "'label.text' cannot be sent: it is text" in str(textual.value)
+
+
+def test_a_value_that_rounds_to_zero_from_below_prints_without_a_sign() -> None:
+    assert format_number("steps.part.angle", -0.00017) == "0.0"
+    assert format_number("value", -1e-9) == "-1e-09"  # not zero when shown
+    assert format_number("u", -0.001) == "0.00"
+    assert format_number("angle", -0.1) == "-5.7"
+    assert struct.pack(">f", 0.0) != struct.pack(">f", -0.0)  # why the sign matters to a PLC
