@@ -629,11 +629,21 @@ def compare(expected: Expectation, got: Got) -> list[str]:
     if expected.value is not None:
         value = data.get("value")
         if value is None or abs(float(value) - expected.value) > tol.value:
-            problems.append(
-                f"value {value}, expected {expected.value} ± {tol.value} ({data.get('measure')})"
-            )
+            problems.append(_value_problem(value, expected.value, tol.value, data))
     problems += _compare_job(expected, data)
     return problems
+
+
+def _value_problem(value: Any, expected: float, tolerance: float, data: dict[str, Any]) -> str:
+    """A value out of tolerance as a person reads it: rounded, in its unit (a caliper's mm or
+    px, its first measurement's) or with what it measures (a presence's ``dark_fraction``)."""
+    measurements = data.get("measurements") or []
+    unit = measurements[0].get("unit") if measurements else data.get("units")
+    got = _readable(value, 4)
+    if unit:
+        return f"value {got} {unit}, expected {expected} ± {tolerance} {unit}"
+    measure = data.get("measure")
+    return f"value {got}, expected {expected} ± {tolerance}" + (f" ({measure})" if measure else "")
 
 
 def _compare_job(expected: Expectation, data: dict[str, Any]) -> list[str]:
@@ -676,12 +686,11 @@ def _angle_difference(a: float, b: float) -> float:
 
 
 def _readable(value: Any, places: int = 3) -> str:
-    """A measured number as a person reads it (``places`` decimals, no ``-0.000``); None:
-    'not measured'."""
+    """A measured number as a person reads it (at most ``places`` decimals, no ``-0.0``);
+    None: 'not measured'."""
     if value is None:
         return "not measured"
-    rounded = round(float(value), places)
-    return f"{rounded + 0.0:.{places}f}"
+    return repr(round(float(value), places) + 0.0)
 
 
 def pose_error(expected: Any, got: Any) -> tuple[float, float]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import re
 import shutil
 import struct
 from pathlib import Path
@@ -76,7 +77,7 @@ def test_a_job_golden_entry_checks_failed_steps_step_values_and_angle(tmp_path: 
     assert image.problems == [
         "angle 0.3803 rad, expected -0.2 ± 0.01 rad",
         "failed steps: gauge; expected: magnet",
-        "gauge.plate_width 74.270, expected 79.0 ± 0.05",
+        "gauge.plate_width 74.27, expected 79.0 ± 0.05",
     ]
 
 
@@ -204,3 +205,27 @@ def test_a_value_that_rounds_to_zero_from_below_prints_without_a_sign() -> None:
     assert format_number("u", -0.001) == "0.00"
     assert format_number("angle", -0.1) == "-5.7"
     assert struct.pack(">f", 0.0) != struct.pack(">f", -0.0)  # why the sign matters to a PLC
+
+
+# ----------------------------------------------------------------------------- caliper
+
+
+def test_a_caliper_value_out_of_tolerance_reads_rounded_and_in_its_unit(tmp_path: Path) -> None:
+    bracket = ROOT / "test_inspections" / "caliper_bracket"
+    case = tmp_path / "case"
+    case.mkdir()
+    inspection = (bracket / "inspection.yaml").read_text(encoding="utf-8")
+    (case / "inspection.yaml").write_text(
+        inspection + f"images: {bracket / 'images'}\n", encoding="utf-8"
+    )
+    # nominal.png: the bracket is 12.00 mm wide; 12.5 is out of tolerance
+    (case / "expected.yaml").write_text(
+        "images:\n  nominal.png: {verdict: pass, value: 12.5}\n", encoding="utf-8"
+    )
+    report = run_case(case)
+    assert report.error is None, report.error
+    (problem,) = report.images[0].problems
+    match = re.fullmatch(r"value (\d+\.\d+) mm, expected 12\.5 ± 0\.02 mm", problem)
+    assert match is not None, problem
+    assert len(match[1].split(".")[1]) <= 4  # 0.1 µm: what a person reads
+    assert float(match[1]) == pytest.approx(12.0, abs=0.02)
