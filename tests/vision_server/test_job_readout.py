@@ -11,6 +11,8 @@ import shutil
 import struct
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 from controllers import read_line
 from loopback import run
@@ -18,9 +20,11 @@ from plc import Plc
 
 from protocol.result_view import format_number
 from vision_server.app import App
+from vision_server.catalog import InspectionInput
 from vision_server.config import ConfigError, load_config
 from vision_server.frontends.modbus_map import Status
 from vision_server.golden import run_case
+from vision_server.inspections import JobInspection
 from vision_server.runtime import CellRuntime
 from vision_server.settings import ServerSettings
 
@@ -229,3 +233,40 @@ def test_a_caliper_value_out_of_tolerance_reads_rounded_and_in_its_unit(tmp_path
     assert match is not None, problem
     assert len(match[1].split(".")[1]) <= 4  # 0.1 µm: what a person reads
     assert float(match[1]) == pytest.approx(12.0, abs=0.02)
+
+
+# ----------------------------------------------------------------------------- rejections
+
+
+def test_a_locate_step_that_finds_nothing_says_why_in_the_result_and_legend(
+    tmp_path: Path,
+) -> None:
+    # a dark disc with 140 of its 360 degrees drawn: Hough proposes it, the edge rays see
+    # 40 % of the outline, so the candidate is rejected (score < 0.6)
+    image = np.full((120, 160), 200, np.uint8)
+    cv2.ellipse(image, (80, 60), (20, 20), 0, 0, 140, 40, -1)
+    path = tmp_path / "cell.yaml"
+    path.write_text(
+        "cameras:\n  qc: {source: request}\n"
+        "inspections:\n"
+        "  - name: holes\n    type: job\n    camera: qc\n    steps:\n"
+        "      - name: hole\n        type: locate\n        roi: [20, 10, 120, 100]\n"
+        "        method: circle\n"
+        "        circle: {min_radius_px: 15, max_radius_px: 25, polarity: dark}\n",
+        encoding="utf-8",
+    )
+    (job,) = load_config(path).inspections
+    assert isinstance(job, JobInspection)
+    outcome = job.run(InspectionInput(image), overlay=True)
+    assert not outcome.passed
+    hole = outcome.data["steps"]["hole"]
+    assert hole["count"] == 0
+    assert hole["reason"].startswith("found 0, needs 1: candidate at (79.5, 59.5) rejected: ")
+    assert "(share of the outline seen) < 0.6" in hole["reason"]
+    (rejection,) = hole["rejected"]
+    assert (rejection["u"], rejection["v"]) == pytest.approx((79.5, 59.5), abs=1.0)
+    # the legend line under the verdict carries it (cut to the image's width)
+    step = job.steps[0]
+    legend = step.run(image, {}).label
+    assert legend.startswith("0 found: found 0, needs 1: candidate at (79.5, 59.5) rejected")
+    assert outcome.overlay is not None

@@ -113,9 +113,10 @@ def _draw_step(picture: Any, row: int, name: str, outcome: Outcome) -> None:
         _draw_shape(picture, shape, colour)
     scale = max(0.4, picture.shape[1] / 2400.0)
     top = int(30 * max(0.5, picture.shape[1] / 1400.0)) + 12
+    text = _fitted(f"{name}: {outcome.label}", scale, picture.shape[1] - 20)
     cv2.putText(
         picture,
-        f"{name}: {outcome.label}".encode("ascii", "replace").decode(),
+        text,
         (10, top + int((row + 1) * 18 * scale / 0.4)),
         cv2.FONT_HERSHEY_SIMPLEX,
         scale,
@@ -123,6 +124,18 @@ def _draw_step(picture: Any, row: int, name: str, outcome: Outcome) -> None:
         1,
         cv2.LINE_AA,
     )
+
+
+def _fitted(text: str, scale: float, width_px: int) -> str:
+    """``text`` in ASCII (Hershey fonts draw nothing else), cut with "..." to ``width_px``:
+    a rejection's reason is longer than a small image is wide."""
+    text = text.encode("ascii", "replace").decode()
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    if cv2.getTextSize(text, font, scale, 1)[0][0] <= width_px:
+        return text
+    while len(text) > 4 and cv2.getTextSize(text + "...", font, scale, 1)[0][0] > width_px:
+        text = text[:-1]
+    return text + "..."
 
 
 def _draw_shape(picture: Any, shape: Shape, colour: tuple[int, int, int]) -> None:
