@@ -19,6 +19,7 @@ from loopback import run
 from plc import Plc
 
 from protocol.result_view import format_number
+from vision_server.analysis.locate import Rejection, locate_circles
 from vision_server.app import App
 from vision_server.catalog import InspectionInput
 from vision_server.config import ConfigError, load_config
@@ -78,8 +79,8 @@ def test_a_job_golden_entry_checks_failed_steps_step_values_and_angle(tmp_path: 
     assert report.error is None, report.error
     (image,) = report.images
     assert image.status == "regression"
-    assert image.problems == [
-        "angle 0.3803 rad, expected -0.2 ± 0.01 rad",
+    assert re.fullmatch(r"angle 0\.380\d rad, expected -0\.2 ± 0\.01 rad", image.problems[0])
+    assert image.problems[1:] == [
         "failed steps: gauge; expected: magnet",
         "gauge.plate_width 74.27, expected 79.0 ± 0.05",
     ]
@@ -270,3 +271,78 @@ def test_a_locate_step_that_finds_nothing_says_why_in_the_result_and_legend(
     legend = step.run(image, {}).label
     assert legend.startswith("0 found: found 0, needs 1: candidate at (79.5, 59.5) rejected")
     assert outcome.overlay is not None
+
+
+# ----------------------------------------------------------------------------- ROI edge
+
+
+def disc(centre: tuple[float, float], radius: float, blur_px: float) -> np.ndarray:
+    """A dark disc (grey 40 on 200), anti-aliased at 1/8 px, blurred by ``blur_px`` (sigma)."""
+    image = np.full((160, 200), 200, np.uint8)
+    cx, cy = (int(round(c * 8)) for c in centre)
+    cv2.circle(image, (cx, cy), int(round(radius * 8)), 40, -1, cv2.LINE_AA, shift=3)
+    return cv2.GaussianBlur(image, (0, 0), blur_px) if blur_px else image
+
+
+@pytest.mark.parametrize("blur_px", [0.0, 2.0])
+def test_a_circle_near_its_rois_edges_is_read_whole(blur_px: float) -> None:
+    # the disc's outline 2.6 px inside each side of the ROI: the edge rays' flat levels lie
+    # beyond the ROI, and the circle must keep its full score and its centre
+    image = disc((100.5, 80.5), 20.0, blur_px)
+    roi = (78, 58, 45, 45)
+    rejected: list[Rejection] = []
+    found = locate_circles(
+        image, roi=roi, radius_range=(15, 25), polarity="dark", rejected=rejected
+    )
+    assert [r.reason for r in rejected] == []
+    (circle,) = found
+    assert circle.score == pytest.approx(1.0, abs=0.05)
+    assert (circle.u, circle.v) == pytest.approx((100.5, 80.5), abs=0.05)
+
+
+def test_a_circle_centred_outside_the_roi_is_still_refused() -> None:
+    image = disc((100.5, 80.5), 20.0, 0.0)
+    # the ROI holds the disc's right half only: its centre is 3.5 px left of the ROI
+    found = locate_circles(image, roi=(104, 50, 40, 60), radius_range=(15, 25), polarity="dark")
+    assert found == []
+
+
+def test_a_fixtured_locate_step_reads_a_circle_near_its_rois_edges(tmp_path: Path) -> None:
+    # a part turned 30 degrees: a pin (its frame's origin), a mark along its x axis, and the
+    # hole 60 px along it, in an ROI of the part frame whose sides are 2.6-3 px from the
+    # hole's outline
+    c, s = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
+    pin = (40.0, 50.0)
+    hole = (pin[0] + 60.0 * c, pin[1] + 60.0 * s)
+    mark = (pin[0] + 130.0 * c, pin[1] + 130.0 * s)
+    image = np.full((160, 200), 200, np.uint8)
+    for (cx, cy), r in ((pin, 8.0), (hole, 20.0), (mark, 6.0)):
+        centre = (int(round(cx * 8)), int(round(cy * 8)))
+        cv2.circle(image, centre, int(round(r * 8)), 40, -1, cv2.LINE_AA, shift=3)
+    image = cv2.GaussianBlur(image, (0, 0), 1.0)
+    path = tmp_path / "cell.yaml"
+    path.write_text(
+        "cameras:\n  qc: {source: request}\n"
+        "inspections:\n"
+        "  - name: plate\n    type: job\n    camera: qc\n    steps:\n"
+        "      - name: pin\n        type: locate\n        roi: [20, 30, 40, 40]\n"
+        "        method: circle\n"
+        "        circle: {min_radius_px: 5, max_radius_px: 11, polarity: dark}\n"
+        "      - name: mark\n        type: locate\n        roi: [135, 95, 35, 40]\n"
+        "        method: circle\n"
+        "        circle: {min_radius_px: 4, max_radius_px: 8, polarity: dark}\n"
+        "      - name: frame\n        type: fixture\n        origin: pin\n"
+        "        x_towards: mark\n"
+        "      - name: hole\n        type: locate\n        fixture: frame\n"
+        "        roi: [37, -23, 46, 46]\n        method: circle\n"
+        "        circle: {min_radius_px: 15, max_radius_px: 25, polarity: dark}\n",
+        encoding="utf-8",
+    )
+    (job,) = load_config(path).inspections
+    assert isinstance(job, JobInspection)
+    outcome = job.run(InspectionInput(image), overlay=False)
+    assert outcome.data["steps"]["frame"]["passed"]
+    step = outcome.data["steps"]["hole"]
+    assert step["passed"], step.get("reason")
+    assert step["score"] == pytest.approx(1.0, abs=0.05)
+    assert (step["u"], step["v"]) == pytest.approx(hole, abs=0.1)

@@ -16,7 +16,7 @@ from typing import Any
 
 from ...analysis import NotFoundError
 from ...analysis.codes import read_codes
-from ...analysis.locate import Feature, Polarity, Rejection, locate
+from ...analysis.locate import Feature, Polarity, Rejection, circle_margin_px, locate
 from ...analysis.presence import measure_presence
 from ...configfile import Node, string
 from ..code import below_grade, parse_min_grade, parse_symbologies
@@ -61,7 +61,11 @@ class LocateStep(Step):
         return out
 
     def run(self, image: Image, earlier: Mapping[str, Outcome]) -> Outcome:
-        region = self.region(image, earlier)
+        margin = 0
+        if self.method == "circle":  # its rays read beyond the ROI (see locate_circles)
+            high = self.options.get("radius_range", (5.0, 200.0))[1]
+            margin = circle_margin_px(high, self.options.get("max_edge_sigma_px", 6.0))
+        region = self.region(image, earlier, margin=margin)
         kwargs: dict[str, Any] = dict(self.options)
         if self.min_score is not None:
             kwargs["min_score"] = self.min_score
