@@ -773,6 +773,8 @@ def describe_got(got: Got) -> str:
         parts.append(f"value {float(data['value']):.3f}")
     if data.get("found") is False:
         parts.append("nothing found")
+    if isinstance(data.get("failed"), list):  # a job's failed steps
+        parts.append("failed: " + (", ".join(data["failed"]) or "none"))
     return ", ".join(parts)
 
 

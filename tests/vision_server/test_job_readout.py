@@ -79,11 +79,23 @@ def test_a_job_golden_entry_checks_failed_steps_step_values_and_angle(tmp_path: 
     assert report.error is None, report.error
     (image,) = report.images
     assert image.status == "regression"
+    assert image.got == "fail, 2 found, failed: gauge"  # the table's "got" column
     assert re.fullmatch(r"angle 0\.380\d rad, expected -0\.2 ± 0\.01 rad", image.problems[0])
     assert image.problems[1:] == [
         "failed steps: gauge; expected: magnet",
         "gauge.plate_width 74.27, expected 79.0 ± 0.05",
     ]
+
+
+def test_update_measures_the_step_values_an_entry_checks_again(tmp_path: Path) -> None:
+    case = golden_case(tmp_path, "    steps: {gauge: {plate_width: 1.0}}\n    note: narrow\n")
+    report = run_case(case, update=True)
+    assert report.error is None, report.error
+    text = (case / "expected.yaml").read_text(encoding="utf-8")
+    entry = text[text.index("moved_narrow.png:") :]
+    assert re.search(r"\n    steps: \{gauge: \{plate_width: 74\.2\d+\}\}\n", entry), entry
+    assert "note: narrow" in entry
+    assert run_case(case).images[0].status == "pass"  # and it reads back
 
 
 @pytest.mark.parametrize(

@@ -60,7 +60,7 @@ class JobInspection(Configured):
             except StepSkipped as exc:
                 values: dict[str, Any] = {key: None for key in step.produces()}
                 values["passed"] = False
-                outcome = Outcome(False, values, {"reason": str(exc)}, label="skipped")
+                outcome = Outcome(False, values, {"reason": str(exc)}, label=f"skipped: {exc}")
             except AnalysisError as exc:
                 raise analysis_failed(f"{self.common.name}.{step.name}", exc) from None
             outcomes[step.name] = outcome
