@@ -5,6 +5,9 @@ a step's measurement as ``STEP.VALUE``; no reader sees a negative zero."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import io
+import json
 import math
 import re
 import shutil
@@ -22,6 +25,7 @@ from protocol.result_view import format_number
 from vision_server.analysis.locate import Rejection, locate_circles
 from vision_server.app import App
 from vision_server.catalog import InspectionInput
+from vision_server.cli import main as cli_main
 from vision_server.config import ConfigError, load_config
 from vision_server.frontends.modbus_map import Status
 from vision_server.golden import run_case
@@ -189,6 +193,21 @@ def test_a_plc_and_a_robot_read_a_jobs_step_values_without_a_negative_zero(
             runtime.close()
 
     run(body())
+
+
+def test_the_register_map_gives_a_step_values_unit_by_its_name(tmp_path: Path) -> None:
+    path = readout_cell(tmp_path, "[failed, part.angle, magnet.passed, big_hole.radius]")
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert cli_main(["modbus-map", str(path), "--json"]) == 0
+    (inspection,) = json.loads(out.getvalue())["inspections"]
+    units = {value["field"]: value["units"] for value in inspection["values"]}
+    assert units == {
+        "failed": "steps",
+        "part.angle": "rad",
+        "magnet.passed": "1/0",
+        "big_hole.radius": "px",
+    }
 
 
 def test_an_output_names_only_step_values_a_register_can_hold(tmp_path: Path) -> None:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -325,11 +325,44 @@ def step_summary_values(job: JobInspection) -> dict[str, str | None]:
     return out
 
 
+class _JobUnits(Mapping[str, str]):
+    """The units of a job's summary values: the part frame's, and a step value's by its name
+    (``u``, ``v``, ``radius``: px; ``angle``: rad; ``passed``, ``found``: 1/0). A caliper
+    measurement's unit is its step's (px or mm), which the type does not know: none."""
+
+    BASE = {"failed": "steps", "u": "px", "v": "px", "angle": "rad"}
+    BY_VALUE = {
+        "u": "px",
+        "v": "px",
+        "radius": "px",
+        "module_px": "px",
+        "angle": "rad",
+        "passed": "1/0",
+        "found": "1/0",
+        "count": "found",
+        "failed": "measurements",
+    }
+
+    def __getitem__(self, name: str) -> str:
+        if name in self.BASE:
+            return self.BASE[name]
+        _step, dot, value = name.partition(".")
+        if dot and value in self.BY_VALUE:
+            return self.BY_VALUE[value]
+        raise KeyError(name)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.BASE)
+
+    def __len__(self) -> int:
+        return len(self.BASE)
+
+
 RESULTS = ResultKind(
     ("count", "features", "angle", "failed", "steps"),
     _job_expected,
     _job_summary,
-    units={"failed": "steps", "u": "px", "v": "px", "angle": "rad"},
+    units=_JobUnits(),
 )
 """A job result: how many fixtures were made and their origins (the part's position), the
 last frame's angle, the failed steps and the step values (golden ``count``, ``features``,
