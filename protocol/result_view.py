@@ -79,7 +79,18 @@ def format_number(name: str, value: Any) -> str:
         return str(value)
     if not math.isfinite(value):
         return str(value)
-    last = name.rsplit(".", 1)[-1]
+    return _unsigned_zero(_format_float(name.rsplit(".", 1)[-1], value))
+
+
+def _unsigned_zero(text: str) -> str:
+    """``-0.0`` (a value that rounds to zero from below) as ``0.0``: a person reads the sign
+    as a direction that is not there."""
+    if text.startswith("-") and not any(c in "123456789" for c in text.split("e")[0]):
+        return text[1:]
+    return text
+
+
+def _format_float(last: str, value: float) -> str:
     if last in _PIXELS or last.endswith("_px"):
         return f"{value:.2f}"
     if last == "score" or last.endswith("_score"):

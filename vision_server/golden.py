@@ -78,6 +78,28 @@ EXPECTED_FILE = "expected.yaml"
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
 VERDICTS = ("pass", "fail", "error")
 TOLERANCE_KEYS = ("tolerance_px", "tolerance_value", "tolerance_m", "tolerance_rad")
+RESULT_NAMES = (
+    "count",
+    "features",
+    "angle",
+    "failed",
+    "steps",
+    "text",
+    "corners",
+    "camera_from_qr",
+    "value",
+)
+"""Every key an expected entry may check, of one type or another."""
+TOLERANCE_OF: dict[str, tuple[str, ...]] = {
+    "features": ("tolerance_px",),
+    "corners": ("tolerance_px",),
+    "angle": ("tolerance_rad",),
+    "steps": ("tolerance_value",),
+    "value": ("tolerance_value",),
+    "camera_from_qr": ("tolerance_m", "tolerance_rad"),
+}
+"""Which tolerance applies to which result: a tolerance that nothing of a type is compared
+with is refused for that type (it would be a setting that does nothing)."""
 # Which expectation keys each inspection type can have (besides verdict, error, tolerances):
 # declared by the type (vision_server.inspections.kinds).
 RESULT_KEYS: dict[str, tuple[str, ...]] = {
@@ -96,13 +118,20 @@ class Tolerances:
     m: float = 0.005
     rad: float = 0.01
 
-    def read(self, node: Node) -> Tolerances:
-        return Tolerances(
-            node.take("tolerance_px", non_negative, self.px),
-            node.take("tolerance_value", non_negative, self.value),
-            node.take("tolerance_m", non_negative, self.m),
-            node.take("tolerance_rad", non_negative, self.rad),
-        )
+    def read(self, node: Node, keys: Sequence[str] = TOLERANCE_KEYS) -> Tolerances:
+        """These tolerances with those of ``keys`` that ``node`` gives (only ``keys`` are
+        taken: the others are unknown keys there)."""
+        values = {"px": self.px, "value": self.value, "m": self.m, "rad": self.rad}
+        for key in keys:
+            field_name = key.removeprefix("tolerance_")
+            values[field_name] = node.take(key, non_negative, values[field_name])
+        return Tolerances(**values)
+
+
+def tolerance_keys(kind: str) -> tuple[str, ...]:
+    """The tolerances that apply to an inspection type's results, in TOLERANCE_KEYS order."""
+    wanted = {t for key in RESULT_KEYS[kind] for t in TOLERANCE_OF.get(key, ())}
+    return tuple(key for key in TOLERANCE_KEYS if key in wanted)
 
 
 @dataclass(frozen=True)
@@ -118,6 +147,12 @@ class Expectation:
     corners: tuple[tuple[float, float], ...] | None = None
     camera_from_qr: tuple[tuple[float, ...], ...] | None = None
     value: float | None = None
+    angle: float | None = None
+    """A job's last part frame's x axis, rad (the summary's ``angle``)."""
+    failed: tuple[str, ...] | None = None
+    """A job's failed steps (in any order)."""
+    steps: dict[str, dict[str, Any]] | None = None
+    """A job's step values: numbers within ``tolerance_value``, text and booleans exactly."""
     tolerances: Tolerances = Tolerances()
     raw: dict[str, Any] = field(default_factory=dict)
 
@@ -287,7 +322,7 @@ def load_case(directory: Path, *, update: bool = False) -> Case:
         )
     exp_root.source = str(expected_path)
     defaults_node = exp_root.sub("defaults")
-    tolerances = Tolerances().read(defaults_node)
+    tolerances = Tolerances().read(defaults_node, tolerance_keys(inspection.type))
     defaults_node.finish()
     expectations: dict[str, Expectation] = {}
     images_node = exp_root.sub("images")
@@ -295,7 +330,7 @@ def load_case(directory: Path, *, update: bool = False) -> Case:
         if not isinstance(key, str) or not key:
             raise images_node.error(f"image names must be strings, got {key!r}")
         node = images_node.sub(key)
-        expectations[key] = _expectation(node, key, inspection.type, tolerances)
+        expectations[key] = _expectation(node, key, inspection, tolerances)
         if skip is None and not (images_dir / key).is_file():
             raise node.error(f"no such image: {images_dir / key}")
     images_node.finish()
@@ -386,30 +421,98 @@ def _matrix(value: Any) -> tuple[tuple[float, ...], ...]:
     return tuple(rows)
 
 
-def _expectation(node: Node, key: str, kind: str, defaults: Tolerances) -> Expectation:
+def _expectation(node: Node, key: str, inspection: Inspection, defaults: Tolerances) -> Expectation:
+    kind = inspection.type
     allowed = RESULT_KEYS[kind]
-    for other in ("count", "features", "text", "corners", "camera_from_qr", "value"):
+    for other in RESULT_NAMES:
         if other in node and other not in allowed:
-            raise node.error(f"{other!r} is not a result of a {kind} inspection", other)
+            raise node.error(
+                f"{other!r} is not a result of a {kind} inspection (a {kind}'s expected entry "
+                f"checks: {', '.join(allowed)})",
+                other,
+            )
     verdict = node.take("verdict", one_of(*VERDICTS))
     node.take("note", string, None)
+    error = node.take("error", string, None)
+    # Only the type's own keys are taken, so that "allowed here" lists what the type checks.
+    given: dict[str, Any] = {}
+    readers: dict[str, Any] = {
+        "count": non_negative_int,
+        "features": _points(None),
+        "text": string,
+        "corners": _points(4),
+        "camera_from_qr": _matrix,
+        "value": number,
+        "angle": number,
+        "failed": _step_list(inspection),
+        "steps": _step_values(inspection),
+    }
+    for name in allowed:
+        given[name] = node.take(name, readers[name], None)
     expectation = Expectation(
         image=key,
         verdict=verdict,
-        error=node.take("error", string, None),
-        count=node.take("count", non_negative_int, None),
-        features=node.take("features", _points(None), None),
-        text=node.take("text", string, None),
-        corners=node.take("corners", _points(4), None),
-        camera_from_qr=node.take("camera_from_qr", _matrix, None),
-        value=node.take("value", number, None),
-        tolerances=defaults.read(node),
+        error=error,
+        tolerances=defaults.read(node, tolerance_keys(kind)),
         raw=dict(node.data),
+        **given,
     )
     if expectation.error is not None and verdict != "error":
         raise node.error("error is only for verdict: error", "error")
     node.finish()
     return expectation
+
+
+def _declared_steps(inspection: Inspection) -> dict[str, dict[str, str]]:
+    """A job's steps and the values each declares, with their types (none for other types)."""
+    steps = getattr(inspection, "steps", ())
+    return {step.name: dict(step.produces()) for step in steps}
+
+
+def _step_list(inspection: Inspection) -> Any:
+    declared = _declared_steps(inspection)
+
+    def convert(value: Any) -> tuple[str, ...]:
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise ValueError(f"expected a list of step names, got {value!r}")
+        for name in value:
+            if name not in declared:
+                raise ValueError(f"no step named {name!r} (the steps are: {', '.join(declared)})")
+        return tuple(value)
+
+    return convert
+
+
+def _step_values(inspection: Inspection) -> Any:
+    declared = _declared_steps(inspection)
+
+    def convert(value: Any) -> dict[str, dict[str, Any]]:
+        if not isinstance(value, dict):
+            raise ValueError(f"expected a mapping of step: {{value: expected}}, got {value!r}")
+        out: dict[str, dict[str, Any]] = {}
+        for step, values in value.items():
+            if step not in declared:
+                raise ValueError(f"no step named {step!r} (the steps are: {', '.join(declared)})")
+            if not isinstance(values, dict) or not values:
+                raise ValueError(f"step {step!r}: expected a mapping of value: expected")
+            for name, want in values.items():
+                if name not in declared[step]:
+                    offered = ", ".join(declared[step])
+                    raise ValueError(f"step {step!r} has no value {name!r} (it has: {offered})")
+                wanted_type = declared[step][name]
+                ok = want is None or (  # None: not measured
+                    isinstance(want, bool)
+                    if wanted_type == "bool"
+                    else isinstance(want, str)
+                    if wanted_type == "text"
+                    else isinstance(want, int | float) and not isinstance(want, bool)
+                )
+                if not ok:
+                    raise ValueError(f"{step}.{name} is a {wanted_type} value, got {want!r}")
+            out[str(step)] = dict(values)
+        return out
+
+    return convert
 
 
 def _leading_comments(text: str) -> list[str]:
@@ -526,10 +629,68 @@ def compare(expected: Expectation, got: Got) -> list[str]:
     if expected.value is not None:
         value = data.get("value")
         if value is None or abs(float(value) - expected.value) > tol.value:
-            problems.append(
-                f"value {value}, expected {expected.value} ± {tol.value} ({data.get('measure')})"
-            )
+            problems.append(_value_problem(value, expected.value, tol.value, data))
+    problems += _compare_job(expected, data)
     return problems
+
+
+def _value_problem(value: Any, expected: float, tolerance: float, data: dict[str, Any]) -> str:
+    """A value out of tolerance as a person reads it: rounded, in its unit (a caliper's mm or
+    px, its first measurement's) or with what it measures (a presence's ``dark_fraction``)."""
+    measurements = data.get("measurements") or []
+    unit = measurements[0].get("unit") if measurements else data.get("units")
+    got = _readable(value, 4)
+    if unit:
+        return f"value {got} {unit}, expected {expected} ± {tolerance} {unit}"
+    measure = data.get("measure")
+    return f"value {got}, expected {expected} ± {tolerance}" + (f" ({measure})" if measure else "")
+
+
+def _compare_job(expected: Expectation, data: dict[str, Any]) -> list[str]:
+    """A job's angle, failed steps and step values."""
+    problems = []
+    tol = expected.tolerances
+    if expected.angle is not None:
+        frames = data.get("features") or []
+        angle = frames[-1].get("angle") if frames else None
+        if angle is None:
+            problems.append(f"no part frame, expected angle {expected.angle} rad")
+        elif abs(_angle_difference(float(angle), expected.angle)) > tol.rad:
+            problems.append(
+                f"angle {float(angle):.4f} rad, expected {expected.angle} ± {tol.rad} rad"
+            )
+    if expected.failed is not None:
+        failed = list(data.get("failed") or [])
+        if sorted(failed) != sorted(expected.failed):
+            shown = ", ".join(failed) or "none"
+            problems.append(
+                f"failed steps: {shown}; expected: {', '.join(expected.failed) or 'none'}"
+            )
+    for step, values in (expected.steps or {}).items():
+        got = (data.get("steps") or {}).get(step, {})
+        for name, want in values.items():
+            value = got.get(name)
+            if isinstance(want, int | float) and not isinstance(want, bool):
+                if value is None or abs(float(value) - want) > tol.value:
+                    problems.append(
+                        f"{step}.{name} {_readable(value)}, expected {want} ± {tol.value}"
+                    )
+            elif value != want:
+                problems.append(f"{step}.{name} {value!r}, expected {want!r}")
+    return problems
+
+
+def _angle_difference(a: float, b: float) -> float:
+    """a - b wrapped to [-pi, pi) (rad)."""
+    return (a - b + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def _readable(value: Any, places: int = 3) -> str:
+    """A measured number as a person reads it (at most ``places`` decimals, no ``-0.0``);
+    None: 'not measured'."""
+    if value is None:
+        return "not measured"
+    return repr(round(float(value), places) + 0.0)
 
 
 def pose_error(expected: Any, got: Any) -> tuple[float, float]:
@@ -583,6 +744,12 @@ def describe_expected(e: Expectation) -> str:
         parts.append(f"t=({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m ±{e.tolerances.m} m")
     if e.value is not None:
         parts.append(f"value {e.value:.3f} ±{e.tolerances.value}")
+    if e.angle is not None:
+        parts.append(f"angle {e.angle:.4f} ±{e.tolerances.rad} rad")
+    if e.failed is not None:
+        parts.append("failed: " + (", ".join(e.failed) or "none"))
+    for step, values in (e.steps or {}).items():
+        parts += [f"{step}.{name} {want}" for name, want in values.items()]
     return ", ".join(parts)
 
 
@@ -606,6 +773,8 @@ def describe_got(got: Got) -> str:
         parts.append(f"value {float(data['value']):.3f}")
     if data.get("found") is False:
         parts.append("nothing found")
+    if isinstance(data.get("failed"), list):  # a job's failed steps
+        parts.append("failed: " + (", ".join(data["failed"]) or "none"))
     return ", ".join(parts)
 
 
@@ -714,7 +883,14 @@ def updated_entry(old: Expectation | None, got: Got, case: Case) -> dict[str, An
     if "error" in fresh:
         out["error"] = fresh["error"]
     for key in RESULT_KEYS[case.inspection.type]:
-        if key in old.raw and key in fresh:
+        if key == "steps" and key in old.raw:
+            # the same step values as before, measured again
+            steps = got.data.get("steps") or {}
+            out[key] = {
+                step: {name: _recorded(steps.get(step, {}).get(name)) for name in values}
+                for step, values in (old.steps or {}).items()
+            }
+        elif key in old.raw and key in fresh:
             out[key] = fresh[key]
     for key in ("note", *TOLERANCE_KEYS):
         if key in old.raw:
@@ -729,6 +905,13 @@ def result_entry(got: Got, kind: str) -> dict[str, Any]:
         out["error"] = got.error
         return out
     return {**out, **RESULT_KINDS[kind].expected(got.data)}
+
+
+def _recorded(value: Any) -> Any:
+    """A step value as an expected.yaml records it (numbers to 4 decimals)."""
+    if isinstance(value, float):
+        return round(value, 4) + 0.0
+    return value
 
 
 _PLAIN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_./-]*")
@@ -750,6 +933,8 @@ def _scalar(value: Any) -> str:
         return f"{value:.1f}"
     if isinstance(value, list):
         return "[" + ", ".join(_scalar(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{_scalar(k)}: {_scalar(v)}" for k, v in value.items()) + "}"
     return repr(value) if isinstance(value, float) else str(value)
 
 

@@ -231,12 +231,18 @@ def test_a_code_is_read_in_the_turned_part_frame_in_one_result_with_every_step(
     assert part["v"] == pytest.approx(140.6, abs=0.3)
     assert part["angle"] == pytest.approx(math.radians(25.0), abs=0.01)
     # what a PLC (Modbus) or a robot controller (line protocol) reads of it
-    assert RESULT_KINDS["job"].summary(data) == {
-        "failed": 0.0,
-        "u": part["u"],
-        "v": part["v"],
-        "angle": part["angle"],
-    }
+    summary = RESULT_KINDS["job"].summary(data)
+    assert list(summary)[:4] == ["failed", "u", "v", "angle"]
+    assert [summary[k] for k in ("failed", "u", "v", "angle")] == [
+        0.0,
+        part["u"],
+        part["v"],
+        part["angle"],
+    ]
+    # and each step's numbers as STEP.VALUE (a code's text is no number: not among them)
+    assert summary["label.found"] == 1.0
+    assert summary["part.angle"] == part["angle"]
+    assert "label.text" not in summary
     label = data["steps"]["label"]
     assert label["text"] == LABEL
     assert label["symbology"] == "datamatrix"

@@ -41,6 +41,7 @@ __all__ = [
     "MIN_SCALE",
     "Feature",
     "Rejection",
+    "circle_margin_px",
     "crop_roi",
     "locate",
     "locate_blobs",
@@ -1198,8 +1199,13 @@ def locate_circles(
     candidates = _hough_candidates(_hough_input(search), (r_lo, r_hi), hough_threshold, max_count)
     if len(candidates) == 0:
         return []
-    sample = search.astype(np.float64)
+    # Candidates come from the ROI, but their edges are read on the ROI and a margin around
+    # it (within the image): a circle whose centre is in the ROI and whose outline comes near
+    # its edge is then seen whole. Read on the crop alone, the rays' flat levels beyond the
+    # edge fell outside it and the circle lost its score.
+    sample, (du, dv) = _with_margin(gray, (u0, v0, *search.shape[::-1]), r_hi, max_edge_sigma_px)
     height, width = search.shape
+    image_h, image_w = gray.shape
     features: list[Feature] = []
     limit = 4 * max_count + 8
 
@@ -1213,7 +1219,7 @@ def locate_circles(
             continue
         refined = _refine_candidate(
             sample,
-            (float(cx), float(cy), float(r)),
+            (float(cx) + du, float(cy) + dv, float(r)),
             polarity=polarity,
             rays=rays,
             min_contrast=min_contrast,
@@ -1225,14 +1231,19 @@ def locate_circles(
             reject(cx, cy, r, refined)
             continue
         (fx, fy, fr), score = refined
+        fx, fy = fx - du, fy - dv  # back to the ROI's pixels
         if not r_lo <= fr <= r_hi:
             reject(cx, cy, r, f"fitted radius {fr:.1f} px outside {r_lo:g}..{r_hi:g}")
             continue
         if score < min_score:
             reject(cx, cy, r, f"score {score:.2f} (share of the outline seen) < {min_score:g}")
             continue
-        if fx - fr < -0.5 or fy - fr < -0.5 or fx + fr > width - 0.5 or fy + fr > height - 0.5:
-            reject(cx, cy, r, "the fitted circle leaves the search region")
+        if not (-0.5 <= fx <= width - 0.5 and -0.5 <= fy <= height - 0.5):
+            reject(cx, cy, r, f"the fitted centre ({u0 + fx:.1f}, {v0 + fy:.1f}) leaves the ROI")
+            continue
+        u, v = u0 + fx, v0 + fy
+        if u - fr < -0.5 or v - fr < -0.5 or u + fr > image_w - 0.5 or v + fr > image_h - 0.5:
+            reject(cx, cy, r, "the fitted circle leaves the image")
             continue
         # Within half a radius (of either) of one already taken: the same part, or a ring of
         # relief inside it (a coin's inner border), not a second part.
@@ -1247,7 +1258,7 @@ def locate_circles(
         features = _moment_centres(
             sample,
             features,
-            (u0, v0),
+            (u0 - du, v0 - dv),
             polarity=polarity,
             edge_sigma_px=edge_sigma_px,
             reject=reject,
@@ -1256,6 +1267,26 @@ def locate_circles(
     for extra in features[max_count:]:
         reject(extra.u - u0, extra.v - v0, extra.radius or 0.0, f"beyond max_count {max_count}")
     return features[:max_count]
+
+
+def circle_margin_px(max_radius: float, max_sigma: float) -> int:
+    """How far beyond an ROI (px) the edge rays of a circle centred in it may read: its
+    radius and the flat levels beyond an edge blurred up to ``max_sigma`` px."""
+    return int(math.ceil(max_radius + 6.0 * max(max_sigma, 1.0))) + 4
+
+
+def _with_margin(
+    gray: Gray, roi: tuple[int, int, int, int], max_radius: float, max_sigma: float
+) -> tuple[FloatArray, tuple[int, int]]:
+    """The ROI and a margin around it, cut to the image, as float64, and where the ROI's
+    top-left lies in it (px). The margin covers a circle of ``max_radius`` centred anywhere in
+    the ROI and the flat levels its rays read beyond an edge blurred up to ``max_sigma``."""
+    u0, v0, w, h = roi
+    margin = circle_margin_px(max_radius, max_sigma)
+    left, top = max(0, u0 - margin), max(0, v0 - margin)
+    right = min(gray.shape[1], u0 + w + margin)
+    bottom = min(gray.shape[0], v0 + h + margin)
+    return gray[top:bottom, left:right].astype(np.float64), (u0 - left, v0 - top)
 
 
 def _moment_centres(

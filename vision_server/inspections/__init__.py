@@ -30,7 +30,7 @@ from .base import Configured
 from .calibration_board import CalibrationBoardInspection, parse_calibration_board
 from .caliper import CaliperInspection, parse_caliper
 from .code import CodeInspection, parse_code
-from .job import JobInspection, parse_job
+from .job import JobInspection, parse_job, step_summary_values
 from .kinds import ResultKind
 from .locate import LocateInspection, parse_locate
 from .output import OutputFormat, parse_output
@@ -79,12 +79,21 @@ def parse_inspection(
     output_node = node.sub("output")
     camera = node.data.get("camera") if isinstance(node.data, dict) else None
     settings = cameras.get(camera) if isinstance(camera, str) else None
+    inspection = INSPECTION_TYPES[kind](node, base_dir, cameras)
+    # read after the inspection: a job's output may name its steps' values (STEP.VALUE)
+    extra = step_summary_values(inspection) if isinstance(inspection, JobInspection) else None
     output = (
-        parse_output(output_node, RESULT_KINDS[kind], kind, camera=str(camera), settings=settings)
+        parse_output(
+            output_node,
+            RESULT_KINDS[kind],
+            kind,
+            camera=str(camera),
+            settings=settings,
+            extra=extra,
+        )
         if given
         else None
     )
-    inspection = INSPECTION_TYPES[kind](node, base_dir, cameras)
     node.finish()
     if isinstance(inspection, Configured) and (number is not None or output is not None):
         common = replace(inspection.common, number=number, output=output)

@@ -76,7 +76,13 @@ class OutputFormat:
                     out.append((value if math.isfinite(value) else self.missing, places))
             else:
                 out.append((f.value(summary, self.missing), f.decimals))
-        return out
+        return [(_rounded(value, places), places) for value, places in out]
+
+
+def _rounded(value: float, places: int) -> float:
+    """``value`` to ``places`` decimals, a negative zero made positive: a controller that
+    prints it or compares its sign bit must not see ``-0.000`` for an angle of zero."""
+    return round(value, places) + 0.0
 
 
 def summary_fields(kind: ResultKind | None) -> tuple[str, ...]:
@@ -154,6 +160,7 @@ def parse_output(
     *,
     camera: str = "",
     settings: CameraSettings | None = None,
+    extra: Mapping[str, str | None] | None = None,
 ) -> OutputFormat:
     """Read an inspection's ``output:`` mapping::
 
@@ -166,7 +173,9 @@ def parse_output(
           plane_z_m: 0.02     # with frame: base, the features' height in the base frame
 
     ``camera``/``settings``: the inspection's camera, whose calibration (``intrinsics``,
-    ``mount``) ``frame: base`` needs. Raises ConfigError naming the key that is wrong (an
+    ``mount``) ``frame: base`` needs. ``extra``: the summary values this inspection has
+    besides its type's (a job's ``STEP.VALUE``), mapped to None, or to why it cannot be sent.
+    Raises ConfigError naming the key that is wrong (an
     unknown field names those there are).
     """
     available = summary_fields(kind)
@@ -192,8 +201,12 @@ def parse_output(
     fields: list[OutputField] = []
     for field_node in node.items("fields"):
         name = field_node.take("name", string)
-        if name not in available:
-            offered = ", ".join(available) or "none"
+        why_not = (extra or {}).get(name, "")
+        if why_not:
+            raise field_node.error(f"{name!r} cannot be sent: {why_not}", "name")
+        if name not in available and name not in (extra or {}):
+            own = [key for key, why in (extra or {}).items() if why is None]
+            offered = ", ".join((*available, *own)) or "none"
             raise field_node.error(
                 f"{inspection_type} results have no summary value {name!r} (there are: {offered})",
                 "name",

@@ -2,14 +2,15 @@
 in order, with ROIs that move with a fixtured part and a verdict expression over the steps'
 values.
 
-Public API: :func:`parse_job`, :class:`JobInspection`, ``RESULTS``, ``STEP_TYPES`` (the step
+Public API: :func:`parse_job`, :class:`JobInspection`, ``RESULTS``,
+:func:`step_summary_values` (the ``STEP.VALUE`` names an output may send), ``STEP_TYPES`` (the step
 registry), :func:`parse_expression` / :class:`ExpressionError` (the verdict grammar) and
 :class:`PartFrame` (the fixture frame).
 """
 
 from .expression import Expression, ExpressionError, parse_expression
 from .frame import PartFrame
-from .inspection import RESULTS, JobInspection, parse_job
+from .inspection import RESULTS, JobInspection, parse_job, step_summary_values
 from .registry import STEP_TYPES
 
 __all__ = [
@@ -21,4 +22,5 @@ __all__ = [
     "PartFrame",
     "parse_expression",
     "parse_job",
+    "step_summary_values",
 ]

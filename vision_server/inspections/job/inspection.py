@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -60,7 +60,7 @@ class JobInspection(Configured):
             except StepSkipped as exc:
                 values: dict[str, Any] = {key: None for key in step.produces()}
                 values["passed"] = False
-                outcome = Outcome(False, values, {"reason": str(exc)}, label="skipped")
+                outcome = Outcome(False, values, {"reason": str(exc)}, label=f"skipped: {exc}")
             except AnalysisError as exc:
                 raise analysis_failed(f"{self.common.name}.{step.name}", exc) from None
             outcomes[step.name] = outcome
@@ -113,9 +113,10 @@ def _draw_step(picture: Any, row: int, name: str, outcome: Outcome) -> None:
         _draw_shape(picture, shape, colour)
     scale = max(0.4, picture.shape[1] / 2400.0)
     top = int(30 * max(0.5, picture.shape[1] / 1400.0)) + 12
+    text = _fitted(f"{name}: {outcome.label}", scale, picture.shape[1] - 20)
     cv2.putText(
         picture,
-        f"{name}: {outcome.label}".encode("ascii", "replace").decode(),
+        text,
         (10, top + int((row + 1) * 18 * scale / 0.4)),
         cv2.FONT_HERSHEY_SIMPLEX,
         scale,
@@ -123,6 +124,18 @@ def _draw_step(picture: Any, row: int, name: str, outcome: Outcome) -> None:
         1,
         cv2.LINE_AA,
     )
+
+
+def _fitted(text: str, scale: float, width_px: int) -> str:
+    """``text`` in ASCII (Hershey fonts draw nothing else), cut with "..." to ``width_px``:
+    a rejection's reason is longer than a small image is wide."""
+    text = text.encode("ascii", "replace").decode()
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    if cv2.getTextSize(text, font, scale, 1)[0][0] <= width_px:
+        return text
+    while len(text) > 4 and cv2.getTextSize(text + "...", font, scale, 1)[0][0] > width_px:
+        text = text[:-1]
+    return text + "..."
 
 
 def _draw_shape(picture: Any, shape: Shape, colour: tuple[int, int, int]) -> None:
@@ -246,31 +259,114 @@ def _check_inside(node: Node, common: Common, region: ROI | None) -> None:
 
 
 def _job_expected(data: Data) -> dict[str, Any]:
-    return {
+    frames = data.get("features") or []
+    out: dict[str, Any] = {
         "count": int(data["count"]),
-        "features": points((f["u"], f["v"]) for f in data["features"]),
+        "features": points((f["u"], f["v"]) for f in frames),
     }
+    if frames and frames[-1].get("angle") is not None:
+        out["angle"] = round(float(frames[-1]["angle"]), 4) + 0.0
+    out["failed"] = list(data.get("failed") or [])
+    measured = _measured(data.get("steps") or {})
+    if measured:
+        out["steps"] = measured
+    return out
+
+
+def _measured(steps: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """What a new golden entry records of the steps: what they measure or read (a caliper's
+    measurements, a presence value, a code's text), not the positions the frames hold."""
+    out: dict[str, dict[str, Any]] = {}
+    for name, step in steps.items():
+        if step.get("type") == "caliper":
+            keys = [m["name"] for m in step.get("measurements") or []]
+        else:
+            keys = {"presence": ["value"], "code": ["text"]}.get(step.get("type"), [])
+        values = {key: step.get(key) for key in keys if step.get(key) is not None}
+        if values:
+            out[name] = {
+                k: round(v, 4) + 0.0 if isinstance(v, float) else v for k, v in values.items()
+            }
+    return out
 
 
 def _job_summary(data: Data) -> dict[str, float]:
     # the last frame made: a chain of fixtures refines the part frame step by step
     last = data["features"][-1] if data.get("features") else {}
     failed = data.get("failed")
-    return {
+    out = {
         "failed": float("nan") if failed is None else float(len(failed)),
         "u": as_number(last, "u"),
         "v": as_number(last, "v"),
         "angle": as_number(last, "angle"),
     }
+    # Each step's numbers as STEP.VALUE (a boolean as 1 or 0; not measured: NaN); an output
+    # names those it sends, checked against the chain at load (step_summary_values).
+    for step_name, step in (data.get("steps") or {}).items():
+        for key, value in step.items():
+            if value is None or isinstance(value, int | float):
+                out[f"{step_name}.{key}"] = as_number(step, key)
+    return out
+
+
+def step_summary_values(job: JobInspection) -> dict[str, str | None]:
+    """The summary values a job's ``output:`` may name besides its type's: ``STEP.VALUE`` for
+    each value its steps declare, mapped to None when it can be sent, else to why it cannot
+    (text: the line protocol and Modbus carry numbers only)."""
+    out: dict[str, str | None] = {}
+    for step in job.steps:
+        for key, value_type in step.produces().items():
+            out[f"{step.name}.{key}"] = (
+                None
+                if value_type != "text"
+                else "it is text, and the line protocol and Modbus carry numbers only "
+                "(read it from the RESULT over the TCP protocol or HTTP)"
+            )
+    return out
+
+
+class _JobUnits(Mapping[str, str]):
+    """The units of a job's summary values: the part frame's, and a step value's by its name
+    (``u``, ``v``, ``radius``: px; ``angle``: rad; ``passed``, ``found``: 1/0). A caliper
+    measurement's unit is its step's (px or mm), which the type does not know: none."""
+
+    BASE = {"failed": "steps", "u": "px", "v": "px", "angle": "rad"}
+    BY_VALUE = {
+        "u": "px",
+        "v": "px",
+        "radius": "px",
+        "module_px": "px",
+        "angle": "rad",
+        "passed": "1/0",
+        "found": "1/0",
+        "count": "found",
+        "failed": "measurements",
+    }
+
+    def __getitem__(self, name: str) -> str:
+        if name in self.BASE:
+            return self.BASE[name]
+        _step, dot, value = name.partition(".")
+        if dot and value in self.BY_VALUE:
+            return self.BY_VALUE[value]
+        raise KeyError(name)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.BASE)
+
+    def __len__(self) -> int:
+        return len(self.BASE)
 
 
 RESULTS = ResultKind(
-    ("count", "features"),
+    ("count", "features", "angle", "failed", "steps"),
     _job_expected,
     _job_summary,
-    units={"failed": "steps", "u": "px", "v": "px", "angle": "rad"},
+    units=_JobUnits(),
 )
 """A job result: how many fixtures were made and their origins (the part's position), the
-last fixture's origin and angle and the number of failed steps in the summary."""
+last frame's angle, the failed steps and the step values (golden ``count``, ``features``,
+``angle``, ``failed``, ``steps``); the last fixture's origin and angle, the number of failed
+steps and each step's numbers as ``STEP.VALUE`` in the summary."""
 
-__all__ = ["MAX_STEPS", "RESULTS", "JobInspection", "parse_job"]
+__all__ = ["MAX_STEPS", "RESULTS", "JobInspection", "parse_job", "step_summary_values"]

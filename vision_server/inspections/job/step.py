@@ -84,8 +84,11 @@ class Step:
     def run(self, image: Image, earlier: Mapping[str, Outcome]) -> Outcome:
         raise NotImplementedError
 
-    def region(self, image: Image, earlier: Mapping[str, Outcome]) -> Region:
-        """The pixels to analyse: the image ROI, or the ROI sampled in the fixture's frame."""
+    def region(self, image: Image, earlier: Mapping[str, Outcome], *, margin: int = 0) -> Region:
+        """The pixels to analyse: the image ROI, or the ROI sampled in the fixture's frame.
+        ``margin`` (px): in a fixture's frame, sample that much around the ROI too (as much
+        of it as the image holds), with ``roi`` the ROI inside the patch, for an analysis
+        that looks for features in the ROI but reads their edges beyond it."""
         if self.fixture is None:
             if self.roi is None:
                 return Region(image, None, IDENTITY, False, None)
@@ -108,6 +111,13 @@ class Step:
             raise StepSkipped(
                 f"ROI [{x}, {y}, {w}, {h}] in fixture {self.fixture!r}'s frame leaves the image"
             )
+        for m in (margin, margin // 2, margin // 4):
+            if m <= 0:
+                break
+            wide = roi_transform(made, (x - m, y - m, w + 2 * m, h + 2 * m))
+            if inside(wide, w + 2 * m, h + 2 * m, image.shape):
+                patch = sample(image, wide, w + 2 * m, h + 2 * m)
+                return Region(patch, (m, m, w, h), wide, True, corners)
         return Region(sample(image, matrix, w, h), None, matrix, True, corners)
 
 

@@ -16,7 +16,7 @@ from typing import Any
 
 from ...analysis import NotFoundError
 from ...analysis.codes import read_codes
-from ...analysis.locate import Feature, Polarity, locate
+from ...analysis.locate import Feature, Polarity, Rejection, circle_margin_px, locate
 from ...analysis.presence import measure_presence
 from ...configfile import Node, string
 from ..code import below_grade, parse_min_grade, parse_symbologies
@@ -61,10 +61,17 @@ class LocateStep(Step):
         return out
 
     def run(self, image: Image, earlier: Mapping[str, Outcome]) -> Outcome:
-        region = self.region(image, earlier)
+        margin = 0
+        if self.method == "circle":  # its rays read beyond the ROI (see locate_circles)
+            high = self.options.get("radius_range", (5.0, 200.0))[1]
+            margin = circle_margin_px(high, self.options.get("max_edge_sigma_px", 6.0))
+        region = self.region(image, earlier, margin=margin)
         kwargs: dict[str, Any] = dict(self.options)
         if self.min_score is not None:
             kwargs["min_score"] = self.min_score
+        rejected: list[Rejection] = []
+        if self.method == "circle":
+            kwargs["rejected"] = rejected
         found = locate(
             region.image, method=self.method, roi=region.roi, max_count=self.max_count, **kwargs
         )
@@ -76,6 +83,12 @@ class LocateStep(Step):
                 angle = 0.0 if self.method == "circle" else f.angle + turn
                 moved.append(Feature(float(u), float(v), angle, f.score, f.radius, f.area))
             found = moved
+            rejected = [
+                Rejection(float(u), float(v), r.radius, r.reason)
+                for r, (u, v) in zip(
+                    rejected, apply(region.to_image, [(r.u, r.v) for r in rejected]), strict=True
+                )
+            ]
         first = found[0] if found else None
         values: dict[str, Any] = {k: None for k in self.produces()}
         values.update(passed=len(found) >= self.min_count, count=len(found))
@@ -89,11 +102,38 @@ class LocateStep(Step):
             if f.radius is not None:
                 shapes.append(Shape("circle", ((f.u, f.v),), radius=f.radius))
             shapes.append(Shape("marker", ((f.u, f.v),)))
-        detail = {
+        detail: dict[str, Any] = {
             "method": self.method,
             "features": [_feature(f) for f in found],
         }
-        return Outcome(values["passed"], values, detail, shapes, label=f"{len(found)} found")
+        label = f"{len(found)} found"
+        if self.method == "circle":
+            detail["rejected"] = [_rejection(r) for r in rejected[:MAX_STEP_REJECTED]]
+        if not values["passed"]:
+            # why, as a standalone locate's rejected list says it: a step that finds nothing
+            # must not leave the integrator with "count 0" alone
+            detail["reason"] = _why_too_few(len(found), self.min_count, rejected)
+            label = f"{len(found)} found: {detail['reason']}"
+        return Outcome(values["passed"], values, detail, shapes, label=label)
+
+
+MAX_STEP_REJECTED = 5
+"""Most rejected candidates a locate step reports (the strongest first): a job's RESULT holds
+every step, so fewer than a standalone locate's."""
+
+
+def _rejection(r: Rejection) -> dict[str, Any]:
+    return {"u": r.u, "v": r.v, "radius": r.radius, "reason": r.reason}
+
+
+def _why_too_few(found: int, needed: int, rejected: list[Rejection]) -> str:
+    """A failed locate step's reason: the count, and the strongest rejected candidate's."""
+    head = f"found {found}, needs {needed}"
+    if not rejected:
+        return head + ("" if found else ": no candidate in the ROI")
+    first = rejected[0]
+    more = f" (and {len(rejected) - 1} more rejected)" if len(rejected) > 1 else ""
+    return f"{head}: candidate at ({first.u:.1f}, {first.v:.1f}) rejected: {first.reason}{more}"
 
 
 def _feature(f: Feature) -> dict[str, Any]:
