@@ -89,6 +89,14 @@ def console_server(
 ) -> Iterator[RunningConsole]:
     extra = "".join(f"  {k}: {v}\n" for k, v in server.items())
     config = example_config(folder, token=token, extra_server=extra, drop=tuple(server))
+    with running_cell(config) as running:
+        yield running
+
+
+@contextlib.contextmanager
+def running_cell(config: Path) -> Iterator[RunningConsole]:
+    """The server (``App``, console on) of configuration file ``config``, on its own event loop
+    in a thread, as ``vision-server serve`` wires it; stopped and closed afterwards."""
     runtime = CellRuntime(config)
     loop = asyncio.new_event_loop()
     thread = threading.Thread(target=loop.run_forever, name="console-server", daemon=True)

@@ -15,24 +15,21 @@ the real server with the example cell.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import io
 import struct
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from console_server import Browserless, RunningConsole, console_server
+from console_server import Browserless, RunningConsole, console_server, running_cell
 from rich.console import Console
 
 from robot_client.client import SyncVisionClient
 from vision_server.app import App
 from vision_server.results_cli import results_command
-from vision_server.runtime import CellRuntime
 
 
 @pytest.fixture(scope="module")
@@ -123,32 +120,8 @@ def replay_cell(folder: Path) -> Iterator[App]:
         )
     config = folder / "cell.yaml"
     config.write_text(REPLAY_CELL, encoding="utf-8")
-    runtime = CellRuntime(config)
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_forever, name="replay-cell", daemon=True)
-    thread.start()
-
-    async def make() -> App:
-        return App(
-            runtime.catalog,
-            runtime.config.server,
-            results=runtime.results,
-            reloader=runtime.reload,
-            console=runtime.config.console,
-            config_path=config,
-        )
-
-    app = asyncio.run_coroutine_threadsafe(make(), loop).result(10.0)
-    try:
-        asyncio.run_coroutine_threadsafe(app.start(), loop).result(20.0)
-        yield app
-    finally:
-        with contextlib.suppress(RuntimeError):
-            asyncio.run_coroutine_threadsafe(app.stop(), loop).result(30.0)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(10.0)
-        loop.close()
-        runtime.close()
+    with running_cell(config) as running:
+        yield running.app
 
 
 def test_viewing_a_folder_camera_takes_none_of_its_frames(tmp_path: Path) -> None:
