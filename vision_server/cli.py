@@ -321,8 +321,7 @@ def _modbus_map(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(map_json(config)))
     else:
-        # A table piped to a file keeps its rows on one line each (rich's default is 80).
-        print_map(config, args.file, Console(width=None if sys.stdout.isatty() else 120))
+        print_map(config, args.file, stdout_console())
     return 0
 
 
@@ -541,9 +540,7 @@ def _results(args: argparse.Namespace) -> int:
         json_out=args.json,
         limit=args.limit,
         failed_only=args.failed,
-        # Into a file or a pipe, Rich would assume 80 columns and cut the names and times
-        # ("inspecti…"); there the table is as wide as it needs.
-        console=Console() if sys.stdout.isatty() else Console(width=400),
+        console=stdout_console(),
     )
 
 
@@ -792,6 +789,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(ExitCode.INTERRUPTED)
     except BrokenPipeError:
         return quiet_broken_pipe()
+
+
+def stdout_console() -> Console:
+    """The console for tables on stdout. Into a file or a pipe Rich assumes 80 columns and cuts
+    names and times ("inspecti…"); there a table gets the width it needs (up to 200)."""
+    return Console() if sys.stdout.isatty() else Console(width=200)
 
 
 def _broken_pipe(console: Console) -> None:
