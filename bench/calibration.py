@@ -249,7 +249,7 @@ def _corner_bias(views: int) -> tuple[float, float]:
     over ``views`` views of the noise-only sensor, against the renderer's true corners (other
     views than the check's and the evaluation's)."""
     from simulation import SimCell
-    from vision_server.analysis.qr_pose import qr_pose
+    from vision_server.analysis import qr_pose
 
     cell = SimCell(_scene(SENSORS[0]), seed=53)
     rng = np.random.default_rng(83)
@@ -297,8 +297,7 @@ def _sensor_check(
     rotation degrees."""
     from robot_client.vision_geometry import rotation_error_rad
     from simulation import SimCell
-    from vision_server.analysis.depth_registration import fit_depth_registration
-    from vision_server.analysis.qr_pose import qr_pose
+    from vision_server.analysis import fit_depth_registration, qr_pose
 
     out: dict[Sensor, dict[str, Any]] = {}
     for sensor in sensors:
@@ -367,7 +366,7 @@ def _decomposition(
     with the distance from the depth alone (``scale="depth"``) and from the printed side
     alone (``scale="side"``), and the detector's error on the code's mean image side against
     the renderer's true corners (px; negative: read short, which puts the code too far)."""
-    from vision_server.analysis.qr_pose import qr_pose
+    from vision_server.analysis import qr_pose
 
     out: dict[str, list[float]] = {
         k: [] for k in ("along", "lateral", "depth_along", "side_along", "side_px_error")

@@ -40,7 +40,7 @@ def _bar(centre: tuple[float, float], width: float, angle: float, blur: float, s
 
 
 def _edge_errors(seeds: int, blur: float) -> list[float]:
-    from vision_server.analysis.caliper import Band, find_edges
+    from vision_server.analysis import Band, find_edges
 
     errors: list[float] = []
     for seed in range(seeds):
@@ -64,9 +64,7 @@ def _edge_errors(seeds: int, blur: float) -> list[float]:
 def _mm_errors(seeds: int) -> tuple[list[float], list[float]]:
     from simulation.flat_parts import bar, disc, plane_point, render_flat_part
     from simulation.scene import camera_preset
-    from vision_server.analysis.caliper import Band
-    from vision_server.analysis.measure import CircleSpec, WidthSpec, measure
-    from vision_server.analysis.plane_units import PlaneUnits
+    from vision_server.analysis import Band, CircleSpec, PlaneUnits, WidthSpec, measure
 
     camera, _, _ = camera_preset("dmk31bf03")
     units = PlaneUnits(camera, WORKING_DISTANCE_MM)
@@ -106,8 +104,7 @@ def _mm_errors(seeds: int) -> tuple[list[float], list[float]]:
 def _timing(repeats: int) -> tuple[float, float, NDArray[np.uint8]]:
     """Median ms of a caliper (a width, a 32-ray circle, an 8-strip line) and of cv2.blur
     3x3, on one 1024x768 image."""
-    from vision_server.analysis.caliper import Band
-    from vision_server.analysis.measure import CircleSpec, LineSpec, Spec, WidthSpec, measure
+    from vision_server.analysis import Band, CircleSpec, LineSpec, Spec, WidthSpec, measure
 
     rng = np.random.default_rng(5)
     image = np.asarray(np.clip(60 + rng.normal(0, 2, (768, 1024)), 0, 255), np.uint8)

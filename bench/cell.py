@@ -8,7 +8,7 @@ printed side like the plane method) and ``station_pose_paper`` (the paper's corn
 exactly: depth only), plus for section 3 a copy of each inspection at 1024x768 and at 640x480
 (``NAME-WxH``, on cameras ``CAMERA-WxH`` whose intrinsics are scaled; a circle locate's radius
 range in pixels is scaled with them). ``load_catalog`` builds the catalog the way the server's
-command line does (:class:`vision_server.runtime.CellRuntime`) and adds the built-in
+command line does (:class:`vision_server.service.runtime.CellRuntime`) and adds the built-in
 ``brightness`` inspection.
 """
 
@@ -159,7 +159,7 @@ class CircleLocate:
 
     def run(self, image: Any, *, overlay: bool) -> Any:
         from vision_server import InspectionOutcome
-        from vision_server.analysis.locate import locate
+        from vision_server.analysis import locate
 
         found = locate(image.color, method="circle", radius_range=(60.0, 100.0), polarity="bright")
         features = [{"u": f.u, "v": f.v, "score": f.score, "radius": f.radius} for f in found]
@@ -176,7 +176,7 @@ def load_catalog(config: Path | None) -> BenchCatalog:
     if config is None:
         return BenchCatalog(builtin, "no configuration given")
     try:
-        from vision_server.runtime import CellRuntime
+        from vision_server.service import CellRuntime
 
         runtime = CellRuntime(config)
     except Exception as exc:  # noqa: BLE001 - any failure means: serve what works, say why

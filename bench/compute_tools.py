@@ -25,7 +25,7 @@ def _box_blur_ms(image: object, repeat: int) -> float:
 def add_tool_table(cfg: RunConfig, section: Section) -> None:
     """Time every tool of :mod:`.tool_scene` and add the table (and ``tool_*`` values) to
     ``section``; a tool that fails to load or raises is listed in ``section.skipped``."""
-    from vision_server.catalog import InspectionInput
+    from vision_server import InspectionInput
     from vision_server.config import load_config
 
     image = scene()

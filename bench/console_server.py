@@ -73,7 +73,7 @@ def write_config(workdir: Path, image: Any) -> Path:
 
 async def _serve(config: Path) -> None:
     from vision_server import ServerSettings, VisionServer
-    from vision_server.settings import ConsoleSettings
+    from vision_server.config import ConsoleSettings
 
     from .cell import load_catalog
 

@@ -37,8 +37,7 @@ from robot_client.commissioning.hand_eye_collect import collect_hand_eye_views
 from robot_client.devices import Devices
 from robot_client.devices.sim import SimCamera, sim_devices
 from simulation import SimCell, load_scene
-from vision_server.analysis.board import BoardSpec, detect_board
-from vision_server.analysis.errors import NotFoundError
+from vision_server.analysis import BoardSpec, NotFoundError, detect_board
 
 from .cell import require
 from .common import ROOT, Goal, RunConfig, Section, Table, fmt

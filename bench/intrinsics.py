@@ -17,7 +17,7 @@ from robot_client.commissioning import BoardView, IntrinsicsSolution, solve_intr
 from robot_client.commissioning.views import plan_tool_views
 from simulation import SimCell, load_scene
 from simulation.calibration_board import spec_from_opencv
-from vision_server.analysis.board import BoardSpec, detect_board
+from vision_server.analysis import BoardSpec, detect_board
 
 from .common import ROOT, Goal, RunConfig, Section, Table, fmt
 from .env import Env

@@ -523,7 +523,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
         f"the server (`vision_server.VisionServer`, default settings, "
         f"{cellvision.info.get('workers')} workers) and each reference in a process of its "
         "own, every one started with the malloc settings `vision-server serve` starts with "
-        "(vision_server/malloc_env.py: without them each 786 KB receive buffer was fresh "
+        "(vision_server/process/malloc.py: without them each 786 KB receive buffer was fresh "
         "pages, which slowed the floor as much as the server). "
         f"INSPECT runs `{INSPECTION}` (the built-in mean-intensity presence check) on the "
         f"tool camera's 1024x768 gray image sent raw in the request ({inspect_size} bytes; "

@@ -130,7 +130,7 @@ async def _measure(
 
 
 def run(cfg: RunConfig, env: Env) -> Section:
-    from robot_client.demo_cell import vision_server
+    from robot_client.demo.cell import vision_server
 
     repeat = cfg.n(300, 5)
     warmup = cfg.n(20, 2)

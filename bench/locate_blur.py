@@ -108,7 +108,7 @@ def _rendered_errors(
 ) -> tuple[list[float], int, list[float]]:
     """Rendered discs at one blur and contrast: centre errors (px) of the discs found, how
     many were missed, and the ms per image."""
-    from vision_server.analysis.locate import locate_circles
+    from vision_server.analysis import locate_circles
 
     errors: list[float] = []
     missed = 0
@@ -137,7 +137,7 @@ def _key(centre: str) -> str:
 
 
 def run(cfg: RunConfig, env: Env) -> Section:
-    from vision_server.analysis.locate import locate_circles
+    from vision_server.analysis import locate_circles
 
     section = Section(NAME, TITLE)
     sigmas = (0.0, 4.0) if cfg.quick else SIGMAS
@@ -403,7 +403,7 @@ def _mechanism_disc(kind: str, centre: tuple[float, float], radius: float) -> ND
 def _mechanisms(section: Section, sigmas: tuple[float, ...]) -> None:
     """Why the coins' centres move with blur: one coin-like feature at a time on a rendered
     disc (40 % contrast, no noise), the centre found at each blur against the sharp one's."""
-    from vision_server.analysis.locate import locate_circles
+    from vision_server.analysis import locate_circles
 
     centre = (80.3, 79.6)
     table = Table(

@@ -51,7 +51,7 @@ def _trial(
 
 
 def _accuracy(section: Section, cfg: RunConfig) -> dict[str, tuple[float, float]]:
-    from vision_server.analysis.locate import locate_template
+    from vision_server.analysis import locate_template
 
     seeds = cfg.n(20, 1)
     part = random_part(7)
@@ -124,7 +124,7 @@ def _accuracy(section: Section, cfg: RunConfig) -> dict[str, tuple[float, float]
 
 
 def _timing(section: Section, cfg: RunConfig) -> None:
-    from vision_server.analysis.locate import locate_blobs, locate_circles, locate_template
+    from vision_server.analysis import locate_blobs, locate_circles, locate_template
 
     part = random_part(7)
     template = part.template()

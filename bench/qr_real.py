@@ -60,8 +60,7 @@ def _zxing(gray: Any) -> list[str]:
 
 
 def _read_qr(gray: Any, *, refine: bool = True) -> list[str]:
-    from vision_server.analysis import NotFoundError
-    from vision_server.analysis.qr import read_qr
+    from vision_server.analysis import NotFoundError, read_qr
 
     try:
         return [c.text for c in read_qr(gray, refine=refine)]

@@ -76,10 +76,10 @@ class Served:
     """The real HTTP front-end over a log, in its own event loop on a thread."""
 
     def __init__(self, env: Env, db: Path) -> None:
-        from vision_server.frontends.http import HttpFrontend
+        from vision_server.config import ConsoleSettings
+        from vision_server.frontends import HttpFrontend
         from vision_server.results import ResultLog
         from vision_server.service import InspectionService
-        from vision_server.settings import ConsoleSettings
 
         self.log = ResultLog(db, store_images="none")
         self.service = InspectionService(env.catalog.catalog, results=self.log)

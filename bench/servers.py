@@ -36,7 +36,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from vision_server.malloc_env import PROCESS_ENV
+from vision_server.process import PROCESS_ENV
 
 from .common import ROOT, Skip
 

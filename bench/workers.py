@@ -171,8 +171,8 @@ def run(cfg: RunConfig, env: Env) -> Section:
         "The server runs inspections in threads (two lanes: docs/configuration.md, Overload), "
         "with OpenCV's pool set to cores ÷ workers threads (`opencv_threads`), and those named "
         "in `process_inspections` in worker processes with their images in shared memory "
-        "(vision_server/process_lane.py); the bench's servers name the ones this table's rule "
-        "chose on the development machine (bench/servers.py)."
+        "(vision_server/service/process_lane.py); the bench's servers name the ones this "
+        "table's rule chose on the development machine (bench/servers.py)."
     )
     table = Table(
         [

@@ -259,7 +259,7 @@ def _decode(payload: ImagePayload, header: ImageHeader, request_id: int) -> npt.
     try:
         decoded = cv2.imdecode(np.frombuffer(payload.data, np.uint8), flags)
     except cv2.error as exc:
-        # OpenCV's own size limits (vision_server.decoder_limits) end up here, as do its
+        # OpenCV's own size limits (vision_server.process.decoder_limits) end up here, as do its
         # decoders' hard errors.
         raise BadImage(
             f"{payload.encoding} blob of {len(payload.data)} bytes cannot be decoded: "

@@ -28,7 +28,7 @@ Robot side (the paper's device primitives → skills → tasks):
 - :mod:`robot_client.tasks`: :func:`load_task`, :class:`Task`, :class:`TaskRunner`,
   :class:`TaskReport`.
 
-The command line is ``robot-client`` (:mod:`robot_client.cli`): ping, inspections, inspect,
+The command line is ``robot-client`` (:mod:`robot_client.commands`): ping, inspections, inspect,
 skills, teach, run, task run, taught list/show.
 """
 

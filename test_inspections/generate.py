@@ -34,7 +34,7 @@ sys.path.insert(0, str(REPO))
 
 from geometry import invert_transform, transform_from_xyz_rpy  # noqa: E402
 from simulation import SimCell, scene_from_text  # noqa: E402
-from vision_server.golden import expected_yaml  # noqa: E402
+from vision_server.commands.golden import expected_yaml  # noqa: E402
 
 SCENE = REPO / "examples" / "scenes" / "grundfos_cell.yaml"
 QR_REAL = REPO.parent / "shared" / "data" / "qr_real"

@@ -201,7 +201,7 @@ def test_ping_from_the_host(running: Running) -> None:
 def test_an_inspection_from_the_host_is_logged_in_data(running: Running) -> None:
     done = _client(
         "--server", running.address, "inspect", "magnet_check", "--json",
-        module="robot_client.cli",
+        module="robot_client.commands.program",
     )  # fmt: skip
     # The simulated magnet waits beside the core, so the check runs to a FAIL verdict (exit 1).
     assert done.returncode in (0, 1), done.stderr
@@ -243,7 +243,7 @@ def test_hup_reloads_a_changed_configuration(running: Running) -> None:
     _wait_for(lambda: line in _logs(running.name), f"{line!r} in the container's log")
     done = _client(
         "--server", running.address, "inspect", "magnet_check", "--json",
-        module="robot_client.cli",
+        module="robot_client.commands.program",
     )  # fmt: skip
     assert json.loads(done.stdout)["data"]["min"] == 0.3
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from robot_client import demo
+from robot_client.demo import task as demo
 
 # The scenario, step by step: (skill, record) in the order the task runs them.
 EXPECTED_STEPS = [

@@ -25,7 +25,7 @@ from typing import Any
 
 import pytest
 
-from robot_client import demo
+from robot_client.demo import task as demo
 
 REPO = Path(__file__).resolve().parent.parent
 STARTUP_S = 180.0  # the whole task runs before the wait: generous on a shared machine

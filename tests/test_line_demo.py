@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 
-from robot_client import demo, line_demo
+from robot_client.demo import line as line_demo
+from robot_client.demo import task as demo
 
 GOAL_PICK_M = 0.5e-3
 """DESIGN.md's pick goal (the paper's was 5 mm)."""

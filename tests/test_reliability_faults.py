@@ -30,11 +30,10 @@ from robot_client import SyncVisionClient
 from robot_client.client import ReconnectPolicy, VisionClient
 from robot_client.devices.sim import sim_devices
 from robot_client.skills import FailureReason, SkillContext, default_registry, execute
-from vision_server import results as results_module
-from vision_server.builtin import builtin_catalog
 from vision_server.results import ResultLog
-from vision_server.runtime import CellRuntime
+from vision_server.results import sqlite as results_module
 from vision_server.server import ServerSettings, VisionServer
+from vision_server.service import CellRuntime, builtin_catalog
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 GRAY = np.full((48, 64), 200, np.uint8)
@@ -95,7 +94,7 @@ def test_clients_gone_in_the_middle_of_a_frame_leave_the_server_serving(
 STALLING_SERVER = """
 import asyncio, threading
 from vision_server.cameras import RequestCamera, RequestCameraSettings
-from vision_server.catalog import Catalog
+from vision_server import Catalog
 from vision_server.server import ServerSettings, VisionServer
 
 class Stall:

@@ -11,19 +11,25 @@ Public API:
   implements), :class:`InspectionInput`, :class:`InspectionOutcome`.
 - :func:`builtin_catalog`: what ``vision-server serve`` offers without a configuration file.
 
-The command line is ``vision-server`` (:mod:`vision_server.cli`).
+The command line is ``vision-server`` (:mod:`vision_server.commands.program`).
 """
 
 # First, before anything imports cv2: OpenCV reads its image-size limits when it loads.
-from . import decoder_limits
+from .process import decoder_limits
 
 decoder_limits.install_default()
 
 # The imports below load cv2, so they come after the limits (hence E402).
-from .builtin import builtin_catalog  # noqa: E402
-from .catalog import Catalog, Inspection, InspectionInput, InspectionOutcome  # noqa: E402
+from .inspections import Inspection, InspectionInput, InspectionOutcome  # noqa: E402
 from .server import ServerSettings, VisionServer  # noqa: E402
-from .service import Images, InspectionService, InspectReply, InspectRequest  # noqa: E402
+from .service import (  # noqa: E402
+    Catalog,  # noqa: E402
+    Images,
+    InspectionService,
+    InspectReply,
+    InspectRequest,
+    builtin_catalog,  # noqa: E402
+)
 
 __all__ = [
     "Catalog",

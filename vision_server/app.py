@@ -7,7 +7,8 @@ protocol, Modbus TCP (:class:`~vision_server.frontends.modbus.ModbusFrontend`, i
 then: pymodbus is an optional extra) and the web console. SIGHUP reloads through the
 service, the same path as the protocol's RELOAD (in a thread, never on the event loop).
 
-``vision-server serve`` builds one from a configuration file (:mod:`vision_server.cli`);
+``vision-server serve`` builds one from a configuration file
+(:mod:`vision_server.commands.program`);
 :class:`vision_server.server.VisionServer` is the same class under its older name.
 """
 
@@ -25,18 +26,20 @@ import cv2
 
 from protocol import CellvisionError
 
-from .catalog import Catalog
-from .frontends.http import HttpFrontend
-from .frontends.line import LineFrontend
-from .frontends.tcp import TcpFrontend
-from .listeners import Listener, ListenError
-from .operator_desk import OperatorDesk
-from .results_store import ResultStore
-from .service import InspectionService
-from .settings import ConsoleSettings, LineSettings, ModbusSettings, ServerSettings
+from .config import (
+    ConsoleSettings,
+    LineSettings,
+    Listener,
+    ListenError,
+    ModbusSettings,
+    ServerSettings,
+)
+from .frontends import HttpFrontend, LineFrontend, TcpFrontend
+from .results import ResultStore
+from .service import Catalog, InspectionService, OperatorDesk
 
 if TYPE_CHECKING:
-    from .frontends.modbus import ModbusFrontend
+    from .frontends import ModbusFrontend
 
 log = logging.getLogger("vision_server")
 
@@ -77,7 +80,7 @@ class App:
         """Modbus TCP for PLCs, when ``modbus`` enables it (needs the extra ``modbus``)."""
         if modbus is not None and modbus.enabled:
             # Imported only then: pymodbus is an optional extra.
-            from .frontends.modbus import ModbusFrontend
+            from .frontends import ModbusFrontend
 
             self.modbus = ModbusFrontend(self.service, modbus)
         # The web console (off unless enabled): its token, TLS and limits are the server's.

@@ -3,15 +3,16 @@ them keep working): :class:`VisionServer` is :class:`vision_server.app.App` (the
 TCP front-end), :class:`ServerSettings` the configuration's ``server:`` section.
 
 The parts live in :mod:`vision_server.service` (the runtime), :mod:`vision_server.frontends.tcp`
-(the protocol over TCP), :mod:`vision_server.app` (the wiring) and :mod:`vision_server.settings`.
+(the protocol over TCP), :mod:`vision_server.app` (the wiring) and
+:mod:`vision_server.config.settings`.
 """
 
 from __future__ import annotations
 
 from .app import App
-from .frontends.tcp import DEFAULT_MAX_FRAME_BYTES, REFUSE_HELLO_TIMEOUT_S
+from .config import SERVER_VERSION, ServerSettings
+from .frontends import DEFAULT_MAX_FRAME_BYTES, REFUSE_HELLO_TIMEOUT_S
 from .service import InspectionRecord
-from .settings import SERVER_VERSION, ServerSettings
 
 __version__ = SERVER_VERSION
 VisionServer = App

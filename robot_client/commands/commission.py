@@ -32,14 +32,14 @@ from rich.table import Table
 from protocol import CellvisionError, Reload, Reloaded
 from protocol.cli import ExitCode
 
-from .address import endpoint_from_args, ssl_context
-from .cli_skills import _device_options, _devices
-from .client import ReconnectPolicy, VisionClient
-from .commissioning import IntrinsicsSolution, solve_intrinsics
-from .commissioning.collect import Collected, collect_fixed_views, collect_tool_views
-from .commissioning.config_file import file_hash, served_mismatch, write_intrinsics
-from .commissioning.coverage import Coverage
-from .devices import Devices
+from ..address import endpoint_from_args, ssl_context
+from ..client import ReconnectPolicy, VisionClient
+from ..commissioning import IntrinsicsSolution, solve_intrinsics
+from ..commissioning.collect import Collected, collect_fixed_views, collect_tool_views
+from ..commissioning.config_file import file_hash, served_mismatch, write_intrinsics
+from ..commissioning.coverage import Coverage
+from ..devices import Devices
+from .skills import _device_options, _devices
 
 __all__ = ["add_commission_commands", "server_camera"]
 

@@ -37,12 +37,12 @@ from rich.table import Table
 from geometry import CameraIntrinsics, xyz_rpy_from_transform
 from protocol.cli import ExitCode
 
-from .cli_commission import server_camera
-from .cli_skills import _device_options, _devices, _store, _store_options
-from .commissioning import HandEyeResult, solve_hand_eye
-from .commissioning.hand_eye_collect import HandEyeCollected, collect_hand_eye_views
-from .commissioning.hand_eye_noise import DEFAULT_REPEATABILITY, Repeatability
-from .skills.camera_mounts import _intrinsics_from_yaml, hand_eye_record
+from ..commissioning import HandEyeResult, solve_hand_eye
+from ..commissioning.hand_eye_collect import HandEyeCollected, collect_hand_eye_views
+from ..commissioning.hand_eye_noise import DEFAULT_REPEATABILITY, Repeatability
+from ..skills.camera_mounts import _intrinsics_from_yaml, hand_eye_record
+from .commission import server_camera
+from .skills import _device_options, _devices, _store, _store_options
 
 __all__ = ["add_hand_eye_command"]
 

@@ -43,14 +43,14 @@ from protocol.image_files import (
 )
 from protocol.result_view import result_json, result_view
 
-from .address import add_connection_options, endpoint_from_args, ssl_context
-from .cli_commission import add_commission_commands
-from .cli_hand_eye import add_hand_eye_command
-from .cli_sensor_check import add_sensor_check_command
-from .cli_skills import add_skill_commands
-from .client import ReconnectPolicy, VisionClient, overlay_image
-from .devices import DeviceError
-from .errors import ClientError
+from ..address import add_connection_options, endpoint_from_args, ssl_context
+from ..client import ReconnectPolicy, VisionClient, overlay_image
+from ..devices import DeviceError
+from ..errors import ClientError
+from .commission import add_commission_commands
+from .hand_eye import add_hand_eye_command
+from .sensor_check import add_sensor_check_command
+from .skills import add_skill_commands
 
 Command = Callable[[argparse.Namespace, VisionClient, Console], Awaitable[int]]
 

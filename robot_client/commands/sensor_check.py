@@ -23,8 +23,8 @@ from rich.markup import escape
 from geometry import transform_from_xyz_rpy
 from protocol.cli import ExitCode
 
-from .cli_skills import _device_options, _devices
-from .commissioning.sensor_check import SensorCheck, check_sensor
+from ..commissioning.sensor_check import SensorCheck, check_sensor
+from .skills import _device_options, _devices
 
 __all__ = ["add_sensor_check_command"]
 

@@ -28,16 +28,16 @@ from rich.table import Table
 from protocol.cli import ExitCode
 from yamlfile import read_document
 
-from .address import endpoint_from_args, ssl_context
-from .devices import Devices
-from .devices.vision import LazyVision
-from .operator import DEFAULT_DEADLINE_S, ConsoleOperator, task_operator
-from .skills import Outcome, SkillContext, default_registry, execute
-from .skills import Progress as SkillProgress
-from .skills.world import WorldModel
-from .tasks import OperatorDecision, Step, StepReport, TaskRunner, check_task, load_task
-from .teach_check import check_inspection_names
-from .teach_store import TeachStore
+from ..address import endpoint_from_args, ssl_context
+from ..devices import Devices
+from ..devices.vision import LazyVision
+from ..operator import DEFAULT_DEADLINE_S, ConsoleOperator, task_operator
+from ..skills import Outcome, SkillContext, default_registry, execute
+from ..skills import Progress as SkillProgress
+from ..skills.world import WorldModel
+from ..tasks import OperatorDecision, Step, StepReport, TaskRunner, check_task, load_task
+from ..teach_check import check_inspection_names
+from ..teach_store import TeachStore
 
 __all__ = ["add_skill_commands"]
 
@@ -76,10 +76,10 @@ def _devices(args: argparse.Namespace) -> Devices:
     if args.backend == "ur":
         if not args.robot_host:
             raise ValueError("--backend ur needs --robot-host HOST")
-        from .devices.ur import connect_ur
+        from ..devices.ur import connect_ur
 
         return connect_ur(args.robot_host, vision=vision)
-    from .devices.sim import sim_devices
+    from ..devices.sim import sim_devices
 
     state = args.state_file or os.environ.get(SIM_STATE_ENV) or DEFAULT_SIM_STATE
     return sim_devices(

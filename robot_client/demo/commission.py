@@ -32,13 +32,13 @@ from simulation import SimCell
 from simulation.calibration_board import CalibrationBoardSpec
 from simulation.scene import Scene
 
-from .commissioning import HandEyeResult, solve_hand_eye, solve_intrinsics
-from .commissioning.collect import collect_tool_views
-from .commissioning.hand_eye_collect import collect_hand_eye_views
-from .devices import Devices
-from .devices.sim import SimCamera
-from .skills.camera_mounts import hand_eye_record
-from .teach_store import TeachStore
+from ..commissioning import HandEyeResult, solve_hand_eye, solve_intrinsics
+from ..commissioning.collect import collect_tool_views
+from ..commissioning.hand_eye_collect import collect_hand_eye_views
+from ..devices import Devices
+from ..devices.sim import SimCamera
+from ..skills.camera_mounts import hand_eye_record
+from ..teach_store import TeachStore
 
 __all__ = [
     "APPROXIMATE",

@@ -33,8 +33,8 @@ from geometry import (
 )
 from simulation import SimCell
 
-from .controllers.urscript import pose_to_str, read_line, socket_read_ascii_float, ur_pose
-from .demo_cell import grasp_error_m, vision_server
+from ..controllers.urscript import pose_to_str, read_line, socket_read_ascii_float, ur_pose
+from .cell import grasp_error_m, vision_server
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE = REPO / "examples" / "scenes" / "grundfos_cell.yaml"

@@ -5,7 +5,7 @@
 2. Builds the simulated cell on the robot side (the writer of the world-state file that the
    server's ``qc`` camera renders), with a ChArUco board on a stand, docks the robot with a
    random error, commissions the tool camera, which the robot program knows only from its
-   data sheet and drawing (intrinsics, then hand-eye: :mod:`robot_client.demo_commission`),
+   data sheet and drawing (intrinsics, then hand-eye: :mod:`robot_client.demo.commission`),
    and runs the task
    ``examples/robot/demo_task.yaml`` with the records in ``examples/robot/taught.yaml`` (a
    copy, with the commissioned ``hand_eye/tool_camera`` added):
@@ -55,22 +55,22 @@ from rich.table import Table
 from geometry import invert_transform, make_transform
 from simulation import BOARD_FROM_QR, SimCell, load_scene
 
-from .client import SyncVisionClient, overlay_image
-from .demo_cell import DemoServer, grasp_error_m, vision_server
-from .demo_commission import (
+from ..client import SyncVisionClient, overlay_image
+from ..devices import Clock
+from ..devices.sim import sim_devices
+from ..skills import Progress as SkillProgress
+from ..skills import SkillContext, SkillRegistry, default_registry
+from ..tasks import Group, StepReport, Task, TaskReport, TaskRunner, load_task
+from ..teach_store import TeachStore
+from ..vision_geometry import rotation_error_rad
+from .cell import DemoServer, grasp_error_m, vision_server
+from .commission import (
     BOARD_INSPECTION,
     Commissioned,
     commission_tool_camera,
     uncommissioned_camera,
     with_board,
 )
-from .devices import Clock
-from .devices.sim import sim_devices
-from .skills import Progress as SkillProgress
-from .skills import SkillContext, SkillRegistry, default_registry
-from .tasks import Group, StepReport, Task, TaskReport, TaskRunner, load_task
-from .teach_store import TeachStore
-from .vision_geometry import rotation_error_rad
 
 __all__ = ["Check", "DemoResult", "main", "run_demo"]
 
@@ -646,12 +646,12 @@ def main(argv: list[str] | None = None) -> int:
         choices=("skills", "line"),
         default="skills",
         help="line: a robot controller with no PC picks the caps through the line protocol "
-        "alone (URScript's rules), receiving base-frame poses (robot_client/line_demo.py)",
+        "alone (URScript's rules), receiving base-frame poses (robot_client/demo/line.py)",
     )
     args = parser.parse_args(argv)
     console = Console()
     if args.via == "line":
-        from .line_demo import run_line_demo
+        from .line import run_line_demo
 
         console.print("[bold]cellvision demo[/]: the pick through the line protocol alone")
         return 0 if run_line_demo(args.output, console=console).ok else 1

@@ -12,7 +12,7 @@ import pytest
 from bench.common import RunConfig, Section
 from bench.compute_tools import add_tool_table
 from bench.tool_scene import BIG_HOLE, MAGNET, SIZE, TOOLS, scene, write_config
-from vision_server.catalog import InspectionInput
+from vision_server import InspectionInput
 from vision_server.config import load_config
 
 

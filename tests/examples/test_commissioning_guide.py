@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from vision_server.cameras.settings import SimCameraSettings
+from vision_server.cameras import SimCameraSettings
 from vision_server.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]

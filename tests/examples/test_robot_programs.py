@@ -28,9 +28,9 @@ from controllers import (
 from loopback import run
 
 from vision_server.app import App
+from vision_server.config import ServerSettings
 from vision_server.frontends.line import answerable
-from vision_server.runtime import CellRuntime
-from vision_server.settings import ServerSettings
+from vision_server.service import CellRuntime
 
 ROBOTS = Path(__file__).resolve().parents[2] / "examples" / "robots"
 CALL = re.compile(

@@ -19,12 +19,12 @@ from robot_client.controllers.urscript import (
     socket_read_ascii_float,
     ur_pose,
 )
-from robot_client.demo_cell import grasp_error_m
-from robot_client.line_demo import SCENE, line_config
+from robot_client.demo.cell import grasp_error_m
+from robot_client.demo.line import SCENE, line_config
 from simulation import SimCell
 from vision_server.app import App
-from vision_server.runtime import CellRuntime
-from vision_server.settings import ServerSettings
+from vision_server.config import ServerSettings
+from vision_server.service import CellRuntime
 
 SCRIPT = Path(__file__).resolve().parents[2] / "examples" / "robots" / "ur" / "vision_pick.script"
 NUMBER = r"-?\d+(?:\.\d*)?"

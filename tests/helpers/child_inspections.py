@@ -11,7 +11,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from vision_server.catalog import InspectionInput, InspectionOutcome
+from vision_server import InspectionInput, InspectionOutcome
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent.parent
 LISTENING = re.compile(r"vision-server listening on (\S+):(\d+)\n")
 TOOLS = {
     "vision-server": [sys.executable, "-m", "vision_server"],
-    "robot-client": [sys.executable, "-m", "robot_client.cli"],
+    "robot-client": [sys.executable, "-m", "robot_client.commands.program"],
 }
 INSPECTIONS = (
     "cameras: {tool: {source: request}}\n"

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from vision_server.app import App
-from vision_server.runtime import CellRuntime
+from vision_server.service import CellRuntime
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = REPO_ROOT / "examples" / "cell.yaml"

@@ -25,8 +25,8 @@ import numpy as np
 from protocol import ImageRole, Result
 from robot_client import VisionClient
 from robot_client.client import overlay_image
+from vision_server import Catalog, InspectionInput, InspectionOutcome
 from vision_server.cameras import RequestCamera, RequestCameraSettings
-from vision_server.catalog import Catalog, InspectionInput, InspectionOutcome
 from vision_server.server import ServerSettings, VisionServer
 from vision_server.service import InspectionRecord
 

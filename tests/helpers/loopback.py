@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from robot_client import VisionClient
-from vision_server.builtin import builtin_catalog
-from vision_server.catalog import Catalog, InspectionInput, InspectionOutcome
+from vision_server import Catalog, InspectionInput, InspectionOutcome
 from vision_server.results import ResultLog
 from vision_server.server import ServerSettings, VisionServer
+from vision_server.service import builtin_catalog
 
 T = TypeVar("T")
 

@@ -44,9 +44,9 @@ from protocol.conformance import CHECKS, CheckResult, Target, run_checks
 from protocol.connection import TRANSITIONS, Connection, Role, State
 from protocol.errors import ErrorCode, NotAuthenticated
 from protocol.frames import Header
-from vision_server.catalog import Catalog
-from vision_server.frontends.tcp import TcpFrontend
-from vision_server.operator_desk import OperatorDesk
+from vision_server import Catalog
+from vision_server.frontends import TcpFrontend
+from vision_server.service import OperatorDesk
 
 T = MessageType
 

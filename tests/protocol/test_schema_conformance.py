@@ -17,9 +17,9 @@ from protocol import schema
 from protocol.conformance import Target, run_checks
 from robot_client import SyncVisionClient
 from robot_client.devices.vision import intrinsics_from_dict
+from vision_server import Catalog, InspectionInput, InspectionOutcome
 from vision_server.cameras import RequestCamera, RequestCameraSettings
-from vision_server.catalog import Catalog, InspectionInput, InspectionOutcome
-from vision_server.runtime import CellRuntime
+from vision_server.service import CellRuntime
 
 DISTORTION = [-0.1, 0.02, 0.001, -0.002, 0.003]
 CELL = f"""\

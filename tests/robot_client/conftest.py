@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from loopback import server_in_thread
 
-from vision_server.runtime import CellRuntime
+from vision_server.service import CellRuntime
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE_CONFIG = ROOT / "examples" / "cell.yaml"

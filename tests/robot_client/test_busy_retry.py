@@ -20,10 +20,10 @@ from loopback import Gate, client_for, run, server_in_thread, wait_until
 from protocol import Busy
 from robot_client import SyncVisionClient, VisionClient
 from robot_client.client import BUSY_BACKOFF_INITIAL_S, busy_wait_s
-from vision_server.builtin import MeanIntensityPresence
+from vision_server import Catalog
 from vision_server.cameras import RequestCamera, RequestCameraSettings
-from vision_server.catalog import Catalog
 from vision_server.server import VisionServer
+from vision_server.service.builtin import MeanIntensityPresence
 
 IMAGE = np.full((48, 64), 200, np.uint8)
 

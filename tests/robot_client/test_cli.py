@@ -13,7 +13,7 @@ import pytest
 from loopback import server_in_thread
 
 from robot_client.address import ENV_VAR
-from robot_client.cli import main
+from robot_client.commands.program import main
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -115,7 +115,15 @@ def test_auth_token(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
 
 def test_as_a_process(address: str) -> None:
     done = subprocess.run(
-        [sys.executable, "-m", "robot_client.cli", "--server", address, "inspections", "--json"],
+        [
+            sys.executable,
+            "-m",
+            "robot_client.commands.program",
+            "--server",
+            address,
+            "inspections",
+            "--json",
+        ],
         cwd=REPO_ROOT,
         capture_output=True,
         text=True,

@@ -350,7 +350,7 @@ def test_the_server_camera_rule() -> None:
     --fixed is the inspection's camera; --camera ROBOT is ROBOT or ROBOT without _camera."""
     import argparse
 
-    from robot_client.cli_commission import server_camera
+    from robot_client.commands.commission import server_camera
 
     class _Devices:
         vision = _Vision()

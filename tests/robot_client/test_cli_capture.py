@@ -13,21 +13,21 @@ import cv2
 import numpy as np
 from loopback import server_in_thread
 
-from vision_server.builtin import MeanIntensityPresence
+from vision_server import Catalog
 from vision_server.cameras import (
     FolderCamera,
     FolderCameraSettings,
     RequestCamera,
     RequestCameraSettings,
 )
-from vision_server.catalog import Catalog
+from vision_server.service.builtin import MeanIntensityPresence
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def robot_client(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "robot_client.cli", *args],
+        [sys.executable, "-m", "robot_client.commands.program", *args],
         capture_output=True,
         text=True,
         timeout=60,

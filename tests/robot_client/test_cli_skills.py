@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from robot_client.cli import main
+from robot_client.commands.program import main
 
 SCENE = str(Path(__file__).resolve().parents[2] / "examples/scenes/grundfos_cell.yaml")
 

@@ -50,13 +50,13 @@ from robot_client.client import (
     wait_for_server,
 )
 from robot_client.errors import ClientClosed, ConnectionLost, NotCellvision, RequestTimeout
-from vision_server.builtin import MeanIntensityPresence, builtin_catalog
+from vision_server import Catalog, InspectionInput, InspectionOutcome
 from vision_server.cameras import (
     RequestCamera,
     RequestCameraSettings,
 )
-from vision_server.catalog import Catalog, InspectionInput, InspectionOutcome
 from vision_server.server import ServerSettings, VisionServer
+from vision_server.service.builtin import MeanIntensityPresence, builtin_catalog
 
 T = TypeVar("T")
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -474,7 +474,7 @@ def test_requests_crossing_the_servers_close_fail_as_shutting_down() -> None:
 CRASHING_SERVER = """
 import asyncio, sys, threading
 from vision_server.cameras import RequestCamera, RequestCameraSettings
-from vision_server.catalog import Catalog, InspectionOutcome
+from vision_server import Catalog, InspectionOutcome
 from vision_server.server import ServerSettings, VisionServer
 
 class Stall:

@@ -15,7 +15,7 @@ from robot_client import SyncVisionClient
 from robot_client.commissioning.collect import collect_tool_views
 from robot_client.devices.sim import sim_devices
 from simulation import SimCell, load_scene
-from vision_server.runtime import CellRuntime
+from vision_server.service import CellRuntime
 
 CONFIG = """\
 server: {port: 0}

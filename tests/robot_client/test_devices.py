@@ -141,7 +141,7 @@ def test_a_camera_the_robot_lacks_is_a_usage_error_in_the_cli(tmp_path: Path) ->
     """A mistyped --camera was reported as a device error (exit 3, like a robot that does not
     answer); it is the caller's mistake (exit 2), and still a DeviceError for a skill."""
     from protocol.cli import ErrorKind
-    from robot_client.cli import _classify
+    from robot_client.commands.program import _classify
     from robot_client.devices import DeviceError, UnknownDevice
 
     devices = sim_devices(SCENE, state_path=tmp_path / "world.json")

@@ -24,7 +24,7 @@ def teach(tmp: Path, server: str, *params: str) -> subprocess.CompletedProcess[s
         [
             sys.executable,
             "-m",
-            "robot_client.cli",
+            "robot_client.commands.program",
             "--server",
             server,
             "--timeout",

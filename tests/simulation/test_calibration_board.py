@@ -8,7 +8,7 @@ from geometry import invert_transform, transform_points
 from robot_client.commissioning.views import plan_tool_views
 from simulation import SimCell, load_scene
 from simulation.calibration_board import spec_from_opencv
-from vision_server.analysis.board import BoardSpec, detect_board
+from vision_server.analysis import BoardSpec, detect_board
 
 SCENE = "examples/scenes/intrinsics_cell.yaml"
 

@@ -15,13 +15,12 @@ import pytest
 from loopback import Gate, run, wait_until
 
 from protocol import Busy
-from vision_server.admission import CostModel, Slot, Waiter, WorkPool
-from vision_server.builtin import MeanIntensityPresence
+from vision_server import Catalog
 from vision_server.cameras import RequestCamera, RequestCameraSettings
-from vision_server.catalog import Catalog
-from vision_server.config import ConfigError, load_config
+from vision_server.config import ConfigError, ServiceSettings, load_config
 from vision_server.service import Images, InspectionService, InspectRequest
-from vision_server.settings import ServiceSettings
+from vision_server.service.admission import CostModel, Slot, Waiter, WorkPool
+from vision_server.service.builtin import MeanIntensityPresence
 
 GRAY = np.full((48, 64), 200, np.uint8)
 

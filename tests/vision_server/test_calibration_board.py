@@ -12,9 +12,9 @@ from loopback import client_for, run, server_in_thread
 
 from protocol import schema
 from simulation import SimCell, load_scene
-from vision_server.configfile import ConfigError
+from vision_server.config import ConfigError
 from vision_server.inspections import RESULT_KINDS
-from vision_server.runtime import CellRuntime
+from vision_server.service import CellRuntime
 
 CONFIG = """\
 server: {port: 0}
@@ -124,7 +124,7 @@ def test_the_inspection_travels_pickled_after_it_ran(runtime: CellRuntime) -> No
     every run: what a run leaves behind (the ChArUco detector's board) must not stop that."""
     import pickle
 
-    from vision_server.catalog import InspectionInput
+    from vision_server import InspectionInput
 
     inspection = runtime.catalog.inspections["charuco"]
     first = inspection.run(InspectionInput(_board_image("charuco")), overlay=False)

@@ -13,9 +13,9 @@ from loopback import client_for, run, server_in_thread
 from protocol import schema
 from simulation.flat_parts import bar, plane_point, render_flat_part
 from simulation.scene import camera_preset
-from vision_server.configfile import ConfigError
+from vision_server.config import ConfigError
 from vision_server.inspections import RESULT_KINDS
-from vision_server.runtime import CellRuntime
+from vision_server.service import CellRuntime
 
 CAMERA = """\
 cameras:
@@ -187,7 +187,7 @@ def test_bad_measurements_name_file_line_and_key(tmp_path: Path, entry: str, wan
 
 def test_a_band_outside_a_smaller_image_is_a_bad_image_that_names_it(tmp_path: Path) -> None:
     from protocol import BadImage
-    from vision_server.catalog import InspectionInput
+    from vision_server import InspectionInput
 
     path = tmp_path / "cell.yaml"
     path.write_text(

@@ -14,8 +14,8 @@ import pytest
 from loopback import client_for, run
 
 from protocol import CameraUnavailable
-from vision_server.runtime import CellRuntime
 from vision_server.server import ServerSettings, VisionServer
+from vision_server.service import CellRuntime
 
 CONFIG = """\
 server: {{port: 0}}

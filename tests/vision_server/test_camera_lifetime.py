@@ -19,11 +19,16 @@ from loopback import client_for, run, wait_until
 
 from protocol import CellvisionError, DeadlineExceeded, Reload, Reloaded, array_from_payload
 from robot_client import VisionClient
-from vision_server.admin import call
-from vision_server.cameras import Camera, CameraFrame, CameraSettings, FolderCamera
-from vision_server.cameras.settings import FolderCameraSettings
-from vision_server.runtime import CameraFactory, CellRuntime
+from vision_server.cameras import (
+    Camera,
+    CameraFrame,
+    CameraSettings,
+    FolderCamera,
+    FolderCameraSettings,
+)
+from vision_server.commands.admin import call
 from vision_server.server import ServerSettings, VisionServer
+from vision_server.service.runtime import CameraFactory, CellRuntime
 
 CONFIG = """\
 server: {{port: 0}}

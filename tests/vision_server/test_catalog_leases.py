@@ -7,7 +7,7 @@ import threading
 
 import pytest
 
-from vision_server.catalog import Catalog, CatalogReleased
+from vision_server.service import Catalog, CatalogReleased
 
 
 def empty(config_hash: str) -> Catalog:

@@ -17,7 +17,7 @@ import pytest
 from protocol import NotAuthenticated
 from protocol.cli import UsageError
 from robot_client.client import ReconnectPolicy, VisionClient
-from vision_server.cli import build_parser
+from vision_server.commands.program import build_parser
 from vision_server.server import ServerSettings
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -242,7 +242,7 @@ def test_ctrl_c_in_a_command_is_one_line_and_exit_130(
 ) -> None:
     """Ctrl-C in a long command (here the golden cases, interrupted in their first case): no
     traceback, the shell's exit code for SIGINT."""
-    import vision_server.cli as cli
+    import vision_server.commands.program as cli
 
     def interrupted(*args: object, **kwargs: object) -> int:
         raise KeyboardInterrupt
@@ -258,7 +258,7 @@ def test_check_config_names_what_is_wrong_with_the_file_itself(
 ) -> None:
     """An empty file, a file of comments only and an image given by mistake are invalid, each
     with its cause in words (not a Python exception's text)."""
-    from vision_server.cli import main
+    from vision_server.commands import main
 
     empty = tmp_path / "empty.yaml"
     empty.write_text("")
@@ -283,7 +283,7 @@ def test_check_config_names_what_is_wrong_with_the_file_itself(
 def test_check_config_warns_of_a_file_without_inspections(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from vision_server.cli import main
+    from vision_server.commands import main
 
     config = tmp_path / "cell.yaml"
     config.write_text("cameras: {tool: {source: request}}\ninspections: []\n")
@@ -295,7 +295,7 @@ def test_results_of_an_inspection_the_configuration_lacks_warns(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """A typo in --inspection showed '0 of 0' as if the inspection had simply not run."""
-    from vision_server.cli import main
+    from vision_server.commands import main
 
     config = tmp_path / "cell.yaml"
     config.write_text(
@@ -320,7 +320,7 @@ def test_ping_with_a_configuration_on_port_0_asks_for_the_address(
 ) -> None:
     """server.port 0 says nothing of where the server listens: ping and reload used the default
     port 7878, which may be another server's; now they ask for --server."""
-    from vision_server.cli import main
+    from vision_server.commands import main
 
     monkeypatch.delenv("CELLVISION_SERVER", raising=False)
     config = tmp_path / "cell.yaml"
@@ -338,9 +338,8 @@ def test_results_into_a_pipe_keep_names_and_times_whole(
     """Into a file or pipe Rich assumed 80 columns and cut 'inspecti…' and '2026-11-…'."""
     import time
 
-    from vision_server.cli import main
-    from vision_server.results import ResultLog
-    from vision_server.results_store import ResultEntry
+    from vision_server.commands import main
+    from vision_server.results import ResultEntry, ResultLog
 
     name = "bracket_plate_width_check_station_3"
     log = ResultLog(tmp_path / "results.sqlite3")

@@ -21,8 +21,7 @@ from vision_server.cameras import (
     RequestCameraSettings,
     SimCameraSettings,
 )
-from vision_server.config import ConfigError, load_config
-from vision_server.configfile import Node
+from vision_server.config import ConfigError, Node, load_config
 from vision_server.inspections import (
     LocateInspection,
     PresenceInspection,
@@ -805,7 +804,7 @@ def test_the_server_section_holds_every_field_of_its_parts() -> None:
     section, with the same default."""
     from dataclasses import fields
 
-    from vision_server.settings import ServerSettings, ServiceSettings, TcpSettings
+    from vision_server.config import ServerSettings, ServiceSettings, TcpSettings
 
     section = ServerSettings()
     for part, built in ((ServiceSettings(), section.service()), (TcpSettings(), section.tcp())):

@@ -29,7 +29,7 @@ from rich.console import Console
 
 from robot_client.client import SyncVisionClient
 from vision_server.app import App
-from vision_server.results_cli import results_command
+from vision_server.commands.results import results_command
 
 
 @pytest.fixture(scope="module")

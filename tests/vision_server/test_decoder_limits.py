@@ -9,7 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from vision_server import ServerSettings, decoder_limits
+from vision_server import ServerSettings
+from vision_server.process import decoder_limits
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -17,12 +17,10 @@ from loopback import client_for, run
 from protocol import CameraUnavailable
 from protocol.images import array_from_payload
 from vision_server.cameras import CameraSettings, ManualClock, make_camera
-from vision_server.config import ConfigError, load_config
+from vision_server.config import ConfigError, ServiceSettings, load_config
 from vision_server.frontends.http_live import LiveView
-from vision_server.runtime import CellRuntime
 from vision_server.server import ServerSettings, VisionServer
-from vision_server.service import InspectionService, InspectRequest
-from vision_server.settings import ServiceSettings
+from vision_server.service import CellRuntime, InspectionService, InspectRequest
 
 CONFIG = """\
 server: {port: 0}

@@ -16,18 +16,22 @@ from typing import Any
 import pytest
 
 from vision_server.app import App
-from vision_server.builtin import builtin_catalog
-from vision_server.cli import main
-from vision_server.config import ConfigError, load_config
-from vision_server.exposure import exposure_warnings
-from vision_server.listeners import (
+from vision_server.commands import main
+from vision_server.config import (
+    ConfigError,
+    ConsoleSettings,
+    LineSettings,
     Listener,
     ListenError,
+    ModbusSettings,
     PortClash,
+    ServerSettings,
     check_distinct,
     enabled_listeners,
+    exposure_warnings,
+    load_config,
 )
-from vision_server.settings import ConsoleSettings, LineSettings, ModbusSettings, ServerSettings
+from vision_server.service import builtin_catalog
 
 ROOT = Path(__file__).resolve().parents[2]
 CELL = """\

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vision_server.cli import main
-from vision_server.golden import (
+from vision_server.commands import main
+from vision_server.commands.golden import (
     Expectation,
     Got,
     Tolerances,

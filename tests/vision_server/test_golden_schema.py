@@ -19,10 +19,10 @@ from protocol import (
     Result,
     schema,
 )
+from vision_server.commands.golden import Case, color_images, depth_frames, find_cases, load_case
+from vision_server.commands.offline import file_request, image_payload, offline_service
 from vision_server.frontends.tcp import result_message
-from vision_server.golden import Case, color_images, depth_frames, find_cases, load_case
 from vision_server.inspections import INSPECTION_TYPES
-from vision_server.offline import file_request, image_payload, offline_service
 
 CORPUS = Path(__file__).resolve().parents[2] / "test_inspections"
 

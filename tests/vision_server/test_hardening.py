@@ -43,15 +43,15 @@ from protocol.conformance.peer import Peer
 from protocol.constants import HEADER_SIZE
 from protocol.frames import encode_metadata
 from robot_client import VisionClient
-from vision_server.builtin import MeanIntensityPresence
+from vision_server import Catalog
 from vision_server.cameras import (
     FolderCamera,
     FolderCameraSettings,
     RequestCamera,
     RequestCameraSettings,
 )
-from vision_server.catalog import Catalog
 from vision_server.server import VisionServer
+from vision_server.service.builtin import MeanIntensityPresence
 
 MiB = 1024 * 1024
 

@@ -18,12 +18,11 @@ from loopback import client_for, run, server_in_thread
 
 from protocol import schema
 from robot_client.client import overlay_image
-from vision_server.catalog import InspectionInput
-from vision_server.config import ConfigError, load_config
-from vision_server.configfile import Node
+from vision_server import InspectionInput
+from vision_server.config import ConfigError, Node, load_config
 from vision_server.inspections import RESULT_KINDS, JobInspection
 from vision_server.inspections.job import STEP_TYPES
-from vision_server.runtime import CellRuntime
+from vision_server.service import CellRuntime
 
 ROOT = Path(__file__).resolve().parents[2]
 PLATES = ROOT / "test_inspections" / "fixtured_plate" / "images"

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vision_server.catalog import InspectionInput
+from vision_server import InspectionInput
 from vision_server.config import ConfigError, load_config
 from vision_server.inspections import JobInspection
 

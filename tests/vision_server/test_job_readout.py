@@ -22,16 +22,15 @@ from loopback import run
 from plc import Plc
 
 from protocol.result_view import format_number
-from vision_server.analysis.locate import Rejection, locate_circles
+from vision_server import InspectionInput
+from vision_server.analysis import Rejection, locate_circles
 from vision_server.app import App
-from vision_server.catalog import InspectionInput
-from vision_server.cli import main as cli_main
-from vision_server.config import ConfigError, load_config
+from vision_server.commands import main as cli_main
+from vision_server.commands.golden import run_case
+from vision_server.config import ConfigError, ServerSettings, load_config
 from vision_server.frontends.modbus_map import Status
-from vision_server.golden import run_case
 from vision_server.inspections import JobInspection
-from vision_server.runtime import CellRuntime
-from vision_server.settings import ServerSettings
+from vision_server.service import CellRuntime
 
 ROOT = Path(__file__).resolve().parents[2]
 PLATE_CASE = ROOT / "test_inspections" / "fixtured_plate"

@@ -20,11 +20,10 @@ from plc import Plc
 from geometry import invert_transform, rotation_from_rpy, transform_points, xyz_rpy_from_transform
 from simulation import SimCell
 from vision_server.app import App
-from vision_server.cli import main as cli_main
-from vision_server.config import ConfigError, load_config
+from vision_server.commands import main as cli_main
+from vision_server.config import ConfigError, ServerSettings, load_config
 from vision_server.frontends.line_poses import CONVENTIONS, parse_pose, pose_values
-from vision_server.runtime import CellRuntime
-from vision_server.settings import ServerSettings
+from vision_server.service import CellRuntime
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENE = ROOT / "examples" / "scenes" / "grundfos_cell.yaml"

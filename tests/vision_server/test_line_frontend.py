@@ -24,12 +24,11 @@ from controllers import (
 )
 from loopback import Gate, run, wait_until
 
+from vision_server import Catalog
 from vision_server.app import App
-from vision_server.cameras import FolderCameraSettings
-from vision_server.cameras.folder import FolderCamera
-from vision_server.catalog import Catalog
-from vision_server.runtime import CellRuntime
-from vision_server.settings import LineSettings, ServerSettings
+from vision_server.cameras import FolderCamera, FolderCameraSettings
+from vision_server.config import LineSettings, ServerSettings
+from vision_server.service import CellRuntime
 
 CONFIG = """\
 server: {port: 0}

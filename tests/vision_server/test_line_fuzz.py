@@ -36,12 +36,11 @@ from controllers import (
 from loopback import run
 
 from protocol.conformance.__main__ import main as conformance_main
+from vision_server import Catalog
 from vision_server.app import App
-from vision_server.builtin import MeanIntensityPresence, builtin_catalog
-from vision_server.cameras import FolderCameraSettings
-from vision_server.cameras.folder import FolderCamera
-from vision_server.catalog import Catalog
-from vision_server.settings import LineSettings, ServerSettings
+from vision_server.cameras import FolderCamera, FolderCameraSettings
+from vision_server.config import LineSettings, ServerSettings
+from vision_server.service.builtin import MeanIntensityPresence, builtin_catalog
 
 LINES = int(os.environ.get("LINE_FUZZ_LINES", "2000"))
 CONNECTIONS = 8

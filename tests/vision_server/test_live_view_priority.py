@@ -11,10 +11,9 @@ import threading
 import pytest
 from loopback import run
 
-from vision_server.builtin import builtin_catalog
-from vision_server.cpu_priority import MAX_NICE
 from vision_server.frontends.http_live import LiveView
-from vision_server.service import InspectionService
+from vision_server.process import MAX_NICE
+from vision_server.service import InspectionService, builtin_catalog
 
 
 def _niceness() -> int:

@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from vision_server.catalog import InspectionInput
+from vision_server import InspectionInput
 from vision_server.config import load_config
-from vision_server.inspections.locate import LocateInspection
+from vision_server.inspections import LocateInspection
 
 CELL = """\
 cameras:

@@ -25,15 +25,13 @@ import pytest
 from loopback import Gate, run, wait_until
 from plc import Plc, exchange, mbap
 
+from vision_server import Catalog
 from vision_server.app import App
-from vision_server.cameras import FolderCameraSettings
-from vision_server.cameras.folder import FolderCamera
-from vision_server.catalog import Catalog
-from vision_server.cli import main as cli_main
-from vision_server.config import ConfigError, load_config
+from vision_server.cameras import FolderCamera, FolderCameraSettings
+from vision_server.commands import main as cli_main
+from vision_server.config import ConfigError, ModbusSettings, ServerSettings, load_config
 from vision_server.frontends.modbus_map import SIZE, Refusal, Reg, Status
-from vision_server.runtime import CellRuntime
-from vision_server.settings import ModbusSettings, ServerSettings
+from vision_server.service import CellRuntime
 
 CONFIG = """\
 server: {port: 0}
@@ -308,7 +306,7 @@ def test_a_run_in_flight_over_a_reload_finishes_in_the_map_it_started_with(
 
     async def body() -> None:
         app, camera = gate_app(tmp_path, gate)
-        from vision_server.builtin import MeanIntensityPresence
+        from vision_server.service.builtin import MeanIntensityPresence
 
         replacement = Catalog.build([camera], [MeanIntensityPresence("other", "shelf")])
         app.service.reloader = lambda: replacement
@@ -495,10 +493,10 @@ def test_without_the_extra_an_enabled_modbus_is_a_configuration_error(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Not a traceback at start: check-config and serve name the key and the fix."""
-    import vision_server.config
+    import vision_server.config.cell
 
     path = write_cell(tmp_path, CONFIG.replace("WORD_ORDER", "high_first"))
-    monkeypatch.setattr(vision_server.config, "find_spec", lambda name: None)
+    monkeypatch.setattr(vision_server.config.cell, "find_spec", lambda name: None)
     with pytest.raises(ConfigError, match=r"modbus -> enabled: .*cellvision\[modbus\]"):
         load_config(path)
 
@@ -506,7 +504,8 @@ def test_without_the_extra_an_enabled_modbus_is_a_configuration_error(
 def test_the_server_and_its_tools_do_not_import_pymodbus_unless_modbus_is_enabled() -> None:
     """pymodbus is an optional extra: nothing else may need it."""
     code = (
-        "import sys, vision_server.app, vision_server.cli, vision_server.modbus_cli; "
+        "import sys, vision_server.app, vision_server.commands.program, "
+        "vision_server.commands.modbus_map; "
         "print('pymodbus' in sys.modules)"
     )
     out = subprocess.run(

@@ -33,13 +33,12 @@ from loopback import run
 from plc import Plc, Result
 
 from protocol.conformance.__main__ import main as conformance_main
+from vision_server import Catalog
 from vision_server.app import App
-from vision_server.builtin import MeanIntensityPresence, builtin_catalog
-from vision_server.cameras import FolderCameraSettings
-from vision_server.cameras.folder import FolderCamera
-from vision_server.catalog import Catalog
+from vision_server.cameras import FolderCamera, FolderCameraSettings
+from vision_server.config import ModbusSettings, ServerSettings
 from vision_server.frontends.modbus_map import SIZE, Reg, Status
-from vision_server.settings import ModbusSettings, ServerSettings
+from vision_server.service.builtin import MeanIntensityPresence, builtin_catalog
 
 FRAMES = int(os.environ.get("MODBUS_FUZZ_FRAMES", "2000"))
 CONNECTIONS = 8

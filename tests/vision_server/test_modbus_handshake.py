@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 
-from vision_server.builtin import MeanIntensityPresence
 from vision_server.frontends.modbus_frames import (
     FrameReader,
     FramingError,
@@ -39,7 +38,8 @@ from vision_server.frontends.modbus_map import (
     config_map,
     decode_float,
 )
-from vision_server.inspections.output import OutputField, OutputFormat
+from vision_server.inspections import OutputField, OutputFormat
+from vision_server.service.builtin import MeanIntensityPresence
 
 
 @dataclass(frozen=True)

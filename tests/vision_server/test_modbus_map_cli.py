@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from vision_server.cli import main
-from vision_server.modbus_cli import NOT_TRIGGERABLE
+from vision_server.commands import main
+from vision_server.commands.modbus_map import NOT_TRIGGERABLE
 
 CELL = """\
 cameras:

@@ -40,7 +40,7 @@ from protocol import (
 )
 from protocol.messages import DecodeContext, message_from_frame
 from robot_client import SyncVisionClient
-from vision_server.operator_desk import OperatorDesk
+from vision_server.service import OperatorDesk
 
 WAIT_S = 20.0
 

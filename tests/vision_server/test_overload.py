@@ -13,9 +13,8 @@ import pytest
 from loopback import client_for, run
 
 from protocol import Busy
-from vision_server.builtin import builtin_catalog
 from vision_server.server import ServerSettings, VisionServer
-from vision_server.service import InspectionRecord
+from vision_server.service import InspectionRecord, builtin_catalog
 
 GRAY = np.full((480, 640), 200, np.uint8)
 CLIENTS = 8

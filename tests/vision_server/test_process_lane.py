@@ -23,13 +23,11 @@ from child_inspections import (
 from loopback import run
 
 from protocol.errors import InspectionFailed, InternalError, ShuttingDown
-from vision_server import process_lane
+from vision_server import Catalog, InspectionInput
 from vision_server.cameras import RequestCamera, RequestCameraSettings
-from vision_server.catalog import Catalog, InspectionInput
-from vision_server.config import ConfigError, load_config
-from vision_server.process_lane import ProcessLane
-from vision_server.service import Images, InspectionService, InspectRequest
-from vision_server.settings import ServiceSettings
+from vision_server.config import ConfigError, ServiceSettings, load_config
+from vision_server.service import Images, InspectionService, InspectRequest, process_lane
+from vision_server.service.process_lane import ProcessLane
 
 COLOR = (np.arange(48 * 64, dtype=np.uint32).reshape(48, 64) % 251).astype(np.uint8)
 DEPTH = np.full((48, 64), 700, np.uint16)

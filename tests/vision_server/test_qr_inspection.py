@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import zxingcpp
 
-from vision_server.catalog import InspectionInput
+from vision_server import InspectionInput
 from vision_server.config import ConfigError, load_config
-from vision_server.inspections.qr import QRInspection
+from vision_server.inspections import QRInspection
 
 HEAD = """\
 cameras:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from geometry import invert_transform
-from vision_server.catalog import InspectionInput
+from vision_server import InspectionInput
 from vision_server.config import ConfigError, load_config
 
 from .analysis.conftest import qr_cell, random_view

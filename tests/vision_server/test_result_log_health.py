@@ -33,11 +33,11 @@ from loopback import client_for, run, server_in_thread, wait_until
 
 from protocol import Inspect, InspectionFailed, Ping, Pong, Result, payload_from_array
 from robot_client.client import ReconnectPolicy, VisionClient
-from vision_server.builtin import MeanIntensityPresence
+from vision_server import Catalog, InspectionInput, InspectionOutcome
 from vision_server.cameras import RequestCamera, RequestCameraSettings
-from vision_server.catalog import Catalog, InspectionInput, InspectionOutcome
 from vision_server.results import ResultLog
 from vision_server.server import VisionServer
+from vision_server.service.builtin import MeanIntensityPresence
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 CONFIG = """\

@@ -22,14 +22,9 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from vision_server import results
-from vision_server.results import (
-    SCHEMA_VERSION,
-    ResultEntry,
-    ResultLog,
-    ResultLogError,
-)
-from vision_server.results_cli import parse_since, results_command
+from vision_server.commands.results import parse_since, results_command
+from vision_server.results import sqlite as results
+from vision_server.results.sqlite import SCHEMA_VERSION, ResultEntry, ResultLog, ResultLogError
 
 T0 = 1_700_000_000.0  # a fixed Unix time, so that the tests do not depend on the clock
 

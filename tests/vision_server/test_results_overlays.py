@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from vision_server import results
-from vision_server.results import SCHEMA_VERSION, ResultEntry, ResultLog
+from vision_server.results import sqlite as results
+from vision_server.results.sqlite import SCHEMA_VERSION, ResultEntry, ResultLog
 
 T0 = 1_700_000_000.0
 

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
+from vision_server.commands.results import describe_health
 from vision_server.config import ConfigError, load_config
-from vision_server.results_cli import describe_health
-from vision_server.results_pg import redact_url
-from vision_server.runtime import check_result_log
+from vision_server.results import redact_url
+from vision_server.service import check_result_log
 
 CELL = """\
 {results}

@@ -26,10 +26,10 @@ from protocol import (
     array_from_payload,
 )
 from robot_client import VisionClient
-from vision_server.admin import call
+from vision_server.commands.admin import call
 from vision_server.config import ConfigError
-from vision_server.runtime import CellRuntime
 from vision_server.server import ServerSettings, VisionServer
+from vision_server.service import CellRuntime
 
 CONFIG = """\
 server: {{port: 0}}
@@ -133,7 +133,7 @@ def test_reload_over_the_protocol(tmp_path: Path) -> None:
 
 
 def test_reload_without_a_configuration_is_refused() -> None:
-    from vision_server.builtin import builtin_catalog
+    from vision_server.service import builtin_catalog
 
     async def body() -> None:
         async with VisionServer(builtin_catalog(), ServerSettings(port=0)) as server:

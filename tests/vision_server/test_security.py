@@ -53,10 +53,10 @@ from protocol.conformance import Target
 from protocol.conformance.peer import CLOSED, Peer
 from robot_client.client import ReconnectPolicy, VisionClient
 from robot_client.errors import ConnectionLost
-from vision_server.builtin import builtin_catalog
-from vision_server.cli import build_parser
+from vision_server.commands.program import build_parser
 from vision_server.config import ConfigError, load_config
 from vision_server.server import ServerSettings, VisionServer
+from vision_server.service import builtin_catalog
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 GRAY = np.full((48, 64), 200, np.uint8)
@@ -286,7 +286,7 @@ def hook(event, args):
             log.write(json.dumps([time.time(), event, repr(target)]) + "\\n")
 
 sys.addaudithook(hook)
-from vision_server.cli import main
+from vision_server.commands.program import main
 sys.exit(main(["serve", "--config", sys.argv[1], "--port", "0"]))
 """
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vision_server.cli import main
+from vision_server.commands import main
 
 from .analysis.conftest import qr_cell, random_view
 

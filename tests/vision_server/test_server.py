@@ -41,17 +41,17 @@ from protocol.conformance import Target
 from protocol.conformance.peer import CLOSED, Peer
 from robot_client.client import ReconnectPolicy
 from robot_client.errors import ConnectionLost
-from vision_server import service as service_module
-from vision_server.builtin import MeanIntensityPresence, builtin_catalog
+from vision_server import Catalog, InspectionInput, InspectionOutcome
 from vision_server.cameras import (
     FolderCamera,
     FolderCameraSettings,
     RequestCamera,
     RequestCameraSettings,
 )
-from vision_server.catalog import Catalog, InspectionInput, InspectionOutcome
 from vision_server.server import ServerSettings, VisionServer
-from vision_server.service import InspectionRecord, encode_image
+from vision_server.service import core as service_module
+from vision_server.service.builtin import MeanIntensityPresence, builtin_catalog
+from vision_server.service.core import InspectionRecord, encode_image
 
 T = TypeVar("T")
 GRAY = np.full((48, 64), 200, np.uint8)

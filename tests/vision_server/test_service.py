@@ -22,10 +22,9 @@ from protocol import (
     InvalidArgument,
     UnknownInspection,
 )
-from vision_server.builtin import MeanIntensityPresence
+from vision_server import Catalog
 from vision_server.cameras import RequestCamera, RequestCameraSettings
-from vision_server.catalog import Catalog
-from vision_server.config import ConfigError
+from vision_server.config import ConfigError, ServiceSettings
 from vision_server.service import (
     ImageNeeds,
     Images,
@@ -34,7 +33,7 @@ from vision_server.service import (
     InspectRequest,
     deadline_after,
 )
-from vision_server.settings import ServiceSettings
+from vision_server.service.builtin import MeanIntensityPresence
 
 GRAY = np.full((48, 64), 200, np.uint8)
 

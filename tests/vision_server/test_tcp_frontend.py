@@ -15,18 +15,13 @@ import pytest
 from loopback import client_for, run, wait_until
 
 from protocol import Busy, Error, ErrorCode, payload_from_array
+from vision_server import Catalog
 from vision_server.app import App
-from vision_server.builtin import MeanIntensityPresence, builtin_catalog
 from vision_server.cameras import RequestCamera, RequestCameraSettings
-from vision_server.catalog import Catalog
+from vision_server.config import ServerSettings, TcpSettings
 from vision_server.frontends.tcp import TcpFrontend, error_frame
-from vision_server.service import (
-    ImageNeeds,
-    InspectionService,
-    InspectReply,
-    InspectRequest,
-)
-from vision_server.settings import ServerSettings, TcpSettings
+from vision_server.service import ImageNeeds, InspectionService, InspectReply, InspectRequest
+from vision_server.service.builtin import MeanIntensityPresence, builtin_catalog
 
 GRAY = np.full((48, 64), 200, np.uint8)
 

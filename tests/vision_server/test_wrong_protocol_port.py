@@ -10,8 +10,8 @@ from loopback import run
 
 from protocol import ErrorCode, FrameDecoder, MessageType
 from vision_server.app import App
-from vision_server.builtin import builtin_catalog
-from vision_server.settings import LineSettings, ServerSettings
+from vision_server.config import LineSettings, ServerSettings
+from vision_server.service import builtin_catalog
 
 
 async def _answer_to(app: App, data: bytes) -> dict[str, object]:

@@ -23,62 +23,94 @@ Public API:
   :class:`TemplateError`, :class:`DepthError`, :class:`NotFoundError`.
 """
 
-from .caliper import Band, Edge, EdgePair, find_edges, find_pairs
+from .board import BOARD_KINDS, DICTIONARIES, BoardSpec, detect_board
+from .caliper import POLARITIES, Band, Edge, EdgePair, find_edges, find_pairs
 from .codes import SYMBOLOGIES, Code, Grade, read_codes
+from .depth_registration import fit_depth_registration, registration_advice
 from .errors import AnalysisError, BadImageError, DepthError, NotFoundError, RoiError, TemplateError
-from .locate import Feature, locate, locate_blobs, locate_circles, locate_template
+from .locate import (
+    CENTRES,
+    MAX_SCALE,
+    MIN_SCALE,
+    Feature,
+    Polarity,
+    Rejection,
+    circle_margin_px,
+    locate,
+    locate_blobs,
+    locate_circles,
+    locate_template,
+)
 from .measure import (
     CircleSpec,
     DistanceSpec,
     EdgeSpec,
     LineSpec,
     Measurement,
+    Spec,
     WidthSpec,
     measure,
 )
-from .plane_units import PixelUnits, PlaneUnits, ScaleUnits
+from .plane_units import PixelUnits, PlaneUnits, ScaleUnits, Units
 from .presence import MEASURES, PresenceResult, measure_presence, measure_presence_details
 from .qr import QRCode, read_qr
-from .qr_pose import QRPose, QRPoseQuality, qr_pose
+from .qr_pose import UNCHECKED_SCALE_STD, UNCHECKED_SHIFT_STD_PX, QRPose, QRPoseQuality, qr_pose
 
 __all__ = [
-    "MEASURES",
+    "AnalysisError",
+    "BOARD_KINDS",
+    "BadImageError",
     "Band",
+    "BoardSpec",
+    "CENTRES",
     "CircleSpec",
+    "Code",
+    "DICTIONARIES",
+    "DepthError",
     "DistanceSpec",
     "Edge",
     "EdgePair",
     "EdgeSpec",
+    "Feature",
+    "Grade",
     "LineSpec",
+    "MAX_SCALE",
+    "MEASURES",
+    "MIN_SCALE",
     "Measurement",
+    "NotFoundError",
+    "POLARITIES",
     "PixelUnits",
     "PlaneUnits",
-    "ScaleUnits",
-    "WidthSpec",
-    "find_edges",
-    "find_pairs",
-    "measure",
-    "SYMBOLOGIES",
-    "Code",
-    "Grade",
-    "AnalysisError",
-    "BadImageError",
-    "DepthError",
-    "Feature",
-    "NotFoundError",
+    "Polarity",
     "PresenceResult",
     "QRCode",
     "QRPose",
     "QRPoseQuality",
+    "Rejection",
     "RoiError",
+    "SYMBOLOGIES",
+    "ScaleUnits",
+    "Spec",
     "TemplateError",
+    "UNCHECKED_SCALE_STD",
+    "UNCHECKED_SHIFT_STD_PX",
+    "Units",
+    "WidthSpec",
+    "circle_margin_px",
+    "detect_board",
+    "find_edges",
+    "find_pairs",
+    "fit_depth_registration",
     "locate",
     "locate_blobs",
     "locate_circles",
     "locate_template",
+    "measure",
     "measure_presence",
     "measure_presence_details",
     "qr_pose",
     "read_codes",
     "read_qr",
+    "registration_advice",
 ]

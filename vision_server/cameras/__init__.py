@@ -30,6 +30,7 @@ from .clock import SYSTEM_CLOCK, Clock, ManualClock
 from .factory import make_camera
 from .folder import FolderCamera
 from .genicam import GenICamCamera
+from .mount import MOUNT_KEYS, CameraMount
 from .opencv import OpenCVCamera
 from .realsense import RealSenseCamera
 from .request import RequestCamera
@@ -47,10 +48,9 @@ from .settings import (
 from .sim import SimCamera
 
 __all__ = [
-    "SOURCE_NAMES",
-    "SYSTEM_CLOCK",
     "Camera",
     "CameraFrame",
+    "CameraMount",
     "CameraSettings",
     "Clock",
     "FolderCamera",
@@ -58,6 +58,7 @@ __all__ = [
     "GenICamCamera",
     "GenICamCameraSettings",
     "Intrinsics",
+    "MOUNT_KEYS",
     "ManualClock",
     "OpenCVCamera",
     "OpenCVCameraSettings",
@@ -65,6 +66,8 @@ __all__ = [
     "RealSenseCameraSettings",
     "RequestCamera",
     "RequestCameraSettings",
+    "SOURCE_NAMES",
+    "SYSTEM_CLOCK",
     "SimCamera",
     "SimCameraSettings",
     "make_camera",

@@ -28,7 +28,7 @@ from protocol import (
 )
 from protocol.cli import Endpoint, Layer, UsageError, client_host, env_layer, resolve_endpoint
 
-from .config import ConfigError, load_server_settings
+from ..config import ConfigError, load_server_settings
 
 
 class AdminError(Exception):

@@ -29,7 +29,7 @@ Green means tested: no case found, a case without images, without ``expected.yam
 are errors (exit 2) that name the file.
 
 Every image runs through the inspection service, as ``vision-server run`` does
-(:func:`vision_server.offline.offline_service`: one worker, the images in the request, the
+(:func:`vision_server.commands.offline.offline_service`: one worker, the images in the request, the
 inspection's camera replaced by a request camera with the same intrinsics).
 :func:`run_cases` compares the replies with the expectations and, with
 ``update=True``, rewrites ``expected.yaml`` from them (keeping tolerances and notes).
@@ -54,23 +54,18 @@ from rich.markup import escape
 from rich.table import Table
 
 from protocol import CellvisionError, ImageRole
+from yamlfile import boolean, non_negative, non_negative_int, number, one_of, string
 
-from .cameras import SOURCE_NAMES, CameraSettings, RequestCameraSettings
-from .catalog import Inspection
-from .config import _settings, load_config
-from .configfile import (
+from ..cameras import SOURCE_NAMES, CameraSettings, RequestCameraSettings
+from ..config import (
     ConfigError,
     Node,
-    boolean,
-    non_negative,
-    non_negative_int,
-    number,
-    one_of,
+    load_config,
     parse_document,
     read_document,
-    string,
+    settings_from_node,
 )
-from .inspections import RESULT_KINDS, parse_inspection
+from ..inspections import RESULT_KINDS, Inspection, parse_inspection
 from .offline import file_request, image_payload, offline_service
 
 CASE_FILE = "inspection.yaml"
@@ -382,7 +377,7 @@ def _inspection(root: Node, base_dir: Path) -> tuple[Inspection, CameraSettings,
     if root.has("camera"):
         node = root.sub("camera")
         source = node.take("source", one_of(*SOURCE_NAMES), "request")
-        camera: CameraSettings = _settings(node, SOURCE_NAMES[source])
+        camera: CameraSettings = settings_from_node(node, SOURCE_NAMES[source])
     else:
         root.take("camera", string, None)
         camera = RequestCameraSettings(None, depth=True)

@@ -12,10 +12,10 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from .analysis.measure_specs import CircleSpec, DistanceSpec, EdgeSpec, LineSpec, WidthSpec
-from .cameras import RequestCameraSettings
-from .config import CellConfig
-from .frontends.modbus_map import (
+from ..analysis import CircleSpec, DistanceSpec, EdgeSpec, LineSpec, WidthSpec
+from ..cameras import RequestCameraSettings
+from ..config import CellConfig
+from ..frontends import (
     ERROR_MEANINGS,
     FIXED_ROWS,
     REFUSAL_MEANINGS,
@@ -25,7 +25,7 @@ from .frontends.modbus_map import (
     config_map,
     value_rows,
 )
-from .inspections.caliper import SUMMARY_VALUES, CaliperInspection
+from ..inspections import SUMMARY_VALUES, CaliperInspection
 
 NOT_TRIGGERABLE = (
     "not triggerable over Modbus: its camera takes images in the request "

@@ -1,5 +1,5 @@
 """Inspections offline, on image files: the service that ``vision-server run`` and the golden
-cases (:mod:`vision_server.golden`) call directly, without a listener.
+cases (:mod:`vision_server.commands.golden`) call directly, without a listener.
 
 :func:`offline_service` serves one configured inspection with one worker; its camera is replaced
 by one whose images come with the request, with the same intrinsics, so that everything after
@@ -18,11 +18,11 @@ from typing import Any
 from protocol import ImagePayload, ImageRole
 from protocol.image_files import payload_from_file
 
-from .cameras import RequestCamera, RequestCameraSettings
-from .catalog import Catalog, Inspection
-from .frontends.images import payload_loader
-from .service import InspectionService, InspectRequest
-from .settings import ServiceSettings
+from ..cameras import RequestCamera, RequestCameraSettings
+from ..config import ServiceSettings
+from ..frontends import payload_loader
+from ..inspections import Inspection
+from ..service import Catalog, InspectionService, InspectRequest
 
 
 def offline_service(
@@ -51,7 +51,7 @@ def offline_service(
 
 def _with_scene_intrinsics(name: str, settings: Any, base_dir: Path) -> RequestCamera | None:
     """For a sim camera without configured intrinsics, the scene camera's own."""
-    from .cameras import SimCameraSettings, make_camera
+    from ..cameras import SimCameraSettings, make_camera
 
     if not isinstance(settings, SimCameraSettings):
         return None

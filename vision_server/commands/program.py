@@ -72,20 +72,25 @@ from protocol.image_files import (
 )
 from protocol.result_view import result_json, result_view
 
-from . import decoder_limits, sensor_check_cli
+from ..app import App
+from ..config import (
+    CellConfig,
+    ConfigError,
+    ListenError,
+    PortClash,
+    ServerSettings,
+    check_distinct,
+    enabled_listeners,
+    exposure_warnings,
+    load_config,
+)
+from ..process import PROCESS_ENV, decoder_limits
+from ..results import is_database_url
+from ..service import Catalog, InspectReply, builtin_catalog
+from . import sensor_check as sensor_check_cli
 from .admin import AdminError, call_endpoint, resolve
-from .app import App
-from .builtin import builtin_catalog
-from .catalog import Catalog
-from .config import CellConfig, ConfigError, load_config
-from .exposure import exposure_warnings
-from .listeners import ListenError, PortClash, check_distinct, enabled_listeners
-from .malloc_env import PROCESS_ENV
 from .offline import file_request, image_payload, offline_service
-from .results_cli import describe_health, results_command
-from .results_pg import is_database_url
-from .service import InspectReply
-from .settings import ServerSettings
+from .results import describe_health, results_command
 
 log = logging.getLogger("vision_server")
 PROG = "vision-server"
@@ -129,7 +134,7 @@ def _serve(args: argparse.Namespace) -> int:
     config_path = _config_path(args)
     runtime = None
     if config_path:
-        from .runtime import CellRuntime
+        from ..service import CellRuntime
 
         try:
             # OpenCV fixes its image-size limits when it loads: settle them (perhaps by
@@ -259,7 +264,7 @@ def _check_config(args: argparse.Namespace) -> int:
     if not Path(args.file).is_file():
         return _fail(args, ErrorKind.USAGE, f"no such file: {args.file}")
     try:
-        from .runtime import check_result_log
+        from ..service import check_result_log
 
         config = load_config(args.file)
         check_result_log(config)  # a log that cannot be created would stop `serve`
@@ -307,7 +312,7 @@ def _check_config(args: argparse.Namespace) -> int:
 
 
 def _modbus_map(args: argparse.Namespace) -> int:
-    from .modbus_cli import map_json, print_map
+    from .modbus_map import map_json, print_map
 
     args.file = args.file or _config_path(args)
     if not args.file:
@@ -326,7 +331,7 @@ def _modbus_map(args: argparse.Namespace) -> int:
 
 
 def _sources() -> dict[str, type]:
-    from .cameras import SOURCE_NAMES
+    from ..cameras import SOURCE_NAMES
 
     return dict(SOURCE_NAMES)
 

@@ -1,7 +1,7 @@
 """``vision-server results``: list the result log, as a table for people or JSON lines for tools.
 
-The command opens the log read-only (:func:`vision_server.results_open.open_readonly`: an SQLite
-file or a PostgreSQL URL), so it runs safely beside a server that is writing to it.
+The command opens the log read-only (:func:`vision_server.results.open_readonly`: an SQLite file
+or a PostgreSQL URL), so it runs safely beside a server that is writing to it.
 """
 
 from __future__ import annotations
@@ -22,9 +22,7 @@ from rich.text import Text
 
 from protocol.cli import ErrorKind, json_error
 
-from .results_open import open_readonly
-from .results_pg import redact_url
-from .results_store import ResultLogError, StoredResult
+from ..results import ResultLogError, StoredResult, open_readonly, redact_url
 
 __all__ = ["describe_health", "parse_since", "results_command"]
 
@@ -78,7 +76,7 @@ def describe_health(health: Mapping[str, Any] | None) -> str:
         text += " (writing again; restart the server to clear)"
     if log.get("images_failed"):
         text += f", {log['images_failed']} without their image"
-    if "spooled" in log:  # a PostgreSQL log (vision_server/results_pg.py)
+    if "spooled" in log:  # a PostgreSQL log (vision_server/results/postgres.py)
         state = "up" if log.get("database_up") else "DOWN"
         text += f", {log['spooled']} spooled for the database ({state})"
     if log.get("last_error"):

@@ -19,11 +19,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .analysis import AnalysisError
-from .analysis.depth_registration import fit_depth_registration, registration_advice
-from .analysis.qr_pose import qr_pose
-from .config import ConfigError, load_config
-from .inspections.qr_pose import QRPoseInspection
+from ..analysis import AnalysisError, fit_depth_registration, qr_pose, registration_advice
+from ..config import ConfigError, load_config
+from ..inspections import QRPoseInspection
 
 __all__ = ["add_parser", "sensor_check"]
 

@@ -29,9 +29,17 @@ from importlib.util import find_spec
 from pathlib import Path
 from typing import Any
 
-from .cameras import SOURCE_NAMES, CameraSettings, FolderCameraSettings, Intrinsics
-from .cameras.mount import MOUNT_KEYS, CameraMount
-from .configfile import (
+from ..cameras import (
+    MOUNT_KEYS,
+    SOURCE_NAMES,
+    CameraMount,
+    CameraSettings,
+    FolderCameraSettings,
+    Intrinsics,
+)
+from ..inspections import InspectionSpec, numbers_by_position, parse_inspection
+from ..process import MAX_NICE, POLICIES
+from .document import (
     ConfigError,
     Node,
     boolean,
@@ -43,9 +51,6 @@ from .configfile import (
     read_document,
     string,
 )
-from .cpu_priority import MAX_NICE, POLICIES
-from .inspections import InspectionSpec, parse_inspection
-from .inspections.output import numbers_by_position
 from .listeners import PortClash, check_distinct, enabled_listeners
 from .settings import (
     LINE_FORMATS,
@@ -414,7 +419,7 @@ def _results(node: Node, base_dir: Path) -> ResultsConfig:
 
 
 def _database_results(node: Node, base_dir: Path, url: str, enabled: bool) -> ResultsConfig:
-    """``results: {url: postgresql://...}``: the plant-wide log (vision_server/results_pg.py)."""
+    """``results: {url: postgresql://...}``: the plant-wide log (:mod:`vision_server.results`)."""
     if not url.startswith(("postgresql://", "postgres://")):
         raise node.error(
             "expected a PostgreSQL URL such as postgresql://user@host:5432/database", "url"
@@ -443,7 +448,7 @@ def _cameras(root: Node, base_dir: Path) -> dict[str, CameraSettings]:
     cameras: dict[str, CameraSettings] = {}
     for name, node in root.named("cameras"):
         source = node.take("source", one_of(*SOURCE_NAMES))
-        cameras[name] = _settings(node, SOURCE_NAMES[source])
+        cameras[name] = settings_from_node(node, SOURCE_NAMES[source])
         folder = cameras[name]
         if isinstance(folder, FolderCameraSettings):
             _check_folder(node, folder, base_dir)
@@ -467,7 +472,7 @@ def _check_folder(node: Node, settings: FolderCameraSettings, base_dir: Path) ->
             raise node.error(f"no file in {folder} matches {pattern!r}{default}", key)
 
 
-def _settings(node: Node, cls: type[Any]) -> Any:
+def settings_from_node(node: Node, cls: type[Any]) -> Any:
     """Build a settings dataclass from a mapping: the dataclass's fields are the schema (a
     field without a default is required), its ``__post_init__`` the validation."""
     hints = typing.get_type_hints(cls)
@@ -477,7 +482,7 @@ def _settings(node: Node, cls: type[Any]) -> Any:
             field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING
         )
         if field.name == "intrinsics" and node.has("intrinsics"):
-            kwargs["intrinsics"] = _settings(node.sub("intrinsics"), Intrinsics)
+            kwargs["intrinsics"] = settings_from_node(node.sub("intrinsics"), Intrinsics)
             continue
         if field.name == "mount" and node.has("mount"):
             kwargs["mount"] = _mount(node.sub("mount"))

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from .config import CellConfig
+from .cell import CellConfig
 
 __all__ = ["NOTHING_CHANGED", "changed_inspections", "describe_changes"]
 

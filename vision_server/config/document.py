@@ -1,5 +1,5 @@
 """The server configuration's YAML reading: the project's one reader (:mod:`yamlfile`) with
-its errors raised as :class:`ConfigError`, and the converters of image settings (``roi``)::
+its errors raised as :class:`ConfigError`::
 
     cell.yaml:41 inspections[2] (name='cap_check') -> threshold: expected a number, got 'high'
 """
@@ -7,7 +7,7 @@ its errors raised as :class:`ConfigError`, and the converters of image settings 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, cast
+from typing import cast
 
 import yamlfile
 from yamlfile import (
@@ -18,7 +18,6 @@ from yamlfile import (
     boolean,
     fraction,
     integer,
-    kind,
     name,
     non_negative,
     non_negative_int,
@@ -49,7 +48,6 @@ __all__ = [
     "positive",
     "positive_int",
     "read_document",
-    "roi",
     "string",
 ]
 
@@ -77,15 +75,3 @@ def read_document(path: Path) -> tuple[Node, str]:
     """Read and parse a configuration file; also returns its text (for hashing). Errors show
     the file's name only: they go to clients (RELOAD), which need not see the server's paths."""
     return yamlfile.read_document(path, source=path.name, node_type=Node)
-
-
-def roi(value: Any) -> tuple[int, int, int, int]:
-    """An ROI ``[u, v, width, height]`` in whole pixels."""
-    if not isinstance(value, list) or len(value) != 4:
-        raise ValueError(f"expected [u, v, width, height], got {kind(value)}")
-    u, v, w, h = (integer(x) for x in value)
-    if u < 0 or v < 0 or w <= 0 or h <= 0:
-        raise ValueError(
-            f"ROI [u, v, width, height] needs u, v >= 0 and a positive size, got {value!r}"
-        )
-    return u, v, w, h

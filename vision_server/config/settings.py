@@ -48,14 +48,14 @@ class ServiceSettings:
     does not oversubscribe the machine."""
     process_inspections: tuple[str, ...] = ()
     """Inspections that hold the GIL, run in ``workers`` worker processes with their images in
-    shared memory instead of in the worker threads (see vision_server/process_lane.py)."""
+    shared memory instead of in the worker threads (see vision_server/service/process_lane.py)."""
     main_lane_nice: int = 10
     """Niceness added to the main lane's threads and the worker processes (0..19), so that the
     event loop and the fast lane get a core soon when the main lane's work fills them
-    (vision_server/cpu_priority.py); 0: all at the server's own priority."""
+    (vision_server/process/cpu_priority.py); 0: all at the server's own priority."""
     main_lane_policy: str = "nice"
     """How the worker processes yield to the event loop and the fast lane: ``nice`` or
-    ``idle`` (vision_server/cpu_priority.py ``POLICIES``)."""
+    ``idle`` (vision_server/process/cpu_priority.py ``POLICIES``)."""
     max_image_pixels: int = 4096 * 4096
     """The largest image (width x height) an inspection is given."""
     capture_timeout_s: float = 5.0

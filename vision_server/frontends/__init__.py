@@ -7,4 +7,59 @@ requests, call :class:`vision_server.service.InspectionService`, and render its 
   ``modbus``), with its register map (:mod:`.modbus_map`), hand-shake state machine
   (:mod:`.modbus_handshake`) and framing (:mod:`.modbus_frames`), which need no pymodbus.
 - :mod:`.images`: image payloads (the protocol's, also image files) decoded into arrays.
+- :mod:`.http`: the web console, its JSON API and ``/metrics`` (aiohttp).
+
+Public API: each front-end's class, the register map (``modbus-map`` prints it) and
+:func:`payload_loader`. :class:`ModbusFrontend` is imported when first named (it needs
+pymodbus, the ``modbus`` extra).
 """
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from .http import HttpFrontend
+from .images import payload_loader
+from .line import LineFrontend
+from .modbus_map import (
+    ERROR_MEANINGS,
+    FIXED_ROWS,
+    REFUSAL_MEANINGS,
+    MappedInspection,
+    RegisterMap,
+    Row,
+    config_map,
+    value_rows,
+)
+from .tcp import DEFAULT_MAX_FRAME_BYTES, REFUSE_HELLO_TIMEOUT_S, TcpFrontend
+
+if TYPE_CHECKING:
+    from .modbus import ModbusFrontend
+
+__all__ = [
+    "DEFAULT_MAX_FRAME_BYTES",
+    "ERROR_MEANINGS",
+    "FIXED_ROWS",
+    "REFUSAL_MEANINGS",
+    "REFUSE_HELLO_TIMEOUT_S",
+    "HttpFrontend",
+    "LineFrontend",
+    "MappedInspection",
+    "ModbusFrontend",
+    "RegisterMap",
+    "Row",
+    "TcpFrontend",
+    "config_map",
+    "payload_loader",
+    "value_rows",
+]
+
+
+def __getattr__(name: str) -> Any:
+    # Modbus needs pymodbus, an optional extra: imported when first named, so that the other
+    # front-ends (and modbus-map, which needs only the register map) run without it.
+    if name == "ModbusFrontend":
+        from .modbus import ModbusFrontend
+
+        return ModbusFrontend
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -39,21 +39,19 @@ from protocol import (
     ImageTooLarge,
     InvalidArgument,
 )
-from vision_server.config import FIXED_BY_THE_CONFIGURATION
-from vision_server.console import static_dir
-from vision_server.operator_desk import OperatorDesk
-from vision_server.results_store import ResultLogError
-from vision_server.service import (
+
+from ..config import FIXED_BY_THE_CONFIGURATION, SERVER_VERSION, ConsoleSettings
+from ..console import static_dir
+from ..results import TRY_PEER_PREFIX, ResultLogError
+from ..service import (
     CaptureRequest,
     ImageNeeds,
     Images,
     InspectionService,
     InspectRequest,
+    OperatorDesk,
     check_images,
 )
-from vision_server.settings import SERVER_VERSION, ConsoleSettings
-from vision_server.tries import TRY_PEER_PREFIX
-
 from . import http_save
 from .http_auth import COOKIE, Sessions
 from .http_live import LiveView
@@ -479,7 +477,7 @@ class HttpFrontend:
             extras: dict[str, Any] = {}
             loader = _with_extras(images, merged, extras)
             # The row this try leaves in the result log is marked as a try by its peer, with
-            # its options (vision_server.tries): never a production result.
+            # its options (vision_server.results.tries): never a production result.
             reply = await self.service.inspect(
                 InspectRequest(
                     name,
@@ -749,7 +747,7 @@ def _parameter(key: str, value: Any, low: float | None, high: float | None) -> d
 
 def _range(key: str, measure: Any) -> tuple[float | None, float | None]:
     if key in ("min", "max") and isinstance(measure, str):
-        from vision_server.inspections.presence import MEASURE_RANGES
+        from ..inspections import MEASURE_RANGES
 
         if measure in MEASURE_RANGES:
             low, high, _ = MEASURE_RANGES[measure]

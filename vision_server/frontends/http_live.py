@@ -24,8 +24,8 @@ from typing import Any
 
 import cv2
 
-from vision_server.cpu_priority import MAX_NICE, lower_this_thread
-from vision_server.service import (
+from ..process import MAX_NICE, lower_this_thread
+from ..service import (
     CaptureRequest,
     ImageLoader,
     ImageNeeds,

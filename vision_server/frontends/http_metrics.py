@@ -15,9 +15,8 @@ from prometheus_client import CollectorRegistry, Counter, Histogram, generate_la
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
-from vision_server.service import InspectionRecord, InspectionService
-from vision_server.tries import is_try
-
+from ..results import is_try
+from ..service import InspectionRecord, InspectionService
 from .http_live import LiveView
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"

@@ -16,7 +16,7 @@ from aiohttp import web
 
 from protocol import InvalidArgument
 
-from ..operator_desk import CallClosed, OperatorDesk, call_json, closed_json
+from ..service import CallClosed, OperatorDesk, call_json, closed_json
 
 IMAGE_URL = "/api/operator/calls/{call}/images/{index}"
 

@@ -19,8 +19,7 @@ from typing import Any
 
 import yaml
 
-from vision_server.config import FIXED_BY_THE_CONFIGURATION, parse_config
-from vision_server.configfile import ConfigError, parse_document
+from ..config import FIXED_BY_THE_CONFIGURATION, ConfigError, parse_config, parse_document
 
 
 class SaveRefused(ValueError):

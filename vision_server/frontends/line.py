@@ -33,11 +33,21 @@ from protocol import (
     UnknownInspection,
 )
 
-from ..catalog import Catalog, Inspection
-from ..inspections import RESULT_KINDS
-from ..inspections.output import OutputFormat, default_output, numbers_by_position
-from ..service import InspectionRecord, InspectionService, InspectReply, InspectRequest
-from ..settings import LINE_FORMATS, LineSettings, TcpSettings
+from ..config import LINE_FORMATS, LineSettings, TcpSettings
+from ..inspections import (
+    RESULT_KINDS,
+    Inspection,
+    OutputFormat,
+    default_output,
+    numbers_by_position,
+)
+from ..service import (
+    Catalog,
+    InspectionRecord,
+    InspectionService,
+    InspectReply,
+    InspectRequest,
+)
 from .line_codec import (
     Command,
     error_line,

@@ -26,9 +26,8 @@ from pymodbus.server.requesthandler import ServerRequestHandler
 
 from protocol import CellvisionError, DeadlineExceeded, ErrorCode, UnknownInspection
 
-from ..catalog import Catalog
-from ..service import InspectionService, InspectReply, InspectRequest
-from ..settings import ModbusSettings
+from ..config import ModbusSettings
+from ..service import Catalog, InspectionService, InspectReply, InspectRequest
 from .line import Answerable
 from .modbus_frames import (
     ILLEGAL_VALUE,

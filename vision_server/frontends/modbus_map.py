@@ -19,10 +19,9 @@ from typing import Any
 
 from protocol import ErrorCode
 
-from ..catalog import Catalog
-from ..inspections import RESULT_KINDS
-from ..inspections.output import MAX_FIELDS, POSE, OutputField, numbers_by_position
-from ..settings import MODBUS_WORD_ORDERS as WORD_ORDERS
+from ..config import MODBUS_WORD_ORDERS as WORD_ORDERS
+from ..inspections import MAX_FIELDS, POSE, RESULT_KINDS, OutputField, numbers_by_position
+from ..service import Catalog
 from .line import Answerable, answerable
 from .line_poses import CONVENTIONS
 

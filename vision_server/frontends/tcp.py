@@ -74,19 +74,22 @@ from protocol.constants import HEADER_SIZE, SUPPORTED_VERSIONS, MessageType
 from protocol.frames import Blob, Header, encode_metadata
 from wireio import WireStream, serve
 
-from ..admission import Admission, Slot, Waiter
-from ..operator_desk import OperatorDesk, desk_image
+from ..config import DEFAULT_LINE_PORT, SERVER_VERSION, TcpSettings, welcome_limits
 from ..service import (
+    Admission,
     CaptureReply,
     CaptureRequest,
     FrameEncoding,
     InspectionService,
     InspectReply,
     InspectRequest,
+    OperatorDesk,
+    Slot,
+    Waiter,
     capture_key,
     deadline_after,
+    desk_image,
 )
-from ..settings import DEFAULT_LINE_PORT, SERVER_VERSION, TcpSettings, welcome_limits
 from .images import payload_loader
 
 log = logging.getLogger("vision_server")

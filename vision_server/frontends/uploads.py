@@ -4,7 +4,7 @@ PNG and JPEG go to the service as they are (their headers are checked against th
 before decoding, :func:`decode_payloads`); any other format (BMP, TIFF, WebP, PNM, ...) is
 decoded into the raw payload the service takes (:func:`protocol.image_files.payload_from_file`).
 For BMP and TIFF the size in the header is checked against the limit before decoding; for the
-rest OpenCV's own limit, tied to ``max_image_pixels`` (:mod:`vision_server.decoder_limits`),
+rest OpenCV's own limit, tied to ``max_image_pixels`` (:mod:`vision_server.process.decoder_limits`),
 stops the decoder before it allocates. Everything runs in the service's worker (decoding is CPU
 work), once the inspection is known.
 """

@@ -8,12 +8,18 @@ grade), ``qr_pose`` (pose of a QR code from colour + depth), ``calibration_board
 locate, fixture, presence, code, with ROIs that move with the part and a verdict expression),
 ``caliper`` (edges, widths, circles, lines and distances with tolerances, in px or mm).
 
-Public API: :func:`parse_inspection` (configuration → an :class:`~vision_server.catalog.
-Inspection`), ``INSPECTION_TYPES``, ``RESULT_KINDS`` (each type's :class:`ResultKind`: its
+Public API: the contract every type implements (:class:`Inspection`, run on an
+:class:`InspectionInput`, giving an :class:`InspectionOutcome`; :mod:`.contract`),
+:func:`parse_inspection` (a configuration node → an :class:`Inspection`),
+``INSPECTION_TYPES``, ``RESULT_KINDS`` (each type's :class:`ResultKind`: its
 golden expectations and summary values), and the classes :class:`LocateInspection`,
 :class:`PresenceInspection`, :class:`QRInspection`, :class:`CodeInspection`,
 :class:`QRPoseInspection`, :class:`JobInspection`,
-:class:`CalibrationBoardInspection`, :class:`CaliperInspection`.
+:class:`CalibrationBoardInspection`, :class:`CaliperInspection`; what the configuration's
+``output:`` and the other rooms need of them (:func:`numbers_by_position`, ...).
+
+Inspections read their keys through :mod:`yamlfile`'s nodes; the node's owner (the
+configuration) decides the error type they raise.
 """
 
 from __future__ import annotations
@@ -22,19 +28,28 @@ from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
 
+from yamlfile import Node, one_of, positive_int
+
 from ..cameras import CameraSettings
-from ..catalog import Inspection
-from ..configfile import Node, one_of, positive_int
 from . import calibration_board, caliper, code, job, locate, presence, qr, qr_pose
 from .base import Configured
 from .calibration_board import CalibrationBoardInspection, parse_calibration_board
-from .caliper import CaliperInspection, parse_caliper
+from .caliper import SUMMARY_VALUES, CaliperInspection, parse_caliper
 from .code import CodeInspection, parse_code
+from .contract import Inspection, InspectionInput, InspectionOutcome
 from .job import JobInspection, parse_job, step_summary_values
 from .kinds import ResultKind
 from .locate import LocateInspection, parse_locate
-from .output import OutputFormat, parse_output
-from .presence import PresenceInspection, parse_presence
+from .output import (
+    MAX_FIELDS,
+    POSE,
+    OutputField,
+    OutputFormat,
+    default_output,
+    numbers_by_position,
+    parse_output,
+)
+from .presence import MEASURE_RANGES, PresenceInspection, parse_presence
 from .qr import QRInspection, parse_qr
 from .qr_pose import QRPoseInspection, parse_qr_pose
 
@@ -102,18 +117,28 @@ def parse_inspection(
 
 
 __all__ = [
-    "INSPECTION_TYPES",
+    "Inspection",
+    "InspectionInput",
+    "InspectionOutcome",
     "CalibrationBoardInspection",
     "CaliperInspection",
     "CodeInspection",
-    "RESULT_KINDS",
+    "INSPECTION_TYPES",
     "InspectionSpec",
     "JobInspection",
     "LocateInspection",
+    "MAX_FIELDS",
+    "MEASURE_RANGES",
+    "OutputField",
     "OutputFormat",
+    "POSE",
     "PresenceInspection",
     "QRInspection",
     "QRPoseInspection",
+    "RESULT_KINDS",
     "ResultKind",
+    "SUMMARY_VALUES",
+    "default_output",
+    "numbers_by_position",
     "parse_inspection",
 ]

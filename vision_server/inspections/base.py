@@ -13,10 +13,10 @@ import numpy as np
 import numpy.typing as npt
 
 from protocol import BadImage, CellvisionError, InspectionFailed
+from yamlfile import Node, integer, kind, name, positive_int, string
 
 from ..analysis import AnalysisError, BadImageError, RoiError, TemplateError
 from ..cameras import CameraSettings, Intrinsics
-from ..configfile import Node, name, positive_int, roi, string
 from .output import OutputFormat
 
 Image = npt.NDArray[Any]
@@ -213,3 +213,15 @@ def load_template(node: Node, key: str, base_dir: Path, common: Common | None = 
             key,
         )
     return np.ascontiguousarray(image)
+
+
+def roi(value: Any) -> tuple[int, int, int, int]:
+    """An ROI ``[u, v, width, height]`` in whole pixels."""
+    if not isinstance(value, list) or len(value) != 4:
+        raise ValueError(f"expected [u, v, width, height], got {kind(value)}")
+    u, v, w, h = (integer(x) for x in value)
+    if u < 0 or v < 0 or w <= 0 or h <= 0:
+        raise ValueError(
+            f"ROI [u, v, width, height] needs u, v >= 0 and a positive size, got {value!r}"
+        )
+    return u, v, w, h

@@ -20,8 +20,7 @@ from numpy.typing import NDArray
 
 from geometry import make_transform, rotation_from_rpy
 
-from ..cameras.mount import CameraMount
-from ..cameras.settings import Intrinsics
+from ..cameras import CameraMount, Intrinsics
 
 __all__ = ["BaseFrame"]
 

@@ -11,12 +11,19 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..analysis import AnalysisError, NotFoundError
-from ..analysis.board import BOARD_KINDS, DICTIONARIES, BoardSpec, detect_board
+from yamlfile import Node, one_of, positive, positive_int
+
+from ..analysis import (
+    BOARD_KINDS,
+    DICTIONARIES,
+    AnalysisError,
+    BoardSpec,
+    NotFoundError,
+    detect_board,
+)
 from ..cameras import CameraSettings
-from ..catalog import InspectionInput, InspectionOutcome
-from ..configfile import Node, one_of, positive, positive_int
 from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
+from .contract import InspectionInput, InspectionOutcome
 from .kinds import Data, ResultKind, as_number
 
 RED = (0, 0, 255)

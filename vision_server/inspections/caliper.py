@@ -18,20 +18,20 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..analysis import AnalysisError
-from ..analysis.measure import (
+from yamlfile import Node
+
+from ..analysis import (
+    AnalysisError,
     CircleSpec,
     EdgeSpec,
     LineSpec,
     Measurement,
     Spec,
+    Units,
     WidthSpec,
     measure,
 )
-from ..analysis.plane_units import Units
 from ..cameras import CameraSettings
-from ..catalog import InspectionInput, InspectionOutcome
-from ..configfile import Node
 from .base import (
     GREEN,
     RED,
@@ -44,6 +44,7 @@ from .base import (
     parse_common,
 )
 from .caliper_config import parse_measurements, parse_units
+from .contract import InspectionInput, InspectionOutcome
 from .kinds import Data, ResultKind, as_number
 
 SUMMARY_VALUES = 8

@@ -12,11 +12,23 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from ..analysis.caliper import POLARITIES, Band
-from ..analysis.measure import CircleSpec, DistanceSpec, EdgeSpec, LineSpec, Spec, WidthSpec
-from ..analysis.plane_units import PixelUnits, PlaneUnits, ScaleUnits, Units
+from yamlfile import Node, name, number, numbers, one_of, positive, positive_int
+
+from ..analysis import (
+    POLARITIES,
+    Band,
+    CircleSpec,
+    DistanceSpec,
+    EdgeSpec,
+    LineSpec,
+    PixelUnits,
+    PlaneUnits,
+    ScaleUnits,
+    Spec,
+    Units,
+    WidthSpec,
+)
 from ..cameras import Intrinsics
-from ..configfile import Node, name, number, numbers, one_of, positive, positive_int
 
 __all__ = ["KINDS", "PICKS", "parse_measurements", "parse_units"]
 

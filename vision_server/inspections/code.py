@@ -16,12 +16,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..analysis import AnalysisError, NotFoundError
-from ..analysis.codes import SYMBOLOGIES, Code, Grade, read_codes
+from yamlfile import Node, non_negative, one_of
+
+from ..analysis import SYMBOLOGIES, AnalysisError, Code, Grade, NotFoundError, read_codes
 from ..cameras import CameraSettings
-from ..catalog import InspectionInput, InspectionOutcome
-from ..configfile import Node, non_negative, one_of
 from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
+from .contract import InspectionInput, InspectionOutcome
 from .kinds import Data, ResultKind, as_number, points
 from .qr import parse_expect
 

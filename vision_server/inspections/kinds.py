@@ -2,9 +2,10 @@
 
 Every type module declares one :class:`ResultKind` (``RESULTS``) beside its parser: the keys a
 golden case's expected entry may check and how such an entry is made from a result's data
-(:mod:`vision_server.golden`), and the few numbers a reader with no room for JSON takes from a
-result (:meth:`ResultKind.summary`: the registers a PLC reads over Modbus, the fields of a
-line-protocol answer). Adding a type means adding its ``RESULTS``, not editing the readers.
+(:mod:`vision_server.commands.golden`), and the few numbers a reader with no room for JSON
+takes from a result (:meth:`ResultKind.summary`: the registers a PLC reads over Modbus, the
+fields of a line-protocol answer). Adding a type means adding its ``RESULTS``, not editing the
+readers.
 """
 
 from __future__ import annotations

@@ -12,11 +12,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..analysis import AnalysisError
-from ..analysis.locate import CENTRES, MAX_SCALE, MIN_SCALE, Feature, Rejection, locate
+from yamlfile import Node, boolean, fraction, number, one_of, positive, positive_int
+
+from ..analysis import CENTRES, MAX_SCALE, MIN_SCALE, AnalysisError, Feature, Rejection, locate
 from ..cameras import CameraSettings
-from ..catalog import InspectionInput, InspectionOutcome
-from ..configfile import Node, boolean, fraction, number, one_of, positive, positive_int
 from .base import (
     Common,
     Configured,
@@ -26,6 +25,7 @@ from .base import (
     overlay_base,
     parse_common,
 )
+from .contract import InspectionInput, InspectionOutcome
 from .kinds import Data, ResultKind, as_number, points
 
 RED = (0, 0, 255)

@@ -14,8 +14,9 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ..cameras.settings import CameraSettings, SimCameraSettings
-from ..configfile import Node, integer, number, one_of, string
+from yamlfile import Node, integer, number, one_of, string
+
+from ..cameras import CameraSettings, SimCameraSettings
 from .base_frame import BaseFrame
 from .kinds import ResultKind
 

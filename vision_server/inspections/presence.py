@@ -11,12 +11,10 @@ from typing import Any
 
 import cv2
 
-from ..analysis import AnalysisError
-from ..analysis.locate import Polarity
-from ..analysis.presence import MEASURES, measure_presence
+from yamlfile import Node, non_negative_int, number, one_of, string
+
+from ..analysis import MEASURES, AnalysisError, Polarity, measure_presence
 from ..cameras import CameraSettings
-from ..catalog import InspectionInput, InspectionOutcome
-from ..configfile import Node, non_negative_int, number, one_of, string
 from .base import (
     Common,
     Configured,
@@ -27,6 +25,7 @@ from .base import (
     overlay_base,
     parse_common,
 )
+from .contract import InspectionInput, InspectionOutcome
 from .kinds import Data, ResultKind, as_number
 
 MEASURE_RANGES: dict[str, tuple[float, float, str]] = {

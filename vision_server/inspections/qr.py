@@ -16,12 +16,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..analysis import AnalysisError, NotFoundError
-from ..analysis.qr import read_qr
+from yamlfile import Node, one_of, string
+
+from ..analysis import AnalysisError, NotFoundError, read_qr
 from ..cameras import CameraSettings
-from ..catalog import InspectionInput, InspectionOutcome
-from ..configfile import Node, one_of, string
 from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
+from .contract import InspectionInput, InspectionOutcome
 from .kinds import Data, ResultKind, points
 
 RED = (0, 0, 255)

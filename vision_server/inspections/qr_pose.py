@@ -13,20 +13,21 @@ import cv2
 import numpy as np
 
 from protocol import BadImage
-from yamlfile import non_negative, numbers
+from yamlfile import Node, fraction, non_negative, numbers, one_of, positive
 from yamlfile import number as to_number
 
-from ..analysis import AnalysisError, DepthError, NotFoundError
-from ..analysis.qr_pose import (
+from ..analysis import (
     UNCHECKED_SCALE_STD,
     UNCHECKED_SHIFT_STD_PX,
+    AnalysisError,
+    DepthError,
+    NotFoundError,
     QRPoseQuality,
     qr_pose,
 )
 from ..cameras import CameraSettings
-from ..catalog import InspectionInput, InspectionOutcome
-from ..configfile import Node, fraction, one_of, positive
 from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
+from .contract import InspectionInput, InspectionOutcome
 from .kinds import Data, ResultKind, points
 from .qr import parse_expect
 

@@ -22,7 +22,8 @@ that reuse freed memory instead of fresh pages.
 glibc reads these when the process starts (``mallopt`` later, once threads have allocated, was
 measured to change nothing for the arenas), so ``vision-server serve`` starts itself again with
 them when they are not set, with OpenCV's limits, in one re-execution (see
-:func:`vision_server.decoder_limits.ensure`). Set any of them yourself to choose another value.
+:func:`vision_server.process.decoder_limits.ensure`). Set any of them yourself to choose
+another value.
 The worker processes of ``process_inspections`` inherit them.
 """
 

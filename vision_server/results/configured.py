@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .config import ResultsConfig
-from .results import ResultLog, check_creatable
-from .results_pg import PgResultLog, is_database_url
-from .results_store import ResultStore
+from ..config import ResultsConfig
+from .postgres import PgResultLog, is_database_url
+from .sqlite import ResultLog, check_creatable
+from .store import ResultStore
 
 __all__ = ["check_result_store", "open_readonly", "open_result_store"]
 
@@ -16,7 +16,7 @@ __all__ = ["check_result_store", "open_readonly", "open_result_store"]
 def open_result_store(settings: ResultsConfig) -> ResultStore | None:
     """The configured log opened for writing, or None when it is off.
 
-    Raises :class:`~vision_server.results_store.ResultLogError` naming the cause.
+    Raises :class:`~vision_server.results.store.ResultLogError` naming the cause.
     """
     if settings.url is not None:
         assert settings.spool is not None

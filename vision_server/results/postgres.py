@@ -1,11 +1,11 @@
 """The result log in PostgreSQL: one history for a plant's cells, with a local spool.
 
-The durability promise is the SQLite log's (vision_server/results.py): a result is acknowledged
+The durability promise is the SQLite log's (:mod:`.sqlite`): a result is acknowledged
 with ``stored: true`` only once its row is safe. Here that means either
 
 - **committed to PostgreSQL** (the normal case: :meth:`PgResultLog.record` inserts and commits
   before it returns the row's id), or
-- **fsync'd to the local spool** (vision_server/results_spool.py) when the database cannot take
+- **fsync'd to the local spool** (vision_server/results/spool.py) when the database cannot take
   it: down, unreachable, restarting, refusing connections. :meth:`~PgResultLog.record` then
   returns 0 (stored, id not known yet). A forwarder thread retries every ``retry_s`` and moves
   the spool to the database in batches, oldest first; while anything is spooled, new rows join
@@ -40,10 +40,10 @@ from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
 
-from .results_pg_schema import SCHEMA_VERSION, check_version, migrate
-from .results_query import COLUMNS, page_sql, where_sql
-from .results_spool import Spool
-from .results_store import ResultEntry, ResultLogError, StoredResult, parse_data, row_values
+from .postgres_schema import SCHEMA_VERSION, check_version, migrate
+from .query import COLUMNS, page_sql, where_sql
+from .spool import Spool
+from .store import ResultEntry, ResultLogError, StoredResult, parse_data, row_values
 
 __all__ = ["PgResultLog", "is_database_url", "redact_url"]
 

@@ -1,6 +1,6 @@
 """The PostgreSQL result log's schema and its versioned migrations.
 
-The same table as the SQLite log (vision_server/results.py), with PostgreSQL's types, plus what a
+The same table as the SQLite log (:mod:`.sqlite`), with PostgreSQL's types, plus what a
 plant-wide history needs: ``uid``, a unique id per result made by the cell that recorded it, so
 that forwarding a spooled row twice (a crash between the database's commit and the spool's
 delete) inserts it once; and ``cell``, the host that recorded it.
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .results_store import ResultLogError
+from .store import ResultLogError
 
 __all__ = ["MIGRATIONS", "SCHEMA_VERSION", "check_version", "migrate", "schema_version"]
 
@@ -31,7 +31,7 @@ MIGRATIONS: tuple[str, ...] = (
         duration_ms DOUBLE PRECISION NOT NULL,
         config_hash TEXT    NOT NULL,
         request_id  BIGINT  NOT NULL DEFAULT 0,
-        -- "C": the console's peer filter is a code-point range (vision_server/results_query.py)
+        -- "C": the console's peer filter is a code-point range (vision_server/results/query.py)
         peer        TEXT COLLATE "C" NOT NULL DEFAULT '',
         error       TEXT,
         image       TEXT,

@@ -2,7 +2,7 @@
 
 A small SQLite file in WAL mode with ``synchronous=FULL``: :meth:`Spool.add` returns only after
 the row is fsync'd, so a result acknowledged from the spool survives a crash of the server and a
-power loss alike (unlike the SQLite log's NORMAL, see vision_server/results.py: the spool is the
+power loss alike (unlike the SQLite log's NORMAL, see :mod:`.sqlite`: the spool is the
 only copy of a row, and it is written only while the database is down, so the fsync's cost is
 paid rarely). Rows are keyed by their ``uid`` and leave the spool only after the database
 committed them (:meth:`Spool.remove`), so a crash in between forwards them again: the database's
@@ -18,7 +18,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from .results_store import ResultLogError
+from .store import ResultLogError
 
 __all__ = ["Spool"]
 

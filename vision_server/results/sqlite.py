@@ -7,9 +7,9 @@ The server calls :meth:`ResultLog.record` from its worker threads and sends the 
 after it returned, and the response says whether the row was written (RESULT's ``stored``, SPEC
 §6.3): a result acknowledged with ``stored: true`` is in the log.
 
-This is the cell's own log; vision_server/results_pg.py keeps the same rows in PostgreSQL for a
-plant. Both implement :class:`vision_server.results_store.ResultStore`, which the server, the
-console and ``vision-server results`` use (vision_server/results_open.py picks one).
+This is the cell's own log; :mod:`.postgres` keeps the same rows in PostgreSQL for a plant.
+Both implement :class:`.store.ResultStore`, which the server, the console and
+``vision-server results`` use (:mod:`.configured` picks one).
 
 Choices, and why:
 
@@ -66,16 +66,9 @@ from typing import Any, get_args
 import cv2
 import numpy as np
 
-from .results_query import COLUMNS, page_sql
-from .results_query import where_sql as _where
-from .results_store import (
-    ImagePolicy,
-    ResultEntry,
-    ResultLogError,
-    StoredResult,
-    parse_data,
-    row_values,
-)
+from .query import COLUMNS, page_sql
+from .query import where_sql as _where
+from .store import ImagePolicy, ResultEntry, ResultLogError, StoredResult, parse_data, row_values
 
 __all__ = [
     "SCHEMA_VERSION",

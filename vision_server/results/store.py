@@ -1,10 +1,10 @@
 """What every result log is: the records it takes, the rows it gives back, and the interface the
 server, the console and ``vision-server results`` use without knowing where the rows live.
 
-Two implementations: :class:`vision_server.results.ResultLog` (SQLite on the cell PC, images on
-its disk) and :class:`vision_server.results_pg.PgResultLog` (PostgreSQL, one history for a plant,
-with a local spool for when the database is down). :func:`vision_server.results_open
-.open_result_log` picks one from the configuration.
+Two implementations: :class:`.sqlite.ResultLog` (SQLite on the cell PC, images on its disk)
+and :class:`.postgres.PgResultLog` (PostgreSQL, one history for a plant, with a local spool for
+when the database is down). :func:`.configured.open_result_store` picks one from the
+configuration.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ class ResultEntry:
     overlay: np.ndarray | None = field(default=None, repr=False, compare=False)
     options: Mapping[str, Any] = field(default_factory=dict)
     """The request's own parameters (SPEC §6.3) the inspection ran with; stored with a
-    console try's row (:mod:`vision_server.tries`)."""
+    console try's row (:mod:`vision_server.results.tries`)."""
 
 
 @dataclass(frozen=True)
@@ -91,7 +91,7 @@ class StoredResult:
 
     @property
     def is_try(self) -> bool:
-        """Whether this row is a console try (see :mod:`vision_server.tries`)."""
+        """Whether this row is a console try (see :mod:`vision_server.results.tries`)."""
         return tries.is_try(self.peer)
 
     def to_json(self) -> dict[str, Any]:

@@ -32,7 +32,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal, TypeVar
 
-from .cpu_priority import lower_this_thread
+from ..process import lower_this_thread
 
 _T = TypeVar("_T")
 LaneName = Literal["main", "fast"]
@@ -150,7 +150,7 @@ class Lane:
         self.waiters: deque[Waiter] = deque()
         self.nice = nice
         """How much lower than the server's other threads this lane's threads run (niceness
-        added, vision_server/cpu_priority.py)."""
+        added, vision_server/process/cpu_priority.py)."""
         self.executor = ThreadPoolExecutor(
             max_workers=threads,
             thread_name_prefix=f"inspect-{name}",

@@ -7,8 +7,9 @@ from dataclasses import dataclass
 
 import cv2
 
-from .cameras import RequestCamera, RequestCameraSettings
-from .catalog import Catalog, InspectionInput, InspectionOutcome
+from ..cameras import RequestCamera, RequestCameraSettings
+from ..inspections import InspectionInput, InspectionOutcome
+from .catalog import Catalog
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ new configuration, never a mix.
 Lifetime: a request *leases* the catalog it runs on (:meth:`Catalog.lease_newest`) and keeps
 the lease until its last use of the catalog's cameras and inspections, including work still
 running in a worker thread after the client was answered (a passed deadline). The owner of the
-resources (:class:`vision_server.runtime.CellRuntime`) *retires* a catalog when a reload
+resources (:class:`vision_server.service.runtime.CellRuntime`) *retires* a catalog when a reload
 replaces it; once it is retired and its last lease is released, the catalog is *released*: its
 ``on_release`` callbacks run, and only then may the owner close what no newer catalog uses. So
 every resource of an old catalog outlives the requests that use it.
@@ -21,15 +21,13 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any, Protocol
-
-import numpy.typing as npt
+from typing import Any
 
 from protocol import InvalidArgument, UnknownCamera, UnknownInspection
 
-from .cameras import Camera, Intrinsics
+from ..cameras import Camera
+from ..inspections import Inspection
 
-Image = npt.NDArray[Any]
 log = logging.getLogger("vision_server")
 
 
@@ -85,52 +83,6 @@ class CatalogLease:
         tb: TracebackType | None,
     ) -> None:
         self.release()
-
-
-@dataclass(frozen=True)
-class InspectionInput:
-    """The images one inspection run gets.
-
-    ``color``: (H, W) or (H, W, 3) uint8 (BGR); ``depth``: zero or more (H, W) uint16 frames in
-    millimetres, registered to ``color``; ``intrinsics``: the camera's, when known.
-    """
-
-    color: Image
-    depth: tuple[Image, ...] = ()
-    intrinsics: Intrinsics | None = None
-
-
-@dataclass(frozen=True)
-class InspectionOutcome:
-    """What an inspection found: the verdict, the measured data (JSON-able), an overlay."""
-
-    passed: bool
-    data: dict[str, Any] = field(default_factory=dict)
-    overlay: Image | None = None
-
-
-class Inspection(Protocol):
-    """A named, configured inspection. ``run`` is CPU-bound and runs in a worker thread.
-
-    ``frames``: how many frames a server camera captures for one run (depth averaging).
-    """
-
-    @property
-    def name(self) -> str: ...
-
-    @property
-    def type(self) -> str: ...
-
-    @property
-    def camera(self) -> str: ...
-
-    @property
-    def uses_depth(self) -> bool: ...
-
-    @property
-    def frames(self) -> int: ...
-
-    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome: ...
 
 
 @dataclass(frozen=True)

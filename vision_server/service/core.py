@@ -44,12 +44,13 @@ from protocol import (
     InvalidArgument,
 )
 
+from ..cameras import Camera, CameraFrame
+from ..config import ServiceSettings
+from ..inspections import InspectionInput, InspectionOutcome
+from ..results import ResultEntry, ResultStore
 from .admission import Admission, ByteBudget, Slot, Waiter, WorkPool
-from .cameras import Camera, CameraFrame
-from .catalog import Catalog, InspectionInput, InspectionOutcome
+from .catalog import Catalog
 from .process_lane import ProcessLane
-from .results_store import ResultEntry, ResultStore
-from .settings import ServiceSettings
 
 log = logging.getLogger("vision_server")
 _T = TypeVar("_T")

@@ -43,8 +43,8 @@ import numpy as np
 
 from protocol.errors import InternalError, ShuttingDown
 
-from .catalog import Inspection, InspectionInput, InspectionOutcome
-from .cpu_priority import run_this_process_at, target_niceness
+from ..inspections import Inspection, InspectionInput, InspectionOutcome
+from ..process import run_this_process_at, target_niceness
 
 Layout = tuple[tuple[int, tuple[int, ...], str], ...]
 """Where each image lies in the shared block: (offset in bytes, shape, numpy dtype string);
@@ -100,10 +100,10 @@ class ProcessLane:
         OpenCV starts."""
         self.niceness = target_niceness(nice) if nice > 0 else None
         """The niceness each process sets when it starts, ``nice`` above the server's own
-        (vision_server/cpu_priority.py): the main lane's work yields the cores to the event
+        (vision_server/process/cpu_priority.py): the main lane's work yields the cores to the event
         loop and the fast lane. None: as inherited."""
         self.policy = policy
-        """``nice`` or ``idle`` (:data:`vision_server.cpu_priority.POLICIES`)."""
+        """``nice`` or ``idle`` (:data:`vision_server.process.cpu_priority.POLICIES`)."""
         self._context = multiprocessing.get_context("spawn")
         self._idle: queue.SimpleQueue[_Worker | None] = queue.SimpleQueue()
         """Workers free to take a request; None once the lane is stopped (each waiter that

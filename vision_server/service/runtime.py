@@ -7,9 +7,9 @@ by the caller) and the old catalog keeps serving.
 
 A camera that a reload replaced or removed is closed only when no catalog that holds it is in
 use any more: the old catalog is retired, and once the last request leasing it is done (see
-:mod:`vision_server.catalog`) the cameras that no newer catalog holds are closed, in a thread of
-their own, because closing a camera joins its reader (up to ``read_timeout_s`` + 5 s for a
-hung driver) and must neither block the event loop (SIGHUP) nor a worker thread.
+:mod:`.catalog`) the cameras that no newer catalog holds are closed, in a thread of their own,
+because closing a camera joins its reader (up to ``read_timeout_s`` + 5 s for a hung driver)
+and must neither block the event loop (SIGHUP) nor a worker thread.
 """
 
 from __future__ import annotations
@@ -19,13 +19,17 @@ import threading
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
-from .cameras import Camera, CameraSettings, make_camera
+from ..cameras import Camera, CameraSettings, make_camera
+from ..config import (
+    NOTHING_CHANGED,
+    CellConfig,
+    ConfigError,
+    describe_changes,
+    load_config,
+    read_document,
+)
+from ..results import ResultLogError, ResultStore, check_result_store, open_result_store
 from .catalog import Catalog
-from .config import CellConfig, ConfigError, load_config
-from .config_changes import NOTHING_CHANGED, describe_changes
-from .configfile import read_document
-from .results_open import check_result_store, open_result_store
-from .results_store import ResultLogError, ResultStore
 
 log = logging.getLogger("vision_server")
 
@@ -135,7 +139,7 @@ class CellRuntime:
         catalog does not keep them. Never waits for a camera to close.
 
         The catalog's ``notes`` say what the reload changed (inspections and cameras changed,
-        added, removed: vision_server.config_changes), then the sections whose changes wait
+        added, removed: vision_server.config.changes), then the sections whose changes wait
         for a restart, compared with what the process started with (so a second reload
         still says so); "no inspection or camera changed" when there is nothing to say.
         """

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 from simulation import SimCell, load_scene
-from vision_server.analysis import BadImageError, NotFoundError, RoiError
-from vision_server.analysis.board import BoardSpec, detect_board
+from vision_server.analysis import BadImageError, BoardSpec, NotFoundError, RoiError, detect_board
 
 BOARD = BoardSpec("charuco", 11, 8, 0.03, 0.0225)
 

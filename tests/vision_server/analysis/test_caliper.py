@@ -17,18 +17,23 @@ from numpy.typing import NDArray
 from simulation.flat_parts import bar, disc, plane_point, render_flat_part
 from simulation.scene import camera_preset
 from tests.helpers.photos import MISSING, sample_gray
-from vision_server.analysis import NotFoundError, RoiError
-from vision_server.analysis.caliper import Band, find_edges, find_pairs
-from vision_server.analysis.fit2d import Line, fit_circle, fit_line, line_line, point_line_distance
-from vision_server.analysis.measure import (
+from vision_server.analysis import (
+    Band,
     CircleSpec,
     DistanceSpec,
     EdgeSpec,
     LineSpec,
+    NotFoundError,
+    PixelUnits,
+    PlaneUnits,
+    RoiError,
+    ScaleUnits,
     WidthSpec,
+    find_edges,
+    find_pairs,
     measure,
 )
-from vision_server.analysis.plane_units import PixelUnits, PlaneUnits, ScaleUnits
+from vision_server.analysis.fit2d import Line, fit_circle, fit_line, line_line, point_line_distance
 
 SUPERSAMPLE = 8
 TOOL_CAMERA, _, _ = camera_preset("dmk31bf03")

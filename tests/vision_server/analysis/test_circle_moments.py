@@ -12,8 +12,8 @@ import pytest
 from numpy.typing import NDArray
 
 from tests.helpers.photos import MISSING, degrade, sample_gray
+from vision_server.analysis import locate_circles
 from vision_server.analysis.circle_moments import moment_centre
-from vision_server.analysis.locate import locate_circles
 
 CENTRE = (60.3, 59.6)
 RADIUS = 20.0

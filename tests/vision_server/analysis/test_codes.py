@@ -13,8 +13,8 @@ import pytest
 import zxingcpp
 from numpy.typing import NDArray
 
+from vision_server.analysis import BadImageError, NotFoundError, RoiError
 from vision_server.analysis.codes import SYMBOLOGIES, human_readable, read_codes
-from vision_server.analysis.errors import BadImageError, NotFoundError, RoiError
 
 F = zxingcpp.BarcodeFormat
 GS, RS, EOT = "\x1d", "\x1e", "\x04"

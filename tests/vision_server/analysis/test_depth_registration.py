@@ -9,9 +9,7 @@ import numpy as np
 import pytest
 
 from geometry import invert_transform, rotation_angle
-from vision_server.analysis.depth_registration import fit_depth_registration
-from vision_server.analysis.errors import AnalysisError
-from vision_server.analysis.qr_pose import qr_pose
+from vision_server.analysis import AnalysisError, fit_depth_registration, qr_pose
 
 from .conftest import qr_cell, random_view
 

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from vision_server.analysis.errors import BadImageError, NotFoundError, RoiError, TemplateError
+from vision_server.analysis import BadImageError, NotFoundError, RoiError, TemplateError
 from vision_server.analysis.locate import (
     Feature,
     crop_roi,

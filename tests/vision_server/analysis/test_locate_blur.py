@@ -15,8 +15,8 @@ import pytest
 from numpy.typing import NDArray
 
 from tests.helpers.photos import MISSING, UNRELATED, degrade, sample_gray
+from vision_server.analysis import Feature, locate_circles
 from vision_server.analysis.edge_width import edge_sigma
-from vision_server.analysis.locate import Feature, locate_circles
 
 SUPERSAMPLE = 8
 

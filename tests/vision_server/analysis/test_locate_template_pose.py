@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from simulation.textured_part import BACKGROUND, random_part
-from vision_server.analysis.locate import Feature, locate_template
+from vision_server.analysis import Feature, locate_template
 
 PART = random_part(7)
 TEMPLATE = PART.template()  # 65 x 65 px, its centre the part's reference point

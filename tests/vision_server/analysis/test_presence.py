@@ -11,10 +11,12 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from vision_server.analysis.errors import BadImageError, RoiError, TemplateError
-from vision_server.analysis.presence import (
+from vision_server.analysis import (
     MEASURES,
+    BadImageError,
     PresenceResult,
+    RoiError,
+    TemplateError,
     measure_presence,
     measure_presence_details,
 )

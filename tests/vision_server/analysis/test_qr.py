@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vision_server.analysis.errors import BadImageError, NotFoundError, RoiError
+from vision_server.analysis import BadImageError, NotFoundError, RoiError
 from vision_server.analysis.qr import QRCode, decode_raw, read_qr
 
 from .conftest import render_qr, square_corners

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from geometry import invert_transform, rotation_angle
-from vision_server.analysis.errors import BadImageError, DepthError, NotFoundError
-from vision_server.analysis.qr_pose import QRPose, qr_pose
+from vision_server.analysis import BadImageError, DepthError, NotFoundError, QRPose, qr_pose
 
 from .conftest import qr_cell, random_view
 

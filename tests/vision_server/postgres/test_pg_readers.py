@@ -19,7 +19,7 @@ from postgres import Cluster
 
 from robot_client.client import VisionClient
 from vision_server.app import App
-from vision_server.runtime import CellRuntime
+from vision_server.service import CellRuntime
 
 CONFIG = """\
 server: {{port: 0}}
@@ -109,8 +109,7 @@ def test_the_console_lists_and_shows_results_from_postgresql(
 
 
 def test_vision_server_results_reads_a_postgresql_log(pg_url: str, tmp_path: Path) -> None:
-    from vision_server.results_pg import PgResultLog
-    from vision_server.results_store import ResultEntry
+    from vision_server.results import PgResultLog, ResultEntry
 
     with PgResultLog(pg_url, spool=tmp_path / "spool.sqlite3") as log:
         for i in range(3):

@@ -16,12 +16,17 @@ import pytest
 from loopback import run, wait_until
 from postgres import Cluster
 
-from vision_server.results import ResultLog
-from vision_server.results_open import open_readonly
-from vision_server.results_pg import PgResultLog
-from vision_server.results_pg_schema import SCHEMA_VERSION, migrate, schema_version
-from vision_server.results_spool import Spool
-from vision_server.results_store import ResultEntry, ResultLogError, ResultStore, StoredResult
+from vision_server.results import (
+    PgResultLog,
+    ResultEntry,
+    ResultLog,
+    ResultLogError,
+    ResultStore,
+    StoredResult,
+    open_readonly,
+)
+from vision_server.results.postgres_schema import SCHEMA_VERSION, migrate, schema_version
+from vision_server.results.spool import Spool
 
 psycopg = pytest.importorskip(
     "psycopg", reason="psycopg is not installed: pip install -e '.[test]' (extra postgres)"

@@ -16,10 +16,18 @@ from typing import Any
 
 import numpy as np
 
-from ...analysis import RoiError
-from ...analysis.measure import CircleSpec, DistanceSpec, Measurement, Spec, measure
-from ...analysis.plane_units import PixelUnits, Units
-from ...configfile import Node
+from yamlfile import Node
+
+from ...analysis import (
+    CircleSpec,
+    DistanceSpec,
+    Measurement,
+    PixelUnits,
+    RoiError,
+    Spec,
+    Units,
+    measure,
+)
 from ..caliper import measurement_dict
 from ..caliper_config import parse_measurements, parse_units
 from .expression import ValueType

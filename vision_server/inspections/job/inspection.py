@@ -15,12 +15,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from yamlfile import kind
+from yamlfile import Node, integer, kind, string
 
 from ...analysis import AnalysisError
 from ...cameras import CameraSettings
-from ...catalog import InspectionInput, InspectionOutcome
-from ...configfile import Node, integer, string
 from ..base import (
     GREEN,
     RED,
@@ -31,6 +29,7 @@ from ..base import (
     overlay_base,
     parse_common,
 )
+from ..contract import InspectionInput, InspectionOutcome
 from ..kinds import Data, ResultKind, as_number, points
 from .expression import Expression, ExpressionError, parse_expression
 from .registry import STEP_TYPES, WITHOUT_ROI

@@ -15,7 +15,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ...configfile import Node
+from yamlfile import Node
+
 from ..base import Common
 from .expression import ValueType
 from .frame import IDENTITY, Affine, Image, PartFrame, inside, outline, roi_transform, sample

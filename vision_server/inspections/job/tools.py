@@ -14,11 +14,18 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from ...analysis import NotFoundError
-from ...analysis.codes import read_codes
-from ...analysis.locate import Feature, Polarity, Rejection, circle_margin_px, locate
-from ...analysis.presence import measure_presence
-from ...configfile import Node, string
+from yamlfile import Node, string
+
+from ...analysis import (
+    Feature,
+    NotFoundError,
+    Polarity,
+    Rejection,
+    circle_margin_px,
+    locate,
+    measure_presence,
+    read_codes,
+)
 from ..code import below_grade, parse_min_grade, parse_symbologies
 from ..locate import parse_locate_settings
 from ..presence import parse_presence_settings

@@ -1,0 +1,7 @@
+import contextlib
+import sys
+
+from .task import main
+
+with contextlib.suppress(KeyboardInterrupt):
+    sys.exit(main())

@@ -1,0 +1,79 @@
+"""The cell configuration: one YAML file read, validated and frozen (docs/configuration.md).
+
+- :mod:`.cell`: :func:`load_config` → :class:`CellConfig` (server, console, line, Modbus,
+  results, cameras, inspections); :class:`Tuner` re-reads an inspection with a request's
+  options.
+- :mod:`.document`: the YAML reading, every error a :class:`ConfigError` naming file, line and
+  key path.
+- :mod:`.settings`: the records the service and each front-end run with.
+- :mod:`.listeners`: the addresses the front-ends listen on, and that no two share one.
+- :mod:`.changes`: what a reload changed, in words.
+- :mod:`.exposure`: warnings for front-ends open beyond loopback without authentication.
+"""
+
+from .cell import (
+    FIXED_BY_THE_CONFIGURATION,
+    CellConfig,
+    ResultsConfig,
+    Tuner,
+    load_config,
+    load_server_settings,
+    parse_config,
+    settings_from_node,
+)
+from .changes import NOTHING_CHANGED, changed_inspections, describe_changes
+from .document import ConfigError, Node, parse_document, read_document
+from .exposure import exposure_warnings
+from .listeners import Listener, ListenError, PortClash, check_distinct, enabled_listeners
+from .settings import (
+    DEFAULT_CONSOLE_PORT,
+    DEFAULT_LINE_PORT,
+    DEFAULT_MODBUS_PORT,
+    LINE_FORMATS,
+    MODBUS_WORD_ORDERS,
+    SERVER_VERSION,
+    ConsoleSettings,
+    LineSettings,
+    ModbusSettings,
+    ServerSettings,
+    ServiceSettings,
+    TcpSettings,
+    welcome_limits,
+)
+
+__all__ = [
+    "DEFAULT_CONSOLE_PORT",
+    "DEFAULT_LINE_PORT",
+    "DEFAULT_MODBUS_PORT",
+    "FIXED_BY_THE_CONFIGURATION",
+    "LINE_FORMATS",
+    "MODBUS_WORD_ORDERS",
+    "NOTHING_CHANGED",
+    "SERVER_VERSION",
+    "CellConfig",
+    "ConfigError",
+    "ConsoleSettings",
+    "LineSettings",
+    "ListenError",
+    "Listener",
+    "ModbusSettings",
+    "Node",
+    "PortClash",
+    "ResultsConfig",
+    "ServerSettings",
+    "ServiceSettings",
+    "TcpSettings",
+    "Tuner",
+    "changed_inspections",
+    "check_distinct",
+    "describe_changes",
+    "enabled_listeners",
+    "exposure_warnings",
+    "load_config",
+    "load_server_settings",
+    "parse_config",
+    "parse_document",
+    "read_document",
+    "settings_from_node",
+    "welcome_limits",
+]

@@ -1,0 +1,31 @@
+"""The server's operating-system process: what it starts with and how its threads yield.
+
+- :mod:`.decoder_limits`: OpenCV's image-size limits, set before cv2 loads (importing
+  :mod:`vision_server` installs the default) and re-executed into by ``serve``.
+- :mod:`.malloc`: the glibc malloc settings ``serve`` starts with (:data:`PROCESS_ENV`).
+- :mod:`.cpu_priority`: the niceness of the work that can wait (the main lane's threads, the
+  worker processes, the console's live view).
+
+Nothing here imports cv2 or another room of the server: every room may use it, and
+:mod:`vision_server` imports it first.
+"""
+
+from . import decoder_limits
+from .cpu_priority import (
+    MAX_NICE,
+    POLICIES,
+    lower_this_thread,
+    run_this_process_at,
+    target_niceness,
+)
+from .malloc import PROCESS_ENV
+
+__all__ = [
+    "MAX_NICE",
+    "POLICIES",
+    "PROCESS_ENV",
+    "decoder_limits",
+    "lower_this_thread",
+    "run_this_process_at",
+    "target_niceness",
+]

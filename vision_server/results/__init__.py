@@ -1,0 +1,34 @@
+"""The result log: every answered inspection, kept where the configuration says.
+
+- :mod:`.store`: what every log is (:class:`ResultStore`), the record it takes
+  (:class:`ResultEntry`) and the rows it gives back (:class:`StoredResult`).
+- :mod:`.sqlite`: :class:`ResultLog`, the cell's own log (SQLite, images of failures on disk).
+- :mod:`.postgres`: :class:`PgResultLog`, one history for a plant (PostgreSQL), with
+  :mod:`.spool` keeping rows on local disk while the database is down and
+  :mod:`.postgres_schema` its versioned schema.
+- :mod:`.query`: the filters and pages both stores share.
+- :mod:`.tries`: how a console try is marked, so that no reader counts it as production.
+- :mod:`.configured`: the configured store opened, for writing or for reading.
+"""
+
+from .configured import check_result_store, open_readonly, open_result_store
+from .postgres import PgResultLog, is_database_url, redact_url
+from .sqlite import ResultLog
+from .store import ResultEntry, ResultLogError, ResultStore, StoredResult
+from .tries import TRY_PEER_PREFIX, is_try
+
+__all__ = [
+    "TRY_PEER_PREFIX",
+    "PgResultLog",
+    "ResultEntry",
+    "ResultLog",
+    "ResultLogError",
+    "ResultStore",
+    "StoredResult",
+    "check_result_store",
+    "is_database_url",
+    "is_try",
+    "open_readonly",
+    "open_result_store",
+    "redact_url",
+]

@@ -1,0 +1,66 @@
+"""The inspection service: the one path to an inspection, under every front-end.
+
+- :mod:`.core`: :class:`InspectionService` (``inspect``, ``capture``, ``admit``, ``reload``,
+  ``subscribe``) and its records :class:`InspectRequest`, :class:`Images`,
+  :class:`InspectReply`, :class:`CaptureRequest`, :class:`CaptureReply`.
+- :mod:`.admission`: the worker lanes, their cost model and the byte budget
+  (:class:`Admission`, :class:`Slot`, :class:`Waiter`).
+- :mod:`.process_lane`: inspections run in worker processes (``server: process_inspections``).
+- :mod:`.catalog`: the cameras and inspections a configuration offers, swapped whole on reload.
+- :mod:`.runtime`: :class:`CellRuntime`, a running configuration's cameras, catalog and result
+  log, and its reload.
+- :mod:`.operator_desk`: robots' calls waiting for a person (SPEC §6.6).
+- :mod:`.builtin`: :func:`builtin_catalog`, what ``serve`` offers without a configuration.
+
+It speaks arrays and plain records, never a front-end's wire types.
+"""
+
+from .admission import Admission, Slot, Waiter
+from .builtin import builtin_catalog
+from .catalog import Catalog, CatalogReleased
+from .core import (
+    CaptureReply,
+    CaptureRequest,
+    FrameEncoding,
+    ImageLoader,
+    ImageNeeds,
+    Images,
+    InspectionRecord,
+    InspectionService,
+    InspectReply,
+    InspectRequest,
+    capture_key,
+    check_images,
+    deadline_after,
+)
+from .operator_desk import CallClosed, OperatorDesk, call_json, closed_json, desk_image
+from .runtime import CellRuntime, check_result_log
+
+__all__ = [
+    "Admission",
+    "CallClosed",
+    "CaptureReply",
+    "CaptureRequest",
+    "Catalog",
+    "CatalogReleased",
+    "CellRuntime",
+    "FrameEncoding",
+    "ImageLoader",
+    "ImageNeeds",
+    "Images",
+    "InspectReply",
+    "InspectRequest",
+    "InspectionRecord",
+    "InspectionService",
+    "OperatorDesk",
+    "Slot",
+    "Waiter",
+    "builtin_catalog",
+    "call_json",
+    "capture_key",
+    "check_images",
+    "check_result_log",
+    "closed_json",
+    "deadline_after",
+    "desk_image",
+]
