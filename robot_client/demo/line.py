@@ -36,7 +36,7 @@ from simulation import SimCell
 from ..controllers.urscript import pose_to_str, read_line, socket_read_ascii_float, ur_pose
 from .cell import grasp_error_m, vision_server
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 SCENE = REPO / "examples" / "scenes" / "grundfos_cell.yaml"
 CAMERA = "tool_camera"
 CAPS = ("cap_1", "cap_2", "cap_3")

@@ -74,7 +74,7 @@ from .commission import (
 
 __all__ = ["Check", "DemoResult", "main", "run_demo"]
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 CONFIG = REPO / "examples" / "cell.yaml"
 TASK = REPO / "examples" / "robot" / "demo_task.yaml"
 TAUGHT = REPO / "examples" / "robot" / "taught.yaml"
