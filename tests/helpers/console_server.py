@@ -154,9 +154,10 @@ class Browserless:
         body: bytes | None = None,
         headers: dict[str, str] | None = None,
     ) -> Reply:
-        req = urllib.request.Request(
-            self.base + path, data=body, method=method, headers=headers or {}
-        )
+        headers = dict(headers or {})
+        if method not in ("GET", "HEAD"):  # as the console's page does (static/js/api.js)
+            headers.setdefault("X-Cellvision", "console")
+        req = urllib.request.Request(self.base + path, data=body, method=method, headers=headers)
         try:
             with self.opener.open(req, timeout=30) as resp:
                 return Reply(resp.status, resp.headers, resp.read())

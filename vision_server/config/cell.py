@@ -303,6 +303,9 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
         max_buffered_bytes=node.take(
             "max_buffered_bytes", positive_int, defaults.max_buffered_bytes
         ),
+        max_connections_total=node.take(
+            "max_connections_total", positive_int, defaults.max_connections_total
+        ),
     )
     if settings.queue_depth < 0:
         raise node.error(f"expected an integer >= 0, got {settings.queue_depth}", "queue_depth")
@@ -397,9 +400,28 @@ def _console(node: Node, server: ServerSettings) -> ConsoleSettings:
     if not 0 <= port < 65536:
         raise node.error(f"expected a port in 0..65535, got {port}", "port")
     view_fps = node.take("max_view_fps", positive, defaults.max_view_fps)
+    listening = ConsoleSettings(
+        enabled=enabled,
+        host=host,
+        port=port,
+        max_view_fps=view_fps,
+        max_connections=node.take("max_connections", positive_int, defaults.max_connections),
+        request_timeout_s=node.take("request_timeout_s", positive, defaults.request_timeout_s),
+        idle_timeout_s=node.take("idle_timeout_s", positive, defaults.idle_timeout_s),
+        try_deadline_s=node.take("try_deadline_s", positive, defaults.try_deadline_s),
+        allowed_hosts=tuple(node.take("allowed_hosts", _host_names, defaults.allowed_hosts)),
+    )
     node.finish()
-    listening = ConsoleSettings(enabled=enabled, host=host, port=port, max_view_fps=view_fps)
     return listening.from_server(server)
+
+
+def _host_names(value: Any) -> tuple[str, ...]:
+    """A list of host names (``allowed_hosts``), compared without case."""
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list) or not all(isinstance(v, str) and v.strip() for v in value):
+        raise ValueError(f"expected a list of host names, got {value!r}")
+    return tuple(v.strip().lower().rstrip(".") for v in value)
 
 
 def _results(node: Node, base_dir: Path) -> ResultsConfig:

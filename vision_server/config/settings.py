@@ -60,6 +60,9 @@ class ServiceSettings:
     """The largest image (width x height) an inspection is given."""
     capture_timeout_s: float = 5.0
     """How long a server camera may take for the frames of one request (without a deadline)."""
+    max_connections_total: int = 1000
+    """Connections the server holds at once over all its front-ends (the front door's limit,
+    below the process's file-descriptor limit); each front-end also has its own."""
 
     @property
     def capacity(self) -> int:
@@ -212,6 +215,8 @@ class ServerSettings:
     max_buffered_bytes: int = 256 * 1024 * 1024
     """Server-wide budget for request bodies and replies held in memory; a frame or a reply that
     does not fit is answered BUSY instead of being read or built."""
+    max_connections_total: int = 1000
+    """Connections held at once over every front-end (binary, console, line, Modbus)."""
 
     def __post_init__(self) -> None:
         # "" would read as "a token is required" and let in every client that sends none.
@@ -262,6 +267,22 @@ class ConsoleSettings:
     max_image_pixels: int = 4096 * 4096
     allow_save: bool = True
     """Whether the console may write the configuration file and reload (``allow_reload``)."""
+    max_connections: int = 64
+    """Browser connections at once (a browser opens about six); one more is closed as it
+    connects, before TLS."""
+    request_timeout_s: float = 10.0
+    """How long a connection may take to send a whole request's head, and a signed-out one
+    its whole request; after that (and after ``idle_timeout_s`` without a request) it is
+    closed."""
+    idle_timeout_s: float = 60.0
+    """How long a connection may stay open between requests."""
+    try_deadline_s: float = 10.0
+    """A try's deadline from its arrival: past it the try answers DEADLINE_EXCEEDED (its
+    browser's going away ends it sooner)."""
+    allowed_hosts: tuple[str, ...] = ()
+    """Host names (besides IP addresses, ``localhost`` and this machine's own names) that the
+    console answers in a request's Host header: a name a DNS-rebinding page would use is
+    refused."""
 
     def from_server(self, server: ServerSettings) -> ConsoleSettings:
         """These listening settings with the server's token, TLS, limits and reload policy."""

@@ -54,10 +54,12 @@ from ..service import (
 )
 from . import http_save
 from .http_auth import COOKIE, Sessions
+from .http_door import cross_site_reason, host_allowed
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
 from .http_operator import OperatorRoutes
 from .images import decode_payloads
+from .listener import Listener, Policy
 from .uploads import upload_loader
 
 log = logging.getLogger("vision_server")
@@ -88,6 +90,10 @@ MAX_JSON_PART = 64 * 1024
 FORM_OVERHEAD = 64 * 1024
 """Bytes of a try's form besides the image (boundaries, the request part)."""
 FRAME_TIMESTAMP_HEADER = "X-Frame-Timestamp"
+LOGIN_MAX_BYTES = 4096
+"""The largest sign-in body: a token, not an upload."""
+WRITE_TIMEOUT_S = 30.0
+"""How long a browser may leave an answer unread before its connection is dropped."""
 """The live view's frame.jpg header: the frame's capture time, Unix seconds."""
 SECURITY_HEADERS = {
     "X-Content-Type-Options": "nosniff",
@@ -151,7 +157,7 @@ class HttpFrontend:
         self.sessions = Sessions(settings.auth_token)
         self.started_at = time.time()
         self._runner: web.AppRunner | None = None
-        self._site: web.TCPSite | None = None
+        self._listener: Listener | None = None
         self._save_lock = asyncio.Lock()
         self.live: LiveView | None = None
         self.metrics: Metrics | None = None
@@ -161,10 +167,9 @@ class HttpFrontend:
     @property
     def address(self) -> tuple[str, int]:
         """The address and port actually bound (useful with port 0)."""
-        if self._runner is None or not self._runner.addresses:
+        if self._listener is None:
             raise RuntimeError("the console is not started")
-        host, port = self._runner.addresses[0][:2]
-        return str(host), int(port)
+        return self._listener.address
 
     @property
     def port(self) -> int:
@@ -179,24 +184,49 @@ class HttpFrontend:
     async def start(self) -> None:
         self.live = LiveView(self.service, self.settings.max_view_fps)
         self.metrics = Metrics(self.service, self.live)
-        self._runner = web.AppRunner(self.build(), access_log=None)
+        self._runner = web.AppRunner(
+            self.build(),
+            access_log=None,
+            keepalive_timeout=self.settings.idle_timeout_s,
+            # A browser that goes away takes its request with it (a try's answer is dropped
+            # and its slot freed, as for a robot's dropped connection), and an unread body is
+            # not waited for longer than a request may take.
+            handler_cancellation=True,
+            lingering_time=self.settings.request_timeout_s,
+        )
         await self._runner.setup()
-        self._site = web.TCPSite(
-            self._runner,
-            self.settings.host,
-            self.settings.port,
+        server = self._runner.server
+        assert server is not None
+        # Connections come through the service's front door (counted before TLS) and close
+        # when they stall, whatever they send (vision_server/frontends/listener.py).
+        self._listener = Listener(
+            self.service.door,
+            Policy(
+                name="console",
+                max_connections=self.settings.max_connections,
+                request_timeout_s=self.settings.request_timeout_s,
+                idle_timeout_s=self.settings.idle_timeout_s,
+                write_timeout_s=WRITE_TIMEOUT_S,
+                tls_handshake_timeout_s=self.settings.request_timeout_s,
+            ),
+            server,
             ssl_context=self.settings.ssl_context(),
         )
         try:
-            await self._site.start()
+            await self._listener.start(self.settings.host, self.settings.port)
         except BaseException:  # a port that is taken: leave nothing set up behind
             await self.stop()
             raise
 
     async def stop(self) -> None:
+        if self._listener is not None:
+            await self._listener.stop_accepting()
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
+        if self._listener is not None:
+            await self._listener.close_connections()
+            self._listener = None
         if self.metrics is not None:
             self.metrics.close()
         if self.live is not None:
@@ -204,7 +234,7 @@ class HttpFrontend:
 
     def build(self) -> web.Application:
         app = web.Application(
-            middlewares=[self._errors, self._guard],
+            middlewares=[self._errors, self._door, self._guard],
             client_max_size=self.settings.max_upload_bytes + FORM_OVERHEAD,
         )
         routes = app.router
@@ -258,11 +288,40 @@ class HttpFrontend:
         return response
 
     @web.middleware
+    async def _door(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        """The Host and same-origin rules (vision_server/frontends/http_door.py), and the
+        connection's clock: no deadline while a request is answered, a fresh one after."""
+        if not host_allowed(request.host, self.settings.allowed_hosts):
+            raise HttpError(
+                421,
+                "MISDIRECTED",
+                f"this console does not answer for the host {request.host!r} (add the name to "
+                "console: allowed_hosts if it is this machine's)",
+            )
+        why = cross_site_reason(request)
+        if why is not None:
+            raise HttpError(403, "CROSS_SITE", why)
+        listener = self._listener
+        clock = listener.clock_of(request.transport) if listener is not None else None
+        if listener is None or clock is None:
+            return await handler(request)
+        clock.begin()
+        try:
+            response = await handler(request)
+            if self._signed_in(request):
+                clock.signed_in = True
+            return response
+        finally:
+            clock.end(listener.policy, time.monotonic())
+
+    @web.middleware
     async def _guard(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         """Without a session only the page (its sign-in form) and /api/login answer."""
         path = request.path
         protected = (path.startswith("/api/") and path != "/api/login") or path == "/metrics"
         if protected and not self._signed_in(request):
+            if path == "/metrics" and request.headers.get("Authorization"):
+                raise await self._refuse_token(request, "wrong bearer token")
             raise HttpError(401, "UNAUTHORIZED", "sign in with the server's token first")
         return await handler(request)
 
@@ -274,6 +333,11 @@ class HttpFrontend:
             return auth.startswith("Bearer ") and self.sessions.token_matches(auth[7:].strip())
         return False
 
+    async def _refuse_token(self, request: web.Request, message: str) -> HttpError:
+        """A wrong token, answered after the front door's delay for its host."""
+        await asyncio.sleep(self.service.door.auth_failed(_peer(request)))
+        return HttpError(401, "UNAUTHORIZED", message)
+
     # ------------------------------------------------------------------ page, sign-in
 
     async def index(self, request: web.Request) -> web.StreamResponse:
@@ -282,12 +346,12 @@ class HttpFrontend:
         return response
 
     async def login(self, request: web.Request) -> web.Response:
-        body = await _json_body(request)
+        body = await _small_json_body(request, LOGIN_MAX_BYTES, self.settings.request_timeout_s)
         response = web.json_response({"ok": True})
         if not self.sessions.required:
             return response
         if not self.sessions.token_matches(body.get("token")):
-            raise HttpError(401, "UNAUTHORIZED", "wrong token")
+            raise await self._refuse_token(request, "wrong token")
         response.set_cookie(
             COOKIE,
             self.sessions.open(),
@@ -485,6 +549,7 @@ class HttpFrontend:
                     overlay=".png" if spec.get("overlay", True) else None,
                     options=tuned,
                     arrived=arrived,
+                    deadline=arrived + self.settings.try_deadline_s,
                     peer=TRY_PEER_PREFIX + _peer(request),
                 ),
                 admission=admission,
@@ -901,6 +966,35 @@ def _row_json(row: Any) -> dict[str, Any]:
         "has_image": row.image_path is not None and row.image_path.is_file(),
         "has_overlay": row.overlay_path is not None and row.overlay_path.is_file(),
     }
+
+
+async def _small_json_body(request: web.Request, limit: int, timeout_s: float) -> dict[str, Any]:
+    """A JSON object of at most ``limit`` bytes, read within ``timeout_s``: what a request may
+    send before it is signed in (nothing it sends makes the server hold more, or longer)."""
+    announced = request.content_length
+    if announced is not None and announced > limit:
+        raise HttpError(413, "TOO_LARGE", f"the body has more than {limit} bytes")
+    chunks: list[bytes] = []
+    size = 0
+    try:
+        async with asyncio.timeout(timeout_s):
+            while True:
+                chunk = await request.content.read(limit + 1 - size)
+                if not chunk:
+                    break
+                size += len(chunk)
+                if size > limit:
+                    raise HttpError(413, "TOO_LARGE", f"the body has more than {limit} bytes")
+                chunks.append(chunk)
+    except TimeoutError:
+        raise HttpError(408, "TIMEOUT", f"the body did not arrive within {timeout_s:g} s") from None
+    try:
+        body = json.loads(b"".join(chunks))
+    except ValueError as exc:
+        raise HttpError(400, "BAD_REQUEST", f"the body is not JSON: {exc}") from None
+    if not isinstance(body, dict):
+        raise HttpError(400, "BAD_REQUEST", "the body must be a JSON object")
+    return body
 
 
 async def _json_body(request: web.Request) -> dict[str, Any]:

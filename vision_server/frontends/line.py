@@ -47,6 +47,7 @@ from ..service import (
     InspectionService,
     InspectReply,
     InspectRequest,
+    Refusal,
 )
 from .line_codec import (
     Command,
@@ -59,6 +60,8 @@ from .line_codec import (
 from .line_poses import CONVENTIONS, Matrix, parse_pose, pose_values
 
 log = logging.getLogger("vision_server")
+FRONTEND = "line protocol"
+"""This front-end's name at the service's front door (its counts, its refusals)."""
 
 READ_CHUNK = 4096
 TLS_HANDSHAKE_TIMEOUT_S = 10.0
@@ -208,8 +211,15 @@ class LineFrontend:
         self.latest[record.reply.inspection] = record.reply
 
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        if len(self.sessions) >= self.settings.max_connections or self._stopping:
-            why = "the server is stopping" if self._stopping else "too many connections"
+        peername = writer.get_extra_info("peername")
+        peer = f"{peername[0]}:{peername[1]}" if isinstance(peername, tuple) else str(peername)
+        admitted = (
+            Refusal("the server is stopping")
+            if self._stopping
+            else self.service.door.enter(FRONTEND, peer, limit=self.settings.max_connections)
+        )
+        if isinstance(admitted, Refusal):
+            why = admitted.reason
             exc = ShuttingDown(why) if self._stopping else Busy(f"{why}; try again")
             with contextlib.suppress(ConnectionError, OSError):
                 writer.write(error_line(exc))
@@ -223,6 +233,7 @@ class LineFrontend:
             await session.run()
         finally:
             self.sessions.discard(session)
+            admitted.leave()
 
 
 class LineSession:
@@ -373,6 +384,8 @@ class LineSession:
         expected = self.frontend.tcp.auth_token
         if expected is not None and not hmac.compare_digest(token.encode(), expected.encode()):
             log.info("%s: wrong token on the line protocol", self.peer)
+            # The front door slows down guessing: the refusal waits, doubling per failure.
+            await asyncio.sleep(self.service.door.auth_failed(self.peer))
             await self._send(error_line(NotAuthenticated("wrong token")))
             raise _Closed
         self.authenticated = True

@@ -84,6 +84,7 @@ from ..service import (
     InspectReply,
     InspectRequest,
     OperatorDesk,
+    Refusal,
     Slot,
     Waiter,
     capture_key,
@@ -94,6 +95,8 @@ from .images import payload_loader
 
 log = logging.getLogger("vision_server")
 
+FRONTEND = "binary protocol"
+"""This front-end's name at the service's front door (its counts, its refusals)."""
 DEFAULT_MAX_FRAME_BYTES = Limits().max_frame_bytes
 """What a client accepts when its HELLO does not say (SPEC §3.4 default)."""
 REFUSE_HELLO_TIMEOUT_S = 2.0
@@ -201,8 +204,15 @@ class TcpFrontend:
     # ------------------------------------------------------------------ connections
 
     async def _accept(self, stream: WireStream) -> None:
-        if len(self.connections) >= self.settings.max_connections or self._stopping.is_set():
-            reason = "too many connections" if not self._stopping.is_set() else "stopping"
+        peername = stream.get_extra_info("peername")
+        peer = f"{peername[0]}:{peername[1]}" if isinstance(peername, tuple) else str(peername)
+        admitted = (
+            Refusal("stopping")
+            if self._stopping.is_set()
+            else self.service.door.enter(FRONTEND, peer, limit=self.settings.max_connections)
+        )
+        if isinstance(admitted, Refusal):
+            reason = admitted.reason
             # Refusing politely costs a read (and a TLS handshake); never more of them at once
             # than connections: past that, a flood is just closed.
             if self._refusing >= self.settings.max_connections:
@@ -223,6 +233,7 @@ class TcpFrontend:
         finally:
             self.connections.discard(session)
             session.admission_cleanup()
+            admitted.leave()
 
     async def _start_tls(self, stream: WireStream, timeout_s: float) -> bool:
         """Wrap the connection in TLS when the server has TLS; False (and closed) on failure."""
@@ -557,6 +568,10 @@ class TcpSession:
                 assert isinstance(event, Message)
                 # The whole frame is in: a request's deadline counts from now (SPEC §6.1).
                 arrived = self._last_activity = time.monotonic()
+                if isinstance(event, Hello) and not self._token_ok(event):
+                    # The front door slows down guessing: the refusal waits, doubling per
+                    # failure from this host (nothing else is read meanwhile).
+                    await asyncio.sleep(self.service.door.auth_failed(self.peer))
                 admission = self._take_frame_admission()
                 try:
                     keep_going = self._dispatch(event, group, admission, arrived)
@@ -628,6 +643,13 @@ class TcpSession:
         if not self._tasks:
             self._tasks_done.set()
 
+    def _token_ok(self, hello: Hello) -> bool:
+        """Whether the HELLO carries the server's token, when it has one (constant-time)."""
+        expected = self.settings.auth_token
+        if expected is None:
+            return True
+        return hmac.compare_digest((hello.auth_token or "").encode(), expected.encode())
+
     def _handshake(self, hello: Hello) -> bool:
         version = negotiate_version(hello.versions, self.conn.versions)
         if version is None:
@@ -640,18 +662,15 @@ class TcpSession:
             )
             self._write(Error.from_exception(exc))
             return False
-        expected = self.settings.auth_token
-        if expected is not None:
-            given = hello.auth_token or ""
-            if not hmac.compare_digest(given.encode(), expected.encode()):
-                self._write(
-                    Error.from_exception(
-                        NotAuthenticated(
-                            "missing or wrong auth_token in HELLO", request_id=hello.request_id
-                        )
+        if not self._token_ok(hello):
+            self._write(
+                Error.from_exception(
+                    NotAuthenticated(
+                        "missing or wrong auth_token in HELLO", request_id=hello.request_id
                     )
                 )
-                return False
+            )
+            return False
         if hello.max_frame_bytes is not None:
             self.max_reply_bytes = hello.max_frame_bytes
         settings = self.settings

@@ -9,6 +9,8 @@
 - :mod:`.catalog`: the cameras and inspections a configuration offers, swapped whole on reload.
 - :mod:`.runtime`: :class:`CellRuntime`, a running configuration's cameras, catalog and result
   log, and its reload.
+- :mod:`.door`: the front door: :class:`FrontDoor` admits every front-end's connections
+  (per front-end and server-wide) and slows down failed sign-ins.
 - :mod:`.operator_desk`: robots' calls waiting for a person (SPEC §6.6).
 - :mod:`.builtin`: :func:`builtin_catalog`, what ``serve`` offers without a configuration.
 
@@ -33,6 +35,7 @@ from .core import (
     check_images,
     deadline_after,
 )
+from .door import FrontDoor, Pass, Refusal, peer_host
 from .operator_desk import CallClosed, OperatorDesk, call_json, closed_json, desk_image
 from .runtime import CellRuntime, check_result_log
 
@@ -45,6 +48,7 @@ __all__ = [
     "CatalogReleased",
     "CellRuntime",
     "FrameEncoding",
+    "FrontDoor",
     "ImageLoader",
     "ImageNeeds",
     "Images",
@@ -53,6 +57,8 @@ __all__ = [
     "InspectionRecord",
     "InspectionService",
     "OperatorDesk",
+    "Pass",
+    "Refusal",
     "Slot",
     "Waiter",
     "builtin_catalog",
@@ -63,4 +69,5 @@ __all__ = [
     "closed_json",
     "deadline_after",
     "desk_image",
+    "peer_host",
 ]

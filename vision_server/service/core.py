@@ -50,6 +50,7 @@ from ..inspections import InspectionInput, InspectionOutcome
 from ..results import ResultEntry, ResultStore
 from .admission import Admission, ByteBudget, Slot, Waiter, WorkPool
 from .catalog import Catalog
+from .door import FrontDoor
 from .process_lane import ProcessLane
 
 log = logging.getLogger("vision_server")
@@ -250,6 +251,8 @@ class InspectionService:
             main_lane_nice=self.settings.main_lane_nice,
         )
         self.budget = ByteBudget(self.settings.max_buffered_bytes)
+        self.door = FrontDoor(self.settings.max_connections_total)
+        """What every front-end's connections and sign-ins go through (:mod:`.door`)."""
         self._observers: list[Callable[[InspectionRecord], None]] = []
         self._reload_lock = threading.Lock()
         self.busy_count = 0

@@ -32,11 +32,16 @@ async function errorFrom(response) {
   return new ApiError(response.status, code, message);
 }
 
-/** fetch() an API path; resolves to the Response when it is 2xx, else throws ApiError. */
+/** fetch() an API path; resolves to the Response when it is 2xx, else throws ApiError.
+ * A request that changes something carries X-Cellvision: console, the server's proof that
+ * this page sent it and not another site's (docs/console.md, "Security"). */
 export async function request(path, init = {}) {
+  const method = (init.method || "GET").toUpperCase();
+  const headers = { ...(init.headers || {}) };
+  if (method !== "GET" && method !== "HEAD") headers["X-Cellvision"] = "console";
   let response;
   try {
-    response = await fetch(path, { credentials: "same-origin", cache: "no-store", ...init });
+    response = await fetch(path, { credentials: "same-origin", cache: "no-store", ...init, headers });
   } catch (exc) {
     throw new ApiError(0, "UNREACHABLE", `the server does not answer (${exc.message})`);
   }

@@ -1,0 +1,347 @@
+"""The front door (vision_server/service/door.py, frontends/listener.py, frontends/http_door.py):
+connections counted per front-end and server-wide before TLS, stalled connections closed,
+sign-in failures slowed down, and the console's Host and same-origin rules.
+
+The console tests run the real server (``App`` with the console, as ``serve`` wires it) and
+talk to it over loopback sockets as a browser, an attacker's page or a flood would."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from console_server import TOKEN, Browserless, RunningConsole, example_config, running_cell
+
+from protocol import Busy, NotAuthenticated
+from robot_client import ReconnectPolicy, SyncVisionClient
+from vision_server.frontends.listener import Clock, Policy
+from vision_server.service import FrontDoor, Pass, Refusal
+from vision_server.service.door import AUTH_DELAY_MAX_S, AUTH_DELAY_MIN_S, AUTH_MEMORY_S
+
+# ----------------------------------------------------------------------------- the door itself
+
+
+def test_a_front_end_is_held_to_its_own_limit_and_all_to_the_total() -> None:
+    door = FrontDoor(5)
+    console = [door.enter("console", f"10.0.0.1:{n}", limit=3) for n in range(4)]
+    assert all(isinstance(p, Pass) for p in console[:3])
+    assert isinstance(console[3], Refusal)
+    assert "console (3)" in console[3].reason
+    binary = [door.enter("binary protocol", f"10.0.0.2:{n}", limit=64) for n in range(3)]
+    assert isinstance(binary[0], Pass)
+    assert isinstance(binary[1], Pass)
+    assert isinstance(binary[2], Refusal)
+    assert "5 in all" in binary[2].reason
+    first = console[0]
+    assert isinstance(first, Pass)
+    first.leave()
+    first.leave()  # twice is once
+    assert door.connections == 4
+    assert isinstance(door.enter("binary protocol", "10.0.0.2:9", limit=64), Pass)
+    assert door.counts()["console"] == {"open": 2, "refused": 1}
+    assert door.counts()["binary protocol"] == {"open": 3, "refused": 1}
+
+
+def test_the_total_stays_below_the_descriptor_limit() -> None:
+    from vision_server.service.door import DESCRIPTORS_KEPT, descriptor_limit
+
+    assert FrontDoor(10**9).total == descriptor_limit() - DESCRIPTORS_KEPT
+
+
+def test_failed_sign_ins_wait_longer_per_host_and_are_forgotten() -> None:
+    now = [1000.0]
+    door = FrontDoor(10, clock=lambda: now[0])
+    delays = [door.auth_failed(f"192.0.2.7:{port}") for port in range(40000, 40010)]
+    assert delays[0] == AUTH_DELAY_MIN_S
+    assert delays[1] == 2 * AUTH_DELAY_MIN_S  # another port of the same host counts
+    assert delays == sorted(delays)
+    assert delays[-1] == AUTH_DELAY_MAX_S
+    assert door.auth_failed("[2001:db8::1]:5000") == AUTH_DELAY_MIN_S  # another host
+    now[0] += AUTH_MEMORY_S + 1
+    assert door.auth_failed("192.0.2.7:40011") == AUTH_DELAY_MIN_S
+
+
+def test_failing_hosts_are_bounded() -> None:
+    from vision_server.service.door import MAX_HOSTS_REMEMBERED
+
+    door = FrontDoor(10)
+    for n in range(MAX_HOSTS_REMEMBERED + 50):
+        door.auth_failed(f"10.{n >> 16 & 255}.{n >> 8 & 255}.{n & 255}:1")
+    assert door.failing_hosts() == MAX_HOSTS_REMEMBERED
+
+
+class _StuckTransport(asyncio.WriteTransport):
+    """A transport whose client reads nothing: its write buffer never shrinks."""
+
+    def __init__(self, buffered: int) -> None:
+        super().__init__()
+        self.buffered = buffered
+
+    def get_write_buffer_size(self) -> int:
+        return self.buffered
+
+
+def test_a_connection_that_reads_nothing_is_overdue_after_the_write_timeout() -> None:
+    policy = Policy("console", 8, request_timeout_s=5, idle_timeout_s=60, write_timeout_s=10)
+    transport = _StuckTransport(4 << 20)
+    clock = Clock(started=0.0, transport=transport)
+    clock.begin()  # an answer being written: no request deadline meanwhile
+    assert clock.overdue(policy, 1.0) is None
+    assert clock.overdue(policy, 10.5) is None
+    transport.buffered -= 1 << 20  # it read a little: the clock starts again
+    assert clock.overdue(policy, 11.0) is None
+    assert clock.overdue(policy, 20.0) is None
+    assert "read nothing for 10 s" in (clock.overdue(policy, 21.5) or "")
+
+
+def test_a_signed_out_connection_gets_the_request_timeout_a_signed_in_one_the_idle() -> None:
+    policy = Policy("console", 8, request_timeout_s=5, idle_timeout_s=60, write_timeout_s=10)
+    clock = Clock(started=0.0)
+    clock.deadline = 5.0
+    assert "no complete request within 5 s" in (clock.overdue(policy, 5.5) or "")
+    clock.begin()
+    clock.end(policy, 10.0)
+    assert clock.overdue(policy, 14.0) is None
+    assert "no complete request" in (clock.overdue(policy, 15.5) or "")
+    clock.signed_in = True
+    clock.begin()
+    clock.end(policy, 20.0)
+    assert clock.overdue(policy, 79.0) is None
+    assert "idle for 60 s" in (clock.overdue(policy, 80.5) or "")
+
+
+# ----------------------------------------------------------------------------- the real server
+
+CONSOLE_KEYS = "  max_connections: 3\n  request_timeout_s: 1\n  allowed_hosts: [cell-pc.example]\n"
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningConsole]:
+    folder = tmp_path_factory.mktemp("door")
+    config = example_config(folder, extra_server="  max_connections_total: 8\n")
+    text = config.read_text(encoding="utf-8")
+    config.write_text(text.replace("  max_view_fps: 30\n", "  max_view_fps: 30\n" + CONSOLE_KEYS))
+    with running_cell(config) as running:
+        yield running
+
+
+def _address(cell: RunningConsole) -> tuple[str, int]:
+    assert cell.app.http is not None
+    return cell.app.http.address
+
+
+def _closed_by_server(sock: socket.socket, within_s: float = 15.0) -> bool:
+    """Whether the server closes ``sock`` (EOF or reset) within ``within_s``; what it sent
+    before closing is ignored."""
+    sock.settimeout(within_s)
+    try:
+        while sock.recv(65536):
+            pass
+        return True
+    except (ConnectionResetError, BrokenPipeError):
+        return True
+    except TimeoutError:
+        return False
+
+
+def _open(cell: RunningConsole) -> socket.socket:
+    return socket.create_connection(_address(cell), timeout=5)
+
+
+def _wait_for(predicate: object, within_s: float = 10.0) -> bool:
+    end = time.monotonic() + within_s
+    while time.monotonic() < end:
+        if predicate():  # type: ignore[operator]
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _robot(cell: RunningConsole, token: str = TOKEN) -> SyncVisionClient:
+    """A robot's client of the binary protocol, without retries."""
+    return SyncVisionClient(
+        "127.0.0.1", cell.app.tcp.port, auth_token=token, reconnect=ReconnectPolicy(attempts=0)
+    )
+
+
+def test_silent_and_trickling_connections_are_closed_before_they_sign_in(
+    cell: RunningConsole,
+) -> None:
+    silent = _open(cell)
+    trickling = _open(cell)
+    trickling.sendall(b"GET /api/server HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+    started = time.monotonic()
+    for _ in range(20):  # a header byte every 0.2 s: it never completes the request in time
+        try:
+            trickling.sendall(b"X")
+        except OSError:
+            break
+        time.sleep(0.2)
+        if time.monotonic() - started > 4:
+            break
+    assert _closed_by_server(trickling)
+    assert _closed_by_server(silent)
+    silent.close()
+    trickling.close()
+    assert _wait_for(lambda: cell.app.service.door.held("console") == 0)
+
+
+def test_console_connections_past_its_limit_are_closed_and_the_robot_is_served(
+    tmp_path: Path,
+) -> None:
+    config = example_config(tmp_path)
+    text = config.read_text(encoding="utf-8")
+    config.write_text(
+        text.replace(
+            "  max_view_fps: 30\n",
+            # the held connections must outlive a slow machine's test: a long request timeout
+            "  max_view_fps: 30\n  max_connections: 3\n  request_timeout_s: 120\n",
+        )
+    )
+    with running_cell(config) as cell:
+        held = [_open(cell) for _ in range(3)]
+        assert _wait_for(lambda: cell.app.service.door.held("console") == 3)
+        extra = _open(cell)
+        assert _closed_by_server(extra, within_s=5)
+        with _robot(cell) as robot:
+            assert robot.ping() >= 0
+        # The held ones were not touched: a browser on one of them is answered.
+        held[0].sendall(b"GET /api/server HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        assert held[0].recv(12).startswith(b"HTTP/1.1 401")
+        for sock in [*held, extra]:
+            sock.close()
+        counts = cell.app.service.door.counts()["console"]
+        assert counts["refused"] >= 1
+
+
+def test_the_server_wide_total_refuses_the_robot_politely_when_the_console_holds_it(
+    tmp_path: Path,
+) -> None:
+    config = example_config(tmp_path, extra_server="  max_connections_total: 3\n")
+    with running_cell(config) as cell:
+        held = [_open(cell) for _ in range(3)]
+        assert _wait_for(lambda: cell.app.service.door.connections == 3)
+        with (
+            pytest.raises(Busy, match="too many connections to the server"),
+            _robot(cell) as robot,
+        ):
+            robot.ping()
+        for sock in held:
+            sock.close()
+        assert _wait_for(lambda: cell.app.service.door.connections == 0)
+        with _robot(cell) as robot:
+            assert robot.ping() >= 0
+
+
+def _raw(cell: RunningConsole, head: bytes, body: bytes = b"") -> tuple[int, bytes]:
+    with _open(cell) as sock:
+        sock.sendall(head + body)
+        sock.settimeout(15)
+        data = b""
+        while b"\r\n\r\n" not in data:
+            chunk = sock.recv(65536)
+            if not chunk:
+                break
+            data += chunk
+        status = int(data.split(b" ", 2)[1]) if data.startswith(b"HTTP/") else 0
+        return status, data
+
+
+def test_sign_in_reads_a_small_body_in_time_or_refuses(cell: RunningConsole) -> None:
+    status, data = _raw(
+        cell,
+        b"POST /api/login HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+        b"Content-Length: 67108864\r\n\r\n",
+    )
+    assert status == 413, data
+    status, data = _raw(
+        cell,
+        b"POST /api/login HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+        b"Content-Length: 40\r\n\r\n",
+        b'{"token": ',  # and then nothing
+    )
+    assert status == 408, data
+    assert b"did not arrive within 1 s" in data
+
+
+def test_a_wrong_token_is_slowed_down_on_every_front_end(cell: RunningConsole) -> None:
+    door = cell.app.service.door
+    before = door.failing_hosts()
+    client = Browserless(cell.url)
+    assert client.login("wrong").status == 401
+    assert door.failing_hosts() == before + 1  # loopback is now a failing host
+    with pytest.raises(NotAuthenticated), _robot(cell, "wrong") as robot:
+        robot.ping()
+    assert client.login(TOKEN).status == 200  # the right token is never delayed
+
+
+@pytest.mark.parametrize(
+    ("host", "status"),
+    [
+        ("evil.example", 421),
+        ("evil.example:80", 421),
+        ("127.0.0.1", 401),  # answered (401: signed out)
+        ("localhost", 401),
+        ("[::1]:7880", 401),
+        ("CELL-PC.example.", 401),  # allowed_hosts, any case, trailing dot
+    ],
+)
+def test_the_console_answers_only_hosts_that_name_it(
+    cell: RunningConsole, host: str, status: int
+) -> None:
+    got, data = _raw(cell, f"GET /api/server HTTP/1.1\r\nHost: {host}\r\n\r\n".encode())
+    assert got == status, data
+
+
+def _post(
+    cell: RunningConsole, path: str, headers: dict[str, str], body: bytes = b"{}"
+) -> tuple[int, bytes]:
+    host, port = _address(cell)
+    lines = [f"POST {path} HTTP/1.1", f"Host: {host}:{port}", f"Content-Length: {len(body)}"]
+    lines += [f"{k}: {v}" for k, v in headers.items()]
+    return _raw(cell, ("\r\n".join(lines) + "\r\n\r\n").encode(), body)
+
+
+def test_changes_need_proof_that_the_consoles_own_page_sent_them(cell: RunningConsole) -> None:
+    host, port = _address(cell)
+    own = f"http://{host}:{port}"
+    form = {"Content-Type": "multipart/form-data; boundary=zz"}
+    as_json = {"Content-Type": "application/json"}
+    refused = [
+        _post(cell, "/api/logout", {**as_json, "Origin": "http://evil.example"}),
+        _post(cell, "/api/logout", {**as_json, "Origin": "null"}),
+        _post(cell, "/api/logout", {**as_json, "Origin": f"http://{host}:{port + 1}"}),
+        _post(cell, "/api/inspections/magnet_check/try", form),  # what an HTML form can send
+        _post(cell, "/api/logout", {"Content-Type": "text/plain"}),
+    ]
+    for status, data in refused:
+        assert status == 403, data
+        assert json.loads(data.split(b"\r\n\r\n", 1)[1] or b"{}") or b"CROSS_SITE" in data
+    sign_in = json.dumps({"token": TOKEN}).encode()
+    assert _post(cell, "/api/login", {**as_json, "Origin": own}, sign_in)[0] == 200
+    assert _post(cell, "/api/login", as_json, sign_in)[0] == 200  # no Origin: not a browser's
+    # The page's own header passes the proof (then the sign-in rule answers).
+    status, _ = _post(
+        cell, "/api/inspections/magnet_check/try", {**form, "X-Cellvision": "console"}
+    )
+    assert status == 401
+
+
+def test_a_try_has_a_deadline(tmp_path: Path) -> None:
+    """A try that cannot finish in time answers DEADLINE_EXCEEDED instead of running on."""
+    config = example_config(tmp_path)
+    text = config.read_text(encoding="utf-8")
+    config.write_text(
+        text.replace("  max_view_fps: 30\n", "  max_view_fps: 30\n  try_deadline_s: 0.000001\n")
+    )
+    with running_cell(config) as cell:
+        client = Browserless(cell.url)
+        assert client.login().status == 200
+        reply = client.try_("magnet_check", {"source": "camera"})
+        assert reply.status == 504, reply.body
+        assert reply.json()["error"]["code"] == "DEADLINE_EXCEEDED"

@@ -1,0 +1,330 @@
+"""A listener that admits every connection through the service's front door before TLS, and
+closes the ones that stall.
+
+The front-end hands it a protocol factory (aiohttp's request handler, an asyncio stream
+protocol) and its policy; the listener accepts raw sockets itself, so that a connection is
+counted (:meth:`FrontDoor.enter`) before its TLS handshake and before anything it sends is
+read. A refused connection is closed at once: it costs one accept, never a handshake.
+
+Each admitted connection has a clock that nothing it sends can extend (:class:`Clock`):
+
+- until it is signed in, it must complete each request within ``request_timeout_s`` of the
+  connection's start or of its last answer (the TLS handshake counts);
+- once signed in, it may wait ``idle_timeout_s`` between requests;
+- while an answer is being written, the client must read: a write buffer that does not shrink
+  for ``write_timeout_s`` drops the connection.
+
+The front-end tells the clock when a request begins and ends (:meth:`Listener.clock_of`); a
+watchdog closes what is overdue once a second. Counts per front-end and the server-wide total
+are the door's (``server: max_connections_total``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import socket
+import ssl
+import struct
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..service import FrontDoor, Pass, Refusal
+
+log = logging.getLogger("vision_server")
+
+WATCH_INTERVAL_S = 1.0
+REFUSAL_LOG_INTERVAL_S = 10.0
+"""A flood is logged once per interval with its count, not once per connection."""
+
+
+@dataclass(frozen=True)
+class Policy:
+    """What one front-end's connections may do before they are closed (seconds)."""
+
+    name: str
+    """The front-end's name in refusals, logs and the door's counts (``console``, ``line``)."""
+    max_connections: int
+    request_timeout_s: float
+    idle_timeout_s: float
+    write_timeout_s: float
+    tls_handshake_timeout_s: float = 10.0
+
+
+@dataclass
+class Clock:
+    """One connection's deadlines. Times are ``time.monotonic()`` seconds."""
+
+    started: float
+    transport: asyncio.BaseTransport | None = None
+    signed_in: bool = False
+    busy: int = 0
+    """Requests of this connection being answered now."""
+    deadline: float = 0.0
+    write_stalled_since: float | None = None
+    write_buffered: int = 0
+    requests: int = field(default=0)
+
+    def begin(self) -> None:
+        self.busy += 1
+        self.requests += 1
+
+    def end(self, policy: Policy, now: float) -> None:
+        self.busy = max(0, self.busy - 1)
+        wait = policy.idle_timeout_s if self.signed_in else policy.request_timeout_s
+        self.deadline = now + wait
+
+    def overdue(self, policy: Policy, now: float) -> str | None:
+        """Why the connection must close now, or None."""
+        transport = self.transport
+        if isinstance(transport, asyncio.WriteTransport):
+            buffered = transport.get_write_buffer_size()
+            if buffered and (self.write_stalled_since is None or buffered < self.write_buffered):
+                self.write_stalled_since = now
+            elif not buffered:
+                self.write_stalled_since = None
+            self.write_buffered = buffered
+            if (
+                self.write_stalled_since is not None
+                and now - self.write_stalled_since > policy.write_timeout_s
+            ):
+                return f"the client read nothing for {policy.write_timeout_s:g} s"
+        if self.busy == 0 and now > self.deadline:
+            if self.requests == 0 or not self.signed_in:
+                return f"no complete request within {policy.request_timeout_s:g} s"
+            return f"idle for {policy.idle_timeout_s:g} s"
+        return None
+
+
+class _Counted(asyncio.Protocol):
+    """The front-end's protocol, with the door's pass given back when the connection ends.
+
+    Every callback is passed on; anything else is looked up on the wrapped protocol."""
+
+    def __init__(self, inner: asyncio.BaseProtocol, on_lost: Callable[[], None]) -> None:
+        self._inner = inner
+        self._on_lost = on_lost
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._inner.connection_made(transport)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        try:
+            self._inner.connection_lost(exc)
+        finally:
+            self._on_lost()
+
+    def data_received(self, data: bytes) -> None:
+        self._inner.data_received(data)  # type: ignore[attr-defined]
+
+    def eof_received(self) -> bool | None:
+        return self._inner.eof_received()  # type: ignore[attr-defined, no-any-return]
+
+    def pause_writing(self) -> None:
+        self._inner.pause_writing()
+
+    def resume_writing(self) -> None:
+        self._inner.resume_writing()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+
+class Listener:
+    """Accepts ``policy.name``'s connections on one address through ``door``; each admitted
+    one is served by ``factory()``'s protocol, over TLS when ``ssl_context`` is given."""
+
+    def __init__(
+        self,
+        door: FrontDoor,
+        policy: Policy,
+        factory: Callable[[], asyncio.BaseProtocol],
+        *,
+        ssl_context: ssl.SSLContext | None = None,
+    ) -> None:
+        self.door = door
+        self.policy = policy
+        self.factory = factory
+        self.ssl_context = ssl_context
+        self._sockets: list[socket.socket] = []
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._clocks: dict[asyncio.BaseTransport, Clock] = {}
+        self._pending: set[socket.socket] = set()
+        self._refused_unlogged = 0
+        self._last_refusal_log = 0.0
+        self._stopping = False
+        self._all_closed = asyncio.Event()
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def start(self, host: str, port: int) -> None:
+        """Listen on ``host:port`` (port 0: a free one; see :attr:`address`)."""
+        loop = asyncio.get_running_loop()
+        infos = await loop.getaddrinfo(
+            host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )
+        seen: set[tuple[Any, ...]] = set()
+        try:
+            for family, kind, proto, _name, found in infos:
+                # Port 0: every address of a host name on the port the first one got.
+                address = (found[0], port, *found[2:])
+                if (family, address) in seen:
+                    continue
+                seen.add((family, address))
+                sock = socket.socket(family, kind, proto)
+                self._sockets.append(sock)
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                if family == socket.AF_INET6:
+                    sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+                sock.bind(address)
+                sock.listen(128)
+                sock.setblocking(False)
+                port = sock.getsockname()[1]
+        except OSError:
+            self._close_sockets()
+            raise
+        for sock in self._sockets:
+            self._spawn(self._accept_loop(sock))
+        self._spawn(self._watch())
+
+    @property
+    def address(self) -> tuple[str, int]:
+        if not self._sockets:
+            raise RuntimeError(f"the {self.policy.name} is not listening")
+        host, port = self._sockets[0].getsockname()[:2]
+        return str(host), int(port)
+
+    async def stop_accepting(self) -> None:
+        """Close the listening sockets; connections already served go on."""
+        self._stopping = True
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._close_sockets()
+        for sock in list(self._pending):
+            sock.close()
+
+    async def close_connections(self, settle_s: float = 1.0) -> None:
+        """Abort every connection still open (after the front-end's own graceful stop), and
+        give their protocols up to ``settle_s`` to see it (their tasks end on the loop)."""
+        for transport in list(self._clocks):
+            transport.abort()  # type: ignore[attr-defined]
+        if self._clocks:
+            self._all_closed.clear()
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(settle_s):
+                    await self._all_closed.wait()
+        for _ in range(3):  # the protocols' own tasks finish on the next turns
+            await asyncio.sleep(0)
+
+    def clock_of(self, transport: asyncio.BaseTransport | None) -> Clock | None:
+        """The clock of the connection a request came on (None: not one of this listener's)."""
+        return None if transport is None else self._clocks.get(transport)
+
+    @property
+    def connections(self) -> int:
+        return len(self._clocks)
+
+    # ------------------------------------------------------------------ accepting
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _accept_loop(self, listening: socket.socket) -> None:
+        loop = asyncio.get_running_loop()
+        while not self._stopping:
+            try:
+                sock, address = await loop.sock_accept(listening)
+            except OSError as exc:  # EMFILE and the like: wait instead of spinning
+                log.warning("%s: cannot accept a connection: %s", self.policy.name, exc)
+                await asyncio.sleep(0.1)
+                continue
+            peer = _peer(address)
+            admitted = self.door.enter(self.policy.name, peer, limit=self.policy.max_connections)
+            if isinstance(admitted, Refusal):
+                self._log_refusal(admitted, peer)
+                with contextlib.suppress(OSError):  # reset, not a FIN: nothing waits in TIME_WAIT
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                sock.close()
+                continue
+            self._pending.add(sock)
+            loop.create_task(self._serve(sock, admitted))
+
+    async def _serve(self, sock: socket.socket, admitted: Pass) -> None:
+        loop = asyncio.get_running_loop()
+        clock = Clock(started=time.monotonic())
+        clock.deadline = clock.started + self.policy.request_timeout_s
+
+        def lost() -> None:
+            if clock.transport is not None:
+                self._clocks.pop(clock.transport, None)
+                if not self._clocks:
+                    self._all_closed.set()
+            admitted.leave()
+
+        try:
+            async with asyncio.timeout(self.policy.tls_handshake_timeout_s):
+                transport, _protocol = await loop.connect_accepted_socket(
+                    lambda: _Counted(self.factory(), lost),
+                    sock,
+                    ssl=self.ssl_context,
+                    ssl_handshake_timeout=(
+                        self.policy.tls_handshake_timeout_s if self.ssl_context else None
+                    ),
+                )
+        except (OSError, ssl.SSLError, TimeoutError, ConnectionError) as exc:
+            log.info("%s: connection from %s dropped: %s", self.policy.name, admitted.peer, exc)
+            sock.close()
+            admitted.leave()
+            return
+        finally:
+            self._pending.discard(sock)
+        if transport.is_closing():
+            return
+        clock.transport = transport
+        self._clocks[transport] = clock
+
+    def _log_refusal(self, refusal: Refusal, peer: str) -> None:
+        now = time.monotonic()
+        self._refused_unlogged += 1
+        if now - self._last_refusal_log >= REFUSAL_LOG_INTERVAL_S:
+            log.warning(
+                "%s: refused %d connection(s) (latest from %s): %s",
+                self.policy.name,
+                self._refused_unlogged,
+                peer,
+                refusal.reason,
+            )
+            self._refused_unlogged = 0
+            self._last_refusal_log = now
+
+    async def _watch(self) -> None:
+        while True:
+            await asyncio.sleep(WATCH_INTERVAL_S)
+            now = time.monotonic()
+            for transport, clock in list(self._clocks.items()):
+                why = clock.overdue(self.policy, now)
+                if why is not None:
+                    log.info("%s: closing a connection: %s", self.policy.name, why)
+                    transport.abort()  # type: ignore[attr-defined]
+
+    def _close_sockets(self) -> None:
+        for sock in self._sockets:
+            sock.close()
+
+
+def _peer(address: Any) -> str:
+    if isinstance(address, tuple) and len(address) >= 2:
+        host, port = address[0], address[1]
+        return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+    return str(address)
+
+
+__all__ = ["Clock", "Listener", "Policy"]
