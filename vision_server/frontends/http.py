@@ -346,7 +346,8 @@ class HttpFrontend:
         return response
 
     async def login(self, request: web.Request) -> web.Response:
-        body = await _small_json_body(request, LOGIN_MAX_BYTES, self.settings.request_timeout_s)
+        raw = await _read_at_most(request, LOGIN_MAX_BYTES, self.settings.request_timeout_s)
+        body = await _json_body(request, raw)
         response = web.json_response({"ok": True})
         if not self.sessions.required:
             return response
@@ -651,7 +652,8 @@ class HttpFrontend:
     async def save(self, request: web.Request) -> web.Response:
         name = request.match_info["name"]
         self.service.catalog.inspection(name)
-        body = await _json_body(request)
+        # A save's options are a try's: no larger than a try's request part.
+        body = await _json_body(request, await _read_at_most(request, MAX_JSON_PART))
         options = body.get("options")
         if not isinstance(options, dict) or not options:
             raise HttpError(400, "BAD_REQUEST", "options must be a non-empty JSON object")
@@ -662,14 +664,18 @@ class HttpFrontend:
             raise HttpError(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
         async with self._save_lock:
             served = self._all_written()
-            old, backup = await asyncio.to_thread(_save_file, path, name, options)
+            # The image size each running camera declares, which the saved ROI must fit as a
+            # try's must (a simulated camera's size is its scene's, known once it is open).
+            opened = http_save.opened_cameras(self.service.catalog)
+            saved = await asyncio.to_thread(_save_file, path, name, options, opened)
             try:
                 catalog = await self.service.reload()
             except CellvisionError as exc:
                 # The file validated but the server could not take it (a camera that does not
                 # open): put the old text back so that file and server agree.
-                await asyncio.to_thread(http_save.replace_file, path, old)
+                await asyncio.to_thread(http_save.undo, saved)
                 raise HttpError(422, "CONFIG_REFUSED", exc.message) from None
+            await asyncio.to_thread(http_save.prune_backups, path, spare=saved.backup)
         # The reload applies the whole file: hand edits made since the last reload go live
         # with this save, and whoever saves is told which (not silently).
         now = self._all_written()
@@ -681,7 +687,7 @@ class HttpFrontend:
         return web.json_response(
             {
                 "config_hash": catalog.config_hash,
-                "backup": backup.name,
+                "backup": saved.backup.name,
                 "also_changed": also,
                 "notes": list(catalog.notes),
             }
@@ -842,34 +848,17 @@ def nested_options(written: Mapping[str, Any], options: Mapping[str, Any]) -> di
     return out
 
 
-def _save_file(path: Path, name: str, options: Mapping[str, Any]) -> tuple[bytes, Path]:
-    """Edit, validate and write the configuration file (in a thread); returns the old bytes
-    and the backup's path. HttpError CONFIG_REFUSED naming file, line and key path."""
+def _save_file(
+    path: Path, name: str, options: Mapping[str, Any], opened: Mapping[str, Any]
+) -> http_save.Saved:
+    """Edit, validate and write the configuration file (in a thread). HttpError
+    CONFIG_REFUSED naming file, line and key path, or why the file cannot be written."""
     try:
-        old = path.read_bytes()
-        text = old.decode("utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise HttpError(500, "CONFIG_REFUSED", f"cannot read {path.name}: {exc}") from None
-    try:
-        # The file as it is now first: when a hand edit (not loaded yet) made it invalid, the
-        # refusal must say that the fault is there, not in the values being saved.
-        http_save.validate(text, path)
-    except (http_save.SaveRefused, http_save.ConfigError) as exc:
-        message = (
-            f"{path.name} is already invalid before {name!r}'s values are written (an edit "
-            f"made outside the console, not loaded yet; {name!r}'s values are not the "
-            f"invalid part): {exc}"
-        )
-        raise HttpError(422, "CONFIG_REFUSED", message) from None
-    try:
-        new = http_save.edited_text(text, path.name, name, options)
-        http_save.validate(new, path)
-        backup = http_save.write_with_backup(path, new)
+        return http_save.save(path, name, options, opened=opened)
     except (http_save.SaveRefused, http_save.ConfigError) as exc:
         raise HttpError(422, "CONFIG_REFUSED", str(exc)) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise HttpError(500, "CONFIG_REFUSED", f"cannot write {path.name}: {exc}") from None
-    return old, backup
+    except (OSError, UnicodeError) as exc:
+        raise HttpError(500, "CONFIG_REFUSED", f"cannot save {path.name}: {exc}") from None
 
 
 def _with_extras(
@@ -968,38 +957,30 @@ def _row_json(row: Any) -> dict[str, Any]:
     }
 
 
-async def _small_json_body(request: web.Request, limit: int, timeout_s: float) -> dict[str, Any]:
-    """A JSON object of at most ``limit`` bytes, read within ``timeout_s``: what a request may
-    send before it is signed in (nothing it sends makes the server hold more, or longer)."""
-    announced = request.content_length
-    if announced is not None and announced > limit:
-        raise HttpError(413, "TOO_LARGE", f"the body has more than {limit} bytes")
-    chunks: list[bytes] = []
-    size = 0
+async def _read_at_most(request: web.Request, limit: int, timeout_s: float | None = None) -> bytes:
+    """The body, 413 beyond ``limit`` bytes (declared or sent), read no further; 408 when it
+    has not all arrived within ``timeout_s`` (what a signed-out request may make the server
+    hold: no more, and no longer)."""
+    declared = request.content_length
+    if declared is not None and declared > limit:
+        raise HttpError(413, "TOO_LARGE", f"the body has {declared} bytes, limit {limit}")
+    raw = b""
     try:
         async with asyncio.timeout(timeout_s):
-            while True:
-                chunk = await request.content.read(limit + 1 - size)
-                if not chunk:
-                    break
-                size += len(chunk)
-                if size > limit:
-                    raise HttpError(413, "TOO_LARGE", f"the body has more than {limit} bytes")
-                chunks.append(chunk)
+            while len(raw) <= limit:
+                more = await request.content.read(limit + 1 - len(raw))
+                if not more:
+                    return raw
+                raw += more
     except TimeoutError:
         raise HttpError(408, "TIMEOUT", f"the body did not arrive within {timeout_s:g} s") from None
-    try:
-        body = json.loads(b"".join(chunks))
-    except ValueError as exc:
-        raise HttpError(400, "BAD_REQUEST", f"the body is not JSON: {exc}") from None
-    if not isinstance(body, dict):
-        raise HttpError(400, "BAD_REQUEST", "the body must be a JSON object")
-    return body
+    raise HttpError(413, "TOO_LARGE", f"the body has more than {limit} bytes")
 
 
-async def _json_body(request: web.Request) -> dict[str, Any]:
+async def _json_body(request: web.Request, raw: bytes | None = None) -> dict[str, Any]:
+    """The body (``raw`` when read already) as a JSON object."""
     try:
-        body = await request.json()
+        body = await request.json() if raw is None else json.loads(raw)
     except ValueError as exc:
         raise HttpError(400, "BAD_REQUEST", f"the body is not JSON: {exc}") from None
     if not isinstance(body, dict):
