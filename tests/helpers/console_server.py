@@ -109,6 +109,7 @@ def running_cell(config: Path) -> Iterator[RunningConsole]:
             results=runtime.results,
             reloader=runtime.reload,
             console=runtime.config.console,
+            line=runtime.config.line,
             config_path=config,
         )
 

@@ -153,6 +153,17 @@ def _open(cell: RunningConsole) -> socket.socket:
     return socket.create_connection(_address(cell), timeout=5)
 
 
+def _refused_at_once(cell: RunningConsole) -> bool:
+    """Whether a new console connection is closed (reset) as soon as it is made; the reset may
+    already reach the connecting call."""
+    try:
+        sock = _open(cell)
+    except ConnectionResetError:
+        return True
+    with sock:
+        return _closed_by_server(sock, within_s=5)
+
+
 def _wait_for(predicate: object, within_s: float = 10.0) -> bool:
     end = time.monotonic() + within_s
     while time.monotonic() < end:
@@ -206,14 +217,13 @@ def test_console_connections_past_its_limit_are_closed_and_the_robot_is_served(
     with running_cell(config) as cell:
         held = [_open(cell) for _ in range(3)]
         assert _wait_for(lambda: cell.app.service.door.held("console") == 3)
-        extra = _open(cell)
-        assert _closed_by_server(extra, within_s=5)
+        assert _refused_at_once(cell)
         with _robot(cell) as robot:
             assert robot.ping() >= 0
         # The held ones were not touched: a browser on one of them is answered.
         held[0].sendall(b"GET /api/server HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
         assert held[0].recv(12).startswith(b"HTTP/1.1 401")
-        for sock in [*held, extra]:
+        for sock in held:
             sock.close()
         counts = cell.app.service.door.counts()["console"]
         assert counts["refused"] >= 1
@@ -345,3 +355,100 @@ def test_a_try_has_a_deadline(tmp_path: Path) -> None:
         reply = client.try_("magnet_check", {"source": "camera"})
         assert reply.status == 504, reply.body
         assert reply.json()["error"]["code"] == "DEADLINE_EXCEEDED"
+
+
+# ----------------------------------------------------------------------------- line protocol
+
+LINE_CELL = """\
+server: {port: 0, auth_token: line-door-token, handshake_timeout_s: 1}
+results: {enabled: false}
+cameras:
+  shelf: {source: folder, path: imgs}
+inspections:
+  - name: bright
+    type: presence
+    camera: shelf
+    measure: mean_intensity
+    min: 10
+line: {enabled: true, port: 0, max_connections: 2, write_timeout_s: 1}
+console: {enabled: true, port: 0}
+"""
+
+
+@pytest.fixture
+def line_cell(tmp_path: Path) -> Iterator[RunningConsole]:
+    import cv2
+    import numpy as np
+
+    (tmp_path / "imgs").mkdir()
+    cv2.imwrite(str(tmp_path / "imgs" / "a.png"), np.full((48, 64), 100, np.uint8))
+    config = tmp_path / "cell.yaml"
+    config.write_text(LINE_CELL, encoding="utf-8")
+    with running_cell(config) as running:
+        yield running
+
+
+def _line(cell: RunningConsole) -> socket.socket:
+    assert cell.app.line is not None
+    return socket.create_connection(("127.0.0.1", cell.app.line.port), timeout=5)
+
+
+def test_lines_before_the_token_do_not_keep_a_controller_connection(
+    line_cell: RunningConsole,
+) -> None:
+    """Blank, wrong and over-long lines before ``A <token>`` do not move its deadline: the
+    connection is closed about ``handshake_timeout_s`` (1 s) after it was made, with
+    ``ER 8 no A <token> ...`` (unless the close overtook that line), while lines keep coming."""
+    sock = _line(line_cell)
+    answers = b""
+    closed = False
+    started = time.monotonic()
+    sock.settimeout(0.2)
+    while not closed and time.monotonic() - started < 20:
+        try:
+            sock.sendall(b"\r\n" if int(time.monotonic() * 5) % 2 else b"X" * 300 + b"\n")
+            chunk = sock.recv(4096)
+        except TimeoutError:
+            continue
+        except OSError:  # reset: the server closed while lines were still coming
+            closed = True
+            break
+        answers += chunk
+        closed = not chunk
+    assert closed, answers
+    assert b"OK" not in answers
+    if b"no A" in answers:
+        assert b"ER 8 no A <token> within 1 s; closing" in answers
+    sock.close()
+    assert _wait_for(lambda: line_cell.app.service.door.held("line protocol") == 0)
+
+
+def test_a_controller_past_the_limit_is_told_and_closed_at_once(line_cell: RunningConsole) -> None:
+    held = [_line(line_cell) for _ in range(2)]
+    for sock in held:
+        sock.sendall(b"A line-door-token\n")
+        assert sock.recv(64).startswith(b"OK")
+    extra = _line(line_cell)
+    extra.settimeout(5)
+    assert extra.recv(256).startswith(b"ER 20 too many connections to the line protocol (2)")
+    assert _closed_by_server(extra, within_s=5)
+    for sock in [*held, extra]:
+        sock.close()
+
+
+def test_a_controller_that_stops_reading_is_dropped_at_the_write_timeout(
+    line_cell: RunningConsole,
+) -> None:
+    """It sent many requests and then went quiet without reading: its answers fill the
+    sockets' buffers, and the server drops it after ``write_timeout_s`` (1 s here) instead of
+    holding them until the idle timeout (300 s)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    assert line_cell.app.line is not None
+    sock.connect(("127.0.0.1", line_cell.app.line.port))
+    sock.sendall(b"A line-door-token\n")
+    # About 17 KB of answers: more than this socket's receive buffer holds, less than makes
+    # the server wait for it to read (it answers them all, then waits for the next line).
+    sock.sendall(b"L\n" * 1000)
+    assert _wait_for(lambda: line_cell.app.service.door.held("line protocol") == 0, 30)
+    sock.close()

@@ -47,7 +47,6 @@ from ..service import (
     InspectionService,
     InspectReply,
     InspectRequest,
-    Refusal,
 )
 from .line_codec import (
     Command,
@@ -58,6 +57,7 @@ from .line_codec import (
     trigger_error_line,
 )
 from .line_poses import CONVENTIONS, Matrix, parse_pose, pose_values
+from .listener import Clock, Listener, Policy
 
 log = logging.getLogger("vision_server")
 FRONTEND = "line protocol"
@@ -165,25 +165,43 @@ class LineFrontend:
         self.sessions: set[LineSession] = set()
         self.latest: dict[str, InspectReply] = {}
         """The newest answered result of each inspection, from any front-end (for ``R name``)."""
-        self._server: asyncio.Server | None = None
+        self._listener: Listener | None = None
         self._unsubscribe: Callable[[], None] = lambda: None
         self._stopping = False
 
     @property
     def port(self) -> int:
-        if self._server is None or not self._server.sockets:
+        if self._listener is None:
             raise RuntimeError("the line front-end is not started")
-        return int(self._server.sockets[0].getsockname()[1])
+        return self._listener.address[1]
 
     async def start(self) -> None:
         context: ssl.SSLContext | None = self.tcp.ssl_context() if self.settings.tls else None
-        self._server = await asyncio.start_server(
-            self._accept,
-            self.settings.host,
-            self.settings.port,
-            ssl=context,
-            ssl_handshake_timeout=TLS_HANDSHAKE_TIMEOUT_S if context is not None else None,
+        # Connections come through the service's front door, counted before TLS; the
+        # listener also drops a controller that reads none of its answers, and one that has
+        # not signed in within the handshake timeout (vision_server/frontends/listener.py).
+        policy = Policy(
+            name=FRONTEND,
+            max_connections=self.settings.max_connections,
+            request_timeout_s=self.tcp.handshake_timeout_s,
+            idle_timeout_s=self.settings.idle_timeout_s,
+            write_timeout_s=self.settings.write_timeout_s,
+            tls_handshake_timeout_s=TLS_HANDSHAKE_TIMEOUT_S,
         )
+        loop = asyncio.get_running_loop()
+
+        def protocol() -> asyncio.BaseProtocol:
+            reader = asyncio.StreamReader(limit=READ_CHUNK * 4, loop=loop)
+            return asyncio.StreamReaderProtocol(reader, self._accept, loop=loop)
+
+        self._listener = Listener(
+            self.service.door,
+            policy,
+            protocol,
+            ssl_context=context,
+            refusal_message=lambda refusal: error_line(Busy(f"{refusal.reason}; try again")),
+        )
+        await self._listener.start(self.settings.host, self.settings.port)
         self._unsubscribe = self.service.subscribe(self._remember)
         log.info("line protocol listening on %s:%d", self.settings.host, self.port)
 
@@ -192,8 +210,8 @@ class LineFrontend:
         SHUTTING_DOWN), close every connection."""
         self._stopping = True
         self._unsubscribe()
-        if self._server is not None:
-            self._server.close()
+        if self._listener is not None:
+            await self._listener.stop_accepting()
         sessions = list(self.sessions)
         for session in sessions:
             session.stop()
@@ -204,43 +222,39 @@ class LineFrontend:
             )
         for session in sessions:
             session.stop(force=True)  # a trigger past the grace period gets SHUTTING_DOWN
-        if self._server is not None:
-            await self._server.wait_closed()
+        if self._listener is not None:
+            await self._listener.close_connections()
 
     def _remember(self, record: InspectionRecord) -> None:
         self.latest[record.reply.inspection] = record.reply
 
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        peername = writer.get_extra_info("peername")
-        peer = f"{peername[0]}:{peername[1]}" if isinstance(peername, tuple) else str(peername)
-        admitted = (
-            Refusal("the server is stopping")
-            if self._stopping
-            else self.service.door.enter(FRONTEND, peer, limit=self.settings.max_connections)
-        )
-        if isinstance(admitted, Refusal):
-            why = admitted.reason
-            exc = ShuttingDown(why) if self._stopping else Busy(f"{why}; try again")
+        """A connection the front door admitted (its count is given back when it closes)."""
+        if self._stopping:
             with contextlib.suppress(ConnectionError, OSError):
-                writer.write(error_line(exc))
+                writer.write(error_line(ShuttingDown("the server is stopping")))
                 async with asyncio.timeout(self.settings.write_timeout_s):
                     await writer.drain()
             writer.transport.abort()
             return
-        session = LineSession(self, reader, writer)
+        assert self._listener is not None
+        session = LineSession(self, reader, writer, self._listener.clock_of(writer.transport))
         self.sessions.add(session)
         try:
             await session.run()
         finally:
             self.sessions.discard(session)
-            admitted.leave()
 
 
 class LineSession:
     """One controller's connection. See the module."""
 
     def __init__(
-        self, frontend: LineFrontend, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+        self,
+        frontend: LineFrontend,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        clock: Clock | None = None,
     ) -> None:
         self.frontend = frontend
         self.service = frontend.service
@@ -248,7 +262,15 @@ class LineSession:
         self.reader = reader
         self.writer = writer
         self.format = self.settings.format
+        self.clock = clock
+        """The front door's clock of this connection (its listener's watchdog reads it)."""
         self.authenticated = frontend.tcp.auth_token is None
+        self.auth_deadline = time.monotonic() + frontend.tcp.handshake_timeout_s
+        """Until it is authenticated, the connection must send ``A <token>`` by then; no
+        line before (blank, wrong or too long) moves it."""
+        if clock is not None:
+            clock.signed_in = self.authenticated
+            clock.deadline = math.inf if self.authenticated else self.auth_deadline
         self.last: tuple[Answerable, InspectReply, Matrix | None] | None = None
         """The answer to this connection's last trigger (for ``R``)."""
         self.finished = asyncio.Event()
@@ -309,7 +331,10 @@ class LineSession:
         limit (its rest is skipped up to its LF). Raises _Closed when the peer has gone or
         sent no complete line within the idle timeout (answered with an error line)."""
         limit = self.settings.max_line_bytes
-        deadline = time.monotonic() + self.settings.idle_timeout_s
+        if self.authenticated:
+            deadline = time.monotonic() + self.settings.idle_timeout_s
+        else:
+            deadline = self.auth_deadline
         while True:
             end = self._buffer.find(b"\n")
             if end >= 0:
@@ -337,6 +362,13 @@ class LineSession:
             async with asyncio.timeout(max(deadline - time.monotonic(), 0.0)):
                 return await self.reader.read(READ_CHUNK)
         except TimeoutError:
+            if not self.authenticated:
+                limit = self.frontend.tcp.handshake_timeout_s
+                log.info("%s: no A <token> within %g s; closing", self.peer, limit)
+                await self._send(
+                    error_line(NotAuthenticated(f"no A <token> within {limit:g} s; closing"))
+                )
+                raise _Closed from None
             idle = self.settings.idle_timeout_s
             log.info("%s: no complete line for %g s; closing", self.peer, idle)
             await self._send(
@@ -389,6 +421,9 @@ class LineSession:
             await self._send(error_line(NotAuthenticated("wrong token")))
             raise _Closed
         self.authenticated = True
+        if self.clock is not None:  # the session's own idle timeout takes over
+            self.clock.signed_in = True
+            self.clock.deadline = math.inf
         await self._send(ok_line())
 
     async def _set_format(self, name: str) -> None:

@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
 import logging
 import socket
 import ssl
 import struct
+import termios
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -81,7 +83,7 @@ class Clock:
         """Why the connection must close now, or None."""
         transport = self.transport
         if isinstance(transport, asyncio.WriteTransport):
-            buffered = transport.get_write_buffer_size()
+            buffered = unsent_bytes(transport)
             if buffered and (self.write_stalled_since is None or buffered < self.write_buffered):
                 self.write_stalled_since = now
             elif not buffered:
@@ -99,16 +101,36 @@ class Clock:
         return None
 
 
+def unsent_bytes(transport: asyncio.WriteTransport) -> int:
+    """Bytes written to ``transport`` that its client has not taken: the transport's own
+    buffer and, on Linux, the socket's send queue (``TIOCOUTQ``), which fills once the
+    client's receive buffer is full. A client that reads nothing makes this stop shrinking."""
+    pending = transport.get_write_buffer_size()
+    sock = transport.get_extra_info("socket")
+    if sock is not None and hasattr(termios, "TIOCOUTQ"):
+        with contextlib.suppress(OSError, ValueError):
+            queued = fcntl.ioctl(sock.fileno(), termios.TIOCOUTQ, b"\0\0\0\0")
+            pending += struct.unpack("i", queued)[0]
+    return pending
+
+
 class _Counted(asyncio.Protocol):
     """The front-end's protocol, with the door's pass given back when the connection ends.
 
     Every callback is passed on; anything else is looked up on the wrapped protocol."""
 
-    def __init__(self, inner: asyncio.BaseProtocol, on_lost: Callable[[], None]) -> None:
+    def __init__(
+        self,
+        inner: asyncio.BaseProtocol,
+        on_made: Callable[[asyncio.BaseTransport], None],
+        on_lost: Callable[[], None],
+    ) -> None:
         self._inner = inner
+        self._on_made = on_made
         self._on_lost = on_lost
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._on_made(transport)  # the clock exists before the front-end sees the connection
         self._inner.connection_made(transport)
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -144,11 +166,15 @@ class Listener:
         factory: Callable[[], asyncio.BaseProtocol],
         *,
         ssl_context: ssl.SSLContext | None = None,
+        refusal_message: Callable[[Refusal], bytes] | None = None,
     ) -> None:
         self.door = door
         self.policy = policy
         self.factory = factory
         self.ssl_context = ssl_context
+        self.refusal_message = refusal_message
+        """What a refused plain-TCP connection is sent before it is closed (None: nothing);
+        a TLS one gets nothing (its handshake would cost what the refusal saves)."""
         self._sockets: list[socket.socket] = []
         self._tasks: set[asyncio.Task[None]] = set()
         self._clocks: dict[asyncio.BaseTransport, Clock] = {}
@@ -250,9 +276,7 @@ class Listener:
             admitted = self.door.enter(self.policy.name, peer, limit=self.policy.max_connections)
             if isinstance(admitted, Refusal):
                 self._log_refusal(admitted, peer)
-                with contextlib.suppress(OSError):  # reset, not a FIN: nothing waits in TIME_WAIT
-                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
-                sock.close()
+                self._refuse(sock, admitted)
                 continue
             self._pending.add(sock)
             loop.create_task(self._serve(sock, admitted))
@@ -261,6 +285,10 @@ class Listener:
         loop = asyncio.get_running_loop()
         clock = Clock(started=time.monotonic())
         clock.deadline = clock.started + self.policy.request_timeout_s
+
+        def made(transport: asyncio.BaseTransport) -> None:
+            clock.transport = transport
+            self._clocks[transport] = clock
 
         def lost() -> None:
             if clock.transport is not None:
@@ -271,8 +299,8 @@ class Listener:
 
         try:
             async with asyncio.timeout(self.policy.tls_handshake_timeout_s):
-                transport, _protocol = await loop.connect_accepted_socket(
-                    lambda: _Counted(self.factory(), lost),
+                await loop.connect_accepted_socket(
+                    lambda: _Counted(self.factory(), made, lost),
                     sock,
                     ssl=self.ssl_context,
                     ssl_handshake_timeout=(
@@ -286,10 +314,21 @@ class Listener:
             return
         finally:
             self._pending.discard(sock)
-        if transport.is_closing():
-            return
-        clock.transport = transport
-        self._clocks[transport] = clock
+
+    def _refuse(self, sock: socket.socket, refusal: Refusal) -> None:
+        """Close a refused connection at once: with one short message (never waited for: a
+        send that would block sends nothing) or with a reset."""
+        message = None
+        if self.refusal_message is not None and self.ssl_context is None:
+            message = self.refusal_message(refusal)
+        with contextlib.suppress(OSError):
+            if message:
+                sock.setblocking(False)
+                sock.send(message)
+                sock.shutdown(socket.SHUT_WR)
+            else:  # a reset, not a FIN: nothing waits in TIME_WAIT
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        sock.close()
 
     def _log_refusal(self, refusal: Refusal, peer: str) -> None:
         now = time.monotonic()
@@ -327,4 +366,4 @@ def _peer(address: Any) -> str:
     return str(address)
 
 
-__all__ = ["Clock", "Listener", "Policy"]
+__all__ = ["Clock", "Listener", "Policy", "unsent_bytes"]
