@@ -312,7 +312,9 @@ def _post(
     cell: RunningConsole, path: str, headers: dict[str, str], body: bytes = b"{}"
 ) -> tuple[int, bytes]:
     host, port = _address(cell)
-    lines = [f"POST {path} HTTP/1.1", f"Host: {host}:{port}", f"Content-Length: {len(body)}"]
+    lines = [f"POST {path} HTTP/1.1", f"Host: {host}:{port}"]
+    if "Content-Length" not in headers:
+        lines.append(f"Content-Length: {len(body)}")
     lines += [f"{k}: {v}" for k, v in headers.items()]
     return _raw(cell, ("\r\n".join(lines) + "\r\n\r\n").encode(), body)
 
@@ -452,3 +454,64 @@ def test_a_controller_that_stops_reading_is_dropped_at_the_write_timeout(
     sock.sendall(b"L\n" * 1000)
     assert _wait_for(lambda: line_cell.app.service.door.held("line protocol") == 0, 30)
     sock.close()
+
+
+# ----------------------------------------------------------------------------- tries
+
+
+def test_tries_learn_their_own_cost_in_a_lane_of_their_own(cell: RunningConsole) -> None:
+    client = Browserless(cell.url)
+    assert client.login().status == 200
+    assert client.try_("magnet_check", {"source": "camera"}).status == 200
+    pool = cell.app.service.pool
+    costs = pool.costs.snapshot()
+    assert "try:magnet_check" in costs
+    assert "magnet_check" not in costs  # production's estimate is not taught by a try
+    assert pool.tries.name == "try"
+    assert pool.tries not in pool.lanes
+
+
+def test_tries_hold_at_most_their_share_of_the_byte_budget(tmp_path: Path) -> None:
+    """A try whose body would take more than half of the budget is BUSY before it is read;
+    production keeps the rest."""
+    config = example_config(
+        tmp_path, extra_server="  max_buffered_bytes: 4194304\n  max_frame_bytes: 4194304\n"
+    )
+    with running_cell(config) as cell:
+        client = Browserless(cell.url)
+        assert client.login().status == 200
+        cookie = "; ".join(f"{c.name}={c.value}" for c in client.jar)
+        status, data = _post(
+            cell,
+            "/api/inspections/magnet_check/try",
+            {
+                "Content-Type": "multipart/form-data; boundary=zz",
+                "X-Cellvision": "console",
+                "Cookie": cookie,
+                "Content-Length": str(3 << 20),
+            },
+            b"",
+        )
+        assert status == 503, data
+        assert b"tries' request bodies" in data
+        assert cell.app.service.budget.used == 0
+
+
+def test_a_stalled_upload_gives_its_bytes_back(cell: RunningConsole) -> None:
+    client = Browserless(cell.url)
+    assert client.login().status == 200
+    cookie = "; ".join(f"{c.name}={c.value}" for c in client.jar)
+    host, port = _address(cell)
+    head = (
+        f"POST /api/inspections/magnet_check/try HTTP/1.1\r\nHost: {host}:{port}\r\n"
+        f"Content-Type: multipart/form-data; boundary=zz\r\nX-Cellvision: console\r\n"
+        f"Cookie: {cookie}\r\nContent-Length: {1 << 20}\r\n\r\n"
+    ).encode()
+    with _open(cell) as sock:
+        sock.sendall(head + b"--zz\r\n")  # and then nothing: the upload stalls
+        assert _wait_for(lambda: cell.app.service.budget.used > 0, 5)
+        sock.settimeout(20)
+        answer = sock.recv(4096)
+    assert answer.startswith(b"HTTP/1.1 408"), answer
+    assert b"did not arrive within" in answer
+    assert _wait_for(lambda: cell.app.service.budget.used == 0, 5)

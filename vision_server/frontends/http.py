@@ -518,9 +518,20 @@ class HttpFrontend:
             raise HttpError(413, "TOO_LARGE", f"the request has {declared} bytes, limit {limit}")
         # The body's bytes are reserved before it is read (BUSY when the server's memory for
         # request bodies is taken), as the protocol does for a frame.
-        admission = self.service.admit(work=False, body_bytes=declared or limit)
+        admission = self.service.admit(
+            work=False, body_bytes=declared or limit, request_class="try"
+        )
         try:
-            spec, upload = await self._try_form(request)
+            # A stalled upload must not hold the bytes it reserved: the body must arrive
+            # within the request timeout, plus a second per MiB.
+            upload_s = self.settings.request_timeout_s + (declared or limit) / (1 << 20)
+            try:
+                async with asyncio.timeout(upload_s):
+                    spec, upload = await self._try_form(request)
+            except TimeoutError:
+                raise HttpError(
+                    408, "TIMEOUT", f"the try's body did not arrive within {upload_s:.0f} s"
+                ) from None
             options = spec.get("options") or {}
             if not isinstance(options, dict):
                 raise HttpError(400, "BAD_REQUEST", "options must be a JSON object")
@@ -552,6 +563,7 @@ class HttpFrontend:
                     arrived=arrived,
                     deadline=arrived + self.settings.try_deadline_s,
                     peer=TRY_PEER_PREFIX + _peer(request),
+                    request_class="try",
                 ),
                 admission=admission,
             )

@@ -32,10 +32,23 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal, TypeVar
 
-from ..process import lower_this_thread
+from ..process import MAX_NICE, lower_this_thread
 
 _T = TypeVar("_T")
-LaneName = Literal["main", "fast"]
+LaneName = Literal["main", "fast", "try"]
+TRY_PREFIX = "try:"
+"""A console try's cost-model key is its inspection's name behind this (:func:`try_key`):
+tries, with options a production request never has, learn their own cost and run in a lane
+of their own, so that they neither teach production's estimates nor take its threads."""
+TRY_BUDGET_SHARE = 0.5
+"""The share of the byte budget tries may hold at once; the rest stays for production."""
+
+
+def try_key(inspection: str) -> str:
+    """The cost model's and the pool's key for a console try of ``inspection``."""
+    return TRY_PREFIX + inspection
+
+
 MIN_RETRY_MS = 5.0
 """The least wait a BUSY suggests while work is ahead (unmeasured costs count as 0 ms): a
 retry sooner would only be refused again."""
@@ -212,6 +225,9 @@ class WorkPool:
         self.fast = (
             Lane("fast", fast_workers, queue_depth, max_queue_ms) if fast_workers > 0 else None
         )
+        # One thread for tries, at the lowest priority: a pathological try (800 s) can take
+        # it, never a production lane's threads, slots or cost bound.
+        self.tries = Lane("try", 1, 2, max_queue_ms, nice=MAX_NICE)
         self.fast_lane_ms = fast_lane_ms
         self.costs = costs or CostModel()
         self._lock = threading.Lock()
@@ -220,6 +236,7 @@ class WorkPool:
 
     @property
     def lanes(self) -> tuple[Lane, ...]:
+        """The production lanes (what BUSY, WELCOME and the counters speak of)."""
         return (self.main,) if self.fast is None else (self.main, self.fast)
 
     @property
@@ -240,6 +257,8 @@ class WorkPool:
     def lane_for(self, key: str | None) -> tuple[Lane, float]:
         """The lane a request for ``key`` belongs to, and its cost estimate (0 when unknown)."""
         cost = self.costs.estimate(key)
+        if key is not None and key.startswith(TRY_PREFIX):
+            return self.tries, 0.0 if cost is None else cost
         if cost is not None and self.fast is not None and cost <= self.fast_lane_ms:
             return self.fast, cost
         return self.main, 0.0 if cost is None else cost
@@ -262,6 +281,8 @@ class WorkPool:
         also take a free main-lane slot when the fast lane is full; a costly one never takes
         the fast lane's."""
         lane, cost = self.lane_for(key)
+        if lane is self.tries:
+            return (lane,), cost
         return ((lane, self.main) if lane is not self.main else (lane,)), cost
 
     def try_reserve(self, key: str | None = None) -> Slot | None:
@@ -334,7 +355,7 @@ class WorkPool:
         return asyncio.get_running_loop().run_in_executor(slot.lane.executor, job)
 
     def shutdown(self) -> None:
-        for lane in self.lanes:
+        for lane in (*self.lanes, self.tries):
             lane.executor.shutdown(wait=False, cancel_futures=True)
 
 
@@ -356,9 +377,11 @@ class ByteBudget:
     def used(self) -> int:
         return self._used
 
-    def try_reserve(self, n: int) -> bool:
+    def try_reserve(self, n: int, *, share: float = 1.0) -> bool:
+        """Reserve ``n`` bytes if they fit within ``share`` of the limit (a request class that
+        may hold only part of the budget, leaving the rest to production)."""
         with self._lock:
-            if n < 0 or self._used + n > self.limit:
+            if n < 0 or self._used + n > self.limit * share:
                 self.refused += 1
                 return False
             self._used += n
@@ -399,11 +422,12 @@ class Admission:
             assert self.slot is None
             self.slot = slot
 
-    def take_bytes(self, n: int) -> bool:
-        """Reserve ``n`` more bytes; True when they fit (always True without a budget)."""
+    def take_bytes(self, n: int, *, share: float = 1.0) -> bool:
+        """Reserve ``n`` more bytes; True when they fit within ``share`` of the budget (always
+        True without a budget)."""
         if n <= 0 or self._budget is None:
             return True
-        if not self._budget.try_reserve(n):
+        if not self._budget.try_reserve(n, share=share):
             return False
         with self._lock:
             self.bytes += n

@@ -48,7 +48,7 @@ from ..cameras import Camera, CameraFrame
 from ..config import ServiceSettings
 from ..inspections import InspectionInput, InspectionOutcome
 from ..results import ResultEntry, ResultStore
-from .admission import Admission, ByteBudget, Slot, Waiter, WorkPool
+from .admission import TRY_BUDGET_SHARE, Admission, ByteBudget, Slot, Waiter, WorkPool, try_key
 from .catalog import Catalog
 from .door import FrontDoor
 from .process_lane import ProcessLane
@@ -57,6 +57,9 @@ log = logging.getLogger("vision_server")
 _T = TypeVar("_T")
 Image = npt.NDArray[Any]
 
+RequestClass = Literal["production", "try"]
+"""Who asks: a robot, PLC or tool (``production``) or the console's try, which runs in a lane of
+its own with its own cost estimates and at most a share of the byte budget."""
 FrameEncoding = Literal["png", "jpeg"]
 """How a captured frame may be compressed (None: raw arrays)."""
 
@@ -121,6 +124,9 @@ class InspectRequest:
     deadline: float | None = None
     peer: str = ""
     request_id: int = 0
+    request_class: RequestClass = "production"
+    """``try``: a console try, with its own lane, cost estimates and share of the byte budget
+    (:data:`~.admission.TRY_PREFIX`); production keeps its threads, slots and a reserve."""
 
 
 @dataclass(frozen=True)
@@ -359,7 +365,22 @@ class InspectionService:
 
     # ------------------------------------------------------------------ admission
 
-    def admit(self, *, work: bool = True, body_bytes: int = 0, key: str | None = None) -> Admission:
+    @staticmethod
+    def request_key(request: InspectRequest) -> str:
+        """The pool's and the cost model's key of ``request``: its inspection's name, a try's
+        its own (:func:`~.admission.try_key`)."""
+        if request.request_class == "try":
+            return try_key(request.inspection)
+        return request.inspection
+
+    def admit(
+        self,
+        *,
+        work: bool = True,
+        body_bytes: int = 0,
+        key: str | None = None,
+        request_class: RequestClass = "production",
+    ) -> Admission:
         """Reserve what a request will hold, before its body is read: a worker slot (``work``;
         ``key``: the inspection's name, which decides its lane and weight) and ``body_bytes`` of
         the budget. Raises BUSY, with a retry-after hint, when either is taken. The front-end
@@ -368,6 +389,16 @@ class InspectionService:
         admission = Admission(self.pool, self.budget)
         if work and not admission.take_slot(key):
             raise self._busy(key)
+        if request_class == "try":
+            if body_bytes > 0 and not admission.take_bytes(body_bytes, share=TRY_BUDGET_SHARE):
+                admission.release()
+                raise self._memory_busy(
+                    "tries' request bodies",
+                    body_bytes,
+                    key,
+                    f"; tries may hold {TRY_BUDGET_SHARE:.0%} of them, production keeps the rest",
+                )
+            return admission
         self._take_bytes(admission, body_bytes, key)
         return admission
 
@@ -436,7 +467,8 @@ class InspectionService:
         result log, the overlay. Without ``admission`` a slot is taken here (BUSY when none is
         free) and given back when done."""
         own = admission is None
-        held = self.admit(key=request.inspection) if admission is None else admission
+        key = self.request_key(request)
+        held = self.admit(key=key) if admission is None else admission
         try:
             # The lease keeps the catalog's cameras open until this request is done with them.
             with self._catalog.lease_newest() as lease:
@@ -535,7 +567,12 @@ class InspectionService:
             return outcome, compute_ms, overlay, stored
 
         outcome, compute_ms, overlay, stored = await self._in_pool(
-            work, request.arrived, request.deadline, admission, hold=catalog, key=inspection.name
+            work,
+            request.arrived,
+            request.deadline,
+            admission,
+            hold=catalog,
+            key=self.request_key(request),
         )
         reply = InspectReply(
             inspection.name,
