@@ -10,7 +10,8 @@
     inspections: [{name, type: locate|presence|qr|code|qr_pose|calibration_board, camera, roi,
                    number, output, ...}]
     line:     {enabled, host, port, tls, format, max_line_bytes, idle_timeout_s, deadline_s, ...}
-    modbus:   {enabled, host, port, unit_id, word_order, deadline_s, max_connections}  (PLCs)
+    modbus:   {enabled, host, port, unit_id, word_order, deadline_s, max_connections,
+               idle_timeout_s, write_timeout_s, shutdown_drain_s}  (PLCs)
 
 Every error names the file, the line and the key path; unknown keys are errors. Relative paths
 resolve against the configuration file's directory. See docs/configuration.md.
@@ -365,6 +366,9 @@ def _modbus(node: Node) -> ModbusSettings:
         word_order=node.take("word_order", one_of(*MODBUS_WORD_ORDERS), defaults.word_order),
         deadline_s=node.take("deadline_s", positive, defaults.deadline_s),
         max_connections=node.take("max_connections", positive_int, defaults.max_connections),
+        idle_timeout_s=node.take("idle_timeout_s", positive, defaults.idle_timeout_s),
+        write_timeout_s=node.take("write_timeout_s", positive, defaults.write_timeout_s),
+        shutdown_drain_s=node.take("shutdown_drain_s", non_negative, defaults.shutdown_drain_s),
     )
     if settings.enabled and find_spec("pymodbus") is None:
         raise node.error(

@@ -164,6 +164,17 @@ class ModbusSettings:
     """Each trigger's deadline, from its edge: DONE with an error code by then."""
     max_connections: int = 16
     """Clients at once; one more is closed as it connects."""
+    idle_timeout_s: float = 60.0
+    """A connection that sends no request the device serves (a whole frame answered without
+    a Modbus exception) for this long is closed: bytes that are not such a frame (a partial
+    frame, a request answered with an exception) do not keep it open."""
+    write_timeout_s: float = 10.0
+    """A client that takes none of its answers for this long (the server's write buffer stays
+    full) is dropped, so that it cannot hold the server's memory."""
+    shutdown_drain_s: float = 1.0
+    """At a stop, once no run is left, how long open connections are still served (READY
+    clear, trigger edges refused) so that a PLC reads the final state; ends early when no
+    connection is left open."""
 
 
 @dataclass(frozen=True)

@@ -9,14 +9,22 @@ state machine (:mod:`.modbus_handshake`) on the event loop. A trigger it accepts
 through the service, with the same admission, deadline and result log as any other request;
 its outcome is published in one step. The register map follows the catalog the service
 serves: a reload that changes it is picked up at the next request.
+
+A connection is closed when it sends nothing the device serves for ``idle_timeout_s``, and
+dropped when it takes none of its answers for ``write_timeout_s``; at a stop the front-end
+keeps MODBUS.md §3's promises (READY clear, trigger edges refused, a run in progress ended in
+DONE with SHUTTING_DOWN) while it still serves the open connections for a bounded drain, so
+that a PLC can read them.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import struct
 import time
-from typing import Any
+from typing import Any, cast
 
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusServerContext
@@ -30,19 +38,25 @@ from ..config import ModbusSettings
 from ..service import Catalog, InspectionService, InspectReply, InspectRequest
 from .line import Answerable
 from .modbus_frames import (
+    GATEWAY_NO_RESPONSE,
     ILLEGAL_VALUE,
     FrameReader,
     FramingError,
+    ReadWrite,
     Request,
     exception_frame,
     frame,
     pdu_problem,
+    read_write,
 )
 from .modbus_handshake import Handshake, IllegalAddress, IllegalValue, Outcome
 from .modbus_map import POSE_FORMAT, RegisterMap, config_map
 
 log = logging.getLogger("vision_server")
 
+READ_WRITE = 23
+"""Read/write multiple registers: answered by :meth:`ModbusFrontend.read_write` as one step
+(pymodbus's own does the write before it looks at the read)."""
 READ_FUNCTIONS = frozenset({3, 4, 6, 22, 23})
 """Read holding registers, read input registers (the same bank), and the read-back pymodbus
 does for write single register, mask write register and read/write multiple registers."""
@@ -55,9 +69,13 @@ MAX_PENDING = 32
 """Requests one connection may have waiting for their answers before the server stops
 reading from it (until it has answered half of them): a client that floods holds no more than
 this and one read's worth."""
-WRITE_TIMEOUT_S = 10.0
-"""How long an answer may wait for a client that does not read its answers; then it is
-dropped (its answers would only pile up in the server's memory)."""
+WRITE_BUFFER_HIGH = 16 * 1024
+"""Bytes of answers the server holds for a client (beyond the kernel's socket buffer) before
+it stops answering it (asyncio's flow control, ``pause_writing``): about 60 answers of a
+whole map. A client that takes none of them for ``write_timeout_s`` is dropped."""
+WRITE_BUFFER_MAX = 4 * WRITE_BUFFER_HIGH
+"""Bytes of answers past which a client is dropped at once (answers wait for the buffer to
+drain below WRITE_BUFFER_HIGH, so only a flow-control failure gets here)."""
 DEVICE_FAILURE = 0x04
 BACKSTOP_S = 1.0
 """How long past its deadline a run may go before the front-end ends it itself: the service
@@ -81,6 +99,8 @@ class ModbusFrontend:
         self._runs: set[asyncio.Task[None]] = set()
         self._server: _Server | None = None
         self.connections: set[_Connection] = set()
+        self.connections_changed = asyncio.Event()
+        """Set when a connection ends (the drain at a stop waits for none to be left)."""
 
     @property
     def port(self) -> int:
@@ -103,21 +123,36 @@ class ModbusFrontend:
         log.info("Modbus TCP listening on %s:%d", self.settings.host, self.port)
 
     async def stop(self, grace_s: float = 5.0) -> None:
-        """Refuse new triggers; let a running one finish (up to ``grace_s``, then DONE with
-        SHUTTING_DOWN); close the listener and every connection."""
+        """Stop as protocol/MODBUS.md §3 promises, serving every connection meanwhile: READY
+        clears and every trigger edge is refused (NOT_READY) from now on; a run in progress
+        has ``grace_s`` to finish, then ends in DONE with ERROR and SHUTTING_DOWN; then the
+        connections are served ``settings.shutdown_drain_s`` more (less once none is left
+        open), so that a PLC reads that final state; then the listener and every connection
+        close."""
         self.handshake.stop_accepting()
         runs = list(self._runs)
         if runs:
+            log.info("Modbus: stopping; a run in progress has %g s to finish", grace_s)
             await asyncio.wait(runs, timeout=grace_s)
         for run in runs:
             run.cancel()
         if runs:
             await asyncio.wait(runs)
         if self._server is not None:
-            await self._server.shutdown()  # type: ignore[no-untyped-call]
+            await self._drain()
         for connection in list(self.connections):
-            if connection.transport is not None:
-                connection.transport.close()
+            connection.close_gently()
+        if self._server is not None:
+            await self._server.shutdown()  # type: ignore[no-untyped-call]
+
+    async def _drain(self) -> None:
+        """Serve the open connections (READY clear, edges refused, a last result DONE) until
+        none is left or ``shutdown_drain_s`` has passed."""
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(self.settings.shutdown_drain_s):
+                while self.connections:
+                    self.connections_changed.clear()
+                    await self.connections_changed.wait()
 
     # ------------------------------------------------------------------ requests
 
@@ -157,6 +192,8 @@ class ModbusFrontend:
             number = self.handshake.write(address, values)
         except IllegalAddress:
             return ExcCodes.ILLEGAL_ADDRESS
+        except IllegalValue:
+            return ExcCodes.ILLEGAL_VALUE
         if number is not None:
             target = mapped.inspections.get(number)
             run = asyncio.get_running_loop().create_task(
@@ -165,6 +202,25 @@ class ModbusFrontend:
             self._runs.add(run)  # kept (and awaited at stop), never fire-and-forget
             run.add_done_callback(self._runs.discard)
         return None
+
+    def read_write(self, unit: int, request: ReadWrite) -> list[int] | ExcCodes:
+        """Function 23 as one step: its read and its write are both checked before anything
+        is done, so that a refused request writes nothing and triggers nothing; then the
+        write (which may trigger), then the read (which sees it)."""
+        if not self.serves(unit):
+            return ExcCodes.GATEWAY_NO_RESPONSE
+        self.current_map()
+        try:
+            self.handshake.check_read(request.read_address, request.read_count)
+            self.handshake.check_write(request.write_address, request.values)
+        except IllegalAddress:
+            return ExcCodes.ILLEGAL_ADDRESS
+        except IllegalValue:
+            return ExcCodes.ILLEGAL_VALUE
+        refused = self.write(unit, READ_WRITE, request.write_address, list(request.values))
+        if refused is not None:
+            return refused
+        return self.read(unit, READ_WRITE, request.read_address, request.read_count)
 
     async def _run(self, number: int, target: Answerable | None, map_id: int) -> None:
         """One accepted trigger, to its DONE (whatever happens: never a stuck BUSY)."""
@@ -240,12 +296,15 @@ class _Server(ModbusTcpServer):
 
 class _Connection(ServerRequestHandler):
     """One client: frames its bytes (:class:`FrameReader`), answers its requests in order on
-    one task, and ends the connection when its stream is not Modbus TCP."""
+    one task, and ends the connection when its stream is not Modbus TCP, when it sends nothing
+    the device serves for ``idle_timeout_s``, or when it takes none of its answers for
+    ``write_timeout_s``."""
 
     def __init__(self, server: _Server) -> None:
         super().__init__(server, None, None, None)  # type: ignore[no-untyped-call]
         self.owner = server
         self.bank = server.bank
+        self.settings = server.frontend.settings
         self.reader = FrameReader()
         self.queue: asyncio.Queue[Request | None] = asyncio.Queue()
         """Requests to answer, in order; None once the client has sent all it will."""
@@ -254,39 +313,104 @@ class _Connection(ServerRequestHandler):
         """Cleared while the transport's write buffer is full (asyncio's flow control)."""
         self.can_write.set()
         self.worker: asyncio.Task[None] | None = None
+        self.served_at = 0.0
+        """When (the loop's clock) the device last served a request of this connection: a
+        whole frame answered without a Modbus exception. Nothing else keeps it open."""
+        self._idle_timer: asyncio.TimerHandle | None = None
+        self._write_timer: asyncio.TimerHandle | None = None
+
+    @property
+    def stream(self) -> asyncio.Transport | None:
+        """The connection's transport (pymodbus types it as a BaseTransport, and sets it to
+        None when it closes the connection itself)."""
+        return cast("asyncio.Transport | None", self.transport)
 
     def callback_connected(self) -> None:
-        connections = self.owner.frontend.connections
-        if len(connections) >= self.owner.frontend.settings.max_connections:
+        stream = self.stream
+        assert stream is not None
+        frontend = self.owner.frontend
+        if len(frontend.connections) >= self.settings.max_connections:
             log.info("Modbus: too many connections; one more is closed")
-            self.transport.close()
+            stream.abort()  # at once: nothing was said on it, nothing is owed
             return
-        connections.add(self)
-        self.worker = asyncio.get_running_loop().create_task(self._answer_in_order())
+        frontend.connections.add(self)
+        stream.set_write_buffer_limits(high=WRITE_BUFFER_HIGH)
+        self.served_at = self.loop.time()
+        self._idle_timer = self.loop.call_later(self.settings.idle_timeout_s, self._check_idle)
+        self.worker = self.loop.create_task(self._answer_in_order())
 
     def callback_disconnected(self, exc: Exception | None) -> None:
-        self.owner.frontend.connections.discard(self)
+        frontend = self.owner.frontend
+        if self in frontend.connections:
+            frontend.connections.discard(self)
+            frontend.connections_changed.set()
         if self.worker is not None:
             self.worker.cancel()
+        for timer in (self._idle_timer, self._write_timer):
+            if timer is not None:
+                timer.cancel()
+
+    def close_gently(self) -> None:
+        """Close after the answers already written; a client that does not take them within
+        ``write_timeout_s`` is aborted."""
+        stream = self.stream
+        if stream is None or stream.is_closing():
+            return
+        stream.close()
+        if stream.get_write_buffer_size():
+            self.loop.call_later(self.settings.write_timeout_s, stream.abort)
+
+    def _check_idle(self) -> None:
+        self._idle_timer = None
+        stream = self.stream
+        if stream is None or stream.is_closing():
+            return
+        left = self.served_at + self.settings.idle_timeout_s - self.loop.time()
+        if left > 0:
+            self._idle_timer = self.loop.call_later(left, self._check_idle)
+            return
+        log.info(
+            "Modbus: a connection sent no request served for %g s; closing",
+            self.settings.idle_timeout_s,
+        )
+        self.close_gently()
 
     def datagram_received(self, data: bytes, addr: tuple[str, int] | None) -> None:
         try:
             requests = self.reader.feed(data)
         except FramingError as exc:
             log.info("Modbus: %s; closing the connection", exc)
-            self.transport.close()
+            self.close_gently()
             return
         for request in requests:
             self.queue.put_nowait(request)
-        if self.queue.qsize() >= MAX_PENDING and not self.reading_paused:
-            self.transport.pause_reading()  # type: ignore[attr-defined]
+        if self.queue.qsize() >= MAX_PENDING and not self.reading_paused and self.stream:
+            self.stream.pause_reading()
             self.reading_paused = True
 
     def pause_writing(self) -> None:
+        """The write buffer is full: answer nothing more until it drains, and drop the client
+        if it takes none of its answers for ``write_timeout_s``."""
         self.can_write.clear()
+        if self._write_timer is None:
+            self._write_timer = self.loop.call_later(
+                self.settings.write_timeout_s, self._write_timed_out
+            )
 
     def resume_writing(self) -> None:
         self.can_write.set()
+        if self._write_timer is not None:
+            self._write_timer.cancel()
+            self._write_timer = None
+
+    def _write_timed_out(self) -> None:
+        self._write_timer = None
+        log.info(
+            "Modbus: a client took none of its answers for %g s; dropping it",
+            self.settings.write_timeout_s,
+        )
+        if self.stream is not None:
+            self.stream.abort()
 
     def eof_received(self) -> bool:  # type: ignore[override]  # asyncio: bool | None
         """The client sent all it will: answer what it sent, then close (True keeps the
@@ -298,39 +422,55 @@ class _Connection(ServerRequestHandler):
         while True:
             request = await self.queue.get()
             if request is None:
-                if self.transport is not None:
-                    self.transport.close()
+                self.close_gently()
                 return
             if self.reading_paused and self.queue.qsize() <= MAX_PENDING // 2:
                 self.reading_paused = False
-                if self.transport is not None:
-                    self.transport.resume_reading()  # type: ignore[attr-defined]
+                if self.stream is not None:
+                    self.stream.resume_reading()
             reply = await self._answer(request)
-            try:
-                async with asyncio.timeout(WRITE_TIMEOUT_S):
-                    await self.can_write.wait()
-            except TimeoutError:
-                log.info("Modbus: a client does not read its answers; closing")
-                if self.transport is not None:
-                    self.transport.abort()  # type: ignore[attr-defined]
+            await self.can_write.wait()  # pause_writing's timer drops a client that never reads
+            stream = self.stream
+            if stream is None or stream.is_closing():
                 return
-            if self.transport is None or self.transport.is_closing():
+            stream.write(reply)
+            if stream.get_write_buffer_size() > WRITE_BUFFER_MAX:
+                log.info("Modbus: a client's answers pile up; dropping it")
+                stream.abort()
                 return
-            self.transport.write(reply)  # type: ignore[attr-defined]
 
     async def _answer(self, request: Request) -> bytes:
+        """The reply frame to ``request``. Which exception wins (protocol/MODBUS.md §4.3): a
+        unit id this device is not (0x0B, whatever the PDU), then the function (0x01), then
+        the PDU's length and counts (0x03), then the addresses (0x02)."""
+        if not self.owner.frontend.serves(request.unit):
+            return exception_frame(request, GATEWAY_NO_RESPONSE)
         if (code := pdu_problem(request.pdu)) is not None:
             return exception_frame(request, code)
-        pdu = self.owner.decoder.decode(request.pdu)
-        if pdu is None:  # pymodbus could not decode it
-            return exception_frame(request, ILLEGAL_VALUE)
         try:
-            response: ModbusPDU = await pdu.datastore_update(self.bank, request.unit)
+            body = await self._execute(request)
         except Exception:  # a bug must cost this request, not the connection
             log.exception("Modbus: function %d failed", request.function)
             return exception_frame(request, DEVICE_FAILURE)
-        body = response.function_code.to_bytes(1, "big") + response.encode()
+        if body is None:  # pymodbus could not decode it
+            return exception_frame(request, ILLEGAL_VALUE)
+        if not body[0] & 0x80:
+            self.served_at = self.loop.time()
         return frame(request.transaction, request.unit, body)
+
+    async def _execute(self, request: Request) -> bytes | None:
+        """The reply PDU (an exception's too), None when pymodbus cannot decode the request."""
+        if request.function == READ_WRITE:
+            registers = self.owner.frontend.read_write(request.unit, read_write(request.pdu))
+            if isinstance(registers, ExcCodes):
+                return bytes([READ_WRITE | 0x80, registers])
+            words = struct.pack(f">{len(registers)}H", *registers)
+            return bytes([READ_WRITE, len(words)]) + words
+        pdu = self.owner.decoder.decode(request.pdu)
+        if pdu is None:
+            return None
+        response: ModbusPDU = await pdu.datastore_update(self.bank, request.unit)
+        return response.function_code.to_bytes(1, "big") + response.encode()
 
 
 class _Bank(ModbusServerContext):

@@ -24,6 +24,13 @@ SERVED_FUNCTIONS = frozenset({3, 4, 6, 16, 22, 23})
 
 ILLEGAL_FUNCTION = 0x01
 ILLEGAL_VALUE = 0x03
+GATEWAY_NO_RESPONSE = 0x0B
+"""What a request to a unit id this device is not gets, whatever its PDU (protocol/MODBUS.md
+§4.3): the PDU is the other device's to judge."""
+MAX_WRITE = 123
+"""Registers function 16 may write at once (the Modbus limit)."""
+MAX_READ_WRITE = (125, 121)
+"""Registers function 23 may read and write at once (the Modbus limits)."""
 
 
 class FramingError(Exception):
@@ -70,9 +77,9 @@ class FrameReader:
 
 
 def pdu_problem(pdu: bytes) -> int | None:
-    """The exception code a served function's PDU earns by its length alone (None: fine).
-    pymodbus decodes a PDU that is too long without a word; the protocol's lengths are
-    exact."""
+    """The exception code a PDU earns by its function, its length and its register counts
+    alone (None: fine), before any address is looked at. pymodbus decodes a PDU that is too
+    long without a word; the protocol's lengths are exact."""
     function = pdu[0]
     if function not in SERVED_FUNCTIONS:
         return ILLEGAL_FUNCTION
@@ -82,7 +89,34 @@ def pdu_problem(pdu: bytes) -> int | None:
     header = 6 if function == 16 else 10  # up to and including the byte count
     if len(pdu) < header or len(pdu) != header + pdu[header - 1]:
         return ILLEGAL_VALUE
-    return None
+    if function == 16:
+        (count,) = struct.unpack_from(">H", pdu, 3)
+        if not 1 <= count <= MAX_WRITE or pdu[5] != 2 * count:
+            return ILLEGAL_VALUE
+        return None
+    _, read_count, _, write_count, byte_count = struct.unpack_from(">HHHHB", pdu, 1)
+    most_read, most_written = MAX_READ_WRITE
+    if not 1 <= read_count <= most_read or not 1 <= write_count <= most_written:
+        return ILLEGAL_VALUE
+    return None if byte_count == 2 * write_count else ILLEGAL_VALUE
+
+
+@dataclass(frozen=True)
+class ReadWrite:
+    """A function 23 request (read/write multiple registers): the write, then the read, both
+    checked before either is done (``ModbusFrontend.read_write``)."""
+
+    read_address: int
+    read_count: int
+    write_address: int
+    values: tuple[int, ...]
+
+
+def read_write(pdu: bytes) -> ReadWrite:
+    """The fields of a function 23 PDU that :func:`pdu_problem` passed."""
+    read_address, read_count, write_address, write_count = struct.unpack_from(">HHHH", pdu, 1)
+    values = struct.unpack_from(f">{write_count}H", pdu, 10)
+    return ReadWrite(read_address, read_count, write_address, values)
 
 
 def frame(transaction: int, unit: int, pdu: bytes) -> bytes:
@@ -96,15 +130,20 @@ def exception_frame(request: Request, code: int) -> bytes:
 
 
 __all__ = [
+    "GATEWAY_NO_RESPONSE",
     "ILLEGAL_FUNCTION",
     "ILLEGAL_VALUE",
     "MAX_LENGTH",
+    "MAX_READ_WRITE",
+    "MAX_WRITE",
     "MBAP_BYTES",
     "SERVED_FUNCTIONS",
     "FrameReader",
     "FramingError",
+    "ReadWrite",
     "Request",
     "exception_frame",
     "frame",
     "pdu_problem",
+    "read_write",
 ]

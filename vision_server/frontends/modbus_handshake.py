@@ -54,7 +54,8 @@ class Handshake:
         self.registers = [0] * SIZE
         self.map = register_map
         self.accepting = True
-        """False once the server stops: trigger edges are refused with NOT_READY."""
+        """False once the server stops: READY stays clear and every trigger edge is refused
+        with NOT_READY (before any other refusal: nothing will run again)."""
         self._written = 0
         """CONTROL as the PLC last wrote it (edges are against this)."""
         self.set_map(register_map)
@@ -75,24 +76,37 @@ class Handshake:
 
     # ------------------------------------------------------------------ the PLC's requests
 
-    def read(self, address: int, count: int) -> list[int]:
+    def check_read(self, address: int, count: int) -> None:
+        """Raise what a read of ``count`` registers from ``address`` would; change nothing."""
         if not 1 <= count <= MAX_READ:
             raise IllegalValue(f"a read of {count} registers (1..{MAX_READ})")
         if address < 0 or address + count > SIZE:
             raise IllegalAddress(f"registers {address}..{address + count - 1} (0..{SIZE - 1})")
+
+    def read(self, address: int, count: int) -> list[int]:
+        self.check_read(address, count)
         return self.registers[address : address + count]
 
-    def write(self, address: int, values: Sequence[int]) -> int | None:
-        """Apply a write of registers ``address`` onwards; the inspection number to start
-        when it makes a trigger edge that is accepted, else None. A write that touches a
-        register the PLC may not write changes nothing (IllegalAddress). INSPECTION is
-        applied before CONTROL, so one write of both selects and triggers."""
+    def check_write(self, address: int, values: Sequence[int]) -> None:
+        """Raise what a write of ``values`` from ``address`` would; change nothing. A request
+        that reads and writes (function 23) checks both before either is done, so that a
+        refused request writes nothing and triggers nothing."""
         touched = range(address, address + len(values))
         if not values or any(a not in WRITABLE for a in touched):
             raise IllegalAddress(
                 f"registers {address}..{address + len(values) - 1}: only "
                 f"{Reg.CONTROL} (CONTROL) and {Reg.INSPECTION} (INSPECTION) are writable"
             )
+        if any(not 0 <= v <= 0xFFFF for v in values):
+            raise IllegalValue("a register holds 0..65535")
+
+    def write(self, address: int, values: Sequence[int]) -> int | None:
+        """Apply a write of registers ``address`` onwards; the inspection number to start
+        when it makes a trigger edge that is accepted, else None. A write that touches a
+        register the PLC may not write changes nothing (IllegalAddress). INSPECTION is
+        applied before CONTROL, so one write of both selects and triggers."""
+        self.check_write(address, values)
+        touched = range(address, address + len(values))
         written = dict(zip(touched, values, strict=True))
         if Reg.INSPECTION in written:
             self.registers[Reg.INSPECTION] = written[Reg.INSPECTION] & 0xFFFF
@@ -115,12 +129,12 @@ class Handshake:
             self.registers[Reg.STATUS] = status
         if not rose & Control.TRIGGER:
             return None
-        if Status.BUSY in status:
+        if not self.accepting:  # first: whatever else there is, nothing will run again
+            self._refuse(Refusal.NOT_READY)
+        elif Status.BUSY in status:
             self._refuse(Refusal.TRIGGER_WHILE_BUSY)
         elif Status.DONE in status:
             self._refuse(Refusal.NOT_ACKNOWLEDGED)
-        elif not self.accepting:
-            self._refuse(Refusal.NOT_READY)
         else:
             return self._accept()
         return None
@@ -164,7 +178,8 @@ class Handshake:
         regs[Reg.STATUS] = status
 
     def stop_accepting(self) -> None:
-        """The server stops: no READY, trigger edges refused (a run still going finishes)."""
+        """The server stops: no READY from now on, every trigger edge refused with NOT_READY
+        (a run still going finishes, or is ended by the adapter with SHUTTING_DOWN)."""
         self.accepting = False
         self.registers[Reg.STATUS] &= ~Status.READY
 
