@@ -211,6 +211,10 @@ class App:
     async def stop(self) -> None:
         """Stop every front-end (each closes its connections gracefully), then the service."""
         self._stopped.set()
+        if self.modbus is not None:
+            # A PLC sees the stop as it begins (READY clear, edges refused: MODBUS.md §3),
+            # not only once the line front-end before it has had its grace period.
+            self.modbus.handshake.stop_accepting()
         if self.line is not None:
             await self.line.stop()
         if self.modbus is not None:

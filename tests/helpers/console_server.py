@@ -110,6 +110,7 @@ def running_cell(config: Path) -> Iterator[RunningConsole]:
             reloader=runtime.reload,
             console=runtime.config.console,
             line=runtime.config.line,
+            modbus=runtime.config.modbus,
             config_path=config,
         )
 

@@ -515,3 +515,23 @@ def test_a_stalled_upload_gives_its_bytes_back(cell: RunningConsole) -> None:
     assert answer.startswith(b"HTTP/1.1 408"), answer
     assert b"did not arrive within" in answer
     assert _wait_for(lambda: cell.app.service.budget.used == 0, 5)
+
+
+def test_modbus_counts_at_the_front_door(tmp_path: Path) -> None:
+    """Modbus connections are counted with the others: when the console holds the server's
+    total, a PLC's connection is closed at once and counted as refused."""
+    config = example_config(tmp_path, extra_server="  max_connections_total: 3\n")
+    text = config.read_text(encoding="utf-8")
+    config.write_text(text + "\nmodbus: {enabled: true, port: 0}\n", encoding="utf-8")
+    with running_cell(config) as cell:
+        assert cell.app.modbus is not None
+        plc = socket.create_connection(("127.0.0.1", cell.app.modbus.port), timeout=5)
+        assert _wait_for(lambda: cell.app.service.door.held("Modbus") == 1)
+        held = [_open(cell) for _ in range(2)]
+        assert _wait_for(lambda: cell.app.service.door.connections == 3)
+        late = socket.create_connection(("127.0.0.1", cell.app.modbus.port), timeout=5)
+        assert _closed_by_server(late, within_s=5)
+        assert cell.app.service.door.counts()["Modbus"]["refused"] == 1
+        for sock in [plc, *held, late]:
+            sock.close()
+        assert _wait_for(lambda: cell.app.service.door.connections == 0)

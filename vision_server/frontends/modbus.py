@@ -35,7 +35,7 @@ from pymodbus.server.requesthandler import ServerRequestHandler
 from protocol import CellvisionError, DeadlineExceeded, ErrorCode, UnknownInspection
 
 from ..config import ModbusSettings
-from ..service import Catalog, InspectionService, InspectReply, InspectRequest
+from ..service import Catalog, InspectionService, InspectReply, InspectRequest, Pass, Refusal
 from .line import Answerable
 from .modbus_frames import (
     GATEWAY_NO_RESPONSE,
@@ -53,6 +53,8 @@ from .modbus_handshake import Handshake, IllegalAddress, IllegalValue, Outcome
 from .modbus_map import POSE_FORMAT, RegisterMap, config_map
 
 log = logging.getLogger("vision_server")
+FRONTEND = "Modbus"
+"""This front-end's name at the service's front door (its counts, its refusals)."""
 
 READ_WRITE = 23
 """Read/write multiple registers: answered by :meth:`ModbusFrontend.read_write` as one step
@@ -318,6 +320,8 @@ class _Connection(ServerRequestHandler):
         whole frame answered without a Modbus exception. Nothing else keeps it open."""
         self._idle_timer: asyncio.TimerHandle | None = None
         self._write_timer: asyncio.TimerHandle | None = None
+        self.admitted: Pass | None = None
+        """This connection's place at the front door, given back when it ends."""
 
     @property
     def stream(self) -> asyncio.Transport | None:
@@ -329,10 +333,16 @@ class _Connection(ServerRequestHandler):
         stream = self.stream
         assert stream is not None
         frontend = self.owner.frontend
-        if len(frontend.connections) >= self.settings.max_connections:
-            log.info("Modbus: too many connections; one more is closed")
+        peername = stream.get_extra_info("peername")
+        peer = f"{peername[0]}:{peername[1]}" if isinstance(peername, tuple) else str(peername)
+        # The service's front door counts it with every front-end's connections (Modbus has
+        # no TLS: this is as early as a connection can be counted).
+        admitted = frontend.service.door.enter(FRONTEND, peer, limit=self.settings.max_connections)
+        if isinstance(admitted, Refusal):
+            log.info("Modbus: %s; one more is closed", admitted.reason)
             stream.abort()  # at once: nothing was said on it, nothing is owed
             return
+        self.admitted = admitted
         frontend.connections.add(self)
         stream.set_write_buffer_limits(high=WRITE_BUFFER_HIGH)
         self.served_at = self.loop.time()
@@ -340,6 +350,8 @@ class _Connection(ServerRequestHandler):
         self.worker = self.loop.create_task(self._answer_in_order())
 
     def callback_disconnected(self, exc: Exception | None) -> None:
+        if self.admitted is not None:
+            self.admitted.leave()
         frontend = self.owner.frontend
         if self in frontend.connections:
             frontend.connections.discard(self)
