@@ -535,3 +535,61 @@ def test_modbus_counts_at_the_front_door(tmp_path: Path) -> None:
         for sock in [plc, *held, late]:
             sock.close()
         assert _wait_for(lambda: cell.app.service.door.connections == 0)
+
+
+# ----------------------------------------------------------------------------- roles
+
+OPERATOR, INTEGRATOR = "operator-tablet-token-1", "integrator-laptop-token-2"
+
+
+@pytest.fixture(scope="module")
+def roles(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningConsole]:
+    folder = tmp_path_factory.mktemp("roles")
+    config = example_config(
+        folder, extra_server=f"  operator_token: {OPERATOR}\n  integrator_token: {INTEGRATOR}\n"
+    )
+    with running_cell(config) as running:
+        yield running
+
+
+def _signed_in(cell: RunningConsole, token: str) -> Browserless:
+    client = Browserless(cell.url)
+    reply = client.login(token)
+    assert reply.status == 200, reply.body
+    return client
+
+
+def test_the_operator_views_and_cannot_try_or_save(roles: RunningConsole) -> None:
+    operator = _signed_in(roles, OPERATOR)
+    assert operator.get("/api/server").json()["role"] == "operator"
+    assert operator.get("/api/inspections").status == 200
+    assert operator.get("/api/results").status == 200
+    tried = operator.try_("magnet_check", {"source": "camera"})
+    assert tried.status == 403
+    assert "integrator" in tried.json()["error"]["message"]
+    saved = operator.post_json("/api/inspections/magnet_check/save", {"options": {"threshold": 1}})
+    assert saved.status == 403
+    assert saved.json()["error"]["code"] == "FORBIDDEN"
+    assert "threshold: 1" not in roles.config.read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize("token", [INTEGRATOR, TOKEN])
+def test_the_integrator_and_the_admin_try(roles: RunningConsole, token: str) -> None:
+    client = _signed_in(roles, token)
+    assert client.get("/api/server").json()["role"] == ("admin" if token == TOKEN else "integrator")
+    assert client.try_("magnet_check", {"source": "camera"}).status == 200
+
+
+def test_the_robot_protocols_take_only_the_admins_token(roles: RunningConsole) -> None:
+    with pytest.raises(NotAuthenticated), _robot(roles, OPERATOR) as robot:
+        robot.ping()
+    with _robot(roles) as robot:
+        assert robot.ping() >= 0
+
+
+def test_roles_need_tokens_of_their_own(tmp_path: Path) -> None:
+    from vision_server.config import ConfigError, load_config
+
+    config = example_config(tmp_path, extra_server=f"  operator_token: {TOKEN}\n")
+    with pytest.raises(ConfigError, match="operator_token: each role needs a token of its own"):
+        load_config(config)

@@ -223,26 +223,12 @@ class Tuner:
 
 def _server(node: Node, base_dir: Path) -> ServerSettings:
     defaults = ServerSettings()
-    token = node.take("auth_token", string, None)
-    token_file = node.take("auth_token_file", string, None)
-    if token is not None and token_file is not None:
-        raise node.error("give auth_token or auth_token_file, not both")
-    if token is not None:
-        # Surrounding whitespace is never part of a token (as for a token file); a blank one
-        # would otherwise be "a token is required" that any client meets by sending none.
-        token = token.strip()
-        if not token:
-            raise node.error("auth_token is blank", "auth_token")
-    if token_file is not None:
-        token_path = _resolve(base_dir, token_file)
-        try:
-            token = token_path.read_text(encoding="utf-8").strip()
-        except OSError as exc:
-            raise node.error(
-                f"cannot read the token file {token_path}: {exc}", "auth_token_file"
-            ) from None
-        if not token:
-            raise node.error(f"the token file {token_path} is empty", "auth_token_file")
+    token = _secret(node, base_dir, "auth_token")
+    roles = {key: _secret(node, base_dir, key) for key in ("operator_token", "integrator_token")}
+    given = [(k, v) for k, v in (("auth_token", token), *roles.items()) if v is not None]
+    for index, (role_key, secret) in enumerate(given):
+        if any(secret == other for _, other in given[:index]):
+            raise node.error("each role needs a token of its own: it equals another's", role_key)
     tls = node.sub("tls")
     cert = tls.take("cert", string, None)
     key = tls.take("key", string, None)
@@ -290,6 +276,8 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
             "main_lane_policy", one_of(*POLICIES), defaults.main_lane_policy
         ),
         auth_token=token,
+        operator_token=roles["operator_token"],
+        integrator_token=roles["integrator_token"],
         shutdown_grace_s=node.take("shutdown_grace_s", non_negative, defaults.shutdown_grace_s),
         tls_cert=None if cert is None else str(_resolve(base_dir, cert)),
         tls_key=None if key is None else str(_resolve(base_dir, key)),
@@ -321,6 +309,31 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
         )
     node.finish()
     return settings
+
+
+def _secret(node: Node, base_dir: Path, key: str) -> str | None:
+    """A token given as ``key`` or read from the file ``key``_file (surrounding whitespace, a
+    final newline, is never part of a token; blank is an error: it would read as "a token is
+    required" that any client meets by sending none)."""
+    token: str | None = node.take(key, string, None)
+    token_file: str | None = node.take(f"{key}_file", string, None)
+    if token is not None and token_file is not None:
+        raise node.error(f"give {key} or {key}_file, not both")
+    if token is not None:
+        token = token.strip()
+        if not token:
+            raise node.error(f"{key} is blank", key)
+    if token_file is not None:
+        token_path = _resolve(base_dir, token_file)
+        try:
+            token = token_path.read_text(encoding="utf-8").strip()
+        except OSError as exc:
+            raise node.error(
+                f"cannot read the token file {token_path}: {exc}", f"{key}_file"
+            ) from None
+        if not token:
+            raise node.error(f"the token file {token_path} is empty", f"{key}_file")
+    return token
 
 
 def _line(node: Node, server: ServerSettings) -> LineSettings:

@@ -204,6 +204,10 @@ class ServerSettings:
     main_lane_nice: int = 10
     main_lane_policy: str = "nice"
     auth_token: str | None = None
+    operator_token: str | None = None
+    """The web console's operator role: view, answer operator calls (not try or save)."""
+    integrator_token: str | None = None
+    """The web console's integrator role: the operator's rights, and try and save."""
     shutdown_grace_s: float = 5.0
     tls_cert: str | None = None
     tls_key: str | None = None
@@ -271,6 +275,9 @@ class ConsoleSettings:
     however many browsers watch it."""
     name: str = "cellvision"
     auth_token: str | None = None
+    """The admin's token (every right); also the binary and line protocols'."""
+    operator_token: str | None = None
+    integrator_token: str | None = None
     tls_cert: str | None = None
     tls_key: str | None = None
     max_upload_bytes: int = 64 * 1024 * 1024
@@ -301,6 +308,8 @@ class ConsoleSettings:
             self,
             name=server.name,
             auth_token=server.auth_token,
+            operator_token=server.operator_token,
+            integrator_token=server.integrator_token,
             tls_cert=server.tls_cert,
             tls_key=server.tls_key,
             max_upload_bytes=server.max_frame_bytes,

@@ -53,7 +53,7 @@ from ..service import (
     check_images,
 )
 from . import http_save
-from .http_auth import COOKIE, Sessions
+from .http_auth import COOKIE, RANK, Role, Sessions
 from .http_door import cross_site_reason, host_allowed
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
@@ -154,7 +154,13 @@ class HttpFrontend:
         self.settings = settings
         self.config_path = config_path
         self.server_info = server_info or (lambda: {})
-        self.sessions = Sessions(settings.auth_token)
+        self.sessions = Sessions(
+            {
+                "admin": settings.auth_token,
+                "operator": settings.operator_token,
+                "integrator": settings.integrator_token,
+            }
+        )
         self.started_at = time.time()
         self._runner: web.AppRunner | None = None
         self._listener: Listener | None = None
@@ -308,7 +314,7 @@ class HttpFrontend:
         clock.begin()
         try:
             response = await handler(request)
-            if self._signed_in(request):
+            if self._role(request) is not None:
                 clock.signed_in = True
             return response
         finally:
@@ -319,19 +325,31 @@ class HttpFrontend:
         """Without a session only the page (its sign-in form) and /api/login answer."""
         path = request.path
         protected = (path.startswith("/api/") and path != "/api/login") or path == "/metrics"
-        if protected and not self._signed_in(request):
+        if not protected:
+            return await handler(request)
+        role = self._role(request)
+        if role is None:
             if path == "/metrics" and request.headers.get("Authorization"):
                 raise await self._refuse_token(request, "wrong bearer token")
             raise HttpError(401, "UNAUTHORIZED", "sign in with the server's token first")
+        needed = required_role(request)
+        if RANK[role] < RANK[needed]:
+            raise HttpError(
+                403,
+                "FORBIDDEN",
+                f"signed in as {role}: this needs the {needed}'s rights (sign in with the "
+                f"{'integrator_token' if needed == 'integrator' else 'auth_token'})",
+            )
         return await handler(request)
 
-    def _signed_in(self, request: web.Request) -> bool:
-        if self.sessions.valid(request.cookies.get(COOKIE)):
-            return True
-        if request.path == "/metrics":  # a scraper sends the token as a bearer token
+    def _role(self, request: web.Request) -> Role | None:
+        """The role of the request's session (or, for /metrics, of its bearer token)."""
+        role = self.sessions.role(request.cookies.get(COOKIE))
+        if role is None and request.path == "/metrics":  # a scraper sends a bearer token
             auth = request.headers.get("Authorization", "")
-            return auth.startswith("Bearer ") and self.sessions.token_matches(auth[7:].strip())
-        return False
+            if auth.startswith("Bearer "):
+                return self.sessions.role_of(auth[7:].strip())
+        return role
 
     async def _refuse_token(self, request: web.Request, message: str) -> HttpError:
         """A wrong token, answered after the front door's delay for its host."""
@@ -351,11 +369,13 @@ class HttpFrontend:
         response = web.json_response({"ok": True})
         if not self.sessions.required:
             return response
-        if not self.sessions.token_matches(body.get("token")):
+        role = self.sessions.role_of(body.get("token"))
+        if role is None:
             raise await self._refuse_token(request, "wrong token")
+        response = web.json_response({"ok": True, "role": role})
         response.set_cookie(
             COOKIE,
-            self.sessions.open(),
+            self.sessions.open(role),
             httponly=True,
             samesite="Strict",
             path="/",
@@ -393,6 +413,7 @@ class HttpFrontend:
                 "uptime_s": round(time.time() - self.started_at, 1),
                 "listen": info.get("listen"),
                 "auth_required": self.sessions.required,
+                "role": self._role(request),
                 "health": {"status": "ok" if health["ok"] else "degraded", "checks": checks},
                 "pool": {
                     "workers": service.settings.workers,
@@ -797,6 +818,18 @@ class HttpFrontend:
 
 
 # ----------------------------------------------------------------------------- helpers
+
+
+INTEGRATOR_ROUTES = frozenset({"/api/inspections/{name}/try", "/api/inspections/{name}/save"})
+"""What changes an inspection or runs one with other options: the integrator's and the
+admin's, not the operator's (who views, and answers operator calls)."""
+
+
+def required_role(request: web.Request) -> Role:
+    """The least role that may make ``request``."""
+    route = request.match_info.route.resource
+    canonical = route.canonical if route is not None else request.path
+    return "integrator" if canonical in INTEGRATOR_ROUTES else "operator"
 
 
 def parameters(config: Mapping[str, Any]) -> list[dict[str, Any]]:

@@ -1,8 +1,13 @@
-"""Sessions of the web console: the server's ``auth_token`` exchanged for a cookie.
+"""Sessions of the web console: a role's token exchanged for a cookie.
 
-The cookie holds ``SESSION_ID.MAC`` where MAC = HMAC-SHA256(key = the token, message = the
-session id): never the token itself. A session is valid while its id is among the open ones
-(logout and a restart end it) and its MAC matches the token the server has now. Every
+Three roles, each with a token of its own (``server: auth_token``, ``operator_token``,
+``integrator_token``): the **operator** views and answers operator calls; the **integrator**
+also tries and saves inspections; the **admin** (the server's ``auth_token``, also the binary
+and line protocols') has every right. Without any token everyone is admin.
+
+The cookie holds ``SESSION_ID.MAC`` where MAC = HMAC-SHA256(key = a server secret made at
+start, message = the session id): never a token. A session is valid while its id is among the
+open ones (logout and a restart end it); its role is kept with it on the server. Every token
 comparison is constant-time.
 """
 
@@ -12,43 +17,58 @@ import hashlib
 import hmac
 import secrets
 from collections import OrderedDict
+from typing import Literal
 
 COOKIE = "cellvision_session"
 MAX_SESSIONS = 256
 """Open sessions kept; the oldest is ended beyond (a login flood cannot grow memory)."""
 
+Role = Literal["operator", "integrator", "admin"]
+RANK: dict[Role, int] = {"operator": 0, "integrator": 1, "admin": 2}
+
 
 class Sessions:
-    """The open console sessions of a server whose token is ``token`` (None: no sign-in)."""
+    """The open console sessions of a server whose tokens are ``tokens`` (role → token; no
+    token at all: no sign-in, everyone admin)."""
 
-    def __init__(self, token: str | None) -> None:
-        self._token = None if token is None else token.encode("utf-8")
-        self._open: OrderedDict[str, None] = OrderedDict()
+    def __init__(self, tokens: dict[Role, str | None]) -> None:
+        self._tokens = {role: t.encode("utf-8") for role, t in tokens.items() if t is not None}
+        self._secret = secrets.token_bytes(32)
+        self._open: OrderedDict[str, Role] = OrderedDict()
 
     @property
     def required(self) -> bool:
-        return self._token is not None
+        return bool(self._tokens)
 
-    def token_matches(self, given: object) -> bool:
-        """Whether ``given`` is the server's token (constant-time)."""
-        if self._token is None or not isinstance(given, str):
-            return False
-        return hmac.compare_digest(given.encode("utf-8"), self._token)
+    def role_of(self, given: object) -> Role | None:
+        """The role whose token ``given`` is (every role compared, constant-time each)."""
+        if not isinstance(given, str):
+            return None
+        encoded = given.encode("utf-8")
+        found: Role | None = None
+        for role, token in self._tokens.items():
+            if hmac.compare_digest(encoded, token):
+                found = role
+        return found
 
-    def open(self) -> str:
-        """A new session; returns the cookie's value."""
+    def open(self, role: Role) -> str:
+        """A new session of ``role``; returns the cookie's value."""
         session_id = secrets.token_urlsafe(24)
-        self._open[session_id] = None
+        self._open[session_id] = role
         while len(self._open) > MAX_SESSIONS:
             self._open.popitem(last=False)
         return f"{session_id}.{self._mac(session_id)}"
 
+    def role(self, cookie: str | None) -> Role | None:
+        """The role of ``cookie``'s open session (admin when there is no sign-in), else None."""
+        if not self._tokens:
+            return "admin"
+        session_id = self._session_id(cookie)
+        return None if session_id is None else self._open.get(session_id)
+
     def valid(self, cookie: str | None) -> bool:
         """Whether ``cookie`` is an open session's (always true without a token)."""
-        if self._token is None:
-            return True
-        session_id = self._session_id(cookie)
-        return session_id is not None and session_id in self._open
+        return self.role(cookie) is not None
 
     def close(self, cookie: str | None) -> None:
         session_id = self._session_id(cookie)
@@ -57,7 +77,7 @@ class Sessions:
 
     def _session_id(self, cookie: str | None) -> str | None:
         """The session id of a cookie whose MAC is right, else None."""
-        if self._token is None or not cookie or cookie.count(".") != 1:
+        if not self._tokens or not cookie or cookie.count(".") != 1:
             return None
         session_id, mac = cookie.split(".")
         if not hmac.compare_digest(mac.encode("ascii", "replace"), self._mac(session_id).encode()):
@@ -65,8 +85,7 @@ class Sessions:
         return session_id
 
     def _mac(self, session_id: str) -> str:
-        assert self._token is not None
-        return hmac.new(self._token, session_id.encode("utf-8"), hashlib.sha256).hexdigest()
+        return hmac.new(self._secret, session_id.encode("utf-8"), hashlib.sha256).hexdigest()
 
 
-__all__ = ["COOKIE", "MAX_SESSIONS", "Sessions"]
+__all__ = ["COOKIE", "MAX_SESSIONS", "RANK", "Role", "Sessions"]
