@@ -236,7 +236,7 @@ def test_square_brackets_in_messages_are_shown(tmp_path: Path) -> None:
         ),
     )
     done = tool("vision-server", "check-config", str(config))
-    assert done.returncode == 1
+    assert done.returncode == 2
     assert "expected [u, v, width, height]" in " ".join(done.stderr.split())
 
 

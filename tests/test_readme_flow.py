@@ -4,9 +4,11 @@ on a fresh checkout and after ``make demo`` (``python -m robot_client.demo``, wh
 runs). The task must end ``done`` both times, the magnet check must say what the README says,
 and nothing the tools wrote may show in ``git status``.
 
-The only change to the commands: ``vision-server serve`` gets ``--port 0`` (the README's 7878
-may be taken on a shared machine), and the client finds it through ``$CELLVISION_SERVER``, the
-way the README says both tools find the server."""
+The only change to the commands: ``vision-server serve`` gets ``--port 0`` and port 0 for each
+front-end its configuration enables, ``--console-port 0`` for the example's console (the
+README's 7878 and 7880 may be taken on a shared machine, by the very server this section leaves
+running among others), and the client finds it through ``$CELLVISION_SERVER``, the way the
+README says both tools find the server."""
 
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+from example_servers import on_any_port_as_typed, readme_commands
 
 REPO = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent  # where the project's console scripts are installed
@@ -41,17 +44,6 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(shutil.which("git") is None, reason="needs git (to copy the checkout)"),
 ]
-
-
-def readme_commands() -> list[list[str]]:
-    """The commands of the first ``sh`` block under "## Using it by hand", continuation lines
-    joined, comments dropped, each split as the shell would."""
-    text = (REPO / "README.md").read_text(encoding="utf-8")
-    section = text.split("## Using it by hand", 1)[1].split("\n## ", 1)[0]
-    match = re.search(r"```sh\n(.*?)```", section, re.S)
-    assert match, "README.md: no ```sh block under 'Using it by hand'"
-    joined = match.group(1).replace("\\\n", " ")
-    return [shlex.split(line, comments=True) for line in joined.splitlines() if line.strip()]
 
 
 def executable(word: str) -> str:
@@ -104,10 +96,11 @@ def user_env(copy: Path) -> dict[str, str]:
 
 @contextmanager
 def serving(command: list[str], copy: Path, env: dict[str, str]) -> Iterator[str]:
-    """The README's ``serve`` command on port 0 in the background: yields HOST:PORT from its
-    first line; stopped with SIGTERM (what Ctrl-C in the second terminal amounts to)."""
+    """The README's ``serve`` command on port 0 (its console too) in the background: yields
+    HOST:PORT from its first line; stopped with SIGTERM (what Ctrl-C in the second terminal
+    amounts to)."""
     process = subprocess.Popen(
-        [*command, "--port", "0"],
+        on_any_port_as_typed(command, copy),
         cwd=copy,
         env=env,
         stdout=subprocess.PIPE,

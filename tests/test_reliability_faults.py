@@ -24,6 +24,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+from example_servers import example_cell_into, serve_command
 
 from protocol import CameraUnavailable, Hello, Inspect, payload_from_array
 from robot_client import SyncVisionClient
@@ -118,17 +119,6 @@ SCENE = REPO_ROOT / "examples/scenes/grundfos_cell.yaml"
 DOWN = [np.pi, 0.0, 0.0]
 
 
-def _example_config(tmp: Path) -> Path:
-    """examples/cell.yaml writing into ``tmp``."""
-    text = (REPO_ROOT / "examples/cell.yaml").read_text()
-    text = text.replace("../demo-output/results.sqlite3", str(tmp / "results.sqlite3"))
-    text = text.replace("../demo-output/world-state.json", str(tmp / "world.json"))
-    text = text.replace("scene: scenes/grundfos_cell.yaml", f"scene: {SCENE}")
-    path = tmp / "cell.yaml"
-    path.write_text(text)
-    return path
-
-
 def _readline(proc: subprocess.Popen[str], timeout_s: float = 60.0) -> str:
     """The next stdout line of ``proc``, without blocking forever."""
     assert proc.stdout is not None
@@ -202,9 +192,9 @@ def test_server_killed_during_a_vision_pick_no_grasp_on_stale_vision_then_reconn
 
         # A new server on the same port; the client reconnects with backoff (it starts trying
         # before the server listens) and the skill, run again, looks again and picks once.
+        # Its other front-ends (the example's console) on port 0: the defaults may be taken.
         restarted = subprocess.Popen(
-            [sys.executable, "-m", "vision_server", "serve", "--config"]
-            + [str(_example_config(tmp_path)), "--port", str(port)],
+            serve_command(example_cell_into(tmp_path), port=port),
             cwd=REPO_ROOT,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,

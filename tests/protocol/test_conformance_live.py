@@ -8,9 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import re
-import shutil
-import signal
 import socket
 import socketserver
 import subprocess
@@ -21,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from example_servers import example_cell, vision_server_process
 from loopback import server_in_thread
 
 from protocol import FrameDecoder, MessageType, Welcome
@@ -78,38 +76,6 @@ def test_cli_text_report_against_the_reference_server(capsys: pytest.CaptureFixt
     assert lines[-1] == f"1 passed, 0 failed, 0 skipped against 127.0.0.1:{port}"
 
 
-@contextlib.contextmanager
-def vision_server_process(*args: str) -> Iterator[str]:
-    """``vision-server serve --port 0 ARGS`` as a process; yields its ``HOST:PORT``."""
-    serve = subprocess.Popen(
-        [sys.executable, "-m", "vision_server", "serve", "--port", "0", *args],
-        cwd=REPO_ROOT,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert serve.stdout is not None
-        line = serve.stdout.readline()
-        match = re.fullmatch(r"vision-server listening on (\S+):(\d+)\n", line)
-        assert match, line
-        yield f"{match[1]}:{match[2]}"
-    finally:
-        serve.send_signal(signal.SIGTERM)
-        serve.wait(30)
-        if serve.stdout is not None:
-            serve.stdout.close()
-
-
-def example_cell(tmp_path: Path) -> Path:
-    """``examples/cell.yaml`` as shipped, with the scene it names, copied so that the result
-    log and world state it writes beside itself (``../demo-output``) land in ``tmp_path``."""
-    cell = tmp_path / "examples"
-    cell.mkdir()
-    shutil.copy(REPO_ROOT / "examples" / "cell.yaml", cell / "cell.yaml")
-    shutil.copytree(REPO_ROOT / "examples" / "scenes", cell / "scenes")
-    return cell / "cell.yaml"
-
-
 def _suite(address: str, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "protocol.conformance", address, *args],
@@ -125,8 +91,9 @@ def test_cli_json_against_the_vision_server_process(configuration: str, tmp_path
     """The suite passes against the server as shipped: the built-in demo and the example cell
     (whose RGB-D camera declares 640x480, so depth must come in that size)."""
     demo = configuration == "built-in demo"
-    args = () if demo else ("--config", str(example_cell(tmp_path)))
-    with vision_server_process(*args) as address:
+    # The example's console on port 0 too (examples/cell.yaml's 7880 may be taken): the file
+    # is as shipped, the ports are the command line's (example_servers).
+    with vision_server_process(None if demo else example_cell(tmp_path)) as address:
         checked = _suite(address, "--json")
     assert checked.returncode == 0, checked.stdout + checked.stderr
     report = json.loads(checked.stdout)
@@ -159,7 +126,7 @@ def test_cli_json_against_the_vision_server_process(configuration: str, tmp_path
 
 
 def test_minimal_profile_reports_what_it_leaves_out_as_not_applicable(tmp_path: Path) -> None:
-    with vision_server_process("--config", str(example_cell(tmp_path))) as address:
+    with vision_server_process(example_cell(tmp_path)) as address:
         checked = _suite(address, "--json", "--profile", "minimal")
         text = _suite(address, "--profile", "minimal", "-k", "reload")
     assert checked.returncode == 0, checked.stdout + checked.stderr

@@ -267,9 +267,9 @@ def test_check_config_names_what_is_wrong_with_the_file_itself(
     image = tmp_path / "cell.png"
     image.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
     for path in (empty, comments):
-        assert main(["check-config", str(path)]) == 1
+        assert main(["check-config", str(path)]) == 2
         assert "the file is empty" in " ".join(capsys.readouterr().err.split())
-    assert main(["check-config", str(image)]) == 1
+    assert main(["check-config", str(image)]) == 2
     err = " ".join(capsys.readouterr().err.split())
     assert "not a YAML text file" in err
     assert "codec" not in err

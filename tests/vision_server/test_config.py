@@ -443,7 +443,7 @@ def test_check_config_refuses_what_cannot_work(
     assert old in CELL
     path = write(cell_dir, CELL.replace(old, new))
     done = check_config(path)
-    assert done.returncode == 1, done.stdout
+    assert done.returncode == 2, done.stdout
     report = json.loads(done.stdout)
     assert report["valid"] is False
     error = report["error"]  # the one error shape of --json, with line and key path

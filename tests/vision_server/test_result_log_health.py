@@ -358,13 +358,13 @@ def test_check_config_reports_a_result_log_that_cannot_be_created(
     _write_config(tmp_path, path=path)
     before = sorted(p.name for p in tmp_path.rglob("*"))
     done = _vision_server("check-config", "cell.yaml", cwd=tmp_path)
-    assert done.returncode == 1, done
+    assert done.returncode == 2, done
     assert "cell.yaml:2 results -> path" in done.stderr
     assert reason in done.stderr
     assert "Traceback" not in done.stderr
     assert sorted(p.name for p in tmp_path.rglob("*")) == before  # it created nothing
     as_json = _vision_server("check-config", "--json", "cell.yaml", cwd=tmp_path)
-    assert as_json.returncode == 1
+    assert as_json.returncode == 2
     assert '"path": "results -> path"' in as_json.stdout
     assert '"line": 2' in as_json.stdout
 

@@ -206,7 +206,7 @@ def test_check_config_cli(tmp_path: Path) -> None:
     bad_path = tmp_path / "bad.yaml"
     bad_path.write_text("server:\n  port: seven\n")
     bad = vision_server("check-config", str(bad_path))
-    assert bad.returncode == 1
+    assert bad.returncode == 2
     assert "bad.yaml:2 server -> port: expected an integer" in bad.stderr
 
 

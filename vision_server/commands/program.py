@@ -3,6 +3,9 @@ image files, list logged results, check a depth camera against a QR board, print
 register map, and check or reload a running server.
 
     vision-server serve --config cell.yaml          # SIGHUP or "vision-server reload" re-reads it
+                      [--host ADDR] [--port N]      # the binary protocol (server.host, .port)
+                      [--console-port N | --no-console] [--line-port N | --no-line]
+                      [--modbus-port N | --no-modbus]   # the front-ends the file enables
     vision-server check-config cell.yaml
     vision-server run --config cell.yaml cap_locate --image cap.png [--image more.bmp ...]
                       [--json] [--overlay out.png]
@@ -19,7 +22,8 @@ or $CELLVISION_TOKEN_FILE, $CELLVISION_TLS, $CELLVISION_CA, else the server sect
 or $CELLVISION_CONFIG (its port, token and certificate), else 127.0.0.1:7878. Options may come
 before or after the command.
 
-Exit codes (both tools): 0 ok/pass, 1 fail verdict, 2 usage or configuration error,
+Exit codes (both tools): 0 ok/pass, 1 fail verdict, 2 usage or configuration error (an
+invalid file for check-config too),
 3 connection error (or serve cannot listen), 4 error answered by the server (or, offline, by the
 inspection). With --json an error is printed on stdout as {"error": {"kind", "message", "code"}}.
 Output cut short by its reader (| head) ends quietly with 141, as a Unix tool killed by SIGPIPE.
@@ -29,12 +33,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import logging
 import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -76,7 +82,10 @@ from ..app import App
 from ..config import (
     CellConfig,
     ConfigError,
+    ConsoleSettings,
+    LineSettings,
     ListenError,
+    ModbusSettings,
     PortClash,
     ServerSettings,
     check_distinct,
@@ -151,23 +160,26 @@ def _serve(args: argparse.Namespace) -> int:
         catalog = builtin_catalog()
     try:
         settings = _serve_settings(args, base)
+        frontends = _serve_frontends(args, None if runtime is None else runtime.config, config_path)
+        # The command line may move a front-end onto another's port: the file's rule again,
+        # before anything binds.
+        check_distinct(
+            enabled_listeners(
+                settings,
+                console=frontends.console,
+                line=frontends.line,
+                modbus=frontends.modbus,
+            )
+        )
     except UsageError as exc:
         if runtime is not None:
             runtime.close()
         return _fail(args, ErrorKind.USAGE, str(exc))
-    if runtime is not None:
-        try:  # --host and --port may move the binary protocol onto another front-end's port
-            check_distinct(
-                enabled_listeners(
-                    settings,
-                    console=runtime.config.console,
-                    line=runtime.config.line,
-                    modbus=runtime.config.modbus,
-                )
-            )
-        except PortClash as exc:
+    except PortClash as exc:
+        if runtime is not None:
             runtime.close()
-            return _fail(args, ErrorKind.USAGE, f"invalid configuration with --host/--port: {exc}")
+        given = ", ".join(_port_options_given(args)) or "the command line"
+        return _fail(args, ErrorKind.USAGE, f"invalid configuration with {given}: {exc}")
     decoder_limits.ensure(settings.max_image_pixels, argv=args.reexec_argv, process_env=PROCESS_ENV)
 
     def reload() -> Catalog:
@@ -186,10 +198,10 @@ def _serve(args: argparse.Namespace) -> int:
             settings,
             results=None if runtime is None else runtime.results,
             reloader=None if runtime is None else reload,
-            line=None if runtime is None else runtime.config.line,
-            console=None if runtime is None else runtime.config.console,
+            line=frontends.line,
+            console=frontends.console,
             config_path=None if runtime is None else runtime.path,
-            modbus=None if runtime is None else runtime.config.modbus,
+            modbus=frontends.modbus,
         )
         app.service.on_reloaded = announce_reload
         try:
@@ -253,6 +265,72 @@ def _serve_settings(args: argparse.Namespace, base: ServerSettings) -> ServerSet
     return ServerSettings(**{**base.__dict__, **overrides})
 
 
+@dataclass(frozen=True)
+class _Frontends:
+    """The optional front-ends' sections as ``serve`` runs them (None: the built-in demo)."""
+
+    console: ConsoleSettings | None
+    line: LineSettings | None
+    modbus: ModbusSettings | None
+
+
+FRONTEND_OPTIONS = (
+    ("console", "the web console"),
+    ("line", "the line protocol"),
+    ("modbus", "Modbus TCP"),
+)
+"""Each optional front-end: its section (and option) name, and what it is, for messages."""
+
+
+def _serve_frontends(
+    args: argparse.Namespace, config: CellConfig | None, path: str | None
+) -> _Frontends:
+    """The configuration's ``console:``, ``line:`` and ``modbus:`` sections with the command
+    line on top: ``--no-NAME`` switches one off, ``--NAME-port N`` moves one the configuration
+    enables; a port for one it does not enable is an error (raises :class:`UsageError`)."""
+    sections: dict[str, Any] = {}
+    for name, what in FRONTEND_OPTIONS:
+        section = None if config is None else getattr(config, name)
+        port: int | None = getattr(args, f"{name}_port", None)
+        if getattr(args, f"no_{name}", False):
+            section = None if section is None else dataclasses.replace(section, enabled=False)
+        elif port is not None:
+            if section is None:
+                raise UsageError(
+                    f"--{name}-port: the built-in demo (no --config or ${CONFIG_ENV}) serves "
+                    f"the binary protocol only; give a configuration that enables {what} "
+                    f"({name}.enabled: true)"
+                )
+            if not section.enabled:
+                raise UsageError(
+                    f"--{name}-port: {what} is off in {path} ({name}.enabled is not true); "
+                    f"enable it there ({name}: {{enabled: true}}) to give it a port here"
+                )
+            section = dataclasses.replace(section, port=port)
+        sections[name] = section
+    return _Frontends(**sections)
+
+
+def _port_options_given(args: argparse.Namespace) -> list[str]:
+    """The listening options given on the command line, for a port clash's message."""
+    given = [f"--{name}" for name in ("host", "port") if getattr(args, name, None) is not None]
+    for name, _ in FRONTEND_OPTIONS:
+        if getattr(args, f"{name}_port", None) is not None:
+            given.append(f"--{name}-port")
+    return given
+
+
+def _port(text: str) -> int:
+    """A TCP port option: 0..65535, as the file's ``port`` keys (0: any free port)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port in 0..65535, got {text!r}") from None
+    if not 0 <= port < 65536:
+        raise argparse.ArgumentTypeError(f"expected a port in 0..65535, got {port}")
+    return port
+
+
 # ----------------------------------------------------------------------------- check-config
 
 
@@ -288,7 +366,9 @@ def _check_config(args: argparse.Namespace) -> int:
             Console(stderr=True).print(
                 Text("invalid: ", style="red") + Text(str(exc)), soft_wrap=True
             )
-        return 1
+        # A configuration error, as serve, run and modbus-map report one (and as --json's
+        # error kind "usage" says): exit 2, not the fail verdict's 1.
+        return int(ErrorKind.USAGE.exit_code)
     if args.json:
         print(json.dumps(_summary(config)))
         return 0
@@ -697,10 +777,37 @@ def build_parser() -> argparse.ArgumentParser:
         help="serve inspections over TCP",
         description="Without --config or $CELLVISION_CONFIG: a built-in demo inspection. "
         "The token clients must present: --token-file, else $CELLVISION_TOKEN or "
-        "$CELLVISION_TOKEN_FILE, else the configuration's server.auth_token(_file).",
+        "$CELLVISION_TOKEN_FILE, else the configuration's server.auth_token(_file). "
+        "The listening options override the configuration's keys for this run (the file is "
+        "not changed); no two front-ends may share a port (exit 2, both keys named). Each "
+        "front-end's bound port is printed once it listens (useful with 0: any free port).",
     )
-    serve.add_argument("--host", default=None, help="address to listen on (default 127.0.0.1)")
-    serve.add_argument("--port", type=int, default=None, help="TCP port (0: any)")
+    serve.add_argument(
+        "--host", default=None, help="the binary protocol's address (default: server.host)"
+    )
+    serve.add_argument(
+        "--port",
+        type=_port,
+        default=None,
+        metavar="N",
+        help="the binary protocol's TCP port (default: server.port, 7878; 0: any)",
+    )
+    for name, what in FRONTEND_OPTIONS:
+        # The front-end must be enabled in the configuration: a port option does not enable
+        # one (its other keys, e.g. Modbus's unit_id, live in the file).
+        choice = serve.add_mutually_exclusive_group()
+        choice.add_argument(
+            f"--{name}-port",
+            type=_port,
+            default=None,
+            metavar="N",
+            help=f"{what}'s port (default: {name}.port; 0: any); the file must enable it",
+        )
+        choice.add_argument(
+            f"--no-{name}",
+            action="store_true",
+            help=f"do not start {what}, even if the configuration enables it",
+        )
     serve.add_argument(
         "--token-file", metavar="PATH", default=None, help="require the token in this file"
     )
