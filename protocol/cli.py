@@ -51,8 +51,8 @@ class ExitCode(enum.IntEnum):
     OK = 0
     """Done; an inspection, skill, task or check passed."""
     FAILED = 1
-    """The command worked and the verdict is fail (inspection, skill, task, golden case,
-    check-config)."""
+    """The command worked and the verdict is fail (inspection, skill, task, golden case); an
+    invalid configuration is USAGE, for check-config as for every command that reads one."""
     USAGE = 2
     """Bad arguments, environment or configuration: nothing was attempted."""
     CONNECTION = 3
