@@ -56,6 +56,9 @@ const statusPoller = new Poller(async () => {
     pill.dataset.level = level;
     byId("server-name").textContent = info.name ?? "";
     byId("logout").hidden = !info.auth_required;
+    // The session's role (operator, integrator, admin): an operator's page hides what it
+    // may not do (the server refuses it anyway: 403).
+    document.body.dataset.role = info.role ?? "admin";
     setBanner("");
   } catch (exc) {
     if (exc instanceof ApiError && exc.status === 401) return;
