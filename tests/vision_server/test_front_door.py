@@ -8,6 +8,7 @@ talk to it over loopback sockets as a browser, an attacker's page or a flood wou
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import socket
 import time
@@ -64,6 +65,21 @@ def test_failed_sign_ins_wait_longer_per_host_and_are_forgotten() -> None:
     assert door.auth_failed("[2001:db8::1]:5000") == AUTH_DELAY_MIN_S  # another host
     now[0] += AUTH_MEMORY_S + 1
     assert door.auth_failed("192.0.2.7:40011") == AUTH_DELAY_MIN_S
+
+
+def test_many_addresses_of_one_site_guess_as_one_and_a_flood_as_one() -> None:
+    from vision_server.service.door import BUSY_FAILURES
+
+    door = FrontDoor(10)
+    assert door.auth_failed("[2001:db8:0:1::a]:1") == AUTH_DELAY_MIN_S
+    assert door.auth_failed("[2001:db8:0:1::b]:1") == 2 * AUTH_DELAY_MIN_S  # the same /64
+    assert door.auth_failed("[2001:db8:0:2::a]:1") == AUTH_DELAY_MIN_S  # another /64
+    assert door.auth_failed("127.0.0.2:1") == AUTH_DELAY_MIN_S
+    assert door.auth_failed("127.0.9.9:1") == 2 * AUTH_DELAY_MIN_S  # loopback is one host
+    assert door.auth_failed("[::ffff:127.0.0.3]:1") == 4 * AUTH_DELAY_MIN_S
+    delays = [door.auth_failed(f"10.0.{n >> 8}.{n & 255}:1") for n in range(BUSY_FAILURES)]
+    assert delays[0] == AUTH_DELAY_MIN_S  # each a host of its own ...
+    assert delays[-1] == AUTH_DELAY_MAX_S  # ... until failures come too fast from anywhere
 
 
 def test_failing_hosts_are_bounded() -> None:
@@ -123,7 +139,7 @@ CONSOLE_KEYS = "  max_connections: 3\n  request_timeout_s: 1\n  allowed_hosts: [
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningConsole]:
     folder = tmp_path_factory.mktemp("door")
-    config = example_config(folder, extra_server="  max_connections_total: 8\n")
+    config = example_config(folder)
     text = config.read_text(encoding="utf-8")
     config.write_text(text.replace("  max_view_fps: 30\n", "  max_view_fps: 30\n" + CONSOLE_KEYS))
     with running_cell(config) as running:
@@ -232,8 +248,10 @@ def test_console_connections_past_its_limit_are_closed_and_the_robot_is_served(
 def test_the_server_wide_total_refuses_the_robot_politely_when_the_console_holds_it(
     tmp_path: Path,
 ) -> None:
-    config = example_config(tmp_path, extra_server="  max_connections_total: 3\n")
-    with running_cell(config) as cell:
+    """The total is below the front-ends' own limits only when the descriptor limit lowered
+    it (a configuration cannot ask for that); then the robot is refused politely."""
+    with running_cell(example_config(tmp_path)) as cell:
+        cell.app.service.door.total = 3  # as a descriptor limit of 131 would make it
         held = [_open(cell) for _ in range(3)]
         assert _wait_for(lambda: cell.app.service.door.connections == 3)
         with (
@@ -520,10 +538,11 @@ def test_a_stalled_upload_gives_its_bytes_back(cell: RunningConsole) -> None:
 def test_modbus_counts_at_the_front_door(tmp_path: Path) -> None:
     """Modbus connections are counted with the others: when the console holds the server's
     total, a PLC's connection is closed at once and counted as refused."""
-    config = example_config(tmp_path, extra_server="  max_connections_total: 3\n")
+    config = example_config(tmp_path)
     text = config.read_text(encoding="utf-8")
     config.write_text(text + "\nmodbus: {enabled: true, port: 0}\n", encoding="utf-8")
     with running_cell(config) as cell:
+        cell.app.service.door.total = 3  # as a descriptor limit of 131 would make it
         assert cell.app.modbus is not None
         plc = socket.create_connection(("127.0.0.1", cell.app.modbus.port), timeout=5)
         assert _wait_for(lambda: cell.app.service.door.held("Modbus") == 1)
@@ -593,3 +612,61 @@ def test_roles_need_tokens_of_their_own(tmp_path: Path) -> None:
     config = example_config(tmp_path, extra_server=f"  operator_token: {TOKEN}\n")
     with pytest.raises(ConfigError, match="operator_token: each role needs a token of its own"):
         load_config(config)
+
+
+def test_the_total_must_hold_every_enabled_front_ends_own_limit(tmp_path: Path) -> None:
+    """Else a flood of the others could take the places the robot's front-end was promised."""
+    from vision_server.config import ConfigError, load_config
+
+    config = example_config(tmp_path, extra_server="  max_connections_total: 100\n")
+    with pytest.raises(ConfigError, match=r"server -> max_connections_total: 100 is less than"):
+        load_config(config)
+    assert "console.max_connections 64" in str(
+        pytest.raises(ConfigError, load_config, config).value
+    )
+
+
+def test_sign_in_bodies_that_break_parsers_are_refused_not_crashes(cell: RunningConsole) -> None:
+    nested = b"[" * 2000 + b"]" * 2000
+    status, data = _post(cell, "/api/login", {"Content-Type": "application/json"}, nested)
+    assert status == 400, data
+    lone = b'{"token": "\\ud800"}'
+    status, data = _post(cell, "/api/login", {"Content-Type": "application/json"}, lone)
+    assert status == 401, data
+
+
+def test_two_origins_or_a_host_with_a_name_for_a_port_are_refused(cell: RunningConsole) -> None:
+    host, port = _address(cell)
+    own = f"http://{host}:{port}"
+    head = (
+        f"POST /api/logout HTTP/1.1\r\nHost: {host}:{port}\r\nContent-Type: application/json\r\n"
+        f"Origin: {own}\r\nOrigin: http://evil.example\r\nContent-Length: 2\r\n\r\n{{}}"
+    )
+    assert _raw(cell, head.encode())[0] == 403
+    got, _ = _raw(cell, f"GET /api/server HTTP/1.1\r\nHost: {host}:{port}.evil\r\n\r\n".encode())
+    assert got == 421
+
+
+def test_one_roles_sign_ins_do_not_end_anothers_sessions() -> None:
+    from vision_server.frontends.http_auth import MAX_SESSIONS, Sessions
+
+    sessions = Sessions({"admin": "a-token", "operator": "o-token"})
+    admin = sessions.open("admin")
+    for _ in range(MAX_SESSIONS + 10):
+        sessions.open("operator")
+    assert sessions.role(admin) == "admin"
+
+
+def test_a_flood_of_unparsable_http_is_logged_once_not_per_connection(
+    cell: RunningConsole, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level("DEBUG", logger="vision_server.console.http")
+    for _ in range(30):
+        with _open(cell) as sock:
+            sock.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nX: " + b"a" * 20000 + b"\r\n\r\n")
+            sock.settimeout(10)
+            with contextlib.suppress(OSError):
+                assert sock.recv(12).endswith(b" 400")
+    records = [r for r in caplog.records if r.name == "vision_server.console.http"]
+    assert 1 <= len(records) <= 4  # once per 10 s, however many connections
+    assert all(r.exc_info is None for r in records)

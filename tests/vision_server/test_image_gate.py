@@ -79,6 +79,9 @@ def test_lossless_and_extended_webp_are_read_too() -> None:
         (encoded(".tiff", COLOUR.astype(np.float32)), "floating-point"),
         (tiff([(256, 4, 64), (257, 4, 48), (322, 3, 16), (323, 3, 16)]), "tiled TIFF"),
         (tiff([(256, 4, 64), (257, 4, 48), (258, 3, 32)]), "of 32 bits"),
+        # BYTE-typed tags that libtiff reads: a float TIFF must not pass as the defaults
+        (tiff([(256, 4, 64), (257, 4, 48), (258, 1, 32), (339, 1, 3)]), "floating-point"),
+        (tiff([(256, 4, 64), (257, 4, 48), (258, 2, 32)]), "tag 258 the gate cannot read"),
         (tiff([(256, 4, 64), (257, 4, 48), (277, 3, 9), (258, 3, 8)]), "9 samples"),
         (tiff([(256, 4, 64)]), "without its width and length"),
         (tiff([(256, 4, 0), (257, 4, 48)]), "size of 0x48"),

@@ -176,6 +176,7 @@ def parse_config(
     line = _line(root.sub("line"), server)
     modbus = _modbus(root.sub("modbus"))
     _check_ports(root, server, console, line, modbus)
+    _check_connections(root, server, console, line, modbus)
     root.finish()
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
     tuner = Tuner(written, base_dir, cameras)
@@ -390,6 +391,30 @@ def _modbus(node: Node) -> ModbusSettings:
         )
     node.finish()
     return settings
+
+
+def _check_connections(
+    root: Node,
+    server: ServerSettings,
+    console: ConsoleSettings,
+    line: LineSettings,
+    modbus: ModbusSettings,
+) -> None:
+    """The server-wide total holds every enabled front-end's own limit: then a flood of the
+    others never takes the places one front-end (the robot's) was promised."""
+    limits = [("server.max_connections", server.max_connections)]
+    limits += [("console.max_connections", console.max_connections)] if console.enabled else []
+    limits += [("line.max_connections", line.max_connections)] if line.enabled else []
+    limits += [("modbus.max_connections", modbus.max_connections)] if modbus.enabled else []
+    needed = sum(n for _, n in limits)
+    if server.max_connections_total < needed:
+        parts = " + ".join(f"{key} {n}" for key, n in limits)
+        raise root.sub("server").error(
+            f"{server.max_connections_total} is less than the enabled front-ends' own limits "
+            f"together ({parts} = {needed}): a flood of the others could take every place the "
+            "robot's front-end was promised; raise it or lower theirs",
+            "max_connections_total",
+        )
 
 
 def _check_ports(

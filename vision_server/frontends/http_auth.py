@@ -21,7 +21,8 @@ from typing import Literal
 
 COOKIE = "cellvision_session"
 MAX_SESSIONS = 256
-"""Open sessions kept; the oldest is ended beyond (a login flood cannot grow memory)."""
+"""Open sessions kept per role; the role's oldest is ended beyond (a login flood cannot grow
+memory, and the operator's token cannot end the integrator's sessions)."""
 
 Role = Literal["operator", "integrator", "admin"]
 RANK: dict[Role, int] = {"operator": 0, "integrator": 1, "admin": 2}
@@ -44,7 +45,10 @@ class Sessions:
         """The role whose token ``given`` is (every role compared, constant-time each)."""
         if not isinstance(given, str):
             return None
-        encoded = given.encode("utf-8")
+        try:
+            encoded = given.encode("utf-8")
+        except UnicodeEncodeError:  # a lone surrogate ("\ud800") is no role's token
+            return None
         found: Role | None = None
         for role, token in self._tokens.items():
             if hmac.compare_digest(encoded, token):
@@ -55,8 +59,9 @@ class Sessions:
         """A new session of ``role``; returns the cookie's value."""
         session_id = secrets.token_urlsafe(24)
         self._open[session_id] = role
-        while len(self._open) > MAX_SESSIONS:
-            self._open.popitem(last=False)
+        of_role = [sid for sid, r in self._open.items() if r == role]
+        for oldest in of_role[: max(0, len(of_role) - MAX_SESSIONS)]:
+            del self._open[oldest]
         return f"{session_id}.{self._mac(session_id)}"
 
     def role(self, cookie: str | None) -> Role | None:

@@ -61,8 +61,8 @@ def host_allowed(host: str | None, allowed: Iterable[str]) -> bool:
     """Whether a request's Host names this console (see the module)."""
     if not host:
         return False
-    name, _port = split_host(host)
-    if not name:
+    name, port = split_host(host)
+    if not name or (port is not None and not port.isdigit()):
         return False
     try:
         ipaddress.ip_address(name)
@@ -77,7 +77,10 @@ def cross_site_reason(request: web.Request) -> str | None:
     None when it is (or changes nothing)."""
     if request.method in SAFE_METHODS:
         return None
-    origin = request.headers.get("Origin")
+    origins = request.headers.getall("Origin", [])
+    if len(origins) > 1:
+        return "the request has more than one Origin"
+    origin = origins[0] if origins else None
     if origin is not None:
         parts = urlsplit(origin)
         if origin == "null" or not parts.scheme or not parts.netloc:

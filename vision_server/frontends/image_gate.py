@@ -31,7 +31,8 @@ ACCEPTED = "PNG, JPEG, BMP, TIFF (8 or 16 bits, in strips), PNM or WebP"
 _TIFF_WIDTH, _TIFF_LENGTH = 256, 257
 _TIFF_BITS, _TIFF_SAMPLES, _TIFF_SAMPLE_FORMAT = 258, 277, 339
 _TIFF_TILE_WIDTH, _TIFF_TILE_LENGTH = 322, 323
-_TIFF_SHORT, _TIFF_LONG = 3, 4
+_TIFF_BYTE, _TIFF_SHORT, _TIFF_LONG = 1, 3, 4
+_TIFF_CODES = {_TIFF_BYTE: "B", _TIFF_SHORT: "H", _TIFF_LONG: "I"}
 _PNM = re.compile(
     rb"P([1-6])(?:\s+|#[^\n]*\n)+(\d+)(?:\s+|#[^\n]*\n)+(\d+)(?:(?:\s+|#[^\n]*\n)+(\d+))?"
 )
@@ -111,13 +112,13 @@ def _tiff(data: bytes, order: str, name: str) -> Header:
         tags[tag] = (kind, number, value)
     if _TIFF_TILE_WIDTH in tags or _TIFF_TILE_LENGTH in tags:
         raise BadImage(f"{name}: a tiled TIFF; send it in strips ({ACCEPTED})")
-    width = _tiff_values(tags, _TIFF_WIDTH, order, data)
-    length = _tiff_values(tags, _TIFF_LENGTH, order, data)
+    width = _tiff_values(tags, _TIFF_WIDTH, order, data, name)
+    length = _tiff_values(tags, _TIFF_LENGTH, order, data, name)
     if not width or not length:
         raise BadImage(f"{name}: a TIFF without its width and length")
-    samples = (_tiff_values(tags, _TIFF_SAMPLES, order, data) or [1])[0]
-    formats = _tiff_values(tags, _TIFF_SAMPLE_FORMAT, order, data) or [1]
-    bits = max(_tiff_values(tags, _TIFF_BITS, order, data) or [1])
+    samples = (_tiff_values(tags, _TIFF_SAMPLES, order, data, name) or [1])[0]
+    formats = _tiff_values(tags, _TIFF_SAMPLE_FORMAT, order, data, name) or [1]
+    bits = max(_tiff_values(tags, _TIFF_BITS, order, data, name) or [1])
     if any(f != 1 for f in formats):
         raise BadImage(f"{name}: a TIFF of floating-point or signed samples; send 8 or 16 bits")
     if not 1 <= samples <= 4 or bits not in (1, 8, 16):
@@ -126,16 +127,18 @@ def _tiff(data: bytes, order: str, name: str) -> Header:
 
 
 def _tiff_values(
-    tags: dict[int, tuple[int, int, bytes]], tag: int, order: str, data: bytes
+    tags: dict[int, tuple[int, int, bytes]], tag: int, order: str, data: bytes, name: str
 ) -> list[int]:
-    """A SHORT or LONG tag's values (in the entry when they fit in its 4 bytes, else at the
-    offset it holds); [] when the tag is absent or of another type."""
+    """A BYTE, SHORT or LONG tag's values (in the entry when they fit in its 4 bytes, else at
+    the offset it holds); [] when the tag is absent. A tag of another type, or with more
+    values than a pixel has samples, is refused: libtiff may read what the gate cannot, and
+    a default assumed here (1 bit, unsigned) let a float TIFF through."""
     if tag not in tags:
         return []
     kind, number, value = tags[tag]
-    if kind not in (_TIFF_SHORT, _TIFF_LONG) or not 1 <= number <= 16:
-        return []
-    code = "H" if kind == _TIFF_SHORT else "I"
+    if kind not in _TIFF_CODES or not 1 <= number <= 16:
+        raise BadImage(f"{name}: a TIFF whose tag {tag} the gate cannot read (type {kind})")
+    code = _TIFF_CODES[kind]
     if number * struct.calcsize(code) <= 4:
         return list(struct.unpack_from(f"{order}{number}{code}", value))
     offset = struct.unpack_from(f"{order}I", value)[0]

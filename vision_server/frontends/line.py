@@ -186,7 +186,9 @@ class LineFrontend:
             request_timeout_s=self.tcp.handshake_timeout_s,
             idle_timeout_s=self.settings.idle_timeout_s,
             write_timeout_s=self.settings.write_timeout_s,
-            tls_handshake_timeout_s=TLS_HANDSHAKE_TIMEOUT_S,
+            # The TLS handshake is part of signing in: A <token> is due within
+            # handshake_timeout_s of connecting, TLS or not.
+            tls_handshake_timeout_s=min(TLS_HANDSHAKE_TIMEOUT_S, self.tcp.handshake_timeout_s),
         )
         loop = asyncio.get_running_loop()
 
@@ -265,7 +267,8 @@ class LineSession:
         self.clock = clock
         """The front door's clock of this connection (its listener's watchdog reads it)."""
         self.authenticated = frontend.tcp.auth_token is None
-        self.auth_deadline = time.monotonic() + frontend.tcp.handshake_timeout_s
+        connected = clock.started if clock is not None else time.monotonic()
+        self.auth_deadline = connected + frontend.tcp.handshake_timeout_s
         """Until it is authenticated, the connection must send ``A <token>`` by then; no
         line before (blank, wrong or too long) moves it."""
         if clock is not None:

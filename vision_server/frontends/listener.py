@@ -101,6 +101,41 @@ class Clock:
         return None
 
 
+class _OncePerInterval(logging.Filter):
+    """Passes one record per ``interval_s`` (with how many were dropped since), without its
+    traceback: what a client's malformed bytes make a library log must not fill the disk."""
+
+    def __init__(self, interval_s: float) -> None:
+        super().__init__()
+        self.interval_s = interval_s
+        self._last = -interval_s
+        self._dropped = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        now = time.monotonic()
+        if now - self._last < self.interval_s:
+            self._dropped += 1
+            return False
+        if self._dropped:
+            record.msg = f"{record.msg} ({self._dropped} more like it not logged)"
+        error = record.exc_info[1] if record.exc_info else None
+        if error is not None:
+            record.msg = f"{record.msg}: {type(error).__name__}: {error}"
+        record.exc_info = None
+        record.exc_text = None
+        self._last, self._dropped = now, 0
+        return True
+
+
+def quiet_logger(name: str, interval_s: float = REFUSAL_LOG_INTERVAL_S) -> logging.Logger:
+    """A logger for a library's per-connection errors: one line per ``interval_s``, no
+    tracebacks (see :class:`_OncePerInterval`)."""
+    logger = logging.getLogger(name)
+    if not any(isinstance(f, _OncePerInterval) for f in logger.filters):
+        logger.addFilter(_OncePerInterval(interval_s))
+    return logger
+
+
 def unsent_bytes(transport: asyncio.WriteTransport) -> int:
     """Bytes written to ``transport`` that its client has not taken: the transport's own
     buffer and, on Linux, the socket's send queue (``TIOCOUTQ``), which fills once the
@@ -366,4 +401,4 @@ def _peer(address: Any) -> str:
     return str(address)
 
 
-__all__ = ["Clock", "Listener", "Policy", "unsent_bytes"]
+__all__ = ["Clock", "Listener", "Policy", "quiet_logger", "unsent_bytes"]

@@ -10,7 +10,9 @@ before it serves a connection, and gives the pass back when the connection ends:
   authentication.
 - **Failed authentication is slowed down.** After a wrong token the front-end waits
   :meth:`FrontDoor.auth_failed`'s delay before it answers: doubling per failure from the same
-  host (``AUTH_DELAY_MIN_S`` to ``AUTH_DELAY_MAX_S``), forgotten after ``AUTH_MEMORY_S`` without
+  host (an IPv6 /64, all of loopback as one; ``AUTH_DELAY_MIN_S`` to ``AUTH_DELAY_MAX_S``), the
+  longest for every failure while more than ``BUSY_FAILURES`` a minute come from anywhere
+  (many addresses guess as one), forgotten after ``AUTH_MEMORY_S`` without
   one. A right token is never delayed, and does not reset its host's count (a guesser behind
   the same address as a robot gains nothing from the robot's sign-ins). Guessing a token then
   takes years instead of hours; a person who mistyped waits a moment.
@@ -21,9 +23,10 @@ so that every front-end keeps the same rules without implementing them.
 
 from __future__ import annotations
 
+import ipaddress
 import resource
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -37,6 +40,10 @@ AUTH_MEMORY_S = 600.0
 """A host whose last failure is older than this starts again at the shortest delay."""
 MAX_HOSTS_REMEMBERED = 4096
 """Failing hosts kept; the one that failed longest ago is forgotten beyond (bounded memory)."""
+BUSY_FAILURES = 30
+"""More failed sign-ins than this within ``BUSY_WINDOW_S``, from anywhere, and every failure
+waits the longest delay: a guesser with many addresses is slowed down as one."""
+BUSY_WINDOW_S = 60.0
 
 
 def descriptor_limit() -> int:
@@ -81,6 +88,7 @@ class FrontDoor:
         self._open: dict[str, int] = {}
         self._refused: dict[str, int] = {}
         self._failures: OrderedDict[str, tuple[int, float]] = OrderedDict()
+        self._recent: deque[float] = deque(maxlen=BUSY_FAILURES + 1)
 
     # ------------------------------------------------------------------ connections
 
@@ -125,7 +133,7 @@ class FrontDoor:
     def auth_failed(self, peer: str) -> float:
         """Record a wrong token from ``peer`` (an address, with or without its port); returns
         how long, in seconds, the front-end waits before it answers."""
-        host = peer_host(peer)
+        host = failure_key(peer_host(peer))
         now = self._clock()
         count, last = self._failures.pop(host, (0, now))
         if now - last > AUTH_MEMORY_S:
@@ -134,10 +142,29 @@ class FrontDoor:
         self._failures[host] = (count, now)
         while len(self._failures) > MAX_HOSTS_REMEMBERED:
             self._failures.popitem(last=False)
+        self._recent.append(now)
+        if len(self._recent) > BUSY_FAILURES and now - self._recent[0] <= BUSY_WINDOW_S:
+            return AUTH_DELAY_MAX_S
         return float(min(AUTH_DELAY_MIN_S * 2.0 ** min(count - 1, 32), AUTH_DELAY_MAX_S))
 
     def failing_hosts(self) -> int:
         return len(self._failures)
+
+
+def failure_key(host: str) -> str:
+    """Whose failures count together: an IPv6 address's /64 (one site's, however many
+    addresses it uses), every loopback address as one, else the IPv4 address."""
+    try:
+        address = ipaddress.ip_address(host.split("%", 1)[0])
+    except ValueError:
+        return host
+    if address.is_loopback:
+        return "loopback"
+    if isinstance(address, ipaddress.IPv6Address):
+        if address.ipv4_mapped is not None:
+            return failure_key(str(address.ipv4_mapped))
+        return str(ipaddress.IPv6Network((address, 64), strict=False))
+    return str(address)
 
 
 def peer_host(peer: str) -> str:
@@ -158,5 +185,6 @@ __all__ = [
     "Pass",
     "Refusal",
     "descriptor_limit",
+    "failure_key",
     "peer_host",
 ]
