@@ -279,7 +279,9 @@ def _throughput(section: Section, cells: list[Window]) -> None:
         for page in PAGES:
             here = [c for c in mine if c.page == page]
             rps = _total_rps(here)
-            per_round = [a.answers / b.answers for a, b in zip(here, closed, strict=True)]
+            # A window with no answer at all (a machine others load) has no ratio: "n/a".
+            pairs = zip(here, closed, strict=True)
+            per_round = [a.answers / b.answers for a, b in pairs if b.answers]
             stats = Stats.of(x for c in here for x in c.latencies)
             cpu_ms = _cpu_ms_per_answer(here)
             spread = (
