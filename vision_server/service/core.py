@@ -42,6 +42,7 @@ from protocol import (
     DeadlineExceeded,
     ImageTooLarge,
     InvalidArgument,
+    too_large_details,
 )
 
 from ..cameras import Camera, CameraFrame
@@ -91,6 +92,9 @@ class ImageNeeds:
     """Whether depth frames are taken at all."""
     max_pixels: int
     """The largest image (width x height) the service accepts."""
+    size: tuple[int, int] | None = None
+    """The image size (width, height) in pixels the inspection's camera declares intrinsics
+    for; None when it declares none (any size is inspected)."""
 
 
 ImageLoader = Callable[[ImageNeeds], Images]
@@ -481,9 +485,46 @@ class InspectionService:
         self, request: InspectRequest, catalog: Catalog, admission: Admission
     ) -> InspectReply:
         inspection = catalog.inspection(request.inspection)
-        inspection = catalog.tuned(inspection, request.options)
         camera = catalog.camera(inspection.camera)
-        needs = ImageNeeds(inspection.name, inspection.uses_depth, self.settings.max_image_pixels)
+        # From here on the request has an inspection and a camera to log an error row under
+        # (SPEC §6.3): an unknown inspection or camera has none.
+        rows = _RowOnce()
+        try:
+            return await self._inspect_known(request, catalog, admission, rows)
+        except Busy:
+            raise  # refused before it ran, not a run to log (and no disk load under overload)
+        except CellvisionError as exc:
+            if rows.claim():  # the run did not log itself (it failed before, or was given up)
+                entry = ResultEntry(
+                    time=time.time(),
+                    inspection=inspection.name,
+                    camera=camera.name,
+                    passed=False,
+                    data={},
+                    duration_ms=0.0,
+                    config_hash=catalog.config_hash,
+                    request_id=request.request_id,
+                    peer=request.peer,
+                    options=request.options,
+                )
+                error = f"{exc.code.name}: {exc.message}"
+                t0 = time.perf_counter() - (time.monotonic() - request.arrived)
+                # The log writes to disk or a database: not on the event loop.
+                await asyncio.to_thread(self._record, entry, t0, error=error)
+            raise
+
+    async def _inspect_known(
+        self, request: InspectRequest, catalog: Catalog, admission: Admission, rows: _RowOnce
+    ) -> InspectReply:
+        inspection = catalog.tuned(catalog.inspection(request.inspection), request.options)
+        camera = catalog.camera(inspection.camera)
+        declared = camera.intrinsics
+        needs = ImageNeeds(
+            inspection.name,
+            inspection.uses_depth,
+            self.settings.max_image_pixels,
+            None if declared is None else (declared.width, declared.height),
+        )
         images = request.images
         sources: list[str] = []  # the files a folder camera read: which images this is about
         acquire: Callable[[], InspectionInput]
@@ -551,15 +592,21 @@ class InspectionService:
                 else:
                     outcome = inspection.run(image, overlay=draw)
             except CellvisionError as exc:
-                self._record(entry, t0, error=f"{exc.code.name}: {exc.message}")
+                if rows.claim():
+                    self._record(entry, t0, error=f"{exc.code.name}: {exc.message}")
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
             if sources:
                 outcome = replace(outcome, data={**outcome.data, "source_files": sources})
-            stored = self._record(
-                replace(entry, passed=outcome.passed, data=outcome.data, overlay=outcome.overlay),
-                t0,
-            )
+            stored: bool | None = None
+            # A run its request gave up on (DEADLINE_EXCEEDED) already has its error row.
+            if rows.claim():
+                stored = self._record(
+                    replace(
+                        entry, passed=outcome.passed, data=outcome.data, overlay=outcome.overlay
+                    ),
+                    t0,
+                )
             overlay = None
             if request.overlay is not None and outcome.overlay is not None:
                 # Encoding is CPU work too: here, not on the event loop of every connection.
@@ -750,6 +797,24 @@ class InspectionService:
 # ----------------------------------------------------------------------------- helpers
 
 
+class _RowOnce:
+    """Who writes a request's row in the result log: the run (its verdict, or its error) or
+    the request's error path, whichever claims it first (a request given up at its deadline
+    while its run goes on gets one row, not two). Claimed from threads and the event loop."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._claimed = False
+
+    def claim(self) -> bool:
+        """True the first time only."""
+        with self._lock:
+            if self._claimed:
+                return False
+            self._claimed = True
+            return True
+
+
 def capture_key(camera: str) -> str:
     """The cost model's key for CAPTURE on ``camera`` (inspections use their names)."""
     return f"capture:{camera}"
@@ -769,7 +834,20 @@ def check_images(images: Images, needs: ImageNeeds) -> None:
         raise ImageTooLarge(
             f"the colour image has {width}x{height} = {width * height} pixels, the limit is "
             f"{needs.max_pixels}",
-            details={"pixels": width * height, "max_pixels": needs.max_pixels},
+            details=too_large_details(width, height, needs.max_pixels),
+        )
+    if needs.size is not None and (width, height) != needs.size:
+        # The camera's intrinsics are for its own image size: millimetres, poses and the base
+        # frame computed from an image of another size would be silently wrong.
+        raise BadImage(
+            f"the colour image is {width}x{height}, the camera's intrinsics are for "
+            f"{needs.size[0]}x{needs.size[1]}: send an image of the camera's size",
+            details={
+                "width": width,
+                "height": height,
+                "expected_width": needs.size[0],
+                "expected_height": needs.size[1],
+            },
         )
     if images.depth and not needs.depth:
         raise BadImage(
