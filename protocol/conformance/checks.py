@@ -9,6 +9,7 @@ inspections, their cameras and the image size a camera declares.
 
 from __future__ import annotations
 
+import json
 import os
 import struct
 import time
@@ -1158,6 +1159,29 @@ def _integral_number(ctx: Context) -> None:
         blob = np.full((height, width), 128, np.uint8).tobytes()
         peer.send_frame(_frame(T.INSPECT, 58, meta, (blob,), version=V1_1))
         _result_or_errors(peer, 58, set())
+
+
+@check(
+    "numbers_in_unknown_fields",
+    "§3.2",
+    "an unknown field holding 1e300 is ignored (RESULT); one holding the integer 2^53 + 1 is "
+    "BAD_METADATA (I-JSON), non-fatal",
+)
+def _numbers_in_unknown_fields(ctx: Context) -> None:
+    item = ctx.request_inspection(depth=False)
+    width, height = ctx.image_size(item)
+    blob = np.full((height, width), 128, np.uint8).tobytes()
+    image = f'{{"blob":0,"encoding":"gray8","width":{width},"height":{height}}}'
+    name = json.dumps(item["name"])
+    # Written by hand: this library's own encoder would refuse the second one.
+    double = f'{{"inspection":{name},"images":[{image}],"x_later":1e300}}'.encode()
+    too_big = f'{{"inspection":{name},"images":[{image}],"x_later":9007199254740993}}'.encode()
+    with ctx.open() as peer:
+        peer.send_raw(_raw_frame(T.INSPECT, 59, double, (blob,)))
+        _result_or_errors(peer, 59, set())
+        peer.send_raw(_raw_frame(T.INSPECT, 60, too_big, (blob,)))
+        peer.expect_error(E.BAD_METADATA, request_id=60, fatal=False)
+        _still_alive(peer)
 
 
 @check("missing_field", "§6.3", "INSPECT without its inspection name: BAD_METADATA")

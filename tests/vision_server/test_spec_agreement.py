@@ -6,6 +6,7 @@ send, the conformance suite's blocking peer for frames a well-behaved client nev
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,7 @@ from protocol import (
     Hello,
     ImageEncoding,
     Inspect,
+    InternalError,
     InvalidArgument,
     MessageType,
     Ping,
@@ -28,10 +30,11 @@ from protocol import (
 )
 from protocol.conformance.peer import Peer, Target
 from protocol.frames import Frame
-from vision_server import Catalog
+from vision_server import Catalog, InspectionInput, InspectionOutcome
 from vision_server.cameras import Intrinsics, RequestCamera, RequestCameraSettings
 from vision_server.results import ResultLog
 from vision_server.server import VisionServer
+from vision_server.service import CellRuntime
 from vision_server.service.builtin import MeanIntensityPresence
 
 SIZE = (64, 48)
@@ -201,3 +204,72 @@ def test_a_hello_limit_below_the_welcome_is_a_non_fatal_invalid_argument() -> No
         peer.expect(MessageType.WELCOME, request_id=2)
         peer.send(Ping(3), (1, 1))
         peer.expect(MessageType.PONG, request_id=3)
+
+
+# ----------------------------------------------------------------------------- §4.1 depth
+
+QR_POSE_CELL = """\
+cameras:
+  tool:
+    source: request
+    depth: true
+    intrinsics: {width: 64, height: 48, fx: 60, fy: 60, cx: 32, cy: 24}
+inspections:
+  - {name: pose, type: qr_pose, camera: tool, side_m: 0.04}
+  - {name: bright, type: presence, camera: tool, measure: mean_intensity, min: 0}
+"""
+
+
+def test_depth_rules_of_the_role_table(tmp_path: Path) -> None:
+    """SPEC §4.1: an inspection that needs depth and gets none is BAD_IMAGE (qr_pose with a
+    configured code size too); a depth image for an inspection without depth is BAD_IMAGE."""
+    config = tmp_path / "cell.yaml"
+    config.write_text(QR_POSE_CELL)
+    runtime = CellRuntime(config)
+    depth = np.full((SIZE[1], SIZE[0]), 500, np.uint16)
+
+    async def session(server: VisionServer) -> None:
+        async with client_for(server) as client:
+            with pytest.raises(BadImage, match="depth"):
+                await client.inspect("pose", _image())
+            with pytest.raises(BadImage, match="takes no depth"):
+                await client.inspect("bright", _image(), depth=[depth])
+            assert (await client.inspect("bright", _image())).passed
+
+    try:
+        with server_in_thread(runtime.catalog) as server:
+            run(session(server))
+    finally:
+        runtime.close()
+
+
+# ----------------------------------------------------------------------------- §6.3 a bug
+
+
+@dataclass(frozen=True)
+class Crashes:
+    """An inspection with a bug: its request is INTERNAL_ERROR, and still a row in the log."""
+
+    name: str = "crashes"
+    camera: str = "tool"
+    type: str = "presence"
+    uses_depth: bool = False
+    frames: int = 1
+
+    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
+        raise ZeroDivisionError("a bug")
+
+
+def test_a_request_that_hits_a_bug_is_an_internal_error_row(tmp_path: Path) -> None:
+    log = ResultLog(tmp_path / "results.sqlite3")
+    catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [Crashes()])
+
+    async def session(server: VisionServer) -> None:
+        async with client_for(server) as client:
+            with pytest.raises(InternalError):
+                await client.inspect("crashes", _image())
+
+    with server_in_thread(catalog, results=log) as server:
+        run(session(server))
+    assert [(r.error or "").split(":")[0] for r in log.query()] == ["INTERNAL_ERROR"]
+    log.close()

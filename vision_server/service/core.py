@@ -42,6 +42,7 @@ from protocol import (
     DeadlineExceeded,
     ImageTooLarge,
     InvalidArgument,
+    ShuttingDown,
     too_large_details,
 )
 
@@ -484,34 +485,45 @@ class InspectionService:
     async def _inspect(
         self, request: InspectRequest, catalog: Catalog, admission: Admission
     ) -> InspectReply:
-        inspection = catalog.inspection(request.inspection)
-        camera = catalog.camera(inspection.camera)
+        catalog.camera(catalog.inspection(request.inspection).camera)
         # From here on the request has an inspection and a camera to log an error row under
         # (SPEC §6.3): an unknown inspection or camera has none.
         rows = _RowOnce()
         try:
             return await self._inspect_known(request, catalog, admission, rows)
-        except Busy:
+        except (Busy, ShuttingDown):
             raise  # refused before it ran, not a run to log (and no disk load under overload)
         except CellvisionError as exc:
-            if rows.claim():  # the run did not log itself (it failed before, or was given up)
-                entry = ResultEntry(
-                    time=time.time(),
-                    inspection=inspection.name,
-                    camera=camera.name,
-                    passed=False,
-                    data={},
-                    duration_ms=0.0,
-                    config_hash=catalog.config_hash,
-                    request_id=request.request_id,
-                    peer=request.peer,
-                    options=request.options,
-                )
-                error = f"{exc.code.name}: {exc.message}"
-                t0 = time.perf_counter() - (time.monotonic() - request.arrived)
-                # The log writes to disk or a database: not on the event loop.
-                await asyncio.to_thread(self._record, entry, t0, error=error)
+            await self._error_row(request, catalog, rows, f"{exc.code.name}: {exc.message}")
             raise
+        except Exception as exc:  # a bug: the front-end answers INTERNAL_ERROR, logged as such
+            await self._error_row(request, catalog, rows, f"INTERNAL_ERROR: {exc!r}")
+            raise
+
+    async def _error_row(
+        self, request: InspectRequest, catalog: Catalog, rows: _RowOnce, error: str
+    ) -> None:
+        """Log a request that ends in ``error`` unless its run already wrote its row."""
+        if not rows.claim():
+            return
+        inspection = catalog.inspection(request.inspection)
+        entry = ResultEntry(
+            time=time.time(),
+            inspection=inspection.name,
+            camera=inspection.camera,
+            passed=False,
+            data={},
+            duration_ms=0.0,
+            config_hash=catalog.config_hash,
+            request_id=request.request_id,
+            peer=request.peer,
+            options=request.options,
+        )
+        # Its duration is from the request's arrival (perf_counter and monotonic both tick
+        # in seconds; only their difference is used).
+        t0 = time.perf_counter() - (time.monotonic() - request.arrived)
+        # The log writes to disk or a database: not on the event loop.
+        await asyncio.to_thread(self._record, entry, t0, error=error)
 
     async def _inspect_known(
         self, request: InspectRequest, catalog: Catalog, admission: Admission, rows: _RowOnce
@@ -836,19 +848,7 @@ def check_images(images: Images, needs: ImageNeeds) -> None:
             f"{needs.max_pixels}",
             details=too_large_details(width, height, needs.max_pixels),
         )
-    if needs.size is not None and (width, height) != needs.size:
-        # The camera's intrinsics are for its own image size: millimetres, poses and the base
-        # frame computed from an image of another size would be silently wrong.
-        raise BadImage(
-            f"the colour image is {width}x{height}, the camera's intrinsics are for "
-            f"{needs.size[0]}x{needs.size[1]}: send an image of the camera's size",
-            details={
-                "width": width,
-                "height": height,
-                "expected_width": needs.size[0],
-                "expected_height": needs.size[1],
-            },
-        )
+    check_image_size(width, height, needs)
     if images.depth and not needs.depth:
         raise BadImage(
             f"inspection {needs.inspection!r} takes no depth image, the request has "
@@ -865,6 +865,26 @@ def check_images(images: Images, needs: ImageNeeds) -> None:
                 f"depth image {index} is {frame.shape[1]}x{frame.shape[0]}, the colour image "
                 f"is {width}x{height}: they must be registered"
             )
+
+
+def check_image_size(width: int, height: int, needs: ImageNeeds) -> None:
+    """BAD_IMAGE, naming both sizes, when a colour image of ``width`` x ``height`` pixels is not
+    the size its camera's intrinsics are for (SPEC §4.1); a loader may call it with a file
+    header's size, before it decodes anything."""
+    if needs.size is None or (width, height) == needs.size:
+        return
+    # The camera's intrinsics are for its own image size: millimetres, poses and the base
+    # frame computed from an image of another size would be silently wrong.
+    raise BadImage(
+        f"the colour image is {width}x{height}, the camera's intrinsics are for "
+        f"{needs.size[0]}x{needs.size[1]}: send an image of the camera's size",
+        details={
+            "width": width,
+            "height": height,
+            "expected_width": needs.size[0],
+            "expected_height": needs.size[1],
+        },
+    )
 
 
 def encode_image(image: Image, suffix: str) -> bytes:
@@ -913,6 +933,7 @@ __all__ = [
     "InspectionService",
     "Overlay",
     "ReloadRecord",
+    "check_image_size",
     "check_images",
     "deadline_after",
     "encode_image",
