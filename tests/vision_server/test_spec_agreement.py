@@ -273,3 +273,21 @@ def test_a_request_that_hits_a_bug_is_an_internal_error_row(tmp_path: Path) -> N
         run(session(server))
     assert [(r.error or "").split(":")[0] for r in log.query()] == ["INTERNAL_ERROR"]
     log.close()
+
+
+# ----------------------------------------------------------------------------- §8.2 fields
+
+
+def test_a_1_0_connection_gets_stored_and_the_1_1_limits_too(tmp_path: Path) -> None:
+    """SPEC §8.2: fields 1.1 added MAY go to a 1.0 client (it ignores what it does not know);
+    §6.3's MUST for ``stored`` holds on every connection."""
+    log = ResultLog(tmp_path / "results.sqlite3")
+    with server_in_thread(_catalog(), results=log) as server, _peer(server) as peer:
+        peer.send(Hello(1, ((1, 0),), "old"))
+        welcome = peer.expect(MessageType.WELCOME, request_id=1)
+        assert welcome.metadata["version"] == [1, 0]
+        assert "max_connections" in welcome.metadata["limits"]
+        peer.send(Inspect(2, "bright", (payload_from_array(_image()),)))
+        result = peer.expect(MessageType.RESULT, request_id=2)
+        assert result.metadata["stored"] is True
+    log.close()
