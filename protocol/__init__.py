@@ -73,7 +73,7 @@ from .errors import (
     error_from_code,
 )
 from .frames import AdmitLater, Frame, FrameDecoder, Limits
-from .images import ImagePayload, array_from_payload, payload_from_array
+from .images import ImagePayload, array_from_payload, payload_from_array, too_large_details
 from .messages import (
     MESSAGE_CLASSES,
     OPERATOR_CHOICES,
@@ -97,6 +97,7 @@ from .messages import (
 )
 
 __all__ = [
+    "too_large_details",
     "DEFAULT_PORT",
     "ERROR_CLASSES",
     "ERROR_TABLE",

@@ -14,7 +14,7 @@ import numpy.typing as npt
 
 from .constants import ImageEncoding, ImageRole
 from .errors import BadImage, ImageTooLarge
-from .frames import Blob, as_integer, blob_view
+from .frames import MAX_SAFE_INTEGER, Blob, as_integer, blob_view
 from .image_headers import ImageHeader, jpeg_header, png_header
 
 
@@ -80,6 +80,18 @@ def _int_field(desc: dict[str, Any], key: str, where: str, request_id: int) -> i
     return number
 
 
+def too_large_details(width: int, height: int, max_pixels: int) -> dict[str, int]:
+    """The ``details`` of IMAGE_TOO_LARGE (SPEC §4.3): the image's ``width`` and ``height`` in
+    pixels and ``pixels`` = width x height, clamped to 2**53 - 1 so that it stays I-JSON (two
+    u32 sides multiply to far more; their exact product is width x height)."""
+    return {
+        "pixels": min(width * height, MAX_SAFE_INTEGER),
+        "width": min(width, MAX_SAFE_INTEGER),
+        "height": min(height, MAX_SAFE_INTEGER),
+        "max_pixels": max_pixels,
+    }
+
+
 def payload_from_descriptor(
     desc: Any,
     blobs: tuple[Blob, ...],
@@ -120,7 +132,7 @@ def payload_from_descriptor(
         raise ImageTooLarge(
             f"{where} has {width}x{height} = {width * height} pixels, the limit is {max_pixels}",
             request_id=request_id,
-            details={"pixels": width * height, "max_pixels": max_pixels},
+            details=too_large_details(width, height, max_pixels),
         )
     try:
         return ImagePayload(encoding, width, height, blobs[index], role)
@@ -200,7 +212,7 @@ def compressed_header(
             f"{payload.encoding} image of {header.width}x{header.height} = {header.pixels} "
             f"pixels exceeds the limit of {max_pixels}",
             request_id=request_id,
-            details={"pixels": header.pixels, "max_pixels": max_pixels},
+            details=too_large_details(header.width, header.height, max_pixels),
         )
     return header
 

@@ -9,6 +9,7 @@ inspections, their cameras and the image size a camera declares.
 
 from __future__ import annotations
 
+import json
 import os
 import struct
 import time
@@ -224,8 +225,8 @@ def _hello(
 
 
 def _open_1_1(ctx: Context, *, max_frame_bytes: int | None = None) -> tuple[Peer, Frame]:
-    """A connection that agreed on 1.1, and its WELCOME (a server SHOULD NOT announce to a
-    1.0 client what 1.1 added, SPEC §8, so 1.1's rules are checked on a 1.1 connection)."""
+    """A connection that agreed on 1.1, and its WELCOME (a server MAY leave out of a 1.0
+    connection what 1.1 added, SPEC §8.2, so 1.1's rules are checked on a 1.1 connection)."""
     peer = ctx.peer()
     try:
         welcome = _hello(peer, ctx, max_frame_bytes=max_frame_bytes)
@@ -399,6 +400,22 @@ def _hello_twice(ctx: Context) -> None:
         peer.send(Hello(8, ((1, 0),), "again", ctx.target.auth_token))
         peer.expect_error(E.UNEXPECTED_MESSAGE, request_id=8, fatal=False)
         _still_alive(peer)
+
+
+@check(
+    "hello_limit_below_welcome",
+    "§3.4",
+    "a 1.1 HELLO with max_frame_bytes 24, less than any WELCOME: a non-fatal INVALID_ARGUMENT "
+    "(an ERROR is sent whatever its size), then a new HELLO without it gets WELCOME",
+)
+def _hello_limit_below_welcome(ctx: Context) -> None:
+    with ctx.peer() as peer:
+        hello = Hello(34, (V1_1,), "cellvision-conformance", ctx.target.auth_token, 24)
+        peer.send(hello, version=V1_1)
+        peer.expect_error(E.INVALID_ARGUMENT, request_id=34, fatal=False)
+        _agreed(_hello(peer, ctx, request_id=35), V1_1)
+        peer.send(Ping(36, "after"), version=V1_1)
+        peer.expect(T.PONG, request_id=36)
 
 
 @check(
@@ -977,6 +994,44 @@ def _png_bomb(ctx: Context) -> None:
         _still_alive(peer)
 
 
+@check(
+    "image_too_large_u32_sides",
+    "§4.3",
+    "a raw image of (2^32 - 1) x (2^32 - 1) pixels: IMAGE_TOO_LARGE whose details stay I-JSON "
+    "(pixels at most 2^53 - 1), non-fatal",
+)
+def _u32_sides(ctx: Context) -> None:
+    name = ctx.request_inspection()["name"]
+    side = 2**32 - 1
+    meta = {
+        "inspection": name,
+        "images": [{"blob": 0, "encoding": "gray8", "width": side, "height": side}],
+    }
+    with ctx.open() as peer:
+        # The peer's decoder refuses integers beyond 2^53 - 1: an ERROR with the exact
+        # product fails this check as a frame that is not valid protocol 1.
+        peer.send_frame(_frame(T.INSPECT, 32, meta, (b"",)))
+        peer.expect_error(E.IMAGE_TOO_LARGE, request_id=32, fatal=False)
+        _still_alive(peer)
+
+
+@check(
+    "jpeg_ends_before_its_scan",
+    "§4.3",
+    "a JPEG whose SOF announces 65000 x 65000 and that ends before its scan: BAD_IMAGE (its size "
+    "is never established), non-fatal",
+)
+def _jpeg_without_scan(ctx: Context) -> None:
+    name = ctx.request_inspection()["name"]
+    # SOI, then a baseline SOF0 of one 8-bit component, 65000 x 65000, and nothing more.
+    sof = b"\xff\xc0\x00\x0b\x08" + (65000).to_bytes(2, "big") * 2 + b"\x01\x01\x11\x00"
+    meta = {"inspection": name, "images": [{"blob": 0, "encoding": "jpeg"}]}
+    with ctx.open() as peer:
+        peer.send_frame(_frame(T.INSPECT, 33, meta, (b"\xff\xd8" + sof,)))
+        peer.expect_error(E.BAD_IMAGE, request_id=33, fatal=False)
+        _still_alive(peer)
+
+
 @check("unknown_inspection", "§7", "INSPECT of an unknown name: UNKNOWN_INSPECTION, non-fatal")
 def _unknown_inspection(ctx: Context) -> None:
     with ctx.open() as peer:
@@ -1104,6 +1159,29 @@ def _integral_number(ctx: Context) -> None:
         blob = np.full((height, width), 128, np.uint8).tobytes()
         peer.send_frame(_frame(T.INSPECT, 58, meta, (blob,), version=V1_1))
         _result_or_errors(peer, 58, set())
+
+
+@check(
+    "numbers_in_unknown_fields",
+    "§3.2",
+    "an unknown field holding 1e300 is ignored (RESULT); one holding the integer 2^53 + 1 is "
+    "BAD_METADATA (I-JSON), non-fatal",
+)
+def _numbers_in_unknown_fields(ctx: Context) -> None:
+    item = ctx.request_inspection(depth=False)
+    width, height = ctx.image_size(item)
+    blob = np.full((height, width), 128, np.uint8).tobytes()
+    image = f'{{"blob":0,"encoding":"gray8","width":{width},"height":{height}}}'
+    name = json.dumps(item["name"])
+    # Written by hand: this library's own encoder would refuse the second one.
+    double = f'{{"inspection":{name},"images":[{image}],"x_later":1e300}}'.encode()
+    too_big = f'{{"inspection":{name},"images":[{image}],"x_later":9007199254740993}}'.encode()
+    with ctx.open() as peer:
+        peer.send_raw(_raw_frame(T.INSPECT, 59, double, (blob,)))
+        _result_or_errors(peer, 59, set())
+        peer.send_raw(_raw_frame(T.INSPECT, 60, too_big, (blob,)))
+        peer.expect_error(E.BAD_METADATA, request_id=60, fatal=False)
+        _still_alive(peer)
 
 
 @check("missing_field", "§6.3", "INSPECT without its inspection name: BAD_METADATA")
@@ -1411,7 +1489,11 @@ def _two_colour_images(ctx: Context) -> str:
     "closes",
 )
 def _connection_limit_busy_is_fatal(ctx: Context) -> str:
-    limit = ctx.limits.get("max_connections")
+    # max_connections is a 1.1 limit: a server need not announce it on a 1.0 connection (§8.2).
+    peer_1_1, welcome = _open_1_1(ctx)
+    peer_1_1.close()
+    limits = welcome.metadata.get("limits")
+    limit = limits.get("max_connections") if isinstance(limits, dict) else None
     if not isinstance(limit, int) or limit < 1:
         raise Skip("the server does not announce max_connections")
     if limit > 256:
@@ -1433,6 +1515,12 @@ def _connection_limit_busy_is_fatal(ctx: Context) -> str:
                 raise CheckFailed(f"expected WELCOME or BUSY, got {_message(answer)}")
             if answer.metadata.get("fatal") is not True:
                 raise CheckFailed("the BUSY that refuses a connection must be fatal (§5.4)")
+            if answer.request_id not in (0, 1):
+                raise CheckFailed(
+                    f"the BUSY that refuses a connection carries request id {answer.request_id}: "
+                    "the HELLO's (1), or 0 before one arrived (§5.4)"
+                )
+            _check_retry_after(answer)
             peer.expect_closed()
             return f"connection {len(held)} refused: {_message(answer)}"
         raise CheckFailed(f"{limit + 1} connections were all served; max_connections is {limit}")
@@ -1440,6 +1528,15 @@ def _connection_limit_busy_is_fatal(ctx: Context) -> str:
         for peer in held:
             peer.close()
         _wait_for_a_free_slot(ctx)
+
+
+def _check_retry_after(busy: Frame) -> None:
+    """A BUSY's ``details.retry_after_ms``, when present, is an integer >= 1 (§6.1; a SHOULD,
+    so its absence is no failure)."""
+    details = busy.metadata.get("details")
+    hint = details.get("retry_after_ms") if isinstance(details, dict) else None
+    if hint is not None and not _positive_int(hint):
+        raise CheckFailed(f"BUSY details.retry_after_ms is {hint!r}, not an integer >= 1 (§6.1)")
 
 
 def _wait_for_a_free_slot(ctx: Context, timeout_s: float = 15.0) -> None:

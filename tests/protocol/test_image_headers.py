@@ -105,7 +105,12 @@ def _bomb_png(*before_idat: bytes) -> bytes:
 def test_png_bomb_is_too_large_before_decoding() -> None:
     with pytest.raises(ImageTooLarge) as info:
         _decode("png", _bomb_png(png_chunk(b"tEXt", b"k\x00v")))
-    assert info.value.details == {"pixels": 10**10, "max_pixels": LIMIT}
+    assert info.value.details == {
+        "pixels": 10**10,
+        "width": 100_000,
+        "height": 100_000,
+        "max_pixels": LIMIT,
+    }
 
 
 PNG_SIG = b"\x89PNG\r\n\x1a\n"
@@ -210,7 +215,12 @@ def test_jpeg_bomb_behind_garbage_is_too_large(junk: bytes) -> None:
     assert len(data) < 500
     with pytest.raises(ImageTooLarge) as info:
         _decode("jpeg", data)
-    assert info.value.details == {"pixels": 65000 * 65000, "max_pixels": LIMIT}
+    assert info.value.details == {
+        "pixels": 65000 * 65000,
+        "width": 65000,
+        "height": 65000,
+        "max_pixels": LIMIT,
+    }
 
 
 def test_the_issues_bomb_is_too_large() -> None:
@@ -396,3 +406,14 @@ def test_parser_and_opencv_agree_on_the_size_of_mutated_files() -> None:
     report = json.loads(run.stdout.splitlines()[-1])
     assert report["accepted"] > 200  # the mutations left many files readable
     assert report["disagreements"] == []
+
+
+def test_a_jpeg_that_announces_a_huge_image_and_ends_before_its_scan_is_bad_image() -> None:
+    """SPEC §4.3: the size counts only once the file is shown to reach its scan; a file that
+    ends before it is BAD_IMAGE whatever its SOF announces (it could never be decoded)."""
+    whole = with_sof(real_jpeg(), width=65000, height=65000)
+    cut = whole[: whole.index(b"\xff\xda")]  # everything before the scan (SOS)
+    with pytest.raises(BadImage, match="ends before"):
+        _decode("jpeg", cut)
+    with pytest.raises(ImageTooLarge):  # the same header with its scan: too large
+        _decode("jpeg", whole)

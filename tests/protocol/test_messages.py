@@ -388,12 +388,26 @@ def test_image_too_large() -> None:
     with pytest.raises(ImageTooLarge) as info:
         decode(_image_frame(desc, bytes(200)), DecodeContext(max_image_pixels=199))
     assert not info.value.fatal
-    assert info.value.details == {"pixels": 200, "max_pixels": 199}
+    assert info.value.details == {"pixels": 200, "width": 20, "height": 10, "max_pixels": 199}
     assert isinstance(decode(_image_frame(desc, bytes(200)), DecodeContext(200)), Inspect)
     # The pixel count is checked before the blob length: no huge allocation is ever trusted.
     huge = {"blob": 0, "encoding": "bgr8", "width": 10**6, "height": 10**6}
     with pytest.raises(ImageTooLarge):
         decode(_image_frame(huge, b""))
+
+
+def test_image_too_large_details_stay_i_json() -> None:
+    """SPEC §4.3: two u32 sides multiply beyond 2**53 - 1, which I-JSON cannot carry; the
+    pixel count is clamped and the sides are sent as they are, so the ERROR stays valid."""
+    side = 2**32 - 1
+    huge = {"blob": 0, "encoding": "gray8", "width": side, "height": side}
+    with pytest.raises(ImageTooLarge) as info:
+        decode(_image_frame(huge, b""))
+    details = info.value.details
+    assert details == {"pixels": 2**53 - 1, "width": side, "height": side, "max_pixels": 1 << 24}
+    # The ERROR that carries it is a frame our own client accepts (I-JSON, SPEC §3.2).
+    error = Error.from_exception(info.value, request_id=3).to_frame((1, 1)).serialize()
+    assert decode(error).details == details
 
 
 def test_depth16_is_little_endian_millimetres() -> None:

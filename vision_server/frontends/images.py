@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from protocol import BadImage, ImagePayload, ImageRole, array_from_payload
 from protocol.images import compressed_header
 
-from ..service import ImageLoader, ImageNeeds, Images
+from ..service import ImageLoader, ImageNeeds, Images, check_image_size
 
 
 def payload_loader(payloads: Sequence[ImagePayload]) -> ImageLoader:
@@ -50,6 +50,9 @@ def decode_payloads(payloads: Sequence[ImagePayload], needs: ImageNeeds) -> Imag
         if payload.encoding.is_raw:
             continue
         header = compressed_header(payload, max_pixels=needs.max_pixels)
+        if payload.role is ImageRole.COLOR:
+            # Before decoding: an image of another size than the intrinsics is refused anyway.
+            check_image_size(header.width, header.height, needs)
         if payload.role is ImageRole.COLOR and header.bits != 8:
             raise BadImage(
                 f"the colour image is a {header.bits}-bit {payload.encoding}; it must be 8-bit"

@@ -101,6 +101,10 @@ DEFAULT_MAX_FRAME_BYTES = Limits().max_frame_bytes
 """What a client accepts when its HELLO does not say (SPEC §3.4 default)."""
 REFUSE_HELLO_TIMEOUT_S = 2.0
 """How long a refused connection may take to send its HELLO before it is closed anyway."""
+CONNECTION_RETRY_AFTER_MS = 1000
+"""The retry-after hint (ms) of the BUSY that refuses a connection over a connection limit
+(SPEC §6.1): when another client leaves cannot be known, so this is a fixed pause, long
+enough that a refused client does not spin on connect."""
 CAPTURE_ENCODINGS: dict[str, FrameEncoding] = {"png": "png", "jpeg": "jpeg"}
 
 
@@ -221,7 +225,9 @@ class TcpFrontend:
             self._refusing += 1
             try:
                 if await self._start_tls(stream, REFUSE_HELLO_TIMEOUT_S):
-                    await self._refuse(stream, reason)
+                    # A stopping server has no "later" to offer; a full one does.
+                    retry = None if self._stopping.is_set() else CONNECTION_RETRY_AFTER_MS
+                    await self._refuse(stream, reason, retry)
             finally:
                 self._refusing -= 1
             return
@@ -247,8 +253,9 @@ class TcpFrontend:
             return False
         return True
 
-    async def _refuse(self, stream: WireStream, reason: str) -> None:
-        """Answer the HELLO with BUSY, then close.
+    async def _refuse(self, stream: WireStream, reason: str, retry_after_ms: int | None) -> None:
+        """Answer the HELLO with BUSY (with ``retry_after_ms`` in its details unless None),
+        then close.
 
         The BUSY carries the HELLO's request id, so that the client's handshake fails with it,
         and ``fatal``, because the connection is closed after it (SPEC §7: the flag is
@@ -268,7 +275,10 @@ class TcpFrontend:
                     if isinstance(event, Hello):
                         request_id = event.request_id
             exc = Busy(
-                f"server refuses the connection: {reason}", request_id=request_id, fatal=True
+                f"server refuses the connection: {reason}",
+                request_id=request_id,
+                fatal=True,
+                details={} if retry_after_ms is None else {"retry_after_ms": retry_after_ms},
             )
             stream.writelines(_late_error(conn, exc))
             await stream.drain()
@@ -350,6 +360,7 @@ class TcpSession:
             raise Busy(
                 f"more than {self.max_in_flight} requests in flight on this connection",
                 request_id=rid,
+                details={"retry_after_ms": self.service.retry_after_ms(None)},
             )
         large = header.frame_length > self.conn.limits.max_handshake_frame_bytes
         if not (work or large):
@@ -671,8 +682,11 @@ class TcpSession:
                 )
             )
             return False
-        if hello.max_frame_bytes is not None:
-            self.max_reply_bytes = hello.max_frame_bytes
+        # Each HELLO is a new attempt (SPEC §5.4): its limit, or the default, replaces that of
+        # an earlier HELLO refused because its WELCOME would not fit.
+        self.max_reply_bytes = (
+            DEFAULT_MAX_FRAME_BYTES if hello.max_frame_bytes is None else hello.max_frame_bytes
+        )
         settings = self.settings
         catalog = self.service.catalog
         self._write(
@@ -787,7 +801,10 @@ class TcpSession:
                     request_id=rid,
                 )
             if len(self.conn.pending) > self.settings.max_in_flight:
-                raise Busy(f"more than {self.settings.max_in_flight} requests in flight")
+                raise Busy(
+                    f"more than {self.settings.max_in_flight} requests in flight",
+                    details={"retry_after_ms": self.service.retry_after_ms(None)},
+                )
             max_pixels = self.service.settings.max_image_pixels
             images = await asyncio.to_thread(
                 lambda: [

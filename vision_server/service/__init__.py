@@ -33,6 +33,7 @@ from .core import (
     InspectRequest,
     RequestClass,
     capture_key,
+    check_image_size,
     check_images,
     deadline_after,
 )
@@ -66,6 +67,7 @@ __all__ = [
     "builtin_catalog",
     "call_json",
     "capture_key",
+    "check_image_size",
     "check_images",
     "check_result_log",
     "closed_json",

@@ -42,6 +42,8 @@ from protocol import (
     DeadlineExceeded,
     ImageTooLarge,
     InvalidArgument,
+    ShuttingDown,
+    too_large_details,
 )
 
 from ..cameras import Camera, CameraFrame
@@ -91,6 +93,9 @@ class ImageNeeds:
     """Whether depth frames are taken at all."""
     max_pixels: int
     """The largest image (width x height) the service accepts."""
+    size: tuple[int, int] | None = None
+    """The image size (width, height) in pixels the inspection's camera declares intrinsics
+    for; None when it declares none (any size is inspected)."""
 
 
 ImageLoader = Callable[[ImageNeeds], Images]
@@ -480,10 +485,58 @@ class InspectionService:
     async def _inspect(
         self, request: InspectRequest, catalog: Catalog, admission: Admission
     ) -> InspectReply:
+        catalog.camera(catalog.inspection(request.inspection).camera)
+        # From here on the request has an inspection and a camera to log an error row under
+        # (SPEC §6.3): an unknown inspection or camera has none.
+        rows = _RowOnce()
+        try:
+            return await self._inspect_known(request, catalog, admission, rows)
+        except (Busy, ShuttingDown):
+            raise  # refused before it ran, not a run to log (and no disk load under overload)
+        except CellvisionError as exc:
+            await self._error_row(request, catalog, rows, f"{exc.code.name}: {exc.message}")
+            raise
+        except Exception as exc:  # a bug: the front-end answers INTERNAL_ERROR, logged as such
+            await self._error_row(request, catalog, rows, f"INTERNAL_ERROR: {exc!r}")
+            raise
+
+    async def _error_row(
+        self, request: InspectRequest, catalog: Catalog, rows: _RowOnce, error: str
+    ) -> None:
+        """Log a request that ends in ``error`` unless its run already wrote its row."""
+        if not rows.claim():
+            return
         inspection = catalog.inspection(request.inspection)
-        inspection = catalog.tuned(inspection, request.options)
+        entry = ResultEntry(
+            time=time.time(),
+            inspection=inspection.name,
+            camera=inspection.camera,
+            passed=False,
+            data={},
+            duration_ms=0.0,
+            config_hash=catalog.config_hash,
+            request_id=request.request_id,
+            peer=request.peer,
+            options=request.options,
+        )
+        # Its duration is from the request's arrival (perf_counter and monotonic both tick
+        # in seconds; only their difference is used).
+        t0 = time.perf_counter() - (time.monotonic() - request.arrived)
+        # The log writes to disk or a database: not on the event loop.
+        await asyncio.to_thread(self._record, entry, t0, error=error)
+
+    async def _inspect_known(
+        self, request: InspectRequest, catalog: Catalog, admission: Admission, rows: _RowOnce
+    ) -> InspectReply:
+        inspection = catalog.tuned(catalog.inspection(request.inspection), request.options)
         camera = catalog.camera(inspection.camera)
-        needs = ImageNeeds(inspection.name, inspection.uses_depth, self.settings.max_image_pixels)
+        declared = camera.intrinsics
+        needs = ImageNeeds(
+            inspection.name,
+            inspection.uses_depth,
+            self.settings.max_image_pixels,
+            None if declared is None else (declared.width, declared.height),
+        )
         images = request.images
         sources: list[str] = []  # the files a folder camera read: which images this is about
         acquire: Callable[[], InspectionInput]
@@ -551,15 +604,21 @@ class InspectionService:
                 else:
                     outcome = inspection.run(image, overlay=draw)
             except CellvisionError as exc:
-                self._record(entry, t0, error=f"{exc.code.name}: {exc.message}")
+                if rows.claim():
+                    self._record(entry, t0, error=f"{exc.code.name}: {exc.message}")
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
             if sources:
                 outcome = replace(outcome, data={**outcome.data, "source_files": sources})
-            stored = self._record(
-                replace(entry, passed=outcome.passed, data=outcome.data, overlay=outcome.overlay),
-                t0,
-            )
+            stored: bool | None = None
+            # A run its request gave up on (DEADLINE_EXCEEDED) already has its error row.
+            if rows.claim():
+                stored = self._record(
+                    replace(
+                        entry, passed=outcome.passed, data=outcome.data, overlay=outcome.overlay
+                    ),
+                    t0,
+                )
             overlay = None
             if request.overlay is not None and outcome.overlay is not None:
                 # Encoding is CPU work too: here, not on the event loop of every connection.
@@ -750,6 +809,24 @@ class InspectionService:
 # ----------------------------------------------------------------------------- helpers
 
 
+class _RowOnce:
+    """Who writes a request's row in the result log: the run (its verdict, or its error) or
+    the request's error path, whichever claims it first (a request given up at its deadline
+    while its run goes on gets one row, not two). Claimed from threads and the event loop."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._claimed = False
+
+    def claim(self) -> bool:
+        """True the first time only."""
+        with self._lock:
+            if self._claimed:
+                return False
+            self._claimed = True
+            return True
+
+
 def capture_key(camera: str) -> str:
     """The cost model's key for CAPTURE on ``camera`` (inspections use their names)."""
     return f"capture:{camera}"
@@ -769,8 +846,9 @@ def check_images(images: Images, needs: ImageNeeds) -> None:
         raise ImageTooLarge(
             f"the colour image has {width}x{height} = {width * height} pixels, the limit is "
             f"{needs.max_pixels}",
-            details={"pixels": width * height, "max_pixels": needs.max_pixels},
+            details=too_large_details(width, height, needs.max_pixels),
         )
+    check_image_size(width, height, needs)
     if images.depth and not needs.depth:
         raise BadImage(
             f"inspection {needs.inspection!r} takes no depth image, the request has "
@@ -787,6 +865,26 @@ def check_images(images: Images, needs: ImageNeeds) -> None:
                 f"depth image {index} is {frame.shape[1]}x{frame.shape[0]}, the colour image "
                 f"is {width}x{height}: they must be registered"
             )
+
+
+def check_image_size(width: int, height: int, needs: ImageNeeds) -> None:
+    """BAD_IMAGE, naming both sizes, when a colour image of ``width`` x ``height`` pixels is not
+    the size its camera's intrinsics are for (SPEC §4.1); a loader may call it with a file
+    header's size, before it decodes anything."""
+    if needs.size is None or (width, height) == needs.size:
+        return
+    # The camera's intrinsics are for its own image size: millimetres, poses and the base
+    # frame computed from an image of another size would be silently wrong.
+    raise BadImage(
+        f"the colour image is {width}x{height}, the camera's intrinsics are for "
+        f"{needs.size[0]}x{needs.size[1]}: send an image of the camera's size",
+        details={
+            "width": width,
+            "height": height,
+            "expected_width": needs.size[0],
+            "expected_height": needs.size[1],
+        },
+    )
 
 
 def encode_image(image: Image, suffix: str) -> bytes:
@@ -835,6 +933,7 @@ __all__ = [
     "InspectionService",
     "Overlay",
     "ReloadRecord",
+    "check_image_size",
     "check_images",
     "deadline_after",
     "encode_image",
