@@ -315,9 +315,17 @@ def write_with_backup(path: Path, text: str, *, old: bytes | None = None) -> Pat
     if old is None:
         old = path.read_bytes()
     stamp = time.strftime("%Y%m%dT%H%M%S")
-    backup = path.with_name(f"{path.name}.bak-{stamp}")
-    n = 1
-    while backup.exists():
+    # Numbered after the newest of this second, never into a gap that pruning left: a reused
+    # lower number would sort as the oldest backup and be pruned next.
+    pattern = re.compile(re.escape(path.name) + BACKUP_NAME)
+    taken = [
+        int(m.group(2) or 1)
+        for b in backups(path)
+        if (m := pattern.match(b.name)) is not None and m.group(1) == stamp
+    ]
+    n = max(taken, default=0) + 1
+    backup = path.with_name(f"{path.name}.bak-{stamp}" + (f"-{n}" if n > 1 else ""))
+    while backup.exists():  # a name made by hand, or a race: the next number
         n += 1
         backup = path.with_name(f"{path.name}.bak-{stamp}-{n}")
     replace_file(backup, old, mode_of=path)

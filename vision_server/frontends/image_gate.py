@@ -23,7 +23,7 @@ import re
 import struct
 from dataclasses import dataclass
 
-from protocol import BadImage
+from protocol import BadImage, too_large_details
 from protocol.errors import ImageTooLarge
 
 ACCEPTED = "PNG, JPEG, BMP, TIFF (8 or 16 bits, in strips), PNM or WebP"
@@ -63,7 +63,7 @@ def check_upload(data: bytes, *, name: str, max_pixels: int | None) -> Header | 
         raise ImageTooLarge(
             f"{name} is {header.width}x{header.height} = {header.pixels} pixels, more than "
             f"the limit of {max_pixels}",
-            details={"pixels": header.pixels, "max_pixels": max_pixels},
+            details=too_large_details(header.width, header.height, max_pixels),
         )
     return header
 
