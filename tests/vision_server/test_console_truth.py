@@ -186,7 +186,8 @@ def test_a_save_says_what_else_its_reload_changed(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("suffix", [".bmp", ".tiff"])
 def test_an_upload_takes_any_format_opencv_reads(client: Browserless, suffix: str) -> None:
-    image = np.full((16, 16, 3), 255, np.uint8)
+    # The camera's own size (an image of another size is refused: its intrinsics would lie)
+    image = np.full((768, 1024, 3), 255, np.uint8)
     image[:8, :8] = 0  # a dark square: dark_fraction 1.0 inside it, 0.0 outside
     ok, encoded = cv2.imencode(suffix, image)
     assert ok
