@@ -34,7 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..service import FrontDoor, Pass, Refusal
+from ..service import FrontDoor, Pass, Refusal, peer_name
 
 log = logging.getLogger("vision_server")
 
@@ -307,7 +307,7 @@ class Listener:
                 log.warning("%s: cannot accept a connection: %s", self.policy.name, exc)
                 await asyncio.sleep(0.1)
                 continue
-            peer = _peer(address)
+            peer = peer_name(address)
             admitted = self.door.enter(self.policy.name, peer, limit=self.policy.max_connections)
             if isinstance(admitted, Refusal):
                 self._log_refusal(admitted, peer)
@@ -392,13 +392,6 @@ class Listener:
     def _close_sockets(self) -> None:
         for sock in self._sockets:
             sock.close()
-
-
-def _peer(address: Any) -> str:
-    if isinstance(address, tuple) and len(address) >= 2:
-        host, port = address[0], address[1]
-        return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
-    return str(address)
 
 
 __all__ = ["Clock", "Listener", "Policy", "quiet_logger", "unsent_bytes"]

@@ -35,7 +35,15 @@ from pymodbus.server.requesthandler import ServerRequestHandler
 from protocol import CellvisionError, DeadlineExceeded, ErrorCode, UnknownInspection
 
 from ..config import ModbusSettings
-from ..service import Catalog, InspectionService, InspectReply, InspectRequest, Pass, Refusal
+from ..service import (
+    Catalog,
+    InspectionService,
+    InspectReply,
+    InspectRequest,
+    Pass,
+    Refusal,
+    peer_name,
+)
 from .line import Answerable
 from .modbus_frames import (
     GATEWAY_NO_RESPONSE,
@@ -333,8 +341,7 @@ class _Connection(ServerRequestHandler):
         stream = self.stream
         assert stream is not None
         frontend = self.owner.frontend
-        peername = stream.get_extra_info("peername")
-        peer = f"{peername[0]}:{peername[1]}" if isinstance(peername, tuple) else str(peername)
+        peer = peer_name(stream.get_extra_info("peername"))
         # The service's front door counts it with every front-end's connections (Modbus has
         # no TLS: this is as early as a connection can be counted).
         admitted = frontend.service.door.enter(FRONTEND, peer, limit=self.settings.max_connections)

@@ -90,6 +90,7 @@ from ..service import (
     capture_key,
     deadline_after,
     desk_image,
+    peer_name,
 )
 from .images import payload_loader
 
@@ -208,8 +209,7 @@ class TcpFrontend:
     # ------------------------------------------------------------------ connections
 
     async def _accept(self, stream: WireStream) -> None:
-        peername = stream.get_extra_info("peername")
-        peer = f"{peername[0]}:{peername[1]}" if isinstance(peername, tuple) else str(peername)
+        peer = peer_name(stream.get_extra_info("peername"))
         admitted = (
             Refusal("stopping")
             if self._stopping.is_set()

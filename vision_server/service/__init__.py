@@ -37,7 +37,7 @@ from .core import (
     check_images,
     deadline_after,
 )
-from .door import FrontDoor, Pass, Refusal, peer_host
+from .door import FrontDoor, Pass, Refusal, peer_host, peer_name
 from .operator_desk import CallClosed, OperatorDesk, call_json, closed_json, desk_image
 from .runtime import CellRuntime, check_result_log
 
@@ -74,4 +74,5 @@ __all__ = [
     "deadline_after",
     "desk_image",
     "peer_host",
+    "peer_name",
 ]

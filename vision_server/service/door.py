@@ -151,6 +151,14 @@ class FrontDoor:
         return len(self._failures)
 
 
+def peer_name(address: object) -> str:
+    """``host:port`` (``[v6]:port``) of a socket's peer address, as logs and the door name it."""
+    if isinstance(address, tuple) and len(address) >= 2:
+        host, port = address[0], address[1]
+        return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+    return str(address)
+
+
 def failure_key(host: str) -> str:
     """Whose failures count together: an IPv6 address's /64 (one site's, however many
     addresses it uses), every loopback address as one, else the IPv4 address."""
@@ -187,4 +195,5 @@ __all__ = [
     "descriptor_limit",
     "failure_key",
     "peer_host",
+    "peer_name",
 ]
