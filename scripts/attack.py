@@ -6,7 +6,8 @@
 
 Starts ``python -m vision_server serve`` (port 0, loopback) with a configuration whose limits are
 small, so that the memory bound is tight: ``workers``, ``max_image_pixels``,
-``max_buffered_bytes``, ``max_connections`` and 2 s timeouts. Then, phase by phase:
+``max_buffered_bytes``, ``max_connections`` and 2 s timeouts, a token, and the console, line
+and Modbus front-ends on (issue 28) with 2 s timeouts of their own. Then, phase by phase:
 
 ==================  ==========================================================================
 image_bombs         JPEG/PNG whose headers hide or misstate their size, 16-bit colour, and
@@ -22,6 +23,19 @@ non_readers         pipelined CAPTUREs of large frames (and INSPECTs with overla
                     that never read
 flood               four times ``max_connections`` connections at once
 reload              RELOADs while clients inspect and capture from a folder camera
+console_flood       twice ``console.max_connections`` idle and slowloris console connections:
+                    past the limit closed at once, the rest after ``request_timeout_s``; the
+                    robot's PINGs and INSPECTs answered meanwhile
+login_bodies        /api/login declaring 1 GiB or just over 4 KiB (413 at once), bodies that
+                    stall or trickle (408 after ``request_timeout_s``)
+line_before_token   line connections sending blank, unparsable and over-long lines, never
+                    ``A <token>``: closed after ``handshake_timeout_s``; a controller gets in
+unread_answers      signed-in line controllers that ask for listings and read nothing: dropped
+                    after ``line.write_timeout_s``
+modbus_idle         idle, trickling and refused Modbus connections closed after
+                    ``modbus.idle_timeout_s``; a polling PLC kept and served
+token_guessing      wrong tokens on the binary HELLO, the line ``A`` and the console login:
+                    each answered no sooner than the front door's delay; the right token at once
 disk_full           a second server whose files may not grow past 256 KiB (RLIMIT_FSIZE):
                     every RESULT correct, ``stored`` false once the log is full, PONG unhealthy
 ==================  ==========================================================================
@@ -1321,7 +1335,7 @@ async def token_guessing(run: Run, phase: Phase) -> None:
     on each, for a fixed window: every guess refused, each wrong answer delayed as the front
     door promises (loopback is one host: the n-th wrong token waits 0.1 s x 2^(n-1), at most
     5 s), so the guess rate stays low; then the right token signs in on each at once."""
-    window_s = 6.0 * run.scale
+    window_s = 5.0 * run.scale
     answered: list[tuple[float, float, str]] = []
 
     # Each guess ends "refused" (the wrong-token answer), "closed" (the connection ended
