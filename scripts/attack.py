@@ -6,7 +6,8 @@
 
 Starts ``python -m vision_server serve`` (port 0, loopback) with a configuration whose limits are
 small, so that the memory bound is tight: ``workers``, ``max_image_pixels``,
-``max_buffered_bytes``, ``max_connections`` and 2 s timeouts. Then, phase by phase:
+``max_buffered_bytes``, ``max_connections`` and 2 s timeouts, a token, and the console, line
+and Modbus front-ends on (issue 28) with 2 s timeouts of their own. Then, phase by phase:
 
 ==================  ==========================================================================
 image_bombs         JPEG/PNG whose headers hide or misstate their size, 16-bit colour, and
@@ -22,6 +23,19 @@ non_readers         pipelined CAPTUREs of large frames (and INSPECTs with overla
                     that never read
 flood               four times ``max_connections`` connections at once
 reload              RELOADs while clients inspect and capture from a folder camera
+console_flood       twice ``console.max_connections`` idle and slowloris console connections:
+                    past the limit closed at once, the rest after ``request_timeout_s``; the
+                    robot's PINGs and INSPECTs answered meanwhile
+login_bodies        /api/login declaring 1 GiB or just over 4 KiB (413 at once), bodies that
+                    stall or trickle (408 after ``request_timeout_s``)
+line_before_token   line connections sending blank, unparsable and over-long lines, never
+                    ``A <token>``: closed after ``handshake_timeout_s``; a controller gets in
+unread_answers      signed-in line controllers that ask for listings and read nothing: dropped
+                    after ``line.write_timeout_s``
+modbus_idle         idle, trickling and refused Modbus connections closed after
+                    ``modbus.idle_timeout_s``; a polling PLC kept and served
+token_guessing      wrong tokens on the binary HELLO, the line ``A`` and the console login:
+                    each answered no sooner than the front door's delay; the right token at once
 disk_full           a second server whose files may not grow past 256 KiB (RLIMIT_FSIZE):
                     every RESULT correct, ``stored`` false once the log is full, PONG unhealthy
 ==================  ==========================================================================
@@ -47,8 +61,10 @@ import asyncio
 import contextlib
 import json
 import os
+import re
 import resource
 import signal
+import socket
 import sqlite3
 import struct
 import sys
@@ -72,8 +88,10 @@ import hostile_images as hi  # noqa: E402
 import numpy as np  # noqa: E402
 from soak import (  # noqa: E402
     ALLOCATOR_BYTES,
+    CLOSED,
     DECODE_BYTES_PER_PIXEL,
     PER_CONNECTION_BYTES,
+    RESET,
     TIMEOUT,
     RawConnection,
     ServerProcess,
@@ -102,6 +120,9 @@ from robot_client.client import ReconnectPolicy, VisionClient  # noqa: E402
 
 VERSION = (1, 0)
 MIB = 1 << 20
+TOKEN = "attack-soak-token"
+"""The server's token (``server: auth_token``): every front-end but Modbus asks for it, so the
+wrong-token delay of the front door (issue 28) is attacked on each."""
 FOLDER_LEVELS = (60, 120, 180)
 """Grey levels of the folder camera's frames: the mean a ``replayed`` RESULT must report."""
 
@@ -122,6 +143,11 @@ server:
   write_timeout_s: {timeout_s}
   capture_timeout_s: 5
   allow_reload: true
+  auth_token: {token}
+console:
+  {{enabled: true, port: 0, max_connections: {console_connections}, request_timeout_s: {timeout_s}}}
+line: {{enabled: true, port: 0, max_connections: {line_connections}, write_timeout_s: {timeout_s}}}
+modbus: {{enabled: true, port: 0, idle_timeout_s: {timeout_s}}}
 results: {{path: results.sqlite3, store_images: none}}
 cameras:
   tool: {{source: request}}
@@ -145,6 +171,8 @@ class Limits:
     max_frame_bytes: int = 8 * MIB
     max_buffered_bytes: int = 16 * MIB
     timeout_s: float = 2.0
+    console_connections: int = 8
+    line_connections: int = 8
 
     @property
     def max_pixels(self) -> int:
@@ -159,6 +187,9 @@ class Limits:
             max_frame_bytes=self.max_frame_bytes,
             max_buffered_bytes=self.max_buffered_bytes,
             timeout_s=self.timeout_s,
+            token=TOKEN,
+            console_connections=self.console_connections,
+            line_connections=self.line_connections,
         )
 
 
@@ -240,6 +271,7 @@ async def open_raw(port: int) -> RawConnection:
 
 async def hello(conn: RawConnection, phase: Phase, hang_s: float, **kwargs: Any) -> str:
     """HELLO on a raw connection: "welcome", "refused" (BUSY at connect) or what else came."""
+    kwargs.setdefault("auth_token", TOKEN)
     conn.send(wire(Hello(1, ((1, 0),), "attack", **kwargs)))
     answer = await conn.next(hang_s)
     if isinstance(answer, Frame) and answer.type == MessageType.WELCOME:
@@ -390,6 +422,7 @@ async def good_check(port: int, limits: Limits, phase: Phase, hang_s: float) -> 
             "127.0.0.1",
             port,
             client_name="attack-good",
+            auth_token=TOKEN,
             request_timeout_s=hang_s,
             connect_timeout_s=hang_s,
             reconnect=ReconnectPolicy(attempts=0),
@@ -487,6 +520,9 @@ class Run:
     scale: int
     """1 for the short form; more rounds and connections in the long one."""
     hang_s: float
+    console_port: int = 0
+    line_port: int = 0
+    modbus_port: int = 0
 
 
 async def image_bombs(run: Run, phase: Phase) -> None:
@@ -641,7 +677,7 @@ async def slow_bodies(run: Run, phase: Phase) -> None:
     """HELLOs and INSPECTs dribbled 64 bytes every 100 ms (slower than any frame timeout)."""
     image = np.full((120, 160, 3), 5, np.uint8)
     inspect = wire(Inspect(2, "bright", (payload_from_array(image),)))
-    hello_frame = wire(Hello(1, ((1, 0),), "slow"))
+    hello_frame = wire(Hello(1, ((1, 0),), "slow", auth_token=TOKEN))
 
     async def client(index: int) -> None:
         conn = await open_raw(run.port)
@@ -798,7 +834,7 @@ async def reload_under_load(run: Run, phase: Phase) -> None:
     async def worker(index: int) -> None:
         policy = ReconnectPolicy(attempts=3)
         async with VisionClient(
-            "127.0.0.1", run.port, request_timeout_s=run.hang_s, reconnect=policy
+            "127.0.0.1", run.port, request_timeout_s=run.hang_s, reconnect=policy, auth_token=TOKEN
         ) as client:
             while not stop.is_set():
                 phase.sent += 1
@@ -826,7 +862,9 @@ async def reload_under_load(run: Run, phase: Phase) -> None:
 
     async def reloader() -> None:
         try:
-            async with VisionClient("127.0.0.1", run.port, request_timeout_s=run.hang_s) as client:
+            async with VisionClient(
+                "127.0.0.1", run.port, request_timeout_s=run.hang_s, auth_token=TOKEN
+            ) as client:
                 for _ in range(reloads):
                     answer = await client.request(lambda rid: Reload(rid))
                     phase.figures["reloads"] = phase.figures.get("reloads", 0) + 1
@@ -838,6 +876,570 @@ async def reload_under_load(run: Run, phase: Phase) -> None:
 
     await asyncio.gather(reloader(), *(worker(i) for i in range(4)))
     phase.figures["camera_unavailable"] = phase.errors.get("CAMERA_UNAVAILABLE", 0)
+
+
+# ----------------------------------------------------------------------------- the other doors
+# Issue 28 ("One front door"): the console, the line protocol and Modbus go through the same
+# door as the binary protocol. Each phase below attacks one of its promises on a live server.
+
+
+async def open_tcp(port: int, rcvbuf: int | None = None) -> tuple[Any, Any]:
+    """A plain TCP connection (reader, writer); ``rcvbuf`` shrinks the receive buffer before
+    connecting, so that answers left unread fill the server's side sooner."""
+    if rcvbuf is None:
+        return await asyncio.open_connection("127.0.0.1", port)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+    sock.setblocking(False)
+    await asyncio.get_running_loop().sock_connect(sock, ("127.0.0.1", port))
+    return await asyncio.open_connection(sock=sock)
+
+
+async def until_closed(
+    reader: Any, since: float, bound_s: float, first: list[float] | None = None
+) -> tuple[str, float, bytes]:
+    """Read until the server ends the connection: (CLOSED | RESET | TIMEOUT, seconds since
+    ``since``, what came); the seconds to the first byte are appended to ``first``."""
+    data = bytearray()
+    try:
+        async with asyncio.timeout(bound_s):
+            while True:
+                chunk = await reader.read(1 << 16)
+                if not chunk:
+                    return CLOSED, time.monotonic() - since, bytes(data)
+                if not data and first is not None:
+                    first.append(time.monotonic() - since)
+                data += chunk
+    except TimeoutError:
+        return TIMEOUT, time.monotonic() - since, bytes(data)
+    except (ConnectionError, OSError):
+        return RESET, time.monotonic() - since, bytes(data)
+
+
+async def shut(writer: Any) -> None:
+    writer.close()
+    with contextlib.suppress(Exception):
+        await writer.wait_closed()
+
+
+def http_head(method: str, path: str, length: int | None = None, **headers: str) -> bytes:
+    """A request head from the console's own host, one request per connection; a body is
+    JSON (the console's cross-site rule lets a JSON body through without an Origin)."""
+    lines = [f"{method} {path} HTTP/1.1", "Host: 127.0.0.1", "Connection: close"]
+    if length is not None:
+        lines += ["Content-Type: application/json", f"Content-Length: {length}"]
+    lines += [f"{k.replace('_', '-')}: {v}" for k, v in headers.items()]
+    return ("\r\n".join(lines) + "\r\n\r\n").encode()
+
+
+def http_status(data: bytes) -> int | None:
+    try:
+        return int(data.split(b" ", 2)[1])
+    except (IndexError, ValueError):
+        return None
+
+
+async def login(port: int, token: str, bound_s: float) -> tuple[int | None, float]:
+    """POST /api/login with ``token``: (status, seconds)."""
+    body = json.dumps({"token": token}).encode()
+    started = time.monotonic()
+    reader, writer = await open_tcp(port)
+    try:
+        writer.write(http_head("POST", "/api/login", len(body)) + body)
+        _, seconds, data = await until_closed(reader, started, bound_s)
+        return http_status(data), seconds
+    finally:
+        await shut(writer)
+
+
+def judge_timeout(phase: Phase, what: str, end: str, seconds: float, timeout_s: float) -> bool:
+    """A connection the server must close after ``timeout_s`` (not before, not much later:
+    2 s of slack for a loaded machine)."""
+    phase.figures.setdefault("closed_after_s", []).append(round(seconds, 2))
+    if end == TIMEOUT:
+        phase.hangs += 1
+        phase.fail(f"{what}: still open after {seconds:.1f} s")
+        return False
+    if not timeout_s - 0.25 <= seconds <= timeout_s + 2.0:
+        phase.fail(f"{what}: closed after {seconds:.2f} s, the timeout is {timeout_s:g} s")
+        return False
+    phase.correct += 1
+    return True
+
+
+async def robot_meanwhile(run: Run, phase: Phase, stop: asyncio.Event) -> None:
+    """The robot on the binary protocol while another front-end is attacked: PINGs and
+    INSPECTs with known answers, each answered right and in time (the slowest is a figure;
+    over 2 s is a failure)."""
+    slowest = 0.0
+    count = 0
+    async with VisionClient(
+        "127.0.0.1", run.port, request_timeout_s=run.hang_s, auth_token=TOKEN
+    ) as client:
+        while not stop.is_set():
+            count += 1
+            level = count % 256
+            started = time.monotonic()
+            phase.sent += 1
+            try:
+                if count % 2:
+                    pong = await client.request(lambda rid, t=str(count): Ping(rid, t))
+                    ok = isinstance(pong, Pong) and pong.data == str(count)
+                else:
+                    result = await client.inspect("bright", np.full((48, 64), level, np.uint8))
+                    ok = result.data.get("value") == float(level)
+            except Busy:
+                phase.busy += 1
+                continue
+            except CellvisionError as exc:
+                phase.fail(f"the robot's request failed: {exc}")
+                continue
+            slowest = max(slowest, time.monotonic() - started)
+            if ok:
+                phase.correct += 1
+            else:
+                phase.fail("the robot got a wrong answer")
+            await asyncio.sleep(0.05)
+    phase.figures["robot_requests"] = count
+    phase.figures["robot_slowest_s"] = round(slowest, 3)
+    if slowest > 2.0:
+        phase.fail(f"a robot request took {slowest:.2f} s during the attack")
+
+
+async def console_flood(run: Run, phase: Phase) -> None:
+    """Idle and slowloris console connections, twice ``console.max_connections``: those past
+    the limit closed at once, the others after ``request_timeout_s`` however they trickle;
+    the robot served meanwhile."""
+    limit = run.limits.console_connections
+    timeout_s = run.limits.timeout_s
+    total = 2 * limit * run.scale
+    slow = max(2, limit // 3)
+    stop = asyncio.Event()
+    robot = asyncio.create_task(robot_meanwhile(run, phase, stop))
+    trickle = b"GET /api/server HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: " + b"a" * 4096
+
+    async def dribble(writer: Any) -> None:
+        # A header byte every 0.2 s: the whole head would take minutes.
+        with contextlib.suppress(ConnectionError, OSError):
+            for byte in trickle:
+                writer.write(bytes([byte]))
+                await writer.drain()
+                await asyncio.sleep(0.2)
+
+    opened: list[tuple[bool, float, Any, Any]] = []
+    try:
+        reset_at_connect = 0
+        for index in range(total):
+            try:
+                reader, writer = await open_tcp(run.console_port)
+            except OSError:
+                # Closed (reset) before our connect() returned: past the limit, at once.
+                reset_at_connect += 1
+                continue
+            opened.append((index < slow, time.monotonic(), reader, writer))
+        dribblers = [asyncio.create_task(dribble(w)) for is_slow, _, _, w in opened if is_slow]
+        ends = await asyncio.gather(
+            *(until_closed(r, since, run.hang_s) for _, since, r, _ in opened)
+        )
+        for task in dribblers:
+            task.cancel()
+        at_once = reset_at_connect
+        phase.sent += reset_at_connect
+        phase.refused += reset_at_connect
+        phase.correct += reset_at_connect
+        phase.ends["reset_at_connect"] = reset_at_connect
+        for (is_slow, _, _, _), (end, seconds, _) in zip(opened, ends, strict=True):
+            phase.sent += 1
+            phase.ends[f"{'slow' if is_slow else 'idle'}:{end}"] += 1
+            if end != TIMEOUT and seconds < timeout_s / 2:
+                at_once += 1
+                phase.refused += 1
+                phase.correct += 1
+            else:
+                judge_timeout(phase, "a console connection", end, seconds, timeout_s)
+        phase.figures["connections"] = total
+        phase.figures["closed_at_once"] = at_once
+        if at_once < total - limit:
+            phase.fail(f"{at_once} connections closed at once, {total - limit} were past the limit")
+    finally:
+        stop.set()
+        await robot
+        for _, _, _, writer in opened:
+            await shut(writer)
+
+
+async def login_bodies(run: Run, phase: Phase) -> None:
+    """/api/login with a body too large (declared: 1 GB, or just over 4 KiB) and with bodies
+    that stall or trickle: 413 at once, 408 after ``request_timeout_s``; then the right token
+    signs in."""
+    timeout_s = run.limits.timeout_s
+
+    async def attempt(kind: str) -> None:
+        started = time.monotonic()
+        reader, writer = await open_tcp(run.console_port)
+        phase.sent += 1
+        try:
+            feeder: asyncio.Task[None] | None = None
+            if kind == "huge":
+                writer.write(http_head("POST", "/api/login", 1 << 30) + bytes(64 * 1024))
+            elif kind == "over_4k":
+                body = json.dumps({"token": "x" * 4096}).encode()
+                writer.write(http_head("POST", "/api/login", len(body)) + body)
+            elif kind == "stalled":
+                writer.write(http_head("POST", "/api/login", 200) + b'{"token": "')
+            else:  # trickling: a body byte every 0.25 s, never done in time
+
+                async def feed() -> None:
+                    with contextlib.suppress(ConnectionError, OSError):
+                        for _ in range(200):
+                            writer.write(b" ")
+                            await writer.drain()
+                            await asyncio.sleep(0.25)
+
+                writer.write(http_head("POST", "/api/login", 200))
+                feeder = asyncio.create_task(feed())
+            first: list[float] = []
+            end, seconds, data = await until_closed(reader, started, run.hang_s, first)
+            if feeder is not None:
+                feeder.cancel()
+            status = http_status(data)
+            answered = first[0] if first else seconds
+            phase.ends[f"{kind}:{status}"] += 1
+            # The answer is what is promised in time; the close may come up to another
+            # request_timeout_s later (the server waits that long for the unread body).
+            phase.figures.setdefault(f"{kind}_closed_after_s", []).append(round(seconds, 2))
+            if end == TIMEOUT or seconds > 2 * timeout_s + 2.0:
+                phase.hangs += 1
+                phase.fail(f"{kind} login body: the connection open after {seconds:.1f} s")
+            elif kind in ("huge", "over_4k"):
+                phase.figures.setdefault("413_after_s", []).append(round(answered, 2))
+                if status == 413 and answered < 1.0:
+                    phase.correct += 1
+                else:
+                    phase.fail(f"{kind} login body: {status} after {answered:.2f} s ({end})")
+            elif status == 408:
+                judge_timeout(phase, f"{kind} login body", end, answered, timeout_s)
+            else:
+                phase.fail(f"{kind} login body: {status} after {answered:.2f} s ({end})")
+        finally:
+            await shut(writer)
+
+    kinds = ["huge", "huge", "over_4k", "stalled", "stalled", "trickle", "trickle"]
+    for _ in range(run.scale):
+        await asyncio.gather(*(attempt(kind) for kind in kinds))
+    status, seconds = await login(run.console_port, TOKEN, run.hang_s)
+    phase.sent += 1
+    phase.figures["good_login"] = [status, round(seconds, 3)]
+    if status == 200:
+        phase.correct += 1
+    else:
+        phase.fail(f"the right token after the attack: {status}")
+
+
+async def line_exchange(port: int, lines: list[bytes], bound_s: float) -> list[bytes]:
+    """Send ``lines`` one at a time on a new line-protocol connection, an answer line each
+    (without its CR LF)."""
+    reader, writer = await open_tcp(port)
+    answers: list[bytes] = []
+    try:
+        async with asyncio.timeout(bound_s):
+            for line in lines:
+                writer.write(line)
+                answers.append((await reader.readline()).rstrip(b"\r\n"))
+    except (TimeoutError, ConnectionError, OSError):
+        pass
+    finally:
+        await shut(writer)
+    return answers
+
+
+async def good_controller(run: Run, phase: Phase, when: str) -> None:
+    """A controller that signs in and pings: ``OK`` then ``OK PONG``."""
+    started = time.monotonic()
+    answers = await line_exchange(run.line_port, [f"A {TOKEN}\n".encode(), b"P\n"], run.hang_s)
+    phase.sent += 1
+    phase.figures[f"good_controller_{when}_s"] = round(time.monotonic() - started, 3)
+    if answers == [b"OK", b"OK PONG"]:
+        phase.correct += 1
+    else:
+        phase.fail(f"the good controller {when}: {answers}")
+
+
+async def line_before_token(run: Run, phase: Phase) -> None:
+    """Line connections sending blank, unparsable and over-long lines but never ``A
+    <token>``: each closed ``handshake_timeout_s`` after connecting with ``ER 8``; a good
+    controller signs in meanwhile and afterwards."""
+    timeout_s = run.limits.timeout_s
+    junk = (b"\n", b"\r\n", b"#?!\x01\n", b"X" * 300 + b"\n", b"   \n")
+    n = (run.limits.line_connections - 2) * run.scale
+
+    async def attacker(index: int) -> None:
+        started = time.monotonic()
+        try:
+            reader, writer = await open_tcp(run.line_port)
+        except OSError:
+            phase.fail("a line connection was refused by the kernel")
+            return
+
+        async def send() -> None:
+            with contextlib.suppress(ConnectionError, OSError):
+                for turn in range(1000):
+                    writer.write(junk[(index + turn) % len(junk)])
+                    await writer.drain()
+                    await asyncio.sleep(0.1)
+
+        sender = asyncio.create_task(send())
+        phase.sent += 1
+        try:
+            end, seconds, data = await until_closed(reader, started, run.hang_s)
+        finally:
+            sender.cancel()
+            await shut(writer)
+        last = data.rstrip(b"\r\n").rsplit(b"\n", 1)[-1]
+        phase.ends[last[:24].decode(errors="replace")] += 1
+        if last.startswith(b"ER 20"):  # over line.max_connections in the long form
+            phase.refused += 1
+            phase.correct += 1
+        elif last.startswith(b"ER 8 no A <token>"):
+            judge_timeout(phase, "a line connection without A", end, seconds, timeout_s)
+        else:
+            phase.fail(f"a line connection without A ended with {last[:60]!r} ({end})")
+
+    attackers = asyncio.gather(*(attacker(i) for i in range(n)))
+    await asyncio.sleep(timeout_s / 2)
+    await good_controller(run, phase, "during")
+    await attackers
+    await good_controller(run, phase, "after")
+
+
+async def unread_answers(run: Run, phase: Phase) -> None:
+    """Signed-in line controllers that request listings and never read them: each dropped
+    ``line.write_timeout_s`` after its answers stopped moving. (The console's own write
+    timeout, 30 s, is a constant: too long for this soak.)"""
+    timeout_s = run.limits.timeout_s
+    n = 2 * run.scale
+
+    async def client() -> None:
+        reader, writer = await open_tcp(run.line_port, rcvbuf=4096)
+        phase.sent += 1
+        try:
+            writer.write(f"A {TOKEN}\n".encode())
+            if (await reader.readline()).rstrip() != b"OK":
+                phase.fail("a non-reader could not sign in")
+                return
+            # Listings, a bounded number: answers of some 4 MB, more than the kernel takes in
+            # on our side however small our receive buffer (with 0.5 MB, all of it was taken
+            # in at times: the server then rightly had nothing unsent), not so many that
+            # answering them keeps the server busy past our wait.
+            requests = 150_000
+            writer.write(b"L\n" * requests)
+            await writer.drain()
+            stopped_reading = time.monotonic()
+            phase.figures.setdefault("requests_sent", []).append(requests)
+            # The server must drop it on its own: wait past its write timeout, then read. A
+            # connection not dropped would be answered to the end, then stay open (no EOF
+            # before line.idle_timeout_s, 300 s).
+            await asyncio.sleep(timeout_s + 4.0)
+            end, seconds, data = await until_closed(reader, stopped_reading, run.hang_s)
+            phase.ends[end] += 1
+            phase.figures.setdefault("answer_bytes_before_drop", []).append(len(data))
+            if end == TIMEOUT:
+                phase.hangs += 1
+                phase.fail("a controller that read nothing was not dropped")
+            else:
+                phase.correct += 1
+        finally:
+            await shut(writer)
+
+    await asyncio.gather(*(client() for _ in range(n)))
+    await good_controller(run, phase, "after")
+
+
+def modbus_read(tid: int, unit: int = 1) -> bytes:
+    """Read holding registers: one register at address 0 (MODBUS.md §2)."""
+    return struct.pack(">HHHBBHH", tid, 0, 6, unit, 3, 0, 1)
+
+
+async def modbus_idle(run: Run, phase: Phase) -> None:
+    """Idle Modbus connections, ones trickling a frame a byte at a time, and ones whose every
+    request is refused (a wrong unit id): each closed ``modbus.idle_timeout_s`` after its
+    connect; a PLC polling all the while keeps its connection and every answer."""
+    timeout_s = run.limits.timeout_s
+    stop = asyncio.Event()
+
+    async def attacker(kind: str) -> None:
+        started = time.monotonic()
+        reader, writer = await open_tcp(run.modbus_port)
+
+        async def send() -> None:
+            with contextlib.suppress(ConnectionError, OSError):
+                for turn in range(1000):
+                    if kind == "trickle":  # 12 bytes a frame: one done every 3.6 s
+                        frame = modbus_read(turn // 12 + 1)
+                        writer.write(frame[turn % 12 : turn % 12 + 1])
+                    else:  # unit 9 is not this device: exception 0x0B, not served
+                        writer.write(modbus_read(turn + 1, unit=9))
+                    await writer.drain()
+                    await asyncio.sleep(0.3)
+
+        sender = asyncio.create_task(send()) if kind != "idle" else None
+        phase.sent += 1
+        try:
+            end, seconds, _ = await until_closed(reader, started, run.hang_s)
+        finally:
+            if sender is not None:
+                sender.cancel()
+            await shut(writer)
+        phase.ends[f"{kind}:{end}"] += 1
+        judge_timeout(phase, f"a {kind} Modbus connection", end, seconds, timeout_s)
+
+    async def plc() -> None:
+        reader, writer = await open_tcp(run.modbus_port)
+        polls = 0
+        try:
+            while not stop.is_set():
+                polls += 1
+                phase.sent += 1
+                writer.write(modbus_read(polls & 0xFFFF))
+                try:
+                    async with asyncio.timeout(run.hang_s):
+                        answer = await reader.readexactly(11)
+                except (TimeoutError, asyncio.IncompleteReadError, ConnectionError, OSError):
+                    phase.fail(f"the polling PLC lost its answer at poll {polls}")
+                    return
+                tid, _, length, _, function, count = struct.unpack(">HHHBBB", answer[:9])
+                if (tid, length, function, count) == (polls & 0xFFFF, 5, 3, 2):
+                    phase.correct += 1
+                else:
+                    phase.fail(f"the polling PLC got {answer.hex()}")
+                await asyncio.sleep(0.25)
+        finally:
+            phase.figures["plc_polls"] = polls
+            await shut(writer)
+
+    poller = asyncio.create_task(plc())
+    kinds = ["idle", "idle", "trickle", "trickle", "refused", "refused"] * run.scale
+    try:
+        await asyncio.gather(*(attacker(kind) for kind in kinds))
+    finally:
+        stop.set()
+        await poller
+
+
+AUTH_DELAY_MIN_S = 0.1
+AUTH_DELAY_MAX_S = 5.0
+
+
+async def token_guessing(run: Run, phase: Phase) -> None:
+    """Wrong tokens on the binary HELLO, the line ``A`` and the console login, two guessers
+    on each, for a fixed window: every guess refused, each wrong answer delayed as the front
+    door promises (loopback is one host: the n-th wrong token waits 0.1 s x 2^(n-1), at most
+    5 s), so the guess rate stays low; then the right token signs in on each at once."""
+    window_s = 5.0 * run.scale
+    answered: list[tuple[float, float, str]] = []
+
+    # Each guess ends "refused" (the wrong-token answer), "closed" (the connection ended
+    # first: the handshake timeout, shorter here than the longest delay, closed it; to a
+    # guesser that too says "wrong", the right token being answered at once) or "accepted".
+    async def guess_binary(token: str) -> str:
+        conn = await open_raw(run.port)
+        try:
+            conn.send(wire(Hello(1, ((1, 0),), "guess", auth_token=token)))
+            answer = await conn.next(run.hang_s + AUTH_DELAY_MAX_S)
+            if isinstance(answer, Frame) and answer.type == MessageType.WELCOME:
+                return "accepted"
+            if isinstance(answer, Frame) and code_name(answer) == "NOT_AUTHENTICATED":
+                # The handshake timeout's CLOSE says NOT_AUTHENTICATED too: told apart by
+                # its message.
+                message = str(answer.metadata.get("message", ""))
+                return "closed" if "within" in message else "refused"
+            return "closed" if answer in (CLOSED, RESET) else f"other:{answer!r:.40}"
+        finally:
+            await conn.aclose()
+
+    async def guess_line(token: str) -> str:
+        answers = await line_exchange(
+            run.line_port, [f"A {token}\n".encode()], run.hang_s + AUTH_DELAY_MAX_S
+        )
+        if answers and answers[0].startswith(b"OK"):
+            return "accepted"
+        if answers and answers[0] == b"ER 8 wrong token":
+            return "refused"
+        if not answers or answers[0] == b"" or answers[0].startswith(b"ER 8 no A"):
+            return "closed"
+        return "other"
+
+    async def guess_console(token: str) -> str:
+        status, _ = await login(run.console_port, token, run.hang_s + AUTH_DELAY_MAX_S)
+        if status == 200:
+            return "accepted"
+        return "refused" if status == 401 else "closed" if status in (None, 408) else "other"
+
+    guessers: dict[str, Callable[[str], Awaitable[str]]] = {
+        "binary": guess_binary,
+        "line": guess_line,
+        "console": guess_console,
+    }
+
+    async def guesser(door: str, index: int) -> None:
+        for turn in range(10_000):
+            started = time.monotonic()
+            phase.sent += 1
+            outcome = await guessers[door](f"guess-{index}-{turn}")
+            phase.ends[f"{door}:{outcome}"] += 1
+            if outcome in ("refused", "closed"):
+                answered.append((started, time.monotonic() - started, door))
+            else:
+                phase.fail(f"a wrong token on {door}: {outcome}")
+
+    tasks = [asyncio.create_task(guesser(d, i)) for d in guessers for i in range(2)]
+    await asyncio.sleep(window_s)
+    for task in tasks:
+        task.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
+    # Sorted by when they were sent, the k-th wrong token is the host's k-th failure at the
+    # earliest; concurrent ones may be counted in another order, so the k-th is promised only
+    # the delay of failure k - len(tasks).
+    answered.sort()
+    too_fast = 0
+    for k, (_, seconds, _) in enumerate(answered, start=1):
+        rank = k - len(tasks)
+        if rank >= 1:
+            promised = min(
+                AUTH_DELAY_MIN_S * 2.0 ** (rank - 1), AUTH_DELAY_MAX_S, run.limits.timeout_s
+            )
+            if seconds < 0.9 * promised:
+                too_fast += 1
+                phase.fail(f"wrong token {k} answered after {seconds:.2f} s, {promised:g} s due")
+            else:
+                phase.correct += 1
+    phase.figures["guesses_answered"] = len(answered)
+    phase.figures["guesses_per_s"] = round(len(answered) / window_s, 2)
+    phase.figures["window_s"] = window_s
+    phase.figures["slowest_wrong_answer_s"] = round(max((s for _, s, _ in answered), default=0), 2)
+    if len(answered) < len(tasks):
+        phase.fail(f"only {len(answered)} wrong tokens were answered at all")
+    # The right token, on each front-end, right after: no delay.
+    timings: dict[str, float] = {}
+    started = time.monotonic()
+    conn = await open_raw(run.port)
+    state = await hello(conn, phase, run.hang_s)
+    await conn.aclose()
+    timings["binary"] = time.monotonic() - started
+    ok = {"binary": state == "welcome"}
+    started = time.monotonic()
+    answers = await line_exchange(run.line_port, [f"A {TOKEN}\n".encode()], run.hang_s)
+    timings["line"] = time.monotonic() - started
+    ok["line"] = answers == [b"OK"]
+    status, timings["console"] = await login(run.console_port, TOKEN, run.hang_s)
+    ok["console"] = status == 200
+    phase.figures["right_token_s"] = {k: round(v, 3) for k, v in timings.items()}
+    for door, good in ok.items():
+        phase.sent += 1
+        if good and timings[door] < 1.0:
+            phase.correct += 1
+        else:
+            phase.fail(f"the right token on {door}: ok={good} after {timings[door]:.2f} s")
 
 
 # ----------------------------------------------------------------------------- disk full
@@ -864,7 +1466,9 @@ async def disk_full(workdir: Path, limits: Limits, scale: int, hang_s: float) ->
     phase.rss_before_kib = server.rss_kib()
     stored: Counter[str] = Counter()
     try:
-        async with VisionClient("127.0.0.1", port, request_timeout_s=hang_s) as client:
+        async with VisionClient(
+            "127.0.0.1", port, request_timeout_s=hang_s, auth_token=TOKEN
+        ) as client:
             for round_ in range(3 * scale):
                 levels = [(round_ * 37 + i) % 256 for i in range(100)]
                 results = await asyncio.gather(
@@ -951,13 +1555,26 @@ PHASES: tuple[tuple[str, Callable[[Run, Phase], Awaitable[None]]], ...] = (
     ("non_readers", non_readers),
     ("flood", flood),
     ("reload", reload_under_load),
+    ("console_flood", console_flood),
+    ("login_bodies", login_bodies),
+    ("line_before_token", line_before_token),
+    ("unread_answers", unread_answers),
+    ("modbus_idle", modbus_idle),
+    # Last: its wrong tokens leave loopback at the door's longest delay for wrong tokens.
+    ("token_guessing", token_guessing),
 )
 
 
 async def attack(
-    server: ServerProcess, limits: Limits, *, scale: int, hang_s: float, only: set[str]
+    server: ServerProcess,
+    limits: Limits,
+    *,
+    scale: int,
+    hang_s: float,
+    only: set[str],
+    ports: dict[str, int],
 ) -> tuple[list[Phase], dict[str, Any]]:
-    run = Run(server.port, limits, scale, hang_s)
+    run = Run(server.port, limits, scale, hang_s, **ports)
     warmup = Phase("warmup")
     for _ in range(2):
         await good_check(run.port, limits, warmup, hang_s)
@@ -1019,6 +1636,30 @@ def summary_line(phase: Phase) -> str:
     )
 
 
+FRONTEND_LINES = {
+    "console_port": re.compile(r"web console on https?://[^:/]+:(\d+)"),
+    "line_port": re.compile(r"line protocol on \S+:(\d+)"),
+    "modbus_port": re.compile(r"Modbus TCP on \S+:(\d+)"),
+}
+
+
+def frontend_ports(server: ServerProcess) -> dict[str, int]:
+    """The other front-ends' ports: ``serve`` prints them right after its "listening on" line,
+    the one :meth:`ServerProcess.start` waited for, in this order."""
+    assert server.proc is not None
+    assert server.proc.stdout is not None
+    ports: dict[str, int] = {}
+    while len(ports) < len(FRONTEND_LINES):
+        line = server.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"the server printed no port for {set(FRONTEND_LINES) - set(ports)}")
+        for key, pattern in FRONTEND_LINES.items():
+            match = pattern.search(line)
+            if match:
+                ports[key] = int(match[1])
+    return ports
+
+
 def frames_folder(workdir: Path) -> None:
     frames = workdir / "frames"
     frames.mkdir(parents=True, exist_ok=True)
@@ -1047,10 +1688,11 @@ def main(argv: list[str] | None = None) -> int:
         server.write_config()
         frames_folder(workdir)  # large frames in place of the small ones write_config made
         server.start()
-        print(f"server pid {server.pid} on port {server.port}; limits {asdict(limits)}")
+        ports = frontend_ports(server)
+        print(f"server pid {server.pid} on port {server.port} {ports}; limits {asdict(limits)}")
         try:
             phases, memory = asyncio.run(
-                attack(server, limits, scale=scale, hang_s=args.hang_s, only=only)
+                attack(server, limits, scale=scale, hang_s=args.hang_s, only=only, ports=ports)
             )
             hwm = max(status_kib(server.pid, "VmHWM") or 0, memory.pop("peak"))
         finally:

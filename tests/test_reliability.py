@@ -100,6 +100,13 @@ def test_quick_attack_soak_every_hole_of_issue_13(tmp_path: Path) -> None:
         "flood",
         "reload",
         "disk_full",
+        # Issue 28's front door: the console, the line protocol and Modbus.
+        "console_flood",
+        "login_bodies",
+        "line_before_token",
+        "unread_answers",
+        "modbus_idle",
+        "token_guessing",
     }
     for name, phase in phases.items():
         assert (phase["wrong"], phase["hangs"]) == (0, 0), (name, phase["problems"])
@@ -123,4 +130,19 @@ def test_quick_attack_soak_every_hole_of_issue_13(tmp_path: Path) -> None:
     assert disk["stored"]["false"] > 0
     assert disk["health_ok"] is False
     assert disk["rows_in_log"] == disk["stored"].get("true", 0)
+    # Console connections past its limit closed at once, the robot served meanwhile.
+    console = phases["console_flood"]["figures"]
+    assert console["closed_at_once"] >= console["connections"] - s["limits"]["console_connections"]
+    assert console["robot_requests"] > 0
+    logins = phases["login_bodies"]["ends"]
+    assert logins.get("huge:413")
+    assert logins.get("stalled:408")
+    assert phases["line_before_token"]["ends"].get("ER 8 no A <token> within")
+    assert phases["unread_answers"]["ends"] == {"closed": phases["unread_answers"]["sent"] - 1}
+    assert phases["modbus_idle"]["figures"]["plc_polls"] > 1
+    # Wrong tokens answered slowly (the per-guess delays are checked by the script), the right
+    # one at once.
+    guessing = phases["token_guessing"]["figures"]
+    assert guessing["guesses_per_s"] < 5
+    assert max(guessing["right_token_s"].values()) < 1.0
     assert (s["server"]["exit_code"], s["server"]["tracebacks"]) == (0, 0)
