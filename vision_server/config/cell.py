@@ -451,6 +451,7 @@ def _console(node: Node, server: ServerSettings) -> ConsoleSettings:
         request_timeout_s=node.take("request_timeout_s", positive, defaults.request_timeout_s),
         idle_timeout_s=node.take("idle_timeout_s", positive, defaults.idle_timeout_s),
         try_deadline_s=node.take("try_deadline_s", positive, defaults.try_deadline_s),
+        write_timeout_s=node.take("write_timeout_s", positive, defaults.write_timeout_s),
         allowed_hosts=tuple(node.take("allowed_hosts", _host_names, defaults.allowed_hosts)),
     )
     node.finish()

@@ -294,6 +294,8 @@ class ConsoleSettings:
     closed."""
     idle_timeout_s: float = 60.0
     """How long a connection may stay open between requests."""
+    write_timeout_s: float = 30.0
+    """How long a browser may leave an answer unread before its connection is dropped."""
     try_deadline_s: float = 10.0
     """A try's deadline from its arrival: past it the try answers DEADLINE_EXCEEDED (its
     browser's going away ends it sooner)."""

@@ -92,8 +92,7 @@ FORM_OVERHEAD = 64 * 1024
 FRAME_TIMESTAMP_HEADER = "X-Frame-Timestamp"
 LOGIN_MAX_BYTES = 4096
 """The largest sign-in body: a token, not an upload."""
-WRITE_TIMEOUT_S = 30.0
-"""How long a browser may leave an answer unread before its connection is dropped."""
+
 """The live view's frame.jpg header: the frame's capture time, Unix seconds."""
 SECURITY_HEADERS = {
     "X-Content-Type-Options": "nosniff",
@@ -215,7 +214,7 @@ class HttpFrontend:
                 max_connections=self.settings.max_connections,
                 request_timeout_s=self.settings.request_timeout_s,
                 idle_timeout_s=self.settings.idle_timeout_s,
-                write_timeout_s=WRITE_TIMEOUT_S,
+                write_timeout_s=self.settings.write_timeout_s,
                 tls_handshake_timeout_s=self.settings.request_timeout_s,
             ),
             server,
