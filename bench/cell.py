@@ -166,11 +166,18 @@ class CircleLocate:
         return InspectionOutcome(bool(found), {"count": len(found), "features": features})
 
 
+ANY_SIZE_CAMERA = "any-size"
+ANY_SIZE_BRIGHTNESS = "brightness-any-size"
+"""``brightness`` on a request camera without intrinsics, for images of any size."""
+
+
 def load_catalog(config: Path | None) -> BenchCatalog:
     """The configured inspections plus ``brightness``. When the configuration does not load
     (the inspections are still being written): ``brightness`` and, if the analysis exists, a
     stand-in ``cap_locate`` (:class:`CircleLocate`), with the reason."""
     from vision_server import Catalog, builtin_catalog
+    from vision_server.cameras import RequestCamera, RequestCameraSettings
+    from vision_server.service.builtin import MeanIntensityPresence
 
     builtin = builtin_catalog()
     if config is None:
@@ -197,6 +204,10 @@ def load_catalog(config: Path | None) -> BenchCatalog:
             camera = builtin.cameras[inspection.camera]
             if camera.name not in runtime.catalog.cameras:
                 cameras.append(camera)
+    # Section 1's large images go to a camera that declares no size: the tool camera's
+    # intrinsics (1024x768) refuse a 4096x3000 image (SPEC §4: an image must be its camera's).
+    cameras.append(RequestCamera(ANY_SIZE_CAMERA, RequestCameraSettings()))
+    inspections.append(MeanIntensityPresence(ANY_SIZE_BRIGHTNESS, ANY_SIZE_CAMERA, 64.0, 255.0))
     return BenchCatalog(Catalog.build(cameras, inspections), None)
 
 

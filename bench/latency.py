@@ -15,11 +15,12 @@ overhead <= 0.3 ms at p50; at p99, cellvision less the compute <= 1.3x the floor
 HTTP/JSON p50 >= 3x cellvision's.
 
 Large images, each with its own floor (the same bytes through the bare socket): a 4096x3000
-gray8 image (12 MB) for ``brightness``; and, since the protocol has no 16-bit colour encoding,
-the same 4096x3000 as a 12-bit image in a 16-bit container, sent as a depth16 frame beside the
-RGB-D camera's 640x480 colour image to ``station_pose`` (the bench catalog's inspection that
-takes depth). Copies of the image per request: bench/copies.py (the buffer-tracking helper's
-count when it exists, else "not measured").
+gray8 image (12 MB) for ``brightness`` on a camera that declares no size; and, since the
+protocol has no 16-bit colour encoding, the same 4096x3000 as a 12-bit image in a 16-bit
+container, sent as a depth16 frame beside the RGB-D camera's 640x480 colour image to
+``station_pose`` (the bench catalog's inspection that takes depth). Copies of the image per
+request: bench/copies.py (the buffer-tracking helper's count when it exists, else "not
+measured").
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ import numpy as np
 from protocol import CellvisionError, Error, ImageRole, Inspect, Ping, Pong, payload_from_array
 from robot_client import VisionClient
 
+from .cell import ANY_SIZE_BRIGHTNESS
 from .common import Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
 from .copies import copies_per_request
 from .env import Env
@@ -56,6 +58,9 @@ P99_GOAL = 1.3
 LARGE = (4096, 3000)
 """(width, height) of the large image."""
 DEPTH_INSPECTION = "station_pose"
+LARGE_INSPECTION = ANY_SIZE_BRIGHTNESS
+"""``brightness`` on a camera that declares no size: the tool camera's 1024x768 intrinsics
+refuse a 4096x3000 image."""
 TWELVE_BIT_MAX = 4095
 
 
@@ -316,7 +321,7 @@ def measure_large(
     gray, color, twelve_bit = large_images(env)
     width, height = LARGE
     wanted: list[tuple[str, str, Any, tuple[Any, ...]]] = [
-        (f"INSPECT {width}x{height} gray8", INSPECTION, gray, ())
+        (f"INSPECT {width}x{height} gray8", LARGE_INSPECTION, gray, ())
     ]
     if DEPTH_INSPECTION in cellvision.info["inspections"]:
         wanted.append(
