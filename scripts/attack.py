@@ -1239,7 +1239,9 @@ async def unread_answers(run: Run, phase: Phase) -> None:
             # The server must drop it on its own: wait past its write timeout, then read. A
             # connection not dropped would be answered to the end, then stay open (no EOF
             # before line.idle_timeout_s, 300 s).
-            await asyncio.sleep(timeout_s + 4.0)
+            # (the server's write timeout, then the front door's watchdog's own turn, with room
+            # for a loaded machine)
+            await asyncio.sleep(2 * timeout_s + 6.0)
             end, seconds, data = await until_closed(reader, stopped_reading, run.hang_s)
             phase.ends[end] += 1
             phase.figures.setdefault("answer_bytes_before_drop", []).append(len(data))

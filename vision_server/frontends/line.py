@@ -388,6 +388,8 @@ class LineSession:
                 await self.writer.drain()
         except TimeoutError:
             log.warning("%s: the controller does not read its answers; dropping it", self.peer)
+            # Dropped, not closed: a graceful close would wait for it to read what is queued.
+            self.writer.transport.abort()
             raise _Closed from None
 
     # ------------------------------------------------------------------ commands
