@@ -45,3 +45,31 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     fi
     touch "$stamp"
 fi
+
+# The Aravis camera source and its tests (issue 29): Debian's Aravis (the library, its
+# introspection data and the tools with the GigE Vision emulator) and PyGObject, which builds
+# against gobject-introspection and cairo. Installed as root with apt-get; elsewhere the
+# Aravis tests skip and say what to install. CELLVISION_NO_ARAVIS=1 leaves it out.
+aravis_stamp="$VENV/.cellvision-aravis"
+aravis_debs="aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config"
+if [ -z "${CELLVISION_NO_ARAVIS:-}" ] && { [ ! -f "$aravis_stamp" ] || [ pyproject.toml -nt "$aravis_stamp" ]; }; then
+    missing=""
+    for deb in $aravis_debs; do
+        dpkg -s "$deb" >/dev/null 2>&1 || missing="$missing $deb"
+    done
+    if [ -n "$missing" ] && [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then
+        echo "bootstrap: installing$missing with apt-get (the Aravis camera source)"
+        DEBIAN_FRONTEND=noninteractive apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $missing >/dev/null
+        missing=""
+    fi
+    if [ -n "$missing" ]; then
+        echo "bootstrap: the Aravis source's tests will skip: missing Debian packages:$missing" >&2
+    elif "$VENV/bin/python" -m pip install -e ".[dev,aravis]" >"$VENV/bootstrap-aravis.log" 2>&1; then
+        touch "$aravis_stamp"
+    else
+        tail -n 20 "$VENV/bootstrap-aravis.log" >&2
+        echo "bootstrap: PyGObject did not install (log: $VENV/bootstrap-aravis.log);" \
+            "the Aravis source's tests will skip" >&2
+    fi
+fi

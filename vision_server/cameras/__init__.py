@@ -3,15 +3,16 @@
 Sources (``source:`` in the configuration): ``request`` (images arrive with the request),
 ``opencv`` (device, stream or video file through ``cv2.VideoCapture``, latest-frame semantics,
 automatic reconnect), ``folder`` (replay a directory), ``sim`` (the simulated cell),
-``realsense`` (Intel RealSense RGB-D through pyrealsense2, an optional extra) and ``genicam``
-(GigE Vision / USB3 Vision through harvesters, an optional extra). Any source
+``realsense`` (Intel RealSense RGB-D through pyrealsense2, an optional extra), ``aravis``
+(GigE Vision / USB3 Vision through Aravis, an optional extra) and ``genicam`` (GenICam
+through a vendor's GenTL producer and harvesters, an optional extra). Any source
 may deliver a depth frame (uint16 mm) registered to its colour frame.
 
 Public API:
 
 - Settings (frozen, validated): :class:`Intrinsics`, :class:`RequestCameraSettings`,
   :class:`OpenCVCameraSettings`, :class:`FolderCameraSettings`, :class:`SimCameraSettings`,
-  :class:`RealSenseCameraSettings`, :class:`GenICamCameraSettings`,
+  :class:`RealSenseCameraSettings`, :class:`GenICamCameraSettings`, :class:`AravisCameraSettings`,
   ``CameraSettings`` (their union), ``SOURCE_NAMES`` (source name -> settings class).
 - :class:`CameraFrame` (``color``, ``depth``, ``timestamp``, ``index``) and :class:`Camera`
   (``name``, ``source``, ``has_depth``, ``intrinsics``, ``open()``,
@@ -21,10 +22,12 @@ Public API:
 - Time: :class:`Clock` (what a camera reads and waits on), ``SYSTEM_CLOCK`` (the default) and
   :class:`ManualClock` (a clock a test advances by hand).
 - The implementations: :class:`RequestCamera`, :class:`OpenCVCamera`, :class:`FolderCamera`,
-  :class:`SimCamera`, :class:`RealSenseCamera`, :class:`GenICamCamera` (the vendor SDK is
-  imported when the camera first connects, so neither extra is needed to load this package).
+  :class:`SimCamera`, :class:`RealSenseCamera`, :class:`GenICamCamera`, :class:`AravisCamera`
+  (the SDK is imported when the camera first connects, so no extra is needed to load this
+  package).
 """
 
+from .aravis import AravisCamera
 from .base import Camera, CameraFrame
 from .clock import SYSTEM_CLOCK, Clock, ManualClock
 from .factory import make_camera
@@ -36,6 +39,7 @@ from .realsense import RealSenseCamera
 from .request import RequestCamera
 from .settings import (
     SOURCE_NAMES,
+    AravisCameraSettings,
     CameraSettings,
     FolderCameraSettings,
     GenICamCameraSettings,
@@ -48,6 +52,8 @@ from .settings import (
 from .sim import SimCamera
 
 __all__ = [
+    "AravisCamera",
+    "AravisCameraSettings",
     "Camera",
     "CameraFrame",
     "CameraMount",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .aravis import AravisCamera
 from .base import Camera
 from .clock import Clock
 from .folder import FolderCamera
@@ -12,6 +13,7 @@ from .opencv import OpenCVCamera
 from .realsense import RealSenseCamera
 from .request import RequestCamera
 from .settings import (
+    AravisCameraSettings,
     CameraSettings,
     FolderCameraSettings,
     GenICamCameraSettings,
@@ -52,4 +54,6 @@ def make_camera(
         return RealSenseCamera(name, settings, clock=clock)
     if isinstance(settings, GenICamCameraSettings):
         return GenICamCamera(name, settings, base_dir=base_dir, clock=clock)
+    if isinstance(settings, AravisCameraSettings):
+        return AravisCamera(name, settings, clock=clock)
     raise TypeError(f"camera {name!r}: unknown settings type {type(settings).__name__}")

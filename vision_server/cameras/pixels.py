@@ -25,12 +25,15 @@ _BAYER = {
     "BayerBG8": cv2.COLOR_BayerBGGR2BGR,
 }
 
+_PACKED_COLOUR = ("RGB8", "BGR8")
+"""Three bytes a pixel, in the order the name gives."""
+
 
 def convert_pixels(
     data: NDArray[Any], *, pixel_format: str, width: int, height: int
 ) -> NDArray[np.uint8]:
     """A frame's payload ``data`` (the flat buffer of ``width`` x ``height`` pixels) in
-    ``pixel_format`` -> (H, W) uint8 gray or (H, W, 3) uint8 BGR.
+    ``pixel_format`` -> (H, W) uint8 gray or (H, W, 3) uint8 BGR (RGB8 is reordered).
 
     Mono formats above 8 bits are scaled to 8 bits, rounded (the inspections work on 8-bit
     images); values beyond the format's range saturate at 255. Raises
@@ -63,7 +66,18 @@ def convert_pixels(
             )
         bgr = cv2.cvtColor(flat.reshape(height, width), _BAYER[pixel_format])
         return np.asarray(bgr, dtype=np.uint8)
+    if pixel_format in _PACKED_COLOUR:
+        flat = np.asarray(data, dtype=np.uint8).reshape(-1)
+        if flat.size != pixels * 3:
+            raise ValueError(
+                f"a {pixel_format} frame of {width}x{height} has {pixels * 3} bytes, "
+                f"the buffer holds {flat.size}"
+            )
+        packed = flat.reshape(height, width, 3)
+        if pixel_format == "RGB8":
+            return np.ascontiguousarray(packed[:, :, ::-1])
+        return np.array(packed, dtype=np.uint8)
     raise ValueError(
         f"pixel format {pixel_format!r} is not supported "
-        f"(supported: {', '.join([*MONO_BITS, *_BAYER])})"
+        f"(supported: {', '.join([*MONO_BITS, *_BAYER, *_PACKED_COLOUR])})"
     )

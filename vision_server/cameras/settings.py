@@ -8,6 +8,7 @@ the configuration file's directory.
 
 from __future__ import annotations
 
+import ipaddress
 import math
 from dataclasses import dataclass
 from pathlib import Path, PurePath
@@ -18,6 +19,8 @@ from geometry import CameraIntrinsics
 from .mount import CameraMount
 
 __all__ = [
+    "ARAVIS_PIXEL_FORMATS",
+    "AravisCameraSettings",
     "BACKENDS",
     "SOURCE_NAMES",
     "CameraSettings",
@@ -465,6 +468,131 @@ class GenICamCameraSettings:
         _mount(self.mount)
 
 
+ARAVIS_PIXEL_FORMATS = (*GENICAM_PIXEL_FORMATS, "RGB8", "BGR8")
+"""Values of ``AravisCameraSettings.pixel_format`` (GenICam's SFNC names, unpacked)."""
+
+
+def _region(value: object) -> tuple[int, int, int, int] | None:
+    if value is None:
+        return None
+    if (
+        not isinstance(value, (list, tuple))
+        or len(value) != 4
+        or not all(_is_int(v) for v in value)
+        or min(value) < 0
+        or value[2] < 1
+        or value[3] < 1
+    ):
+        raise ValueError(
+            "region must be [x, y, width, height] in pixels (offsets >= 0, sizes >= 1), "
+            f"got {value!r}"
+        )
+    return (int(value[0]), int(value[1]), int(value[2]), int(value[3]))
+
+
+@dataclass(frozen=True)
+class AravisCameraSettings:
+    """A GigE Vision or USB3 Vision camera through Aravis (the ``aravis`` extra: PyGObject,
+    with Debian's ``gir1.2-aravis-0.8``); no vendor GenTL producer is needed.
+
+    The device: ``serial`` (its serial number), ``device_id`` (Aravis' ID, e.g.
+    ``Basler-21234567``) or ``address`` (its IPv4 address, opened directly without discovery,
+    also across subnets), at most one; none takes the only device discovered.
+    ``pixel_format``: Mono8/10/12/16 (scaled to 8 bits), Bayer*8 (demosaiced to BGR), RGB8 or
+    BGR8. ``exposure_us``: ExposureTime in microseconds; ``gain_db``: Gain in dB;
+    ``region``: [x, y, width, height] in sensor pixels; ``frame_rate_hz``: the free-running
+    rate (AcquisitionFrameRate); None leaves the device's value for each. ``trigger``:
+    ``free_run``, ``software`` or ``hardware`` (on ``trigger_source``, default ``Line0``).
+    ``packet_size``: the GVSP packet size in bytes, or None to negotiate the largest the
+    path carries; ``packet_resend``: ask the device to resend lost packets. ``buffers``: frames
+    the stream holds (memory: ``buffers`` x the frame size). Every value is checked against the
+    device's own GenICam range or entries when it connects; a refusal names the feature and
+    its range. ``reconnect_interval_s``: pause before connecting again to a device that was
+    absent, lost or controlled by another application.
+    """
+
+    serial: str | None = None
+    device_id: str | None = None
+    address: str | None = None
+    pixel_format: str = "Mono8"
+    exposure_us: float | None = None
+    gain_db: float | None = None
+    region: tuple[int, int, int, int] | None = None
+    frame_rate_hz: float | None = None
+    trigger: str = "free_run"
+    trigger_source: str | None = None
+    packet_size: int | None = None
+    packet_resend: bool = True
+    buffers: int = 8
+    reconnect_interval_s: float = 1.0
+    intrinsics: Intrinsics | None = None
+    mount: CameraMount | None = None
+
+    def __post_init__(self) -> None:
+        _serial(self.serial)
+        chosen = [k for k in ("serial", "device_id", "address") if getattr(self, k) is not None]
+        if len(chosen) > 1:
+            raise ValueError(f"give at most one of serial, device_id and address, got {chosen}")
+        for key in ("device_id", "address"):
+            value = getattr(self, key)
+            if value is not None and (not isinstance(value, str) or not value.strip()):
+                raise ValueError(f"{key} must be a non-empty string, got {value!r}")
+        if self.address is not None:
+            try:
+                ipaddress.IPv4Address(self.address)
+            except ValueError:
+                raise ValueError(
+                    f"address must be the device's IPv4 address, got {self.address!r}"
+                ) from None
+        if self.pixel_format not in ARAVIS_PIXEL_FORMATS:
+            raise ValueError(
+                f"pixel_format must be one of {list(ARAVIS_PIXEL_FORMATS)}, "
+                f"got {self.pixel_format!r}"
+            )
+        for key in ("exposure_us", "frame_rate_hz"):
+            if getattr(self, key) is not None:
+                object.__setattr__(self, key, _finite(key, getattr(self, key), positive=True))
+        if self.gain_db is not None:
+            object.__setattr__(self, "gain_db", _finite("gain_db", self.gain_db))
+        object.__setattr__(self, "region", _region(self.region))
+        if self.trigger not in GENICAM_TRIGGERS:
+            raise ValueError(
+                f"trigger must be one of {list(GENICAM_TRIGGERS)}, got {self.trigger!r}"
+            )
+        if self.trigger_source is not None:
+            if self.trigger != "hardware":
+                raise ValueError("trigger_source is only used with trigger: hardware")
+            if not isinstance(self.trigger_source, str) or not self.trigger_source.strip():
+                raise ValueError(
+                    f"trigger_source must be a line name such as 'Line0', "
+                    f"got {self.trigger_source!r}"
+                )
+        elif self.trigger == "hardware":
+            object.__setattr__(self, "trigger_source", "Line0")
+        if self.frame_rate_hz is not None and self.trigger != "free_run":
+            raise ValueError("frame_rate_hz is only used with trigger: free_run")
+        if self.packet_size is not None:
+            _positive_int("packet_size", self.packet_size)
+            if not 576 <= self.packet_size <= 65536:
+                raise ValueError(
+                    f"packet_size must be 576 to 65536 bytes (or absent: negotiated), "
+                    f"got {self.packet_size}"
+                )
+        _bool("packet_resend", self.packet_resend)
+        _positive_int("buffers", self.buffers)
+        if self.buffers > 64:
+            raise ValueError(f"buffers must be 1 to 64, got {self.buffers}")
+        object.__setattr__(
+            self,
+            "reconnect_interval_s",
+            _finite("reconnect_interval_s", self.reconnect_interval_s, positive=True),
+        )
+        _intrinsics(self.intrinsics)
+        _mount(self.mount)
+        if self.region is not None:
+            _intrinsics_match(self.intrinsics, self.region[2], self.region[3])
+
+
 CameraSettings = (
     RequestCameraSettings
     | OpenCVCameraSettings
@@ -472,6 +600,7 @@ CameraSettings = (
     | SimCameraSettings
     | RealSenseCameraSettings
     | GenICamCameraSettings
+    | AravisCameraSettings
 )
 
 SOURCE_NAMES: dict[str, type[CameraSettings]] = {
@@ -481,5 +610,6 @@ SOURCE_NAMES: dict[str, type[CameraSettings]] = {
     "sim": SimCameraSettings,
     "realsense": RealSenseCameraSettings,
     "genicam": GenICamCameraSettings,
+    "aravis": AravisCameraSettings,
 }
 """The ``source:`` value of a camera in the configuration -> its settings class."""

@@ -90,6 +90,8 @@ MAX_JSON_PART = 64 * 1024
 FORM_OVERHEAD = 64 * 1024
 """Bytes of a try's form besides the image (boundaries, the request part)."""
 FRAME_TIMESTAMP_HEADER = "X-Frame-Timestamp"
+_DEVICE_KEYS = ("serial", "model", "vendor", "device_id", "address", "protocol")
+"""What ``/api/cameras`` shows of a device camera's identity, from its ``status()``."""
 LOGIN_MAX_BYTES = 4096
 """The largest sign-in body: a token, not an upload."""
 
@@ -462,9 +464,11 @@ class HttpFrontend:
             if width is None and camera.intrinsics is not None:
                 width, height = camera.intrinsics.width, camera.intrinsics.height
             frames = None
+            status: dict[str, Any] = {}
             if not request_camera:
                 try:
-                    frames = int(camera.status().get("frames", 0))
+                    status = camera.status()
+                    frames = int(status.get("frames", 0))
                 except Exception:  # a camera's status is best effort here
                     frames = None
             out.append(
@@ -486,6 +490,15 @@ class HttpFrontend:
                     "frame_age_s": None
                     if newest is None
                     else round(max(time.time() - newest.timestamp, 0.0), 3),
+                    "state": status.get("state"),
+                    "last_error": camera.public_text(str(status["last_error"]))
+                    if status.get("last_error")
+                    else None,
+                    "reconnects": status.get("reconnects"),
+                    # A device camera's identity (serial, model, address ...) and a
+                    # streaming device's statistics (frames and packets), when it has them.
+                    "device": {k: status[k] for k in _DEVICE_KEYS if k in status} or None,
+                    "stream": status.get("stream"),
                 }
             )
         return web.json_response({"cameras": out})

@@ -2,7 +2,8 @@
 
 Counted as results are answered (an observer of the service): inspections by name and verdict,
 and their latency (arrival to reply). Read at each scrape: requests admitted and capacity,
-BUSY answers, reloads by outcome, and each camera's frame age as the live view last saw it.
+BUSY answers, reloads by outcome, each camera's frame age as the live view last saw it, its
+connection and reconnects, and a streaming device's frame and packet statistics.
 One registry per front-end, so that servers in one process (tests) do not share counters.
 """
 
@@ -116,6 +117,60 @@ class _StateCollector(Collector):
             if frame is not None:
                 age.add_metric([name], max(now - frame.timestamp, 0.0))
         yield age
+        yield from _camera_families(service)
+
+
+_STREAM_FRAMES = {"completed": "frames_completed", "failed": "frames_failed"}
+_STREAM_FRAMES_UNDERRUN = "frames_underrun"
+_STREAM_PACKETS = {"received": "packets_received", "missing": "packets_missing"}
+_STREAM_PACKETS_RESENT = "packets_resent"
+
+
+def _camera_families(
+    service: InspectionService,
+) -> Iterator[GaugeMetricFamily | CounterMetricFamily]:
+    """Each camera's connection and, for a streaming device (``aravis``), its stream's
+    statistics, as the camera's ``status()`` reports them."""
+    connected = GaugeMetricFamily(
+        "cellvision_camera_connected",
+        "1 while the camera delivers frames (a device connected), else 0.",
+        labels=["camera"],
+    )
+    reconnects = CounterMetricFamily(
+        "cellvision_camera_reconnects",
+        "Times a camera that was down came back.",
+        labels=["camera"],
+    )
+    frames = CounterMetricFamily(
+        "cellvision_camera_stream_frames",
+        "Frames a streaming device delivered, by outcome (failed: incomplete, packets lost "
+        "beyond resends; underrun: no buffer free to receive it).",
+        labels=["camera", "outcome"],
+    )
+    packets = CounterMetricFamily(
+        "cellvision_camera_stream_packets",
+        "GigE Vision stream packets, by kind (received, missing, resent).",
+        labels=["camera", "kind"],
+    )
+    for name, camera in service.catalog.cameras.items():
+        if camera.source == "request":
+            continue
+        try:
+            status = camera.status()
+        except Exception:  # noqa: BLE001 - a camera's status is best effort at a scrape
+            continue
+        connected.add_metric([name], 1.0 if status.get("connected") else 0.0)
+        reconnects.add_metric([name], float(status.get("reconnects", 0)))
+        stream = status.get("stream")
+        if isinstance(stream, dict):
+            for outcome, key in (*_STREAM_FRAMES.items(), ("underrun", _STREAM_FRAMES_UNDERRUN)):
+                frames.add_metric([name, outcome], float(stream.get(key, 0)))
+            for kind, key in (*_STREAM_PACKETS.items(), ("resent", _STREAM_PACKETS_RESENT)):
+                packets.add_metric([name, kind], float(stream.get(key, 0)))
+    yield connected
+    yield reconnects
+    yield frames
+    yield packets
 
 
 __all__ = ["CONTENT_TYPE", "Metrics"]

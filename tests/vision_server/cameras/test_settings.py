@@ -12,6 +12,7 @@ import pytest
 from geometry import CameraIntrinsics
 from vision_server.cameras import (
     SOURCE_NAMES,
+    AravisCameraSettings,
     FolderCameraSettings,
     GenICamCameraSettings,
     Intrinsics,
@@ -143,7 +144,45 @@ def test_request_settings_and_source_names() -> None:
         "sim": SimCameraSettings,
         "realsense": RealSenseCameraSettings,
         "genicam": GenICamCameraSettings,
+        "aravis": AravisCameraSettings,
     }
+
+
+@pytest.mark.parametrize(
+    ("kw", "message"),
+    [
+        ({"serial": "1", "address": "10.0.0.2"}, "at most one of serial, device_id and address"),
+        ({"address": "camera-1"}, "address must be the device's IPv4 address"),
+        ({"pixel_format": "YUV422"}, "pixel_format must be one of"),
+        ({"region": [0, 0, 64]}, "region must be [x, y, width, height]"),
+        ({"region": [-1, 0, 64, 64]}, "region must be [x, y, width, height]"),
+        ({"trigger": "software", "frame_rate_hz": 10}, "frame_rate_hz is only used with"),
+        ({"packet_size": 100}, "packet_size must be 576 to 65536 bytes"),
+        ({"buffers": 0}, "buffers must be a positive integer"),
+        ({"buffers": 100}, "buffers must be 1 to 64"),
+        ({"trigger_source": "Line1"}, "trigger_source is only used with trigger: hardware"),
+        (
+            {
+                "region": [0, 0, 64, 48],
+                "intrinsics": {"fx": 1, "fy": 1, "cx": 1, "cy": 1, "width": 640, "height": 480},
+            },
+            "intrinsics are for 640x480 but the camera is set to 64x48",
+        ),
+    ],
+)
+def test_aravis_settings_are_checked(kw: dict[str, object], message: str) -> None:
+    if isinstance(kw.get("intrinsics"), dict):
+        kw = {**kw, "intrinsics": Intrinsics(**kw["intrinsics"])}  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=re.escape(message)):
+        AravisCameraSettings(**kw)  # type: ignore[arg-type]
+
+
+def test_aravis_settings_defaults() -> None:
+    s = AravisCameraSettings(trigger="hardware", region=[8, 4, 64, 48])  # type: ignore[arg-type]
+    assert s.trigger_source == "Line0"
+    assert s.region == (8, 4, 64, 48)
+    assert s.packet_size is None
+    assert s.packet_resend is True
 
 
 @pytest.mark.parametrize(
