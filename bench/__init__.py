@@ -14,6 +14,7 @@ from types import ModuleType
 from . import (
     calibration,
     caliper,
+    camera_aravis,
     compute,
     console,
     hand_eye,
@@ -49,6 +50,7 @@ SECTIONS: tuple[ModuleType, ...] = (
     locate_blur,
     caliper,
     locate_template,
+    camera_aravis,
 )
 
 __all__ = ["SECTIONS"]

@@ -169,6 +169,9 @@ class AravisCamera(DeviceCamera):
                 f"opening a stream from {self._who()} failed: {_error_text(exc)}"
             ) from exc
         if camera.is_gv_device():
+            # A socket buffer sized to a whole frame: the default one overflows at a few tens
+            # of frames a second on a fast link, and the frames arrive incomplete.
+            stream.set_property("socket-buffer", arv.GvStreamSocketBuffer.AUTO)
             resend = arv.GvStreamPacketResend
             stream.set_property(
                 "packet-resend", resend.ALWAYS if self.settings.packet_resend else resend.NEVER
@@ -291,7 +294,7 @@ class AravisCamera(DeviceCamera):
                 self._apply("gain_db", "GainAuto", lambda: camera.set_gain_auto(arv.Auto.OFF))
             self._check_range("gain_db", "Gain", s.gain_db, camera.get_gain_bounds(), " dB")
             self._apply("gain_db", "Gain", lambda: camera.set_gain(s.gain_db))
-        self._set_trigger(camera)
+        # The rate before the trigger: Aravis sets it with the frame trigger off.
         if s.frame_rate_hz is not None:
             if not camera.is_frame_rate_available():
                 raise DeviceError("frame_rate_hz: the device has no AcquisitionFrameRate feature")
@@ -302,6 +305,7 @@ class AravisCamera(DeviceCamera):
                 "AcquisitionFrameRate",
                 lambda: camera.set_frame_rate(s.frame_rate_hz),
             )
+        self._set_trigger(camera)
         if camera.is_gv_device():
             self._set_packet_size(camera)
 

@@ -500,8 +500,9 @@ class AravisCameraSettings:
     also across subnets), at most one; none takes the only device discovered.
     ``pixel_format``: Mono8/10/12/16 (scaled to 8 bits), Bayer*8 (demosaiced to BGR), RGB8 or
     BGR8. ``exposure_us``: ExposureTime in microseconds; ``gain_db``: Gain in dB;
-    ``region``: [x, y, width, height] in sensor pixels; ``frame_rate_hz``: the free-running
-    rate (AcquisitionFrameRate); None leaves the device's value for each. ``trigger``:
+    ``region``: [x, y, width, height] in sensor pixels; ``frame_rate_hz``: AcquisitionFrameRate
+    (free run: the rate; triggered: on most devices the most frames a second it accepts);
+    None leaves the device's value for each. ``trigger``:
     ``free_run``, ``software`` or ``hardware`` (on ``trigger_source``, default ``Line0``).
     ``packet_size``: the GVSP packet size in bytes, or None to negotiate the largest the
     path carries; ``packet_resend``: ask the device to resend lost packets. ``buffers``: frames
@@ -569,8 +570,6 @@ class AravisCameraSettings:
                 )
         elif self.trigger == "hardware":
             object.__setattr__(self, "trigger_source", "Line0")
-        if self.frame_rate_hz is not None and self.trigger != "free_run":
-            raise ValueError("frame_rate_hz is only used with trigger: free_run")
         if self.packet_size is not None:
             _positive_int("packet_size", self.packet_size)
             if not 576 <= self.packet_size <= 65536:

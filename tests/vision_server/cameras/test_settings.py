@@ -156,7 +156,6 @@ def test_request_settings_and_source_names() -> None:
         ({"pixel_format": "YUV422"}, "pixel_format must be one of"),
         ({"region": [0, 0, 64]}, "region must be [x, y, width, height]"),
         ({"region": [-1, 0, 64, 64]}, "region must be [x, y, width, height]"),
-        ({"trigger": "software", "frame_rate_hz": 10}, "frame_rate_hz is only used with"),
         ({"packet_size": 100}, "packet_size must be 576 to 65536 bytes"),
         ({"buffers": 0}, "buffers must be a positive integer"),
         ({"buffers": 100}, "buffers must be 1 to 64"),
