@@ -17,6 +17,7 @@ so the latency ratio says what cellvision adds to Aravis, not what a real camera
 
 from __future__ import annotations
 
+import importlib
 import re
 import signal
 import subprocess
@@ -39,9 +40,7 @@ def _emulator_module() -> Any:
     helpers = str(ROOT / "tests" / "helpers")
     if helpers not in sys.path:
         sys.path.append(helpers)  # the tests' helpers are modules of their own there
-    import aravis_emulator
-
-    return aravis_emulator
+    return importlib.import_module("aravis_emulator")
 
 
 def _raw_trigger_latency(address: str, n: int) -> list[float]:
