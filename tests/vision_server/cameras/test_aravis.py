@@ -327,3 +327,22 @@ def test_through_the_server(device: aravis_emulator.Emulator, tmp_path: Path) ->
             assert time.monotonic() < deadline, (frame.status, frame.body[:200])
             time.sleep(0.2)
         assert frame.body[:3] == b"\xff\xd8\xff"
+
+        # A second server configured with the same device: its requests are refused with the
+        # cause, the first server's go on.
+        other = tmp_path / "other"
+        other.mkdir()
+        (other / "cell.yaml").write_text(CELL.format(address=device.address), encoding="utf-8")
+        with running_cell(other / "cell.yaml") as second:
+
+            async def inspect_second() -> str:
+                async with VisionClient(
+                    "127.0.0.1", second.app.port, request_timeout_s=30.0
+                ) as c:
+                    with pytest.raises(CameraUnavailable) as caught:
+                        await c.inspect("lit")
+                    return str(caught.value)
+
+            message = asyncio.run(inspect_second())
+            assert "is controlled by another application" in message
+            assert asyncio.run(inspect()).passed
