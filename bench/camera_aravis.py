@@ -23,12 +23,14 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .common import ROOT, Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
 from .env import Env
+from .plots import cdf, pyplot, save
 
 NAME = "camera_aravis"
 TITLE = "18. GigE Vision through Aravis (the emulator)"
@@ -148,8 +150,10 @@ def run(cfg: RunConfig, env: Env) -> Section:
         raise Skip(str(exc)) from exc
     n = cfg.n(60, 5)
     seconds = cfg.f(5.0, 1.5)
+    measured: dict[str, tuple[float, float]] = {}
     with emulator.emulator("BENCH01") as device:
-        raw = Stats.of(_raw_trigger_latency(device.address, n))
+        raw_ms = _raw_trigger_latency(device.address, n)
+        raw = Stats.of(raw_ms)
         ours_ms, stream = _cellvision_trigger_latency(device.address, n)
         ours = Stats.of(ours_ms)
         latency = Table(
@@ -196,11 +200,33 @@ def run(cfg: RunConfig, env: Env) -> Section:
                 fmt(completed, 1),
                 ratio(grabs, reference),
             )
+            measured[f"{hz:g} Hz"] = (reference, grabs)
             section.value(f"grabs_per_s_{hz:g}", grabs)
             section.value(f"reference_per_s_{hz:g}", reference)
             if reference > 0:
                 worst = min(worst, grabs / reference)
         section.tables.append(rates)
+
+        def plot(directory: Path) -> list[Path]:
+            plt = pyplot()
+            if plt is None:
+                return []
+            fig, (left, right) = plt.subplots(1, 2, figsize=(10.0, 3.4))
+            cdf(left, raw_ms, "Aravis API directly")
+            cdf(left, ours_ms, "cellvision AravisCamera.grab")
+            left.set_xlabel("software trigger to frame [ms]")
+            left.set_ylabel("fraction of triggers")
+            left.legend(loc="lower right", fontsize=8)
+            names = list(measured)
+            x = np.arange(len(names))
+            right.bar(x - 0.2, [measured[k][0] for k in names], 0.4, label="arv-camera-test-0.8")
+            right.bar(x + 0.2, [measured[k][1] for k in names], 0.4, label="cellvision grabs")
+            right.set_xticks(x, [f"free run at {k}" for k in names])
+            right.set_ylabel("frames per second")
+            right.legend(fontsize=8)
+            return [save(fig, directory / "camera_aravis.png")]
+
+        section.plot = plot
         section.goals.append(
             Goal(
                 "cellvision adds <= 10 % to Aravis' software-trigger latency (p50)",
