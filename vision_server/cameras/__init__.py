@@ -3,16 +3,19 @@
 Sources (``source:`` in the configuration): ``request`` (images arrive with the request),
 ``opencv`` (device, stream or video file through ``cv2.VideoCapture``, latest-frame semantics,
 automatic reconnect), ``folder`` (replay a directory), ``sim`` (the simulated cell),
-``realsense`` (Intel RealSense RGB-D through pyrealsense2, an optional extra) and ``genicam``
-(GigE Vision / USB3 Vision through harvesters, an optional extra). Any source
-may deliver a depth frame (uint16 mm) registered to its colour frame.
+``realsense`` (Intel RealSense RGB-D through pyrealsense2, an optional extra), ``genicam``
+(GigE Vision / USB3 Vision through harvesters, an optional extra) and ``recording`` (replay a
+recording that ``vision-server record`` made of any camera, frame by frame, with its depth,
+timestamps and intrinsics). Any source may deliver a depth frame (uint16 mm) registered to its
+colour frame.
 
 Public API:
 
 - Settings (frozen, validated): :class:`Intrinsics`, :class:`RequestCameraSettings`,
   :class:`OpenCVCameraSettings`, :class:`FolderCameraSettings`, :class:`SimCameraSettings`,
   :class:`RealSenseCameraSettings`, :class:`GenICamCameraSettings`,
-  ``CameraSettings`` (their union), ``SOURCE_NAMES`` (source name -> settings class).
+  :class:`RecordingCameraSettings`, ``CameraSettings`` (their union), ``SOURCE_NAMES``
+  (source name -> settings class).
 - :class:`CameraFrame` (``color``, ``depth``, ``timestamp``, ``index``) and :class:`Camera`
   (``name``, ``source``, ``has_depth``, ``intrinsics``, ``open()``,
   ``grab(*, timeout_s, newer_than=None)``, ``grab_many(n, *, timeout_s)``, ``status()``,
@@ -22,7 +25,15 @@ Public API:
   :class:`ManualClock` (a clock a test advances by hand).
 - The implementations: :class:`RequestCamera`, :class:`OpenCVCamera`, :class:`FolderCamera`,
   :class:`SimCamera`, :class:`RealSenseCamera`, :class:`GenICamCamera` (the vendor SDK is
-  imported when the camera first connects, so neither extra is needed to load this package).
+  imported when the camera first connects, so neither extra is needed to load this package),
+  :class:`RecordingCamera` (whose :meth:`~RecordingCamera.frame_at` reads any frame without
+  moving the camera's position).
+- Recordings (:mod:`.recording`, the format in docs/recording.md): :class:`RecordingWriter`
+  (bounded by frames, bytes or seconds; interrupted, it still replays what it wrote),
+  :class:`RecordingReader` (frames read one at a time), :class:`RecordingFrame`,
+  :class:`RecordedFrame`, :class:`RecordingError` (a ``ValueError`` naming the cause),
+  :func:`public_settings` (a camera's settings as a manifest shows them),
+  ``RECORDING_MANIFEST`` (``recording.json``).
 """
 
 from .base import Camera, CameraFrame
@@ -33,6 +44,16 @@ from .genicam import GenICamCamera
 from .mount import MOUNT_KEYS, CameraMount
 from .opencv import OpenCVCamera
 from .realsense import RealSenseCamera
+from .recording import MANIFEST as RECORDING_MANIFEST
+from .recording import (
+    RecordedFrame,
+    RecordingCamera,
+    RecordingError,
+    RecordingFrame,
+    RecordingReader,
+    RecordingWriter,
+    public_settings,
+)
 from .request import RequestCamera
 from .settings import (
     SOURCE_NAMES,
@@ -42,6 +63,7 @@ from .settings import (
     Intrinsics,
     OpenCVCameraSettings,
     RealSenseCameraSettings,
+    RecordingCameraSettings,
     RequestCameraSettings,
     SimCameraSettings,
 )
@@ -64,6 +86,14 @@ __all__ = [
     "OpenCVCameraSettings",
     "RealSenseCamera",
     "RealSenseCameraSettings",
+    "RECORDING_MANIFEST",
+    "RecordedFrame",
+    "RecordingCamera",
+    "RecordingCameraSettings",
+    "RecordingError",
+    "RecordingFrame",
+    "RecordingReader",
+    "RecordingWriter",
     "RequestCamera",
     "RequestCameraSettings",
     "SOURCE_NAMES",
@@ -71,4 +101,5 @@ __all__ = [
     "SimCamera",
     "SimCameraSettings",
     "make_camera",
+    "public_settings",
 ]
