@@ -11,6 +11,8 @@ register map, and check or reload a running server.
                       [--json] [--overlay out.png]
     vision-server test-inspections [PATH ...] [--json] [--update]   # golden cases
     vision-server results --config cell.yaml --since 1h [--inspection NAME] [--json]
+    vision-server record CAMERA --config cell.yaml --out DIR [--frames N] [--max-bytes SIZE]
+                      [--duration S] [--interval S] [--format auto|cellvision|realsense]
     vision-server modbus-map cell.yaml [--json]   # the PLC's register map (protocol/MODBUS.md)
     vision-server sensor-check --config cell.yaml station_pose --view c1.png d1.png ...
                       [--json]   # a depth camera's misregistration and scale (guide 7.3)
@@ -96,6 +98,7 @@ from ..config import (
 from ..process import PROCESS_ENV, decoder_limits
 from ..results import is_database_url
 from ..service import Catalog, InspectReply, builtin_catalog
+from . import record as record_cli
 from . import sensor_check as sensor_check_cli
 from .admin import AdminError, call_endpoint, resolve
 from .offline import file_request, image_payload, offline_service
@@ -869,6 +872,7 @@ def build_parser() -> argparse.ArgumentParser:
     results.set_defaults(func=_results)
 
     sensor_check_cli.add_parser(sub, [local])
+    record_cli.add_parser(sub, [local])
 
     modbus_map = sub.add_parser(
         "modbus-map",
