@@ -11,6 +11,8 @@ register map, and check or reload a running server.
                       [--json] [--overlay out.png]
     vision-server run --config cell.yaml station_pose --recording DIR [--frame N ...]
     vision-server test-inspections [PATH ...] [--json] [--update]   # golden cases
+    vision-server test-inspections --config cell.yaml --from-recording DIR --inspection NAME
+                      --out CASE [--frame N ...]   # a golden case from a recording
     vision-server results --config cell.yaml --since 1h [--inspection NAME] [--json]
     vision-server record CAMERA --config cell.yaml --out DIR [--frames N] [--max-bytes SIZE]
                       [--duration S] [--interval S] [--format auto|cellvision|realsense]
@@ -675,7 +677,52 @@ def _test_inspections(args: argparse.Namespace) -> int:
     """Golden cases (inspection + images + expected results) through the serving code path."""
     from .golden import golden_command
 
+    if args.from_recording is not None:
+        return _case_from_recording(args)
+    given = [f"--{n}" for n in ("inspection", "out") if getattr(args, n) is not None]
+    if given or args.frame:
+        return _fail(
+            args, ErrorKind.USAGE, f"{(given or ['--frame'])[0]} goes with --from-recording"
+        )
     return golden_command(args.paths, json_out=args.json, update=args.update)
+
+
+def _case_from_recording(args: argparse.Namespace) -> int:
+    """``test-inspections --from-recording DIR --inspection NAME --out CASE``: make the case,
+    report it as a run with --update is reported."""
+    from .golden import Report, case_from_recording, print_report, report_json
+
+    config_path = _config_path(args)
+    missing = [f"--{n}" for n in ("inspection", "out") if getattr(args, n) is None]
+    if missing:
+        return _fail(args, ErrorKind.USAGE, f"--from-recording needs {' and '.join(missing)}")
+    if not config_path:
+        return _fail(
+            args, ErrorKind.USAGE, f"--from-recording needs --config FILE (or ${CONFIG_ENV})"
+        )
+    if args.paths or args.update:
+        return _fail(args, ErrorKind.USAGE, "--from-recording makes one case: no PATH, no --update")
+    try:
+        case = case_from_recording(
+            Path(args.from_recording),
+            Path(config_path),
+            args.inspection,
+            Path(args.out),
+            frames=args.frame,
+        )
+    except ConfigError as exc:
+        return _fail(args, ErrorKind.USAGE, str(exc))
+    report = Report([case], updated=True)
+    if args.json:
+        print(json.dumps(report_json(report)))
+    else:
+        print_report(report, Console())
+        if report.exit_code == 0:
+            print(
+                f"case written to {args.out}: review its expected.yaml, then run "
+                f"`vision-server test-inspections {args.out}`"
+            )
+    return report.exit_code
 
 
 # ----------------------------------------------------------------------------- results, admin
@@ -965,6 +1012,23 @@ def build_parser() -> argparse.ArgumentParser:
         "--update",
         action="store_true",
         help="rewrite expected.yaml from the results, show the diff",
+    )
+    made = golden.add_argument_group(
+        "making a case from a recording (needs --config; expected.yaml is what the "
+        "inspection gives now: review it)"
+    )
+    made.add_argument(
+        "--from-recording", metavar="DIR", help="the recording (vision-server record)"
+    )
+    made.add_argument("--inspection", metavar="NAME", help="the configuration's inspection")
+    made.add_argument("--out", metavar="CASE", help="the new case folder")
+    made.add_argument(
+        "--frame",
+        action="append",
+        type=int,
+        default=[],
+        metavar="N",
+        help="only the run from frame N (0-based); repeat for more (default: every frame)",
     )
     golden.set_defaults(func=_test_inspections)
 
