@@ -447,6 +447,8 @@ def _field(entry: dict[str, Any], key: str, kind: type | tuple[type, ...], where
 
 def _kind_name(kind: type | tuple[type, ...]) -> str:
     kinds = kind if isinstance(kind, tuple) else (kind,)
+    if set(kinds) == {int, float}:
+        return "a number"
     names = {str: "a string", int: "an integer", float: "a number", bool: "true or false"}
     names[type(None)] = "null"
     return " or ".join(names.get(k, k.__name__) for k in kinds)
