@@ -17,6 +17,7 @@ from vision_server.cameras import (
     Intrinsics,
     OpenCVCameraSettings,
     RealSenseCameraSettings,
+    RecordingCameraSettings,
     RequestCameraSettings,
     SimCameraSettings,
 )
@@ -143,6 +144,7 @@ def test_request_settings_and_source_names() -> None:
         "sim": SimCameraSettings,
         "realsense": RealSenseCameraSettings,
         "genicam": GenICamCameraSettings,
+        "recording": RecordingCameraSettings,
     }
 
 
