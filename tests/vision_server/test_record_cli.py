@@ -145,7 +145,7 @@ def test_record_bounded_by_bytes_and_by_duration(
     assert reader.bytes <= 2 * 1024 * 1024
 
     by_time = cell.parent / "by_time"
-    code = record(cell, "rgbd", "--out", str(by_time), "--duration", "0.5", "--interval", "0.1")
+    code = record(cell, "rgbd", "--out", str(by_time), "--duration", "3", "--interval", "0.5")
     assert code == 0
     assert "stopped by the duration bound" in capsys.readouterr().out
     assert len(RecordingReader(by_time)) >= 1
@@ -201,6 +201,60 @@ def test_the_realsense_format_needs_the_realsense_recorder(
     assert code == 2
     assert "no RealSense recorder" in capsys.readouterr().err
     assert not bag.exists()
+
+
+class FakeRealSenseRecorder:
+    """Stands in for ``vision_server.cameras.RealSenseRecorder`` (another module's, written
+    elsewhere): records how the record command drives it."""
+
+    made: list[FakeRealSenseRecorder] = []
+
+    def __init__(self, path: Path, **options: object) -> None:
+        self.path = path
+        self.options = options
+        self.added: list[tuple[tuple[int, ...], object, float]] = []
+        self.closed = False
+        path.write_bytes(b"bag")
+        FakeRealSenseRecorder.made.append(self)
+
+    def add(self, color_bgr: np.ndarray, depth_mm: np.ndarray | None, time_s: float) -> None:
+        assert color_bgr.dtype == np.uint8
+        assert depth_mm is None or depth_mm.dtype == np.uint16
+        self.added.append((color_bgr.shape, None if depth_mm is None else depth_mm.shape, time_s))
+        with self.path.open("ab") as file:
+            file.write(b"x" * 100)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_the_realsense_format_drives_the_realsense_recorder(
+    cell: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import vision_server.cameras as cameras
+
+    FakeRealSenseRecorder.made.clear()
+    monkeypatch.setattr(cameras, "RealSenseRecorder", FakeRealSenseRecorder, raising=False)
+    bag = cell.parent / "rec.bag"
+    code = record(cell, "rgbd", "--out", str(bag), "--format", "realsense", "--frames", "3")
+    assert code == 0, capsys.readouterr()
+    assert "recorded 3 frames of camera 'rgbd' (sim)" in capsys.readouterr().out
+    (made,) = FakeRealSenseRecorder.made
+    assert made.path == bag
+    assert made.closed
+    assert made.options["width"] == 640
+    assert made.options["height"] == 480
+    assert made.options["fps"] == 30
+    assert made.options["depth"] is True
+    assert made.options["depth_scale_m"] == 0.001
+    k = made.options["intrinsics"]
+    assert (k.width, k.fx) == (640, 570.3)  # type: ignore[attr-defined]
+    assert [a[:2] for a in made.added] == [((480, 640, 3), (480, 640))] * 3
+    stamps = [a[2] for a in made.added]
+    assert stamps == sorted(stamps)
+    # An existing file is not overwritten.
+    assert record(cell, "rgbd", "--out", str(bag), "--format", "realsense") == 2
+    assert "already exists" in capsys.readouterr().err
 
 
 def test_a_killed_recording_replays_what_it_wrote(cell: Path) -> None:
