@@ -104,8 +104,13 @@ def add_parser(sub: Any, parents: list[argparse.ArgumentParser]) -> None:
         "record",
         parents=parents,
         help="record a configured camera's frames (for replay: source recording, run, golden)",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Record what a configured camera sees (opened from --config as the "
+        "server opens it, outside any server) until a bound: --frames, --max-bytes or "
+        f"--duration; without any, {DEFAULT_FRAMES} frames. The recording (docs/recording.md) "
+        "replays as a camera (source: recording), through vision-server run --recording and "
+        "as golden cases (test-inspections --from-recording). Exit codes: 0 recorded up to a "
+        "bound; 1 the camera failed (what was recorded is kept); 2 usage or configuration "
+        "error; 130 Ctrl-C (what was recorded is kept).",
     )
     p.add_argument("camera", help="the camera's name in the configuration")
     p.add_argument(
