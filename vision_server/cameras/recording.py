@@ -41,8 +41,9 @@ gray (``gray16``) or 8-bit BGR (``bgr8``, stored by OpenCV as an RGB PNG). Depth
 :class:`RecordingWriter` writes one, within optional bounds (frames, bytes of frame files,
 seconds): it stops cleanly at whichever is reached first, and a frame that would overrun one is
 not written. The manifest is replaced atomically (a new file renamed over the old) after the
-first frame, then at most every ``sync_interval_s`` seconds, and at close: a recording that
-was interrupted (Ctrl-C, a kill, a power cut) replays every frame its manifest lists.
+first frame, then at most every ``sync_interval_s`` seconds, and at close, each time after the
+frame files it lists were flushed to the disk: a recording that was interrupted (Ctrl-C, a
+kill, a power cut) replays every frame its manifest lists.
 
 :class:`RecordingReader` reads one: the manifest at once (bounded in size), the frames one at a
 time when asked (never all at once). A bad recording gives :class:`RecordingError` (a
@@ -293,6 +294,7 @@ class RecordingWriter:
         self._stopped_by: StopReason | None = None
         self._closed = False
         self._synced_at: float | None = None
+        self._unsynced: list[Path] = []  # frame files the next manifest lists, not yet on disk
         self._write_manifest()
 
     # -- state -------------------------------------------------------------------------
@@ -369,8 +371,10 @@ class RecordingWriter:
         depth_name = None if depth_png is None else f"{stem}.depth.png"
         try:
             (self.path / color_name).write_bytes(color_png)
+            self._unsynced.append(self.path / color_name)
             if depth_name is not None and depth_png is not None:
                 (self.path / depth_name).write_bytes(depth_png)
+                self._unsynced.append(self.path / depth_name)
         except OSError as exc:
             raise RecordingError(
                 f"cannot write {self.path / stem}*.png: {exc.strerror or exc}"
@@ -416,11 +420,16 @@ class RecordingWriter:
         target = self.path / MANIFEST
         temporary = self.path / f".{MANIFEST}.tmp"
         try:
+            # The frames it lists reach the disk before the manifest that lists them.
+            for path in self._unsynced:
+                _fsync(path)
+            self._unsynced.clear()
             with temporary.open("w", encoding="utf-8") as file:
                 json.dump(manifest, file, separators=(",", ":"))
                 file.flush()
                 os.fsync(file.fileno())
             os.replace(temporary, target)
+            _fsync(self.path)  # the rename itself
         except OSError as exc:
             raise RecordingError(f"cannot write {target}: {exc.strerror or exc}") from exc
         if self._frames:
@@ -431,6 +440,15 @@ class RecordingWriter:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+def _fsync(path: Path) -> None:
+    """Flush a written file's (or a directory's entries') data to the disk."""
+    descriptor = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
 
 
 # ----------------------------------------------------------------------------- reading
