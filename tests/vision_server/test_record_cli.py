@@ -433,14 +433,8 @@ def test_golden_from_a_folder_recording_of_a_gray_inspection(
 # ----------------------------------------------------------------------------- console try
 
 
-def test_the_console_tries_a_frame_of_a_recording(
-    cell: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    out = cell.parent / "rec"
-    assert record(cell, "rgbd", "--out", str(out), "--frames", "10") == 0
-    capsys.readouterr()
-    assert main(["run", "--config", str(cell), "pose", "--recording", str(out), "--json"]) == 0
-    runs = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()]
+def console_config(cell: Path) -> Path:
+    """A console server's configuration beside ``cell``: the recording ``rec`` as a camera."""
     config = cell.parent / "console.yaml"
     config.write_text(
         f"server: {{port: 0, auth_token: {TOKEN}}}\n"
@@ -455,7 +449,18 @@ def test_the_console_tries_a_frame_of_a_recording(
         "  - {name: bright, type: presence, camera: shelf, measure: mean_intensity, min: 100}\n",
         encoding="utf-8",
     )
-    with running_cell(config) as running:
+    return config
+
+
+def test_the_console_tries_a_frame_of_a_recording(
+    cell: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = cell.parent / "rec"
+    assert record(cell, "rgbd", "--out", str(out), "--frames", "10") == 0
+    capsys.readouterr()
+    assert main(["run", "--config", str(cell), "pose", "--recording", str(out), "--json"]) == 0
+    runs = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()]
+    with running_cell(console_config(cell)) as running:
         client = Browserless(running.url)
         assert client.login().status == 200
         # The camera's frame of a sequence is the last one an inspection took: none yet.
@@ -489,3 +494,46 @@ def test_the_console_tries_a_frame_of_a_recording(
         assert (
             Browserless(running.url).try_("pose", {"source": "recording", "frame": 0}).status == 401
         )
+
+
+@pytest.mark.slow
+def test_the_console_page_tries_a_chosen_recording_frame(
+    cell: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The try panel of an inspection on a recording camera starts on "Recording frame"; the
+    frame typed in is the one tried."""
+    pytest.importorskip("selenium")
+    from browser import console_errors, headless_chromium
+    from console_pages import sign_in, wait_for
+    from selenium.webdriver.common.by import By
+
+    out = cell.parent / "rec"
+    assert record(cell, "rgbd", "--out", str(out), "--frames", "10") == 0
+    capsys.readouterr()
+    with running_cell(console_config(cell)) as running, headless_chromium() as driver:
+        sign_in(driver, running, "inspections")
+        wait_for(
+            driver,
+            lambda d: d.find_elements(By.CSS_SELECTOR, "[data-inspection=pose]"),
+            "the inspection list",
+        )
+        driver.find_element(By.CSS_SELECTOR, "[data-inspection=pose]").click()
+        choice = driver.find_element(By.CSS_SELECTOR, "input[name=try-source][value=recording]")
+        wait_for(driver, lambda d: choice.is_selected(), "the recording frame chosen")
+        frame = driver.find_element(By.ID, "try-recording-frame")
+        assert frame.is_displayed()
+        frame.clear()
+        frame.send_keys("7")
+        driver.find_element(By.ID, "try-run").click()
+        verdict = driver.find_element(By.ID, "try-verdict")
+        wait_for(driver, lambda d: verdict.text == "PASS", "the frame's verdict")
+        frame.clear()
+        frame.send_keys("99")
+        driver.find_element(By.ID, "try-run").click()
+        error = driver.find_element(By.ID, "try-error")
+        wait_for(driver, lambda d: "no frame 99" in error.text, "the server's refusal")
+        # An inspection on another camera does not offer it.
+        driver.find_element(By.CSS_SELECTOR, "[data-inspection=bright]").click()
+        recording_choice = driver.find_element(By.ID, "try-source-recording")
+        wait_for(driver, lambda d: not recording_choice.is_displayed(), "no recording choice")
+        assert console_errors(driver) == []
