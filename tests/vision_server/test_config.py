@@ -18,6 +18,7 @@ import pytest
 from vision_server.cameras import (
     FolderCameraSettings,
     OpenCVCameraSettings,
+    RecordingWriter,
     RequestCameraSettings,
     SimCameraSettings,
 )
@@ -693,6 +694,8 @@ def test_docs_list_exactly_the_keys_the_validator_reads(
     (tmp_path / "d").mkdir()
     cv2.imwrite(str(tmp_path / "d" / "f0.png"), np.zeros((8, 8), np.uint8))
     (tmp_path / "token").write_text("secret")
+    with RecordingWriter(tmp_path / "rec", camera="x", source="folder") as recording:
+        recording.add(np.zeros((8, 8), np.uint8), timestamp_s=0.0)
     text = f"""\
 server: {{host: 0.0.0.0, port: 0, name: x, max_frame_bytes: 1000000, max_image_pixels: 1000,
          max_in_flight: 2, max_connections: 3, workers: 1, queue_depth: 0,
@@ -712,6 +715,7 @@ cameras:
         depth_width: 32, depth_height: 24, reconnect_interval_s: 2}}
   gc: {{source: genicam, cti: p.cti, serial: "2", pixel_format: Mono12, exposure_us: 100,
         gain_db: 1, trigger: hardware, trigger_source: Line1, reconnect_interval_s: 2}}
+  rc: {{source: recording, path: rec, loop: true}}
 inspections:
   - {{name: t, type: locate, camera: req, method: template, template: {{image: t.png}}}}
   - {{name: c, type: locate, camera: req, method: circle,
@@ -757,7 +761,7 @@ modbus: {{enabled: true, host: 0.0.0.0, port: 0, unit_id: 3, word_order: low_fir
         "mount pose": {"xyz", "rpy"},
         **{
             f"source: {s}": docs["cameras"] | docs.get(f"source: {s}", set())
-            for s in ("request", "opencv", "folder", "sim", "realsense", "genicam")
+            for s in ("request", "opencv", "folder", "sim", "realsense", "genicam", "recording")
         },
         **{
             f"type: {t}": docs["inspections"] | docs[f"type: {t}"]

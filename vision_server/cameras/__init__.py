@@ -4,16 +4,19 @@ Sources (``source:`` in the configuration): ``request`` (images arrive with the 
 ``opencv`` (device, stream or video file through ``cv2.VideoCapture``, latest-frame semantics,
 automatic reconnect), ``folder`` (replay a directory), ``sim`` (the simulated cell),
 ``realsense`` (Intel RealSense RGB-D through pyrealsense2, an optional extra), ``aravis``
-(GigE Vision / USB3 Vision through Aravis, an optional extra) and ``genicam`` (GenICam
-through a vendor's GenTL producer and harvesters, an optional extra). Any source
-may deliver a depth frame (uint16 mm) registered to its colour frame.
+(GigE Vision / USB3 Vision through Aravis, an optional extra), ``genicam`` (GenICam through a
+vendor's GenTL producer and harvesters, an optional extra) and ``recording`` (replay a
+recording that ``vision-server record`` made of any camera, frame by frame, with its depth,
+timestamps and intrinsics). Any source may deliver a depth frame (uint16 mm) registered to its
+colour frame.
 
 Public API:
 
 - Settings (frozen, validated): :class:`Intrinsics`, :class:`RequestCameraSettings`,
   :class:`OpenCVCameraSettings`, :class:`FolderCameraSettings`, :class:`SimCameraSettings`,
   :class:`RealSenseCameraSettings`, :class:`GenICamCameraSettings`, :class:`AravisCameraSettings`,
-  ``CameraSettings`` (their union), ``SOURCE_NAMES`` (source name -> settings class).
+  :class:`RecordingCameraSettings`, ``CameraSettings`` (their union), ``SOURCE_NAMES``
+  (source name -> settings class).
 - :class:`CameraFrame` (``color``, ``depth``, ``timestamp``, ``index``) and :class:`Camera`
   (``name``, ``source``, ``has_depth``, ``intrinsics``, ``open()``,
   ``grab(*, timeout_s, newer_than=None)``, ``grab_many(n, *, timeout_s)``, ``status()``,
@@ -24,7 +27,14 @@ Public API:
 - The implementations: :class:`RequestCamera`, :class:`OpenCVCamera`, :class:`FolderCamera`,
   :class:`SimCamera`, :class:`RealSenseCamera`, :class:`GenICamCamera`, :class:`AravisCamera`
   (the SDK is imported when the camera first connects, so no extra is needed to load this
-  package).
+  package), :class:`RecordingCamera` (whose :meth:`~RecordingCamera.frame_at` reads any frame
+  without moving the camera's position).
+- Recordings (:mod:`.recording`, the format in docs/recording.md): :class:`RecordingWriter`
+  (bounded by frames, bytes or seconds; interrupted, it still replays what it wrote),
+  :class:`RecordingReader` (frames read one at a time), :class:`RecordingFrame`,
+  :class:`RecordedFrame`, :class:`RecordingError` (a ``ValueError`` naming the cause),
+  :func:`public_settings` (a camera's settings as a manifest shows them),
+  ``RECORDING_MANIFEST`` (``recording.json``).
 """
 
 from .aravis import AravisCamera
@@ -36,6 +46,16 @@ from .genicam import GenICamCamera
 from .mount import MOUNT_KEYS, CameraMount
 from .opencv import OpenCVCamera
 from .realsense import RealSenseCamera
+from .recording import MANIFEST as RECORDING_MANIFEST
+from .recording import (
+    RecordedFrame,
+    RecordingCamera,
+    RecordingError,
+    RecordingFrame,
+    RecordingReader,
+    RecordingWriter,
+    public_settings,
+)
 from .request import RequestCamera
 from .settings import (
     SOURCE_NAMES,
@@ -46,6 +66,7 @@ from .settings import (
     Intrinsics,
     OpenCVCameraSettings,
     RealSenseCameraSettings,
+    RecordingCameraSettings,
     RequestCameraSettings,
     SimCameraSettings,
 )
@@ -70,6 +91,14 @@ __all__ = [
     "OpenCVCameraSettings",
     "RealSenseCamera",
     "RealSenseCameraSettings",
+    "RECORDING_MANIFEST",
+    "RecordedFrame",
+    "RecordingCamera",
+    "RecordingCameraSettings",
+    "RecordingError",
+    "RecordingFrame",
+    "RecordingReader",
+    "RecordingWriter",
     "RequestCamera",
     "RequestCameraSettings",
     "SOURCE_NAMES",
@@ -77,4 +106,5 @@ __all__ = [
     "SimCamera",
     "SimCameraSettings",
     "make_camera",
+    "public_settings",
 ]

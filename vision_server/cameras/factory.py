@@ -11,6 +11,7 @@ from .folder import FolderCamera
 from .genicam import GenICamCamera
 from .opencv import OpenCVCamera
 from .realsense import RealSenseCamera
+from .recording import RecordingCamera
 from .request import RequestCamera
 from .settings import (
     AravisCameraSettings,
@@ -19,6 +20,7 @@ from .settings import (
     GenICamCameraSettings,
     OpenCVCameraSettings,
     RealSenseCameraSettings,
+    RecordingCameraSettings,
     RequestCameraSettings,
     SimCameraSettings,
 )
@@ -35,7 +37,8 @@ def make_camera(
     ``clock``: the time the camera reads and waits on (the system's unless given, see
     :mod:`vision_server.cameras.clock`).
 
-    Relative paths in the settings (a video file, a folder, a scene, a world-state file)
+    Relative paths in the settings (a video file, a folder, a scene, a world-state file, a
+    recording)
     resolve against ``base_dir``, the configuration file's directory. Raises ``ValueError`` for
     a configuration error found without touching hardware (an unreadable scene, a camera the
     scene lacks); an absent device or folder is reported later, by ``grab``.
@@ -56,4 +59,6 @@ def make_camera(
         return GenICamCamera(name, settings, base_dir=base_dir, clock=clock)
     if isinstance(settings, AravisCameraSettings):
         return AravisCamera(name, settings, clock=clock)
+    if isinstance(settings, RecordingCameraSettings):
+        return RecordingCamera(name, settings, base_dir=base_dir, clock=clock)
     raise TypeError(f"camera {name!r}: unknown settings type {type(settings).__name__}")

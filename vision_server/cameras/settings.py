@@ -31,6 +31,7 @@ __all__ = [
     "Intrinsics",
     "OpenCVCameraSettings",
     "RealSenseCameraSettings",
+    "RecordingCameraSettings",
     "RequestCameraSettings",
     "SimCameraSettings",
 ]
@@ -468,6 +469,29 @@ class GenICamCameraSettings:
         _mount(self.mount)
 
 
+@dataclass(frozen=True)
+class RecordingCameraSettings:
+    """A recording made by ``vision-server record`` (see :mod:`vision_server.cameras.recording`),
+    replayed frame by frame.
+
+    ``path``: the recording's directory (the one holding ``recording.json``), relative to the
+    configuration file. ``loop``: start again after the last frame; else the camera ends there
+    (CAMERA_UNAVAILABLE naming the recording and its frame count). ``intrinsics``: default the
+    recording's own (those the camera had when it was recorded).
+    """
+
+    path: Path
+    loop: bool = False
+    intrinsics: Intrinsics | None = None
+    mount: CameraMount | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "path", _path("path", self.path))
+        _bool("loop", self.loop)
+        _intrinsics(self.intrinsics)
+        _mount(self.mount)
+
+
 ARAVIS_PIXEL_FORMATS = (*GENICAM_PIXEL_FORMATS, "RGB8", "BGR8")
 """Values of ``AravisCameraSettings.pixel_format`` (GenICam's SFNC names, unpacked)."""
 
@@ -600,6 +624,7 @@ CameraSettings = (
     | RealSenseCameraSettings
     | GenICamCameraSettings
     | AravisCameraSettings
+    | RecordingCameraSettings
 )
 
 SOURCE_NAMES: dict[str, type[CameraSettings]] = {
@@ -610,5 +635,6 @@ SOURCE_NAMES: dict[str, type[CameraSettings]] = {
     "realsense": RealSenseCameraSettings,
     "genicam": GenICamCameraSettings,
     "aravis": AravisCameraSettings,
+    "recording": RecordingCameraSettings,
 }
 """The ``source:`` value of a camera in the configuration -> its settings class."""

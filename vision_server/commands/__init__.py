@@ -3,7 +3,8 @@
 - :mod:`.program`: :func:`main`, the parser, ``serve``, ``check-config``, ``run``, ``ping`` and
   ``reload``;
 - :mod:`.results`: ``results``; :mod:`.modbus_map`: ``modbus-map``; :mod:`.sensor_check`:
-  ``sensor-check``; :mod:`.golden`: ``test-inspections`` and the golden cases' runner;
+  ``sensor-check``; :mod:`.record`: ``record`` (a camera's frames to a recording);
+  :mod:`.golden`: ``test-inspections`` and the golden cases' runner;
   :mod:`.offline`: the service without a server, for ``run`` and the golden cases;
   :mod:`.admin`: the small blocking client behind ``ping`` and ``reload``.
 

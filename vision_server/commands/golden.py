@@ -17,6 +17,8 @@ the file under test::
 
     config: ../../examples/cell.yaml
     inspection: magnet_check
+    intrinsics: {width: 640, ...}   # optional: when the configured camera gives none (a
+                                    # device's own, e.g. RealSense): those the images had
 
 Both are read with the server configuration's parser (unknown keys are errors; errors name the
 file, the line and the key path). ``images: PATH`` points the case at a directory outside the
@@ -33,6 +35,14 @@ Every image runs through the inspection service, as ``vision-server run`` does
 inspection's camera replaced by a request camera with the same intrinsics).
 :func:`run_cases` compares the replies with the expectations and, with
 ``update=True``, rewrites ``expected.yaml`` from them (keeping tolerances and notes).
+
+:func:`case_from_recording` makes a case from a recording (``vision-server test-inspections
+--from-recording DIR --inspection NAME --out CASE``): the recording's frames become the case's
+images (copied, lossless; an inspection that takes N frames gets N depth frames per image, as
+from the camera), ``inspection.yaml`` references the configuration's inspection, and
+``expected.yaml`` records what the inspection gives now, for the integrator to review. The case
+copies the frames rather than pointing at the recording, so that it stays a self-contained,
+reviewable regression test when the recording is deleted or re-recorded.
 """
 
 from __future__ import annotations
@@ -42,12 +52,14 @@ import difflib
 import hashlib
 import json
 import math
+import os
 import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from rich.console import Console
 from rich.markup import escape
@@ -56,7 +68,14 @@ from rich.table import Table
 from protocol import CellvisionError, ImageRole
 from yamlfile import boolean, non_negative, non_negative_int, number, one_of, string
 
-from ..cameras import SOURCE_NAMES, CameraSettings, RequestCameraSettings
+from ..cameras import (
+    SOURCE_NAMES,
+    CameraSettings,
+    Intrinsics,
+    RecordingError,
+    RecordingReader,
+    RequestCameraSettings,
+)
 from ..config import (
     ConfigError,
     Node,
@@ -359,6 +378,11 @@ def _inspection(root: Node, base_dir: Path) -> tuple[Inspection, CameraSettings,
         if root.has("camera"):
             raise root.error("with config, the camera comes from the configuration", "camera")
         root.take("camera", string, None)
+        intrinsics = None
+        if root.has("intrinsics"):
+            intrinsics = settings_from_node(root.sub("intrinsics"), Intrinsics)
+        else:
+            root.take("intrinsics", string, None)  # allowed here, and absent
         if not config_path.is_file():
             raise root.error(f"no such configuration file: {config_path}", "config")
         config = load_config(config_path)
@@ -368,7 +392,21 @@ def _inspection(root: Node, base_dir: Path) -> tuple[Inspection, CameraSettings,
             raise root.error(
                 f"{config_path.name} has no inspection {name!r} ({names})", "inspection"
             )
-        return found, config.cameras[found.camera], config.base_dir
+        configured = config.cameras[found.camera]
+        if intrinsics is None:
+            return found, configured, config.base_dir
+        if getattr(configured, "intrinsics", None) is not None:
+            raise root.error(
+                f"camera {found.camera!r} has intrinsics in {config_path.name}: the case runs "
+                "with those; drop intrinsics here",
+                "intrinsics",
+            )
+        # The images' own intrinsics, for a camera whose intrinsics come from its device.
+        own: CameraSettings = RequestCameraSettings(intrinsics, depth=found.uses_depth)
+        return found, own, config.base_dir
+    if root.has("intrinsics"):
+        raise root.error("intrinsics go with config (inline: in camera)", "intrinsics")
+    root.take("intrinsics", string, None)
     root.take("config", string, None)
     if "inspection" not in root or not isinstance(root.data["inspection"], dict):
         root.sub("inspection", required=True)  # the error: missing, or not a mapping
@@ -930,7 +968,17 @@ def _scalar(value: Any) -> str:
         return "[" + ", ".join(_scalar(v) for v in value) + "]"
     if isinstance(value, dict):
         return "{" + ", ".join(f"{_scalar(k)}: {_scalar(v)}" for k, v in value.items()) + "}"
-    return repr(value) if isinstance(value, float) else str(value)
+    return _yaml_float(value) if isinstance(value, float) else str(value)
+
+
+def _yaml_float(value: float) -> str:
+    """A float as YAML 1.1 (PyYAML) reads it back as a float: ``-4e-05`` would be a string,
+    ``-4.0e-05`` is a number."""
+    text = repr(value)
+    mantissa, e, exponent = text.partition("e")
+    if e and "." not in mantissa:
+        return f"{mantissa}.0e{exponent}"
+    return text
 
 
 def expected_yaml(header: str, defaults: dict[str, Any], entries: dict[str, dict[str, Any]]) -> str:
@@ -1042,6 +1090,114 @@ def _count(n: int, noun: str) -> str:
     return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
+# ----------------------------------------------------------------------------- from a recording
+
+
+def case_from_recording(
+    recording_dir: Path,
+    config_path: Path,
+    inspection_name: str,
+    out: Path,
+    *,
+    frames: Sequence[int] = (),
+) -> CaseReport:
+    """Make the case ``out`` from a recording: its frames (those from ``frames``, default all)
+    as images, the configuration's inspection, and ``expected.yaml`` from what the inspection
+    gives now (:func:`run_case` with ``update``). Raises ``ConfigError`` for a bad
+    configuration, inspection, recording, frame or ``out`` (nothing written then)."""
+    config = load_config(config_path)
+    inspection = next((i for i in config.inspections if i.name == inspection_name), None)
+    if inspection is None:
+        names = ", ".join(i.name for i in config.inspections) or "none"
+        raise ConfigError(
+            f"no inspection {inspection_name!r} (configured: {names})", source=str(config_path)
+        )
+    try:
+        recording = RecordingReader(recording_dir)
+    except RecordingError as exc:
+        raise ConfigError(str(exc), source=str(recording_dir)) from None
+    group = max(1, inspection.frames)
+    total = len(recording)
+    starts = list(frames) or list(range(0, total - group + 1, group))
+    bad = [start for start in starts if not 0 <= start <= total - group]
+    if bad or not starts:
+        raise ConfigError(
+            f"the recording has {total} frames (0..{total - 1}) and {inspection.name} takes "
+            f"{group} at a time: "
+            + (f"no run from frame {bad[0]}" if bad else "not enough for one"),
+            source=str(recording_dir),
+        )
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ConfigError("already exists: a case is made in a new folder", source=str(out))
+    configured = config.cameras[inspection.camera]
+    intrinsics = None
+    if getattr(configured, "intrinsics", None) is None and recording.intrinsics is not None:
+        intrinsics = recording.intrinsics
+    images = out / "images"
+    try:
+        images.mkdir(parents=True, exist_ok=True)
+        for start in starts:
+            _copy_run(recording, start, group, images, depth=inspection.uses_depth)
+    except RecordingError as exc:
+        raise ConfigError(str(exc), source=str(recording_dir)) from None
+    except OSError as exc:
+        raise ConfigError(f"cannot write: {exc.strerror or exc}", source=str(images)) from None
+    relative = Path(_relative(config_path.resolve(), out.resolve()))
+    lines = [
+        f"# Made by `vision-server test-inspections --from-recording` from {recording_dir}",
+        f"# (camera {recording.camera}, {recording.source}; recorded {recording.started};",
+        f"# configuration hash then {recording.config_hash or 'unknown'}). expected.yaml holds",
+        "# what the inspection gave on these frames when the case was made: review it.",
+        f"description: {json.dumps(f'frames of the recording {recording_dir.name}')}",
+        f"config: {json.dumps(relative.as_posix())}",
+        f"inspection: {json.dumps(inspection.name)}",
+    ]
+    if intrinsics is not None:
+        values = {
+            "width": intrinsics.width,
+            "height": intrinsics.height,
+            "fx": intrinsics.fx,
+            "fy": intrinsics.fy,
+            "cx": intrinsics.cx,
+            "cy": intrinsics.cy,
+            "distortion": list(intrinsics.distortion),
+        }
+        lines.append("# The recording's intrinsics: the configured camera gives none.")
+        lines.append(f"intrinsics: {json.dumps(values)}")
+    (out / CASE_FILE).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return run_case(out, update=True)
+
+
+def _relative(target: Path, start: Path) -> str:
+    return os.path.relpath(target, start)
+
+
+def _copy_run(
+    recording: RecordingReader, start: int, group: int, images: Path, *, depth: bool
+) -> None:
+    """One run's frames into a case's images: the first frame's colour as frame_NNNNNN.png
+    (an 8-bit file copied as it is, 16-bit gray scaled as the camera gives it), the depth of
+    each as frame_NNNNNN.depth0.png, .depth1.png, ..."""
+    first = recording.read(start)
+    name = f"frame_{start:06d}"
+    if first.color.dtype == np.uint8:
+        data = (recording.path / first.entry.color).read_bytes()
+    else:
+        ok, encoded = cv2.imencode(".png", first.color8())
+        if not ok:  # pragma: no cover - an 8-bit array always encodes
+            raise RecordingError(f"cannot encode frame {start} as PNG")
+        data = bytes(encoded)
+    (images / f"{name}.png").write_bytes(data)
+    if not depth:
+        return
+    for j, index in enumerate(range(start, start + group)):
+        entry = recording.read(index).entry if index != start else first.entry
+        if entry.depth is None:
+            continue
+        data = (recording.path / entry.depth).read_bytes()
+        (images / f"{name}.depth{j}.png").write_bytes(data)
+
+
 def golden_command(paths: Sequence[str], *, json_out: bool = False, update: bool = False) -> int:
     """``vision-server test-inspections``: 0 all pass, 1 a regression, 2 a bad case file."""
     report = run_cases([Path(p) for p in paths] or None, update=update)
@@ -1060,6 +1216,7 @@ __all__ = [
     "ImageReport",
     "Report",
     "Tolerances",
+    "case_from_recording",
     "compare",
     "expected_yaml",
     "find_cases",

@@ -18,7 +18,14 @@ from typing import Any
 from protocol import ImagePayload, ImageRole
 from protocol.image_files import payload_from_file
 
-from ..cameras import RequestCamera, RequestCameraSettings
+from ..cameras import (
+    Intrinsics,
+    RecordingCameraSettings,
+    RecordingError,
+    RecordingReader,
+    RequestCamera,
+    RequestCameraSettings,
+)
 from ..config import ServiceSettings
 from ..frontends import payload_loader
 from ..inspections import Inspection
@@ -32,13 +39,19 @@ def offline_service(
     *,
     config_hash: str = "",
     max_image_pixels: int | None = None,
+    intrinsics: Intrinsics | None = None,
 ) -> InspectionService:
     """A one-worker service for ``inspection`` alone, its camera (configured with
     ``settings``) replaced by a request camera with the same intrinsics. ``max_image_pixels``:
-    the configuration's limit (default: the server's default)."""
+    the configuration's limit (default: the server's default). ``intrinsics``: those the
+    images were taken with (a recording's), used when the settings give none; a recording
+    camera's settings without intrinsics take its recording's."""
+    known = getattr(settings, "intrinsics", None) or intrinsics
+    if known is None and isinstance(settings, RecordingCameraSettings):
+        known = _recording_intrinsics(settings, base_dir)
     camera = RequestCamera(
         inspection.camera,
-        RequestCameraSettings(getattr(settings, "intrinsics", None), depth=inspection.uses_depth),
+        RequestCameraSettings(known, depth=inspection.uses_depth),
     )
     if camera.intrinsics is None and inspection.uses_depth:
         camera = _with_scene_intrinsics(inspection.camera, settings, base_dir) or camera
@@ -47,6 +60,16 @@ def offline_service(
     if max_image_pixels is not None:
         served = ServiceSettings(workers=1, queue_depth=0, max_image_pixels=max_image_pixels)
     return InspectionService(catalog, served)
+
+
+def _recording_intrinsics(settings: RecordingCameraSettings, base_dir: Path) -> Intrinsics | None:
+    """The intrinsics a recording camera's recording holds (None when it cannot be read: the
+    images are then inspected without, as for a camera that declares none)."""
+    path = settings.path.expanduser()
+    try:
+        return RecordingReader(path if path.is_absolute() else base_dir / path).intrinsics
+    except RecordingError:
+        return None
 
 
 def _with_scene_intrinsics(name: str, settings: Any, base_dir: Path) -> RequestCamera | None:

@@ -9,8 +9,13 @@ register map, and check or reload a running server.
     vision-server check-config cell.yaml
     vision-server run --config cell.yaml cap_locate --image cap.png [--image more.bmp ...]
                       [--json] [--overlay out.png]
+    vision-server run --config cell.yaml station_pose --recording DIR [--frame N ...]
     vision-server test-inspections [PATH ...] [--json] [--update]   # golden cases
+    vision-server test-inspections --config cell.yaml --from-recording DIR --inspection NAME
+                      --out CASE [--frame N ...]   # a golden case from a recording
     vision-server results --config cell.yaml --since 1h [--inspection NAME] [--json]
+    vision-server record CAMERA --config cell.yaml --out DIR [--frames N] [--max-bytes SIZE]
+                      [--duration S] [--interval S] [--format auto|cellvision|realsense]
     vision-server modbus-map cell.yaml [--json]   # the PLC's register map (protocol/MODBUS.md)
     vision-server sensor-check --config cell.yaml station_pose --view c1.png d1.png ...
                       [--json]   # a depth camera's misregistration and scale (guide 7.3)
@@ -79,6 +84,7 @@ from protocol.image_files import (
 from protocol.result_view import result_json, result_view
 
 from ..app import App
+from ..cameras import RecordingError, RecordingReader
 from ..config import (
     CellConfig,
     ConfigError,
@@ -95,7 +101,8 @@ from ..config import (
 )
 from ..process import PROCESS_ENV, decoder_limits
 from ..results import is_database_url
-from ..service import Catalog, InspectReply, builtin_catalog
+from ..service import Catalog, Images, InspectReply, InspectRequest, builtin_catalog
+from . import record as record_cli
 from . import sensor_check as sensor_check_cli
 from .admin import AdminError, call_endpoint, resolve
 from .offline import file_request, image_payload, offline_service
@@ -452,6 +459,10 @@ def _run(args: argparse.Namespace) -> int:
             f"no inspection named {args.inspection!r}; configured: "
             f"{', '.join(i.name for i in config.inspections)}",
         )
+    if args.recording is not None:
+        return _run_recording(args, config, inspection)
+    if args.frame:
+        return _fail(args, ErrorKind.USAGE, "--frame goes with --recording")
     if len(args.image) > 1 and args.depth:
         return _fail(args, ErrorKind.USAGE, "--depth frames go with one --image, not several")
     if len(args.image) > 1 and args.overlay is not None:
@@ -502,6 +513,83 @@ def _run(args: argparse.Namespace) -> int:
     return int(asyncio.run(each()))
 
 
+def _run_recording(args: argparse.Namespace, config: CellConfig, inspection: Any) -> int:
+    """``run --recording DIR``: the inspection on the recording's frames, ``inspection.frames``
+    consecutive frames a run (the first one's colour, every one's depth), as a ``recording``
+    camera would give them; each run reported as an image's is."""
+    if args.depth:
+        return _fail(args, ErrorKind.USAGE, "--depth goes with --image: a recording has its own")
+    try:
+        recording = RecordingReader(args.recording)
+    except RecordingError as exc:
+        return _fail(args, ErrorKind.USAGE, str(exc))
+    group = max(1, int(inspection.frames))
+    total = len(recording)
+    starts = list(args.frame) or list(range(0, total - group + 1, group))
+    for start in starts:
+        if not 0 <= start <= total - group:
+            return _fail(
+                args,
+                ErrorKind.USAGE,
+                f"--frame {start}: the recording has {total} frames (0..{total - 1}) and "
+                f"{inspection.name} takes {group} at a time",
+            )
+    if not starts:
+        return _fail(
+            args,
+            ErrorKind.USAGE,
+            f"{args.recording}: {total} frames, {inspection.name} takes {group} at a time",
+        )
+    if len(starts) > 1 and args.overlay is not None:
+        return _fail(args, ErrorKind.USAGE, "--overlay takes one run: give one --frame")
+    try:
+        suffix = None
+        if args.overlay is not None:
+            suffix = check_overlay_path(args.overlay, folder_exists=os.path.isdir)
+    except ValueError as exc:
+        return _fail(args, ErrorKind.USAGE, str(exc))
+    service = offline_service(
+        inspection,
+        config.cameras[inspection.camera],
+        config.base_dir,
+        config_hash=config.config_hash,
+        max_image_pixels=config.server.max_image_pixels,
+        intrinsics=recording.intrinsics,
+    )
+    console = Console()
+
+    async def each() -> ExitCode:
+        worst = ExitCode.OK
+        try:
+            for number, start in enumerate(starts, start=1):
+                name = str(recording.path / recording.entries[start].color)
+                try:
+                    # One run's frames at a time: a recording is never all in memory.
+                    frames = [recording.read(i) for i in range(start, start + group)]
+                except RecordingError as exc:
+                    worst = max(worst, ExitCode(_fail(args, ErrorKind.USAGE, str(exc))))
+                    continue
+                depth = tuple(f.depth for f in frames if f.depth is not None)
+                images = Images(frames[0].color8(), depth if inspection.uses_depth else ())
+                request = InspectRequest(
+                    inspection.name, images, overlay=suffix, peer="offline", request_id=number
+                )
+                try:
+                    reply = await service.inspect(request)
+                except CellvisionError as exc:
+                    worst = max(worst, _image_error(args, name, exc))
+                    continue
+                _show_result(args, console, reply, name, frame=start)
+                worst = max(worst, ExitCode.OK if reply.passed else ExitCode.FAILED)
+                if suffix is not None:
+                    worst = max(worst, _write_overlay(args, reply))
+        finally:
+            service.close()
+        return worst
+
+    return int(asyncio.run(each()))
+
+
 def _image_error(args: argparse.Namespace, image: str, exc: CellvisionError) -> ExitCode:
     """Report the error of one image's run; its exit code."""
     if args.json:
@@ -514,15 +602,23 @@ def _image_error(args: argparse.Namespace, image: str, exc: CellvisionError) -> 
 
 
 def _show_result(
-    args: argparse.Namespace, console: Console, reply: InspectReply, image: str
+    args: argparse.Namespace,
+    console: Console,
+    reply: InspectReply,
+    image: str,
+    *,
+    frame: int | None = None,
 ) -> None:
     if args.json:  # one object per image, one per line; full precision
         shown = Result(
             0, reply.inspection, reply.passed, reply.data, reply.timing, reply.camera
         )  # the one --json shape of both tools (protocol.result_view)
-        print(json.dumps(result_json(shown, image=image)))
+        out = result_json(shown, image=image)
+        if frame is not None:  # a recording's run: the frame it started at
+            out = {**out, "frame": frame}
+        print(json.dumps(out))
         return
-    title = Text(f"{image}: ")
+    title = Text(f"{image}: " if frame is None else f"{image} (frame {frame}): ")
     title.append_text(_verdict_text(reply.passed))
     title.append(f" {reply.inspection} on {reply.camera}")
     title.append(f" ({reply.compute_ms:.1f} ms)", style="dim")
@@ -581,7 +677,52 @@ def _test_inspections(args: argparse.Namespace) -> int:
     """Golden cases (inspection + images + expected results) through the serving code path."""
     from .golden import golden_command
 
+    if args.from_recording is not None:
+        return _case_from_recording(args)
+    given = [f"--{n}" for n in ("inspection", "out") if getattr(args, n) is not None]
+    if given or args.frame:
+        return _fail(
+            args, ErrorKind.USAGE, f"{(given or ['--frame'])[0]} goes with --from-recording"
+        )
     return golden_command(args.paths, json_out=args.json, update=args.update)
+
+
+def _case_from_recording(args: argparse.Namespace) -> int:
+    """``test-inspections --from-recording DIR --inspection NAME --out CASE``: make the case,
+    report it as a run with --update is reported."""
+    from .golden import Report, case_from_recording, print_report, report_json
+
+    config_path = _config_path(args)
+    missing = [f"--{n}" for n in ("inspection", "out") if getattr(args, n) is None]
+    if missing:
+        return _fail(args, ErrorKind.USAGE, f"--from-recording needs {' and '.join(missing)}")
+    if not config_path:
+        return _fail(
+            args, ErrorKind.USAGE, f"--from-recording needs --config FILE (or ${CONFIG_ENV})"
+        )
+    if args.paths or args.update:
+        return _fail(args, ErrorKind.USAGE, "--from-recording makes one case: no PATH, no --update")
+    try:
+        case = case_from_recording(
+            Path(args.from_recording),
+            Path(config_path),
+            args.inspection,
+            Path(args.out),
+            frames=args.frame,
+        )
+    except ConfigError as exc:
+        return _fail(args, ErrorKind.USAGE, str(exc))
+    report = Report([case], updated=True)
+    if args.json:
+        print(json.dumps(report_json(report)))
+    else:
+        print_report(report, Console())
+        if report.exit_code == 0:
+            print(
+                f"case written to {args.out}: review its expected.yaml, then run "
+                f"`vision-server test-inspections {args.out}`"
+            )
+    return report.exit_code
 
 
 # ----------------------------------------------------------------------------- results, admin
@@ -819,14 +960,32 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("file", nargs="?", help=f"the configuration (default ${CONFIG_ENV})")
     check.set_defaults(func=_check_config)
 
-    run = sub.add_parser("run", parents=[local], help="run one inspection offline on image files")
+    run = sub.add_parser(
+        "run", parents=[local], help="run one inspection offline on image files or a recording"
+    )
     run.add_argument("inspection")
-    run.add_argument(
+    images = run.add_mutually_exclusive_group(required=True)
+    images.add_argument(
         "--image",
         action="append",
-        required=True,
         help="colour or gray image, 8-bit, any format OpenCV reads (PNG, JPEG, BMP, TIFF, "
         "WebP, PGM, ...); repeat to run on each in turn (one result each; exit code: the worst)",
+    )
+    images.add_argument(
+        "--recording",
+        metavar="DIR",
+        help="a recording (vision-server record): run on its frames in turn, with their depth "
+        "and the recording's intrinsics (the configuration's when it gives them); an "
+        "inspection that takes N frames (qr_pose: frames, default 5) takes N at a time, as "
+        "from the camera",
+    )
+    run.add_argument(
+        "--frame",
+        action="append",
+        type=int,
+        default=[],
+        metavar="N",
+        help="with --recording: run only from frame N (0-based); repeat for more",
     )
     run.add_argument(
         "--depth",
@@ -854,6 +1013,23 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="rewrite expected.yaml from the results, show the diff",
     )
+    made = golden.add_argument_group(
+        "making a case from a recording (needs --config; expected.yaml is what the "
+        "inspection gives now: review it)"
+    )
+    made.add_argument(
+        "--from-recording", metavar="DIR", help="the recording (vision-server record)"
+    )
+    made.add_argument("--inspection", metavar="NAME", help="the configuration's inspection")
+    made.add_argument("--out", metavar="CASE", help="the new case folder")
+    made.add_argument(
+        "--frame",
+        action="append",
+        type=int,
+        default=[],
+        metavar="N",
+        help="only the run from frame N (0-based); repeat for more (default: every frame)",
+    )
     golden.set_defaults(func=_test_inspections)
 
     results = sub.add_parser("results", parents=[local], help="list logged inspection results")
@@ -869,6 +1045,7 @@ def build_parser() -> argparse.ArgumentParser:
     results.set_defaults(func=_results)
 
     sensor_check_cli.add_parser(sub, [local])
+    record_cli.add_parser(sub, [local])
 
     modbus_map = sub.add_parser(
         "modbus-map",

@@ -5,7 +5,7 @@
     server:   {host, port, name, auth_token | auth_token_file, tls: {cert, key}, limits...}
     console:  {enabled, host, port, max_view_fps}   (the web console; token and TLS: server's)
     results:  {path | url, store_images: none|failures|all, max_image_mb, spool}
-    cameras:  {NAME: {source: request|opencv|folder|sim|realsense|genicam, ...settings,
+    cameras:  {NAME: {source: request|opencv|folder|sim|realsense|genicam|recording, ...settings,
                intrinsics}}
     inspections: [{name, type: locate|presence|qr|code|qr_pose|calibration_board, camera, roi,
                    number, output, ...}]
@@ -37,6 +37,9 @@ from ..cameras import (
     CameraSettings,
     FolderCameraSettings,
     Intrinsics,
+    RecordingCameraSettings,
+    RecordingError,
+    RecordingReader,
 )
 from ..inspections import InspectionSpec, numbers_by_position, parse_inspection
 from ..process import MAX_NICE, POLICIES
@@ -517,7 +520,31 @@ def _cameras(root: Node, base_dir: Path) -> dict[str, CameraSettings]:
         folder = cameras[name]
         if isinstance(folder, FolderCameraSettings):
             _check_folder(node, folder, base_dir)
+        if isinstance(folder, RecordingCameraSettings):
+            _check_recording(node, folder, base_dir)
     return cameras
+
+
+def _check_recording(node: Node, settings: RecordingCameraSettings, base_dir: Path) -> None:
+    """A recording camera replays a recording that exists when the configuration is loaded:
+    its manifest must be readable and list a frame, and configured intrinsics must be for its
+    frames' size (else every request would be CAMERA_UNAVAILABLE). Frame files are read, and
+    checked, when they are replayed."""
+    path = _resolve(base_dir, str(settings.path))
+    try:
+        recording = RecordingReader(path)
+    except RecordingError as exc:
+        raise node.error(str(exc), "path") from None
+    if not len(recording):
+        raise node.error(f"the recording {path} has no frames", "path")
+    k = settings.intrinsics
+    first = recording.entries[0]
+    if k is not None and (k.width, k.height) != (first.width, first.height):
+        raise node.error(
+            f"intrinsics are for {k.width}x{k.height} but the recording's frames are "
+            f"{first.width}x{first.height}",
+            "intrinsics",
+        )
 
 
 def _check_folder(node: Node, settings: FolderCameraSettings, base_dir: Path) -> None:

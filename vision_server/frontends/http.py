@@ -40,6 +40,7 @@ from protocol import (
     InvalidArgument,
 )
 
+from ..cameras import RecordingCamera, RecordingError
 from ..config import FIXED_BY_THE_CONFIGURATION, SERVER_VERSION, ConsoleSettings
 from ..console import static_dir
 from ..results import TRY_PEER_PREFIX, ResultLogError
@@ -584,8 +585,16 @@ class HttpFrontend:
                 images = upload_loader(upload)
             elif source == "result":
                 images = self._result_loader(spec.get("result_id"))
+            elif source == "recording":
+                images = self._recording_loader(
+                    inspection.camera, spec.get("frame"), inspection.frames
+                )
             else:
-                raise HttpError(400, "BAD_REQUEST", "source must be 'camera', 'upload' or 'result'")
+                raise HttpError(
+                    400,
+                    "BAD_REQUEST",
+                    "source must be 'camera', 'upload', 'result' or 'recording'",
+                )
             extras: dict[str, Any] = {}
             loader = _with_extras(images, merged, extras)
             # The row this try leaves in the result log is marked as a try by its peer, with
@@ -682,6 +691,50 @@ class HttpFrontend:
             return taken
         reply = await self.service.capture(CaptureRequest(camera))
         return Images(reply.frames[0].color)
+
+    def _recording_loader(
+        self, camera: str, frame: Any, count: int
+    ) -> Callable[[ImageNeeds], Images]:
+        """Frame ``frame`` of a recording camera's recording (and the next ones, up to the
+        ``count`` frames the inspection takes, as from the camera), read in the worker without
+        moving the camera's position: the cell's next inspection still gets its next frame.
+        The pixel count comes from the recording's manifest and is checked before decoding."""
+        if isinstance(frame, bool) or not isinstance(frame, int) or frame < 0:
+            raise HttpError(400, "BAD_REQUEST", "frame must be an integer >= 0")
+        source = self.service.catalog.camera(camera)
+        if not isinstance(source, RecordingCamera):
+            raise HttpError(
+                400,
+                "BAD_REQUEST",
+                f"camera {camera!r} ({source.source}) is not a recording: source 'recording' "
+                "tries a frame of a camera with source: recording",
+            )
+        recording = source.recording  # CAMERA_UNAVAILABLE when it cannot be read
+        total = len(recording)
+        if frame >= total:
+            raise HttpError(
+                400,
+                "BAD_REQUEST",
+                f"camera {camera!r}: its recording has {total} frames (0..{total - 1}), "
+                f"no frame {frame}",
+            )
+        indices = range(frame, min(frame + max(1, count), total))
+
+        def load(needs: ImageNeeds) -> Images:
+            entry = recording.entries[frame]
+            if entry.width * entry.height > needs.max_pixels:
+                raise ImageTooLarge(
+                    f"frame {frame} is {entry.width}x{entry.height}, more than "
+                    f"{needs.max_pixels} pixels"
+                )
+            try:
+                frames = [source.frame_at(i) for i in indices]
+            except RecordingError as exc:
+                raise InvalidArgument(str(exc)) from None
+            depth = tuple(f.depth for f in frames if f.depth is not None)
+            return Images(frames[0].color, depth if needs.depth else ())
+
+        return load
 
     def _result_loader(self, result_id: Any) -> Callable[[ImageNeeds], Images]:
         if isinstance(result_id, bool) or not isinstance(result_id, int) or result_id < 1:

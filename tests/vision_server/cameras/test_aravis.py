@@ -336,9 +336,7 @@ def test_through_the_server(device: aravis_emulator.Emulator, tmp_path: Path) ->
         with running_cell(other / "cell.yaml") as second:
 
             async def inspect_second() -> str:
-                async with VisionClient(
-                    "127.0.0.1", second.app.port, request_timeout_s=30.0
-                ) as c:
+                async with VisionClient("127.0.0.1", second.app.port, request_timeout_s=30.0) as c:
                     with pytest.raises(CameraUnavailable) as caught:
                         await c.inspect("lit")
                     return str(caught.value)

@@ -18,6 +18,7 @@ from vision_server.cameras import (
     Intrinsics,
     OpenCVCameraSettings,
     RealSenseCameraSettings,
+    RecordingCameraSettings,
     RequestCameraSettings,
     SimCameraSettings,
 )
@@ -145,6 +146,7 @@ def test_request_settings_and_source_names() -> None:
         "realsense": RealSenseCameraSettings,
         "genicam": GenICamCameraSettings,
         "aravis": AravisCameraSettings,
+        "recording": RecordingCameraSettings,
     }
 
 

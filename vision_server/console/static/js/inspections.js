@@ -49,6 +49,7 @@ export class InspectionsPage {
     }
     byId("try-file").addEventListener("change", () => this.run());
     byId("try-result-id").addEventListener("change", () => this.run());
+    byId("try-recording-frame").addEventListener("change", () => this.run());
     for (const [i, id] of ["roi-x", "roi-y", "roi-w", "roi-h"].entries()) {
       byId(id).addEventListener("input", () => {
         const current = this.currentRoi() ?? [0, 0, 1, 1];
@@ -106,12 +107,16 @@ export class InspectionsPage {
       `camera ${insp.camera} (${insp.camera_source}${insp.depth ? ", depth" : ""})`;
     byId("insp-config").textContent = toYaml(insp.config ?? {});
     this.buildParams(insp);
+    // A recording camera's frames can be tried one by one (docs/console.md, source "recording").
+    byId("try-source-recording").hidden = insp.camera_source !== "recording";
     if (switched) {
       this.clearOutcome();
       byId("try-image").removeAttribute("src");
       byId("try-hint").hidden = false;
-      // A request camera has no frame of its own to grab: start from an upload.
-      const source = insp.camera_source === "request" ? "upload" : "camera";
+      // A request camera has no frame of its own to grab: start from an upload. A recording
+      // camera: from its recording's frames (its "camera frame" is the last one inspected).
+      const first = { request: "upload", recording: "recording" };
+      const source = first[insp.camera_source] ?? "camera";
       document.querySelector(`input[name=try-source][value=${source}]`).checked = true;
       this.sourceChanged({ run: false });
     }
@@ -202,8 +207,9 @@ export class InspectionsPage {
     const source = this.source();
     byId("try-file").hidden = source !== "upload";
     byId("try-result-id").hidden = source !== "result";
+    byId("try-recording-frame").hidden = source !== "recording";
     if (source === "upload" && run) byId("try-file").click();
-    else if (source === "camera" && run) this.run();
+    else if ((source === "camera" || source === "recording") && run) this.run();
   }
 
   clearOutcome() {
@@ -220,6 +226,7 @@ export class InspectionsPage {
   requestBody() {
     const body = { source: this.source(), options: { ...this.changes }, overlay: true };
     if (body.source === "result") body.result_id = Number(byId("try-result-id").value);
+    if (body.source === "recording") body.frame = Number(byId("try-recording-frame").value);
     return body;
   }
 
@@ -237,6 +244,10 @@ export class InspectionsPage {
     }
     if (body.source === "result" && !(body.result_id > 0)) {
       byId("try-error").textContent = "Enter the id of a stored result (see the Results page).";
+      return;
+    }
+    if (body.source === "recording" && !(Number.isInteger(body.frame) && body.frame >= 0)) {
+      byId("try-error").textContent = "Enter a frame of the recording (0 is the first).";
       return;
     }
     this.running = true;

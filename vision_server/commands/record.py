@@ -1,0 +1,428 @@
+"""``vision-server record CAMERA``: record what a configured camera sees, for replay offline.
+
+The camera is opened from the configuration (``--config``) as the server opens it, outside any
+server, and grabbed until a bound is reached: ``--frames N``, ``--max-bytes SIZE`` (the frame
+files), ``--duration S``; without any, 100 frames. ``--interval S`` waits between grabs (from
+the start of one grab to the start of the next). The result is a recording directory (the
+format of :mod:`vision_server.cameras.recording`, docs/recording.md) that the ``recording``
+camera source, ``vision-server run --recording`` and ``vision-server test-inspections
+--from-recording`` replay.
+
+For a RealSense camera the SDK's own format (a rosbag ``.bag`` or ``.db3`` file, which the
+RealSense Viewer plays) is written instead with ``--format realsense``, or by default when
+``--out`` ends in ``.bag`` or ``.db3``. That writer is ``vision_server.cameras.RealSenseRecorder``
+(``RealSenseRecorder(path, *, width, height, fps, intrinsics, depth_intrinsics, depth_scale_m,
+depth)`` with ``add(color_bgr, depth_mm, time_s)`` and ``close()``), looked up when asked for: a
+build without it answers exit 2 saying so.
+
+Exit codes: 0 recorded up to a bound; 1 the camera failed (what was recorded before is kept and
+replays); 2 usage or configuration error (nothing recorded); 130 interrupted by Ctrl-C (what was
+recorded is kept, its manifest complete).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import json
+import math
+import os
+import re
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+
+from protocol import CameraUnavailable, CellvisionError
+from protocol.cli import CONFIG_ENV, ErrorKind, ExitCode, json_error
+
+from ..cameras import (
+    Camera,
+    CameraFrame,
+    RealSenseCameraSettings,
+    RecordingError,
+    RecordingWriter,
+    RequestCameraSettings,
+    make_camera,
+    public_settings,
+)
+from ..config import ConfigError, load_config
+
+__all__ = ["DEFAULT_FRAMES", "add_parser", "parse_size", "record"]
+
+PROG = "vision-server record"
+DEFAULT_FRAMES = 100
+"""The bound when none is given: a recording never grows without one."""
+REALSENSE_SUFFIXES = (".bag", ".db3")
+_SIZE = re.compile(r"(\d+(?:\.\d+)?)\s*([kmgt]?)(i?b?)", re.IGNORECASE)
+_UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
+
+
+def parse_size(text: str) -> int:
+    """``--max-bytes``: bytes, or with a binary unit: ``500k``, ``200M``, ``1.5GiB``."""
+    match = _SIZE.fullmatch(text.strip())
+    if match is None:
+        raise argparse.ArgumentTypeError(
+            f"expected a size such as 5000000, 200M or 1G, got {text!r}"
+        )
+    size = int(float(match.group(1)) * _UNITS[match.group(2).lower()])
+    if size < 1:
+        raise argparse.ArgumentTypeError(f"a size must be at least 1 byte, got {text!r}")
+    return size
+
+
+def _positive(kind: type[int] | type[float]) -> Any:
+    def convert(text: str) -> int | float:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+        if not math.isfinite(value) or value <= 0:
+            raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+        return value
+
+    return convert
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
+    return value
+
+
+def add_parser(sub: Any, parents: list[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "record",
+        parents=parents,
+        help="record a configured camera's frames (for replay: source recording, run, golden)",
+        description="Record what a configured camera sees (opened from --config as the "
+        "server opens it, outside any server) until a bound: --frames, --max-bytes or "
+        f"--duration; without any, {DEFAULT_FRAMES} frames. The recording (docs/recording.md) "
+        "replays as a camera (source: recording), through vision-server run --recording and "
+        "as golden cases (test-inspections --from-recording). Exit codes: 0 recorded up to a "
+        "bound; 1 the camera failed (what was recorded is kept); 2 usage or configuration "
+        "error; 130 Ctrl-C (what was recorded is kept).",
+    )
+    p.add_argument("camera", help="the camera's name in the configuration")
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="PATH",
+        help="the recording: a new (or empty) directory; a .bag/.db3 file with --format realsense",
+    )
+    p.add_argument(
+        "--frames",
+        type=_positive(int),
+        metavar="N",
+        help=f"stop after N frames (the default bound, {DEFAULT_FRAMES}, when none is given)",
+    )
+    p.add_argument(
+        "--max-bytes",
+        type=parse_size,
+        metavar="SIZE",
+        help="stop before the frame files pass SIZE (bytes, or 500k, 200M, 2G)",
+    )
+    p.add_argument("--duration", type=_positive(float), metavar="S", help="stop after S seconds")
+    p.add_argument(
+        "--interval",
+        type=_non_negative,
+        default=0.0,
+        metavar="S",
+        help="seconds from one grab to the next (default 0: as fast as the camera gives)",
+    )
+    p.add_argument(
+        "--timeout",
+        type=_positive(float),
+        default=10.0,
+        metavar="S",
+        help="how long one grab may wait for a frame (default 10 s)",
+    )
+    p.add_argument(
+        "--format",
+        choices=("auto", "cellvision", "realsense"),
+        default="auto",
+        help="cellvision: the recording directory (docs/recording.md); realsense: the "
+        "RealSense SDK's file (the Viewer plays it); auto (default): realsense for a realsense "
+        "camera whose --out ends in .bag or .db3, else cellvision",
+    )
+    p.set_defaults(func=record)
+
+
+# ----------------------------------------------------------------------------- where frames go
+
+
+class _Sink(Protocol):
+    @property
+    def frames(self) -> int: ...
+
+    @property
+    def bytes(self) -> int: ...
+
+    @property
+    def path(self) -> Path: ...
+
+    def add(self, frame: CameraFrame) -> bool: ...
+
+    def stopped_by(self) -> str | None: ...
+
+    def close(self) -> None: ...
+
+
+class _RecordingSink:
+    """The cellvision recording directory (:class:`RecordingWriter` keeps the bounds)."""
+
+    def __init__(self, writer: RecordingWriter) -> None:
+        self.writer = writer
+        self.path = writer.path
+
+    @property
+    def frames(self) -> int:
+        return self.writer.frames
+
+    @property
+    def bytes(self) -> int:
+        return self.writer.bytes
+
+    def add(self, frame: CameraFrame) -> bool:
+        return self.writer.add(
+            frame.color, frame.depth, timestamp_s=frame.timestamp, source=frame.source
+        )
+
+    def stopped_by(self) -> str | None:
+        return self.writer.stopped_by if self.writer.stopped else None
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+@dataclass
+class _Bounds:
+    frames: int | None
+    bytes: int | None
+    duration_s: float | None
+
+
+class _RealSenseSink:
+    """The RealSense SDK's own file, through ``vision_server.cameras.RealSenseRecorder``
+    (created at the first frame, when the camera's size and intrinsics are known). The bytes
+    bound is checked against the file's size after each frame (the SDK writes as it goes)."""
+
+    def __init__(self, path: Path, camera: Camera, settings: Any, bounds: _Bounds) -> None:
+        self.path = path
+        self.camera = camera
+        self.fps = settings.fps if isinstance(settings, RealSenseCameraSettings) else 30
+        self.bounds = bounds
+        self.frames = 0
+        self.bytes = 0
+        self._recorder: Any = None
+        self._start = time.monotonic()
+        self._stopped: str | None = None
+        self._recorder_class = realsense_recorder_class()
+
+    def add(self, frame: CameraFrame) -> bool:
+        if self.stopped_by() is not None:
+            return False
+        color: Any = frame.color
+        if frame.color.ndim == 2:
+            color = cv2.cvtColor(frame.color, cv2.COLOR_GRAY2BGR)
+        if self._recorder is None:
+            intrinsics = self.camera.intrinsics
+            if intrinsics is None:
+                raise RecordingError(
+                    f"camera {self.camera.name!r} reports no intrinsics: the RealSense format "
+                    "needs them (give intrinsics in the configuration)"
+                )
+            self._recorder = self._recorder_class(
+                self.path,
+                width=frame.width,
+                height=frame.height,
+                fps=self.fps,
+                intrinsics=intrinsics,
+                depth_intrinsics=None,
+                depth_scale_m=0.001,
+                depth=frame.depth is not None,
+            )
+        self._recorder.add(np.ascontiguousarray(color), frame.depth, frame.timestamp)
+        self.frames += 1
+        with contextlib.suppress(OSError):  # the SDK may create the file later
+            self.bytes = self.path.stat().st_size
+        if self.bounds.frames is not None and self.frames >= self.bounds.frames:
+            self._stopped = "frames"
+        elif self.bounds.bytes is not None and self.bytes >= self.bounds.bytes:
+            self._stopped = "bytes"
+        return True
+
+    def stopped_by(self) -> str | None:
+        bound = self.bounds.duration_s
+        if self._stopped is None and bound is not None and time.monotonic() - self._start >= bound:
+            self._stopped = "duration"
+        return self._stopped
+
+    def close(self) -> None:
+        if self._recorder is not None:
+            self._recorder.close()
+            self._recorder = None
+            with_size = self.path.stat().st_size if self.path.exists() else self.bytes
+            self.bytes = with_size
+        if self._stopped is None:
+            self._stopped = "closed"
+
+
+def realsense_recorder_class() -> Any:
+    """``vision_server.cameras.RealSenseRecorder``, the writer of the SDK's format; a
+    ``RecordingError`` when this build has none."""
+    cameras = importlib.import_module("vision_server.cameras")
+    recorder = getattr(cameras, "RealSenseRecorder", None)
+    if recorder is None:
+        raise RecordingError(
+            "this build has no RealSense recorder (vision_server.cameras.RealSenseRecorder): "
+            "record in the cellvision format (--format cellvision) instead"
+        )
+    return recorder
+
+
+# ----------------------------------------------------------------------------- the command
+
+
+def _fail(args: argparse.Namespace, kind: ErrorKind, message: str, code: str | None = None) -> None:
+    if getattr(args, "json", False):
+        print(json.dumps(json_error(kind, message, code)), flush=True)
+    else:
+        label = f"{code}: " if code else ""
+        print(f"{PROG}: {label}{message}", file=sys.stderr, flush=True)
+
+
+def _usage(args: argparse.Namespace, message: str) -> int:
+    _fail(args, ErrorKind.USAGE, message)
+    return int(ExitCode.USAGE)
+
+
+def record(args: argparse.Namespace) -> int:
+    """Record ``args.camera``; the exit code (see the module)."""
+    config_path = getattr(args, "config", None) or os.environ.get(CONFIG_ENV) or None
+    if not config_path:
+        return _usage(args, f"give --config FILE (or ${CONFIG_ENV})")
+    try:
+        config = load_config(config_path)
+    except ConfigError as exc:
+        return _usage(args, f"invalid configuration: {exc}")
+    name = args.camera
+    settings = config.cameras.get(name)
+    if settings is None:
+        names = ", ".join(sorted(config.cameras)) or "none"
+        return _usage(args, f"no camera named {name!r} in {config_path} (its cameras: {names})")
+    if isinstance(settings, RequestCameraSettings):
+        return _usage(
+            args,
+            f"camera {name!r} gets its images with each request: the server cannot grab it "
+            "(record on the robot's side, or save the images it sends)",
+        )
+    out = Path(args.out)
+    given = _Bounds(args.frames, args.max_bytes, args.duration)
+    if given.frames is None and given.bytes is None and given.duration_s is None:
+        given.frames = DEFAULT_FRAMES
+    fmt = args.format
+    if fmt == "auto":
+        bag = out.suffix.lower() in REALSENSE_SUFFIXES
+        realsense = isinstance(settings, RealSenseCameraSettings) and bag
+        fmt = "realsense" if realsense else "cellvision"
+    try:
+        camera = make_camera(name, settings, base_dir=config.base_dir)
+    except ValueError as exc:
+        return _usage(args, f"camera {name!r}: {exc}")
+    sink: _Sink | None = None
+    try:
+        camera.open()
+        if fmt == "realsense":
+            if out.exists():
+                return _usage(args, f"{out} already exists: the RealSense file is written anew")
+            sink = _RealSenseSink(out, camera, settings, given)
+        else:
+            sink = _RecordingSink(
+                RecordingWriter(
+                    out,
+                    camera=name,
+                    source=camera.source,
+                    settings=public_settings(settings),
+                    intrinsics=camera.intrinsics,
+                    config_hash=config.config_hash,
+                    max_frames=given.frames,
+                    max_bytes=given.bytes,
+                    max_duration_s=given.duration_s,
+                )
+            )
+    except RecordingError as exc:
+        camera.close()
+        return _usage(args, str(exc))
+    return _record_frames(args, camera, sink, fmt)
+
+
+def _record_frames(args: argparse.Namespace, camera: Camera, sink: _Sink, fmt: str) -> int:
+    started = time.monotonic()
+    failure: str | None = None
+    code = ExitCode.OK
+    last: int | None = None
+    try:
+        while sink.stopped_by() is None:
+            if args.interval and sink.frames:
+                wait = started + sink.frames * args.interval - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+                if sink.stopped_by() is not None:
+                    break
+            frame = camera.grab(timeout_s=args.timeout, newer_than=last)
+            last = frame.index
+            if not sink.add(frame):
+                break
+    except CameraUnavailable as exc:
+        failure = exc.message
+        code = ExitCode.FAILED
+    except CellvisionError as exc:  # a camera that refuses grabs (InvalidArgument)
+        failure = exc.message
+        code = ExitCode.FAILED
+    except RecordingError as exc:  # the disk is full, a frame the format cannot hold
+        failure = str(exc)
+        code = ExitCode.FAILED
+    except KeyboardInterrupt:
+        failure = "interrupted"
+        code = ExitCode.INTERRUPTED
+    finally:
+        try:
+            sink.close()
+        finally:
+            camera.close()
+    elapsed = time.monotonic() - started
+    summary = {
+        "camera": camera.name,
+        "source": camera.source,
+        "format": fmt,
+        "path": str(sink.path),
+        "frames": sink.frames,
+        "bytes": sink.bytes,
+        "duration_s": round(elapsed, 3),
+        "stopped_by": failure if failure is not None else sink.stopped_by(),
+        "ok": code == ExitCode.OK,
+    }
+    if failure is not None and code == ExitCode.FAILED:
+        _fail(args, ErrorKind.DEVICE, f"camera {camera.name!r}: {failure}", "CAMERA_UNAVAILABLE")
+    if getattr(args, "json", False):
+        print(json.dumps(summary), flush=True)
+    else:
+        what = "recorded" if code == ExitCode.OK else f"stopped ({failure}) after recording"
+        print(
+            f"{what} {sink.frames} frame{'s' if sink.frames != 1 else ''} of camera "
+            f"{camera.name!r} ({camera.source}), {sink.bytes} bytes in {elapsed:.1f} s, "
+            f"into {sink.path}"
+            + (f"; stopped by the {summary['stopped_by']} bound" if code == ExitCode.OK else ""),
+            flush=True,
+        )
+    return int(code)
