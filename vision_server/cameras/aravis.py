@@ -77,6 +77,8 @@ STREAM_COUNTERS = {
 """``status()["stream"]`` keys -> Aravis' stream statistics (a USB3 Vision stream has no
 packets: those read 0)."""
 
+_REFIRE_AFTER_S = 1.0
+"""A software trigger with no frame after this long is fired again (within the grab)."""
 _POP_SLICE_US = 200_000
 """A wait for a buffer is cut into slices this long, so a lost heartbeat ends it early."""
 
@@ -383,7 +385,16 @@ class AravisCamera(DeviceCamera):
             if fire:
                 self._fire(camera)
                 fire = False
-            buffer = self._pop(stream, deadline)
+            # A software trigger that got no frame is fired again after a while: a device
+            # ignores TriggerSoftware while its acquisition is not yet running, and a frame
+            # the second trigger makes too many is dropped as stale by the next grab.
+            wait_until = deadline
+            if trigger == "software":
+                wait_until = min(deadline, self._clock.monotonic() + _REFIRE_AFTER_S)
+            buffer = self._pop(stream, wait_until)
+            if buffer is None and wait_until < deadline:
+                fire = True
+                continue
             if buffer is None:
                 if self._control_lost.is_set():
                     raise DeviceError(f"{self._who()} stopped answering (heartbeat lost)")
