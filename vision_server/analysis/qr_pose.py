@@ -69,6 +69,7 @@ from geometry import CameraIntrinsics, fit_plane, orthonormalize
 from .errors import BadImageError, DepthError, NotFoundError
 from .qr import Expect, gray_for_code, read_qr
 from .qr_grid import grid_corners
+from .qr_tilt import TiltFusion, corners_normal, fuse_normals, shift_normal_cov, tangent_basis
 
 __all__ = [
     "QRPose",
@@ -144,6 +145,9 @@ class QRPoseQuality:
     side_px: float = float("nan")
     shift_sensitivity: FloatArray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
     depth_vs_grid: float = float("nan")
+    plane_normal_std_rad: float = float("nan")
+    corners_normal_std_rad: float = float("nan")
+    normal_turned_rad: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -262,6 +266,7 @@ def qr_pose(
     corner_bias_px: float | None = None,
     unchecked_scale_std: float = UNCHECKED_SCALE_STD,
     unchecked_shift_std_px: float = UNCHECKED_SHIFT_STD_PX,
+    normal: Literal["fused", "depth"] = "fused",
 ) -> QRPose:
     """``camera_from_qr`` of the QR code in ``color`` (or at the given ``corners``).
 
@@ -341,13 +346,16 @@ def qr_pose(
         modules = None  # corners from elsewhere: the module grid is not looked for
     _check_corners(corners_uv, intrinsics)
 
+    checked = depth_scale_std is not None or correction != DepthCorrection()
+    grid_uv: FloatArray | None = None
+    tilt: TiltFusion | None = None
     if method == "corners":
         corners_cam, spread, valid_fraction = _corners_method(
             corners_uv, depth, intrinsics, window_px, disparity_levels, correction
         )
         rms = inlier_fraction = float("nan")
     else:
-        corners_cam, spread, valid_fraction, rms, inlier_fraction = _plane_method(
+        plane = _plane_method(
             corners_uv,
             depth,
             intrinsics,
@@ -357,6 +365,30 @@ def qr_pose(
             disparity_levels,
             correction,
         )
+        corners_cam, spread, valid_fraction = plane.corners_cam, plane.spread, plane.valid_fraction
+        rms, inlier_fraction = plane.rms, plane.inlier_fraction
+        if color is not None and modules is not None:
+            grid_uv = _grid(color, corners_uv, modules)
+        if normal == "fused":
+            if checked:
+                # the check's standard errors (a correction given without them is exact); a
+                # shift the check could not determine is as uncertain as an unchecked one
+                shift_std = tuple(
+                    float(x) if np.isfinite(x) else unchecked_shift_std_px
+                    for x in depth_shift_std_px
+                )
+            else:
+                shift_std = (unchecked_shift_std_px, unchecked_shift_std_px)
+            tilt = _fused_tilt(
+                plane,
+                corners_uv if grid_uv is None else grid_uv,
+                grid_uv is not None,
+                intrinsics,
+                side_m,
+                (shift_std[0], shift_std[1]),
+            )
+            if tilt is not None and tilt.used:
+                corners_cam = _onto_plane(corners_cam, corners_uv, tilt.normal, intrinsics)
 
     sides = _sides(corners_cam)
     if not np.all(sides > 1e-4):
@@ -368,7 +400,6 @@ def qr_pose(
     sensitivity = _shift_sensitivity(corners_cam, intrinsics)
     if side_m is not None and scale == "auto":
         disagreement = float(sides.mean()) / side_m - 1.0
-        checked = depth_scale_std is not None or correction != DepthCorrection()
         if checked:
             # a correction without its standard errors is taken as exact
             factor = _fused_factor(
@@ -382,10 +413,8 @@ def qr_pose(
         else:
             grid = (
                 None
-                if color is None or modules is None
-                else _grid_disagreement(
-                    color, corners_uv, corners_cam, modules, intrinsics, side_m, side_px
-                )
+                if grid_uv is None or modules is None
+                else _grid_disagreement(grid_uv, corners_cam, modules, intrinsics, side_m, side_px)
             )
             if grid is not None:
                 depth_vs_grid, var_grid = grid
@@ -442,6 +471,9 @@ def qr_pose(
         side_px=side_px,
         shift_sensitivity=sensitivity,
         depth_vs_grid=depth_vs_grid,
+        plane_normal_std_rad=float("nan") if tilt is None else tilt.plane_std_rad,
+        corners_normal_std_rad=float("nan") if tilt is None else tilt.corners_std_rad,
+        normal_turned_rad=float("nan") if tilt is None else tilt.turned_rad,
     )
     return QRPose(camera_from_qr, text, corners_uv.copy(), corners_cam, method, quality)
 
@@ -466,6 +498,12 @@ direction on the code's plane, std in pixels of the side it implies: 0.009-0.010
 -0.002 to -0.004 px: no bias worth configuring) against the simulated camera's truth on two
 sets of 40 views at 0.6-1.5 m that the bench does not evaluate (bench/calibration.py's view
 generator, seeds 53 and 59). The corners' side has 0.018-0.020 px around a -0.033 px bias."""
+PLANE_COV_FACTOR = 1.0
+"""Calibration of the plane's normal covariance (see :func:`_plane_method`)."""
+GRID_CORNER_NOISE_PX = 0.015
+"""The module grid's corners' noise (std per coordinate, px) for the corners' normal."""
+CORNER_NOISE_PX = 0.03
+"""The detected corners' noise (std per coordinate, px) for the corners' normal."""
 PLANE_NORMAL_STD_RAD = float(np.radians(0.1))
 """The depth plane's normal error (std) at 0.6-1.5 m over 5 frames: the plane method's
 rotation p95 is 0.11-0.15° on the bench (docs/BENCHMARKS.md section 4)."""
@@ -481,9 +519,65 @@ AGREEMENT_RAMP_SIGMAS = 1.0
 'disagrees', so that the distance does not jump at the test's edge."""
 
 
-def _grid_disagreement(
-    color: NDArray[np.generic],
+def _grid(color: NDArray[np.generic], corners_uv: FloatArray, modules: int) -> FloatArray | None:
+    """The code's outer corners from its module grid (:func:`.qr_grid.grid_corners`), None
+    when the grid is not found."""
+    try:
+        return grid_corners(gray_for_code(color), corners_uv, modules)
+    except (BadImageError, ValueError):
+        return None
+
+
+def _fused_tilt(
+    plane: _Plane,
     corners_uv: FloatArray,
+    from_grid: bool,
+    intr: CameraIntrinsics,
+    side_m: float | None,
+    shift_std_px: tuple[float, float],
+) -> TiltFusion | None:
+    """The plane's normal fused with the corners' (see :mod:`.qr_tilt`): the plane's covariance
+    is its fit's (``plane.normal_cov``) plus what a depth-to-colour shift of ``shift_std_px``
+    turns it by; the corners' is PnP's at GRID_CORNER_NOISE_PX (``from_grid``: the module
+    grid's corners) or CORNER_NOISE_PX. None when either is not available."""
+    if not np.all(np.isfinite(plane.normal_cov)):
+        return None
+    basis = tangent_basis(plane.normal)
+    plane_cov = plane.normal_cov + shift_normal_cov(
+        plane.normal, basis, intr.fx, intr.fy, shift_std_px
+    )
+    found = corners_normal(
+        intr.undistort_pixels(corners_uv),
+        side_m if side_m is not None else 1.0,  # the rotation does not depend on the size
+        intr.fx,
+        intr.fy,
+        GRID_CORNER_NOISE_PX if from_grid else CORNER_NOISE_PX,
+        plane.normal,
+    )
+    if found is None:
+        return None
+    return fuse_normals(plane.normal, plane_cov, found[0], found[1])
+
+
+def _onto_plane(
+    corners_cam: FloatArray, corners_uv: FloatArray, normal: FloatArray, intr: CameraIntrinsics
+) -> FloatArray:
+    """The corner rays met with the plane of ``normal`` through the centre of ``corners_cam``
+    (the depth's distance at the code's centre is kept; only the tilt changes)."""
+    centre = corners_cam.mean(axis=0)
+    rays = intr.pixel_rays(corners_uv)
+    denom = rays @ normal
+    if np.any(np.abs(denom) < 1e-3):
+        return corners_cam
+    s = float(normal @ centre) / denom
+    if np.any(s <= 0):
+        return corners_cam
+    result: FloatArray = rays * s[:, None]
+    return result
+
+
+def _grid_disagreement(
+    grid_uv: FloatArray,
     corners_cam: FloatArray,
     modules: int,
     intr: CameraIntrinsics,
@@ -500,13 +594,7 @@ def _grid_disagreement(
     (depth noise, PLANE_NORMAL_STD_RAD), and a normal error d stretches lengths across the tilt
     axis by tan(tilt) d (0.07 % at 20° and 0.18°: 1 mm at 1.4 m) but not along it; each
     direction has the grid's own noise (GRID_AXIS_NOISE_PX / ``side_px``). The two are weighed
-    by their variances. None when the grid is not found."""
-    try:
-        grid_uv = grid_corners(gray_for_code(color), corners_uv, modules)
-    except (BadImageError, ValueError):
-        return None
-    if grid_uv is None:
-        return None
+    by their variances. ``grid_uv``: the grid's corners (:func:`_grid`)."""
     normal = np.cross(corners_cam[2] - corners_cam[0], corners_cam[3] - corners_cam[1])
     normal /= np.linalg.norm(normal)
     centre = corners_cam.mean(axis=0)
@@ -666,6 +754,22 @@ def _corners_method(
     return corners_cam, spread, valid_total / max(count_total, 1)
 
 
+@dataclass(frozen=True)
+class _Plane:
+    """The plane method's fit: the corners on the plane (4, 3), the residual spread near each
+    corner (4,), the valid depth fraction, the RMS residual (m), the inlier fraction, the unit
+    normal (3, towards the camera) and its covariance (2, 2; rad², in
+    ``tangent_basis(normal)``) from the depth's noise alone."""
+
+    corners_cam: FloatArray
+    spread: FloatArray
+    valid_fraction: float
+    rms: float
+    inlier_fraction: float
+    normal: FloatArray
+    normal_cov: FloatArray
+
+
 def _plane_method(
     corners_uv: FloatArray,
     depth: NDArray[np.uint16],
@@ -676,7 +780,7 @@ def _plane_method(
     levels: tuple[float, int] | None,
     correction: DepthCorrection,
     max_points: int = 25000,
-) -> tuple[FloatArray, FloatArray, float, float, float]:
+) -> _Plane:
     n_frames, h, w = depth.shape
     centre = corners_uv.mean(axis=0)
     quad = centre + (1.0 - 2.0 * erode) * (corners_uv - centre)
@@ -751,10 +855,28 @@ def _plane_method(
         near = np.sum((in_uv - quad[i]) ** 2, axis=1) < (0.25 * side_px) ** 2
         if near.any():
             spread[i] = float(residual[near].std())
-    return (
+    # the normal's covariance in tangent angles: residual variance over the samples' spread on
+    # the plane, with the frames counted as one (the simulated sensor's noise, like a real
+    # one's, repeats in part from frame to frame: the pooled count put the normal's std 2-3
+    # times too low against the truth)
+    basis = tangent_basis(normal)
+    spread_on_plane = centred @ basis.T
+    variance = float(np.mean(residual**2))
+    try:
+        normal_cov = (
+            PLANE_COV_FACTOR
+            * n_frames
+            * variance
+            * np.linalg.inv(spread_on_plane.T @ spread_on_plane)
+        )
+    except np.linalg.LinAlgError:
+        normal_cov = np.full((2, 2), np.nan)
+    return _Plane(
         corners_cam,
         spread,
         valid_fraction,
-        float(np.sqrt(np.mean(residual**2))),
+        float(np.sqrt(variance)),
         float(inliers.mean()),
+        normal,
+        np.asarray(normal_cov, np.float64),
     )

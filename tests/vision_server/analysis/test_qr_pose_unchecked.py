@@ -137,7 +137,16 @@ def test_zero_unchecked_errors_keep_the_depth_distance() -> None:
         unchecked_shift_std_px=0.0,
         **kw,
     )
-    kept = qr_pose(frame.color, [frame.depth], frame.truth.intrinsics, scale="depth", **kw)
+    # the same assumed errors (they also weigh the depth's tilt against the corners', issue 29)
+    kept = qr_pose(
+        frame.color,
+        [frame.depth],
+        frame.truth.intrinsics,
+        scale="depth",
+        unchecked_scale_std=0.0,
+        unchecked_shift_std_px=0.0,
+        **kw,
+    )
     assert trusted.quality.scale == 1.0
     np.testing.assert_allclose(trusted.camera_from_qr, kept.camera_from_qr)
 
