@@ -500,9 +500,9 @@ sets of 40 views at 0.6-1.5 m that the bench does not evaluate (bench/calibratio
 generator, seeds 53 and 59). The corners' side has 0.018-0.020 px around a -0.033 px bias."""
 PLANE_COV_FACTOR = 1.0
 """Calibration of the plane's normal covariance (see :func:`_plane_method`)."""
-GRID_CORNER_NOISE_PX = 0.015
+GRID_CORNER_NOISE_PX = 0.02
 """The module grid's corners' noise (std per coordinate, px) for the corners' normal."""
-CORNER_NOISE_PX = 0.03
+CORNER_NOISE_PX = 0.06
 """The detected corners' noise (std per coordinate, px) for the corners' normal."""
 PLANE_NORMAL_STD_RAD = float(np.radians(0.1))
 """The depth plane's normal error (std) at 0.6-1.5 m over 5 frames: the plane method's
