@@ -387,8 +387,13 @@ def qr_pose(
                 side_m,
                 (shift_std[0], shift_std[1]),
             )
-            if tilt is not None and tilt.used:
-                corners_cam = _onto_plane(corners_cam, corners_uv, tilt.normal, intrinsics)
+            turned = (
+                None
+                if tilt is None or not tilt.used
+                else _onto_plane(plane.centroid, corners_uv, tilt.normal, intrinsics)
+            )
+            if turned is not None:
+                corners_cam = turned
 
     sides = _sides(corners_cam)
     if not np.all(sides > 1e-4):
@@ -400,7 +405,24 @@ def qr_pose(
     sensitivity = _shift_sensitivity(corners_cam, intrinsics)
     if side_m is not None and scale == "auto":
         disagreement = float(sides.mean()) / side_m - 1.0
-        if checked:
+        grid = (
+            None
+            if grid_uv is None or modules is None
+            else _grid_disagreement(grid_uv, corners_cam, modules, intrinsics, side_m, side_px)
+        )
+        if checked and grid is not None:
+            # the module grid's size: free of the corners' edge bias and ~2x less noisy
+            depth_vs_grid, var_grid = grid
+            factor = _fused_factor(
+                depth_vs_grid,
+                side_px,
+                sensitivity,
+                depth_scale_std or 0.0,
+                depth_shift_std_px,
+                0.0,
+                side_noise_px=float(np.sqrt(var_grid)) * side_px,
+            )
+        elif checked:
             # a correction without its standard errors is taken as exact
             factor = _fused_factor(
                 disagreement,
@@ -411,11 +433,6 @@ def qr_pose(
                 corner_bias_px or 0.0,
             )
         else:
-            grid = (
-                None
-                if grid_uv is None or modules is None
-                else _grid_disagreement(grid_uv, corners_cam, modules, intrinsics, side_m, side_px)
-            )
             if grid is not None:
                 depth_vs_grid, var_grid = grid
                 factor = _unchecked_factor(
@@ -560,18 +577,18 @@ def _fused_tilt(
 
 
 def _onto_plane(
-    corners_cam: FloatArray, corners_uv: FloatArray, normal: FloatArray, intr: CameraIntrinsics
-) -> FloatArray:
-    """The corner rays met with the plane of ``normal`` through the centre of ``corners_cam``
-    (the depth's distance at the code's centre is kept; only the tilt changes)."""
-    centre = corners_cam.mean(axis=0)
+    centroid: FloatArray, corners_uv: FloatArray, normal: FloatArray, intr: CameraIntrinsics
+) -> FloatArray | None:
+    """The corner rays met with the plane of ``normal`` through the depth samples' ``centroid``
+    (the depth's plane turned about the point where it is best determined; only the tilt
+    changes). None when the plane is seen edge-on or behind the camera."""
     rays = intr.pixel_rays(corners_uv)
     denom = rays @ normal
     if np.any(np.abs(denom) < 1e-3):
-        return corners_cam
-    s = float(normal @ centre) / denom
+        return None
+    s = float(normal @ centroid) / denom
     if np.any(s <= 0):
-        return corners_cam
+        return None
     result: FloatArray = rays * s[:, None]
     return result
 
@@ -642,6 +659,8 @@ def _fused_factor(
     scale_std: float,
     shift_std_px: tuple[float, float],
     corner_bias_px: float,
+    *,
+    side_noise_px: float = SIDE_NOISE_PX,
 ) -> float:
     """The factor on the corrected depth's corners that fuses two distances by their variances:
     the depth's (relative variance scale_std² + (g · shift_std)², the correction's own
@@ -654,7 +673,7 @@ def _fused_factor(
         + float((sensitivity[0] * shift_std_px[0]) ** 2)
         + float((sensitivity[1] * shift_std_px[1]) ** 2)
     )
-    var_side = (SIDE_NOISE_PX / side_px) ** 2
+    var_side = (side_noise_px / side_px) ** 2
     if not np.isfinite(var_depth) or var_depth + var_side <= 0:
         return 1.0
     w = var_depth / (var_depth + var_side)
@@ -759,7 +778,8 @@ class _Plane:
     """The plane method's fit: the corners on the plane (4, 3), the residual spread near each
     corner (4,), the valid depth fraction, the RMS residual (m), the inlier fraction, the unit
     normal (3, towards the camera) and its covariance (2, 2; rad², in
-    ``tangent_basis(normal)``) from the depth's noise alone."""
+    ``tangent_basis(normal)``) from the depth's noise alone, and the inliers' centroid (3,),
+    the point the plane is best determined at (its tilt errors turn it about that point)."""
 
     corners_cam: FloatArray
     spread: FloatArray
@@ -768,6 +788,7 @@ class _Plane:
     inlier_fraction: float
     normal: FloatArray
     normal_cov: FloatArray
+    centroid: FloatArray
 
 
 def _plane_method(
@@ -879,4 +900,5 @@ def _plane_method(
         float(inliers.mean()),
         normal,
         np.asarray(normal_cov, np.float64),
+        centroid,
     )
