@@ -368,7 +368,7 @@ def qr_pose(
         corners_cam, spread, valid_fraction = plane.corners_cam, plane.spread, plane.valid_fraction
         rms, inlier_fraction = plane.rms, plane.inlier_fraction
         if color is not None and modules is not None:
-            grid_uv = _grid(color, corners_uv, modules)
+            grid_uv = _grid(color, corners_uv, modules, intrinsics)
         if normal == "fused":
             if checked:
                 # the check's standard errors (a correction given without them is exact); a
@@ -536,11 +536,13 @@ AGREEMENT_RAMP_SIGMAS = 1.0
 'disagrees', so that the distance does not jump at the test's edge."""
 
 
-def _grid(color: NDArray[np.generic], corners_uv: FloatArray, modules: int) -> FloatArray | None:
-    """The code's outer corners from its module grid (:func:`.qr_grid.grid_corners`), None
-    when the grid is not found."""
+def _grid(
+    color: NDArray[np.generic], corners_uv: FloatArray, modules: int, intr: CameraIntrinsics
+) -> FloatArray | None:
+    """The code's outer corners from its module grid (:func:`.qr_grid.grid_corners`, through
+    the lens's distortion), None when the grid is not found."""
     try:
-        return grid_corners(gray_for_code(color), corners_uv, modules)
+        return grid_corners(gray_for_code(color), corners_uv, modules, intrinsics=intr)
     except (BadImageError, ValueError):
         return None
 
