@@ -21,10 +21,16 @@ correction evenly over the axes instead of favouring x as Gram-Schmidt would.
 centre by ``erode`` of the side (depth at the code's edges and across the quiet zone is where
 misregistration and flying pixels hurt), from all N frames pooled (zeros ignored), are
 back-projected and a plane is fitted by RANSAC (threshold from the expected structured-light
-noise at that range, then least squares on the inliers). The four sub-pixel corner rays are
-intersected with the plane, and the rotation is the best fit (Kabsch/SVD) of the ideal square
-to the four 3D corners; the corners are coplanar, so its z is the plane's normal and its
-in-plane angle comes from the image corners. Why this is robust on a Kinect-like sensor:
+noise at that range, then least squares on the inliers). The plane's normal is then fused with
+the normal that the code's own square gives by PnP (the module grid's corners when found), by
+their covariances (:mod:`.qr_tilt`, issue 29: an uncorrected misregistration turns the plane
+on oblique views, and the depth's noise tilts it on small, far or noisy codes, where PnP is
+at its best; PnP is weakest square on, where the plane is best); ``normal="depth"`` keeps the
+plane's own. The plane is turned about its samples' centroid to that normal, the four
+sub-pixel corner rays are intersected with it, and the rotation is the best fit (Kabsch/SVD)
+of the ideal square to the four 3D corners; the corners are coplanar, so its z is the fused
+normal and its in-plane angle comes from the image corners. Why this is robust on a
+Kinect-like sensor:
 
 - disparity noise and 1/8 px quantisation average out over thousands of pixels, where the
   corners method sees nine;
@@ -32,8 +38,11 @@ in-plane angle comes from the image corners. Why this is robust on a Kinect-like
   not move the plane (the quad is eroded so no pixel near the board's edge is used), whereas
   the corners method samples the wrong spot;
 - a depth scale bias (z read as (1 + b) z) scales the plane about the camera centre and with
-  it the corners, and a misregistration on a tilted board moves the plane along the rays by
-  (n_x du / fx + n_y dv / fy) / n_z of the range; neither turns the plane. With ``side_m`` (the
+  it the corners, which does not turn the plane; a misregistration on a tilted board moves the
+  plane along the rays by (n_x du / fx + n_y dv / fy) / n_z of the range and also turns it,
+  by about sin²(tilt) · shift / f (0.1° at 45° for 2 px at 570 px: :mod:`.qr_tilt`), which
+  the tilt's fusion weighs by the shift's uncertainty (the sensor check's standard errors, or
+  ``unchecked_shift_std_px``). With ``side_m`` (the
   printed side of the symbol) the image size of the code fixes the distance independently of
   both: the corners are rescaled along their rays so the mean measured side equals ``side_m``.
   The printed side is noisier than unbiased depth (about 0.02 px / side in px of the range,
@@ -42,6 +51,10 @@ in-plane angle comes from the image corners. Why this is robust on a Kinect-like
   depth's is its configured correction's (the sensor check's standard errors) or, when no
   check is configured, the typical systematic errors of an unchecked RGB-D sensor
   (``unchecked_scale_std`` 1 %, ``unchecked_shift_std_px`` 2 px; :func:`_unchecked_factor`).
+  With a sensor check the printed distance comes from the code's module grid when it is found
+  (free of the corners' edge bias and about half as noisy: on oblique and D435-like views the
+  corners' side left 0.4-0.8 mm p95 where the grid leaves 0.17-0.32 mm), the corners' side
+  (less ``corner_bias_px``) otherwise.
   Then the printed side carries the distance along the ray and the depth the orientation,
   unless the depth agrees with the side within AGREEMENT_SIGMAS of the side's noise, when its
   distance is kept exactly: a sensor without systematic errors loses nothing of its precision.
@@ -128,8 +141,14 @@ class QRPoseQuality:
     so one view cannot tell a shift from a scale: the sensor check fits several views.
     ``side_px``: the code's mean side in the image, pixels. ``depth_vs_grid``: the same
     disagreement from the code's module grid (see :func:`_grid_disagreement`; what the
-    unchecked fusion uses), NaN when not measured (a sensor check is configured, the corners
-    were given, or the grid was not found).
+    distance's fusion uses, checked or not), NaN when not measured (the corners were given,
+    the grid was not found, or no ``side_m``).
+
+    The plane method's tilt (:mod:`.qr_tilt`; NaN for the corners method or when the corners'
+    normal was not available): ``plane_normal_std_rad`` and ``corners_normal_std_rad``, the
+    larger principal std of the depth plane's normal (with the shift's uncertainty) and of the
+    corners' (PnP); ``normal_turned_rad``, how far the fusion turned the plane's normal (0 when
+    the two disagreed beyond qr_tilt.DISAGREEMENT_SIGMAS and the plane's was kept).
     """
 
     corner_depth_std_m: FloatArray
@@ -299,13 +318,18 @@ def qr_pose(
     whose check is not configured (no ``depth_scale``, ``depth_shift_px`` or
     ``depth_scale_std``), typical of an RGB-D camera out
     of the box (scale 0.5-1 %, registration a few pixels); 0 and 0 keep the depth's distance
-    as it is. See :func:`_unchecked_factor`.
+    as it is. See :func:`_unchecked_factor`. The shift's std also weighs the depth plane's
+    tilt against the corners' (an uncorrected shift turns the plane).
+    ``normal`` (plane method): "fused" (default) fuses the depth plane's normal with the
+    corners' (PnP) by their covariances, "depth" keeps the plane's (see :mod:`.qr_tilt`).
 
     Raises NotFoundError (no code), DepthError (a corner without depth, too few depth pixels,
     degenerate geometry), BadImageError (bad depth frames).
     """
     if method not in ("plane", "corners"):
         raise ValueError(f"method must be 'plane' or 'corners', got {method!r}")
+    if normal not in ("fused", "depth"):
+        raise ValueError(f"normal must be 'fused' or 'depth', got {normal!r}")
     if side_m is not None and not side_m > 0:
         raise ValueError(f"side_m must be positive, got {side_m}")
     if scale not in ("auto", "side", "depth"):
@@ -516,11 +540,18 @@ direction on the code's plane, std in pixels of the side it implies: 0.009-0.010
 sets of 40 views at 0.6-1.5 m that the bench does not evaluate (bench/calibration.py's view
 generator, seeds 53 and 59). The corners' side has 0.018-0.020 px around a -0.033 px bias."""
 PLANE_COV_FACTOR = 1.0
-"""Calibration of the plane's normal covariance (see :func:`_plane_method`)."""
+"""Calibration of the plane's normal covariance (:func:`_plane_method`, frames counted as one):
+against the simulation's truth (15 views in each of ten scene families: the bench's, oblique,
+far, small code, near the border, a plate off the wall, D435- and D405-like stereo, distortion,
+holes) the normal's error is 0.5-1.3 times its stated std (median 0.86), so no factor; the
+D405-like camera at 0.2-0.45 m reads 3.5 times (its millimetre depth is coarse against its
+noise there), where the tilt test of :func:`.qr_tilt.fuse_normals` may keep the plane."""
 GRID_CORNER_NOISE_PX = 0.02
-"""The module grid's corners' noise (std per coordinate, px) for the corners' normal."""
+"""The module grid's corners' noise (std per coordinate, px) for the corners' normal: PnP's
+normal error on the same views was 0.84 times its std at 0.015 px (median; 0.7-2.5 by family)."""
 CORNER_NOISE_PX = 0.06
-"""The detected corners' noise (std per coordinate, px) for the corners' normal."""
+"""The detected corners' noise (std per coordinate, px) for the corners' normal, when the grid
+is not found: 1.8 times PnP's std at 0.03 px on the same views (median; 1.5-3.7 by family)."""
 PLANE_NORMAL_STD_RAD = float(np.radians(0.1))
 """The depth plane's normal error (std) at 0.6-1.5 m over 5 frames: the plane method's
 rotation p95 is 0.11-0.15° on the bench (docs/BENCHMARKS.md section 4)."""
