@@ -325,6 +325,7 @@ def _sensor_check(
             [[float(g) for g in q.shift_sensitivity] for q in check],
             [q.side_px for q in check],
             corner_bias_px=corner_bias_px,
+            depth_vs_grid=[q.depth_vs_grid for q in check],
         )
         rows: dict[str, Any] = {"registration": reg}
         corrections: dict[str, dict[str, Any]] = {
@@ -998,7 +999,7 @@ def _hard_scenes(views: int, check_views: int, corner_bias_px: float) -> dict[st
         seed = zlib.crc32(family.name.encode())  # the same views whichever families run
         check = _hard_views(family, check_views, seed)
         evaluated = _hard_views(family, views, seed + 1)
-        kw = {"expect": QR_TEXT, "side_m": family.side_m}
+        kw: dict[str, Any] = {"expect": QR_TEXT, "side_m": family.side_m}
         qualities = []
         for f, d, _ in check:
             try:
@@ -1010,6 +1011,7 @@ def _hard_scenes(views: int, check_views: int, corner_bias_px: float) -> dict[st
             [[float(g) for g in q.shift_sensitivity] for q in qualities],
             [q.side_px for q in qualities],
             corner_bias_px=corner_bias_px,
+            depth_vs_grid=[q.depth_vs_grid for q in qualities],
         )
         correction = {
             "depth_scale": reg.scale,
