@@ -432,7 +432,15 @@ def qr_pose(
         grid = (
             None
             if grid_uv is None or modules is None
-            else _grid_disagreement(grid_uv, corners_cam, modules, intrinsics, side_m, side_px)
+            else _grid_disagreement(
+                grid_uv,
+                corners_cam,
+                modules,
+                intrinsics,
+                side_m,
+                side_px,
+                tilt.fused_std_rad if tilt is not None and tilt.used else PLANE_NORMAL_STD_RAD,
+            )
         )
         if checked and grid is not None:
             # the module grid's size: free of the corners' edge bias and ~2x less noisy
@@ -633,6 +641,7 @@ def _grid_disagreement(
     intr: CameraIntrinsics,
     side_m: float,
     side_px: float,
+    normal_std_rad: float = PLANE_NORMAL_STD_RAD,
 ) -> tuple[float, float] | None:
     """How much further the depth puts the code than its module grid's image size does
     (relative, like ``depth_vs_side``), and that figure's variance (relative²).
@@ -644,7 +653,10 @@ def _grid_disagreement(
     (depth noise, PLANE_NORMAL_STD_RAD), and a normal error d stretches lengths across the tilt
     axis by tan(tilt) d (0.07 % at 20° and 0.18°: 1 mm at 1.4 m) but not along it; each
     direction has the grid's own noise (GRID_AXIS_NOISE_PX / ``side_px``). The two are weighed
-    by their variances. ``grid_uv``: the grid's corners (:func:`_grid`)."""
+    by their variances. ``grid_uv``: the grid's corners (:func:`_grid`); ``normal_std_rad``: the
+    normal's std (the tilt fusion's, :mod:`.qr_tilt`, when it was fused: with the corners' the
+    normal is better known than the plane's 0.1°, and the direction across the tilt axis
+    counts for more)."""
     normal = np.cross(corners_cam[2] - corners_cam[0], corners_cam[3] - corners_cam[1])
     normal /= np.linalg.norm(normal)
     centre = corners_cam.mean(axis=0)
@@ -672,7 +684,7 @@ def _grid_disagreement(
     var_grid = (GRID_AXIS_NOISE_PX / side_px) ** 2
     tan_tilt = sin_tilt / max(float(np.sqrt(1.0 - sin_tilt**2)), 1e-6)
     w_along = 1.0 / var_grid
-    w_across = 1.0 / (var_grid + (tan_tilt * PLANE_NORMAL_STD_RAD) ** 2)
+    w_across = 1.0 / (var_grid + (tan_tilt * normal_std_rad) ** 2)
     r = (w_along * r_along + w_across * r_across) / (w_along + w_across)
     return r, 1.0 / (w_along + w_across)
 

@@ -157,13 +157,15 @@ def corners_normal(
 @dataclass(frozen=True)
 class TiltFusion:
     """The fused normal (3,), how far it turned from the depth's (rad), the two inputs' stds
-    (the larger principal std of each covariance, rad) and whether the corners were used."""
+    and the result's (the larger principal std of each covariance, rad; the result's is the
+    plane's when the corners were not used) and whether the corners were used."""
 
     normal: FloatArray
     turned_rad: float
     plane_std_rad: float
     corners_std_rad: float
     used: bool
+    fused_std_rad: float
 
 
 def _std(cov: FloatArray) -> float:
@@ -185,7 +187,7 @@ def fuse_normals(
     if float(other @ n) < 0:
         other = -other
     delta = basis @ other  # tangent angles of the other normal (small)
-    keep = TiltFusion(n, 0.0, _std(plane_cov), _std(other_cov), False)
+    keep = TiltFusion(n, 0.0, _std(plane_cov), _std(other_cov), False, _std(plane_cov))
     try:
         combined = np.linalg.inv(plane_cov + other_cov)
         info_plane = np.linalg.inv(plane_cov)
@@ -194,8 +196,11 @@ def fuse_normals(
         return keep
     if float(delta @ combined @ delta) > DISAGREEMENT_SIGMAS**2:
         return keep
-    fused = np.linalg.solve(info_plane + info_other, info_other @ delta)
+    fused_cov = np.linalg.inv(info_plane + info_other)
+    fused = fused_cov @ info_other @ delta
     normal = n + basis.T @ fused
     normal /= np.linalg.norm(normal)
     turned = float(np.arccos(np.clip(normal @ n, -1.0, 1.0)))
-    return TiltFusion(normal, turned, keep.plane_std_rad, keep.corners_std_rad, True)
+    return TiltFusion(
+        normal, turned, keep.plane_std_rad, keep.corners_std_rad, True, _std(fused_cov)
+    )
