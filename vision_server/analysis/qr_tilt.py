@@ -40,7 +40,7 @@ wrong place, a plane through something else) the depth's normal is kept.
 Why not the alternatives the issue named: eroding the sampling region or weighting the plane's
 samples robustly does nothing against either mechanism (the whole plane turns, and the noise is
 not in outliers); PnP's rotation alone is 0.4-2.5° p95 on frontal views. Measured after the
-fusion (same views): 0.16° on the D435-like camera, 0.10° on the oblique views, 0.26° on the
+fusion (same views): 0.13° on the D435-like camera, 0.10° on the oblique views, 0.26° on the
 6 cm code, 0.39° at 1.5-2.5 m; the D405-like camera's plane is 3.5 times further off than its
 covariance says (millimetre depth, coarse against its noise at 0.3 m), so the disagreement
 test mostly keeps it there (0.5° p95): not solved.
