@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -324,6 +325,7 @@ def _sensor_check(
             [[float(g) for g in q.shift_sensitivity] for q in check],
             [q.side_px for q in check],
             corner_bias_px=corner_bias_px,
+            depth_vs_grid=[q.depth_vs_grid for q in check],
         )
         rows: dict[str, Any] = {"registration": reg}
         corrections: dict[str, dict[str, Any]] = {
@@ -653,6 +655,17 @@ def run(cfg: RunConfig, env: Env) -> Section:
     )
     _unchecked_goals(section, checked)
     decomposition = _decomposition_table(section, checked)
+    hard_table = _hard_table(section, _hard_scenes(cfg.n(20, 2), cfg.n(12, 4), bias_px))
+    section.notes.append(
+        "Hard scenes: each family's own sensor check (12 other views of that camera and scene) "
+        "gives the sensor-checked rows' correction. The tilt is fused from the depth's plane "
+        "and the code's corners (PnP on the module grid's corners) by their covariances "
+        '(vision_server/analysis/qr_tilt.py); the rows "the depth\'s tilt alone" are '
+        'qr_pose\'s `normal="depth"`, the plane method as it was before. The families marked '
+        "(reported) are not judged against the goal: they are limited by the depth's noise or "
+        "by the distance, not by the sensor's systematic errors (a sensor without them does "
+        "no better there with the depth's tilt alone), and some miss it."
+    )
     section.notes.append(
         "Sensor check: `fit_depth_registration` over the check's views fits the depth scale and "
         "the depth-to-colour shift against the printed side (what `vision-server sensor-check` "
@@ -736,7 +749,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
         f"{', '.join(f'{1 + b:g}' for b in SCALE_BIASES)} (the issue's example and the goal's "
         "corners)."
     )
-    section.tables += [table, bands, check_table, decomposition, timing]
+    section.tables += [table, bands, check_table, decomposition, hard_table, timing]
     section.notes.append(
         "Compute is the server's `compute_ms` of both INSPECTs (`station_qr` to find the "
         'code, `station_pose` for its pose), as reported in their RESULTs. "Rescaled to the '
@@ -781,3 +794,298 @@ def run(cfg: RunConfig, env: Env) -> Section:
 
     section.plot = plot
     return section
+
+
+# --- hard scenes (issue 29 part 4) ---------------------------------------------------------
+
+HARD_SCENE = """
+name: hard_scenes
+seed: {seed}
+surfaces:
+  - {{name: floor, center: [0, 0], height: 0.0, size: [4, 4], color: 90}}
+boxes:
+  - {{name: wall, pose: {{xyz: [{wall_x}, 0, 0], rpy: [0, 0, 0]}}, size: [0.02, 3.0, 3.5],
+      color: 150}}
+qr_boards:
+  - name: qr
+    text: "{text}"
+    side_m: {side}
+    margin_m: {margin}
+    pose: {{xyz: [0.989, 0.0, 1.0], rpy: [1.5707963267948966, 0.0, -1.5707963267948966]}}
+robot:
+  world_from_base: {{xyz: [0, 0, 0]}}
+  home: {{xyz: [0, 0, 1.0], rpy: [-1.5707963267948966, 0, -1.5707963267948966]}}
+  workspace: {{min: [-3, -3, -1], max: [3, 3, 4]}}
+cameras:
+  - name: rgbd
+    model: xtion
+    mount: tool
+    pose: {{xyz: [0, 0, 0]}}
+    noise_sigma: 1.0
+    intrinsics: {{width: {w}, height: {h}, fx: {f}, fy: {f}, cx: {cx}, cy: {cy}, dist: {dist}}}
+    depth: {{misregistration_px: [{du}, {dv}], scale_bias: {bias}, fb_px_m: {fb},
+             disparity_sigma_px: {sigma_d}, dropout: {dropout}, range_m: [{near}, 4.0]}}
+"""
+HARD_CENTRE = np.array([0.989, 0.0, 1.0])
+HARD_SCALE_BIAS = 0.005
+
+
+@dataclasses.dataclass(frozen=True)
+class HardFamily:
+    """A kind of scene harder than the station's: the camera (size, focal length, distortion,
+    stereo fb and disparity noise, near range), the views (distance, tilt off the code's
+    normal, the code's centre up to ``off_centre`` of the half image off the principal point),
+    the code (side, margin of its plate, the plate's stand-off from the wall) and depth holes.
+    ``goal``: judged against the goal (False: reported only, see the table's note)."""
+
+    name: str
+    distance_m: tuple[float, float] = (0.6, 1.2)
+    tilt_deg: tuple[float, float] = (0.0, 30.0)
+    off_centre: float = 0.0
+    size: tuple[int, int] = (640, 480)
+    f_px: float = 570.3
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    fb_px_m: float = 43.5
+    sigma_d_px: float = 0.06
+    near_m: float = 0.3
+    side_m: float = 0.16
+    margin_m: float = 0.032
+    standoff_m: float = 0.001
+    dropout: float = 0.002
+    goal: bool = True
+
+
+HARD_FAMILIES = (
+    HardFamily("oblique 30-45°", tilt_deg=(30.0, 45.0)),
+    HardFamily("code near the image border", off_centre=0.85),
+    HardFamily(
+        "plate 8 cm off the wall, 12 mm margin",
+        (0.6, 1.2),
+        (0.0, 40.0),
+        margin_m=0.012,
+        standoff_m=0.08,
+    ),
+    HardFamily(
+        "D435-like 1280x720, fb 45.5 px m",
+        (0.6, 1.5),
+        (0.0, 40.0),
+        0.5,
+        (1280, 720),
+        910.0,
+        fb_px_m=0.05 * 910.0,
+        sigma_d_px=0.08,
+    ),
+    HardFamily("10 % depth holes", dropout=0.1),
+    HardFamily(
+        "lens distortion (k1 -0.08)", off_centre=0.6, dist=(-0.08, 0.05, 0.0004, -0.0003, 0.0)
+    ),
+    HardFamily("oblique 45-60°", tilt_deg=(45.0, 60.0), goal=False),
+    HardFamily("far, 1.5-2.5 m", (1.5, 2.5), goal=False),
+    HardFamily("small code 6 cm", side_m=0.06, margin_m=0.012, goal=False),
+    HardFamily(
+        "D405-like 1280x720 at 0.2-0.45 m, 5 cm code",
+        (0.2, 0.45),
+        (0.0, 40.0),
+        0.5,
+        (1280, 720),
+        650.0,
+        fb_px_m=0.018 * 650.0,
+        sigma_d_px=0.05,
+        near_m=0.07,
+        side_m=0.05,
+        margin_m=0.01,
+        goal=False,
+    ),
+)
+HARD_ROWS = {
+    "unchecked": "plane, uncorrected",
+    "checked": "plane, sensor-checked",
+    "unchecked_depth_tilt": "plane, uncorrected, the depth's tilt alone (before issue 29)",
+    "checked_depth_tilt": "plane, sensor-checked, the depth's tilt alone (before issue 29)",
+}
+
+
+def _hard_cell(family: HardFamily, shift_px: tuple[float, float]) -> Any:
+    from simulation import SimCell, scene_from_text
+
+    w, h = family.size
+    text = HARD_SCENE.format(
+        seed=7,
+        wall_x=0.989 + family.standoff_m + 0.01,
+        text=QR_TEXT,
+        side=family.side_m,
+        margin=family.margin_m,
+        w=w,
+        h=h,
+        f=family.f_px,
+        cx=(w - 1) / 2,
+        cy=(h - 1) / 2,
+        dist=list(family.dist),
+        du=shift_px[0],
+        dv=shift_px[1],
+        bias=HARD_SCALE_BIAS,
+        fb=family.fb_px_m,
+        sigma_d=family.sigma_d_px,
+        dropout=family.dropout,
+        near=family.near_m,
+    )
+    return SimCell(scene_from_text(text, source="hard_scenes.yaml"), seed=7)
+
+
+def _hard_view(rng: np.random.Generator, family: HardFamily) -> FloatArray:
+    """world_from_camera: ``distance_m`` from the code's centre, ``tilt_deg`` off its normal
+    in a random direction, a random roll, turned so that the code's centre lands up to
+    ``off_centre`` of the half image off the principal point."""
+    tilt = np.radians(rng.uniform(*family.tilt_deg))
+    azimuth = rng.uniform(0.0, 2 * np.pi)
+    direction = np.cos(tilt) * np.array([-1.0, 0.0, 0.0]) + np.sin(tilt) * np.array(
+        [0.0, np.cos(azimuth), np.sin(azimuth)]
+    )
+    eye = HARD_CENTRE + rng.uniform(*family.distance_m) * direction
+    z = (HARD_CENTRE - eye) / np.linalg.norm(HARD_CENTRE - eye)
+    up = np.array([0.0, 0.0, 1.0])
+    y = -(up - (up @ z) * z)
+    y /= np.linalg.norm(y)
+    x = np.cross(y, z)
+    roll = rng.uniform(-np.pi, np.pi)
+    x, y = np.cos(roll) * x + np.sin(roll) * y, -np.sin(roll) * x + np.cos(roll) * y
+    rotation = np.column_stack([x, y, z])
+    if family.off_centre > 0:
+        angle = rng.uniform(0.0, 2 * np.pi)
+        r = family.off_centre * rng.uniform(0.6, 1.0)
+        w, h = family.size
+        ray = np.array([r * np.cos(angle) * w / 2, r * np.sin(angle) * h / 2, family.f_px])
+        ray /= np.linalg.norm(ray)
+        axis = np.cross(ray, [0.0, 0.0, 1.0])  # turn the camera's ray `ray` onto the code
+        s, c = float(np.linalg.norm(axis)), float(ray[2])
+        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]]) / s
+        rotation = rotation @ (np.eye(3) + s * k + (1 - c) * k @ k)
+    return make_transform(rotation, eye)
+
+
+def _hard_views(family: HardFamily, count: int, seed: int) -> list[tuple[Any, Any, FloatArray]]:
+    """``count`` views (colour frame, 5 depth frames, true camera_from_qr) with the code wholly
+    in the image, misregistered MISREGISTRATION_PX and scaled by HARD_SCALE_BIAS."""
+    cell = _hard_cell(family, MISREGISTRATION_PX)
+    rng = np.random.default_rng(seed)
+    w, h = family.size
+    out: list[tuple[Any, Any, FloatArray]] = []
+    tries = 0
+    while len(out) < count and tries < 10 * count:
+        tries += 1
+        cell.world.base_from_tool = _hard_view(rng, family)
+        frames = [cell.render("rgbd") for _ in range(5)]
+        code = frames[0].truth.qr_codes.get("qr")
+        if code is None:
+            continue
+        uv = code.corners_uv
+        if not (np.all(uv >= 2) and np.all(uv[:, 0] < w - 2) and np.all(uv[:, 1] < h - 2)):
+            continue
+        out.append((frames[0], [f.depth for f in frames], code.camera_from_qr))
+    return out
+
+
+def _hard_scenes(views: int, check_views: int, corner_bias_px: float) -> dict[str, Any]:
+    """Per family: a sensor check on ``check_views`` views (its fit of scale and shift), then
+    ``views`` other views measured unchecked and with the check's correction, each with the
+    tilt fused from the depth and the corners (the default) and with the depth's tilt alone.
+    Errors of camera_from_qr against the truth: translation mm, rotation degrees; views where
+    qr_pose found nothing are counted, not scored."""
+    from robot_client.vision_geometry import rotation_error_rad
+    from vision_server.analysis import AnalysisError, fit_depth_registration, qr_pose
+
+    out: dict[str, Any] = {}
+    for family in HARD_FAMILIES:
+        seed = zlib.crc32(family.name.encode())  # the same views whichever families run
+        check = _hard_views(family, check_views, seed)
+        evaluated = _hard_views(family, views, seed + 1)
+        kw: dict[str, Any] = {"expect": QR_TEXT, "side_m": family.side_m}
+        qualities = []
+        for f, d, _ in check:
+            try:
+                qualities.append(qr_pose(f.color, d, f.truth.intrinsics, **kw).quality)
+            except AnalysisError:
+                continue
+        reg = fit_depth_registration(
+            [q.depth_vs_side for q in qualities],
+            [[float(g) for g in q.shift_sensitivity] for q in qualities],
+            [q.side_px for q in qualities],
+            corner_bias_px=corner_bias_px,
+            depth_vs_grid=[q.depth_vs_grid for q in qualities],
+        )
+        correction = {
+            "depth_scale": reg.scale,
+            "depth_shift_px": reg.shift_px,
+            "depth_scale_std": reg.scale_std,
+            "depth_shift_std_px": reg.shift_std_px,
+            "corner_bias_px": corner_bias_px,
+        }
+        configs: dict[str, dict[str, Any]] = {
+            "unchecked": {},
+            "checked": correction,
+            "unchecked_depth_tilt": {"normal": "depth"},
+            "checked_depth_tilt": {**correction, "normal": "depth"},
+        }
+        rows: dict[str, Any] = {"registration": reg, "views": len(evaluated)}
+        for name, extra in configs.items():
+            t, r, missed = [], [], 0
+            for f, d, truth in evaluated:
+                try:
+                    pose = qr_pose(f.color, d, f.truth.intrinsics, **kw, **extra).camera_from_qr
+                except AnalysisError:
+                    missed += 1
+                    continue
+                t.append(float(np.linalg.norm(pose[:3, 3] - truth[:3, 3])) * 1e3)
+                r.append(float(np.degrees(rotation_error_rad(pose, truth))))
+            rows[name] = {"t": t, "r": r, "missed": missed}
+        out[family.name] = rows
+    return out
+
+
+def _hard_table(section: Section, hard: dict[str, Any]) -> Table:
+    """The hard scenes' table, their values and the goal on the families it is judged on."""
+    table = Table(
+        [
+            "scene",
+            "sensor check: scale, shift px",
+            "method",
+            "views (missed)",
+            "translation p50 / p95 mm",
+            "rotation p50 / p95 deg",
+        ],
+        caption="Hard scenes (issue 29 part 4; in process; depth misregistered "
+        f"{MISREGISTRATION_PX} px and scaled {HARD_SCALE_BIAS:+.1%}; camera_from_qr against "
+        "the truth):",
+    )
+    worst = {"unchecked": (0.0, 0.0), "checked": (0.0, 0.0)}
+    for family in HARD_FAMILIES:
+        rows = hard[family.name]
+        reg = rows["registration"]
+        fitted = f"{reg.scale:.4f}, ({reg.shift_px[0]:+.2f}, {reg.shift_px[1]:+.2f})"
+        for key, label in HARD_ROWS.items():
+            s = rows[key]
+            t, r = Stats.of(s["t"]), Stats.of(s["r"])
+            table.add(
+                family.name + ("" if family.goal else " (reported)"),
+                fitted,
+                label,
+                f"{t.n} ({s['missed']})",
+                f"{fmt(t.p50)} / {fmt(t.p95)}",
+                f"{fmt(r.p50)} / {fmt(r.p95)}",
+            )
+            slug = "".join(ch if ch.isalnum() else "_" for ch in family.name.lower())[:24]
+            section.value(f"hard_{slug}_{key}_t_p95_mm", t.p95)
+            section.value(f"hard_{slug}_{key}_r_p95_deg", r.p95)
+            if family.goal and key in worst:
+                worst[key] = (max(worst[key][0], t.p95), max(worst[key][1], r.p95))
+    judged = [f.name for f in HARD_FAMILIES if f.goal]
+    for key, (t95, r95) in worst.items():
+        section.goals.append(
+            Goal(
+                f"hard scenes, {HARD_ROWS[key]}: p95 <= {GOAL_T_MM} mm and <= {GOAL_R_DEG}° on "
+                f"each of {len(judged)} families ({'; '.join(judged)})",
+                f"worst {fmt(t95)} mm, {fmt(r95)}°",
+                t95 <= GOAL_T_MM and r95 <= GOAL_R_DEG,
+            )
+        )
+    return table

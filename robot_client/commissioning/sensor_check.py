@@ -45,12 +45,15 @@ _QR_FROM_CENTRE = np.diag([1.0, -1.0, -1.0, 1.0])
 @dataclass(frozen=True)
 class SensorView:
     """One view's share of the fit: ``depth_vs_side`` (relative), its gain per pixel of
-    shift ``shift_sensitivity`` (u, v) and the code's side in the image ``side_px``."""
+    shift ``shift_sensitivity`` (u, v), the code's side in the image ``side_px`` and
+    ``depth_vs_grid``, the disagreement from the code's module grid (NaN: not reported; the
+    fit prefers it, :func:`geometry.depth_registration.fit_depth_registration`)."""
 
     label: str
     depth_vs_side: float
     shift_sensitivity: tuple[float, float]
     side_px: float
+    depth_vs_grid: float = math.nan
 
 
 @dataclass
@@ -79,7 +82,8 @@ def _sensor_view(data: Mapping[str, Any], label: str) -> tuple[SensorView | None
     side_px = _number(quality.get("side_px"))
     if not math.isfinite(ratio) or len(gains) != 2 or not math.isfinite(side_px):
         return None, "no depth_vs_side in the quality report: give the qr_pose inspection side_m"
-    return SensorView(label, ratio, (_number(gains[0]), _number(gains[1])), side_px), ""
+    grid = _number(quality.get("depth_vs_grid"))
+    return SensorView(label, ratio, (_number(gains[0]), _number(gains[1])), side_px, grid), ""
 
 
 def _camera_from_qr(data: Mapping[str, Any]) -> FloatArray:
@@ -162,6 +166,7 @@ def check_sensor(
         [v.shift_sensitivity for v in check.views],
         [v.side_px for v in check.views],
         corner_bias_px=corner_bias_px,
+        depth_vs_grid=[v.depth_vs_grid for v in check.views],
     )
     check.ok, check.advice = registration_advice(check.registration)
     if progress is not None:

@@ -24,6 +24,7 @@ def fit_depth_registration(
     *,
     corner_bias_px: float = 0.0,
     min_tilt_spread: float = 2e-4,
+    depth_vs_grid: Sequence[float] | FloatArray | None = None,
 ) -> DepthRegistration:
     """:func:`geometry.depth_registration.fit_depth_registration`, raising AnalysisError."""
     try:
@@ -33,6 +34,7 @@ def fit_depth_registration(
             side_px,
             corner_bias_px=corner_bias_px,
             min_tilt_spread=min_tilt_spread,
+            depth_vs_grid=depth_vs_grid,
         )
     except ValueError as exc:
         raise AnalysisError(str(exc)) from None

@@ -21,10 +21,16 @@ correction evenly over the axes instead of favouring x as Gram-Schmidt would.
 centre by ``erode`` of the side (depth at the code's edges and across the quiet zone is where
 misregistration and flying pixels hurt), from all N frames pooled (zeros ignored), are
 back-projected and a plane is fitted by RANSAC (threshold from the expected structured-light
-noise at that range, then least squares on the inliers). The four sub-pixel corner rays are
-intersected with the plane, and the rotation is the best fit (Kabsch/SVD) of the ideal square
-to the four 3D corners; the corners are coplanar, so its z is the plane's normal and its
-in-plane angle comes from the image corners. Why this is robust on a Kinect-like sensor:
+noise at that range, then least squares on the inliers). The plane's normal is then fused with
+the normal that the code's own square gives by PnP (the module grid's corners when found), by
+their covariances (:mod:`.qr_tilt`, issue 29: an uncorrected misregistration turns the plane
+on oblique views, and the depth's noise tilts it on small, far or noisy codes, where PnP is
+at its best; PnP is weakest square on, where the plane is best); ``normal="depth"`` keeps the
+plane's own. The plane is turned about its samples' centroid to that normal, the four
+sub-pixel corner rays are intersected with it, and the rotation is the best fit (Kabsch/SVD)
+of the ideal square to the four 3D corners; the corners are coplanar, so its z is the fused
+normal and its in-plane angle comes from the image corners. Why this is robust on a
+Kinect-like sensor:
 
 - disparity noise and 1/8 px quantisation average out over thousands of pixels, where the
   corners method sees nine;
@@ -32,8 +38,11 @@ in-plane angle comes from the image corners. Why this is robust on a Kinect-like
   not move the plane (the quad is eroded so no pixel near the board's edge is used), whereas
   the corners method samples the wrong spot;
 - a depth scale bias (z read as (1 + b) z) scales the plane about the camera centre and with
-  it the corners, and a misregistration on a tilted board moves the plane along the rays by
-  (n_x du / fx + n_y dv / fy) / n_z of the range; neither turns the plane. With ``side_m`` (the
+  it the corners, which does not turn the plane; a misregistration on a tilted board moves the
+  plane along the rays by (n_x du / fx + n_y dv / fy) / n_z of the range and also turns it,
+  by about sin²(tilt) · shift / f (0.1° at 45° for 2 px at 570 px: :mod:`.qr_tilt`), which
+  the tilt's fusion weighs by the shift's uncertainty (the sensor check's standard errors, or
+  ``unchecked_shift_std_px``). With ``side_m`` (the
   printed side of the symbol) the image size of the code fixes the distance independently of
   both: the corners are rescaled along their rays so the mean measured side equals ``side_m``.
   The printed side is noisier than unbiased depth (about 0.02 px / side in px of the range,
@@ -42,6 +51,10 @@ in-plane angle comes from the image corners. Why this is robust on a Kinect-like
   depth's is its configured correction's (the sensor check's standard errors) or, when no
   check is configured, the typical systematic errors of an unchecked RGB-D sensor
   (``unchecked_scale_std`` 1 %, ``unchecked_shift_std_px`` 2 px; :func:`_unchecked_factor`).
+  With a sensor check the printed distance comes from the code's module grid when it is found
+  (free of the corners' edge bias and about half as noisy: on oblique and D435-like views the
+  corners' side left 0.4-0.8 mm p95 where the grid leaves 0.17-0.32 mm), the corners' side
+  (less ``corner_bias_px``) otherwise.
   Then the printed side carries the distance along the ray and the depth the orientation,
   unless the depth agrees with the side within AGREEMENT_SIGMAS of the side's noise, when its
   distance is kept exactly: a sensor without systematic errors loses nothing of its precision.
@@ -69,6 +82,7 @@ from geometry import CameraIntrinsics, fit_plane, orthonormalize
 from .errors import BadImageError, DepthError, NotFoundError
 from .qr import Expect, gray_for_code, read_qr
 from .qr_grid import grid_corners
+from .qr_tilt import TiltFusion, corners_normal, fuse_normals, shift_normal_cov, tangent_basis
 
 __all__ = [
     "QRPose",
@@ -127,8 +141,14 @@ class QRPoseQuality:
     so one view cannot tell a shift from a scale: the sensor check fits several views.
     ``side_px``: the code's mean side in the image, pixels. ``depth_vs_grid``: the same
     disagreement from the code's module grid (see :func:`_grid_disagreement`; what the
-    unchecked fusion uses), NaN when not measured (a sensor check is configured, the corners
-    were given, or the grid was not found).
+    distance's fusion uses, checked or not), NaN when not measured (the corners were given,
+    the grid was not found, or no ``side_m``).
+
+    The plane method's tilt (:mod:`.qr_tilt`; NaN for the corners method or when the corners'
+    normal was not available): ``plane_normal_std_rad`` and ``corners_normal_std_rad``, the
+    larger principal std of the depth plane's normal (with the shift's uncertainty) and of the
+    corners' (PnP); ``normal_turned_rad``, how far the fusion turned the plane's normal (0 when
+    the two disagreed beyond qr_tilt.DISAGREEMENT_SIGMAS and the plane's was kept).
     """
 
     corner_depth_std_m: FloatArray
@@ -144,6 +164,9 @@ class QRPoseQuality:
     side_px: float = float("nan")
     shift_sensitivity: FloatArray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
     depth_vs_grid: float = float("nan")
+    plane_normal_std_rad: float = float("nan")
+    corners_normal_std_rad: float = float("nan")
+    normal_turned_rad: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -262,6 +285,7 @@ def qr_pose(
     corner_bias_px: float | None = None,
     unchecked_scale_std: float = UNCHECKED_SCALE_STD,
     unchecked_shift_std_px: float = UNCHECKED_SHIFT_STD_PX,
+    normal: Literal["fused", "depth"] = "fused",
 ) -> QRPose:
     """``camera_from_qr`` of the QR code in ``color`` (or at the given ``corners``).
 
@@ -294,13 +318,18 @@ def qr_pose(
     whose check is not configured (no ``depth_scale``, ``depth_shift_px`` or
     ``depth_scale_std``), typical of an RGB-D camera out
     of the box (scale 0.5-1 %, registration a few pixels); 0 and 0 keep the depth's distance
-    as it is. See :func:`_unchecked_factor`.
+    as it is. See :func:`_unchecked_factor`. The shift's std also weighs the depth plane's
+    tilt against the corners' (an uncorrected shift turns the plane).
+    ``normal`` (plane method): "fused" (default) fuses the depth plane's normal with the
+    corners' (PnP) by their covariances, "depth" keeps the plane's (see :mod:`.qr_tilt`).
 
     Raises NotFoundError (no code), DepthError (a corner without depth, too few depth pixels,
     degenerate geometry), BadImageError (bad depth frames).
     """
     if method not in ("plane", "corners"):
         raise ValueError(f"method must be 'plane' or 'corners', got {method!r}")
+    if normal not in ("fused", "depth"):
+        raise ValueError(f"normal must be 'fused' or 'depth', got {normal!r}")
     if side_m is not None and not side_m > 0:
         raise ValueError(f"side_m must be positive, got {side_m}")
     if scale not in ("auto", "side", "depth"):
@@ -341,13 +370,16 @@ def qr_pose(
         modules = None  # corners from elsewhere: the module grid is not looked for
     _check_corners(corners_uv, intrinsics)
 
+    checked = depth_scale_std is not None or correction != DepthCorrection()
+    grid_uv: FloatArray | None = None
+    tilt: TiltFusion | None = None
     if method == "corners":
         corners_cam, spread, valid_fraction = _corners_method(
             corners_uv, depth, intrinsics, window_px, disparity_levels, correction
         )
         rms = inlier_fraction = float("nan")
     else:
-        corners_cam, spread, valid_fraction, rms, inlier_fraction = _plane_method(
+        plane = _plane_method(
             corners_uv,
             depth,
             intrinsics,
@@ -357,6 +389,35 @@ def qr_pose(
             disparity_levels,
             correction,
         )
+        corners_cam, spread, valid_fraction = plane.corners_cam, plane.spread, plane.valid_fraction
+        rms, inlier_fraction = plane.rms, plane.inlier_fraction
+        if color is not None and modules is not None:
+            grid_uv = _grid(color, corners_uv, modules, intrinsics)
+        if normal == "fused":
+            if checked:
+                # the check's standard errors (a correction given without them is exact); a
+                # shift the check could not determine is as uncertain as an unchecked one
+                shift_std = tuple(
+                    float(x) if np.isfinite(x) else unchecked_shift_std_px
+                    for x in depth_shift_std_px
+                )
+            else:
+                shift_std = (unchecked_shift_std_px, unchecked_shift_std_px)
+            tilt = _fused_tilt(
+                plane,
+                corners_uv if grid_uv is None else grid_uv,
+                grid_uv is not None,
+                intrinsics,
+                side_m,
+                (shift_std[0], shift_std[1]),
+            )
+            turned = (
+                None
+                if tilt is None or not tilt.used
+                else _onto_plane(plane.centroid, corners_uv, tilt.normal, intrinsics)
+            )
+            if turned is not None:
+                corners_cam = turned
 
     sides = _sides(corners_cam)
     if not np.all(sides > 1e-4):
@@ -368,8 +429,32 @@ def qr_pose(
     sensitivity = _shift_sensitivity(corners_cam, intrinsics)
     if side_m is not None and scale == "auto":
         disagreement = float(sides.mean()) / side_m - 1.0
-        checked = depth_scale_std is not None or correction != DepthCorrection()
-        if checked:
+        grid = (
+            None
+            if grid_uv is None or modules is None
+            else _grid_disagreement(
+                grid_uv,
+                corners_cam,
+                modules,
+                intrinsics,
+                side_m,
+                side_px,
+                tilt.fused_std_rad if tilt is not None and tilt.used else PLANE_NORMAL_STD_RAD,
+            )
+        )
+        if checked and grid is not None:
+            # the module grid's size: free of the corners' edge bias and ~2x less noisy
+            depth_vs_grid, var_grid = grid
+            factor = _fused_factor(
+                depth_vs_grid,
+                side_px,
+                sensitivity,
+                depth_scale_std or 0.0,
+                depth_shift_std_px,
+                0.0,
+                side_noise_px=float(np.sqrt(var_grid)) * side_px,
+            )
+        elif checked:
             # a correction without its standard errors is taken as exact
             factor = _fused_factor(
                 disagreement,
@@ -380,13 +465,6 @@ def qr_pose(
                 corner_bias_px or 0.0,
             )
         else:
-            grid = (
-                None
-                if color is None or modules is None
-                else _grid_disagreement(
-                    color, corners_uv, corners_cam, modules, intrinsics, side_m, side_px
-                )
-            )
             if grid is not None:
                 depth_vs_grid, var_grid = grid
                 factor = _unchecked_factor(
@@ -442,6 +520,9 @@ def qr_pose(
         side_px=side_px,
         shift_sensitivity=sensitivity,
         depth_vs_grid=depth_vs_grid,
+        plane_normal_std_rad=float("nan") if tilt is None else tilt.plane_std_rad,
+        corners_normal_std_rad=float("nan") if tilt is None else tilt.corners_std_rad,
+        normal_turned_rad=float("nan") if tilt is None else tilt.turned_rad,
     )
     return QRPose(camera_from_qr, text, corners_uv.copy(), corners_cam, method, quality)
 
@@ -466,6 +547,19 @@ direction on the code's plane, std in pixels of the side it implies: 0.009-0.010
 -0.002 to -0.004 px: no bias worth configuring) against the simulated camera's truth on two
 sets of 40 views at 0.6-1.5 m that the bench does not evaluate (bench/calibration.py's view
 generator, seeds 53 and 59). The corners' side has 0.018-0.020 px around a -0.033 px bias."""
+PLANE_COV_FACTOR = 1.0
+"""Calibration of the plane's normal covariance (:func:`_plane_method`, frames counted as one):
+against the simulation's truth (15 views in each of ten scene families: the bench's, oblique,
+far, small code, near the border, a plate off the wall, D435- and D405-like stereo, distortion,
+holes) the normal's error is 0.5-1.3 times its stated std (median 0.86), so no factor; the
+D405-like camera at 0.2-0.45 m reads 3.5 times (its millimetre depth is coarse against its
+noise there), where the tilt test of :func:`.qr_tilt.fuse_normals` may keep the plane."""
+GRID_CORNER_NOISE_PX = 0.02
+"""The module grid's corners' noise (std per coordinate, px) for the corners' normal: PnP's
+normal error on the same views was 0.84 times its std at 0.015 px (median; 0.7-2.5 by family)."""
+CORNER_NOISE_PX = 0.06
+"""The detected corners' noise (std per coordinate, px) for the corners' normal, when the grid
+is not found: 1.8 times PnP's std at 0.03 px on the same views (median; 1.5-3.7 by family)."""
 PLANE_NORMAL_STD_RAD = float(np.radians(0.1))
 """The depth plane's normal error (std) at 0.6-1.5 m over 5 frames: the plane method's
 rotation p95 is 0.11-0.15° on the bench (docs/BENCHMARKS.md section 4)."""
@@ -481,14 +575,73 @@ AGREEMENT_RAMP_SIGMAS = 1.0
 'disagrees', so that the distance does not jump at the test's edge."""
 
 
-def _grid_disagreement(
-    color: NDArray[np.generic],
+def _grid(
+    color: NDArray[np.generic], corners_uv: FloatArray, modules: int, intr: CameraIntrinsics
+) -> FloatArray | None:
+    """The code's outer corners from its module grid (:func:`.qr_grid.grid_corners`, through
+    the lens's distortion), None when the grid is not found."""
+    try:
+        return grid_corners(gray_for_code(color), corners_uv, modules, intrinsics=intr)
+    except (BadImageError, ValueError):
+        return None
+
+
+def _fused_tilt(
+    plane: _Plane,
     corners_uv: FloatArray,
+    from_grid: bool,
+    intr: CameraIntrinsics,
+    side_m: float | None,
+    shift_std_px: tuple[float, float],
+) -> TiltFusion | None:
+    """The plane's normal fused with the corners' (see :mod:`.qr_tilt`): the plane's covariance
+    is its fit's (``plane.normal_cov``) plus what a depth-to-colour shift of ``shift_std_px``
+    turns it by; the corners' is PnP's at GRID_CORNER_NOISE_PX (``from_grid``: the module
+    grid's corners) or CORNER_NOISE_PX. None when either is not available."""
+    if not np.all(np.isfinite(plane.normal_cov)):
+        return None
+    basis = tangent_basis(plane.normal)
+    plane_cov = plane.normal_cov + shift_normal_cov(
+        plane.normal, basis, intr.fx, intr.fy, shift_std_px
+    )
+    found = corners_normal(
+        intr.undistort_pixels(corners_uv),
+        side_m if side_m is not None else 1.0,  # the rotation does not depend on the size
+        intr.fx,
+        intr.fy,
+        GRID_CORNER_NOISE_PX if from_grid else CORNER_NOISE_PX,
+        plane.normal,
+    )
+    if found is None:
+        return None
+    return fuse_normals(plane.normal, plane_cov, found[0], found[1])
+
+
+def _onto_plane(
+    centroid: FloatArray, corners_uv: FloatArray, normal: FloatArray, intr: CameraIntrinsics
+) -> FloatArray | None:
+    """The corner rays met with the plane of ``normal`` through the depth samples' ``centroid``
+    (the depth's plane turned about the point where it is best determined; only the tilt
+    changes). None when the plane is seen edge-on or behind the camera."""
+    rays = intr.pixel_rays(corners_uv)
+    denom = rays @ normal
+    if np.any(np.abs(denom) < 1e-3):
+        return None
+    s = float(normal @ centroid) / denom
+    if np.any(s <= 0):
+        return None
+    result: FloatArray = rays * s[:, None]
+    return result
+
+
+def _grid_disagreement(
+    grid_uv: FloatArray,
     corners_cam: FloatArray,
     modules: int,
     intr: CameraIntrinsics,
     side_m: float,
     side_px: float,
+    normal_std_rad: float = PLANE_NORMAL_STD_RAD,
 ) -> tuple[float, float] | None:
     """How much further the depth puts the code than its module grid's image size does
     (relative, like ``depth_vs_side``), and that figure's variance (relative²).
@@ -500,13 +653,10 @@ def _grid_disagreement(
     (depth noise, PLANE_NORMAL_STD_RAD), and a normal error d stretches lengths across the tilt
     axis by tan(tilt) d (0.07 % at 20° and 0.18°: 1 mm at 1.4 m) but not along it; each
     direction has the grid's own noise (GRID_AXIS_NOISE_PX / ``side_px``). The two are weighed
-    by their variances. None when the grid is not found."""
-    try:
-        grid_uv = grid_corners(gray_for_code(color), corners_uv, modules)
-    except (BadImageError, ValueError):
-        return None
-    if grid_uv is None:
-        return None
+    by their variances. ``grid_uv``: the grid's corners (:func:`_grid`); ``normal_std_rad``: the
+    normal's std (the tilt fusion's, :mod:`.qr_tilt`, when it was fused: with the corners' the
+    normal is better known than the plane's 0.1°, and the direction across the tilt axis
+    counts for more)."""
     normal = np.cross(corners_cam[2] - corners_cam[0], corners_cam[3] - corners_cam[1])
     normal /= np.linalg.norm(normal)
     centre = corners_cam.mean(axis=0)
@@ -534,7 +684,7 @@ def _grid_disagreement(
     var_grid = (GRID_AXIS_NOISE_PX / side_px) ** 2
     tan_tilt = sin_tilt / max(float(np.sqrt(1.0 - sin_tilt**2)), 1e-6)
     w_along = 1.0 / var_grid
-    w_across = 1.0 / (var_grid + (tan_tilt * PLANE_NORMAL_STD_RAD) ** 2)
+    w_across = 1.0 / (var_grid + (tan_tilt * normal_std_rad) ** 2)
     r = (w_along * r_along + w_across * r_across) / (w_along + w_across)
     return r, 1.0 / (w_along + w_across)
 
@@ -554,6 +704,8 @@ def _fused_factor(
     scale_std: float,
     shift_std_px: tuple[float, float],
     corner_bias_px: float,
+    *,
+    side_noise_px: float = SIDE_NOISE_PX,
 ) -> float:
     """The factor on the corrected depth's corners that fuses two distances by their variances:
     the depth's (relative variance scale_std² + (g · shift_std)², the correction's own
@@ -566,7 +718,7 @@ def _fused_factor(
         + float((sensitivity[0] * shift_std_px[0]) ** 2)
         + float((sensitivity[1] * shift_std_px[1]) ** 2)
     )
-    var_side = (SIDE_NOISE_PX / side_px) ** 2
+    var_side = (side_noise_px / side_px) ** 2
     if not np.isfinite(var_depth) or var_depth + var_side <= 0:
         return 1.0
     w = var_depth / (var_depth + var_side)
@@ -666,6 +818,24 @@ def _corners_method(
     return corners_cam, spread, valid_total / max(count_total, 1)
 
 
+@dataclass(frozen=True)
+class _Plane:
+    """The plane method's fit: the corners on the plane (4, 3), the residual spread near each
+    corner (4,), the valid depth fraction, the RMS residual (m), the inlier fraction, the unit
+    normal (3, towards the camera) and its covariance (2, 2; rad², in
+    ``tangent_basis(normal)``) from the depth's noise alone, and the inliers' centroid (3,),
+    the point the plane is best determined at (its tilt errors turn it about that point)."""
+
+    corners_cam: FloatArray
+    spread: FloatArray
+    valid_fraction: float
+    rms: float
+    inlier_fraction: float
+    normal: FloatArray
+    normal_cov: FloatArray
+    centroid: FloatArray
+
+
 def _plane_method(
     corners_uv: FloatArray,
     depth: NDArray[np.uint16],
@@ -676,7 +846,7 @@ def _plane_method(
     levels: tuple[float, int] | None,
     correction: DepthCorrection,
     max_points: int = 25000,
-) -> tuple[FloatArray, FloatArray, float, float, float]:
+) -> _Plane:
     n_frames, h, w = depth.shape
     centre = corners_uv.mean(axis=0)
     quad = centre + (1.0 - 2.0 * erode) * (corners_uv - centre)
@@ -751,10 +921,29 @@ def _plane_method(
         near = np.sum((in_uv - quad[i]) ** 2, axis=1) < (0.25 * side_px) ** 2
         if near.any():
             spread[i] = float(residual[near].std())
-    return (
+    # the normal's covariance in tangent angles: residual variance over the samples' spread on
+    # the plane, with the frames counted as one (the simulated sensor's noise, like a real
+    # one's, repeats in part from frame to frame: the pooled count put the normal's std 2-3
+    # times too low against the truth)
+    basis = tangent_basis(normal)
+    spread_on_plane = centred @ basis.T
+    variance = float(np.mean(residual**2))
+    try:
+        normal_cov = (
+            PLANE_COV_FACTOR
+            * n_frames
+            * variance
+            * np.linalg.inv(spread_on_plane.T @ spread_on_plane)
+        )
+    except np.linalg.LinAlgError:
+        normal_cov = np.full((2, 2), np.nan)
+    return _Plane(
         corners_cam,
         spread,
         valid_fraction,
-        float(np.sqrt(np.mean(residual**2))),
+        float(np.sqrt(variance)),
         float(inliers.mean()),
+        normal,
+        np.asarray(normal_cov, np.float64),
+        centroid,
     )

@@ -73,6 +73,7 @@ def sensor_check(args: argparse.Namespace) -> int:
     ratios: list[float] = []
     gains: list[list[float]] = []
     sides: list[float] = []
+    grids: list[float] = []
     for view in args.view:
         if len(view) < 2:
             print(f"vision-server sensor-check: view {view} needs a colour image and depth")
@@ -95,9 +96,14 @@ def sensor_check(args: argparse.Namespace) -> int:
         ratios.append(q.depth_vs_side)
         gains.append([float(g) for g in q.shift_sensitivity])
         sides.append(q.side_px)
+        grids.append(q.depth_vs_grid)
     try:
         reg = fit_depth_registration(
-            ratios, gains, sides, corner_bias_px=inspection.corner_bias_px or 0.0
+            ratios,
+            gains,
+            sides,
+            corner_bias_px=inspection.corner_bias_px or 0.0,
+            depth_vs_grid=grids,  # the module grid's, where found (issue 29)
         )
     except AnalysisError as exc:
         print(f"vision-server sensor-check: {exc}")

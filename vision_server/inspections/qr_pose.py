@@ -166,6 +166,7 @@ def _quality(quality: QRPoseQuality) -> dict[str, Any]:
         "scale",
         "frames",
         "depth_vs_side",
+        "depth_vs_grid",
         "side_px",
     ):
         value = getattr(quality, name, None)

@@ -82,16 +82,17 @@ def test_a_perfect_sensor_keeps_its_depth_where_the_grid_strays_by_two_stds() ->
     # a view of a sensor without systematic errors whose module grid reads the code's size
     # ~2.8 of its stds off (a perfect sensor shows 2.5 or more on ~1 % of its views): the
     # depth agrees within the agreement test and keeps its distance exactly; the posterior
-    # alone moved it 0.0017 % towards the grid's
+    # alone moved it 0.0017 % towards the grid's. (View 156 until issue 29: measured on the
+    # plane with its tilt fused with the corners', its grid is now 1.2 stds off; view 215 is
+    # 2.3 stds off at least.)
     cell = qr_cell(5)
-    cell.world.base_from_tool = random_view(np.random.default_rng(156))
+    cell.world.base_from_tool = random_view(np.random.default_rng(215))
     frame = cell.render("rgbd")
     intr = frame.truth.intrinsics
     pose = qr_pose(frame.color, [frame.depth], intr, side_m=SIDE)
     kept = qr_pose(frame.color, [frame.depth], intr, side_m=SIDE, scale="depth")
     # the grid's std on this view is at most GRID_AXIS_NOISE_PX / side_px (the two in-plane
-    # directions' weighted mean), so this is a lower bound of the disagreement in stds (2.1;
-    # 2.8 by this view's own std)
+    # directions' weighted mean), so this is a lower bound of the disagreement in stds
     stds_at_least = abs(pose.quality.depth_vs_grid) * pose.quality.side_px / GRID_AXIS_NOISE_PX
     assert 2.0 < stds_at_least < AGREEMENT_SIGMAS
     assert pose.quality.scale == 1.0
@@ -137,7 +138,16 @@ def test_zero_unchecked_errors_keep_the_depth_distance() -> None:
         unchecked_shift_std_px=0.0,
         **kw,
     )
-    kept = qr_pose(frame.color, [frame.depth], frame.truth.intrinsics, scale="depth", **kw)
+    # the same assumed errors (they also weigh the depth's tilt against the corners', issue 29)
+    kept = qr_pose(
+        frame.color,
+        [frame.depth],
+        frame.truth.intrinsics,
+        scale="depth",
+        unchecked_scale_std=0.0,
+        unchecked_shift_std_px=0.0,
+        **kw,
+    )
     assert trusted.quality.scale == 1.0
     np.testing.assert_allclose(trusted.camera_from_qr, kept.camera_from_qr)
 
