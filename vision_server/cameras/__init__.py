@@ -18,6 +18,8 @@ Public API:
   ``grab(*, timeout_s, newer_than=None)``, ``grab_many(n, *, timeout_s)``, ``status()``,
   ``close()``, ``descriptor()``).
 - :func:`make_camera` ``(name, settings, *, base_dir, clock=None) -> Camera``.
+- :class:`RealSenseRecorder`: writes a RealSense recording (the SDK's own file) that the
+  ``realsense`` source plays with ``playback:``.
 - Time: :class:`Clock` (what a camera reads and waits on), ``SYSTEM_CLOCK`` (the default) and
   :class:`ManualClock` (a clock a test advances by hand).
 - The implementations: :class:`RequestCamera`, :class:`OpenCVCamera`, :class:`FolderCamera`,
@@ -33,6 +35,7 @@ from .genicam import GenICamCamera
 from .mount import MOUNT_KEYS, CameraMount
 from .opencv import OpenCVCamera
 from .realsense import RealSenseCamera
+from .realsense_recording import RealSenseRecorder
 from .request import RequestCamera
 from .settings import (
     SOURCE_NAMES,
@@ -64,6 +67,7 @@ __all__ = [
     "OpenCVCameraSettings",
     "RealSenseCamera",
     "RealSenseCameraSettings",
+    "RealSenseRecorder",
     "RequestCamera",
     "RequestCameraSettings",
     "SOURCE_NAMES",

@@ -34,7 +34,6 @@ from pathlib import Path
 from types import ModuleType, TracebackType
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -205,7 +204,7 @@ class RealSenseRecorder:
         if color.dtype != np.uint8:
             raise ValueError(f"color_bgr must be uint8, got {color.dtype}")
         if color.ndim == 2:
-            color = cv2.cvtColor(color, cv2.COLOR_GRAY2BGR)
+            color = np.repeat(color[:, :, np.newaxis], 3, axis=2)
         if color.shape != (self.height, self.width, 3):
             raise ValueError(
                 f"color_bgr must be ({self.height}, {self.width}, 3), got {color.shape}"
