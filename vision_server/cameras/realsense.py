@@ -117,8 +117,10 @@ class RealSenseCamera(DeviceCamera):
         self._playback: Any = None
         self._half_period_ms = 0.0
         self._taken: tuple[int, float] | None = None  # the last colour frame: (number, ms)
+        self._loops = 0  # times a looping recording was started again
         self._taken_count = 0  # frames taken from the recording since it started
         self._skipped = 0  # framesets passed over: their colour had no depth of its moment
+        self._lost = 0  # colour frames of the recording the SDK never handed over with depth
         self._ended: str | None = None
         self._sdk_times: dict[int, float] = {}  # frame index -> the SDK's timestamp (s)
         self._color_format: Any = None
@@ -176,7 +178,7 @@ class RealSenseCamera(DeviceCamera):
         pipeline = rs.pipeline()
         config = rs.config()
         try:
-            config.enable_device_from_file(str(path), repeat_playback=s.loop_file)
+            config.enable_device_from_file(str(path), repeat_playback=False)
             # Resolved with no stream asked for: every recorded stream, to see what is there.
             recorded = config.resolve(rs.pipeline_wrapper(pipeline))
         except RuntimeError as exc:
@@ -220,10 +222,13 @@ class RealSenseCamera(DeviceCamera):
             # before the start on the device the start will use: the configuration's last
             # resolve (a changed configuration resolves to a new device, which would start
             # in real time and drop frames before it could be told otherwise).
-            config.resolve(rs.pipeline_wrapper(pipeline)).get_device().as_playback().set_real_time(
-                False
-            )
+            resolved = config.resolve(rs.pipeline_wrapper(pipeline)).get_device().as_playback()
+            resolved.set_real_time(False)
+            # Paused until the pipeline has started every stream: a frame read before its
+            # stream's sensor runs is lost (seen as the first frames missing, now and then).
+            resolved.pause()
             profile = pipeline.start(config)
+            profile.get_device().as_playback().resume()
             self._pipeline = pipeline
             device = profile.get_device()
             playback = self._playback = device.as_playback()
@@ -262,6 +267,7 @@ class RealSenseCamera(DeviceCamera):
         self._serial = info.get("serial")
         self._device_info = info
         self._taken, self._taken_count, self._skipped, self._ended = None, 0, 0, None
+        self._lost = 0
         if intrinsics is not None:
             self._use_device_intrinsics(intrinsics)
 
@@ -357,16 +363,17 @@ class RealSenseCamera(DeviceCamera):
         stopped_at: float | None = None
         while True:
             now = time.monotonic()
-            if (
-                not self.settings.loop_file
-                and stopped_at is None
-                and self._playback.current_status() == rs.playback_status.stopped
-            ):
+            if stopped_at is None and self._playback.current_status() == rs.playback_status.stopped:
                 stopped_at = now
             if stopped_at is not None and now - stopped_at >= _END_GRACE_S:
+                if self.settings.loop_file:
+                    self._play_again(rs)
+                    stopped_at = None
+                    continue
+                lost = f", {self._lost} more lost by the SDK" if self._lost else ""
                 self._ended = (
                     f"the recording {self.playback_path} ended after {self._taken_count} "
-                    f"frames (loop_file: false)"
+                    f"frames{lost} (loop_file: false)"
                 )
                 self._device_info["ended"] = True
                 raise RecordingEnded(self._ended)
@@ -379,9 +386,23 @@ class RealSenseCamera(DeviceCamera):
                 frames = self._pipeline.wait_for_frames(max(1, round(wait_s * 1000)))
             except RuntimeError:
                 continue  # nothing within this slice: look at the recording's state again
+            stopped_at = None  # frames still come
             taken = self._take(frames)
             if taken is not None:
                 return taken
+
+    def _play_again(self, rs: ModuleType) -> None:
+        """Start the recording again from its beginning (``loop_file``). Done here, by
+        starting a new pipeline, rather than by the SDK's ``repeat_playback``: with 2.59.1 in
+        non-real-time playback that dropped frames at the turn and sometimes never started."""
+        assert self.playback_path is not None
+        loops = self._loops + 1
+        pipeline, self._pipeline = self._pipeline, None
+        with contextlib.suppress(RuntimeError):
+            pipeline.stop()
+        self._connect_playback(rs, self.playback_path)
+        self._loops = loops
+        self._device_info["loops"] = loops
 
     def _take(self, frames: Any) -> tuple[NDArray[np.uint8], NDArray[np.uint16] | None] | None:
         """A frameset's (colour, depth mm), or None when it is not a new frame.
@@ -419,6 +440,10 @@ class RealSenseCamera(DeviceCamera):
         color = np.array(np.asanyarray(color_frame.get_data()), dtype=np.uint8)
         if self._color_format == rs.format.rgb8:
             color = np.ascontiguousarray(color[:, :, ::-1])
+        if self._taken is not None and number > self._taken[0] + 1:
+            # Frame numbers the recording has but the SDK did not deliver (with depth).
+            self._lost += number - self._taken[0] - 1
+            self._device_info["frames_lost"] = self._lost
         self._taken = (number, stamp)
         self._taken_count += 1
         domain = color_frame.get_frame_timestamp_domain()

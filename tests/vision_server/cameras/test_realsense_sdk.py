@@ -96,6 +96,17 @@ def grab_error(cam: RealSenseCamera, timeout_s: float = 10.0) -> str:
     return excinfo.value.message
 
 
+def grab_to_the_end(cam: RealSenseCamera, most: int) -> tuple[list[CameraFrame], str]:
+    """The frames a playback gives (at most ``most``) and the error that ends it."""
+    frames: list[CameraFrame] = []
+    while len(frames) <= most:
+        try:
+            frames.append(cam.grab(timeout_s=10.0))
+        except CameraUnavailable as exc:
+            return frames, exc.message
+    raise AssertionError(f"more than {most} frames from a recording of {most}")
+
+
 @pytest.mark.parametrize(
     ("depth_scale_m", "like"), [(0.0001, "D405"), (0.001, "D435")], ids=["D405", "D435"]
 )
@@ -118,27 +129,33 @@ def test_recorded_sim_frames_play_back_through_the_sdk(
         status = cam.status()
         assert status["depth_scale_m"] == f32(depth_scale_m)  # read from the depth sensor
         assert status["model"] == "cellvision RealSenseRecorder"
-        frames = [cam.grab(timeout_s=10.0) for _ in recorded]
-        for i, (got, want) in enumerate(zip(frames, recorded, strict=True)):
+        frames, message = grab_to_the_end(cam, len(recorded))
+        # Each frame is the recorded frame of its timestamp: the SDK's (milliseconds, domain
+        # system_time), in seconds. The SDK may lose a frame of a recording (see the module
+        # realsense.py); the camera then counts it, and never hands over another frame.
+        which = [round((f.timestamp - T0) * 30) for f in frames]
+        assert [f.timestamp for f in frames] == pytest.approx(
+            [T0 + i / 30 for i in which], abs=1e-6
+        )
+        assert which == sorted(set(which))  # in order, each once
+        assert len(frames) >= len(recorded) - 1, f"the SDK delivered frames {which}"
+        for got, i in zip(frames, which, strict=True):
+            want = recorded[i]
             assert np.array_equal(got.color, want.color), f"colour of frame {i}"
             assert got.depth is not None
             assert want.depth is not None
             # Millimetres are whole device units at both scales: nothing to round away.
             assert np.array_equal(got.depth, want.depth), f"depth of frame {i}"
-            assert got.index == i
-        # The SDK's timestamps (milliseconds, system_time domain), in seconds, increasing.
-        times = [f.timestamp for f in frames]
-        assert times == pytest.approx([T0 + i / 30 for i in range(6)], abs=1e-6)
-        assert all(b > a for a, b in zip(times, times[1:], strict=False))
+        assert [f.index for f in frames] == list(range(len(frames)))
         # The end of a recording that does not loop is a typed error, every time.
-        message = grab_error(cam)
-        assert (
-            "camera 'rgbd' (realsense): the recording station.db3 ended after 6 frames" in message
+        n = len(frames)
+        assert f"camera 'rgbd' (realsense): the recording station.db3 ended after {n} frames" in (
+            message
         )
         assert str(tmp_path) not in message  # the path as configured
-        assert "ended after 6 frames" in grab_error(cam)
+        assert f"ended after {n} frames" in grab_error(cam)
         assert cam.status()["state"] == "ended"
-        assert cam.status()["frames"] == 6
+        assert cam.status()["frames"] == n
 
 
 def test_depth_in_device_units_is_rounded_to_the_depth_scale(tmp_path: Path) -> None:
