@@ -47,7 +47,7 @@ way through the pipeline before it declares the end."""
 
 
 class RecordingEnded(FrameTimeout):
-    """A non-looping recording has no more frames: every grab says so, the camera is not
+    """The recording has no more frames: every grab says so, the camera is not
     down (connecting again would play the recording again)."""
 
 
@@ -117,7 +117,6 @@ class RealSenseCamera(DeviceCamera):
         self._playback: Any = None
         self._half_period_ms = 0.0
         self._taken: tuple[int, float] | None = None  # the last colour frame: (number, ms)
-        self._loops = 0  # times a looping recording was started again
         self._taken_count = 0  # frames taken from the recording since it started
         self._skipped = 0  # framesets passed over: their colour had no depth of its moment
         self._lost = 0  # colour frames of the recording the SDK never handed over with depth
@@ -237,7 +236,7 @@ class RealSenseCamera(DeviceCamera):
                     f"the SDK started the recording {path} in real time, where it drops "
                     "frames that are not taken at once"
                 )
-            info: dict[str, Any] = {"playback": str(path), "loop_file": s.loop_file}
+            info: dict[str, Any] = {"playback": public_path(s.playback or path)}
             fields = (("model", rs.camera_info.name), ("serial", rs.camera_info.serial_number))
             for key, field in fields:
                 if device.supports(field):
@@ -366,14 +365,10 @@ class RealSenseCamera(DeviceCamera):
             if stopped_at is None and self._playback.current_status() == rs.playback_status.stopped:
                 stopped_at = now
             if stopped_at is not None and now - stopped_at >= _END_GRACE_S:
-                if self.settings.loop_file:
-                    self._play_again(rs)
-                    stopped_at = None
-                    continue
                 lost = f", {self._lost} more lost by the SDK" if self._lost else ""
                 self._ended = (
                     f"the recording {self.playback_path} ended after {self._taken_count} "
-                    f"frames{lost} (loop_file: false)"
+                    f"frames{lost}"
                 )
                 self._device_info["ended"] = True
                 raise RecordingEnded(self._ended)
@@ -390,19 +385,6 @@ class RealSenseCamera(DeviceCamera):
             taken = self._take(frames)
             if taken is not None:
                 return taken
-
-    def _play_again(self, rs: ModuleType) -> None:
-        """Start the recording again from its beginning (``loop_file``). Done here, by
-        starting a new pipeline, rather than by the SDK's ``repeat_playback``: with 2.59.1 in
-        non-real-time playback that dropped frames at the turn and sometimes never started."""
-        assert self.playback_path is not None
-        loops = self._loops + 1
-        pipeline, self._pipeline = self._pipeline, None
-        with contextlib.suppress(RuntimeError):
-            pipeline.stop()
-        self._connect_playback(rs, self.playback_path)
-        self._loops = loops
-        self._device_info["loops"] = loops
 
     def _take(self, frames: Any) -> tuple[NDArray[np.uint8], NDArray[np.uint16] | None] | None:
         """A frameset's (colour, depth mm), or None when it is not a new frame.

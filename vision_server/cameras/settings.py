@@ -355,9 +355,9 @@ class RealSenseCameraSettings:
     ``playback``: play a RealSense recording (the SDK's own file, ``*.db3`` or ``*.bag``;
     relative to the configuration file) through the SDK instead of a device; every grab takes
     the recording's next frame. ``width``/``height`` (and ``depth_width``/``depth_height`` when
-    given) must be the recorded streams' sizes; ``fps`` is not used. ``loop_file``: start the
-    recording again at its end (else the camera ends there). ``serial`` is not used with
-    ``playback``.
+    given) must be the recorded streams' sizes; ``fps`` is not used. At the recording's end
+    the camera ends (every grab says so); it does not loop (see the realsense module).
+    ``serial`` is not used with ``playback``.
     """
 
     serial: str | None = None
@@ -371,7 +371,6 @@ class RealSenseCameraSettings:
     intrinsics: Intrinsics | None = None
     mount: CameraMount | None = None
     playback: Path | None = None
-    loop_file: bool = False
 
     def __post_init__(self) -> None:
         _serial(self.serial)
@@ -381,9 +380,6 @@ class RealSenseCameraSettings:
                 raise ValueError(
                     "serial and playback exclude each other: a recording plays without a device"
                 )
-        _bool("loop_file", self.loop_file)
-        if self.loop_file and self.playback is None:
-            raise ValueError("loop_file is only used with playback (a recording to play)")
         for name in ("width", "height", "fps"):
             _positive_int(name, getattr(self, name))
         if (self.depth_width is None) != (self.depth_height is None):
