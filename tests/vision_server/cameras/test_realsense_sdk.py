@@ -323,16 +323,18 @@ def test_a_recording_that_does_not_fit_is_named(tmp_path: Path) -> None:
         assert "4x3, whose pixel count is not a multiple of 8" in grab_error(cam)
 
 
-def test_a_recording_without_colour_is_refused(tmp_path: Path) -> None:
-    """Written with the SDK directly: the recorder always writes colour."""
-    path = tmp_path / "depth-only.db3"
+def one_stream_recording(path: Path, kind: Any, fmt: Any, model: Any, coeffs: list[float]) -> None:
+    """A recording of one 8x6 stream of one frame, written with the SDK directly: what
+    RealSenseRecorder does not write (a depth stream alone, RGB, another distortion model)."""
+    bpp = 2 if fmt == rs.format.z16 else 3
     device = rs.software_device()
-    sensor = device.add_sensor("Depth")
+    sensor = device.add_sensor("Depth" if kind == rs.stream.depth else "Color")
     stream = rs.video_stream()
-    stream.type, stream.index, stream.uid = rs.stream.depth, 0, 1
-    stream.width, stream.height, stream.fps, stream.bpp, stream.fmt = 8, 6, 30, 2, rs.format.z16
+    stream.type, stream.index, stream.uid = kind, 0, 1
+    stream.width, stream.height, stream.fps, stream.bpp, stream.fmt = 8, 6, 30, bpp, fmt
     k = rs.intrinsics()
     k.width, k.height, k.fx, k.fy, k.ppx, k.ppy = 8, 6, 10.0, 10.0, 3.5, 2.5
+    k.model, k.coeffs = model, coeffs
     stream.intrinsics = k
     profile = sensor.add_video_stream(stream).as_video_stream_profile()
     recorder = rs.recorder(str(path), device, False)
@@ -340,17 +342,44 @@ def test_a_recording_without_colour_is_refused(tmp_path: Path) -> None:
     recording.open(recording.get_stream_profiles()[0])
     recording.start(lambda frame: None)
     frame = rs.software_video_frame()
-    frame.pixels = np.zeros((6, 8), np.uint16)
-    frame.stride, frame.bpp, frame.timestamp, frame.frame_number = 16, 2, 1000.0, 1
+    if bpp == 2:
+        frame.pixels = np.zeros((6, 8), np.uint16)
+    else:  # R = 200, G = 100, B = 50
+        frame.pixels = np.tile(np.array([200, 100, 50], np.uint8), (6, 8, 1))
+    frame.stride, frame.bpp, frame.timestamp, frame.frame_number = 8 * bpp, bpp, 1000.0, 1
     frame.domain, frame.profile = rs.timestamp_domain.system_time, profile
     sensor.on_video_frame(frame)
     recording.stop()
     recording.close()
     del recording, recorder, sensor, device, profile, frame
+
+
+def test_a_recording_without_colour_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "depth-only.db3"
+    one_stream_recording(path, rs.stream.depth, rs.format.z16, rs.distortion.none, [0.0] * 5)
     for cam in playing(path, width=8, height=6):
-        assert "the recording depth-only.db3 has no colour stream (it has: depth)" in grab_error(
-            cam
-        )
+        message = grab_error(cam)
+        assert "the recording depth-only.db3 has no colour stream (it has: depth)" in message
+
+
+def test_rgb_colour_distortion_and_configured_intrinsics(tmp_path: Path) -> None:
+    """An rgb8 recording comes back as BGR; Brown-Conrady coefficients are OpenCV's; another
+    model with coefficients is refused; intrinsics in the configuration win."""
+    rgb = tmp_path / "rgb.db3"
+    coeffs = [0.1, -0.2, 0.001, 0.002, 0.03]
+    one_stream_recording(rgb, rs.stream.color, rs.format.rgb8, rs.distortion.brown_conrady, coeffs)
+    for cam in playing(rgb, width=8, height=6, depth=False):
+        assert cam.grab(timeout_s=10.0).color[0, 0].tolist() == [50, 100, 200]
+        assert cam.intrinsics == Intrinsics(8, 6, 10.0, 10.0, 3.5, 2.5, tuple(map(f32, coeffs)))
+    mine = Intrinsics(8, 6, 11.0, 11.0, 4.0, 3.0)
+    for cam in playing(rgb, width=8, height=6, depth=False, intrinsics=mine):
+        assert cam.intrinsics == mine
+        assert cam.grab(timeout_s=10.0).color.shape == (6, 8, 3)
+        assert cam.intrinsics == mine
+    ftheta = tmp_path / "ftheta.db3"
+    one_stream_recording(ftheta, rs.stream.color, rs.format.bgr8, rs.distortion.ftheta, coeffs)
+    for cam in playing(ftheta, width=8, height=6, depth=False):
+        assert "distortion model distortion.ftheta is not OpenCV's" in grab_error(cam)
 
 
 def test_the_recorder_refuses_what_it_cannot_write(tmp_path: Path) -> None:
