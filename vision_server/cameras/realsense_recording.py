@@ -166,7 +166,8 @@ class RealSenseRecorder:
             self._depth_profile.register_extrinsics_to(self._color_profile, depth_to_color)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.unlink(missing_ok=True)
-        # Uncompressed (the third argument), so that frames come back bit for bit.
+        # Uncompressed (the third argument): nothing to decode on playback. (The SDK's
+        # compression came back bit for bit too, in a trial with 2.59.1.)
         self._recorder: Any = rs.recorder(str(path), device, False)
         self._device: Any = device
         self._recording_sensors: list[Any] = []
