@@ -12,7 +12,35 @@ does not offer, a distortion model OpenCV does not share: the camera is down wit
 (retried every ``reconnect_interval_s``). librealsense reports both a late frame and an
 unplugged device as "Frame didn't arrive within ..."; the device list tells them apart.
 
-Not tried on a device: see README.md ("Real devices").
+Playback (``playback: FILE``): the camera plays a RealSense recording (the SDK's own file, see
+:mod:`.realsense_recording`) through the same SDK: ``rs.config().enable_device_from_file``,
+the pipeline, ``rs.align`` to colour, the depth scale of the recording's depth sensor and the
+colour intrinsics stored in the recording. Decisions, each for what the SDK (2.59.1) did:
+
+- Not in real time (``playback.set_real_time(False)``): an integrator replaying for tuning
+  wants every frame in order, so each grab takes the recording's next frame however long the
+  inspections take; a real-time playback drops the frames nobody took in time. It is set on
+  the device the pipeline starts (the configuration's last ``resolve``) before it starts, and
+  the playback is paused until every stream runs.
+- The pipeline hands over a frameset whenever a frame of either stream arrives, with the
+  latest frame of the other: a grab takes the next frameset whose colour frame it has not
+  taken and whose depth frame is of the same moment (timestamps within half a frame period);
+  colour frames the SDK lost or never paired with depth are counted (``frames_lost``).
+- Frame timestamps are the recording's (the SDK's milliseconds as seconds) when they are
+  epoch time (``system_time``/``global_time`` domain, as the recorder writes them).
+- Depth already registered to colour (the same intrinsics, an identity extrinsic) is not put
+  through ``rs.align``, which is not exactly the identity there (see :func:`_registered`);
+  a depth stream whose pixel count is not a multiple of 8 is refused, since ``rs.align``
+  writes past its buffers on it.
+- The end of the recording: every later grab raises CAMERA_UNAVAILABLE "the recording FILE
+  ended after N frames" and the camera stays connected and *ended* (no reconnect, which would
+  play it again). It does not loop: ``repeat_playback`` dropped frames at the turn, and
+  starting a played recording again hung now and then.
+- A missing file, a file the SDK cannot read as a recording, no colour stream, no depth stream
+  with ``depth``, or streams of another size than configured: down, with that cause.
+
+Live devices are not tried (no device was at hand); playback is tested with recordings written
+by ``rs.software_device`` + ``rs.recorder``: see README.md ("Real devices").
 """
 
 from __future__ import annotations
