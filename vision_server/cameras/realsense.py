@@ -440,8 +440,7 @@ class RealSenseCamera(DeviceCamera):
                 frames = self._align.process(frames)
                 color_frame = frames.get_color_frame()
                 depth_frame = frames.get_depth_frame()
-            aligned = depth_frame
-            raw = np.asanyarray(aligned.get_data())
+            raw = np.asanyarray(depth_frame.get_data())
             if raw.dtype != np.uint16:
                 raise DeviceError(f"depth frames are {raw.dtype}, expected z16 (uint16)")
             depth: NDArray[np.uint16] | None = depth_to_mm(raw, self._depth_scale_m)
