@@ -21,7 +21,8 @@ colour intrinsics stored in the recording. Decisions, each for what the SDK (2.5
   wants every frame in order, so each grab takes the recording's next frame however long the
   inspections take; a real-time playback drops the frames nobody took in time. It is set on
   the device the pipeline starts (the configuration's last ``resolve``) before it starts, and
-  the playback is paused until every stream runs.
+  the playback is paused until every stream runs (else the first frames were lost now and
+  then); the SDK's ``resume`` then blocks for 10 s now and then, which the connect waits out.
 - The pipeline hands over a frameset whenever a frame of either stream arrives, with the
   latest frame of the other: a grab takes the next frameset whose colour frame it has not
   taken and whose depth frame is of the same moment (timestamps within half a frame period);
@@ -251,8 +252,9 @@ class RealSenseCamera(DeviceCamera):
             # in real time and drop frames before it could be told otherwise).
             resolved = config.resolve(rs.pipeline_wrapper(pipeline)).get_device().as_playback()
             resolved.set_real_time(False)
-            # Paused until the pipeline has started every stream: a frame read before its
-            # stream's sensor runs is lost (seen as the first frames missing, now and then).
+            # Paused until the pipeline has started every stream: else the first frames were
+            # lost or paired across streams now and then (8 of 300 starts on a loaded
+            # machine, 0 of 300 paused). resume() then blocks 10 s now and then (3 of 90).
             resolved.pause()
             profile = pipeline.start(config)
             profile.get_device().as_playback().resume()

@@ -271,8 +271,11 @@ inspections:
     delta = invert_transform(poses["pose_sim"]) @ poses["pose_rec"]
     translation_mm = 1000 * float(np.linalg.norm(delta[:3, 3]))
     angle_deg = float(np.degrees(np.arccos(np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1, 1))))
-    assert translation_mm < 0.1
-    assert angle_deg < 0.02
+    # The same frames (colour bit for bit, depth to the unit, registered depth not resampled)
+    # and the recording's float intrinsics (570.3 px stored as 570.29999 px): the poses
+    # differed by 3e-5 mm and 2e-6 degrees when this was written.
+    assert translation_mm < 0.001, translation_mm
+    assert angle_deg < 0.0001, angle_deg
 
 
 def test_colour_alone_and_the_streams_a_recording_lacks(tmp_path: Path) -> None:
@@ -404,9 +407,9 @@ def test_the_recorder_refuses_what_it_cannot_write(tmp_path: Path) -> None:
         with pytest.raises(ValueError, match=r"color_bgr must be \(6, 8, 3\)"):
             r.add(np.zeros((6, 9, 3), np.uint8), np.zeros((6, 8), np.uint16), T0 + 1)
         # A gray image is written as BGR.
-        r.add(np.full((6, 8), 9, np.uint8), np.zeros((6, 8), np.uint16), T0 + 1)
+        r.add(np.full((6, 8), 9, np.uint8), np.zeros((6, 8), np.uint16), T0 + 1 / 30)
     with pytest.raises(ValueError, match="closed"):
-        r.add(np.zeros((6, 8, 3), np.uint8), np.zeros((6, 8), np.uint16), T0 + 2)
+        r.add(np.zeros((6, 8, 3), np.uint8), np.zeros((6, 8), np.uint16), T0 + 2 / 30)
     for cam in playing(tmp_path / "x.db3", width=8, height=6):
         cam.grab(timeout_s=10.0)
         assert np.all(cam.grab(timeout_s=10.0).color == 9)
