@@ -1,5 +1,11 @@
 """A fake ``pyrealsense2`` module that behaves like the SDK with devices on a USB bus.
 
+Kept for what a recording cannot show: several devices to choose from by serial, absent
+devices and modes, late frames, a device busy with another pipeline, unplugging mid-stream,
+framesets queued before a grab. What a recording can show (colour, depth aligned in mm by the
+depth scale, intrinsics and their distortion model, timestamps) is tested against the real
+SDK playing recordings (tests/vision_server/cameras/test_realsense_sdk.py).
+
 :func:`fake_pyrealsense2` returns ``(module, bus)``: register the module as
 ``sys.modules["pyrealsense2"]`` (``monkeypatch.setitem``) and drive the devices through the
 :class:`Bus`: plug and unplug them, stall their streams, queue stale framesets.

@@ -22,6 +22,8 @@ Public API:
   ``grab(*, timeout_s, newer_than=None)``, ``grab_many(n, *, timeout_s)``, ``status()``,
   ``close()``, ``descriptor()``).
 - :func:`make_camera` ``(name, settings, *, base_dir, clock=None) -> Camera``.
+- :class:`RealSenseRecorder`: writes a RealSense recording (the SDK's own file) that the
+  ``realsense`` source plays with ``playback:``.
 - Time: :class:`Clock` (what a camera reads and waits on), ``SYSTEM_CLOCK`` (the default) and
   :class:`ManualClock` (a clock a test advances by hand).
 - The implementations: :class:`RequestCamera`, :class:`OpenCVCamera`, :class:`FolderCamera`,
@@ -46,6 +48,7 @@ from .genicam import GenICamCamera
 from .mount import MOUNT_KEYS, CameraMount
 from .opencv import OpenCVCamera
 from .realsense import RealSenseCamera
+from .realsense_recording import RealSenseRecorder
 from .recording import MANIFEST as RECORDING_MANIFEST
 from .recording import (
     RecordedFrame,
@@ -91,6 +94,7 @@ __all__ = [
     "OpenCVCameraSettings",
     "RealSenseCamera",
     "RealSenseCameraSettings",
+    "RealSenseRecorder",
     "RECORDING_MANIFEST",
     "RecordedFrame",
     "RecordingCamera",

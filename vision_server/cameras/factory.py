@@ -54,7 +54,7 @@ def make_camera(
     if isinstance(settings, SimCameraSettings):
         return SimCamera(name, settings, base_dir=base_dir, clock=clock)
     if isinstance(settings, RealSenseCameraSettings):
-        return RealSenseCamera(name, settings, clock=clock)
+        return RealSenseCamera(name, settings, base_dir=base_dir, clock=clock)
     if isinstance(settings, GenICamCameraSettings):
         return GenICamCamera(name, settings, base_dir=base_dir, clock=clock)
     if isinstance(settings, AravisCameraSettings):

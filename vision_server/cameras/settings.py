@@ -355,6 +355,13 @@ class RealSenseCameraSettings:
     colour's (e.g. 1280x720 depth under 1920x1080 colour). ``reconnect_interval_s``: pause
     before connecting again to a device that was absent or lost. ``intrinsics``: default the
     device's own colour intrinsics.
+
+    ``playback``: play a RealSense recording (the SDK's own file, ``*.db3`` or ``*.bag``;
+    relative to the configuration file) through the SDK instead of a device; every grab takes
+    the recording's next frame. ``width``/``height`` (and ``depth_width``/``depth_height`` when
+    given) must be the recorded streams' sizes; ``fps`` is not used. At the recording's end
+    the camera ends (every grab says so); it does not loop (see the realsense module).
+    ``serial`` is not used with ``playback``.
     """
 
     serial: str | None = None
@@ -367,9 +374,16 @@ class RealSenseCameraSettings:
     reconnect_interval_s: float = 1.0
     intrinsics: Intrinsics | None = None
     mount: CameraMount | None = None
+    playback: Path | None = None
 
     def __post_init__(self) -> None:
         _serial(self.serial)
+        if self.playback is not None:
+            object.__setattr__(self, "playback", _path("playback", self.playback))
+            if self.serial is not None:
+                raise ValueError(
+                    "serial and playback exclude each other: a recording plays without a device"
+                )
         for name in ("width", "height", "fps"):
             _positive_int(name, getattr(self, name))
         if (self.depth_width is None) != (self.depth_height is None):

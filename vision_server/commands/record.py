@@ -8,12 +8,11 @@ format of :mod:`vision_server.cameras.recording`, docs/recording.md) that the ``
 camera source, ``vision-server run --recording`` and ``vision-server test-inspections
 --from-recording`` replay.
 
-For a RealSense camera the SDK's own format (a rosbag ``.bag`` or ``.db3`` file, which the
-RealSense Viewer plays) is written instead with ``--format realsense``, or by default when
-``--out`` ends in ``.bag`` or ``.db3``. That writer is ``vision_server.cameras.RealSenseRecorder``
-(``RealSenseRecorder(path, *, width, height, fps, intrinsics, depth_intrinsics, depth_scale_m,
-depth)`` with ``add(color_bgr, depth_mm, time_s)`` and ``close()``), looked up when asked for: a
-build without it answers exit 2 saying so.
+For a RealSense camera the SDK's own format (a rosbag2 ``.db3`` file, which the RealSense
+Viewer plays and ``source: realsense`` with ``playback:`` replays) is written instead with
+``--format realsense`` (any camera), or by default when ``--out`` ends in ``.db3``, through
+:class:`vision_server.cameras.RealSenseRecorder` (pyrealsense2's ``software_device`` and
+``recorder``).
 
 Exit codes: 0 recorded up to a bound; 1 the camera failed (what was recorded before is kept and
 replays); 2 usage or configuration error (nothing recorded); 130 interrupted by Ctrl-C (what was
@@ -24,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib
 import json
 import math
 import os
@@ -45,6 +43,7 @@ from ..cameras import (
     Camera,
     CameraFrame,
     RealSenseCameraSettings,
+    RealSenseRecorder,
     RecordingError,
     RecordingWriter,
     RequestCameraSettings,
@@ -58,7 +57,7 @@ __all__ = ["DEFAULT_FRAMES", "add_parser", "parse_size", "record"]
 PROG = "vision-server record"
 DEFAULT_FRAMES = 100
 """The bound when none is given: a recording never grows without one."""
-REALSENSE_SUFFIXES = (".bag", ".db3")
+REALSENSE_SUFFIXES = (".db3",)
 _SIZE = re.compile(r"(\d+(?:\.\d+)?)\s*([kmgt]?)(i?b?)", re.IGNORECASE)
 _UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 
@@ -117,7 +116,7 @@ def add_parser(sub: Any, parents: list[argparse.ArgumentParser]) -> None:
         "--out",
         required=True,
         metavar="PATH",
-        help="the recording: a new (or empty) directory; a .bag/.db3 file with --format realsense",
+        help="the recording: a new (or empty) directory; a .db3 file with --format realsense",
     )
     p.add_argument(
         "--frames",
@@ -152,7 +151,7 @@ def add_parser(sub: Any, parents: list[argparse.ArgumentParser]) -> None:
         default="auto",
         help="cellvision: the recording directory (docs/recording.md); realsense: the "
         "RealSense SDK's file (the Viewer plays it); auto (default): realsense for a realsense "
-        "camera whose --out ends in .bag or .db3, else cellvision",
+        "camera whose --out ends in .db3, else cellvision",
     )
     p.set_defaults(func=record)
 
@@ -226,7 +225,6 @@ class _RealSenseSink:
         self._recorder: Any = None
         self._start = time.monotonic()
         self._stopped: str | None = None
-        self._recorder_class = realsense_recorder_class()
 
     def add(self, frame: CameraFrame) -> bool:
         if self.stopped_by() is not None:
@@ -241,17 +239,25 @@ class _RealSenseSink:
                     f"camera {self.camera.name!r} reports no intrinsics: the RealSense format "
                     "needs them (give intrinsics in the configuration)"
                 )
-            self._recorder = self._recorder_class(
-                self.path,
-                width=frame.width,
-                height=frame.height,
-                fps=self.fps,
-                intrinsics=intrinsics,
-                depth_intrinsics=None,
-                depth_scale_m=0.001,
-                depth=frame.depth is not None,
-            )
-        self._recorder.add(np.ascontiguousarray(color), frame.depth, frame.timestamp)
+            try:
+                # The camera's depth is registered to its colour already: one set of
+                # intrinsics, in mm.
+                self._recorder = RealSenseRecorder(
+                    self.path,
+                    width=frame.width,
+                    height=frame.height,
+                    fps=self.fps,
+                    intrinsics=intrinsics,
+                    depth_intrinsics=None,
+                    depth_scale_m=0.001,
+                    depth=frame.depth is not None,
+                )
+            except (ImportError, ValueError) as exc:
+                raise RecordingError(f"the RealSense recording cannot be written: {exc}") from exc
+        try:
+            self._recorder.add(np.ascontiguousarray(color), frame.depth, frame.timestamp)
+        except ValueError as exc:
+            raise RecordingError(f"a frame the RealSense recording cannot hold: {exc}") from exc
         self.frames += 1
         with contextlib.suppress(OSError):  # the SDK may create the file later
             self.bytes = self.path.stat().st_size
@@ -275,19 +281,6 @@ class _RealSenseSink:
             self.bytes = with_size
         if self._stopped is None:
             self._stopped = "closed"
-
-
-def realsense_recorder_class() -> Any:
-    """``vision_server.cameras.RealSenseRecorder``, the writer of the SDK's format; a
-    ``RecordingError`` when this build has none."""
-    cameras = importlib.import_module("vision_server.cameras")
-    recorder = getattr(cameras, "RealSenseRecorder", None)
-    if recorder is None:
-        raise RecordingError(
-            "this build has no RealSense recorder (vision_server.cameras.RealSenseRecorder): "
-            "record in the cellvision format (--format cellvision) instead"
-        )
-    return recorder
 
 
 # ----------------------------------------------------------------------------- the command
@@ -343,6 +336,13 @@ def record(args: argparse.Namespace) -> int:
     try:
         camera.open()
         if fmt == "realsense":
+            if out.suffix.lower() not in REALSENSE_SUFFIXES:
+                camera.close()
+                return _usage(
+                    args,
+                    f"{out}: a RealSense recording is a *.db3 file (pyrealsense2 2.59 writes "
+                    "rosbag2 and refuses other names)",
+                )
             if out.exists():
                 return _usage(args, f"{out} already exists: the RealSense file is written anew")
             sink = _RealSenseSink(out, camera, settings, given)
