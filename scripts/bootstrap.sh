@@ -51,7 +51,7 @@ fi
 # against gobject-introspection and cairo. Installed as root with apt-get; elsewhere the
 # Aravis tests skip and say what to install. CELLVISION_NO_ARAVIS=1 leaves it out.
 aravis_stamp="$VENV/.cellvision-aravis"
-aravis_debs="aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config"
+aravis_debs="aravis-tools aravis-tools-cli gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config"
 if [ -z "${CELLVISION_NO_ARAVIS:-}" ] && { [ ! -f "$aravis_stamp" ] || [ pyproject.toml -nt "$aravis_stamp" ]; }; then
     missing=""
     for deb in $aravis_debs; do

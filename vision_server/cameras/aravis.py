@@ -27,8 +27,10 @@ A grab, by ``trigger``:
 A device that stops answering (the heartbeat lost, or no frame and no register answer) is
 disconnected and reconnected later (:mod:`vision_server.cameras.device`). The stream's
 statistics (frames completed and failed, packets received, missing and resent) add up across
-reconnects and are in ``status()["stream"]``. The device reports no intrinsics: give them in
-the configuration for measuring inspections.
+reconnects and are in ``status()["stream"]``. Without ``region`` the camera takes the whole
+sensor; without ``exposure_us``, ``gain_db`` or ``frame_rate_hz`` it keeps the device's current
+value, which may be one another application (or this server before a reload) left. The
+device reports no intrinsics: give them in the configuration for measuring inspections.
 
 Tried against Aravis' own GigE Vision emulator (``arv-fake-gv-camera-0.8``), not a physical
 camera: see README.md ("Real devices").
@@ -68,14 +70,15 @@ PIXEL_FORMAT_NAMES = {
 STREAM_COUNTERS = {
     "frames_completed": "n_completed_buffers",
     "frames_failed": "n_failures",
-    "frames_underrun": "n_underruns",
+    "underruns": "n_underruns",
     "packets_received": "n_received_packets",
     "packets_missing": "n_missing_packets",
     "packets_resent": "n_resent_packets",
     "resend_requests": "n_resend_requests",
 }
 """``status()["stream"]`` keys -> Aravis' stream statistics (a USB3 Vision stream has no
-packets: those read 0)."""
+packets: those read 0). ``underruns`` counts data that arrived while every buffer was full:
+in free run it grows between grabs (nobody takes frames then), and is no fault."""
 
 _REFIRE_AFTER_S = 1.0
 """A software trigger with no frame after this long is fired again (within the grab)."""
@@ -158,8 +161,9 @@ class AravisCamera(DeviceCamera):
         }
         if camera.is_gv_device() and not device.is_controller():
             raise DeviceError(
-                f"{self._who()} is controlled by another application (GigE Vision grants "
-                "control to one at a time)"
+                f"{self._who()} is controlled by another application (another server, or "
+                "another camera of this configuration: GigE Vision grants control to one at "
+                "a time)"
             )
         with contextlib.suppress(Exception):
             device.connect("control-lost", self._on_control_lost)
@@ -277,8 +281,9 @@ class AravisCamera(DeviceCamera):
             "PixelFormat",
             lambda: camera.set_pixel_format_from_string(s.pixel_format),
         )
-        if s.region is not None:
-            self._set_region(camera, s.region)
+        # No region configured: the whole sensor, not whatever region the device was left
+        # with by the last application (or this server's configuration before a reload).
+        self._set_region(camera, s.region or self._whole_sensor(camera))
         if s.exposure_us is not None:
             if camera.is_exposure_auto_available():
                 self._apply(
@@ -310,6 +315,14 @@ class AravisCamera(DeviceCamera):
         self._set_trigger(camera)
         if camera.is_gv_device():
             self._set_packet_size(camera)
+
+    @staticmethod
+    def _whole_sensor(camera: Any) -> tuple[int, int, int, int]:
+        """[0, 0, width, height]: the largest image the device gives (its sensor, or the
+        largest Width and Height it allows at the current binning)."""
+        width = int(camera.get_width_bounds()[1])
+        height = int(camera.get_height_bounds()[1])
+        return (0, 0, width, height)
 
     def _set_region(self, camera: Any, region: tuple[int, int, int, int]) -> None:
         x, y, width, height = region
@@ -529,6 +542,12 @@ class AravisCamera(DeviceCamera):
         if camera is not None:
             with contextlib.suppress(Exception):
                 camera.stop_acquisition()
+            # Control is given back now, not when the last reference to the device goes
+            # (an error's traceback may hold one for a while): another server, or this
+            # camera after a reload, may take the device at once.
+            with contextlib.suppress(Exception):
+                if camera.is_gv_device():
+                    camera.get_device().leave_control()
         del stream
         # Dropping the last reference closes the device and gives up its control.
         del camera

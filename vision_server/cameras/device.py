@@ -143,13 +143,22 @@ class DeviceCamera(Camera):
             self._check_open()
             self._ensure_connected()
             remaining_s = max(timeout_s - (self._clock.monotonic() - started), 0.0)
+            # The error's text is kept, not the error: its traceback holds the SDK's objects
+            # (a device handle that keeps the device open, or its control) for as long as the
+            # answer that carries it lives, so the answer is raised outside the handler.
+            late: str | None = None
+            lost: str | None = None
             try:
                 color, depth = self._read(remaining_s)
             except FrameTimeout as exc:
-                raise self.unavailable(str(exc)) from None
+                late = str(exc)
             except DeviceError as exc:
-                self._go_down(f"{exc}")
-                raise self.unavailable(self._down_cause()) from None
+                lost = str(exc)
+            if late is not None:
+                raise self.unavailable(late)
+            if lost is not None:
+                self._go_down(lost)
+                raise self.unavailable(self._down_cause())
             try:
                 frame = CameraFrame(color, depth, self._clock.time(), self._next_index)
             except ValueError as exc:  # an SDK handed us something we did not ask for
@@ -166,12 +175,15 @@ class DeviceCamera(Camera):
             return
         if self._retry_at is not None and self._clock.monotonic() < self._retry_at:
             raise self.unavailable(self._down_cause())
+        refused: str | None = None
         try:
             self._connect()
         except DeviceError as exc:
+            refused = str(exc)  # the text only: see grab()
+        if refused is not None:
             self._disconnect()
-            self._go_down(str(exc))
-            raise self.unavailable(self._down_cause()) from None
+            self._go_down(refused)
+            raise self.unavailable(self._down_cause())
         with self._state_lock:
             self._connected = True
             self._retry_at = None

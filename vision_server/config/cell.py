@@ -33,6 +33,7 @@ from typing import Any
 from ..cameras import (
     MOUNT_KEYS,
     SOURCE_NAMES,
+    AravisCameraSettings,
     CameraMount,
     CameraSettings,
     FolderCameraSettings,
@@ -522,7 +523,29 @@ def _cameras(root: Node, base_dir: Path) -> dict[str, CameraSettings]:
             _check_folder(node, folder, base_dir)
         if isinstance(folder, RecordingCameraSettings):
             _check_recording(node, folder, base_dir)
+        if isinstance(folder, AravisCameraSettings):
+            _check_one_camera_a_device(node, name, folder, cameras)
     return cameras
+
+
+def _check_one_camera_a_device(
+    node: Node, name: str, settings: AravisCameraSettings, cameras: dict[str, CameraSettings]
+) -> None:
+    """Two ``aravis`` cameras naming the same device would fight over it (GigE Vision grants
+    control to one at a time): refused here, where the two names are known. (One by address
+    and one by serial may still be the same device; the second then reports it taken.)"""
+    for key in ("serial", "device_id", "address"):
+        value = getattr(settings, key)
+        if value is None:
+            continue
+        for other, given in cameras.items():
+            same = isinstance(given, AravisCameraSettings) and getattr(given, key) == value
+            if other != name and same:
+                raise node.error(
+                    f"camera {other!r} already uses the device with {key} {value!r}: "
+                    "a device is opened by one camera (give both inspections that camera)",
+                    key,
+                )
 
 
 def _check_recording(node: Node, settings: RecordingCameraSettings, base_dir: Path) -> None:

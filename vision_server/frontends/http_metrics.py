@@ -121,7 +121,6 @@ class _StateCollector(Collector):
 
 
 _STREAM_FRAMES = {"completed": "frames_completed", "failed": "frames_failed"}
-_STREAM_FRAMES_UNDERRUN = "frames_underrun"
 _STREAM_PACKETS = {"received": "packets_received", "missing": "packets_missing"}
 _STREAM_PACKETS_RESENT = "packets_resent"
 
@@ -144,8 +143,14 @@ def _camera_families(
     frames = CounterMetricFamily(
         "cellvision_camera_stream_frames",
         "Frames a streaming device delivered, by outcome (failed: incomplete, packets lost "
-        "beyond resends; underrun: no buffer free to receive it).",
+        "beyond resends).",
         labels=["camera", "outcome"],
+    )
+    underruns = CounterMetricFamily(
+        "cellvision_camera_stream_underruns",
+        "Data a streaming device sent while every buffer was full (Aravis' n_underruns; in "
+        "free run it grows between grabs and is no fault).",
+        labels=["camera"],
     )
     packets = CounterMetricFamily(
         "cellvision_camera_stream_packets",
@@ -163,13 +168,15 @@ def _camera_families(
         reconnects.add_metric([name], float(status.get("reconnects", 0)))
         stream = status.get("stream")
         if isinstance(stream, dict):
-            for outcome, key in (*_STREAM_FRAMES.items(), ("underrun", _STREAM_FRAMES_UNDERRUN)):
+            for outcome, key in _STREAM_FRAMES.items():
                 frames.add_metric([name, outcome], float(stream.get(key, 0)))
+            underruns.add_metric([name], float(stream.get("underruns", 0)))
             for kind, key in (*_STREAM_PACKETS.items(), ("resent", _STREAM_PACKETS_RESENT)):
                 packets.add_metric([name, kind], float(stream.get(key, 0)))
     yield connected
     yield reconnects
     yield frames
+    yield underruns
     yield packets
 
 

@@ -84,7 +84,9 @@ def test_found_by_serial_among_the_discovered_devices(device: aravis_emulator.Em
     with AravisCamera("gv", found) as cam:
         frame = cam.grab(timeout_s=5.0)
         assert cam.status()["address"] == device.address
-        sensor = (0, 0, *aravis_emulator.DEFAULT_IMAGE)
+        # No region configured: the whole sensor (not the emulator's 512x512 at start).
+        sensor = (0, 0, *aravis_emulator.SENSOR)
+        assert last_frame(cam)["region"] == list(sensor)
         np.testing.assert_array_equal(
             frame.color, aravis_emulator.expected_ramp(last_frame(cam)["frame_id"], sensor)
         )
@@ -95,7 +97,8 @@ def test_found_by_serial_among_the_discovered_devices(device: aravis_emulator.Em
 
 
 def test_free_run_takes_a_frame_made_after_the_grab(device: aravis_emulator.Emulator) -> None:
-    with AravisCamera("gv", settings(device, frame_rate_hz=50.0, **RAMP)) as cam:
+    s = settings(device, frame_rate_hz=50.0, region=(0, 0, 256, 256), **RAMP)
+    with AravisCamera("gv", s) as cam:
         cam.grab(timeout_s=5.0)
         first = last_frame(cam)["frame_id"]
         time.sleep(0.2)  # frames pile up in the stream's buffers meanwhile
@@ -233,8 +236,8 @@ def test_the_emulator_killed_and_restarted_mid_stream(device: aravis_emulator.Em
 def test_lost_packets_are_counted_and_complete_frames_still_come() -> None:
     try:
         with aravis_emulator.emulator("CVLOSS", lost_per_thousand=5) as lossy:
-            region = (0, 0, *aravis_emulator.DEFAULT_IMAGE)
-            s = settings(lossy, trigger="software", packet_size=1400, **RAMP)
+            region = (0, 0, 512, 512)
+            s = settings(lossy, trigger="software", packet_size=1400, region=region, **RAMP)
             with AravisCamera("gv", s) as cam:
                 for _ in range(10):
                     frame = cam.grab(timeout_s=10.0)
@@ -251,6 +254,27 @@ def test_lost_packets_are_counted_and_complete_frames_still_come() -> None:
     assert stream["frames_completed"] >= 10
     assert stream["frames_failed"] > 0
     assert stream["packets_missing"] > 0
+
+
+def test_a_refused_setting_gives_the_device_back_at_once(
+    device: aravis_emulator.Emulator,
+) -> None:
+    """A camera whose setting the device refuses releases its GigE Vision control when it
+    goes down, so the corrected camera (a reload) takes the device at its first grab."""
+    with AravisCamera("bad", settings(device, exposure_us=5e7)) as bad:
+        assert "outside the device's ExposureTime range" in grab_error(bad)
+        with AravisCamera("good", settings(device, trigger="software")) as good:
+            good.grab(timeout_s=5.0)
+            assert good.status()["reconnects"] == 0
+
+
+def test_a_region_left_by_an_earlier_client_is_not_kept(
+    device: aravis_emulator.Emulator,
+) -> None:
+    with AravisCamera("first", settings(device, trigger="software", region=(4, 4, 100, 80))) as a:
+        assert a.grab(timeout_s=5.0).color.shape == (80, 100)
+    with AravisCamera("second", settings(device, trigger="software")) as b:
+        assert b.grab(timeout_s=5.0).color.shape == aravis_emulator.SENSOR[::-1]
 
 
 def test_two_clients_on_one_device(device: aravis_emulator.Emulator) -> None:
@@ -345,3 +369,17 @@ def test_through_the_server(device: aravis_emulator.Emulator, tmp_path: Path) ->
             message = asyncio.run(inspect_second())
             assert "is controlled by another application" in message
             assert asyncio.run(inspect()).passed
+
+
+def test_two_cameras_of_one_configuration_on_one_device_are_refused(tmp_path: Path) -> None:
+    from vision_server.config import ConfigError, load_config
+
+    config = tmp_path / "cell.yaml"
+    config.write_text(
+        "cameras:\n"
+        "  a: {source: aravis, serial: '22001234'}\n"
+        "  b: {source: aravis, serial: '22001234', trigger: software}\n",
+        encoding="utf-8",
+    )
+    with pytest.raises(ConfigError, match="camera 'a' already uses the device with serial"):
+        load_config(config)
