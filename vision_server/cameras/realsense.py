@@ -230,7 +230,9 @@ class RealSenseCamera(DeviceCamera):
             raise DeviceError(
                 f"the recording {path}'s colour stream is {color.format()}, not bgr8 or rgb8"
             )
-        sizes = [("colour", color, (s.width, s.height), "width/height")]
+        sizes = []
+        if s.width is not None and s.height is not None:
+            sizes.append(("colour", color, (s.width, s.height), "width/height"))
         if s.depth and s.depth_width is not None and s.depth_height is not None:
             sizes.append(("depth", depth, (s.depth_width, s.depth_height), "depth_width/height"))
         for what, stream, wanted, keys in sizes:

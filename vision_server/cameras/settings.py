@@ -349,7 +349,7 @@ class RealSenseCameraSettings:
 
     ``serial``: the device's serial number (a string; quote it in YAML); None takes the only
     connected device and refuses to guess between several. ``width``/``height``/``fps``: the
-    colour stream's mode, which the device must offer. ``depth``: also stream depth, aligned
+    colour stream's mode, which the device must offer (default 640x480 at 30). ``depth``: also stream depth, aligned
     to the colour image and converted to uint16 mm with the device's depth scale.
     ``depth_width``/``depth_height``: the depth stream's mode when it differs from the
     colour's (e.g. 1280x720 depth under 1920x1080 colour). ``reconnect_interval_s``: pause
@@ -358,15 +358,16 @@ class RealSenseCameraSettings:
 
     ``playback``: play a RealSense recording (the SDK's own file, ``*.db3`` or ``*.bag``;
     relative to the configuration file) through the SDK instead of a device; every grab takes
-    the recording's next frame. ``width``/``height`` (and ``depth_width``/``depth_height`` when
-    given) must be the recorded streams' sizes; ``fps`` is not used. At the recording's end
+    the recording's next frame. ``width``/``height`` (and ``depth_width``/``depth_height``), when
+    given, must be the recorded streams' sizes (absent: whatever the recording holds); ``fps``
+    is not used. At the recording's end
     the camera ends (every grab says so); it does not loop (see the realsense module).
     ``serial`` is not used with ``playback``.
     """
 
     serial: str | None = None
-    width: int = 640
-    height: int = 480
+    width: int | None = None
+    height: int | None = None
     fps: int = 30
     depth: bool = True
     depth_width: int | None = None
@@ -384,8 +385,16 @@ class RealSenseCameraSettings:
                 raise ValueError(
                     "serial and playback exclude each other: a recording plays without a device"
                 )
-        for name in ("width", "height", "fps"):
-            _positive_int(name, getattr(self, name))
+        if (self.width is None) != (self.height is None):
+            raise ValueError("give both width and height, or neither")
+        if self.width is None and self.playback is None:
+            # A device's default mode; a playback's default is the recording's own size.
+            object.__setattr__(self, "width", 640)
+            object.__setattr__(self, "height", 480)
+        for name in ("width", "height"):
+            if getattr(self, name) is not None:
+                _positive_int(name, getattr(self, name))
+        _positive_int("fps", self.fps)
         if (self.depth_width is None) != (self.depth_height is None):
             raise ValueError("give both depth_width and depth_height, or neither")
         for name in ("depth_width", "depth_height"):
@@ -399,7 +408,8 @@ class RealSenseCameraSettings:
         )
         _intrinsics(self.intrinsics)
         _mount(self.mount)
-        _intrinsics_match(self.intrinsics, self.width, self.height)
+        if self.width is not None and self.height is not None:
+            _intrinsics_match(self.intrinsics, self.width, self.height)
 
 
 GENICAM_PIXEL_FORMATS = (

@@ -313,7 +313,7 @@ def test_a_recording_that_does_not_fit_is_named(tmp_path: Path) -> None:
         path, width=8, height=6, fps=30, intrinsics=k, depth_intrinsics=Intrinsics(4, 3, 5, 5, 2, 1)
     ) as recorder:
         recorder.add(np.zeros((6, 8, 3), np.uint8), np.zeros((3, 4), np.uint16), T0)
-    for cam in playing(path):  # 640x480 by default
+    for cam in playing(path, width=640, height=480):  # a size given must be the recording's
         message = grab_error(cam)
         assert (
             "the recording small.db3's colour stream is 8x6 but the camera is set to 640x480"
@@ -424,3 +424,16 @@ def test_playback_settings_are_checked(tmp_path: Path) -> None:
     cam = make_camera("rgbd", RealSenseCameraSettings(playback=Path("a/x.db3")), base_dir=tmp_path)
     assert isinstance(cam, RealSenseCamera)
     assert cam.playback_path == tmp_path / "a" / "x.db3"
+
+
+def test_a_playback_without_a_size_plays_the_recordings_own(tmp_path: Path) -> None:
+    path = tmp_path / "wide.db3"
+    k = Intrinsics(16, 8, 20.0, 20.0, 7.5, 3.5)
+    colour = np.arange(16 * 8 * 3, dtype=np.uint8).reshape(8, 16, 3)
+    with RealSenseRecorder(path, width=16, height=8, fps=30, intrinsics=k) as recorder:
+        recorder.add(colour, np.full((8, 16), 800, np.uint16), T0)
+    for cam in playing(path):
+        frame = cam.grab(timeout_s=20.0)
+        assert frame.color.shape == (8, 16, 3)
+        assert cam.intrinsics is not None
+        assert (cam.intrinsics.width, cam.intrinsics.height) == (16, 8)
