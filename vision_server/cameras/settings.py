@@ -349,8 +349,9 @@ class RealSenseCameraSettings:
 
     ``serial``: the device's serial number (a string; quote it in YAML); None takes the only
     connected device and refuses to guess between several. ``width``/``height``/``fps``: the
-    colour stream's mode, which the device must offer (default 640x480 at 30). ``depth``: also stream depth, aligned
-    to the colour image and converted to uint16 mm with the device's depth scale.
+    colour stream's mode, which the device must offer (default 640x480 at 30). ``depth``: also
+    stream depth, aligned to the colour image and converted to uint16 mm with the device's
+    depth scale.
     ``depth_width``/``depth_height``: the depth stream's mode when it differs from the
     colour's (e.g. 1280x720 depth under 1920x1080 colour). ``reconnect_interval_s``: pause
     before connecting again to a device that was absent or lost. ``intrinsics``: default the
