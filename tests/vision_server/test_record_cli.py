@@ -357,6 +357,26 @@ def test_a_failed_recording_of_no_frame_leaves_nothing_and_names_the_camera_once
 # ----------------------------------------------------------------------------- replay
 
 
+def test_the_documented_example_records_and_replays_station_pose(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """docs/recording.md's first commands, on examples/recording.yaml as shipped (the paths
+    under tmp_path instead of the working directory)."""
+    config = str(REPO / "examples" / "recording.yaml")
+    docs = (REPO / "docs" / "recording.md").read_text(encoding="utf-8")
+    assert "vision-server record rgbd --config examples/recording.yaml" in docs
+    assert "vision-server run station_pose --config examples/recording.yaml" in docs
+    out = tmp_path / "recordings" / "monday"
+    assert main(["record", "rgbd", "--config", config, "--out", str(out), "--frames", "10"]) == 0
+    capsys.readouterr()
+    assert RecordingReader(out).has_depth
+    args = ["run", "station_pose", "--config", config, "--recording", str(out), "--json"]
+    assert main(args) == 0
+    runs = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()]
+    assert [r["frame"] for r in runs] == [0, 5]
+    assert all(r["verdict"] == "pass" for r in runs)
+
+
 def serve_once(config: Path, inspection: str) -> dict[str, object]:
     """One inspection through the service on its server camera, as a served INSPECT."""
     runtime = CellRuntime(config)
