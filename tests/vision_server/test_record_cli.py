@@ -273,7 +273,108 @@ def test_a_killed_recording_replays_what_it_wrote(cell: Path) -> None:
         assert frame.color.shape == (480, 640, 3)
 
 
+def test_sigterm_stops_like_ctrl_c_with_a_complete_recording(cell: Path) -> None:
+    """What ``timeout`` and ``systemctl stop`` send: the recording is closed (complete, every
+    frame listed) and the exit code is 143 (128 + SIGTERM)."""
+    out = cell.parent / "rec"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CELLVISION_")}
+    env["PYTHONPATH"] = str(REPO)
+    command = [sys.executable, "-m", "vision_server", "record", "rgbd", "--config", str(cell)]
+    proc = subprocess.Popen(
+        [*command, "--out", str(out), "--frames", "100000", "--json"],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        deadline = time.monotonic() + 120.0  # a generous limit for a loaded machine
+        listed = 0
+        while listed < 2:
+            assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+            assert time.monotonic() < deadline, "the recording listed no second frame"
+            time.sleep(0.05)
+            try:
+                listed = len(RecordingReader(out))
+            except ValueError:
+                listed = 0
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=30)
+    assert proc.returncode == 143, stderr.decode()
+    assert b"Traceback" not in stderr
+    summary = last_json(stdout.decode())
+    assert summary["stopped_by"] == "terminated by SIGTERM"
+    assert summary["ok"] is False
+    reader = RecordingReader(out)
+    assert reader.complete
+    assert reader.stopped_by == "closed"
+    assert len(reader) == summary["frames"]
+    assert len(reader) >= 2
+    for frame in reader:
+        assert frame.depth is not None
+
+
+def broken_cell(tmp_path: Path) -> Path:
+    """A folder camera whose only image does not decode: its first grab fails."""
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "bad.png").write_bytes(b"not a PNG")
+    path = tmp_path / "broken.yaml"
+    path.write_text(
+        "results: {enabled: false}\n"
+        "cameras:\n  c: {source: folder, path: broken}\n"
+        "inspections:\n  - {name: b, type: presence, camera: c, measure: mean_intensity, "
+        "min: 0}\n",
+        encoding="utf-8",
+    )
+    return path
+
+
+def test_a_failed_recording_of_no_frame_leaves_nothing_and_names_the_camera_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = broken_cell(tmp_path)
+    out = tmp_path / "new" / "rec"
+    for _ in range(2):  # the same --out again: it was removed
+        assert record(config, "c", "--out", str(out), "--frames", "3") == 1
+        captured = capsys.readouterr()
+        assert not out.exists()
+        assert "removed: nothing was recorded" in captured.out
+        assert "CAMERA_UNAVAILABLE: camera 'c' (folder): cannot decode" in captured.err
+        assert "camera 'c': camera 'c'" not in captured.err
+    # An empty directory given for it stays, empty.
+    given = tmp_path / "given"
+    given.mkdir()
+    assert record(config, "c", "--out", str(given), "--json") == 1
+    summary = last_json(capsys.readouterr().out)
+    assert summary["removed"] is True
+    assert summary["frames"] == 0
+    assert list(given.iterdir()) == []
+
+
 # ----------------------------------------------------------------------------- replay
+
+
+def test_the_documented_example_records_and_replays_station_pose(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """docs/recording.md's first commands, on examples/recording.yaml as shipped (the paths
+    under tmp_path instead of the working directory)."""
+    config = str(REPO / "examples" / "recording.yaml")
+    docs = (REPO / "docs" / "recording.md").read_text(encoding="utf-8")
+    assert "vision-server record rgbd --config examples/recording.yaml" in docs
+    assert "vision-server run station_pose --config examples/recording.yaml" in docs
+    out = tmp_path / "recordings" / "monday"
+    assert main(["record", "rgbd", "--config", config, "--out", str(out), "--frames", "10"]) == 0
+    capsys.readouterr()
+    assert RecordingReader(out).has_depth
+    args = ["run", "station_pose", "--config", config, "--recording", str(out), "--json"]
+    assert main(args) == 0
+    runs = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()]
+    assert [r["frame"] for r in runs] == [0, 5]
+    assert all(r["verdict"] == "pass" for r in runs)
 
 
 def serve_once(config: Path, inspection: str) -> dict[str, object]:

@@ -59,6 +59,7 @@ import json
 import math
 import os
 import re
+import stat
 import struct
 import threading
 from collections.abc import Iterator
@@ -73,6 +74,7 @@ from numpy.typing import NDArray
 
 from protocol import CameraUnavailable
 
+from ..process import decoder_limits
 from .base import Camera, CameraFrame, public_path
 from .clock import SYSTEM_CLOCK, Clock
 from .mount import CameraMount
@@ -102,6 +104,14 @@ MAX_MANIFEST_BYTES = 128 * 1024 * 1024
 """A manifest larger than this is refused before it is parsed (about 300 bytes a frame)."""
 MAX_SIDE = 32_768
 """The largest width or height of a recorded image, in pixels."""
+
+
+def max_pixels() -> int:
+    """The most pixels a recorded image may have: the limit OpenCV decodes within in this
+    process (the server's ``max_image_pixels``, :mod:`vision_server.process.decoder_limits`),
+    its default when the process does not know it. A frame beyond it could not be replayed."""
+    return decoder_limits.loaded_limit() or decoder_limits.DEFAULT_MAX_IMAGE_PIXELS
+
 
 ColorFormat = Literal["gray8", "gray16", "bgr8"]
 COLOR_FORMATS: tuple[ColorFormat, ...] = ("gray8", "gray16", "bgr8")
@@ -359,6 +369,11 @@ class RecordingWriter:
         height, width = color.shape[:2]
         if width > MAX_SIDE or height > MAX_SIDE:
             raise RecordingError(f"a {width}x{height} image is beyond {MAX_SIDE} pixels a side")
+        if width * height > max_pixels():
+            raise RecordingError(
+                f"a {width}x{height} image has more than {max_pixels()} pixels: it could not "
+                "be replayed"
+            )
         color_png = _encode_png(color)
         depth_png = None if depth is None else _encode_png(depth)
         size = len(color_png) + (0 if depth_png is None else len(depth_png))
@@ -505,6 +520,12 @@ def _frame_entry(entry: Any, position: int, manifest: Path) -> RecordedFrame:
         raise RecordingError(
             f"{where}: a {width}x{height} image is not 1..{MAX_SIDE} pixels a side"
         )
+    limit = max_pixels()
+    if width * height > limit:
+        raise RecordingError(
+            f"{where}: frame {index} is {width}x{height}, more than {limit} pixels (the "
+            "server's image limit: it could not be decoded)"
+        )
     depth = entry.get("depth")
     source = entry.get("source")
     if source is not None and not isinstance(source, str):
@@ -524,6 +545,57 @@ def _frame_entry(entry: Any, position: int, manifest: Path) -> RecordedFrame:
         bytes=size,
         source=source,
     )
+
+
+def _file_kind(mode: int) -> str:
+    """What a file that is not a regular file is, for a message."""
+    for test, name in (
+        (stat.S_ISDIR, "a directory"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def _read_bounded(path: Path, limit: int, shown: Path, what: str) -> bytes:
+    """The bytes of the regular file ``path``, at most ``limit`` of them.
+
+    The file is opened without blocking (a FIFO must not stall the open) and checked on its
+    descriptor: anything but a regular file (a device, a FIFO, a directory, a socket) is
+    refused, and so is a file of more than ``limit`` bytes, whatever its size said (at most
+    ``limit + 1`` bytes are read). ``RecordingError`` names ``shown`` and the cause;
+    ``FileNotFoundError`` is left to the caller.
+    """
+    flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
+    descriptor = os.open(path, flags)
+    try:
+        info = os.fstat(descriptor)
+        if not stat.S_ISREG(info.st_mode):
+            raise RecordingError(
+                f"refused {shown}: it is {_file_kind(info.st_mode)}, not a regular file ({what})"
+            )
+        if info.st_size > limit:
+            raise RecordingError(
+                f"{shown} has {info.st_size} bytes, more than {what} can have ({limit})"
+            )
+        chunks: list[bytes] = []
+        remaining = limit + 1
+        while remaining > 0:
+            chunk = os.read(descriptor, min(remaining, 1 << 20))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            remaining -= len(chunk)
+    finally:
+        os.close(descriptor)
+    data = b"".join(chunks)
+    if len(data) > limit:
+        raise RecordingError(f"{shown} has more than {what} can have ({limit} bytes)")
+    return data
 
 
 def _png_header(data: bytes) -> tuple[int, int, int, int] | None:
@@ -549,8 +621,12 @@ class RecordingReader:
         if not self.path.is_dir():
             what = "is not a directory" if self.path.exists() else "does not exist"
             raise RecordingError(f"recording {self.path} {what}")
+        root = self.path.resolve()
+        resolved = manifest.resolve()
+        if not resolved.is_relative_to(root):
+            raise RecordingError(f"refused {manifest}: it resolves outside the recording {root}")
         try:
-            size = manifest.stat().st_size
+            raw = _read_bounded(resolved, MAX_MANIFEST_BYTES, manifest, "a recording's manifest")
         except FileNotFoundError:
             raise RecordingError(
                 f"{self.path} is not a recording: it has no {MANIFEST} "
@@ -558,15 +634,8 @@ class RecordingReader:
             ) from None
         except OSError as exc:
             raise RecordingError(f"cannot read {manifest}: {exc.strerror or exc}") from exc
-        if size > MAX_MANIFEST_BYTES:
-            raise RecordingError(
-                f"{manifest} has {size} bytes, more than a recording's manifest may have "
-                f"({MAX_MANIFEST_BYTES})"
-            )
         try:
-            data = json.loads(manifest.read_bytes())
-        except OSError as exc:
-            raise RecordingError(f"cannot read {manifest}: {exc.strerror or exc}") from exc
+            data = json.loads(raw)
         except (ValueError, RecursionError) as exc:
             raise RecordingError(f"{manifest} is not valid JSON: {exc}") from None
         if not isinstance(data, dict):
@@ -659,13 +728,12 @@ class RecordingReader:
         # A PNG holds at most its raw pixels, one filter byte a row and deflate's framing.
         limit = raw + raw // 64 + entry.height + 65_536
         try:
-            size = resolved.stat().st_size
-            if size > limit:
-                raise RecordingError(
-                    f"{path} has {size} bytes, more than a {entry.width}x{entry.height} "
-                    f"{layout} PNG can have ({limit})"
-                )
-            data = resolved.read_bytes()
+            data = _read_bounded(
+                resolved,
+                limit,
+                path,
+                f"a {entry.width}x{entry.height} {layout} PNG",
+            )
         except FileNotFoundError:
             raise RecordingError(
                 f"{path} is missing (frame {entry.index} of recording {self.path})"
@@ -681,7 +749,13 @@ class RecordingReader:
                 f"{path}: the PNG is {header[0]}x{header[1]}, {header[2]}-bit, colour type "
                 f"{header[3]}; the manifest says {entry.width}x{entry.height} {layout}"
             )
-        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        try:
+            image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        except (cv2.error, MemoryError) as exc:
+            reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+            raise RecordingError(
+                f"{path} cannot be decoded (frame {entry.index}): {reason}"
+            ) from None
         if image is None:
             raise RecordingError(f"{path} cannot be decoded: a corrupt PNG (frame {entry.index})")
         return np.asarray(image)

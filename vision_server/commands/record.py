@@ -15,8 +15,10 @@ Viewer plays and ``source: realsense`` with ``playback:`` replays) is written in
 ``recorder``).
 
 Exit codes: 0 recorded up to a bound; 1 the camera failed (what was recorded before is kept and
-replays); 2 usage or configuration error (nothing recorded); 130 interrupted by Ctrl-C (what was
-recorded is kept, its manifest complete).
+replays); 2 usage or configuration error (nothing recorded); 130 interrupted by Ctrl-C, 143
+stopped by SIGTERM (``timeout``, ``systemctl stop``): what was recorded is kept, its manifest
+complete. A recording that ends with no frame (exit 1, 130 or 143) is removed, with the
+directory when the command created it, so that the same ``--out`` can be used again.
 """
 
 from __future__ import annotations
@@ -27,7 +29,9 @@ import json
 import math
 import os
 import re
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +44,7 @@ from protocol import CameraUnavailable, CellvisionError
 from protocol.cli import CONFIG_ENV, ErrorKind, ExitCode, json_error
 
 from ..cameras import (
+    RECORDING_MANIFEST,
     Camera,
     CameraFrame,
     RealSenseCameraSettings,
@@ -58,6 +63,8 @@ PROG = "vision-server record"
 DEFAULT_FRAMES = 100
 """The bound when none is given: a recording never grows without one."""
 REALSENSE_SUFFIXES = (".db3",)
+TERMINATED = 128 + int(signal.SIGTERM)
+"""The exit code when SIGTERM stopped the recording (143, as a shell reports a SIGTERM)."""
 _SIZE = re.compile(r"(\d+(?:\.\d+)?)\s*([kmgt]?)(i?b?)", re.IGNORECASE)
 _UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 
@@ -109,7 +116,8 @@ def add_parser(sub: Any, parents: list[argparse.ArgumentParser]) -> None:
         "replays as a camera (source: recording), through vision-server run --recording and "
         "as golden cases (test-inspections --from-recording). Exit codes: 0 recorded up to a "
         "bound; 1 the camera failed (what was recorded is kept); 2 usage or configuration "
-        "error; 130 Ctrl-C (what was recorded is kept).",
+        "error; 130 Ctrl-C, 143 SIGTERM (what was recorded is kept, complete; a recording of "
+        "no frame is removed).",
     )
     p.add_argument("camera", help="the camera's name in the configuration")
     p.add_argument(
@@ -175,13 +183,17 @@ class _Sink(Protocol):
 
     def close(self) -> None: ...
 
+    def discard(self) -> bool: ...
+
 
 class _RecordingSink:
-    """The cellvision recording directory (:class:`RecordingWriter` keeps the bounds)."""
+    """The cellvision recording directory (:class:`RecordingWriter` keeps the bounds);
+    ``created``: the writer made the directory (it did not exist before)."""
 
-    def __init__(self, writer: RecordingWriter) -> None:
+    def __init__(self, writer: RecordingWriter, *, created: bool) -> None:
         self.writer = writer
         self.path = writer.path
+        self.created = created
 
     @property
     def frames(self) -> int:
@@ -201,6 +213,19 @@ class _RecordingSink:
 
     def close(self) -> None:
         self.writer.close()
+
+    def discard(self) -> bool:
+        """Remove a closed recording of no frame: its manifest, and its directory when it was
+        created for it (an empty directory that was given stays, empty). True if removed."""
+        if self.writer.frames:
+            return False
+        for name in (RECORDING_MANIFEST, f".{RECORDING_MANIFEST}.tmp"):
+            with contextlib.suppress(FileNotFoundError):
+                (self.path / name).unlink()
+        if self.created:
+            with contextlib.suppress(OSError):  # something else put a file there: keep it
+                self.path.rmdir()
+        return True
 
 
 @dataclass
@@ -282,6 +307,10 @@ class _RealSenseSink:
         if self._stopped is None:
             self._stopped = "closed"
 
+    def discard(self) -> bool:
+        # The SDK's file is created with the first frame: with none, there is nothing.
+        return not self.frames
+
 
 # ----------------------------------------------------------------------------- the command
 
@@ -347,6 +376,7 @@ def record(args: argparse.Namespace) -> int:
                 return _usage(args, f"{out} already exists: the RealSense file is written anew")
             sink = _RealSenseSink(out, camera, settings, given)
         else:
+            created = not out.exists()
             sink = _RecordingSink(
                 RecordingWriter(
                     out,
@@ -358,7 +388,8 @@ def record(args: argparse.Namespace) -> int:
                     max_frames=given.frames,
                     max_bytes=given.bytes,
                     max_duration_s=given.duration_s,
-                )
+                ),
+                created=created,
             )
     except RecordingError as exc:
         camera.close()
@@ -366,10 +397,52 @@ def record(args: argparse.Namespace) -> int:
     return _record_frames(args, camera, sink, fmt)
 
 
+class _Terminated(BaseException):
+    """SIGTERM arrived: stop as for Ctrl-C (a BaseException, as KeyboardInterrupt is, so that
+    no camera's ``except Exception`` takes it for a failure)."""
+
+
+class _SigtermStops:
+    """While recording, SIGTERM (``timeout``, ``systemctl stop``) raises :class:`_Terminated`
+    in the main thread, once; from :meth:`closing` on (the recording being closed, or a first
+    SIGTERM taken) it is ignored, so that the manifest is written whole. The previous handler
+    is restored at exit. Outside the main thread (no signals there) it does nothing."""
+
+    def __init__(self) -> None:
+        self._closing = False
+        self._previous: Any = None
+        self._installed = False
+
+    def __enter__(self) -> _SigtermStops:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGTERM, self._stop)
+            self._installed = True
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        if self._installed:
+            signal.signal(signal.SIGTERM, self._previous)
+
+    def closing(self) -> None:
+        self._closing = True
+
+    def _stop(self, signum: int, frame: object) -> None:
+        if not self._closing:
+            self._closing = True
+            raise _Terminated
+
+
 def _record_frames(args: argparse.Namespace, camera: Camera, sink: _Sink, fmt: str) -> int:
+    with _SigtermStops() as sigterm:
+        return _record_until_stopped(args, camera, sink, fmt, sigterm)
+
+
+def _record_until_stopped(
+    args: argparse.Namespace, camera: Camera, sink: _Sink, fmt: str, sigterm: _SigtermStops
+) -> int:
     started = time.monotonic()
     failure: str | None = None
-    code = ExitCode.OK
+    code = int(ExitCode.OK)
     last: int | None = None
     try:
         while sink.stopped_by() is None:
@@ -395,11 +468,16 @@ def _record_frames(args: argparse.Namespace, camera: Camera, sink: _Sink, fmt: s
     except KeyboardInterrupt:
         failure = "interrupted"
         code = ExitCode.INTERRUPTED
+    except _Terminated:
+        failure = "terminated by SIGTERM"
+        code = TERMINATED
     finally:
+        sigterm.closing()
         try:
             sink.close()
         finally:
             camera.close()
+    removed = code != ExitCode.OK and sink.discard()
     elapsed = time.monotonic() - started
     summary = {
         "camera": camera.name,
@@ -411,9 +489,13 @@ def _record_frames(args: argparse.Namespace, camera: Camera, sink: _Sink, fmt: s
         "duration_s": round(elapsed, 3),
         "stopped_by": failure if failure is not None else sink.stopped_by(),
         "ok": code == ExitCode.OK,
+        "removed": removed,
     }
     if failure is not None and code == ExitCode.FAILED:
-        _fail(args, ErrorKind.DEVICE, f"camera {camera.name!r}: {failure}", "CAMERA_UNAVAILABLE")
+        # A camera's own messages name it already ("camera 'c' (aravis): ...").
+        named = failure.startswith(f"camera {camera.name!r}")
+        message = failure if named else f"camera {camera.name!r}: {failure}"
+        _fail(args, ErrorKind.DEVICE, message, "CAMERA_UNAVAILABLE")
     if getattr(args, "json", False):
         print(json.dumps(summary), flush=True)
     else:
@@ -422,7 +504,8 @@ def _record_frames(args: argparse.Namespace, camera: Camera, sink: _Sink, fmt: s
             f"{what} {sink.frames} frame{'s' if sink.frames != 1 else ''} of camera "
             f"{camera.name!r} ({camera.source}), {sink.bytes} bytes in {elapsed:.1f} s, "
             f"into {sink.path}"
-            + (f"; stopped by the {summary['stopped_by']} bound" if code == ExitCode.OK else ""),
+            + (f"; stopped by the {summary['stopped_by']} bound" if code == ExitCode.OK else "")
+            + (" (removed: nothing was recorded)" if removed else ""),
             flush=True,
         )
     return int(code)

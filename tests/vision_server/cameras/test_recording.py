@@ -396,6 +396,153 @@ def test_a_frame_file_linking_outside_is_refused(tmp_path: Path) -> None:
         RecordingReader(rec).read(0)
 
 
+def _drop_intrinsics(rec: Path, width: int, height: int, layout: str) -> None:
+    data = manifest(rec)
+    frames = data["frames"]
+    assert isinstance(frames, list)
+    frames[0] = {**frames[0], "width": width, "height": height, "color_format": layout}
+    rewrite(rec, intrinsics=None, frames=frames)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs")
+def test_a_manifest_that_is_not_a_regular_file_is_refused_without_reading(
+    tmp_path: Path,
+) -> None:
+    rec = tmp_path / "rec"
+    record_levels(rec, [10])
+    (rec / RECORDING_MANIFEST).unlink()
+    os.mkfifo(rec / RECORDING_MANIFEST)  # opening it to read would block; reading, wait
+    with pytest.raises(RecordingError, match=r"recording.json: it is a FIFO \(named pipe\)"):
+        RecordingReader(rec)
+    (rec / RECORDING_MANIFEST).unlink()
+    (rec / RECORDING_MANIFEST).mkdir()
+    with pytest.raises(RecordingError, match="recording.json: it is a directory"):
+        RecordingReader(rec)
+    (rec / RECORDING_MANIFEST).rmdir()
+    # A device inside the recording (bound in, say): /dev/zero would read without end.
+    (rec / RECORDING_MANIFEST).symlink_to("/dev/zero")
+    with pytest.raises(RecordingError, match="resolves outside the recording"):
+        RecordingReader(rec)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/zero"), reason="no /dev/zero")
+def test_a_device_as_the_manifest_is_refused_by_what_it_is(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The descriptor's type is checked, not only where the path leads: a device the
+    # directory holds (it cannot be made here without privileges) is stood in for by
+    # /dev/zero opened in the manifest's place.
+    rec = tmp_path / "rec"
+    record_levels(rec, [10])
+    real_open = os.open
+    opened: list[int] = []
+
+    def open_zero(path: object, flags: int, *args: object) -> int:
+        if str(path).endswith(RECORDING_MANIFEST):
+            opened.append(flags)
+            return real_open("/dev/zero", flags)
+        return real_open(path, flags, *args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(recording_module.os, "open", open_zero)
+    with pytest.raises(RecordingError, match="recording.json: it is a character device"):
+        RecordingReader(rec)
+    assert opened
+    assert opened[0] & os.O_NONBLOCK  # a FIFO would not block the open
+
+
+def test_a_manifest_longer_than_its_size_said_is_cut_at_the_limit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    rec = tmp_path / "rec"
+    record_levels(rec, [10])
+    size = (rec / RECORDING_MANIFEST).stat().st_size
+    real_fstat = os.fstat
+
+    def small_fstat(descriptor: int) -> os.stat_result:  # a file that grows while read
+        info = real_fstat(descriptor)
+        return os.stat_result((info.st_mode, *info[1:6], 0, *info[7:]))
+
+    monkeypatch.setattr(recording_module.os, "fstat", small_fstat)
+    monkeypatch.setattr(recording_module, "MAX_MANIFEST_BYTES", size - 1)
+    with pytest.raises(RecordingError, match="has more than a recording's manifest can have"):
+        RecordingReader(rec)
+
+
+@pytest.mark.skipif(not hasattr(os, "symlink"), reason="no symlinks")
+def test_a_manifest_linking_outside_is_refused_and_one_inside_is_read(tmp_path: Path) -> None:
+    rec = tmp_path / "rec"
+    record_levels(rec, [10])
+    (rec / RECORDING_MANIFEST).rename(rec / "kept.json")
+    (rec / RECORDING_MANIFEST).symlink_to("kept.json")
+    assert len(RecordingReader(rec)) == 1
+    (rec / RECORDING_MANIFEST).unlink()
+    (rec / "kept.json").rename(tmp_path / "outside.json")
+    (rec / RECORDING_MANIFEST).symlink_to(tmp_path / "outside.json")
+    with pytest.raises(RecordingError, match="recording.json: it resolves outside"):
+        RecordingReader(rec)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs")
+def test_a_fifo_or_a_directory_as_a_frame_file_is_unavailable_not_a_stall(
+    tmp_path: Path,
+) -> None:
+    rec = tmp_path / "rec"
+    record_levels(rec, [10, 20, 30])
+    (rec / "frame_000001.png").unlink()
+    os.mkfifo(rec / "frame_000001.png")  # no writer: a blocking open or read never returns
+    (rec / "frame_000002.depth.png").unlink()
+    (rec / "frame_000002.depth.png").mkdir()
+    reader = RecordingReader(rec)
+    with pytest.raises(RecordingError, match=r"frame_000001.png: it is a FIFO"):
+        reader.read(1)
+    with pytest.raises(RecordingError, match=r"frame_000002.depth.png: it is a directory"):
+        reader.read(2)
+    camera = make_camera("r", RecordingCameraSettings(Path("rec")), base_dir=tmp_path)
+    assert camera.grab(timeout_s=T).color[0, 0] == 10
+    with pytest.raises(CameraUnavailable, match=r"rec/frame_000001.png: it is a FIFO"):
+        camera.grab(timeout_s=T)
+    with pytest.raises(CameraUnavailable, match=r"rec/frame_000002.depth.png: it is a dir"):
+        camera.frame_at(2)
+
+
+@pytest.mark.parametrize(("side", "layout"), [(32768, "gray8"), (20000, "bgr8")])
+def test_a_frame_over_the_pixel_limit_is_refused_when_the_manifest_is_read(
+    tmp_path: Path, side: int, layout: str
+) -> None:
+    rec = tmp_path / "rec"
+    record_levels(rec, [10])
+    _drop_intrinsics(rec, side, side, layout)
+    limit = recording_module.max_pixels()
+    assert side * side > limit
+    message = rf"frame 0 is {side}x{side}, more than {limit} pixels"
+    with pytest.raises(RecordingError, match=message):
+        RecordingReader(rec)
+    # The configuration refuses it when loaded (check-config), not at the first grab.
+    with pytest.raises(ConfigError, match=message):
+        load_config(write_cell(tmp_path, "{source: recording, path: rec}"))
+    with pytest.raises(RecordingError, match="more than .* pixels"):
+        writer(tmp_path / "big").add(np.zeros((side, side), np.uint8), timestamp_s=0.0)
+
+
+def test_any_decode_failure_is_a_typed_error_naming_the_frame(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    rec = tmp_path / "rec"
+    record_levels(rec, [10, 20])
+
+    def refuse(data: object, flags: int) -> None:
+        raise cv2.error("OpenCV(5.0) loadsave.cpp: error: (-215) pixels <= CV_IO_MAX_IMAGE_PIXELS")
+
+    camera = make_camera("r", RecordingCameraSettings(Path("rec")), base_dir=tmp_path)
+    monkeypatch.setattr(recording_module.cv2, "imdecode", refuse)
+    with pytest.raises(RecordingError, match=r"frame_000000.png cannot be decoded \(frame 0\)"):
+        RecordingReader(rec).read(0)
+    with pytest.raises(CameraUnavailable, match=r"rec/frame_000000.png cannot be decoded"):
+        camera.grab(timeout_s=T)
+    with pytest.raises(CameraUnavailable, match=r"frame_000001.png cannot be decoded"):
+        camera.frame_at(1)
+
+
 # ----------------------------------------------------------------------------- the camera
 
 
