@@ -155,12 +155,16 @@ def test_record_bounded_by_bytes_and_by_duration(
 def test_a_camera_that_ends_keeps_what_was_recorded(
     cell: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    """A replayed source that runs out (a folder played once) ends the recording: a complete
+    one, exit 0, not a camera failure."""
     out = cell.parent / "rec"
-    assert record(cell, "shelf", "--out", str(out), "--frames", "5") == 1  # mode: once, 3 images
+    assert record(cell, "shelf", "--out", str(out), "--frames", "5", "--json") == 0
     captured = capsys.readouterr()
-    assert "CAMERA_UNAVAILABLE" in captured.err
-    assert "exhausted after 3 images" in captured.err
-    assert "after recording 3 frames" in captured.out
+    assert "CAMERA_UNAVAILABLE" not in captured.err
+    summary = last_json(captured.out)
+    assert summary["stopped_by"] == "source ended"
+    assert summary["frames"] == 3
+    assert summary["ok"] is True
     reader = RecordingReader(out)
     assert len(reader) == 3
     assert reader.complete

@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..process import decoder_limits
 from .base import CameraFrame, public_path
 from .clock import Clock
 from .device import DeviceCamera, DeviceError, FrameTimeout, import_sdk
@@ -242,6 +243,19 @@ class RealSenseCamera(DeviceCamera):
                 raise DeviceError(
                     f"the recording {path}'s {what} stream is {size[0]}x{size[1]} but the "
                     f"camera is set to {wanted[0]}x{wanted[1]} ({keys})"
+                )
+        # The server's image size bound holds for a recording as for an image a client sends:
+        # a stream beyond it is refused before a frame of it is decoded.
+        limit = decoder_limits.loaded_limit() or decoder_limits.DEFAULT_MAX_IMAGE_PIXELS
+        for what, stream in (("colour", color), ("depth", depth)):
+            if stream is None or (what == "depth" and not s.depth):
+                continue
+            video = stream.as_video_stream_profile()
+            pixels = int(video.width()) * int(video.height())
+            if pixels > limit:
+                raise DeviceError(
+                    f"the recording {path}'s {what} stream is {video.width()}x{video.height()}, "
+                    f"more than the server's {limit} pixels (max_image_pixels)"
                 )
         config.enable_stream(rs.stream.color)
         if s.depth:

@@ -364,6 +364,13 @@ def record(args: argparse.Namespace) -> int:
     sink: _Sink | None = None
     try:
         camera.open()
+        if fmt == "realsense" and camera.intrinsics is None and not camera.status()["last_error"]:
+            camera.close()
+            return _usage(
+                args,
+                f"camera {name!r} has no intrinsics: the RealSense format needs them (give "
+                "intrinsics in the configuration)",
+            )
         if fmt == "realsense":
             if out.suffix.lower() not in REALSENSE_SUFFIXES:
                 camera.close()
@@ -442,6 +449,7 @@ def _record_until_stopped(
 ) -> int:
     started = time.monotonic()
     failure: str | None = None
+    ended = False
     code = int(ExitCode.OK)
     last: int | None = None
     try:
@@ -457,8 +465,12 @@ def _record_until_stopped(
             if not sink.add(frame):
                 break
     except CameraUnavailable as exc:
-        failure = exc.message
-        code = ExitCode.FAILED
+        # A replayed source (a recording, a playback, a folder played once) that ran out
+        # after giving frames is a complete recording of it, not a failure.
+        ended = sink.frames > 0 and camera.status().get("state") == "ended"
+        if not ended:
+            failure = exc.message
+            code = ExitCode.FAILED
     except CellvisionError as exc:  # a camera that refuses grabs (InvalidArgument)
         failure = exc.message
         code = ExitCode.FAILED
@@ -487,7 +499,11 @@ def _record_until_stopped(
         "frames": sink.frames,
         "bytes": sink.bytes,
         "duration_s": round(elapsed, 3),
-        "stopped_by": failure if failure is not None else sink.stopped_by(),
+        "stopped_by": failure
+        if failure is not None
+        else "source ended"
+        if ended
+        else sink.stopped_by(),
         "ok": code == ExitCode.OK,
         "removed": removed,
     }
@@ -504,7 +520,13 @@ def _record_until_stopped(
             f"{what} {sink.frames} frame{'s' if sink.frames != 1 else ''} of camera "
             f"{camera.name!r} ({camera.source}), {sink.bytes} bytes in {elapsed:.1f} s, "
             f"into {sink.path}"
-            + (f"; stopped by the {summary['stopped_by']} bound" if code == ExitCode.OK else "")
+            + (
+                "; the source ended"
+                if ended
+                else f"; stopped by the {summary['stopped_by']} bound"
+                if code == ExitCode.OK
+                else ""
+            )
             + (" (removed: nothing was recorded)" if removed else ""),
             flush=True,
         )

@@ -437,3 +437,18 @@ def test_a_playback_without_a_size_plays_the_recordings_own(tmp_path: Path) -> N
         assert frame.color.shape == (8, 16, 3)
         assert cam.intrinsics is not None
         assert (cam.intrinsics.width, cam.intrinsics.height) == (16, 8)
+
+
+def test_a_recording_beyond_the_servers_image_size_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from vision_server.process import decoder_limits
+
+    path = tmp_path / "big.db3"
+    k = Intrinsics(16, 8, 20.0, 20.0, 7.5, 3.5)
+    with RealSenseRecorder(path, width=16, height=8, fps=30, intrinsics=k) as recorder:
+        recorder.add(np.zeros((8, 16, 3), np.uint8), np.full((8, 16), 800, np.uint16), T0)
+    monkeypatch.setattr(decoder_limits, "loaded_limit", lambda: 100)  # 16x8 = 128 pixels
+    for cam in playing(path):
+        message = grab_error(cam)
+        assert "colour stream is 16x8, more than the server's 100 pixels" in message
