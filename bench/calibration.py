@@ -39,6 +39,7 @@ from geometry import (
     transform_points,
 )
 from geometry.depth_registration import registration_advice
+from simulation.hard_scenes import HardFamily, hard_views
 
 from .cell import QR_TEXT, QR_VIEW, require
 from .common import SCENE, Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
@@ -798,61 +799,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
 
 # --- hard scenes (issue 29 part 4) ---------------------------------------------------------
 
-HARD_SCENE = """
-name: hard_scenes
-seed: {seed}
-surfaces:
-  - {{name: floor, center: [0, 0], height: 0.0, size: [4, 4], color: 90}}
-boxes:
-  - {{name: wall, pose: {{xyz: [{wall_x}, 0, 0], rpy: [0, 0, 0]}}, size: [0.02, 3.0, 3.5],
-      color: 150}}
-qr_boards:
-  - name: qr
-    text: "{text}"
-    side_m: {side}
-    margin_m: {margin}
-    pose: {{xyz: [0.989, 0.0, 1.0], rpy: [1.5707963267948966, 0.0, -1.5707963267948966]}}
-robot:
-  world_from_base: {{xyz: [0, 0, 0]}}
-  home: {{xyz: [0, 0, 1.0], rpy: [-1.5707963267948966, 0, -1.5707963267948966]}}
-  workspace: {{min: [-3, -3, -1], max: [3, 3, 4]}}
-cameras:
-  - name: rgbd
-    model: xtion
-    mount: tool
-    pose: {{xyz: [0, 0, 0]}}
-    noise_sigma: 1.0
-    intrinsics: {{width: {w}, height: {h}, fx: {f}, fy: {f}, cx: {cx}, cy: {cy}, dist: {dist}}}
-    depth: {{misregistration_px: [{du}, {dv}], scale_bias: {bias}, fb_px_m: {fb},
-             disparity_sigma_px: {sigma_d}, dropout: {dropout}, range_m: [{near}, 4.0]}}
-"""
-HARD_CENTRE = np.array([0.989, 0.0, 1.0])
 HARD_SCALE_BIAS = 0.005
-
-
-@dataclasses.dataclass(frozen=True)
-class HardFamily:
-    """A kind of scene harder than the station's: the camera (size, focal length, distortion,
-    stereo fb and disparity noise, near range), the views (distance, tilt off the code's
-    normal, the code's centre up to ``off_centre`` of the half image off the principal point),
-    the code (side, margin of its plate, the plate's stand-off from the wall) and depth holes.
-    ``goal``: judged against the goal (False: reported only, see the table's note)."""
-
-    name: str
-    distance_m: tuple[float, float] = (0.6, 1.2)
-    tilt_deg: tuple[float, float] = (0.0, 30.0)
-    off_centre: float = 0.0
-    size: tuple[int, int] = (640, 480)
-    f_px: float = 570.3
-    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
-    fb_px_m: float = 43.5
-    sigma_d_px: float = 0.06
-    near_m: float = 0.3
-    side_m: float = 0.16
-    margin_m: float = 0.032
-    standoff_m: float = 0.001
-    dropout: float = 0.002
-    goal: bool = True
 
 
 HARD_FAMILIES = (
@@ -905,84 +852,18 @@ HARD_ROWS = {
 }
 
 
-def _hard_cell(family: HardFamily, shift_px: tuple[float, float]) -> Any:
-    from simulation import SimCell, scene_from_text
-
-    w, h = family.size
-    text = HARD_SCENE.format(
-        seed=7,
-        wall_x=0.989 + family.standoff_m + 0.01,
-        text=QR_TEXT,
-        side=family.side_m,
-        margin=family.margin_m,
-        w=w,
-        h=h,
-        f=family.f_px,
-        cx=(w - 1) / 2,
-        cy=(h - 1) / 2,
-        dist=list(family.dist),
-        du=shift_px[0],
-        dv=shift_px[1],
-        bias=HARD_SCALE_BIAS,
-        fb=family.fb_px_m,
-        sigma_d=family.sigma_d_px,
-        dropout=family.dropout,
-        near=family.near_m,
-    )
-    return SimCell(scene_from_text(text, source="hard_scenes.yaml"), seed=7)
-
-
-def _hard_view(rng: np.random.Generator, family: HardFamily) -> FloatArray:
-    """world_from_camera: ``distance_m`` from the code's centre, ``tilt_deg`` off its normal
-    in a random direction, a random roll, turned so that the code's centre lands up to
-    ``off_centre`` of the half image off the principal point."""
-    tilt = np.radians(rng.uniform(*family.tilt_deg))
-    azimuth = rng.uniform(0.0, 2 * np.pi)
-    direction = np.cos(tilt) * np.array([-1.0, 0.0, 0.0]) + np.sin(tilt) * np.array(
-        [0.0, np.cos(azimuth), np.sin(azimuth)]
-    )
-    eye = HARD_CENTRE + rng.uniform(*family.distance_m) * direction
-    z = (HARD_CENTRE - eye) / np.linalg.norm(HARD_CENTRE - eye)
-    up = np.array([0.0, 0.0, 1.0])
-    y = -(up - (up @ z) * z)
-    y /= np.linalg.norm(y)
-    x = np.cross(y, z)
-    roll = rng.uniform(-np.pi, np.pi)
-    x, y = np.cos(roll) * x + np.sin(roll) * y, -np.sin(roll) * x + np.cos(roll) * y
-    rotation = np.column_stack([x, y, z])
-    if family.off_centre > 0:
-        angle = rng.uniform(0.0, 2 * np.pi)
-        r = family.off_centre * rng.uniform(0.6, 1.0)
-        w, h = family.size
-        ray = np.array([r * np.cos(angle) * w / 2, r * np.sin(angle) * h / 2, family.f_px])
-        ray /= np.linalg.norm(ray)
-        axis = np.cross(ray, [0.0, 0.0, 1.0])  # turn the camera's ray `ray` onto the code
-        s, c = float(np.linalg.norm(axis)), float(ray[2])
-        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]]) / s
-        rotation = rotation @ (np.eye(3) + s * k + (1 - c) * k @ k)
-    return make_transform(rotation, eye)
-
-
 def _hard_views(family: HardFamily, count: int, seed: int) -> list[tuple[Any, Any, FloatArray]]:
     """``count`` views (colour frame, 5 depth frames, true camera_from_qr) with the code wholly
     in the image, misregistered MISREGISTRATION_PX and scaled by HARD_SCALE_BIAS."""
-    cell = _hard_cell(family, MISREGISTRATION_PX)
-    rng = np.random.default_rng(seed)
-    w, h = family.size
-    out: list[tuple[Any, Any, FloatArray]] = []
-    tries = 0
-    while len(out) < count and tries < 10 * count:
-        tries += 1
-        cell.world.base_from_tool = _hard_view(rng, family)
-        frames = [cell.render("rgbd") for _ in range(5)]
-        code = frames[0].truth.qr_codes.get("qr")
-        if code is None:
-            continue
-        uv = code.corners_uv
-        if not (np.all(uv >= 2) and np.all(uv[:, 0] < w - 2) and np.all(uv[:, 1] < h - 2)):
-            continue
-        out.append((frames[0], [f.depth for f in frames], code.camera_from_qr))
-    return out
+    return hard_views(
+        family,
+        count,
+        seed=seed,
+        frames=5,
+        shift_px=MISREGISTRATION_PX,
+        scale_bias=HARD_SCALE_BIAS,
+        text=QR_TEXT,
+    )
 
 
 def _hard_scenes(views: int, check_views: int, corner_bias_px: float) -> dict[str, Any]:
