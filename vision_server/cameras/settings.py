@@ -429,6 +429,20 @@ GENICAM_TRIGGERS = ("free_run", "software", "hardware")
 """Values of ``GenICamCameraSettings.trigger``."""
 
 
+def _trigger_source(trigger: object, source: object) -> str | None:
+    """A GenICam camera's ``trigger`` checked, and its ``trigger_source``: the configured line
+    (only with a hardware trigger), ``Line0`` for a hardware trigger without one, else None."""
+    if trigger not in GENICAM_TRIGGERS:
+        raise ValueError(f"trigger must be one of {list(GENICAM_TRIGGERS)}, got {trigger!r}")
+    if source is None:
+        return "Line0" if trigger == "hardware" else None
+    if trigger != "hardware":
+        raise ValueError("trigger_source is only used with trigger: hardware")
+    if not isinstance(source, str) or not source.strip():
+        raise ValueError(f"trigger_source must be a line name such as 'Line0', got {source!r}")
+    return source
+
+
 @dataclass(frozen=True)
 class GenICamCameraSettings:
     """A GenICam camera (GigE Vision, USB3 Vision) through harvesters (the ``genicam`` extra).
@@ -471,20 +485,9 @@ class GenICamCameraSettings:
             )
         if self.gain_db is not None:
             object.__setattr__(self, "gain_db", _finite("gain_db", self.gain_db))
-        if self.trigger not in GENICAM_TRIGGERS:
-            raise ValueError(
-                f"trigger must be one of {list(GENICAM_TRIGGERS)}, got {self.trigger!r}"
-            )
-        if self.trigger_source is not None:
-            if self.trigger != "hardware":
-                raise ValueError("trigger_source is only used with trigger: hardware")
-            if not isinstance(self.trigger_source, str) or not self.trigger_source.strip():
-                raise ValueError(
-                    f"trigger_source must be a line name such as 'Line0', "
-                    f"got {self.trigger_source!r}"
-                )
-        elif self.trigger == "hardware":
-            object.__setattr__(self, "trigger_source", "Line0")
+        object.__setattr__(
+            self, "trigger_source", _trigger_source(self.trigger, self.trigger_source)
+        )
         object.__setattr__(
             self,
             "reconnect_interval_s",
@@ -605,20 +608,9 @@ class AravisCameraSettings:
         if self.gain_db is not None:
             object.__setattr__(self, "gain_db", _finite("gain_db", self.gain_db))
         object.__setattr__(self, "region", _region(self.region))
-        if self.trigger not in GENICAM_TRIGGERS:
-            raise ValueError(
-                f"trigger must be one of {list(GENICAM_TRIGGERS)}, got {self.trigger!r}"
-            )
-        if self.trigger_source is not None:
-            if self.trigger != "hardware":
-                raise ValueError("trigger_source is only used with trigger: hardware")
-            if not isinstance(self.trigger_source, str) or not self.trigger_source.strip():
-                raise ValueError(
-                    f"trigger_source must be a line name such as 'Line0', "
-                    f"got {self.trigger_source!r}"
-                )
-        elif self.trigger == "hardware":
-            object.__setattr__(self, "trigger_source", "Line0")
+        object.__setattr__(
+            self, "trigger_source", _trigger_source(self.trigger, self.trigger_source)
+        )
         if self.packet_size is not None:
             _positive_int("packet_size", self.packet_size)
             if not 576 <= self.packet_size <= 65536:
