@@ -56,6 +56,7 @@ from ..service import (
 from . import http_save
 from .http_auth import COOKIE, RANK, Role, Sessions
 from .http_door import cross_site_reason, host_allowed
+from .http_export import ExportRoutes
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
 from .http_operator import OperatorRoutes
@@ -265,6 +266,7 @@ class HttpFrontend:
         routes.add_get("/api/stats", self.stats)
         routes.add_get("/metrics", self.metrics_text)
         OperatorRoutes(self.operator_desk).add_to(routes)
+        ExportRoutes(self._log).add_to(routes)
         return app
 
     # ------------------------------------------------------------------ middlewares

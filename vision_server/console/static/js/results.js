@@ -69,6 +69,20 @@ export class ResultsPage {
       byId(id).addEventListener("change", () => this.showImage());
     }
     byId("stats-window").addEventListener("change", () => this.statsPoller.kick());
+    byId("rd-try").addEventListener("click", () => {
+      const r = this.openRow;
+      if (r === null || !r.inspection) return;
+      // The Inspections page reads this route: open the inspection, source "Stored result".
+      location.hash = `#/inspections/${encodeURIComponent(r.inspection)}?result=${r.id}`;
+    });
+    this.exportLink();
+  }
+
+  /** The CSV export of exactly the rows the filters select. */
+  exportLink() {
+    const query = new URLSearchParams(Object.entries(this.filters).filter(([, v]) => v));
+    const text = query.toString();
+    byId("results-export").href = `/api/results.csv${text ? `?${text}` : ""}`;
   }
 
   async fillInspections() {
@@ -97,6 +111,7 @@ export class ResultsPage {
 
   applyFilters() {
     this.filters = this.readFilters();
+    this.exportLink();
     this.before = [];
     this.beforeId = null;
     this.loadPage();
@@ -165,6 +180,8 @@ export class ResultsPage {
     chip.textContent = verdict.toUpperCase();
     chip.dataset.verdict = verdict || "none";
     this.openRow = r;
+    // Only a stored input can be tried again (the try's source "result").
+    byId("rd-try").hidden = !r.has_image;
     // A row opens on its overlay when it has one (older rows and failed requests have none).
     byId(r.has_overlay === false ? "rd-view-input" : "rd-view-overlay").checked = true;
     this.showImage();

@@ -1,0 +1,163 @@
+"""The result log as CSV: ``GET /api/results.csv`` (docs/console.md, "Results").
+
+The same filters as ``GET /api/results``, newest first, streamed a page at a time through the
+log's indexed query (a page costs about its rows whatever the log's size), so an export of
+100,000 rows holds one page in memory, not the export. Text that a spreadsheet would read as a
+formula (a cell starting ``=``, ``+``, ``-``, ``@``, a tab or a carriage return: a robot's peer
+name or a code's payload is not trusted) is written with a leading apostrophe.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import io
+import json
+import time
+from collections.abc import Callable, Mapping
+from datetime import UTC, datetime
+from typing import Any
+
+from aiohttp import web
+
+from ..results import ResultStore, StoredResult
+
+PAGE_ROWS = 500
+"""Rows read from the log per query while streaming."""
+DEFAULT_ROWS = 10_000
+MAX_ROWS = 1_000_000
+"""The most rows one export may ask (``limit``)."""
+COLUMNS = (
+    "id",
+    "time_iso",
+    "time",
+    "inspection",
+    "camera",
+    "verdict",
+    "try",
+    "duration_ms",
+    "peer",
+    "request_id",
+    "config_hash",
+    "error",
+    "data",
+)
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+class ExportError(ValueError):
+    """A query parameter of an export that cannot be taken; the message names it."""
+
+
+def filters(query: Mapping[str, str]) -> dict[str, Any]:
+    """The result-log query's keyword arguments from a request's query string (the filters
+    ``GET /api/results`` and this export share); :class:`ExportError` naming a bad one."""
+    verdict = query.get("verdict") or None
+    if verdict not in (None, "pass", "fail"):
+        raise ExportError("verdict must be 'pass' or 'fail'")
+    since: float | None = None
+    raw = query.get("since")
+    if raw:
+        try:
+            since = float(raw)
+        except ValueError:
+            raise ExportError(f"since must be a number (Unix seconds), got {raw!r}") from None
+        if since != since or since in (float("inf"), float("-inf")):
+            raise ExportError(f"since must be a finite number, got {raw!r}")
+    return {
+        "since": since,
+        "inspection": query.get("inspection") or None,
+        "passed": None if verdict is None else verdict == "pass",
+        "peer": query.get("peer") or None,
+    }
+
+
+def row_cells(row: StoredResult) -> list[str]:
+    """One result as the CSV's cells, in :data:`COLUMNS` order."""
+    cells: list[Any] = [
+        row.id,
+        datetime.fromtimestamp(row.time, UTC).isoformat(timespec="milliseconds"),
+        f"{row.time:.3f}",
+        row.inspection,
+        row.camera,
+        "pass" if row.passed else "fail",
+        "1" if row.is_try else "0",
+        f"{row.duration_ms:.3f}",
+        row.peer,
+        row.request_id,
+        row.config_hash,
+        row.error or "",
+        json.dumps(row.data, separators=(",", ":"), ensure_ascii=False, default=str),
+    ]
+    return [_safe(str(cell)) for cell in cells]
+
+
+def _safe(text: str) -> str:
+    return "'" + text if text.startswith(_FORMULA_START) else text
+
+
+class ExportRoutes:
+    """``GET /api/results.csv`` over the log ``log()`` returns (it raises the console's 404
+    when the server keeps none)."""
+
+    def __init__(self, log: Callable[[], ResultStore]) -> None:
+        self.log = log
+
+    def add_to(self, router: web.UrlDispatcher) -> None:
+        router.add_get("/api/results.csv", self.export)
+
+    async def export(self, request: web.Request) -> web.StreamResponse:
+        query = request.query
+        try:
+            wanted = filters(query)
+            limit = _limit(query.get("limit"))
+        except ExportError as exc:
+            raise web.HTTPBadRequest(reason=str(exc)) from None
+        log = self.log()
+        # The first page is read before the answer starts, so that a log that cannot be read
+        # is a JSON error (503), not a CSV cut short.
+        first = await asyncio.to_thread(log.query, limit=min(PAGE_ROWS, limit), **wanted)
+        stamp = time.strftime("%Y%m%dT%H%M%S")
+        response = web.StreamResponse(
+            headers={
+                "Content-Type": "text/csv; charset=utf-8",
+                "Content-Disposition": f'attachment; filename="cellvision-results-{stamp}.csv"',
+                "Cache-Control": "no-store",
+            }
+        )
+        await response.prepare(request)
+        await response.write(_lines([list(COLUMNS)]))
+        rows, sent = first, 0
+        while rows:
+            await response.write(_lines(row_cells(r) for r in rows))
+            sent += len(rows)
+            if sent >= limit or len(rows) < PAGE_ROWS:
+                break
+            last = rows[-1].id
+            rows = await asyncio.to_thread(
+                log.query, limit=min(PAGE_ROWS, limit - sent), before_id=last, **wanted
+            )
+        await response.write_eof()
+        return response
+
+
+def _limit(raw: str | None) -> int:
+    if raw is None or raw == "":
+        return DEFAULT_ROWS
+    try:
+        value = int(raw)
+    except ValueError:
+        raise ExportError(f"limit must be an integer, got {raw!r}") from None
+    if not 1 <= value <= MAX_ROWS:
+        raise ExportError(f"limit must be in 1..{MAX_ROWS}, got {value}")
+    return value
+
+
+def _lines(rows: Any) -> bytes:
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\r\n")
+    writer.writerows(rows)
+    return out.getvalue().encode("utf-8")
+
+
+__all__ = ["COLUMNS", "ExportRoutes", "filters", "row_cells"]
