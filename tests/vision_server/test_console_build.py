@@ -439,3 +439,38 @@ def test_reads_are_the_last_production_texts_newest_first(
     )  # fmt: skip
     job = client.get("/api/inspections/label_job/reads").json()["reads"]
     assert [(r["step"], r["text"]) for r in job] == [("label", "P-4711")]
+
+
+def test_a_fixtured_job_built_through_the_api_alone_is_served(tmp_path: Path) -> None:
+    """What the page does for an integrator: a template trained on the camera's frame, a
+    locate on it, a fixture from the locate, a presence check in the part's frame whose ROI is
+    an offset from the fixture's frame the try answered, the job saved whole and run by a
+    robot."""
+    with console_server(tmp_path) as running:
+        c = Browserless(running.url)
+        c.login()
+        trained = train(c, "rotor_job", {"source": "camera", "rect": [440, 190, 140, 150],
+                                          "config": {"camera": "qc"}})  # fmt: skip
+        assert trained.status == 200, trained.body
+        image = trained.json()["path"]
+        locate = {"name": "rotor", "type": "locate", "method": "template",
+                  "roi": [300, 100, 450, 400], "template": {"image": image}}  # fmt: skip
+        fixture = {"name": "part", "type": "fixture", "origin": "rotor", "angle_from": "rotor"}
+        job = {"name": "rotor_job", "type": "job", "camera": "qc", "steps": [locate, fixture]}
+        first = c.try_("rotor_job", {"source": "camera", "config": job})
+        assert first.status == 200, first.body
+        frame = first.json()["data"]["steps"]["part"]
+        assert first.json()["data"]["features"][0]["u"] == pytest.approx(frame["u"])
+        # the centre of the rotor, 20 x 20 px around the frame's origin
+        centre = {"name": "hub", "type": "presence", "fixture": "part", "roi": [-10, -10, 20, 20],
+                  "measure": "mean_intensity", "min": 0}  # fmt: skip
+        job["steps"] = [locate, fixture, centre]
+        job["verdict"] = "all(rotor, part, hub)"
+        tried = c.try_("rotor_job", {"source": "camera", "config": job})
+        assert tried.json()["verdict"] == "pass", tried.body
+        saved = put(c, "rotor_job", {"config": job, "why": "built on the page"})
+        assert saved.status == 200, saved.body
+        with SyncVisionClient("127.0.0.1", running.app.port, auth_token=TOKEN) as robot:
+            result = robot.inspect("rotor_job")
+        assert result.passed
+        assert result.data["steps"]["hub"]["passed"] is True
