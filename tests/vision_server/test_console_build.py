@@ -163,6 +163,15 @@ def test_an_operator_may_not_try_or_save(tmp_path: Path) -> None:
         saved = put(person, "magnet_job", {"config": draft_job()})
         assert saved.status == 403
         assert saved.json()["error"]["code"] == "FORBIDDEN"
+        template = {"source": "camera", "rect": [0, 0, 8, 8], "config": {"camera": "qc"}}
+        assert train(person, "magnet_job", template).status == 403
+        assert not (tmp_path / "templates").exists()
+        # viewing is the operator's
+        assert person.get("/api/schema").status == 200
+        assert person.get("/api/inspections/magnet_check/reads").status == 200
+        anonymous = Browserless(running.url)
+        assert anonymous.get("/api/schema").status == 401
+        assert anonymous.get("/api/inspections/magnet_check/reads").status == 401
 
 
 # ----------------------------------------------------------------------------- save whole
@@ -474,3 +483,28 @@ def test_a_fixtured_job_built_through_the_api_alone_is_served(tmp_path: Path) ->
             result = robot.inspect("rotor_job")
         assert result.passed
         assert result.data["steps"]["hub"]["passed"] is True
+
+
+def test_a_reload_that_fails_puts_the_old_file_back(tmp_path: Path) -> None:
+    from vision_server.config import ConfigError
+
+    with console_server(tmp_path) as running:
+        c = Browserless(running.url)
+        c.login()
+        original = running.config.read_text()
+        service = running.app.service
+        reloader = service.reloader
+
+        def refuse() -> Any:
+            raise ConfigError("camera 'qc' does not open", source="cell.yaml")
+
+        running.call(lambda: setattr(service, "reloader", refuse))
+        try:
+            refused = put(c, "magnet_job", {"config": draft_job()})
+        finally:
+            running.call(lambda: setattr(service, "reloader", reloader))
+        assert refused.status == 422
+        assert "does not open" in refused.json()["error"]["message"]
+        assert running.config.read_text() == original
+        assert not list(tmp_path.glob("cell.yaml.bak-*"))
+        assert put(c, "magnet_job", {"config": draft_job()}).status == 200
