@@ -252,6 +252,13 @@ def test_a_save_whole_is_refused_naming_the_cause(tmp_path: Path) -> None:
         assert error["code"] == "CONFIG_REFUSED"
         for part in ("cell.yaml", "magnet_job", "steps[0]", "roi"):
             assert part in error["message"], error["message"]
+        outside = draft_job(
+            steps=[{"name": "m", "type": "locate", "method": "template",
+                    "template": {"image": "/etc/hostname"}}]
+        )  # fmt: skip
+        refused = put(c, "magnet_job", {"config": outside})
+        assert refused.status == 422
+        assert "steps[0] -> template -> image" in refused.json()["error"]["message"]
         wrong_name = put(c, "magnet_job", {"config": draft_job("other")})
         assert wrong_name.status == 422
         assert "'other'" in wrong_name.json()["error"]["message"]
@@ -508,3 +515,26 @@ def test_a_reload_that_fails_puts_the_old_file_back(tmp_path: Path) -> None:
         assert running.config.read_text() == original
         assert not list(tmp_path.glob("cell.yaml.bak-*"))
         assert put(c, "magnet_job", {"config": draft_job()}).status == 200
+
+
+def test_reads_read_a_bounded_number_of_pages_past_tries() -> None:
+    """Among many tries the reads stop after a few pages of the index, never reading on."""
+    from types import SimpleNamespace
+
+    from vision_server.frontends import http_build
+
+    calls: list[dict[str, Any]] = []
+
+    class Log:
+        def query(self, **filters: Any) -> list[Any]:
+            calls.append(filters)
+            start = filters["before_id"] or 10_000
+            return [
+                SimpleNamespace(id=i, peer="console 127.0.0.1:1")
+                for i in range(start - 1, start - 1 - filters["limit"], -1)
+            ]
+
+    rows = http_build._production_rows(Log(), "station_qr", 20)
+    assert rows == []
+    assert len(calls) == http_build.READS_PAGES
+    assert all(c["inspection"] == "station_qr" and c["limit"] == 20 for c in calls)

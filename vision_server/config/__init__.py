@@ -25,7 +25,7 @@ from .cell import (
 )
 from .changes import NOTHING_CHANGED, changed_inspections, describe_changes
 from .document import ConfigError, Node, parse_document, read_document
-from .drafts import file_keys, parse_draft
+from .drafts import check_files, file_keys, parse_draft
 from .exposure import exposure_warnings
 from .listeners import Listener, ListenError, PortClash, check_distinct, enabled_listeners
 from .schema import inspection_schema
@@ -69,6 +69,7 @@ __all__ = [
     "TcpSettings",
     "Tuner",
     "changed_inspections",
+    "check_files",
     "check_distinct",
     "describe_changes",
     "enabled_listeners",

@@ -26,7 +26,7 @@ from aiohttp import web
 from protocol import CellvisionError
 from yamlfile import NAME
 
-from ..config import ConfigError, Tuner, inspection_schema, parse_draft
+from ..config import ConfigError, Tuner, check_files, inspection_schema, parse_draft
 from ..inspections import Inspection
 from ..results import is_try
 from ..service import ImageNeeds, Images, InspectionService, InspectRequest
@@ -171,6 +171,13 @@ class BuildRoutes:
             raise _error(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
         async with console._save_lock:
             served = console._all_written()
+            try:
+                # A request never makes the server open a path it chose (drafts.py).
+                check_files(config, base_dir=path.resolve().parent, written=served.get(name))
+            except ConfigError as exc:
+                raise _error(
+                    422, "CONFIG_REFUSED", f"{path.name}: inspection {name!r} -> {exc}"
+                ) from None
             opened = http_save.opened_cameras(self.service.catalog)
             saved = await asyncio.to_thread(_save_whole, path, name, config, opened, why)
             try:
