@@ -117,13 +117,13 @@ def walk(driver: WebDriver, server: RunningConsole, shots: Path | None = None) -
     wait_for(driver, lambda d: "threshold: 100" in _text(d, "yaml-snippet"), "the snippet")
     _shoot(driver, shots, "inspections")
 
-    # 5. Save: the file is written (backup kept) and the server reloads.
+    # 5. Save: the file is written (a version recorded) and the server reloads.
     before = server.app.service.catalog.config_hash
     driver.find_element(By.ID, "save-config").click()
     wait_for(driver, lambda d: "Saved and reloaded" in _text(d, "save-ok"), "the save")
     assert server.app.service.catalog.config_hash != before
     assert "threshold: 100" in server.config.read_text()
-    assert list(server.config.parent.glob("cell.yaml.bak-*"))
+    assert list(server.config.parent.glob("cell.yaml.history/v*.version"))
     wait_for(driver, lambda d: "threshold: 100" in _text(d, "insp-config"), "the reloaded config")
 
     # 6. Results: the tries are rows (peer "console ..."); the newest opens on its overlay.

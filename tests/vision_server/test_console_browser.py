@@ -66,5 +66,5 @@ def test_live_view_and_a_dragged_roi_changes_the_verdict_and_saves(
         wait_for(driver, lambda d: "Saved and reloaded" in ok.text, "the save")
         assert server.app.service.catalog.config_hash != before
         assert "roi: [" in server.config.read_text()
-        assert list(tmp_path.glob("cell.yaml.bak-*"))
+        assert list(tmp_path.glob("cell.yaml.history/v*.version"))
         assert console_errors(driver) == []

@@ -9,8 +9,10 @@
 - :mod:`.listeners`: the addresses the front-ends listen on, and that no two share one.
 - :mod:`.changes`: what a reload changed, in words.
 - :mod:`.exposure`: warnings for front-ends open beyond loopback without authentication.
+- :mod:`.history`: the configuration file's versions (who, when, why, a diff), bounded on disk.
 """
 
+from . import history
 from .cell import (
     FIXED_BY_THE_CONFIGURATION,
     CellConfig,
@@ -69,6 +71,7 @@ __all__ = [
     "describe_changes",
     "enabled_listeners",
     "exposure_warnings",
+    "history",
     "load_config",
     "load_server_settings",
     "parse_config",
