@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import TypeVar
 
 from browser import console_errors, drag_on_image, save_screenshot
+from console_pages import answer_why
 from console_server import TOKEN, RunningConsole
 from selenium.common.exceptions import StaleElementReferenceException
 from selenium.webdriver.common.by import By
@@ -120,6 +121,7 @@ def walk(driver: WebDriver, server: RunningConsole, shots: Path | None = None) -
     # 5. Save: the file is written (a version recorded) and the server reloads.
     before = server.app.service.catalog.config_hash
     driver.find_element(By.ID, "save-config").click()
+    answer_why(driver, "magnet_check: threshold 100")
     wait_for(driver, lambda d: "Saved and reloaded" in _text(d, "save-ok"), "the save")
     assert server.app.service.catalog.config_hash != before
     assert "threshold: 100" in server.config.read_text()
