@@ -284,3 +284,34 @@ def test_the_command_line_lists_shows_and_diffs_the_same_versions(
     unconfigured = cli("show", "1")
     assert unconfigured.returncode == 2
     assert "give --config FILE" in unconfigured.stderr
+
+
+def test_without_sign_in_the_console_is_who_saved(tmp_path: Path) -> None:
+    with console_server(tmp_path, token=None) as running:
+        client = Browserless(running.url)
+        assert save(client, {"threshold": 100}, "open cell").status == 200
+        newest = client.get("/api/history?limit=1").json()["versions"][0]
+        assert (newest["who"], newest["why"]) == ("console", "open cell")
+
+
+def test_a_revert_checks_the_roi_against_the_running_cameras(
+    running: RunningConsole, integrator: Browserless
+) -> None:
+    """A version whose ROI lies outside the image the QC camera declares once open is refused
+    as a save of that ROI is (the loader alone cannot know the simulated camera's size)."""
+    good = running.config.read_text()
+    outside = good.replace("roi: [486, 236, 50, 60]", "roi: [1000, 700, 100, 100]")
+    assert outside != good
+    running.config.write_text(outside)  # by hand
+    assert save(integrator, {"threshold": 100}, "x").status == 422  # the save refuses it too
+    running.config.write_text(good)
+    assert save(integrator, {"threshold": 100}, "x").status == 200
+    kept = history.History(running.config)
+    # Put the hand edit's text in the history as a version of its own, as a catch-up would.
+    running.config.write_text(outside)
+    assert revert(integrator, 2, "undo the hand edit").status == 200
+    assert kept.text(3).decode() == outside
+    refused = revert(integrator, 3)
+    assert refused.status == 422, refused.body
+    assert "1024x768" in refused.json()["error"]["message"]
+    assert running.config.read_text() == kept.text(4).decode()

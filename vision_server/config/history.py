@@ -330,6 +330,9 @@ class History:
             version = Version.from_json(json.loads(header))
         except (ValueError, KeyError, TypeError):
             raise HistoryError(f"{path.name} is not a version file") from None
+        named = _NAME.match(path.name)
+        if named is None or int(named.group(1)) != version.number:
+            raise HistoryError(f"{path.name} holds version {version.number}: not its own")
         return version, data
 
     def _write(

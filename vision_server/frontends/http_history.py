@@ -242,8 +242,15 @@ def _write_revert(
         raise Refused(
             422, "CONFIG_REFUSED", f"version {number} is not UTF-8 text: it cannot be loaded"
         ) from None
+    # As a save: the whole file by the loader, and each inspection the revert changes by the
+    # rules a try applies (its ROI within the image each running camera declares).
+    changed, _ = history.changed_between(old, target)
     try:
-        http_save.validate(text, path, opened=opened)
+        config = http_save.validate(text, path, opened=opened)
+        present = {i.name for i in config.inspections}
+        for name in changed:
+            if name in present:
+                http_save.validate(text, path, inspection=name, opened=opened)
     except ConfigError as exc:
         raise Refused(
             422, "CONFIG_REFUSED", f"version {number} cannot be loaded as it is now: {exc}"
