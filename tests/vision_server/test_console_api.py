@@ -363,7 +363,9 @@ def test_save_records_a_version_validates_and_reloads(tmp_path: Path) -> None:
         assert saved.json()["version"] == 2
         versions = c.get("/api/history").json()["versions"]
         assert [(v["version"], v["kind"]) for v in versions] == [(2, "save"), (1, "original")]
-        assert c.get("/api/history/1").json()["text"] == original
+        shown = c.get("/api/history/1").json()["text"]  # its tokens hidden
+        assert TOKEN not in shown
+        assert shown.replace("<hidden", "").count("\n") == original.count("\n")
         text = running.config.read_text()
         assert "roi: [10, 10, 50, 60]" in text
         assert "threshold: 100" in text

@@ -52,6 +52,21 @@ def revert(client: Browserless, version: int, why: str = "back") -> Any:
     return client.post_json(f"/api/history/{version}/revert", {"why": why})
 
 
+def assert_shown_without_secrets(shown: str, text: str) -> None:
+    """``shown`` is ``text`` line for line, but the tokens' values are hidden."""
+    assert TOKEN not in shown
+    assert INTEGRATOR not in shown
+    assert OPERATOR not in shown
+    pairs = list(zip(shown.splitlines(), text.splitlines(), strict=True))
+    for seen, line in pairs:
+        if "_token:" in line:
+            assert seen.split(":")[0] == line.split(":")[0]
+            assert "<hidden " in seen
+        else:
+            assert seen == line
+    assert sum("<hidden " in seen for seen, _ in pairs) == 3
+
+
 def served_threshold(client: Browserless) -> Any:
     inspections = client.get("/api/inspections").json()["inspections"]
     return next(i for i in inspections if i["name"] == "magnet_check")["config"]["threshold"]
@@ -88,7 +103,7 @@ def test_two_saves_list_show_diff_and_revert(
     assert "threshold: 100" in shown["text"]
     assert "-    threshold: 90\n" in shown["diff"]
     assert "+    threshold: 100\n" in shown["diff"]
-    assert integrator.get("/api/history/1").json()["text"] == original
+    assert_shown_without_secrets(integrator.get("/api/history/1").json()["text"], original)
 
     reverted = revert(integrator, 1, "back to the configured threshold")
     assert reverted.status == 200, reverted.body
@@ -191,6 +206,32 @@ def test_a_bad_why_is_refused_before_anything_is_written(
     saved = save(integrator, {"threshold": 100}, "y" * 500)
     assert saved.status == 200
     assert integrator.get("/api/history/2").json()["why"] == "y" * 500
+
+
+def test_an_operator_reads_no_token_in_the_history(
+    running: RunningConsole, integrator: Browserless
+) -> None:
+    """The texts and diffs shown hide every token (an operator must not read the admin's);
+    a changed token still shows as a changed line, without either value."""
+    original = running.config.read_text()
+    assert save(integrator, {"threshold": 100}, "darker").status == 200
+    rotated = running.config.read_text().replace(TOKEN, "a-new-admin-token-9876543210")
+    running.config.write_text(rotated)  # by hand
+    assert revert(integrator, 1, "undo the hand edit").status == 200
+    operator = signed_in(running, OPERATOR)
+    for number in (1, 2, 3, 4):
+        shown = operator.get(f"/api/history/{number}").json()
+        for secret in (TOKEN, INTEGRATOR, OPERATOR, "a-new-admin-token-9876543210"):
+            assert secret not in shown["text"]
+            assert secret not in shown["diff"]
+    assert_shown_without_secrets(operator.get("/api/history/1").json()["text"], original)
+    outside = operator.get("/api/history/3").json()
+    assert outside["kind"] == "edited_outside"
+    changed = [line for line in outside["diff"].splitlines() if line[:1] in "+-"]
+    assert [line.split(":")[0] for line in changed[2:]] == ["-  auth_token", "+  auth_token"]
+    assert changed[2] != changed[3]  # different fingerprints
+    # The command line on the cell PC reads the file itself: it shows the text as written.
+    assert cli("--config", str(running.config), "show", "3").stdout == rotated
 
 
 def test_roles_the_front_door_and_bad_requests(

@@ -9,6 +9,7 @@
 - :mod:`.listeners`: the addresses the front-ends listen on, and that no two share one.
 - :mod:`.changes`: what a reload changed, in words.
 - :mod:`.exposure`: warnings for front-ends open beyond loopback without authentication.
+- :mod:`.redaction`: a configuration text with its tokens, passwords and PINs hidden.
 - :mod:`.history`: the configuration file's versions (who, when, why, a diff), bounded on disk.
 """
 
@@ -27,6 +28,7 @@ from .changes import NOTHING_CHANGED, changed_inspections, describe_changes
 from .document import ConfigError, Node, parse_document, read_document
 from .exposure import exposure_warnings
 from .listeners import Listener, ListenError, PortClash, check_distinct, enabled_listeners
+from .redaction import redact_secrets
 from .settings import (
     DEFAULT_CONSOLE_PORT,
     DEFAULT_LINE_PORT,
@@ -77,6 +79,7 @@ __all__ = [
     "parse_config",
     "parse_document",
     "read_document",
+    "redact_secrets",
     "settings_from_node",
     "welcome_limits",
 ]

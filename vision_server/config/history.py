@@ -28,6 +28,7 @@ import os
 import re
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -212,15 +213,16 @@ class History:
         older = [n for n in self.numbers() if n < number]
         return older[-1] if older else None
 
-    def diff(self, number: int) -> str:
+    def diff(self, number: int, shown: Callable[[str], str] = str) -> str:
         """A unified diff from the previous kept version's text to version ``number``'s
-        (from an empty text for the oldest kept), at most :data:`MAX_DIFF_LINES` lines."""
+        (from an empty text for the oldest kept), at most :data:`MAX_DIFF_LINES` lines; each
+        text as ``shown`` shows it (e.g. its secrets hidden: it must keep the lines)."""
         new = self.text(number)
         before = self.previous(number)
         old = b"" if before is None else self.text(before)
         lines = difflib.unified_diff(
-            old.decode("utf-8", "replace").splitlines(keepends=True),
-            new.decode("utf-8", "replace").splitlines(keepends=True),
+            shown(old.decode("utf-8", "replace")).splitlines(keepends=True),
+            shown(new.decode("utf-8", "replace")).splitlines(keepends=True),
             fromfile="(nothing kept)" if before is None else f"version {before}",
             tofile=f"version {number}",
         )

@@ -17,7 +17,10 @@ file goes through :func:`.http_save.write_with_backup`.
 from __future__ import annotations
 
 import asyncio
+import hashlib
+import hmac
 import json
+import secrets
 from collections.abc import Awaitable, Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -26,7 +29,7 @@ from aiohttp import web
 
 from protocol import CellvisionError
 
-from ..config import ConfigError, history
+from ..config import ConfigError, history, redact_secrets
 from ..service import InspectionService
 from . import http_save
 
@@ -112,6 +115,18 @@ class HistoryRoutes:
         self.lock = lock
         self.who = who
         self.allow_save = allow_save
+        # The texts shown hide their secrets (tokens, passwords, PINs): an operator must not
+        # read the admin's token in a diff. A changed secret still shows as a changed line,
+        # by a fingerprint keyed with this secret, made at start and never shown.
+        self._fingerprint_key = secrets.token_bytes(32)
+
+    def shown(self, text: str) -> str:
+        """``text`` as the API shows it: its secrets hidden (:func:`redact_secrets`)."""
+        return redact_secrets(text, self._fingerprint)
+
+    def _fingerprint(self, value: str) -> str:
+        digest = hmac.new(self._fingerprint_key, value.encode("utf-8"), hashlib.sha256)
+        return digest.hexdigest()[:8]
 
     def add_to(self, router: web.UrlDispatcher) -> None:
         router.add_get("/api/history", _answers(self.list_))
@@ -159,8 +174,8 @@ class HistoryRoutes:
             return {
                 **meta.json(),
                 "previous": versions.previous(number),
-                "text": text.decode("utf-8", "replace"),
-                "diff": versions.diff(number),
+                "text": self.shown(text.decode("utf-8", "replace")),
+                "diff": versions.diff(number, self.shown),
                 "is_file": text == _read_or_none(versions.config),
             }
 
