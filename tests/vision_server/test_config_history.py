@@ -226,3 +226,21 @@ def test_paging_newest_first(config: Path) -> None:
     assert [v.number for v in kept.versions(limit=3)] == [8, 7, 6]
     assert [v.number for v in kept.versions(before=6, limit=3)] == [5, 4, 3]
     assert [v.number for v in kept.versions(before=3, limit=3)] == [2, 1]
+
+
+def test_a_write_a_crash_cut_short_leaves_a_temporary_file_the_next_write_sweeps(
+    config: Path,
+) -> None:
+    write(config, TWO, who="w", why="first")
+    folder = config.with_name("cell.yaml.history")
+    stale = folder / ".abc123.tmp"
+    stale.write_bytes(b'{"version": 3')  # half a version, never listed
+    fresh = folder / ".def456.tmp"  # a write in progress elsewhere: left alone
+    fresh.write_bytes(b"")
+    old = stale.stat().st_mtime - history.STALE_TMP_S - 10
+    os.utime(stale, (old, old))
+    assert history.History(config).numbers() == [1, 2]
+    write(config, ONE, who="w", why="next")
+    assert not stale.exists()
+    assert fresh.exists()
+    assert history.History(config).numbers() == [1, 2, 3]

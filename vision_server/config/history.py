@@ -58,6 +58,10 @@ MAX_HEADER = 64 * 1024
 MAX_DIFF_LINES = 20_000
 """A diff is cut after this many lines (with a last line saying so)."""
 
+STALE_TMP_S = 3600.0
+"""A temporary file of the history's folder older than this (seconds) is a write a crash cut
+short: the next write deletes it."""
+
 SUFFIX = ".history"
 _NAME = re.compile(r"v(\d{6,12})\.version\Z")
 
@@ -279,6 +283,7 @@ class History:
                 entries.append((number, path, path.stat().st_size))
             except OSError:
                 continue
+        self._sweep()
         dropped: list[int] = []
         total = sum(size for *_, size in entries)
         while len(entries) > 1 and (
@@ -290,6 +295,19 @@ class History:
             total -= size
             dropped.append(number)
         return dropped
+
+    def _sweep(self) -> None:
+        """Delete the temporary files of writes that a crash cut short (``.*.tmp`` of this
+        folder, older than :data:`STALE_TMP_S`): never a version, never another file."""
+        now = time.time()
+        with contextlib.suppress(OSError), os.scandir(self.folder) as entries:
+            for entry in entries:
+                if not (entry.name.startswith(".") and entry.name.endswith(".tmp")):
+                    continue
+                with contextlib.suppress(OSError):
+                    stat = entry.stat(follow_symlinks=False)
+                    if entry.is_file(follow_symlinks=False) and now - stat.st_mtime > STALE_TMP_S:
+                        os.unlink(entry.path)
 
     # ------------------------------------------------------------------ files
 
