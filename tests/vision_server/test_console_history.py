@@ -322,6 +322,15 @@ def test_the_command_line_lists_shows_and_diffs_the_same_versions(
     assert missing.returncode == 2
     assert "no version 7" in missing.stderr
     assert cli("--config", config, "diff").returncode == 2
+    shown_json = json.loads(cli("--config", config, "show", "1", "--json").stdout)
+    assert (shown_json["version"], shown_json["kind"], shown_json["text"]) == (
+        1,
+        "original",
+        original,
+    )
+    nowhere = cli("--config", str(running.config.with_name("nowhere.yaml")))
+    assert nowhere.returncode == 2
+    assert "no such file" in nowhere.stderr
     unconfigured = cli("show", "1")
     assert unconfigured.returncode == 2
     assert "give --config FILE" in unconfigured.stderr

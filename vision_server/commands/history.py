@@ -3,6 +3,7 @@ read-only and without a server.
 
     vision-server history --config cell.yaml [list] [--limit N] [--json]
     vision-server history --config cell.yaml show V     # version V's text, byte for byte
+                                                        # (--json: its metadata and text)
     vision-server history --config cell.yaml diff V     # its changes from the version before
 
 Exit codes: 0 ok, 2 usage (no --config, no such version, a history that cannot be read).
@@ -81,11 +82,18 @@ def history_command(args: argparse.Namespace) -> int:
     if not config:
         return _fail(args, f"give --config FILE (or ${CONFIG_ENV})")
     versions = history.History(Path(config))
+    if not versions.config.exists() and not versions.folder.exists():
+        return _fail(args, f"no such file: {config}")
     if args.action in ("show", "diff") and args.version is None:
         return _fail(args, f"{args.action} needs a version: history {args.action} V")
     try:
         if args.action == "list":
             return _list(args, versions)
+        if args.action == "show" and args.json:
+            version = versions.get(args.version)
+            text = versions.text(args.version).decode("utf-8", "replace")
+            print(json.dumps({**version.json(), "text": text}))
+            return 0
         if args.action == "show":
             sys.stdout.flush()
             sys.stdout.buffer.write(versions.text(args.version))
