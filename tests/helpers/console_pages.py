@@ -46,3 +46,17 @@ def sign_in(driver: WebDriver, server: RunningConsole, page: str, token: str = T
     driver.find_element(By.ID, "login-token").send_keys(token)
     driver.find_element(By.ID, "login-submit").click()
     wait_for(driver, lambda d: visible_page(d) == f"page-{page}", f"the {page} page")
+
+
+def answer_why(driver: WebDriver, why: str) -> None:
+    """Answer the page's "why" dialog (js/why.js), opened by a save or a revert: type the
+    reason and confirm."""
+    dialog = wait_for(
+        driver,
+        lambda d: (e := d.find_element(By.ID, "why-dialog")).is_displayed() and e,
+        "the why dialog",
+    )
+    assert driver.find_element(By.ID, "why-ok").get_property("disabled"), "confirmable unasked"
+    driver.find_element(By.ID, "why-text").send_keys(why)
+    driver.find_element(By.ID, "why-ok").click()
+    wait_for(driver, lambda d: not dialog.is_displayed(), "the why dialog to close")

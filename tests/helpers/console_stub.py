@@ -19,7 +19,7 @@ Sample data (all fixed, built at start-up, deterministic):
 - 120 results (ids 1..120, two inspections, every seventh a failure, peers ``10.0.0.7:…`` and
   ``10.0.0.8:…``), newest has the highest id and time ``NOW``.
 - save refuses a ``threshold`` above 255 with a validator-style message naming file, line and
-  key path; other edits answer a fixed hash and backup name.
+  key path; other edits answer a fixed hash and version number.
 
 Importable as ``console_stub`` (pytest's ``pythonpath`` includes tests/helpers).
 """
@@ -339,9 +339,7 @@ class _App:
                 "/etc/cellvision/cell.yaml:53: inspections[1].threshold: "
                 f"expected a grey level 0..255, got {threshold}",
             )
-        return web.json_response(
-            {"config_hash": "a41b7c2d9e0f" + "1" * 52, "backup": "cell.yaml.1760000000.bak"}
-        )
+        return web.json_response({"config_hash": "a41b7c2d9e0f" + "1" * 52, "version": 2})
 
     async def results_list(self, request: web.Request) -> web.Response:
         q = request.query

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import TypeVar
 
 from browser import console_errors, drag_on_image, save_screenshot
+from console_pages import answer_why
 from console_server import TOKEN, RunningConsole
 from selenium.common.exceptions import StaleElementReferenceException
 from selenium.webdriver.common.by import By
@@ -117,13 +118,14 @@ def walk(driver: WebDriver, server: RunningConsole, shots: Path | None = None) -
     wait_for(driver, lambda d: "threshold: 100" in _text(d, "yaml-snippet"), "the snippet")
     _shoot(driver, shots, "inspections")
 
-    # 5. Save: the file is written (backup kept) and the server reloads.
+    # 5. Save: the file is written (a version recorded) and the server reloads.
     before = server.app.service.catalog.config_hash
     driver.find_element(By.ID, "save-config").click()
+    answer_why(driver, "magnet_check: threshold 100")
     wait_for(driver, lambda d: "Saved and reloaded" in _text(d, "save-ok"), "the save")
     assert server.app.service.catalog.config_hash != before
     assert "threshold: 100" in server.config.read_text()
-    assert list(server.config.parent.glob("cell.yaml.bak-*"))
+    assert list(server.config.parent.glob("cell.yaml.history/v*.version"))
     wait_for(driver, lambda d: "threshold: 100" in _text(d, "insp-config"), "the reloaded config")
 
     # 6. Results: the tries are rows (peer "console ..."); the newest opens on its overlay.
@@ -144,12 +146,14 @@ def walk(driver: WebDriver, server: RunningConsole, shots: Path | None = None) -
     wait_for(driver, lambda d: "APPLIED" in _text(d, "srv-reloads").upper(), "the reload")
     _shoot(driver, shots, "server")
 
-    # Any page added since (each page is a section.page): a picture of it as it opens.
+    # Any page added since (each page is a section.page): a picture of it as it opens. The
+    # History page's picture is its journey's (tests/vision_server/test_history_browser.py:
+    # a version opened on its diff), not the list as it opens.
     pages = driver.execute_script(
         "return [...document.querySelectorAll('section.page')].map((s) => s.dataset.page);"
     )
     for page in pages:
-        if page and page not in ("login", "cameras", "inspections", "results", "server"):
+        if page and page not in ("login", "cameras", "inspections", "results", "server", "history"):
             _show(driver, server, page)
             _shoot(driver, shots, page)
     assert console_errors(driver) == []

@@ -336,7 +336,7 @@ def test_busy_is_503_with_retry_after(tmp_path: Path) -> None:
 # ----------------------------------------------------------------------------- save
 
 
-def test_save_writes_a_backup_validates_and_reloads(tmp_path: Path) -> None:
+def test_save_records_a_version_validates_and_reloads(tmp_path: Path) -> None:
     with console_server(tmp_path) as running:
         c = Browserless(running.url)
         c.login()
@@ -349,7 +349,7 @@ def test_save_writes_a_backup_validates_and_reloads(tmp_path: Path) -> None:
         assert "cell.yaml" in error["message"]
         assert "threshold" in error["message"]
         assert running.config.read_text() == original
-        assert not list(tmp_path.glob("cell.yaml.bak-*"))
+        assert not (tmp_path / "cell.yaml.history").exists()
 
         saved = c.post_json(
             "/api/inspections/magnet_check/save",
@@ -359,9 +359,13 @@ def test_save_writes_a_backup_validates_and_reloads(tmp_path: Path) -> None:
         new_hash = saved.json()["config_hash"]
         assert new_hash != before
         assert c.get("/api/server").json()["config_hash"] == new_hash
-        backups = list(tmp_path.glob("cell.yaml.bak-*"))
-        assert [b.name for b in backups] == [saved.json()["backup"]]
-        assert backups[0].read_text() == original
+        # The history holds the file as it was (version 1) and this save (version 2).
+        assert saved.json()["version"] == 2
+        versions = c.get("/api/history").json()["versions"]
+        assert [(v["version"], v["kind"]) for v in versions] == [(2, "save"), (1, "original")]
+        shown = c.get("/api/history/1").json()["text"]  # its tokens hidden
+        assert TOKEN not in shown
+        assert shown.replace("<hidden", "").count("\n") == original.count("\n")
         text = running.config.read_text()
         assert "roi: [10, 10, 50, 60]" in text
         assert "threshold: 100" in text

@@ -12,7 +12,7 @@ from browser import console_errors, drag_on_image, headless_chromium
 from console_server import console_server
 
 selenium = pytest.importorskip("selenium")
-from console_pages import sign_in, wait_for  # noqa: E402
+from console_pages import answer_why, sign_in, wait_for  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
 from selenium.webdriver.remote.webelement import WebElement  # noqa: E402
@@ -62,9 +62,10 @@ def test_live_view_and_a_dragged_roi_changes_the_verdict_and_saves(
 
         before = server.app.service.catalog.config_hash
         driver.find_element(By.ID, "save-config").click()
+        answer_why(driver, "ROI over the dark corner")
         ok = driver.find_element(By.ID, "save-ok")
         wait_for(driver, lambda d: "Saved and reloaded" in ok.text, "the save")
         assert server.app.service.catalog.config_hash != before
         assert "roi: [" in server.config.read_text()
-        assert list(tmp_path.glob("cell.yaml.bak-*"))
+        assert list(tmp_path.glob("cell.yaml.history/v*.version"))
         assert console_errors(driver) == []

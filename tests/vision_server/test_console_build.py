@@ -190,8 +190,15 @@ def test_a_draft_saved_whole_is_served_and_a_robot_inspects_it(tmp_path: Path) -
         assert saved.status == 200, saved.body
         body = saved.json()
         assert body["created"] is True
-        assert body["backup"].startswith("cell.yaml.bak-")
-        assert (tmp_path / body["backup"]).read_text() == original
+        # The history holds the file as it was and the new text, with who and why.
+        version = c.get(f"/api/history/{body['version']}").json()
+        assert version["kind"] == "created_inspection", version
+        assert version["why"] == "a job for the magnet"
+        before = c.get(f"/api/history/{version['previous']}").json()["text"]
+        # (the API hides the token's value: the rest is the file as it was)
+        assert [ln for ln in before.splitlines() if "<hidden " not in ln] == [
+            ln for ln in original.splitlines() if "token: " not in ln
+        ]
         text = running.config.read_text()
         # Everything before the new entry is byte for byte what it was.
         assert text.startswith(original.rstrip("\n"))

@@ -5,8 +5,8 @@ the real server with the example cell and its configuration file's runtime.
 - a key is a dotted name (a newline in it cannot add lines) and never one fixed by the
   configuration; a value that is YAML-significant text is refused or stored as that text;
 - a save is validated as a try is, the running cameras' image sizes included;
-- backups are bounded, and a save that fails while writing leaves neither a partial backup
-  nor a changed file.
+- the history is bounded, and a save that fails while writing leaves neither a partial
+  version nor a changed file.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import pytest
 import yaml
 from console_server import Browserless, RunningConsole, console_server
 
+from vision_server.config import history
 from vision_server.frontends import http_save
 
 SAVE = "/api/inspections/{}/save"
@@ -44,7 +45,8 @@ def save(client: Browserless, options: dict[str, Any], name: str = "magnet_check
 
 
 def backups(running: RunningConsole) -> list[Path]:
-    return sorted(running.config.parent.glob(f"{running.config.name}.bak-*"))
+    """The history's version files (none before the first save)."""
+    return sorted(running.config.parent.glob(f"{running.config.name}.history/*"))
 
 
 def folder(running: RunningConsole) -> list[str]:
@@ -217,27 +219,32 @@ def test_an_roi_outside_the_declared_image_is_refused_as_a_try_refuses_it(
     assert save(client, {"roi": [924, 668, 100, 100]}).status == 200
 
 
-# ----------------------------------------------------------------------------- backups
+# ----------------------------------------------------------------------------- history
 
 
-def test_backups_are_bounded(running: RunningConsole, client: Browserless) -> None:
+def test_the_history_is_bounded(running: RunningConsole, client: Browserless) -> None:
+    """With the history's bounds at 20 versions, 30 saves keep the newest 20, each holding the
+    text its save wrote; files beside the configuration are never touched."""
+    history.set_bounds(running.config, history.Bounds(max_versions=20))
     mine = running.config.with_name(f"{running.config.name}.bak-mine")
     mine.write_text("a copy the integrator made\n")
+    stray = running.config.with_name(f"{running.config.name}.history") / "notes.txt"
     texts = []
-    names = []
+    numbers = []
     for i in range(30):
-        texts.append(running.config.read_text())
         saved = save(client, {"threshold": 100 + i})
         assert saved.status == 200, saved.body
-        names.append(saved.json()["backup"])
-        assert len(http_save.backups(running.config)) <= http_save.MAX_BACKUPS
-    kept = http_save.backups(running.config)
-    assert len(kept) == http_save.MAX_BACKUPS == 20
-    # The newest are kept, each holding the text before its save.
-    assert [b.name for b in kept] == names[-http_save.MAX_BACKUPS :]
-    for backup, text in zip(kept, texts[-http_save.MAX_BACKUPS :], strict=True):
-        assert backup.read_text() == text
+        if i == 0:
+            stray.write_text("mine\n")
+        texts.append(running.config.read_text())
+        numbers.append(saved.json()["version"])
+        assert len(history.History(running.config).numbers()) <= 20
+    kept = history.History(running.config)
+    assert kept.numbers() == numbers[-20:] == list(range(12, 32))
+    for number, text in zip(kept.numbers(), texts[-20:], strict=True):
+        assert kept.text(number).decode() == text
     assert mine.read_text() == "a copy the integrator made\n"
+    assert stray.read_text() == "mine\n"
     assert not [n for n in folder(running) if n.endswith(".tmp")]
 
 
@@ -262,25 +269,23 @@ class FailingOs:
 
 
 @pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="needs /proc/self/fd")
-@pytest.mark.parametrize("target", ["backup", "configuration"])
-def test_a_save_that_fails_while_writing_leaves_no_partial_backup(
+@pytest.mark.parametrize("target", ["version", "configuration"])
+def test_a_save_that_fails_while_writing_leaves_no_partial_version(
     running: RunningConsole,
     client: Browserless,
     monkeypatch: pytest.MonkeyPatch,
     target: str,
 ) -> None:
-    assert save(client, {"threshold": 100}).status == 200  # one backup already there
+    assert save(client, {"threshold": 100}).status == 200  # two versions already there
     before = running.config.read_bytes()
     listed = folder(running)
     kept = [(b.name, b.read_bytes()) for b in backups(running)]
-    # The temporary files are ".cell.yaml.bak-<time>.<random>.tmp" (the backup, written
+    # The temporary files are ".<random>.tmp" in the history's folder (the version, written
     # first) and ".cell.yaml.<random>.tmp" (the new configuration, written after it).
-    backup_tmp = f".{running.config.name}.bak-"
-    if target == "backup":
-        failing = FailingOs(lambda name: name.startswith(backup_tmp))
-    else:
-        failing = FailingOs(lambda name: not name.startswith(backup_tmp))
+    config_tmp = f".{running.config.name}."
+    failing = FailingOs(lambda name: name.startswith(config_tmp) == (target == "configuration"))
     monkeypatch.setattr(http_save, "os", failing)
+    monkeypatch.setattr(history, "os", failing)
     failed = save(client, {"threshold": 120})
     monkeypatch.undo()
     assert failing.failed == 1
@@ -289,7 +294,7 @@ def test_a_save_that_fails_while_writing_leaves_no_partial_backup(
     assert error["code"] == "CONFIG_REFUSED"
     assert "No space left on device" in error["message"]
     assert running.config.read_bytes() == before
-    assert folder(running) == listed  # no partial backup, no temporary file
+    assert folder(running) == listed  # no partial version, no temporary file
     assert [(b.name, b.read_bytes()) for b in backups(running)] == kept
     # The server still serves the old values, and the next save works.
     served = client.get("/api/inspections").json()["inspections"]

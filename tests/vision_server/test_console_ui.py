@@ -21,6 +21,7 @@ from browser import console_errors, drag_on_image, headless_chromium, save_scree
 from console_stub import ConsoleStub, Recorded, console_stub
 
 selenium = pytest.importorskip("selenium")
+from console_pages import answer_why  # noqa: E402
 from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
@@ -257,11 +258,15 @@ def test_the_try_panel_sends_the_dragged_roi_and_parameters(driver: WebDriver, s
             "a try with threshold 300",
         )
         driver.find_element(By.ID, "save-config").click()
+        answer_why(driver, "threshold 300")
         refusal = driver.find_element(By.ID, "save-error")
         wait_for(driver, lambda d: refusal.is_displayed(), "the refusal")
         assert "cell.yaml:53: inspections[1].threshold" in refusal.text
         saves = stub.recorded("/api/inspections/magnet_check/save", "POST")
-        assert saves[-1].body == {"options": {"roi": moved, "threshold": 300}}
+        assert saves[-1].body == {
+            "options": {"roi": moved, "threshold": 300},
+            "why": "threshold 300",
+        }
         assert console_errors(driver) == []
 
 

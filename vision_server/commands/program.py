@@ -17,6 +17,7 @@ register map, and check or reload a running server.
     vision-server record CAMERA --config cell.yaml --out DIR [--frames N] [--max-bytes SIZE]
                       [--duration S] [--interval S] [--format auto|cellvision|realsense]
     vision-server modbus-map cell.yaml [--json]   # the PLC's register map (protocol/MODBUS.md)
+    vision-server history --config cell.yaml [list | show V | diff V]   # the file's versions
     vision-server sensor-check --config cell.yaml station_pose --view c1.png d1.png ...
                       [--json]   # a depth camera's misregistration and scale (guide 7.3)
     vision-server ping [--server HOST:PORT] [--token-file PATH] [--tls] [--ca FILE]
@@ -102,6 +103,7 @@ from ..config import (
 from ..process import PROCESS_ENV, decoder_limits
 from ..results import is_database_url
 from ..service import Catalog, Images, InspectReply, InspectRequest, builtin_catalog
+from . import history as history_cli
 from . import record as record_cli
 from . import sensor_check as sensor_check_cli
 from .admin import AdminError, call_endpoint, resolve
@@ -1046,6 +1048,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sensor_check_cli.add_parser(sub, [local])
     record_cli.add_parser(sub, [local])
+    history_cli.add_parser(sub, [local])
 
     modbus_map = sub.add_parser(
         "modbus-map",

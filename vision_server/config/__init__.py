@@ -11,8 +11,11 @@
 - :mod:`.exposure`: warnings for front-ends open beyond loopback without authentication.
 - :mod:`.drafts`: a whole inspection mapping (the console's edit or draft) read by the loader.
 - :mod:`.schema`: every key of every inspection and job step type, for the console's editor.
+- :mod:`.redaction`: a configuration text with its tokens, passwords and PINs hidden.
+- :mod:`.history`: the configuration file's versions (who, when, why, a diff), bounded on disk.
 """
 
+from . import history
 from .cell import (
     FIXED_BY_THE_CONFIGURATION,
     CellConfig,
@@ -28,6 +31,7 @@ from .document import ConfigError, Node, parse_document, read_document
 from .drafts import check_files, file_keys, parse_draft
 from .exposure import exposure_warnings
 from .listeners import Listener, ListenError, PortClash, check_distinct, enabled_listeners
+from .redaction import redact_secrets
 from .schema import inspection_schema
 from .settings import (
     DEFAULT_CONSOLE_PORT,
@@ -76,12 +80,14 @@ __all__ = [
     "exposure_warnings",
     "file_keys",
     "inspection_schema",
+    "history",
     "load_config",
     "load_server_settings",
     "parse_config",
     "parse_document",
     "parse_draft",
     "read_document",
+    "redact_secrets",
     "settings_from_node",
     "welcome_limits",
 ]

@@ -457,6 +457,12 @@ def _console(node: Node, server: ServerSettings) -> ConsoleSettings:
         try_deadline_s=node.take("try_deadline_s", positive, defaults.try_deadline_s),
         write_timeout_s=node.take("write_timeout_s", positive, defaults.write_timeout_s),
         allowed_hosts=tuple(node.take("allowed_hosts", _host_names, defaults.allowed_hosts)),
+        history_max_versions=node.take(
+            "history_max_versions", positive_int, defaults.history_max_versions
+        ),
+        history_max_bytes=int(
+            node.take("history_max_mb", positive, defaults.history_max_bytes / 2**20) * 2**20
+        ),
     )
     node.finish()
     return listening.from_server(server)

@@ -303,6 +303,12 @@ class ConsoleSettings:
     """Host names (besides IP addresses, ``localhost`` and this machine's own names) that the
     console answers in a request's Host header: a name a DNS-rebinding page would use is
     refused."""
+    history_max_versions: int = 200
+    """Versions of the configuration file the console's history keeps (``cell.yaml.history/``
+    beside it); the oldest beyond are deleted after each save."""
+    history_max_bytes: int = 50 * 1024 * 1024
+    """Bytes of versions the history keeps at most (``history_max_mb`` in the file); the
+    newest version is kept whatever its size."""
 
     def from_server(self, server: ServerSettings) -> ConsoleSettings:
         """These listening settings with the server's token, TLS, limits and reload policy."""

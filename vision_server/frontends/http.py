@@ -41,7 +41,7 @@ from protocol import (
 )
 
 from ..cameras import RecordingCamera, RecordingError
-from ..config import FIXED_BY_THE_CONFIGURATION, SERVER_VERSION, ConsoleSettings
+from ..config import FIXED_BY_THE_CONFIGURATION, SERVER_VERSION, ConsoleSettings, history
 from ..console import static_dir
 from ..results import TRY_PEER_PREFIX, ResultLogError
 from ..service import (
@@ -58,6 +58,7 @@ from .http_auth import COOKIE, RANK, Role, Sessions
 from .http_build import BUILD_INTEGRATOR_ROUTES, BuildRoutes, check_draft_name
 from .http_door import cross_site_reason, host_allowed
 from .http_export import ExportRoutes
+from .http_history import HistoryRoutes, Refused, why_of
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
 from .http_operator import OperatorRoutes
@@ -169,6 +170,11 @@ class HttpFrontend:
         self._runner: web.AppRunner | None = None
         self._listener: Listener | None = None
         self._save_lock = asyncio.Lock()
+        if config_path is not None:
+            history.set_bounds(
+                config_path,
+                history.Bounds(settings.history_max_versions, settings.history_max_bytes),
+            )
         self.live: LiveView | None = None
         self.metrics: Metrics | None = None
         self._builder = BuildRoutes(self, service)
@@ -270,6 +276,13 @@ class HttpFrontend:
         OperatorRoutes(self.operator_desk).add_to(routes)
         ExportRoutes(self._log).add_to(routes)
         self._builder.add_to(routes)
+        HistoryRoutes(
+            self.config_path,
+            self.service,
+            lock=self._save_lock,
+            who=self.who,
+            allow_save=self.settings.allow_save,
+        ).add_to(routes)
         return app
 
     # ------------------------------------------------------------------ middlewares
@@ -360,6 +373,13 @@ class HttpFrontend:
             if auth.startswith("Bearer "):
                 return self.sessions.role_of(auth[7:].strip())
         return role
+
+    def who(self, request: web.Request) -> str:
+        """Who makes ``request``, for the configuration's history: the session's role
+        (``operator``, ``integrator``, ``admin``), or ``console`` without sign-in."""
+        if not self.sessions.required:
+            return "console"
+        return self._role(request) or "console"
 
     async def _refuse_token(self, request: web.Request, message: str) -> HttpError:
         """A wrong token, answered after the front door's delay for its host."""
@@ -770,6 +790,10 @@ class HttpFrontend:
         options = body.get("options")
         if not isinstance(options, dict) or not options:
             raise HttpError(400, "BAD_REQUEST", "options must be a non-empty JSON object")
+        try:
+            why = why_of(body)
+        except Refused as exc:
+            raise HttpError(exc.status, exc.code, exc.message) from None
         path = self.config_path
         if path is None:
             raise HttpError(403, "CONFIG_REFUSED", "this server runs without a configuration file")
@@ -780,7 +804,8 @@ class HttpFrontend:
             # The image size each running camera declares, which the saved ROI must fit as a
             # try's must (a simulated camera's size is its scene's, known once it is open).
             opened = http_save.opened_cameras(self.service.catalog)
-            saved = await asyncio.to_thread(_save_file, path, name, options, opened)
+            who = self.who(request)
+            saved = await asyncio.to_thread(_save_file, path, name, options, opened, who, why)
             try:
                 catalog = await self.service.reload()
             except CellvisionError as exc:
@@ -788,7 +813,6 @@ class HttpFrontend:
                 # open): put the old text back so that file and server agree.
                 await asyncio.to_thread(http_save.undo, saved)
                 raise HttpError(422, "CONFIG_REFUSED", exc.message) from None
-            await asyncio.to_thread(http_save.prune_backups, path, spare=saved.backup)
         # The reload applies the whole file: hand edits made since the last reload go live
         # with this save, and whoever saves is told which (not silently).
         now = self._all_written()
@@ -800,7 +824,7 @@ class HttpFrontend:
         return web.json_response(
             {
                 "config_hash": catalog.config_hash,
-                "backup": saved.backup.name,
+                "version": saved.version.number,
                 "also_changed": also,
                 "notes": list(catalog.notes),
             }
@@ -901,7 +925,13 @@ class HttpFrontend:
 
 
 INTEGRATOR_ROUTES = (
-    frozenset({"/api/inspections/{name}/try", "/api/inspections/{name}/save"})
+    frozenset(
+        {
+            "/api/inspections/{name}/try",
+            "/api/inspections/{name}/save",
+            "/api/history/{version}/revert",
+        }
+    )
     | BUILD_INTEGRATOR_ROUTES
 )
 """What changes an inspection or runs one with other options: the integrator's and the
@@ -977,12 +1007,18 @@ def nested_options(written: Mapping[str, Any], options: Mapping[str, Any]) -> di
 
 
 def _save_file(
-    path: Path, name: str, options: Mapping[str, Any], opened: Mapping[str, Any]
+    path: Path,
+    name: str,
+    options: Mapping[str, Any],
+    opened: Mapping[str, Any],
+    who: str,
+    why: str,
 ) -> http_save.Saved:
-    """Edit, validate and write the configuration file (in a thread). HttpError
-    CONFIG_REFUSED naming file, line and key path, or why the file cannot be written."""
+    """Edit, validate and write the configuration file, recorded as ``who``'s version for
+    ``why`` (in a thread). HttpError CONFIG_REFUSED naming file, line and key path, or why the
+    file cannot be written."""
     try:
-        return http_save.save(path, name, options, opened=opened)
+        return http_save.save(path, name, options, opened=opened, who=who, why=why)
     except (http_save.SaveRefused, http_save.ConfigError) as exc:
         raise HttpError(422, "CONFIG_REFUSED", str(exc)) from None
     except (OSError, UnicodeError) as exc:

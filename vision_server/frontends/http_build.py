@@ -31,6 +31,7 @@ from ..inspections import Inspection
 from ..results import is_try
 from ..service import ImageNeeds, Images, InspectionService, InspectRequest
 from . import http_save, http_save_whole, template_files
+from .http_history import Refused, why_of
 
 if TYPE_CHECKING:
     from .http import HttpFrontend
@@ -41,7 +42,6 @@ BUILD_INTEGRATOR_ROUTES = frozenset({"/api/inspections/{name}", "/api/inspection
 """The paths of this module that change the configuration: the integrator's."""
 MAX_SAVE_BYTES = 64 * 1024
 """The largest body of a whole save (the mapping and the reason)."""
-MAX_WHY = 500
 """The longest reason a save may give, characters."""
 MAX_TEMPLATE_BODY = 64 * 1024
 """The largest body of a template's training (JSON: a rectangle, maybe a draft's mapping)."""
@@ -156,11 +156,10 @@ class BuildRoutes:
         check_draft_name(name)
         body = await _json_body(request, await _read_at_most(request, MAX_SAVE_BYTES))
         config = body.get("config")
-        why = body.get("why", "")
-        if why is None:
-            why = ""
-        if not isinstance(why, str) or len(why) > MAX_WHY:
-            raise _error(400, "BAD_REQUEST", f"why must be a text of at most {MAX_WHY} characters")
+        try:
+            why = why_of(body)
+        except Refused as exc:
+            raise _error(exc.status, exc.code, exc.message) from None
         if not isinstance(config, dict):
             raise _error(400, "BAD_REQUEST", "config must be the inspection's mapping (an object)")
         console = self.console
@@ -179,7 +178,8 @@ class BuildRoutes:
                     422, "CONFIG_REFUSED", f"{path.name}: inspection {name!r} -> {exc}"
                 ) from None
             opened = http_save.opened_cameras(self.service.catalog)
-            saved = await asyncio.to_thread(_save_whole, path, name, config, opened, why)
+            who = console.who(request)
+            saved = await asyncio.to_thread(_save_whole, path, name, config, opened, who, why)
             try:
                 catalog = await self.service.reload()
             except CellvisionError as exc:
@@ -187,7 +187,6 @@ class BuildRoutes:
                 # back so that file and server agree.
                 await asyncio.to_thread(http_save.undo, saved.saved)
                 raise _error(422, "CONFIG_REFUSED", exc.message) from None
-            await asyncio.to_thread(http_save.prune_backups, path, spare=saved.saved.backup)
         log.info(
             "console: inspection %r %s in %s (why: %s)",
             name,
@@ -204,7 +203,7 @@ class BuildRoutes:
         return web.json_response(
             {
                 "config_hash": catalog.config_hash,
-                "backup": saved.saved.backup.name,
+                "version": saved.saved.version.number,
                 "also_changed": also,
                 "notes": list(catalog.notes),
                 "created": saved.created,
@@ -343,12 +342,12 @@ def _texts(row: Any) -> list[dict[str, Any]]:
 
 
 def _save_whole(
-    path: Any, name: str, config: Any, opened: Any, why: str
+    path: Any, name: str, config: Any, opened: Any, who: str, why: str
 ) -> http_save_whole.SavedWhole:
     """Edit, validate and write the file (in a thread): CONFIG_REFUSED naming file,
     inspection and key, or why the file cannot be written."""
     try:
-        return http_save_whole.save_whole(path, name, config, opened=opened, why=why)
+        return http_save_whole.save_whole(path, name, config, opened=opened, who=who, why=why)
     except (http_save.SaveRefused, ConfigError) as exc:
         raise _error(422, "CONFIG_REFUSED", str(exc)) from None
     except (OSError, UnicodeError) as exc:

@@ -14,8 +14,10 @@ order and anchors elsewhere stay as the integrator wrote them:
    this inspection's given values set), then it is validated by the loader ``serve`` uses
    (:func:`vision_server.config.parse_config`) and the inspection by the rules a try runs
    (:class:`vision_server.config.Tuner`), with the image size each running camera declares;
-4. the old file is kept as a backup (``NAME.bak-YYYYmmddTHHMMSS``), written atomically, and
-   the file is replaced atomically; at most :data:`MAX_BACKUPS` backups are kept.
+4. the new text is recorded as a version of the file's history (who, when, why, which
+   inspections changed: :mod:`vision_server.config.history`, ``NAME.history/`` beside it),
+   then the file is replaced atomically (:func:`write_with_backup`, the one place the console
+   writes the configuration file).
 
 Anything else is refused with a :class:`SaveRefused` subclass naming the cause, or the
 validator's :class:`~vision_server.config.ConfigError`; nothing is written then.
@@ -29,7 +31,6 @@ import math
 import os
 import re
 import tempfile
-import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,13 +43,10 @@ from ..config import (
     CellConfig,
     ConfigError,
     Tuner,
+    history,
     parse_config,
     parse_document,
 )
-
-MAX_BACKUPS = 20
-"""Backups of the configuration file kept beside it (``NAME.bak-<local time>``): after each
-save the oldest beyond this many are deleted. Other files are never touched."""
 
 KEY_PART = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}\Z")
 """One part of a key (``circle.min_radius_px`` has two): a plain identifier, as every key of
@@ -112,11 +110,11 @@ class OpenedCamera:
 
 @dataclass(frozen=True)
 class Saved:
-    """A save written: the old bytes and the backup that holds them."""
+    """A save written: the file's old bytes and the history's version of the new text."""
 
     path: Path
     old: bytes
-    backup: Path
+    version: history.Version
 
 
 # ----------------------------------------------------------------------------- the save
@@ -128,12 +126,14 @@ def save(
     options: Mapping[str, Any],
     *,
     opened: Mapping[str, OpenedCamera] | None = None,
+    who: str = "console",
+    why: str = "",
 ) -> Saved:
     """Set ``options`` (dotted keys for nested ones) of inspection ``inspection`` in the
-    configuration file ``path``, keeping a backup. Raises :class:`SaveRefused` or ConfigError
-    (nothing written), OSError or UnicodeError (the file cannot be read or written; nothing
-    left behind). ``opened``: the running cameras, whose declared image sizes the inspection's
-    ROI must fit as a try's must."""
+    configuration file ``path``, recorded in its history as ``who``'s save for ``why``.
+    Raises :class:`SaveRefused` or ConfigError (nothing written), OSError or UnicodeError (the
+    file cannot be read or written; nothing left behind). ``opened``: the running cameras,
+    whose declared image sizes the inspection's ROI must fit as a try's must."""
     old = path.read_bytes()
     text = old.decode("utf-8")
     try:
@@ -148,15 +148,15 @@ def save(
         ) from None
     new = edited_text(text, path.name, inspection, options)
     validate(new, path, inspection=inspection, opened=opened)
-    backup = write_with_backup(path, new, old=old)
-    return Saved(path, old, backup)
+    version = write_with_backup(path, new, old=old, who=who, why=why)
+    return Saved(path, old, version)
 
 
 def undo(saved: Saved) -> None:
-    """Put the old text back (a reload refused what was saved) and drop its backup, which
-    holds that same text."""
+    """Put the old text back (a reload refused what was saved) and drop the save's version
+    from the history: the file's history ends again with the text it has."""
     replace_file(saved.path, saved.old)
-    saved.backup.unlink(missing_ok=True)
+    history.history_of(saved.path).drop(saved.version.number)
 
 
 def edited_text(text: str, source: str, inspection: str, options: Mapping[str, Any]) -> str:
@@ -284,57 +284,41 @@ def opened_cameras(catalog: Any) -> dict[str, OpenedCamera]:
 # ----------------------------------------------------------------------------- files
 
 
-BACKUP_NAME = r"\.bak-(\d{8}T\d{6})(?:-(\d+))?\Z"
+def write_with_backup(
+    path: Path,
+    text: str,
+    *,
+    old: bytes | None = None,
+    who: str = "console",
+    why: str = "",
+    kind: str = history.SAVE,
+    reverted_to: int | None = None,
+) -> history.Version:
+    """Replace the configuration file ``path`` with ``text`` and record it in the file's
+    history as a version of ``kind`` made by ``who`` for ``why`` (``reverted_to``: the
+    version a revert restores). ``old``: the file's bytes as read (read now when None).
 
-
-def backups(path: Path) -> list[Path]:
-    """The backups of ``path`` the console made, oldest first."""
-    pattern = re.compile(re.escape(path.name) + BACKUP_NAME)
-    found: list[tuple[str, int, Path]] = []
-    with contextlib.suppress(OSError):
-        for entry in path.parent.iterdir():
-            match = pattern.match(entry.name)
-            if match and entry.is_file() and not entry.is_symlink():
-                found.append((match.group(1), int(match.group(2) or 1), entry))
-    return [entry for *_, entry in sorted(found)]
-
-
-def prune_backups(path: Path, keep: int = MAX_BACKUPS, *, spare: Path | None = None) -> None:
-    """Delete the oldest backups of ``path`` beyond the newest ``keep`` (never ``spare``, the
-    one just written, even when a clock set back makes it sort older)."""
-    old = [b for b in backups(path) if b != spare]
-    for backup in old[: max(0, len(old) - (keep - (spare is not None)))]:
-        with contextlib.suppress(OSError):
-            backup.unlink()
-
-
-def write_with_backup(path: Path, text: str, *, old: bytes | None = None) -> Path:
-    """Keep the current file (``old``: its bytes as read) as a backup beside it, then replace
-    it with ``text``; both writes are atomic, and when the replacement fails the backup is
-    removed again. Returns the backup's path; the caller prunes (:func:`prune_backups`)."""
+    The one place the console writes the configuration file. First the history catches up
+    with the file as it is (an edit made outside the console becomes a version of its own, the
+    file's first text the history's first version), then the new version is written, then the
+    file is replaced; each write is atomic, and when replacing the file fails the new version
+    is dropped again. Afterwards the oldest versions beyond the history's bounds are deleted.
+    Returns the new version (give it to :func:`undo` through :class:`Saved` when the server
+    then refuses the text). Raises OSError (nothing changed but perhaps the catch-up)."""
     if old is None:
         old = path.read_bytes()
-    stamp = time.strftime("%Y%m%dT%H%M%S")
-    # Numbered after the newest of this second, never into a gap that pruning left: a reused
-    # lower number would sort as the oldest backup and be pruned next.
-    pattern = re.compile(re.escape(path.name) + BACKUP_NAME)
-    taken = [
-        int(m.group(2) or 1)
-        for b in backups(path)
-        if (m := pattern.match(b.name)) is not None and m.group(1) == stamp
-    ]
-    n = max(taken, default=0) + 1
-    backup = path.with_name(f"{path.name}.bak-{stamp}" + (f"-{n}" if n > 1 else ""))
-    while backup.exists():  # a name made by hand, or a race: the next number
-        n += 1
-        backup = path.with_name(f"{path.name}.bak-{stamp}-{n}")
-    replace_file(backup, old, mode_of=path)
+    versions = history.history_of(path)
+    versions.catch_up(old)
+    version = versions.record(
+        text.encode("utf-8"), who=who, why=why, kind=kind, reverted_to=reverted_to
+    )
     try:
         replace_file(path, text.encode("utf-8"))
     except BaseException:
-        backup.unlink(missing_ok=True)
+        versions.drop(version.number)
         raise
-    return backup
+    versions.prune()
+    return version
 
 
 def replace_file(path: Path, data: bytes, *, mode_of: Path | None = None) -> None:
@@ -617,7 +601,6 @@ def _edit(
 
 
 __all__ = [
-    "MAX_BACKUPS",
     "AlreadyInvalid",
     "BadKey",
     "BadValue",
@@ -628,11 +611,9 @@ __all__ = [
     "OpenedCamera",
     "SaveRefused",
     "Saved",
-    "backups",
     "declared_cameras",
     "edited_text",
     "opened_cameras",
-    "prune_backups",
     "replace_file",
     "save",
     "undo",

@@ -33,7 +33,7 @@ import yaml
 
 from yamlfile import NAME
 
-from ..config import ConfigError, parse_document
+from ..config import ConfigError, history, parse_document
 from . import http_save
 from .http_save import (
     KEY_PART,
@@ -54,7 +54,8 @@ INDENT = 2
 
 @dataclass(frozen=True)
 class SavedWhole:
-    """A whole inspection written: the save (old bytes, backup) and whether it was new."""
+    """A whole inspection written: the save (old bytes, the history's version) and whether
+    it was new."""
 
     saved: Saved
     created: bool
@@ -66,10 +67,12 @@ def save_whole(
     config: Any,
     *,
     opened: Mapping[str, OpenedCamera] | None = None,
+    who: str = "console",
     why: str = "",
 ) -> SavedWhole:
     """Write ``config`` as inspection ``inspection`` of the configuration file ``path`` (a new
-    entry at the end of ``inspections:`` when there is none of that name), keeping a backup.
+    entry at the end of ``inspections:`` when there is none of that name), recorded in the
+    file's history as a version by ``who`` for ``why``.
     Raises :class:`~.http_save.SaveRefused` or ConfigError (nothing written), OSError or
     UnicodeError (the file cannot be read or written; nothing left behind)."""
     old = path.read_bytes()
@@ -83,8 +86,9 @@ def save_whole(
         ) from None
     new, created = replaced_text(text, path.name, inspection, config)
     http_save.validate(new, path, inspection=inspection, opened=opened)
-    backup = http_save.write_with_backup(path, new, old=old)  # why: the history's (see caller)
-    return SavedWhole(Saved(path, old, backup), created)
+    kind = history.CREATED_INSPECTION if created else history.SAVE
+    version = http_save.write_with_backup(path, new, old=old, who=who, why=why, kind=kind)
+    return SavedWhole(Saved(path, old, version), created)
 
 
 def replaced_text(text: str, source: str, inspection: str, config: Any) -> tuple[str, bool]:

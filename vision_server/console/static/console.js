@@ -1,5 +1,5 @@
 // The console's entry point: the router between pages (#/cameras, #/inspections, #/results,
-// #/server, #/operator), the login page shown whenever the API answers 401, and the status pill.
+// #/server, #/operator, #/history), the login page shown whenever the API answers 401, and the status pill.
 
 import { api, ApiError, onUnauthorized } from "./js/api.js";
 import { byId } from "./js/dom.js";
@@ -9,6 +9,7 @@ import { InspectionsPage } from "./js/inspections.js";
 import { ResultsPage } from "./js/results.js";
 import { ServerPage, statusText } from "./js/server.js";
 import { OperatorPage, operatorBadge } from "./js/operator.js";
+import { HistoryPage } from "./js/history.js";
 
 const pages = {
   cameras: new CamerasPage(),
@@ -16,6 +17,7 @@ const pages = {
   results: new ResultsPage(),
   server: new ServerPage(),
   operator: new OperatorPage(),
+  history: new HistoryPage(),
 };
 const DEFAULT_PAGE = "cameras";
 

@@ -98,8 +98,8 @@ export const api = {
     });
     return response.json();
   },
-  save: (name, options) =>
-    postJson(`/api/inspections/${encodeURIComponent(name)}/save`, { options }),
+  save: (name, options, why) =>
+    postJson(`/api/inspections/${encodeURIComponent(name)}/save`, { options, why }),
   results: (params) => getJson(`/api/results${query(params)}`),
   result: (id) => getJson(`/api/results/${encodeURIComponent(id)}`),
   resultImageUrl: (id, overlay = true) =>

@@ -7,6 +7,7 @@ import { api, ApiError } from "./api.js";
 import { histogramChart } from "./charts.js";
 import { byId, debounce, el, fillKeyValues, formatNumber, replaceChildren } from "./dom.js";
 import { RoiEditor } from "./roi.js";
+import { askWhy } from "./why.js";
 import { scalar, toYaml } from "./yaml.js";
 
 const RERUN_DELAY_MS = 250;
@@ -313,15 +314,18 @@ export class InspectionsPage {
     const ok = byId("save-ok"), error = byId("save-error");
     ok.textContent = "";
     error.hidden = true;
+    // The history keeps why with every save: no reason, no save (js/why.js).
+    const why = await askWhy({ title: `Why change ${name}?`, action: "Save" });
+    if (why === null) return;
     byId("save-config").disabled = true;
     try {
-      const saved = await api.save(name, { ...this.changes });
+      const saved = await api.save(name, { ...this.changes }, why);
       // The reload applies the whole file: say what else it changed (hand edits made since
       // the last reload go live with this save) and the reload's own notes.
       const also = saved.also_changed ?? [];
       const notes = saved.notes ?? [];
       ok.textContent = `Saved and reloaded: configuration ${String(saved.config_hash).slice(0, 12)}; ` +
-        `the previous file is kept as ${saved.backup}.` +
+        `version ${saved.version} in the History.` +
         (also.length ? ` The reload also applied edits made outside the console to: ${also.join(", ")}.` : "") +
         (notes.length ? ` Reload: ${notes.join("; ")}.` : "");
       this.changes = {};

@@ -1,0 +1,323 @@
+"""The console's history API: the configuration file's versions, their diffs, and a revert
+(docs/console.md, "History"). Routes added to the console's application behind its sign-in
+like every ``/api/*`` path; viewing is the operator's, a revert the integrator's
+(``required_role`` in :mod:`.http`).
+
+- ``GET /api/history?before=V&limit=N``: versions newest first, a page at a time.
+- ``GET /api/history/{version}``: one version's metadata, its text and a unified diff from the
+  previous kept version.
+- ``POST /api/history/{version}/revert`` with ``{"why": "..."}``: write that version's text as
+  a new version, validated as a save is (:func:`.http_save.validate`), and reload the server;
+  a reload that fails puts the old text back.
+
+The versions themselves are kept by :mod:`vision_server.config.history`; every write of the
+file goes through :func:`.http_save.write_with_backup`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import hmac
+import json
+import secrets
+from collections.abc import Awaitable, Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from protocol import CellvisionError
+
+from ..config import ConfigError, history, redact_secrets
+from ..service import InspectionService
+from . import http_save
+
+MAX_BODY = 4096
+"""The largest revert body (a reason, not an upload), bytes."""
+MAX_LIMIT = 200
+"""The most versions one page of ``GET /api/history`` lists."""
+DEFAULT_LIMIT = 50
+
+Who = Callable[[web.Request], str]
+RouteHandler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+
+class Refused(Exception):
+    """An answer other than 200: HTTP status, error code and message (docs/console.md,
+    "Errors")."""
+
+    def __init__(self, status: int, code: str, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+        self.code = code
+        self.message = message
+
+
+def why_of(body: Mapping[str, Any]) -> str:
+    """The ``why`` of a save's or a revert's body: a string of at most
+    :data:`~vision_server.config.history.MAX_WHY` characters, stripped (absent: empty).
+    Raises :class:`Refused` (400)."""
+    why = body.get("why", "")
+    if why is None:
+        return ""
+    if not isinstance(why, str):
+        raise Refused(400, "BAD_REQUEST", "why must be a string (the reason for the change)")
+    why = why.strip()
+    if len(why) > history.MAX_WHY:
+        raise Refused(
+            400,
+            "BAD_REQUEST",
+            f"why has {len(why)} characters, at most {history.MAX_WHY} are kept: shorten it",
+        )
+    return why
+
+
+def _answers(handler: RouteHandler) -> RouteHandler:
+    """``handler`` with :class:`Refused` and the history's file errors as JSON errors."""
+
+    async def wrapped(request: web.Request) -> web.StreamResponse:
+        try:
+            return await handler(request)
+        except history.UnknownVersion as exc:
+            return _error(404, "NOT_FOUND", str(exc))
+        except Refused as exc:
+            return _error(exc.status, exc.code, exc.message)
+        except OSError as exc:  # the file, the history's folder or a version cannot be read
+            return _error(
+                500, "HISTORY_UNAVAILABLE", f"the configuration's history cannot be read: {exc}"
+            )
+
+    return wrapped
+
+
+def _error(status: int, code: str, message: str) -> web.Response:
+    return web.json_response({"error": {"code": code, "message": message}}, status=status)
+
+
+class HistoryRoutes:
+    """The history API of the configuration file ``config_path`` (None: the server runs
+    without one) served by ``service``. ``lock`` is the console's save lock (a revert and a
+    save never interleave); ``who(request)`` names the person; ``allow_save``: whether the
+    console may write the file (``server.allow_reload``)."""
+
+    def __init__(
+        self,
+        config_path: Path | None,
+        service: InspectionService,
+        *,
+        lock: asyncio.Lock,
+        who: Who,
+        allow_save: bool,
+    ) -> None:
+        self.config_path = config_path
+        self.service = service
+        self.lock = lock
+        self.who = who
+        self.allow_save = allow_save
+        # The texts shown hide their secrets (tokens, passwords, PINs): an operator must not
+        # read the admin's token in a diff. A changed secret still shows as a changed line,
+        # by a fingerprint keyed with this secret, made at start and never shown.
+        self._fingerprint_key = secrets.token_bytes(32)
+
+    def shown(self, text: str) -> str:
+        """``text`` as the API shows it: its secrets hidden (:func:`redact_secrets`)."""
+        return redact_secrets(text, self._fingerprint)
+
+    def _fingerprint(self, value: str) -> str:
+        digest = hmac.new(self._fingerprint_key, value.encode("utf-8"), hashlib.sha256)
+        return digest.hexdigest()[:8]
+
+    def add_to(self, router: web.UrlDispatcher) -> None:
+        router.add_get("/api/history", _answers(self.list_))
+        router.add_get(r"/api/history/{version:\d{1,9}}", _answers(self.version))
+        router.add_post(r"/api/history/{version:\d{1,9}}/revert", _answers(self.revert))
+
+    def _history(self) -> history.History:
+        if self.config_path is None:
+            raise Refused(404, "NOT_FOUND", "this server runs without a configuration file")
+        return history.history_of(self.config_path)
+
+    async def list_(self, request: web.Request) -> web.Response:
+        versions = self._history()
+        before = _int_query(request, "before", None, 1, None)
+        limit = _int_query(request, "limit", DEFAULT_LIMIT, 1, MAX_LIMIT)
+        page = await asyncio.to_thread(versions.versions, before=before, limit=limit + 1)
+        more = len(page) > limit
+        page = page[:limit]
+        current = await asyncio.to_thread(_current_hash, versions.config)
+        newest = page[0].number if page and before is None else None
+        return web.json_response(
+            {
+                "versions": [v.json() for v in page],
+                "next_before": page[-1].number if more and page else None,
+                # Whether the file still holds the newest version's text (no edit outside the
+                # console since): the next save records the file's text first otherwise.
+                "file_config_hash": current,
+                "served_config_hash": self.service.catalog.config_hash,
+                "newest": newest,
+                "limits": {
+                    "max_versions": versions.bounds.max_versions,
+                    "max_bytes": versions.bounds.max_bytes,
+                },
+            },
+            headers={"Cache-Control": "no-store"},
+        )
+
+    async def version(self, request: web.Request) -> web.Response:
+        versions = self._history()
+        number = int(request.match_info["version"])
+
+        def read() -> dict[str, Any]:
+            meta = versions.get(number)
+            text = versions.text(number)
+            return {
+                **meta.json(),
+                "previous": versions.previous(number),
+                "text": self.shown(text.decode("utf-8", "replace")),
+                "diff": versions.diff(number, self.shown),
+                "is_file": text == _read_or_none(versions.config),
+            }
+
+        body = await asyncio.to_thread(read)
+        return web.json_response(body, headers={"Cache-Control": "no-store"})
+
+    async def revert(self, request: web.Request) -> web.Response:
+        versions = self._history()
+        number = int(request.match_info["version"])
+        raw = await _body(request)
+        try:
+            body = json.loads(raw or b"{}")
+        except (ValueError, RecursionError) as exc:
+            raise Refused(400, "BAD_REQUEST", f"the body is not JSON: {exc}") from None
+        if not isinstance(body, dict):
+            raise Refused(400, "BAD_REQUEST", 'the body must be a JSON object {"why": "..."}')
+        why = why_of(body)
+        if not self.allow_save:
+            raise Refused(
+                403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false): no revert"
+            )
+        path = versions.config
+        who = self.who(request)
+        async with self.lock:
+            target = await asyncio.to_thread(versions.text, number)
+            old = await asyncio.to_thread(path.read_bytes)
+            if old == target:
+                return web.json_response(
+                    {
+                        "changed": False,
+                        "message": f"the configuration file already holds version {number}'s "
+                        "text: nothing was written",
+                        "version": None,
+                        "reverted_to": number,
+                        "config_hash": self.service.catalog.config_hash,
+                        "notes": [],
+                    }
+                )
+            opened = http_save.opened_cameras(self.service.catalog)
+            saved = await asyncio.to_thread(
+                _write_revert, path, number, target, old, opened, who, why
+            )
+            try:
+                catalog = await self.service.reload()
+            except CellvisionError as exc:
+                # The text validated but the server could not take it (a camera that does
+                # not open): the file and the server must agree, so the old text goes back.
+                await asyncio.to_thread(http_save.undo, saved)
+                raise Refused(
+                    422,
+                    "CONFIG_REFUSED",
+                    f"version {number} was written but the server could not load it, so the "
+                    f"file was put back: {exc.message}",
+                ) from None
+        return web.json_response(
+            {
+                "changed": True,
+                "version": saved.version.number,
+                "reverted_to": number,
+                "config_hash": catalog.config_hash,
+                "notes": list(catalog.notes),
+            }
+        )
+
+
+def _write_revert(
+    path: Path,
+    number: int,
+    target: bytes,
+    old: bytes,
+    opened: Mapping[str, http_save.OpenedCamera],
+    who: str,
+    why: str,
+) -> http_save.Saved:
+    """Validate version ``number``'s text as a save's and write it (in a thread)."""
+    try:
+        text = target.decode("utf-8")
+    except UnicodeError:
+        raise Refused(
+            422, "CONFIG_REFUSED", f"version {number} is not UTF-8 text: it cannot be loaded"
+        ) from None
+    # As a save: the whole file by the loader, and each inspection the revert changes by the
+    # rules a try applies (its ROI within the image each running camera declares).
+    changed, _ = history.changed_between(old, target)
+    try:
+        config = http_save.validate(text, path, opened=opened)
+        present = {i.name for i in config.inspections}
+        for name in changed:
+            if name in present:
+                http_save.validate(text, path, inspection=name, opened=opened)
+    except ConfigError as exc:
+        raise Refused(
+            422, "CONFIG_REFUSED", f"version {number} cannot be loaded as it is now: {exc}"
+        ) from None
+    try:
+        version = http_save.write_with_backup(
+            path, text, old=old, who=who, why=why, kind=history.REVERT, reverted_to=number
+        )
+    except OSError as exc:
+        raise Refused(500, "CONFIG_REFUSED", f"cannot write {path.name}: {exc}") from None
+    return http_save.Saved(path, old, version)
+
+
+async def _body(request: web.Request) -> bytes:
+    """The body, at most :data:`MAX_BODY` bytes (413 beyond, read no further)."""
+    declared = request.content_length
+    if declared is not None and declared > MAX_BODY:
+        raise Refused(413, "TOO_LARGE", f"the body has {declared} bytes, limit {MAX_BODY}")
+    raw = b""
+    while len(raw) <= MAX_BODY:
+        more = await request.content.read(MAX_BODY + 1 - len(raw))
+        if not more:
+            return raw
+        raw += more
+    raise Refused(413, "TOO_LARGE", f"the body has more than {MAX_BODY} bytes")
+
+
+def _read_or_none(path: Path) -> bytes | None:
+    try:
+        return path.read_bytes()
+    except OSError:
+        return None
+
+
+def _current_hash(path: Path) -> str | None:
+    data = _read_or_none(path)
+    return None if data is None else history.config_hash(data)
+
+
+def _int_query(
+    request: web.Request, key: str, default: int | None, low: int, high: int | None
+) -> Any:
+    raw = request.query.get(key)
+    if raw is None or raw == "":
+        return default
+    try:
+        value = int(raw)
+    except ValueError:
+        raise Refused(400, "BAD_REQUEST", f"{key} must be an integer, got {raw[:40]!r}") from None
+    if value < low or (high is not None and value > high):
+        raise Refused(400, "BAD_REQUEST", f"{key} must be in {low}..{high or 'any'}")
+    return value
+
+
+__all__ = ["HistoryRoutes", "Refused", "why_of"]
