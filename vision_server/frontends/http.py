@@ -56,6 +56,7 @@ from ..service import (
 from . import http_save
 from .http_auth import COOKIE, RANK, Role, Sessions
 from .http_door import cross_site_reason, host_allowed
+from .http_impact import IMPACT_PATH, ImpactRoutes
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
 from .http_operator import OperatorRoutes
@@ -265,6 +266,7 @@ class HttpFrontend:
         routes.add_get("/api/stats", self.stats)
         routes.add_get("/metrics", self.metrics_text)
         OperatorRoutes(self.operator_desk).add_to(routes)
+        ImpactRoutes(self.service, self.settings, self._written).add_to(routes)
         return app
 
     # ------------------------------------------------------------------ middlewares
@@ -888,7 +890,9 @@ class HttpFrontend:
 # ----------------------------------------------------------------------------- helpers
 
 
-INTEGRATOR_ROUTES = frozenset({"/api/inspections/{name}/try", "/api/inspections/{name}/save"})
+INTEGRATOR_ROUTES = frozenset(
+    {"/api/inspections/{name}/try", "/api/inspections/{name}/save", IMPACT_PATH}
+)
 """What changes an inspection or runs one with other options: the integrator's and the
 admin's, not the operator's (who views, and answers operator calls)."""
 

@@ -48,7 +48,7 @@ from protocol import (
 
 from ..cameras import Camera, CameraFrame
 from ..config import ServiceSettings
-from ..inspections import InspectionInput, InspectionOutcome
+from ..inspections import Inspection, InspectionInput, InspectionOutcome
 from ..results import ResultEntry, ResultStore
 from .admission import TRY_BUDGET_SHARE, Admission, ByteBudget, Slot, Waiter, WorkPool, try_key
 from .catalog import Catalog
@@ -132,6 +132,14 @@ class InspectRequest:
     request_class: RequestClass = "production"
     """``try``: a console try, with its own lane, cost estimates and share of the byte budget
     (:data:`~.admission.TRY_PREFIX`); production keeps its threads, slots and a reserve."""
+    prepared: Inspection | None = None
+    """The inspection to run, built and validated by the caller from the catalog's (an impact
+    preview builds its changed inspection once for all its images); None: the catalog's
+    inspection named ``inspection``, tuned with ``options``."""
+    record: bool = True
+    """False: the result log gets no row for this run. An impact preview replays images the
+    log already holds, up to 1000 at a time: a row each would flood the log with copies of
+    parts that were never made (and count them in nobody's figures anyway)."""
 
 
 @dataclass(frozen=True)
@@ -489,6 +497,8 @@ class InspectionService:
         # From here on the request has an inspection and a camera to log an error row under
         # (SPEC §6.3): an unknown inspection or camera has none.
         rows = _RowOnce()
+        if not request.record:
+            rows.claim()  # claimed for nobody: neither the run nor an error writes a row
         try:
             return await self._inspect_known(request, catalog, admission, rows)
         except (Busy, ShuttingDown):
@@ -528,7 +538,9 @@ class InspectionService:
     async def _inspect_known(
         self, request: InspectRequest, catalog: Catalog, admission: Admission, rows: _RowOnce
     ) -> InspectReply:
-        inspection = catalog.tuned(catalog.inspection(request.inspection), request.options)
+        inspection = request.prepared or catalog.tuned(
+            catalog.inspection(request.inspection), request.options
+        )
         camera = catalog.camera(inspection.camera)
         declared = camera.intrinsics
         needs = ImageNeeds(
@@ -594,7 +606,8 @@ class InspectionService:
             # images: a colour copy of 16 MP is 48 MB more per worker, for a picture the
             # console shows at screen size; their rows keep the input only.
             draw = request.overlay is not None or (
-                self.results is not None
+                request.record
+                and self.results is not None
                 and self.results.keeps_images
                 and image.color.shape[0] * image.color.shape[1] <= STORED_OVERLAY_MAX_PIXELS
             )
