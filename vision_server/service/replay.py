@@ -161,9 +161,8 @@ def changed_inspection(catalog: Catalog, name: str, change: Change) -> Inspectio
         )
     except ConfigError as exc:
         where = exc.path or "config"
-        raise ChangeRefused(
-            "CONFIG_INVALID", f"{where}: {exc.reason}", where.removeprefix("config -> ")
-        ) from None
+        key = where.removeprefix("config -> ") if where.startswith("config -> ") else ""
+        raise ChangeRefused("CONFIG_INVALID", f"{where}: {exc.reason}", key) from None
 
 
 # ----------------------------------------------------------------------------- the report
