@@ -96,6 +96,8 @@ MAX_FAILURES = 20
 THUMBNAIL_SIDE_PX = 320
 """The longer side of an overlay thumbnail, pixels."""
 THUMBNAIL_JPEG_QUALITY = 80
+THUMBNAIL_MARGIN_PX = 48
+"""The least margin around an inspection's ROI in a thumbnail, pixels."""
 IMPACT_PEER = TRY_PEER_PREFIX + "impact"
 """The peer of every replayed run: a console try's prefix, so that no observer of results (the
 Prometheus counters, the running counts) takes a replay for a production result."""
@@ -361,7 +363,7 @@ async def replay(
         if overlay is not None and sum(f.overlay is not None for f in report.flipped) < (
             MAX_OVERLAYS
         ):
-            thumbnail = await asyncio.to_thread(_thumbnail, overlay)
+            thumbnail = await asyncio.to_thread(_thumbnail, overlay, _roi_of(inspection))
         report.flipped.append(
             Flip(
                 row.id,
@@ -424,9 +426,28 @@ def _failed(report: ImpactReport, row: StoredResult, exc: CellvisionError) -> No
         report.errors.append(ReplayFailure(row.id, exc.code.name, exc.message))
 
 
-def _thumbnail(image: Any) -> str | None:
+def _roi_of(inspection: Inspection) -> tuple[int, int, int, int] | None:
+    """The inspection's ROI ``(u, v, width, height)`` in pixels, None when it has none."""
+    roi = getattr(getattr(inspection, "common", None), "roi", None)
+    if isinstance(roi, tuple) and len(roi) == 4 and all(isinstance(v, int) for v in roi):
+        return roi
+    return None
+
+
+def _thumbnail(image: Any, roi: tuple[int, int, int, int] | None) -> str | None:
     """A ``data:image/jpeg`` URL of ``image`` scaled so that its longer side is at most
-    :data:`THUMBNAIL_SIDE_PX` (never enlarged); None when it cannot be encoded."""
+    :data:`THUMBNAIL_SIDE_PX` (never enlarged); None when it cannot be encoded. With a
+    ``roi`` (pixels) the thumbnail shows the ROI and as much again around it (at least
+    :data:`THUMBNAIL_MARGIN_PX`), where the change shows, not a whole frame shrunk."""
+    if roi is not None:
+        u, v, w, h = roi
+        margin_u = max(w, THUMBNAIL_MARGIN_PX)
+        margin_v = max(h, THUMBNAIL_MARGIN_PX)
+        rows, cols = image.shape[:2]
+        top, bottom = max(v - margin_v, 0), min(v + h + margin_v, rows)
+        left, right = max(u - margin_u, 0), min(u + w + margin_u, cols)
+        if bottom > top and right > left:
+            image = image[top:bottom, left:right]
     height, width = image.shape[:2]
     scale = min(1.0, THUMBNAIL_SIDE_PX / max(width, height, 1))
     if scale < 1.0:

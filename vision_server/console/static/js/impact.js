@@ -138,7 +138,7 @@ function notesFor(report, empty) {
   if (empty) notes.push("There is no pending change: every flip is a stored verdict the inspection as configured no longer reproduces.");
   if (report.with_image === 0) {
     notes.push("None of the results looked at has a stored image, so nothing was replayed.");
-  } else if (report.with_image < report.last && !report.rows_limited) {
+  } else if (report.with_image < report.considered && report.with_image < report.last) {
     notes.push(`Only ${report.with_image} of the ${report.considered} results looked at have a stored image.`);
   }
   if (report.with_image < report.last && report.store_images && report.store_images !== "all") {
@@ -186,7 +186,8 @@ async function openResult(flip) {
   if (flip.overlay) newImage.src = flip.overlay;
   else newImage.removeAttribute("src");
   newImage.hidden = !flip.overlay;
-  byId("impact-viewer-new-caption").textContent = flip.overlay ? `with the change: ${flip.new}` : "with the change: no thumbnail (past the first 24 flips)";
+  byId("impact-viewer-new-caption").textContent = flip.overlay
+    ? `with the change: ${flip.new} (around the ROI)` : "with the change: no thumbnail (past the first 24 flips)";
   byId("impact-viewer-image").href = api.resultImageUrl(flip.result_id, false);
   const stored = byId("impact-viewer-stored");
   let row;
