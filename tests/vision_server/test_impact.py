@@ -14,6 +14,8 @@ import asyncio
 import contextlib
 import io
 import json
+import socket
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -33,6 +35,7 @@ from impact_log import (
 
 from vision_server.commands import main
 from vision_server.service import Change, ChangeRefused, changed_inspection, replay
+from vision_server.service.replay import IMPACT_PEER
 
 NEW_THRESHOLD = 120
 NEW_MIN = 0.45
@@ -341,3 +344,151 @@ def test_the_preview_needs_the_integrators_role_and_the_consoles_header(tmp_path
         assert answer["with_image"] == 0
         assert answer["flipped"] == []
         assert answer["store_images"] == "failures"
+
+
+# ----------------------------------------------------------------------------- bounds
+
+
+def test_a_passed_deadline_stops_the_run_and_says_so(
+    filled: tuple[RunningConsole, list[Row]],
+) -> None:
+    server, _ = filled
+    service = server.app.service
+    assert service.results is not None
+    inspection = service.catalog.inspection("magnet_check")
+
+    async def run() -> Any:
+        return await replay(
+            service,
+            service.results,
+            inspection,
+            last=10,
+            current_config_hash="",
+            deadline=time.monotonic() - 1,
+        )
+
+    report = asyncio.run_coroutine_threadsafe(run(), server.loop).result(60)
+    assert not report.complete
+    assert report.stopped_by == "deadline"
+    assert report.with_image == 0
+    assert report.flipped == []
+
+
+def test_a_cancelled_run_stops_and_frees_the_try_lane(
+    filled: tuple[RunningConsole, list[Row]],
+) -> None:
+    server, rows = filled
+    service = server.app.service
+    assert service.results is not None
+    inspection = service.catalog.inspection("magnet_check")
+    seen: list[int] = []
+
+    async def start() -> asyncio.Task[Any]:
+        # Cancelled as soon as its first image has been run, as a browser that goes away.
+        def observe(record: Any) -> None:
+            if record.request.peer == IMPACT_PEER:
+                seen.append(record.request.request_id)
+                if len(seen) == 1:
+                    task.cancel()
+
+        unsubscribe = service.subscribe(observe)
+        task = asyncio.create_task(
+            replay(
+                service,
+                service.results,
+                inspection,
+                last=100,
+                current_config_hash="",
+                deadline=time.monotonic() + 60,
+            )
+        )
+        task.add_done_callback(lambda _: unsubscribe())
+        return task
+
+    task = asyncio.run_coroutine_threadsafe(start(), server.loop).result(10)
+
+    async def outcome() -> str:
+        try:
+            await task
+        except asyncio.CancelledError:
+            return "cancelled"
+        return "finished"
+
+    assert asyncio.run_coroutine_threadsafe(outcome(), server.loop).result(60) == "cancelled"
+    assert len(seen) < len(rows)
+    assert service.pool.tries.admitted == 0
+
+
+def test_a_browser_that_goes_away_stops_the_preview(
+    filled: tuple[RunningConsole, list[Row]],
+) -> None:
+    server, rows = filled
+    service = server.app.service
+    seen: list[int] = []
+    cut = threading.Event()
+
+    def observe(record: Any) -> None:
+        if record.request.peer == IMPACT_PEER:
+            seen.append(record.request.request_id)
+            if len(seen) == 1:
+                cut.set()
+
+    unsubscribe = server.call(lambda: service.subscribe(observe))
+    try:
+        client = signed_in(server)
+        cookie = "; ".join(f"{c.name}={c.value}" for c in client.jar)
+        body = json.dumps({"options": {"threshold": 120}, "last": 100}).encode()
+        host, port = server.app.http.address if server.app.http else ("", 0)
+        with socket.create_connection((host, port)) as raw:
+            raw.sendall(
+                (
+                    f"POST /api/inspections/magnet_check/impact HTTP/1.1\r\nHost: {host}:{port}\r\n"
+                    f"Content-Type: application/json\r\nCookie: {cookie}\r\n"
+                    f"Content-Length: {len(body)}\r\n\r\n"
+                ).encode()
+                + body
+            )
+            assert cut.wait(60), "the preview never ran an image"
+        # The connection is closed after its first image: the run stops, the lane is freed.
+        deadline = time.monotonic() + 60
+        while service.pool.tries.admitted and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stopped_at = len(seen)
+        time.sleep(0.5)
+        assert len(seen) == stopped_at
+        assert stopped_at < len(rows)
+    finally:
+        server.call(unsubscribe)
+
+
+def test_an_image_that_cannot_be_read_is_listed_and_the_rest_replayed(
+    filled: tuple[RunningConsole, list[Row]], tmp_path: Path
+) -> None:
+    server, rows = filled
+    log = server.app.service.results
+    assert log is not None
+    broken = log.get(rows[-1].result_id)
+    assert broken is not None
+    assert broken.image_path is not None
+    kept = broken.image_path.read_bytes()
+    broken.image_path.write_bytes(b"not a png")
+    try:
+        answer = (
+            signed_in(server)
+            .post_json(
+                "/api/inspections/magnet_check/impact",
+                {"options": {"threshold": NEW_THRESHOLD, "min": NEW_MIN}, "last": 100},
+            )
+            .json()
+        )
+        assert answer["failed"] == 1
+        assert answer["errors"][0]["result_id"] == broken.id
+        assert answer["errors"][0]["code"] == "BAD_IMAGE"
+        assert answer["with_image"] == len(rows)
+        assert flips_of(answer) == expected_flips(rows[:-1], NEW_THRESHOLD, NEW_MIN)
+        changed = changed_config(server, tmp_path, NEW_THRESHOLD, NEW_MIN)
+        code, out = run_cli("magnet_check", "--config", str(changed), "--json")
+        assert code == 4
+        assert json.loads(out)["errors"] == answer["errors"]
+    finally:
+        broken.image_path.write_bytes(kept)

@@ -166,6 +166,17 @@ def test_a_threshold_change_flips_on_the_page_what_the_replay_predicts(
         assert f"#{result_id}" in title
         assert "stored PASS" in title
         assert "FAIL" in title
+        # The editor may give the whole edited mapping instead of options: sent as config.
+        bodies = driver.execute_async_script(
+            "const done = arguments[0];"
+            "import('/static/js/impact.js').then((m) => done(["
+            "  m.impactBody({name: 'magnet_check', config: {name: 'magnet_check', min: 0.3}}, 7),"
+            "  m.impactBody({name: 'magnet_check', options: {threshold: 120}}, 8)]));"
+        )
+        assert bodies == [
+            {"config": {"name": "magnet_check", "min": 0.3}, "last": 7},
+            {"options": {"threshold": 120}, "last": 8},
+        ]
         if shots:
             driver.execute_script(
                 "document.getElementById('impact-panel').scrollIntoView({block: 'start'});"
