@@ -8,7 +8,6 @@ import { histogramChart } from "./charts.js";
 import { byId, debounce, el, fillKeyValues, formatNumber, replaceChildren } from "./dom.js";
 import { RoiEditor } from "./roi.js";
 import { scalar, toYaml } from "./yaml.js";
-import "./impact.js"; // mounts the Impact panel (js/impact.js), which asks pendingChange()
 
 const RERUN_DELAY_MS = 250;
 
