@@ -72,7 +72,9 @@ async function preview() {
       byId("impact-status").textContent = "Preview cancelled.";
     } else if (!(exc instanceof ApiError && exc.status === 401)) {
       byId("impact-status").textContent = "";
-      byId("impact-error").textContent = `${exc.code ?? "ERROR"}: ${exc.message}`;
+      byId("impact-error").textContent = exc.code === "UNKNOWN_INSPECTION"
+        ? `${change.name} is not in the running configuration yet: it has no stored results to replay.`
+        : `${exc.code ?? "ERROR"}: ${exc.message}`;
     }
   } finally {
     if (running?.controller === controller) {
