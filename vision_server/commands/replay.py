@@ -37,6 +37,7 @@ from rich.text import Text
 
 from protocol.cli import CONFIG_ENV, ErrorKind, ExitCode, json_error
 
+from ..cameras import CameraSettings, Intrinsics, SimCameraSettings, make_camera
 from ..config import ConfigError, load_config
 from ..process import decoder_limits
 from ..results import ResultLogError, ResultStore, is_database_url, open_readonly
@@ -161,12 +162,14 @@ def _replay(args: argparse.Namespace) -> ImpactReport:
     try:
         with open_readonly(target) as log:
             current = running or _newest_hash(log, inspection.name)
+            settings = config.cameras[inspection.camera]
             service = offline_service(
                 inspection,
-                config.cameras[inspection.camera],
+                settings,
                 config.base_dir,
                 config_hash=config.config_hash,
                 max_image_pixels=limit,
+                intrinsics=_served_intrinsics(inspection.camera, settings, config.base_dir),
             )
             try:
                 report = asyncio.run(
@@ -192,6 +195,20 @@ def _replay(args: argparse.Namespace) -> ImpactReport:
             "results: store_images says (the default, failures, keeps failed parts' only)",
         )
     return report
+
+
+def _served_intrinsics(name: str, settings: CameraSettings, base_dir: Path) -> Intrinsics | None:
+    """The intrinsics the server's camera ``name`` has: the configured ones, else a simulated
+    camera's, from its scene (the served camera has them, checks each image's size against
+    them and hands them to the inspection: so must the replay, to give the console's verdicts)."""
+    configured: Intrinsics | None = getattr(settings, "intrinsics", None)
+    if configured is not None or not isinstance(settings, SimCameraSettings):
+        return configured
+    camera = make_camera(name, settings, base_dir=base_dir)
+    try:
+        return camera.intrinsics
+    finally:
+        camera.close()
 
 
 def _newest_hash(log: ResultStore, inspection: str) -> str:
