@@ -410,6 +410,7 @@ async def _run_one(
                 peer=IMPACT_PEER,
                 request_id=row.id,
                 request_class="try",
+                # No row: the log holds this part already (see InspectRequest.record).
                 record=False,
             ),
             admission=admission,
