@@ -139,7 +139,8 @@ class InspectRequest:
     record: bool = True
     """False: the result log gets no row for this run. An impact preview replays images the
     log already holds, up to 1000 at a time: a row each would flood the log with copies of
-    parts that were never made (and count them in nobody's figures anyway)."""
+    results it has (and push real ones out of its image budget), for runs of a configuration
+    nobody saved."""
 
 
 @dataclass(frozen=True)
@@ -538,9 +539,9 @@ class InspectionService:
     async def _inspect_known(
         self, request: InspectRequest, catalog: Catalog, admission: Admission, rows: _RowOnce
     ) -> InspectReply:
-        inspection = request.prepared or catalog.tuned(
-            catalog.inspection(request.inspection), request.options
-        )
+        inspection = request.prepared
+        if inspection is None:
+            inspection = catalog.tuned(catalog.inspection(request.inspection), request.options)
         camera = catalog.camera(inspection.camera)
         declared = camera.intrinsics
         needs = ImageNeeds(
