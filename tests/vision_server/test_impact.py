@@ -290,6 +290,11 @@ def test_the_api_refuses_bad_requests_naming_the_cause(
     config.update(measure="dark_fraction", roi=[486, 236, 50, 60], threshold=90, min="x")
     error = refused({"config": config}, 400, "CONFIG_INVALID")
     assert error["key"] == "min", error
+    # Past the image the running (simulated) camera declares, 1024x768: refused as a save is.
+    config.update(min=0.25, roi=[1000, 700, 100, 100])
+    error = refused({"config": config}, 400, "CONFIG_INVALID")
+    assert error["key"].startswith("roi"), error
+    assert "1024" in error["message"], error
     reply = client.request("POST", path, b"not json", {"Content-Type": "application/json"})
     assert reply.status == 400
     assert reply.json()["error"]["code"] == "BAD_REQUEST"

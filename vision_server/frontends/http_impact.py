@@ -21,7 +21,7 @@ from typing import Any
 
 from aiohttp import web
 
-from ..config import ConsoleSettings
+from ..config import ConsoleSettings, Tuner
 from ..service import (
     DEFAULT_LAST,
     MAX_LAST,
@@ -31,6 +31,7 @@ from ..service import (
     changed_inspection,
     replay,
 )
+from . import http_save
 
 IMPACT_PATH = "/api/inspections/{name}/impact"
 MAX_BODY_BYTES = 64 * 1024
@@ -74,7 +75,15 @@ class ImpactRoutes:
                 from .http import nested_options  # here: http imports this module
 
                 change = Change(options=nested_options(self.written(name), change.options))
-            inspection = changed_inspection(catalog, name, change)
+            # A whole config is read with the image size each running camera declares, as a
+            # save reads it (a simulated camera's size is known once it is open).
+            tuner = catalog.tune
+            cameras = None
+            if change.config is not None and isinstance(tuner, Tuner):
+                cameras = http_save.declared_cameras(
+                    tuner.cameras, http_save.opened_cameras(catalog)
+                )
+            inspection = changed_inspection(catalog, name, change, cameras=cameras)
         except ChangeRefused as exc:
             return _error(400, exc.code, exc.message, key=exc.key)
         if self.running >= MAX_RUNNING:

@@ -49,6 +49,7 @@ from protocol import (
 )
 from protocol.images import compressed_header
 
+from ..cameras import CameraSettings
 from ..config import ConfigError, Node, Tuner
 from ..inspections import Inspection, parse_inspection
 from ..results import TRY_PEER_PREFIX, ResultStore, StoredResult
@@ -123,14 +124,22 @@ class Change:
     config: Mapping[str, Any] | None = None
 
 
-def changed_inspection(catalog: Catalog, name: str, change: Change) -> Inspection:
+def changed_inspection(
+    catalog: Catalog,
+    name: str,
+    change: Change,
+    *,
+    cameras: Mapping[str, CameraSettings] | None = None,
+) -> Inspection:
     """Inspection ``name`` of ``catalog`` with ``change``, validated as a try validates it.
 
     Options go through :meth:`Catalog.tuned` (the try's own path: INVALID_ARGUMENT naming the
     option). A whole config is read by the configuration's own parser, with the file's folder
     and cameras (ChangeRefused CONFIG_INVALID with the key path); its ``name`` must be
     ``name`` and its ``camera`` the inspection's (the stored images are that camera's).
-    UNKNOWN_INSPECTION when ``name`` is not configured."""
+    ``cameras``: the camera settings to read a config with (default: the file's), e.g. with
+    the image size each running camera declares. UNKNOWN_INSPECTION when ``name`` is not
+    configured."""
     base = catalog.inspection(name)
     if (change.options is None) == (change.config is None):
         raise ChangeRefused("INVALID_ARGUMENT", "give the change as options or as config, one")
@@ -159,7 +168,7 @@ def changed_inspection(catalog: Catalog, name: str, change: Change) -> Inspectio
         return parse_inspection(
             Node(config, ("config",), "INSPECT", {}, {}),
             base_dir=tuner.base_dir,
-            cameras=tuner.cameras,
+            cameras=tuner.cameras if cameras is None else cameras,
         )
     except ConfigError as exc:
         where = exc.path or "config"
