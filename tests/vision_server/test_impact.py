@@ -15,6 +15,8 @@ import contextlib
 import io
 import json
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -497,3 +499,32 @@ def test_an_image_that_cannot_be_read_is_listed_and_the_rest_replayed(
         assert json.loads(out)["errors"] == answer["errors"]
     finally:
         broken.image_path.write_bytes(kept)
+
+
+def test_the_installed_command_runs_as_a_user_runs_it(
+    filled: tuple[RunningConsole, list[Row]], tmp_path: Path
+) -> None:
+    """``python -m vision_server replay`` in a process of its own (the program path: its
+    arguments, the decoder limits, stdout) gives the flips the design predicts."""
+    server, rows = filled
+    changed = changed_config(server, tmp_path, NEW_THRESHOLD, NEW_MIN)
+    done = subprocess.run(
+        [sys.executable, "-m", "vision_server", "replay", "magnet_check", "--config", str(changed)]
+        + ["--last", "1000", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 1, done.stderr
+    assert flips_of(json.loads(done.stdout)) == expected_flips(rows, NEW_THRESHOLD, NEW_MIN)
+    done = subprocess.run(
+        [sys.executable, "-m", "vision_server", "replay", "magnet_check", "--config", str(changed)]
+        + ["--last", "1001"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 2
+    assert "--last must be in 1..1000" in done.stderr
