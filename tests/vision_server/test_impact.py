@@ -20,6 +20,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +38,7 @@ from impact_log import (
 
 from vision_server.commands import main
 from vision_server.service import Change, ChangeRefused, changed_inspection, replay
+from vision_server.service.admission import try_key
 from vision_server.service.replay import IMPACT_PEER
 
 NEW_THRESHOLD = 120
@@ -528,3 +530,40 @@ def test_the_installed_command_runs_as_a_user_runs_it(
     )
     assert done.returncode == 2
     assert "--last must be in 1..1000" in done.stderr
+
+
+def test_previews_wait_for_the_try_lane_and_a_third_at_once_is_busy(
+    filled: tuple[RunningConsole, list[Row]],
+) -> None:
+    """With the try lane taken (a person's tries), two previews wait for it, a third is
+    refused BUSY at once; when the lane frees, both waiting previews finish whole."""
+    server, rows = filled
+    service = server.app.service
+    lane = service.pool.tries
+    held = server.call(
+        lambda: [service.pool.try_reserve(try_key("magnet_check")) for _ in range(lane.capacity)]
+    )
+    assert all(held)
+    body = {"options": {"threshold": NEW_THRESHOLD, "min": NEW_MIN}, "last": 100}
+    path = "/api/inspections/magnet_check/impact"
+    try:
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            waiting = [pool.submit(signed_in(server).post_json, path, body) for _ in range(2)]
+            deadline = time.monotonic() + 60
+            while len(lane.waiters) < 2 and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert len(lane.waiters) == 2
+            third = signed_in(server).post_json(path, body)
+            assert third.status == 503
+            assert third.json()["error"]["code"] == "BUSY"
+            assert third.headers["Retry-After"]
+            server.call(lambda: [service.pool.release(slot) for slot in held])
+            held = []
+            for future in waiting:
+                answer = future.result(120)
+                assert answer.status == 200, answer.body
+                result = answer.json()
+                assert result["complete"]
+                assert flips_of(result) == expected_flips(rows, NEW_THRESHOLD, NEW_MIN)
+    finally:
+        server.call(lambda: [service.pool.release(slot) for slot in held])

@@ -39,7 +39,6 @@ from typing import Any
 import cv2
 
 from protocol import (
-    Busy,
     CellvisionError,
     DeadlineExceeded,
     ImageEncoding,
@@ -53,7 +52,7 @@ from ..cameras import CameraSettings
 from ..config import ConfigError, Node, Tuner
 from ..inspections import Inspection, parse_inspection
 from ..results import TRY_PEER_PREFIX, ResultStore, StoredResult
-from .admission import try_key
+from .admission import Admission, Waiter, try_key
 from .catalog import Catalog
 from .core import (
     ImageLoader,
@@ -401,13 +400,7 @@ async def _run_one(
     the run's deadline: a preview is never the reason a person's try is refused BUSY, and never
     takes a production thread."""
     assert row.image_path is not None
-    while True:
-        try:
-            admission = await service.admit_when_free(try_key(inspection.name), deadline=deadline)
-            break
-        except Busy:
-            if time.monotonic() >= deadline:
-                raise DeadlineExceeded("the try lane stayed busy until the deadline") from None
+    admission = await _try_lane_slot(service, try_key(inspection.name), deadline)
     try:
         reply = await service.inspect(
             InspectRequest(
@@ -428,6 +421,22 @@ async def _run_one(
         admission.release()
     overlay = None if reply.overlay is None else reply.overlay.image
     return reply.passed, overlay
+
+
+async def _try_lane_slot(service: InspectionService, key: str, deadline: float) -> Admission:
+    """A place in the try lane for ``key``, waited for in the lane's queue (first come, first
+    served) until ``deadline``, then DEADLINE_EXCEEDED. Not :meth:`admit_when_free`: its BUSY
+    after ``admission_wait_s`` would count in the server's BUSY answers, which a preview
+    waiting behind a person's try is not."""
+    reserved = service.pool.reserve_or_wait(key)
+    if isinstance(reserved, Waiter):
+        slot = await reserved.wait(max(deadline - time.monotonic(), 0.0))
+        if slot is None:
+            raise DeadlineExceeded("the try lane stayed busy until the preview's deadline")
+        reserved = slot
+    admission = Admission(service.pool, service.budget)
+    admission.hold_slot(reserved)
+    return admission
 
 
 def _failed(report: ImpactReport, row: StoredResult, exc: CellvisionError) -> None:
