@@ -203,3 +203,26 @@ def test_few_stored_images_are_said_on_the_page(driver: WebDriver, tmp_path: Pat
         assert "store_images: failures" in note.text
         assert "None of the results looked at has a stored image" in note.text
         assert console_errors(driver) == []
+
+
+def test_an_operator_is_not_offered_the_preview(driver: WebDriver, tmp_path: Path) -> None:
+    """The preview runs inspections with other parameters: the integrator's (403 for an
+    operator), so the operator's page does not show it."""
+    from console_server import console_server
+
+    operator = "operator-token-0123456789"
+    with console_server(tmp_path, operator_token=operator) as server:
+        sign_in(driver, server, "inspections", token=operator)
+        wait_for(
+            driver,
+            lambda d: d.find_elements(By.CSS_SELECTOR, ".list-item[data-inspection=magnet_check]"),
+            "the inspection list",
+        )
+        driver.find_element(By.CSS_SELECTOR, ".list-item[data-inspection=magnet_check]").click()
+        wait_for(
+            driver,
+            lambda d: d.execute_script("return document.body.dataset.role") == "operator",
+            "the operator's role on the page",
+        )
+        assert not driver.find_element(By.ID, "impact-panel").is_displayed()
+        assert console_errors(driver) == []
