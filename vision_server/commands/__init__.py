@@ -5,6 +5,7 @@
 - :mod:`.results`: ``results``; :mod:`.modbus_map`: ``modbus-map``; :mod:`.sensor_check`:
   ``sensor-check``; :mod:`.record`: ``record`` (a camera's frames to a recording);
   :mod:`.golden`: ``test-inspections`` and the golden cases' runner;
+  :mod:`.replay`: ``replay`` (a changed configuration over the stored images);
   :mod:`.offline`: the service without a server, for ``run`` and the golden cases;
   :mod:`.admin`: the small blocking client behind ``ping`` and ``reload``.
 

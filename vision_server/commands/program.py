@@ -14,6 +14,7 @@ register map, and check or reload a running server.
     vision-server test-inspections --config cell.yaml --from-recording DIR --inspection NAME
                       --out CASE [--frame N ...]   # a golden case from a recording
     vision-server results --config cell.yaml --since 1h [--inspection NAME] [--json]
+    vision-server replay NAME --config changed.yaml [--last N] [--json]   # verdicts it flips
     vision-server record CAMERA --config cell.yaml --out DIR [--frames N] [--max-bytes SIZE]
                       [--duration S] [--interval S] [--format auto|cellvision|realsense]
     vision-server modbus-map cell.yaml [--json]   # the PLC's register map (protocol/MODBUS.md)
@@ -105,6 +106,7 @@ from ..results import is_database_url
 from ..service import Catalog, Images, InspectReply, InspectRequest, builtin_catalog
 from . import history as history_cli
 from . import record as record_cli
+from . import replay as replay_cli
 from . import sensor_check as sensor_check_cli
 from .admin import AdminError, call_endpoint, resolve
 from .offline import file_request, image_payload, offline_service
@@ -1049,6 +1051,7 @@ def build_parser() -> argparse.ArgumentParser:
     sensor_check_cli.add_parser(sub, [local])
     record_cli.add_parser(sub, [local])
     history_cli.add_parser(sub, [local])
+    replay_cli.add_parser(sub, [local])
 
     modbus_map = sub.add_parser(
         "modbus-map",

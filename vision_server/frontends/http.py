@@ -59,6 +59,7 @@ from .http_build import BUILD_INTEGRATOR_ROUTES, BuildRoutes, check_draft_name
 from .http_door import cross_site_reason, host_allowed
 from .http_export import ExportRoutes
 from .http_history import HistoryRoutes, Refused, why_of
+from .http_impact import IMPACT_PATH, ImpactRoutes
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
 from .http_operator import OperatorRoutes
@@ -283,6 +284,7 @@ class HttpFrontend:
             who=self.who,
             allow_save=self.settings.allow_save,
         ).add_to(routes)
+        ImpactRoutes(self.service, self.settings, self._written).add_to(routes)
         return app
 
     # ------------------------------------------------------------------ middlewares
@@ -639,7 +641,7 @@ class HttpFrontend:
                     deadline=arrived + self.settings.try_deadline_s,
                     peer=TRY_PEER_PREFIX + _peer(request),
                     request_class="try",
-                    draft=draft,
+                    prepared=draft,
                     config=None if draft is None else merged,
                 ),
                 admission=admission,
@@ -930,6 +932,7 @@ INTEGRATOR_ROUTES = (
             "/api/inspections/{name}/try",
             "/api/inspections/{name}/save",
             "/api/history/{version}/revert",
+            IMPACT_PATH,
         }
     )
     | BUILD_INTEGRATOR_ROUTES

@@ -13,6 +13,8 @@
   (per front-end and server-wide) and slows down failed sign-ins.
 - :mod:`.operator_desk`: robots' calls waiting for a person (SPEC §6.6).
 - :mod:`.builtin`: :func:`builtin_catalog`, what ``serve`` offers without a configuration.
+- :mod:`.replay`: impact before save: a pending change replayed over an inspection's stored
+  images (:func:`replay`), for the console's impact preview and ``vision-server replay``.
 
 It speaks arrays and plain records, never a front-end's wire types.
 """
@@ -39,9 +41,20 @@ from .core import (
 )
 from .door import FrontDoor, Pass, Refusal, peer_host, peer_name
 from .operator_desk import CallClosed, OperatorDesk, call_json, closed_json, desk_image
+from .replay import (
+    DEFAULT_LAST,
+    MAX_LAST,
+    Change,
+    ChangeRefused,
+    ImpactReport,
+    changed_inspection,
+    replay,
+)
 from .runtime import CellRuntime, check_result_log
 
 __all__ = [
+    "DEFAULT_LAST",
+    "MAX_LAST",
     "Admission",
     "CallClosed",
     "CaptureReply",
@@ -49,11 +62,14 @@ __all__ = [
     "Catalog",
     "CatalogReleased",
     "CellRuntime",
+    "Change",
+    "ChangeRefused",
     "FrameEncoding",
     "FrontDoor",
     "ImageLoader",
     "ImageNeeds",
     "Images",
+    "ImpactReport",
     "InspectReply",
     "InspectRequest",
     "InspectionRecord",
@@ -67,6 +83,7 @@ __all__ = [
     "builtin_catalog",
     "call_json",
     "capture_key",
+    "changed_inspection",
     "check_image_size",
     "check_images",
     "check_result_log",
@@ -75,4 +92,5 @@ __all__ = [
     "desk_image",
     "peer_host",
     "peer_name",
+    "replay",
 ]

@@ -132,12 +132,19 @@ class InspectRequest:
     request_class: RequestClass = "production"
     """``try``: a console try, with its own lane, cost estimates and share of the byte budget
     (:data:`~.admission.TRY_PREFIX`); production keeps its threads, slots and a reserve."""
-    draft: Inspection | None = None
-    """An inspection built from a whole mapping (a console try of an edited or a new
-    inspection, validated by the loader's rules: :func:`vision_server.config.parse_draft`),
-    run instead of the configured one; ``inspection`` is its name, which need not be
-    configured. Its ``config`` (the mapping) goes to the result log with the row."""
+    prepared: Inspection | None = None
+    """The inspection to run instead of the catalog's ``inspection`` tuned with ``options``,
+    built and validated by the caller: a console try of an edited or a new inspection (from
+    its whole mapping by the loader's rules, :func:`vision_server.config.parse_draft`; then
+    ``config`` holds that mapping and ``inspection``, its name, need not be configured), or an
+    impact preview's changed inspection, built once for all its images."""
     config: Mapping[str, Any] | None = None
+    """The whole mapping ``prepared`` was built from, for the result log's row (a try's)."""
+    record: bool = True
+    """False: the result log gets no row for this run. An impact preview replays images the
+    log already holds, up to 1000 at a time: a row each would flood the log with copies of
+    results it has (and push real ones out of its image budget), for runs of a configuration
+    nobody saved."""
 
 
 @dataclass(frozen=True)
@@ -227,9 +234,10 @@ class CaptureReply:
 
 
 def _inspection_of(request: InspectRequest, catalog: Catalog) -> Inspection:
-    """The inspection ``request`` runs: its draft, else the catalog's (UNKNOWN_INSPECTION)."""
-    if request.draft is not None:
-        return request.draft
+    """The inspection ``request`` runs: its prepared one, else the catalog's
+    (UNKNOWN_INSPECTION)."""
+    if request.prepared is not None:
+        return request.prepared
     return catalog.inspection(request.inspection)
 
 
@@ -387,9 +395,9 @@ class InspectionService:
     def request_key(request: InspectRequest) -> str:
         """The pool's and the cost model's key of ``request``: its inspection's name, a try's
         its own (:func:`~.admission.try_key`)."""
-        if request.draft is not None:
+        if request.prepared is not None and request.config is not None:
             # Drafts may have any name: their costs are learnt per type, a bounded set.
-            return try_key(f"draft {request.draft.type}")
+            return try_key(f"draft {request.prepared.type}")
         if request.request_class == "try":
             return try_key(request.inspection)
         return request.inspection
@@ -505,6 +513,8 @@ class InspectionService:
         # From here on the request has an inspection and a camera to log an error row under
         # (SPEC §6.3): an unknown inspection or camera has none.
         rows = _RowOnce()
+        if not request.record:
+            rows.claim()  # claimed for nobody: neither the run nor an error writes a row
         try:
             return await self._inspect_known(request, catalog, admission, rows)
         except (Busy, ShuttingDown):
@@ -545,11 +555,9 @@ class InspectionService:
     async def _inspect_known(
         self, request: InspectRequest, catalog: Catalog, admission: Admission, rows: _RowOnce
     ) -> InspectReply:
-        inspection = (
-            request.draft
-            if request.draft is not None
-            else catalog.tuned(catalog.inspection(request.inspection), request.options)
-        )
+        inspection = request.prepared
+        if inspection is None:
+            inspection = catalog.tuned(catalog.inspection(request.inspection), request.options)
         camera = catalog.camera(inspection.camera)
         declared = camera.intrinsics
         needs = ImageNeeds(
@@ -616,7 +624,8 @@ class InspectionService:
             # images: a colour copy of 16 MP is 48 MB more per worker, for a picture the
             # console shows at screen size; their rows keep the input only.
             draw = request.overlay is not None or (
-                self.results is not None
+                request.record
+                and self.results is not None
                 and self.results.keeps_images
                 and image.color.shape[0] * image.color.shape[1] <= STORED_OVERLAY_MAX_PIXELS
             )

@@ -16,8 +16,20 @@ function sameValue(a, b) {
   return JSON.stringify(a) === JSON.stringify(b);
 }
 
+let shownPage = null;
+
+/** The pending change of the inspection shown, for the Impact panel: {name, options} (the try
+ * panel's options: the keys that differ from the configuration as loaded), or null when no
+ * inspection is open. */
+export function pendingChange() {
+  const page = shownPage;
+  if (!page?.selected) return null;
+  return { name: page.selected.name, options: { ...page.changes } };
+}
+
 export class InspectionsPage {
   constructor() {
+    shownPage = this;
     this.inspections = [];
     this.selected = null;      // the inspection record from /api/inspections
     this.changes = {};         // key -> value that differs from selected (the try/save options)
