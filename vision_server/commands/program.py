@@ -102,6 +102,7 @@ from ..config import (
 from ..process import PROCESS_ENV, decoder_limits
 from ..results import is_database_url
 from ..service import Catalog, Images, InspectReply, InspectRequest, builtin_catalog
+from . import hash_secret as hash_secret_cli
 from . import record as record_cli
 from . import sensor_check as sensor_check_cli
 from .admin import AdminError, call_endpoint, resolve
@@ -1046,6 +1047,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sensor_check_cli.add_parser(sub, [local])
     record_cli.add_parser(sub, [local])
+    hash_secret_cli.add_parser(sub, [local])
 
     modbus_map = sub.add_parser(
         "modbus-map",

@@ -8,6 +8,7 @@
 - :mod:`.settings`: the records the service and each front-end run with.
 - :mod:`.listeners`: the addresses the front-ends listen on, and that no two share one.
 - :mod:`.changes`: what a reload changed, in words.
+- :mod:`.users`: named console users (``server: users:``), their PINs, badges and hashes.
 - :mod:`.exposure`: warnings for front-ends open beyond loopback without authentication.
 """
 
@@ -40,6 +41,7 @@ from .settings import (
     TcpSettings,
     welcome_limits,
 )
+from .users import MIN_BADGE_CHARS, MIN_PIN_CHARS, USER_ROLES, Secret, User, hash_secret
 
 __all__ = [
     "DEFAULT_CONSOLE_PORT",
@@ -54,6 +56,12 @@ __all__ = [
     "ConfigError",
     "ConsoleSettings",
     "LineSettings",
+    "MIN_BADGE_CHARS",
+    "MIN_PIN_CHARS",
+    "Secret",
+    "USER_ROLES",
+    "User",
+    "hash_secret",
     "ListenError",
     "Listener",
     "ModbusSettings",

@@ -59,6 +59,7 @@ from .http_door import cross_site_reason, host_allowed
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
 from .http_operator import OperatorRoutes
+from .http_users import SignIn, SignInError
 from .images import decode_payloads
 from .listener import Listener, Policy, quiet_logger
 from .uploads import upload_loader
@@ -161,8 +162,10 @@ class HttpFrontend:
                 "admin": settings.auth_token,
                 "operator": settings.operator_token,
                 "integrator": settings.integrator_token,
-            }
+            },
+            settings.users,
         )
+        self.sign_in = SignIn(self.sessions)
         self.started_at = time.time()
         self._runner: web.AppRunner | None = None
         self._listener: Listener | None = None
@@ -264,7 +267,7 @@ class HttpFrontend:
         routes.add_get(r"/api/results/{id:\d{1,18}}/image.png", self.result_image)
         routes.add_get("/api/stats", self.stats)
         routes.add_get("/metrics", self.metrics_text)
-        OperatorRoutes(self.operator_desk).add_to(routes)
+        OperatorRoutes(self.operator_desk, self.who, self.settings, self.service).add_to(routes)
         return app
 
     # ------------------------------------------------------------------ middlewares
@@ -356,6 +359,21 @@ class HttpFrontend:
                 return self.sessions.role_of(auth[7:].strip())
         return role
 
+    def _user(self, request: web.Request) -> str | None:
+        """The signed-in named user's name, else None."""
+        session = self.sessions.session(request.cookies.get(COOKIE))
+        return None if session is None else session.user
+
+    def who(self, request: web.Request) -> str:
+        """Who makes ``request``, for logs and records: the signed-in user's name, else the
+        role of the token the session was opened with, else "console" (no sign-in)."""
+        if not self.sessions.required:
+            return "console"
+        session = self.sessions.session(request.cookies.get(COOKIE))
+        if session is None:
+            return "console"
+        return session.user or session.role
+
     async def _refuse_token(self, request: web.Request, message: str) -> HttpError:
         """A wrong token, answered after the front door's delay for its host."""
         await asyncio.sleep(self.service.door.auth_failed(_peer(request)))
@@ -374,13 +392,21 @@ class HttpFrontend:
         response = web.json_response({"ok": True})
         if not self.sessions.required:
             return response
-        role = self.sessions.role_of(body.get("token"))
-        if role is None:
-            raise await self._refuse_token(request, "wrong token")
-        response = web.json_response({"ok": True, "role": role})
+        try:
+            session = await self.sign_in.check(body)
+        except SignInError as exc:
+            raise HttpError(400, "BAD_REQUEST", str(exc)) from None
+        if session is None:
+            wrong = "wrong name or PIN" if "user" in body or "pin" in body else "wrong token"
+            raise await self._refuse_token(request, wrong)
+        if session.user is not None:
+            log.info(
+                "console: %s signed in (%s) from %s", session.user, session.role, _peer(request)
+            )
+        response = web.json_response({"ok": True, "role": session.role, "user": session.user})
         response.set_cookie(
             COOKIE,
-            self.sessions.open(role),
+            self.sessions.open(session.role, session.user),
             httponly=True,
             samesite="Strict",
             path="/",
@@ -419,6 +445,7 @@ class HttpFrontend:
                 "listen": info.get("listen"),
                 "auth_required": self.sessions.required,
                 "role": self._role(request),
+                "user": self._user(request),
                 "health": {"status": "ok" if health["ok"] else "degraded", "checks": checks},
                 "pool": {
                     "workers": service.settings.workers,
@@ -609,6 +636,8 @@ class HttpFrontend:
                     deadline=arrived + self.settings.try_deadline_s,
                     peer=TRY_PEER_PREFIX + _peer(request),
                     request_class="try",
+                    # A named user's try keeps their name (GET /api/results?operator=NAME).
+                    operator=self._user(request) or "",
                 ),
                 admission=admission,
             )
@@ -828,6 +857,7 @@ class HttpFrontend:
             limit=limit + 1,
             peer=query.get("peer") or None,
             before_id=before,
+            operator=_operator_param(query),
         )
         more = len(rows) > limit
         rows = rows[:limit]
@@ -1067,7 +1097,16 @@ def _row_json(row: Any) -> dict[str, Any]:
         "config_hash": row.config_hash,
         "has_image": row.image_path is not None and row.image_path.is_file(),
         "has_overlay": row.overlay_path is not None and row.overlay_path.is_file(),
+        "operator": None if row.operator is None else row.operator.to_json(),
     }
+
+
+def _operator_param(query: Mapping[str, str]) -> str | None:
+    """``operator``: a user's name as the result log keeps it (at most 64 characters)."""
+    name = query.get("operator") or None
+    if name is not None and len(name) > 64:
+        raise HttpError(400, "BAD_REQUEST", "operator must be a name of at most 64 characters")
+    return name
 
 
 async def _read_at_most(request: web.Request, limit: int, timeout_s: float | None = None) -> bytes:

@@ -38,7 +38,14 @@ from .core import (
     deadline_after,
 )
 from .door import FrontDoor, Pass, Refusal, peer_host, peer_name
-from .operator_desk import CallClosed, OperatorDesk, call_json, closed_json, desk_image
+from .operator_desk import (
+    MAX_REASON_CHARS,
+    CallClosed,
+    OperatorDesk,
+    call_json,
+    closed_json,
+    desk_image,
+)
 from .runtime import CellRuntime, check_result_log
 
 __all__ = [
@@ -58,6 +65,7 @@ __all__ = [
     "InspectRequest",
     "InspectionRecord",
     "InspectionService",
+    "MAX_REASON_CHARS",
     "OperatorDesk",
     "Pass",
     "Refusal",
