@@ -98,15 +98,18 @@ def test_quality_control_asks_the_console_and_shows_the_failing_overlay(
     assert any("answered 'continue' at the console" in n and REASON in n for n in notes)
     # Who answered and why, in the skill's outcome (signed in with the admin's token: no name).
     (answered,) = outcome.data["operator_answers"]
-    assert answered["choice"] == "continue" and answered["reason"] == REASON
-    assert answered["operator"] == "admin" and "console 127.0.0.1:" in answered["by"]
+    assert answered["choice"] == "continue"
+    assert answered["reason"] == REASON
+    assert answered["operator"] == "admin"
+    assert "console 127.0.0.1:" in answered["by"]
     assert REASON in outcome.message
     # The call named the failed result, and the console wrote the answer onto its row.
     person = Browserless(server.url)
     assert person.login().status == 200
     row = person.get(f"/api/results/{call['result_id']}").json()
     assert (row["inspection"], row["passed"]) == ("magnet_check", False)
-    assert row["operator"]["choice"] == "continue" and row["operator"]["reason"] == REASON
+    assert row["operator"]["choice"] == "continue"
+    assert row["operator"]["reason"] == REASON
 
 
 def test_a_server_without_console_falls_back_to_the_terminal() -> None:

@@ -35,13 +35,15 @@ def test_an_answer_is_written_onto_its_row_and_read_back(tmp_path: Path) -> None
     with ResultLog(tmp_path / "r.sqlite3", store_images="none") as log:
         ids = [log.record(entry(i)) for i in range(6)]
         failed = ids[3]
-        assert failed is not None and failed > 0
+        assert failed is not None
+        assert failed > 0
         assert log.get(failed).operator is None  # type: ignore[union-attr]
         assert log.annotate(
             failed, name="anna", choice="continue", reason="cosmetic only", at=T0 + 100
         )
         row = log.get(failed)
-        assert row is not None and row.operator is not None
+        assert row is not None
+        assert row.operator is not None
         assert row.operator.to_json() == {
             "name": "anna",
             "choice": "continue",
@@ -62,8 +64,10 @@ def test_a_try_keeps_its_user_and_the_filter_combines_with_the_others(tmp_path: 
         try_id = log.record(entry(20, peer="console 127.0.0.1:5000", operator="ben"))
         assert try_id is not None
         row = log.get(try_id)
-        assert row is not None and row.is_try
-        assert row.operator is not None and row.operator.to_json() == {
+        assert row is not None
+        assert row.is_try
+        assert row.operator is not None
+        assert row.operator.to_json() == {
             "name": "ben",
             "choice": None,
             "reason": None,
@@ -121,7 +125,8 @@ def test_the_operator_filter_reads_through_its_index(
         assert "results_by_operator" in plan, plan
         assert "SCAN results" not in plan.replace("USING INDEX", ""), plan
         rows = log.query(operator="anna", limit=50, **filters)  # type: ignore[arg-type]
-        assert rows and all(r.operator is not None for r in rows)
+        assert rows
+        assert all(r.operator is not None for r in rows)
 
 
 def test_a_log_of_the_previous_schema_is_migrated_in_place(tmp_path: Path) -> None:
@@ -129,7 +134,7 @@ def test_a_log_of_the_previous_schema_is_migrated_in_place(tmp_path: Path) -> No
     conn = sqlite3.connect(path, isolation_level=None)
     for script in _MIGRATIONS[: SCHEMA_VERSION - 1]:
         conn.executescript(script)
-    conn.execute("PRAGMA user_version = %d" % (SCHEMA_VERSION - 1))
+    conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION - 1}")
     conn.execute(
         "INSERT INTO results (time, inspection, camera, passed, data, duration_ms, config_hash, "
         "request_id, peer) VALUES (?, 'magnet_check', 'qc', 0, '{\"v\": 1}', 2.0, 'h', 7, 'p')",
@@ -138,7 +143,8 @@ def test_a_log_of_the_previous_schema_is_migrated_in_place(tmp_path: Path) -> No
     conn.close()
     with ResultLog(path, store_images="none") as log:
         (old,) = log.query()
-        assert old.data == {"v": 1} and old.operator is None
+        assert old.data == {"v": 1}
+        assert old.operator is None
         assert log.annotate(old.id, name="anna", choice="abort", reason="jammed", at=T0 + 1)
         assert [r.id for r in log.query(operator="anna")] == [old.id]
     check = sqlite3.connect(path)

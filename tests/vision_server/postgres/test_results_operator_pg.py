@@ -56,13 +56,16 @@ def test_an_answer_and_a_try_user_are_kept_and_filtered(pg_url: str, tmp_path: P
             "reason": "cosmetic",
             "at": T0 + 50,
         }
-        assert rows[0].operator is not None and rows[0].operator.reason is None
+        assert rows[0].operator is not None
+        assert rows[0].operator.reason is None
         assert [r.id for r in log.query(operator="anna", inspection="gap")] == [ids[8], ids[4]]
         assert [r.id for r in log.query(operator="anna", passed=False)] == []
         assert [r.id for r in log.query(operator="anna", before_id=ids[8])] == [ids[4]]
         (tried,) = log.query(operator="ben")
-        assert tried.id == try_id and tried.is_try
-        assert tried.operator is not None and tried.operator.choice is None
+        assert tried.id == try_id
+        assert tried.is_try
+        assert tried.operator is not None
+        assert tried.operator.choice is None
         assert log.get(ids[0]).operator is None  # type: ignore[union-attr]
         sql, params = log.query_sql(operator="anna", inspection="gap", limit=50)
         with psycopg.connect(pg_url) as conn:
@@ -83,7 +86,8 @@ def test_a_spool_of_an_older_server_is_forwarded(pg_url: str, tmp_path: Path) ->
     with PgResultLog(pg_url, spool=spool_path, retry_s=0.05) as log:
         run(wait_until(lambda: log.health()["spooled"] == 0 and log.count() == 1, "the old row"))
         (row,) = log.query()
-        assert row.data == {"v": 1} and row.operator is None
+        assert row.data == {"v": 1}
+        assert row.operator is None
         # A try spooled by this server keeps its user once forwarded.
         values_spooled = log._spool_row(  # the path a row takes while the database is down
             "gap",
