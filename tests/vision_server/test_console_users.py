@@ -18,6 +18,14 @@ from typing import Any
 
 import pytest
 from console_server import TOKEN, Browserless, RunningConsole, example_config, running_cell
+from console_users import (
+    ANNA_PIN,
+    BEN_BADGE,
+    CARLA_PIN,
+    DORA_BADGE,
+    PRESETS,
+    config_with_users,
+)
 
 from protocol import InvalidArgument
 from robot_client import SyncVisionClient
@@ -26,31 +34,6 @@ from vision_server.config import ConfigError, hash_secret, load_config
 from vision_server.config.users import verify_secret
 
 WAIT_S = 20.0
-ANNA_PIN = "4711"
-BEN_BADGE = "04A1B2C3D4"
-CARLA_PIN = "93817"
-DORA_BADGE = "badge-of-dora-0001"
-PRESETS = ["cosmetic only", "within drawing tolerance"]
-
-
-def users_yaml() -> str:
-    return (
-        "[{name: anna, role: operator, pin_hash: '" + hash_secret(ANNA_PIN) + "'}, "
-        "{name: ben, badge: '" + BEN_BADGE + "'}, "
-        "{name: Carla, role: integrator, pin: '" + CARLA_PIN + "'}, "
-        "{name: dora, role: operator, badge_hash: '" + hash_secret(DORA_BADGE) + "'}]"
-    )
-
-
-def config_with_users(folder: Path, *, token: str | None = TOKEN) -> Path:
-    path = example_config(folder, token=token, extra_server=f"  users: {users_yaml()}\n")
-    text = path.read_text(encoding="utf-8").replace(
-        "  max_view_fps: 30\n",
-        "  max_view_fps: 30\n  operator_reasons: [" + ", ".join(PRESETS) + "]\n",
-        1,
-    )
-    path.write_text(text, encoding="utf-8")
-    return path
 
 
 @pytest.fixture(scope="module")

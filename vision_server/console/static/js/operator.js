@@ -41,7 +41,7 @@ export const operatorBadge = new Poller(async () => {
 export class OperatorPage {
   constructor() {
     this.poller = new Poller(() => this.refresh(), 1000);
-    this.shown = "";      // the ids shown, so that images are not reloaded every second
+    this.shown = null;    // the ids shown, so that images are not reloaded every second
     this.recentShown = "";
     this.sending = new Set();
     this.rules = { reason_for: ["continue"], reasons: [], max_reason_chars: 500 };
@@ -131,7 +131,8 @@ export class OperatorPage {
       return exc;
     } finally {
       this.sending.delete(id);
-      this.shown = "";
+      // Redraw on the next round whatever it brings: also when no call is left ("" ids).
+      this.shown = null;
       this.poller.kick();
     }
   }
