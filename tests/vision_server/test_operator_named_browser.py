@@ -58,8 +58,9 @@ def viewport(driver: WebDriver, width: int, height: int) -> None:
     driver.set_window_size(size["width"] + width - inner[0], size["height"] + height - inner[1])
     wait_for(
         driver,
-        lambda d: d.execute_script("return [window.innerWidth, window.innerHeight];")
-        == [width, height],
+        lambda d: (
+            d.execute_script("return [window.innerWidth, window.innerHeight];") == [width, height]
+        ),
         f"a {width}x{height} viewport",
     )
 
