@@ -345,7 +345,8 @@ class HttpFrontend:
             raise HttpError(
                 403,
                 "FORBIDDEN",
-                f"signed in as {role}: this needs the {needed}'s rights (sign in with the "
+                f"signed in as {role}: this needs the {needed}'s rights (sign in as a user "
+                f"with that role, or with the "
                 f"{'integrator_token' if needed == 'integrator' else 'auth_token'})",
             )
         return await handler(request)
