@@ -295,6 +295,10 @@ def load_users(tmp_path: Path, users: str, *, console: str = "") -> Any:
         ("[{name: anna}]", "a user signs in with a PIN or a badge"),
         ("[{name: anna, pin: '1234', pin_hash: 'x'}]", "give one of pin, pin_file and pin_hash"),
         ("[{name: anna, pin_hash: 'sha1$abc'}]", "pin_hash: expected a hash"),
+        (
+            "[{name: anna, pin_hash: 'scrypt$1048576$32$1$" + "A" * 22 + "$" + "B" * 43 + "'}]",
+            "need more than 128 MiB",
+        ),
         ("[{name: anna, role: boss, pin: '1234'}]", "role:"),
         ("[{name: 'an na', pin: '1234'}]", "name: a user's name"),
         ("[{name: anna, pin: '1234', colour: red}]", "colour: unknown key"),

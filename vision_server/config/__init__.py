@@ -41,7 +41,15 @@ from .settings import (
     TcpSettings,
     welcome_limits,
 )
-from .users import MIN_BADGE_CHARS, MIN_PIN_CHARS, USER_ROLES, Secret, User, hash_secret
+from .users import (
+    MIN_BADGE_CHARS,
+    MIN_PIN_CHARS,
+    USER_ROLES,
+    Secret,
+    User,
+    hash_secret,
+    users_by_name,
+)
 
 __all__ = [
     "DEFAULT_CONSOLE_PORT",
@@ -62,6 +70,7 @@ __all__ = [
     "USER_ROLES",
     "User",
     "hash_secret",
+    "users_by_name",
     "ListenError",
     "Listener",
     "ModbusSettings",

@@ -54,6 +54,8 @@ MAX_USERS = 200
 SCRYPT_N = 1 << 14
 SCRYPT_R = 8
 SCRYPT_P = 1
+MAX_SCRYPT_MEMORY = 128 * 1024 * 1024
+"""The memory one check may take (scrypt takes 128 x r x N bytes)."""
 _HASH = re.compile(
     r"scrypt\$(\d{1,7})\$(\d{1,3})\$(\d{1,3})\$([A-Za-z0-9_-]{16,128})\$([A-Za-z0-9_-]{32,128})"
 )
@@ -69,7 +71,7 @@ def _unb64(text: str) -> bytes:
 
 def _scrypt(secret: str, salt: bytes, n: int, r: int, p: int, length: int) -> bytes:
     return hashlib.scrypt(
-        secret.encode("utf-8"), salt=salt, n=n, r=r, p=p, dklen=length, maxmem=256 * 1024 * 1024
+        secret.encode("utf-8"), salt=salt, n=n, r=r, p=p, dklen=length, maxmem=2 * MAX_SCRYPT_MEMORY
     )
 
 
@@ -90,6 +92,9 @@ def check_hash(text: str) -> str:
     n, r, p = (int(g) for g in match.groups()[:3])
     if n < 2 or n & (n - 1) or n > 1 << 20 or not 1 <= r <= 32 or not 1 <= p <= 16:
         raise ValueError(f"scrypt parameters N={n} r={r} p={p} are out of range")
+    if 128 * r * n > MAX_SCRYPT_MEMORY:
+        # Each check would need more memory than the server grants it (and could not verify).
+        raise ValueError(f"scrypt parameters N={n} r={r} need more than 128 MiB per check")
     return text.strip()
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
-from ..config import Secret, User, hash_secret
+from ..config import Secret, User, hash_secret, users_by_name
 from .http_auth import Session, Sessions
 
 MAX_FIELD_CHARS = 256
@@ -33,7 +33,7 @@ class SignIn:
 
     def __init__(self, sessions: Sessions) -> None:
         self.sessions = sessions
-        self._users = {user.name.casefold(): user for user in sessions.users}
+        self._users = users_by_name(sessions.users)
         self._lock = asyncio.Lock()
         # Checked for a name that is no user's: costs what a real user's check costs.
         self._decoy = Secret(hashed=hash_secret("decoy")) if self._any_hashed() else Secret("-")
