@@ -383,3 +383,23 @@ def test_hash_secret_prints_a_hash_that_verifies(
     assert "at least 4 characters" in capsys.readouterr().err
     monkeypatch.setattr("sys.stdin", io.StringIO("12345\n"))
     assert main(["hash-secret", "--badge"]) == 2
+
+
+def test_a_console_with_named_users_is_not_warned_about_as_open() -> None:
+    """The console asks for a sign-in when it has users, even without the admin's token; the
+    binary protocol beside it is still open and still warned about."""
+    from vision_server.config import Listener, ServerSettings, User, exposure_warnings
+    from vision_server.config.users import Secret
+
+    listeners = [
+        Listener("console.port", "the web console", "0.0.0.0", 7880),
+        Listener("server.port", "the binary protocol", "0.0.0.0", 7878),
+    ]
+    users = (User("anna", "operator", pin=Secret(plain="4711")),)
+    warned = exposure_warnings(ServerSettings(users=users), listeners)
+    assert [w for w in warned if "WITHOUT A TOKEN" in w and "console" in w] == []
+    assert any("binary protocol" in w and "WITHOUT A TOKEN" in w for w in warned)
+    assert any(
+        "console" in w and "WITHOUT A TOKEN" in w
+        for w in exposure_warnings(ServerSettings(), listeners)
+    )
