@@ -301,6 +301,7 @@ def load_users(tmp_path: Path, users: str, *, console: str = "") -> Any:
         ),
         ("[{name: anna, role: boss, pin: '1234'}]", "role:"),
         ("[{name: 'an na', pin: '1234'}]", "name: a user's name"),
+        ("[{name: Admin, pin: '1234'}]", "names a role's token or the console"),
         ("[{name: anna, pin: '1234', colour: red}]", "colour: unknown key"),
         ("[{pin: '1234'}]", "missing required key 'name'"),
         (f"[{{name: anna, badge: '{TOKEN}'}}]", "the badge equals a role's token"),

@@ -72,6 +72,7 @@ from .users import (
     MAX_USERS,
     MIN_BADGE_CHARS,
     MIN_PIN_CHARS,
+    RESERVED_NAMES,
     USER_NAME,
     USER_ROLES,
     Secret,
@@ -373,6 +374,12 @@ def _users(node: Node, base_dir: Path, tokens: list[str]) -> tuple[User, ...]:
             raise item.error(
                 "a user's name is 1-64 letters, digits and . _ @ - (starting with a letter or a "
                 f"digit), got {name!r}",
+                "name",
+            )
+        if name.casefold() in RESERVED_NAMES:
+            raise item.error(
+                f"{name!r} names a role's token or the console without sign-in in the records "
+                "(who answered, who tried): give the person's own name",
                 "name",
             )
         if name.casefold() in seen:

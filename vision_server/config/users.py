@@ -27,6 +27,7 @@ __all__ = [
     "MAX_USERS",
     "MIN_BADGE_CHARS",
     "MIN_PIN_CHARS",
+    "RESERVED_NAMES",
     "USER_NAME",
     "USER_ROLES",
     "Secret",
@@ -42,6 +43,8 @@ UserRole = Literal["operator", "integrator", "admin"]
 USER_ROLES: tuple[UserRole, ...] = ("operator", "integrator", "admin")
 USER_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._@-]{0,63}")
 """A user's name: what the result log and the robot's log show; letters, digits, ``._@-``."""
+RESERVED_NAMES = frozenset({"admin", "integrator", "operator", "console"})
+"""What records say for a role's token and for a console without sign-in: no user's name."""
 MIN_PIN_CHARS = 4
 MIN_BADGE_CHARS = 6
 """A badge alone opens a session: shorter tokens are too easy to guess."""
