@@ -8,7 +8,7 @@ operator naming the failed result; anna taps Continue, is asked for a reason (a 
 and then for a confirmation, and confirms. The robot gets the choice, her name and the reason;
 the result's row carries them, and ``/api/results?operator=anna`` finds it. Then on a 1920x1080
 wall screen: a second call, large buttons, answered with Retry (no reason asked). The header is
-checked at 1440x900 too. With ``CONSOLE_SCREENSHOTS=docs/console`` the pictures of
+checked at 1440x900 too; after Log out, a badge reader's token and Enter sign ben in. With ``CONSOLE_SCREENSHOTS=docs/console`` the pictures of
 docs/console.md are taken on the way (operator-tablet.png, operator-reason.png,
 operator-wall.png, login-named.png).
 """
@@ -24,7 +24,7 @@ from typing import Any
 import pytest
 from browser import console_errors, headless_chromium, save_screenshot
 from console_server import TOKEN, Browserless, running_cell
-from console_users import ANNA_PIN, PRESETS, config_with_users
+from console_users import ANNA_PIN, BEN_BADGE, PRESETS, config_with_users
 
 from protocol import ImageRole
 from robot_client import SyncVisionClient
@@ -248,6 +248,17 @@ def test_a_named_operator_answers_with_a_reason_on_a_tablet_and_a_wall_screen(
             # The cell's laptop size keeps one row of header without overlap.
             viewport(driver, 1440, 900)
             assert header_overlaps(driver) == []
+
+            # A badge reader: after Log out the badge field has the focus; the reader types
+            # the badge's token and Enter.
+            driver.find_element(By.ID, "logout").click()
+            wait_for(
+                driver,
+                lambda d: d.switch_to.active_element.get_attribute("id") == "login-token",
+                "the badge field focused",
+            )
+            driver.switch_to.active_element.send_keys(BEN_BADGE + "\n")
+            wait_for(driver, lambda d: who.text == "ben", "ben signed in by his badge")
             assert console_errors(driver) == []
         finally:
             robot.close()
