@@ -8,9 +8,9 @@ operator naming the failed result; anna taps Continue, is asked for a reason (a 
 and then for a confirmation, and confirms. The robot gets the choice, her name and the reason;
 the result's row carries them, and ``/api/results?operator=anna`` finds it. Then on a 1920x1080
 wall screen: a second call, large buttons, answered with Retry (no reason asked). The header is
-checked at 1440x900 too; after Log out, a badge reader's token and Enter sign ben in. With ``CONSOLE_SCREENSHOTS=docs/console`` the pictures of
-docs/console.md are taken on the way (operator-tablet.png, operator-reason.png,
-operator-wall.png, login-named.png).
+checked at 1440x900 too; after Log out, a badge reader's token and Enter sign ben in. With
+``CONSOLE_SCREENSHOTS=docs/console`` the pictures of docs/console.md are taken on the way
+(operator-tablet.png, operator-reason.png, operator-wall.png, login-named.png).
 """
 
 from __future__ import annotations
