@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar, TypeVar, cast
 
 from .constants import MAX_U32, NO_REQUEST, ImageRole, MessageType
 from .errors import (
@@ -419,6 +419,8 @@ class Result(Message):
     ``timing`` durations in milliseconds; ``images`` an optional overlay PNG. ``stored`` says
     whether the server wrote the result to its result log before answering: None when the
     server has no result log (or did not say), False when the entry could not be written.
+    ``result_id`` is the row's id in that log when the server knows it (None otherwise): what an
+    OPERATOR_CALL about this result names (SPEC §6.6).
     """
 
     TYPE: ClassVar[MessageType] = MessageType.RESULT
@@ -430,6 +432,7 @@ class Result(Message):
     config_hash: str = ""
     images: tuple[ImagePayload, ...] = ()
     stored: bool | None = None
+    result_id: int | None = None
 
     def _encode(self) -> tuple[dict[str, Any], tuple[Blob, ...]]:
         descs, blobs = _images_to_wire(self.images)
@@ -447,6 +450,8 @@ class Result(Message):
             meta["images"] = descs
         if self.stored is not None:
             meta["stored"] = self.stored
+        if self.result_id is not None:
+            meta["result_id"] = self.result_id
         return meta, blobs
 
     @classmethod
@@ -473,6 +478,7 @@ class Result(Message):
             _get(m, "config_hash", str, rid, default=""),
             _images_from_wire(m, frame.blobs, rid, ctx),
             _get(m, "stored", bool, rid, default=None),
+            _result_id(m, rid),
         )
 
 
@@ -614,6 +620,14 @@ class Reloaded(Message):
         )
 
 
+def _result_id(meta: dict[str, Any], rid: int) -> int | None:
+    """The optional ``result_id`` of RESULT and OPERATOR_CALL: a result log's row id (>= 1)."""
+    value = _get(meta, "result_id", int, rid, default=None)
+    if value is not None and value < 1:
+        raise BadMetadata(f"field 'result_id' must be >= 1, got {value}", request_id=rid)
+    return cast(int | None, value)
+
+
 OPERATOR_CHOICES: tuple[str, ...] = ("retry", "continue", "abort")
 """What an operator may answer an OPERATOR_CALL (SPEC §6.6), in the order a console shows them."""
 
@@ -648,9 +662,14 @@ class OperatorCall(Message):
     skill: str = ""
     images: tuple[ImagePayload, ...] = ()
     deadline_ms: float | None = None
+    result_id: int | None = None
+    """The failed RESULT's ``result_id`` (its row in the server's result log), annotated with
+    the person's answer."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.result_id is not None and self.result_id < 1:
+            raise ValueError(f"result_id must be >= 1, got {self.result_id}")
         if not self.message:
             raise ValueError("OPERATOR_CALL needs a message for the operator")
         why = _check_choices(self.choices)
@@ -675,6 +694,8 @@ class OperatorCall(Message):
             meta["images"] = descs
         if self.deadline_ms is not None:
             meta["deadline_ms"] = self.deadline_ms
+        if self.result_id is not None:
+            meta["result_id"] = self.result_id
         return meta, blobs
 
     @classmethod
@@ -706,6 +727,7 @@ class OperatorCall(Message):
             _get(m, "skill", str, rid, default=""),
             images,
             _deadline(m, rid),
+            _result_id(m, rid),
         )
 
 
@@ -715,13 +737,16 @@ class OperatorAnswer(Message):
 
     ``choice`` is one of the call's choices; ``by`` names who answered (for the robot's log,
     e.g. the console's peer address); ``answered_at`` is the server's time of the answer, Unix
-    seconds (None when the server did not say).
+    seconds (None when the server did not say); ``operator`` the signed-in person's name and
+    ``reason`` why they answered so ("" when the server did not say).
     """
 
     TYPE: ClassVar[MessageType] = MessageType.OPERATOR_ANSWER
     choice: str = ""
     by: str = ""
     answered_at: float | None = None
+    reason: str = ""
+    operator: str = ""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -736,6 +761,10 @@ class OperatorAnswer(Message):
             meta["by"] = self.by
         if self.answered_at is not None:
             meta["answered_at"] = self.answered_at
+        if self.reason:
+            meta["reason"] = self.reason
+        if self.operator:
+            meta["operator"] = self.operator
         return meta, ()
 
     @classmethod
@@ -751,7 +780,14 @@ class OperatorAnswer(Message):
         answered_at = None if stamp is None else _as_float(stamp)
         if stamp is not None and answered_at is None:
             raise BadMetadata("field 'answered_at' must be a finite number", request_id=rid)
-        return cls(rid, choice, _get(m, "by", str, rid, default=""), answered_at)
+        return cls(
+            rid,
+            choice,
+            _get(m, "by", str, rid, default=""),
+            answered_at,
+            _get(m, "reason", str, rid, default=""),
+            _get(m, "operator", str, rid, default=""),
+        )
 
 
 @dataclass(frozen=True)

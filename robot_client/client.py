@@ -556,10 +556,13 @@ class VisionClient:
         skill: str = "",
         images: Sequence[ImageLike] = (),
         deadline_s: float | None = None,
+        result_id: int | None = None,
     ) -> OperatorAnswer:
         """Ask the person at the server's console (SPEC §6.6, protocol 1.1) and wait for the
-        answer: ``retry``, ``continue`` or ``abort``, one of ``choices``. ``images`` (arrays go
-        as PNG; a RESULT's overlay payload as it came) show what failed. The server answers
+        answer: ``retry``, ``continue`` or ``abort``, one of ``choices``, with who answered
+        (``operator``, ``by``) and why (``reason``). ``images`` (arrays go as PNG; a RESULT's
+        overlay payload as it came) show what failed; ``result_id`` (the failed RESULT's) has
+        the server write the answer onto that result in its result log. The server answers
         DEADLINE_EXCEEDED after ``deadline_s``; this side waits a ``request_timeout_s`` longer
         (without a deadline: for days). A server without operator calls raises
         UnexpectedMessage or UnknownMessageType; a 1.0 server LocalProtocolError (not sent)."""
@@ -568,7 +571,7 @@ class VisionClient:
         wait_s = (deadline_s if deadline_s is not None else 7 * 86400.0) + self.request_timeout_s
         answer = await self.request(
             lambda rid: OperatorCall(
-                rid, message, tuple(choices), inspection, skill, payloads, deadline_ms
+                rid, message, tuple(choices), inspection, skill, payloads, deadline_ms, result_id
             ),
             timeout_s=wait_s,
         )

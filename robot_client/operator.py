@@ -48,7 +48,10 @@ class ConsoleOperator:
     LazyVision); ``fallback`` is asked when the console cannot be (None: abort); ``notify``
     receives a sentence for the robot's log whenever the console is not used. The call shows
     ``data["images"]`` (e.g. the failing RESULT's overlay) and names ``data["inspection"]`` and
-    ``data["skill"]``. Nobody answering within ``deadline_s`` seconds is ``abort``.
+    ``data["skill"]``, and names the failed result by ``data["result_id"]`` (the RESULT's
+    ``result_id``: the server annotates that result with the answer). Nobody answering within
+    ``deadline_s`` seconds is ``abort``. ``last_answer`` keeps the latest answer from the console
+    (who answered, and why), None when the latest question was not answered there.
     """
 
     def __init__(
@@ -65,8 +68,10 @@ class ConsoleOperator:
         self.deadline_s = deadline_s
         self.choices = tuple(choices)
         self.notify = notify or (lambda text: None)
+        self.last_answer: Any = None
 
     def __call__(self, message: str, data: Mapping[str, Any]) -> str:
+        self.last_answer = None
         call = getattr(self.vision, "operator_call", None)
         if call is None:
             return self._fall_back(message, data, "this vision client cannot post operator calls")
@@ -78,13 +83,16 @@ class ConsoleOperator:
                 skill=str(data.get("skill") or ""),
                 images=tuple(data.get("images") or ()),
                 deadline_s=self.deadline_s,
+                **_result_id(data),
             )
         except DeadlineExceeded:
             self.notify(f"nobody answered at the console within {self.deadline_s:g} s: abort")
             return "abort"
         except CANNOT_CALL as exc:
             return self._fall_back(message, data, str(exc))
-        self.notify(f"the operator answered {answer.choice!r} at the console ({answer.by})")
+        self.last_answer = answer
+        why = f": {answer.reason}" if getattr(answer, "reason", "") else ""
+        self.notify(f"the operator answered {answer.choice!r} at the console ({answer.by}){why}")
         return str(answer.choice)
 
     def _fall_back(self, message: str, data: Mapping[str, Any], why: str) -> str:
@@ -93,6 +101,14 @@ class ConsoleOperator:
             return "abort"
         self.notify(f"the console cannot be asked ({why}); asking here instead")
         return self.fallback(message, data)
+
+
+def _result_id(data: Mapping[str, Any]) -> dict[str, int]:
+    """``result_id`` for the call when ``data`` names a failed result the server logged."""
+    value = data.get("result_id")
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 1:
+        return {"result_id": value}
+    return {}
 
 
 def task_operator(ask: OperatorCallback) -> Callable[[Step, Outcome], OperatorDecision]:
@@ -111,4 +127,9 @@ def task_operator(ask: OperatorCallback) -> Callable[[Step, Outcome], OperatorDe
     return decide
 
 
-__all__ = ["CANNOT_CALL", "DEFAULT_DEADLINE_S", "ConsoleOperator", "task_operator"]
+__all__ = [
+    "CANNOT_CALL",
+    "DEFAULT_DEADLINE_S",
+    "ConsoleOperator",
+    "task_operator",
+]

@@ -1586,6 +1586,10 @@ def _operator_call(ctx: Context) -> str:
             choice = frame.metadata.get("choice")
             if choice not in OPERATOR_CHOICES:
                 raise CheckFailed(f"OPERATOR_ANSWER.choice is {choice!r}")
+            for optional in ("by", "operator", "reason"):
+                value = frame.metadata.get(optional)
+                if value is not None and not isinstance(value, str):
+                    raise CheckFailed(f"OPERATOR_ANSWER.{optional} is not a string: {value!r}")
             note = f"a person answered {choice!r}"
         elif frame.type == T.ERROR and code == ErrorCode.DEADLINE_EXCEEDED:
             note = "nobody answered: DEADLINE_EXCEEDED"

@@ -15,7 +15,10 @@ say so) or ``abort``. Unattended (no operator) or with ``on_failure: fail``, the
 
 Outcome data: ``inspection``, ``passed``, ``value`` (the last measured value) and ``attempts``:
 each attempt's verdict, measured value (and the measure's name and limits when the inspection
-reports them) and time.
+reports them) and time; with an operator, ``operator`` (the answers) and, when they were given at
+the vision server's console, ``operator_answers``: each one's ``choice``, the ``operator``'s name,
+``by`` and ``reason``. The call names the failed RESULT's ``result_id``, so that the server
+writes the answer onto that result in its log.
 """
 
 from __future__ import annotations
@@ -132,6 +135,7 @@ class QualityControl(Skill):
         retries, wait_s = args.integer("retries"), args.number("wait_s")
         attempts: list[dict[str, Any]] = []
         answers: list[str] = []
+        answered: list[dict[str, Any]] = []  # who answered at the console, and why
 
         def data(passed: bool) -> dict[str, Any]:
             out: dict[str, Any] = {
@@ -143,6 +147,8 @@ class QualityControl(Skill):
                 out["value"] = attempts[-1]["value"]
             if answers:
                 out["operator"] = list(answers)
+            if answered:
+                out["operator_answers"] = list(answered)
             return out
 
         rounds = 0
@@ -171,13 +177,30 @@ class QualityControl(Skill):
             # data, which stays JSON).
             shown = [i for i in getattr(result, "images", ()) if str(i.role) == "overlay"]
             call = {**data(False), "skill": self.spec.name, "images": shown}
+            # The failed RESULT's row in the server's result log: the console writes the
+            # operator's answer onto it.
+            result_id = getattr(result, "result_id", None)
+            if isinstance(result_id, int) and result_id >= 1:
+                call["result_id"] = result_id
             answer = str(ctx.operator(message, call)).strip().lower()
             answers.append(answer)
+            record = _answer_record(ctx.operator)
+            if record is not None:
+                answered.append(record)
+                who = record["operator"] or record["by"] or "the operator"
+                why = f": {record['reason']}" if record["reason"] else ""
+                ctx.report(f"{inspection}: {who} answered {answer!r}{why}")
             if answer == "retry" and rounds < args.integer("operator_rounds"):
                 rounds += 1
                 continue
             if answer == "continue":
-                return Outcome.success(data(False), message=f"{message}; the operator accepted")
+                accepted = "the operator accepted"
+                if record is not None:
+                    who = record["operator"] or "the operator"
+                    accepted = f"{who} accepted" + (
+                        f" ({record['reason']})" if record["reason"] else ""
+                    )
+                return Outcome.success(data(False), message=f"{message}; {accepted}")
             if answer == "retry":
                 fail(
                     FailureReason.INSPECTION_FAILED,
@@ -191,3 +214,18 @@ class QualityControl(Skill):
                     data(False),
                 )
             fail(FailureReason.OPERATOR_ABORT, f"{message}; the operator aborted", data(False))
+
+
+def _answer_record(ask: Any) -> dict[str, Any] | None:
+    """Who answered the latest question of the operator ``ask`` and why (``choice``,
+    ``operator``, ``by``, ``reason``), for the outcome's data; None when the operator does
+    not say (a terminal prompt: the person at the robot)."""
+    answer = getattr(ask, "last_answer", None)
+    if answer is None:
+        return None
+    return {
+        "choice": str(answer.choice),
+        "operator": str(getattr(answer, "operator", "") or "") or None,
+        "by": str(getattr(answer, "by", "") or "") or None,
+        "reason": str(getattr(answer, "reason", "") or "") or None,
+    }

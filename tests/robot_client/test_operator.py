@@ -47,8 +47,12 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningConsole]
         yield running
 
 
+REASON = "scratch is cosmetic only"
+
+
 def answer_first_call(server: RunningConsole, choice: str) -> dict[str, Any]:
-    """The person at the console: wait for the call, answer it, return it as shown."""
+    """The person at the console: wait for the call, answer it (with a reason: accepting a
+    failed part needs one), return it as shown."""
     person = Browserless(server.url)
     assert person.login().status == 200
     deadline = time.monotonic() + WAIT_S
@@ -56,7 +60,7 @@ def answer_first_call(server: RunningConsole, choice: str) -> dict[str, Any]:
         calls = person.get("/api/operator/calls").json()["calls"]
         if calls:
             reply = person.post_json(
-                f"/api/operator/calls/{calls[0]['id']}/answer", {"choice": choice}
+                f"/api/operator/calls/{calls[0]['id']}/answer", {"choice": choice, "reason": REASON}
             )
             assert reply.status == 200, reply.body
             return dict(calls[0])
@@ -91,7 +95,21 @@ def test_quality_control_asks_the_console_and_shows_the_failing_overlay(
     assert "magnet_check" in call["message"]
     assert [i["role"] for i in call["images"]] == ["overlay"]
     assert terminal.asked == []
-    assert any("answered 'continue' at the console" in n for n in notes)
+    assert any("answered 'continue' at the console" in n and REASON in n for n in notes)
+    # Who answered and why, in the skill's outcome (signed in with the admin's token: no name).
+    (answered,) = outcome.data["operator_answers"]
+    assert answered["choice"] == "continue"
+    assert answered["reason"] == REASON
+    assert answered["operator"] == "admin"
+    assert "console 127.0.0.1:" in answered["by"]
+    assert REASON in outcome.message
+    # The call named the failed result, and the console wrote the answer onto its row.
+    person = Browserless(server.url)
+    assert person.login().status == 200
+    row = person.get(f"/api/results/{call['result_id']}").json()
+    assert (row["inspection"], row["passed"]) == ("magnet_check", False)
+    assert row["operator"]["choice"] == "continue"
+    assert row["operator"]["reason"] == REASON
 
 
 def test_a_server_without_console_falls_back_to_the_terminal() -> None:

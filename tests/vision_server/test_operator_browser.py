@@ -94,7 +94,7 @@ def test_a_call_appears_and_a_tap_on_retry_answers_the_robot(
             buttons[0].click()
             answer = asked.result(WAIT_S)
             assert answer.choice == "retry"
-            assert answer.by.startswith("console 127.0.0.1:")
+            assert answer.by.startswith("admin (console 127.0.0.1:")
             wait_for(driver, lambda d: empty.is_displayed(), "the call gone from the page")
             wait_for(driver, lambda d: not badge.is_displayed(), "the badge gone")
             status = driver.find_element(By.ID, "operator-status")

@@ -184,7 +184,7 @@ def test_a_call_is_shown_on_the_console_and_the_answer_reaches_the_robot(
     assert reply.status == 200, reply.body
     answer = asked.result(WAIT_S)
     assert answer.choice == "retry"
-    assert answer.by.startswith("console 127.0.0.1:")
+    assert answer.by.startswith("admin (console 127.0.0.1:")  # the role of the token signed in
     assert answer.answered_at == pytest.approx(reply.json()["answered_at"])
     assert open_calls(person) == []
     assert recent(person, call["id"])["outcome"] == "answered"

@@ -7,6 +7,7 @@
   :mod:`.golden`: ``test-inspections`` and the golden cases' runner;
   :mod:`.replay`: ``replay`` (a changed configuration over the stored images);
   :mod:`.offline`: the service without a server, for ``run`` and the golden cases;
+  :mod:`.hash_secret`: ``hash-secret`` (a PIN's or badge's hash for ``server: users:``);
   :mod:`.admin`: the small blocking client behind ``ping`` and ``reload``.
 
 Nothing below imports this room.

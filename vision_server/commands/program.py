@@ -104,6 +104,7 @@ from ..config import (
 from ..process import PROCESS_ENV, decoder_limits
 from ..results import is_database_url
 from ..service import Catalog, Images, InspectReply, InspectRequest, builtin_catalog
+from . import hash_secret as hash_secret_cli
 from . import history as history_cli
 from . import record as record_cli
 from . import replay as replay_cli
@@ -1052,6 +1053,7 @@ def build_parser() -> argparse.ArgumentParser:
     record_cli.add_parser(sub, [local])
     history_cli.add_parser(sub, [local])
     replay_cli.add_parser(sub, [local])
+    hash_secret_cli.add_parser(sub, [local])
 
     modbus_map = sub.add_parser(
         "modbus-map",

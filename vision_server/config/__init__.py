@@ -8,6 +8,7 @@
 - :mod:`.settings`: the records the service and each front-end run with.
 - :mod:`.listeners`: the addresses the front-ends listen on, and that no two share one.
 - :mod:`.changes`: what a reload changed, in words.
+- :mod:`.users`: named console users (``server: users:``), their PINs, badges and hashes.
 - :mod:`.exposure`: warnings for front-ends open beyond loopback without authentication.
 - :mod:`.drafts`: a whole inspection mapping (the console's edit or draft) read by the loader.
 - :mod:`.schema`: every key of every inspection and job step type, for the console's editor.
@@ -48,6 +49,15 @@ from .settings import (
     TcpSettings,
     welcome_limits,
 )
+from .users import (
+    MIN_BADGE_CHARS,
+    MIN_PIN_CHARS,
+    USER_ROLES,
+    Secret,
+    User,
+    hash_secret,
+    users_by_name,
+)
 
 __all__ = [
     "DEFAULT_CONSOLE_PORT",
@@ -62,6 +72,13 @@ __all__ = [
     "ConfigError",
     "ConsoleSettings",
     "LineSettings",
+    "MIN_BADGE_CHARS",
+    "MIN_PIN_CHARS",
+    "Secret",
+    "USER_ROLES",
+    "User",
+    "hash_secret",
+    "users_by_name",
     "ListenError",
     "Listener",
     "ModbusSettings",

@@ -28,7 +28,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib.util import find_spec
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
+
+from protocol import OPERATOR_CHOICES
 
 from ..cameras import (
     MOUNT_KEYS,
@@ -64,6 +66,19 @@ from .settings import (
     LineSettings,
     ModbusSettings,
     ServerSettings,
+)
+from .users import (
+    MAX_SECRET_CHARS,
+    MAX_USERS,
+    MIN_BADGE_CHARS,
+    MIN_PIN_CHARS,
+    RESERVED_NAMES,
+    USER_NAME,
+    USER_ROLES,
+    Secret,
+    User,
+    UserRole,
+    check_hash,
 )
 
 
@@ -234,6 +249,7 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
     for index, (role_key, secret) in enumerate(given):
         if any(secret == other for _, other in given[:index]):
             raise node.error("each role needs a token of its own: it equals another's", role_key)
+    users = _users(node, base_dir, [v for _, v in given])
     tls = node.sub("tls")
     cert = tls.take("cert", string, None)
     key = tls.take("key", string, None)
@@ -283,6 +299,7 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
         auth_token=token,
         operator_token=roles["operator_token"],
         integrator_token=roles["integrator_token"],
+        users=users,
         shutdown_grace_s=node.take("shutdown_grace_s", non_negative, defaults.shutdown_grace_s),
         tls_cert=None if cert is None else str(_resolve(base_dir, cert)),
         tls_key=None if key is None else str(_resolve(base_dir, key)),
@@ -339,6 +356,78 @@ def _secret(node: Node, base_dir: Path, key: str) -> str | None:
         if not token:
             raise node.error(f"the token file {token_path} is empty", f"{key}_file")
     return token
+
+
+def _users(node: Node, base_dir: Path, tokens: list[str]) -> tuple[User, ...]:
+    """``server: users:``, the named console users (vision_server/config/users.py): names
+    unique (without case), a PIN of at least MIN_PIN_CHARS, a badge of at least MIN_BADGE_CHARS,
+    no plain badge equal to another's or to a role's token."""
+    items = node.items("users")
+    if len(items) > MAX_USERS:
+        raise node.error(f"at most {MAX_USERS} users, got {len(items)}", "users")
+    users: list[User] = []
+    seen: dict[str, int] = {}
+    badges: dict[str, int] = {}
+    for index, item in enumerate(items):
+        name = item.take("name", string).strip()
+        if not USER_NAME.fullmatch(name):
+            raise item.error(
+                "a user's name is 1-64 letters, digits and . _ @ - (starting with a letter or a "
+                f"digit), got {name!r}",
+                "name",
+            )
+        if name.casefold() in RESERVED_NAMES:
+            raise item.error(
+                f"{name!r} names a role's token or the console without sign-in in the records "
+                "(who answered, who tried): give the person's own name",
+                "name",
+            )
+        if name.casefold() in seen:
+            raise item.error(f"user {name!r} is already users[{seen[name.casefold()]}]", "name")
+        seen[name.casefold()] = index
+        role = item.take("role", one_of(*USER_ROLES), "operator")
+        pin = _user_secret(item, base_dir, "pin", MIN_PIN_CHARS)
+        badge = _user_secret(item, base_dir, "badge", MIN_BADGE_CHARS)
+        if pin is None and badge is None:
+            raise item.error(
+                "a user signs in with a PIN or a badge: give pin, pin_file or pin_hash, or "
+                "badge, badge_file or badge_hash"
+            )
+        if badge is not None and badge.plain is not None:
+            if badge.plain in tokens:
+                raise item.error("the badge equals a role's token: give it one of its own", "badge")
+            if badge.plain in badges:
+                raise item.error(
+                    f"the badge equals users[{badges[badge.plain]}]'s: each badge is one person's",
+                    "badge",
+                )
+            badges[badge.plain] = index
+        users.append(User(name, cast(UserRole, role), pin, badge))
+        item.finish()
+    return tuple(users)
+
+
+def _user_secret(item: Node, base_dir: Path, key: str, min_chars: int) -> Secret | None:
+    """A user's ``key`` (pin or badge) given plainly, as ``key``_file or as ``key``_hash."""
+    hashed = item.take(f"{key}_hash", string, None)
+    plain = _secret(item, base_dir, key)
+    if hashed is not None and plain is not None:
+        raise item.error(f"give one of {key}, {key}_file and {key}_hash", f"{key}_hash")
+    if hashed is not None:
+        try:
+            return Secret(hashed=check_hash(hashed))
+        except ValueError as exc:
+            raise item.error(str(exc), f"{key}_hash") from None
+    if plain is None:
+        return None
+    if len(plain) < min_chars:
+        where = key if item.has(key) else f"{key}_file"
+        raise item.error(
+            f"a {key} has at least {min_chars} characters, this one {len(plain)}", where
+        )
+    if len(plain) > MAX_SECRET_CHARS:
+        raise item.error(f"a {key} has at most {MAX_SECRET_CHARS} characters", key)
+    return Secret(plain=plain)
 
 
 def _line(node: Node, server: ServerSettings) -> LineSettings:
@@ -463,9 +552,41 @@ def _console(node: Node, server: ServerSettings) -> ConsoleSettings:
         history_max_bytes=int(
             node.take("history_max_mb", positive, defaults.history_max_bytes / 2**20) * 2**20
         ),
+        operator_reason_for=node.take(
+            "operator_reason_for", _choices, defaults.operator_reason_for
+        ),
+        operator_reasons=node.take("operator_reasons", _reasons, defaults.operator_reasons),
     )
     node.finish()
     return listening.from_server(server)
+
+
+MAX_PRESET_REASONS = 20
+MAX_PRESET_REASON_CHARS = 100
+
+
+def _choices(value: Any) -> tuple[str, ...]:
+    """Operator answers (``operator_reason_for``): a list of retry, continue, abort."""
+    if not isinstance(value, list) or not all(v in OPERATOR_CHOICES for v in value):
+        raise ValueError(
+            f"expected a list of {', '.join(OPERATOR_CHOICES)} (may be empty), got {value!r}"
+        )
+    return tuple(dict.fromkeys(value))
+
+
+def _reasons(value: Any) -> tuple[str, ...]:
+    """Preset reasons (``operator_reasons``): a short list of short one-line texts."""
+    if not isinstance(value, list) or not all(isinstance(v, str) and v.strip() for v in value):
+        raise ValueError(f"expected a list of reasons (non-empty texts), got {value!r}")
+    if len(value) > MAX_PRESET_REASONS:
+        raise ValueError(f"at most {MAX_PRESET_REASONS} preset reasons, got {len(value)}")
+    for reason in value:
+        if len(reason) > MAX_PRESET_REASON_CHARS or any(ord(c) < 32 for c in reason):
+            raise ValueError(
+                f"a preset reason is one line of at most {MAX_PRESET_REASON_CHARS} characters, "
+                f"got {reason!r:.60}"
+            )
+    return tuple(dict.fromkeys(v.strip() for v in value))
 
 
 def _host_names(value: Any) -> tuple[str, ...]:

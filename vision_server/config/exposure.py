@@ -34,7 +34,12 @@ def exposure_warnings(server: ServerSettings, listeners: Iterable[Listener]) -> 
                 "the cell network's interface only, or filter the port in a firewall"
             )
             continue
-        if server.auth_token is None:
+        # The console asks for a sign-in with any role's token or named user, not only the
+        # admin's token.
+        signs_in = listener.key == "console.port" and bool(
+            server.users or server.operator_token or server.integrator_token
+        )
+        if server.auth_token is None and not signs_in:
             lines.append(f"{where} WITHOUT A TOKEN: {_open_to(listener, server)}; {SET_A_TOKEN}")
         if server.tls_cert is None and listener.key != "line.port":
             # The line protocol's controllers rarely speak TLS: its token is their only lock.

@@ -18,6 +18,8 @@ from typing import Any
 
 from protocol import DEFAULT_PORT, Limits
 
+from .users import User
+
 SERVER_VERSION = "0.1.0"
 """The server's version, announced in WELCOME."""
 
@@ -208,6 +210,8 @@ class ServerSettings:
     """The web console's operator role: view, answer operator calls (not try or save)."""
     integrator_token: str | None = None
     """The web console's integrator role: the operator's rights, and try and save."""
+    users: tuple[User, ...] = ()
+    """Named console users (``users:``): a name and PIN, or a badge, under a role."""
     shutdown_grace_s: float = 5.0
     tls_cert: str | None = None
     tls_key: str | None = None
@@ -278,6 +282,12 @@ class ConsoleSettings:
     """The admin's token (every right); also the binary and line protocols'."""
     operator_token: str | None = None
     integrator_token: str | None = None
+    users: tuple[User, ...] = ()
+    """Named users (the server's ``users:``), each with a PIN or a badge under a role."""
+    operator_reason_for: tuple[str, ...] = ("continue",)
+    """The operator answers (SPEC §6.6 choices) that need a reason on the Operator page."""
+    operator_reasons: tuple[str, ...] = ()
+    """Preset reasons shown as buttons beside the free text."""
     tls_cert: str | None = None
     tls_key: str | None = None
     max_upload_bytes: int = 64 * 1024 * 1024
@@ -318,6 +328,7 @@ class ConsoleSettings:
             auth_token=server.auth_token,
             operator_token=server.operator_token,
             integrator_token=server.integrator_token,
+            users=server.users,
             tls_cert=server.tls_cert,
             tls_key=server.tls_key,
             max_upload_bytes=server.max_frame_bytes,

@@ -53,7 +53,7 @@ from ..service import (
     OperatorDesk,
     check_images,
 )
-from . import http_save
+from . import http_export, http_save
 from .http_auth import COOKIE, RANK, Role, Sessions
 from .http_build import BUILD_INTEGRATOR_ROUTES, BuildRoutes, check_draft_name
 from .http_door import cross_site_reason, host_allowed
@@ -63,6 +63,7 @@ from .http_impact import IMPACT_PATH, ImpactRoutes
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
 from .http_operator import OperatorRoutes
+from .http_users import SignIn, SignInError
 from .images import decode_payloads
 from .listener import Listener, Policy, quiet_logger
 from .uploads import upload_loader
@@ -165,8 +166,10 @@ class HttpFrontend:
                 "admin": settings.auth_token,
                 "operator": settings.operator_token,
                 "integrator": settings.integrator_token,
-            }
+            },
+            settings.users,
         )
+        self.sign_in = SignIn(self.sessions)
         self.started_at = time.time()
         self._runner: web.AppRunner | None = None
         self._listener: Listener | None = None
@@ -274,7 +277,7 @@ class HttpFrontend:
         routes.add_get(r"/api/results/{id:\d{1,18}}/image.png", self.result_image)
         routes.add_get("/api/stats", self.stats)
         routes.add_get("/metrics", self.metrics_text)
-        OperatorRoutes(self.operator_desk).add_to(routes)
+        OperatorRoutes(self.operator_desk, self.who, self.settings, self.service).add_to(routes)
         ExportRoutes(self._log).add_to(routes)
         self._builder.add_to(routes)
         HistoryRoutes(
@@ -362,7 +365,8 @@ class HttpFrontend:
             raise HttpError(
                 403,
                 "FORBIDDEN",
-                f"signed in as {role}: this needs the {needed}'s rights (sign in with the "
+                f"signed in as {role}: this needs the {needed}'s rights (sign in as a user "
+                f"with that role, or with the "
                 f"{'integrator_token' if needed == 'integrator' else 'auth_token'})",
             )
         return await handler(request)
@@ -376,12 +380,20 @@ class HttpFrontend:
                 return self.sessions.role_of(auth[7:].strip())
         return role
 
+    def _user(self, request: web.Request) -> str | None:
+        """The signed-in named user's name, else None."""
+        session = self.sessions.session(request.cookies.get(COOKIE))
+        return None if session is None else session.user
+
     def who(self, request: web.Request) -> str:
-        """Who makes ``request``, for the configuration's history: the session's role
-        (``operator``, ``integrator``, ``admin``), or ``console`` without sign-in."""
+        """Who makes ``request``, for logs and records: the signed-in user's name, else the
+        role of the token the session was opened with, else "console" (no sign-in)."""
         if not self.sessions.required:
             return "console"
-        return self._role(request) or "console"
+        session = self.sessions.session(request.cookies.get(COOKIE))
+        if session is None:
+            return "console"
+        return session.user or session.role
 
     async def _refuse_token(self, request: web.Request, message: str) -> HttpError:
         """A wrong token, answered after the front door's delay for its host."""
@@ -401,13 +413,21 @@ class HttpFrontend:
         response = web.json_response({"ok": True})
         if not self.sessions.required:
             return response
-        role = self.sessions.role_of(body.get("token"))
-        if role is None:
-            raise await self._refuse_token(request, "wrong token")
-        response = web.json_response({"ok": True, "role": role})
+        try:
+            session = await self.sign_in.check(body)
+        except SignInError as exc:
+            raise HttpError(400, "BAD_REQUEST", str(exc)) from None
+        if session is None:
+            wrong = "wrong name or PIN" if "user" in body or "pin" in body else "wrong token"
+            raise await self._refuse_token(request, wrong)
+        if session.user is not None:
+            log.info(
+                "console: %s signed in (%s) from %s", session.user, session.role, _peer(request)
+            )
+        response = web.json_response({"ok": True, "role": session.role, "user": session.user})
         response.set_cookie(
             COOKIE,
-            self.sessions.open(role),
+            self.sessions.open(session.role, session.user),
             httponly=True,
             samesite="Strict",
             path="/",
@@ -446,6 +466,7 @@ class HttpFrontend:
                 "listen": info.get("listen"),
                 "auth_required": self.sessions.required,
                 "role": self._role(request),
+                "user": self._user(request),
                 "health": {"status": "ok" if health["ok"] else "degraded", "checks": checks},
                 "pool": {
                     "workers": service.settings.workers,
@@ -643,6 +664,8 @@ class HttpFrontend:
                     request_class="try",
                     prepared=draft,
                     config=None if draft is None else merged,
+                    # A named user's try keeps their name (GET /api/results?operator=NAME).
+                    operator=self._user(request) or "",
                 ),
                 admission=admission,
             )
@@ -854,18 +877,12 @@ class HttpFrontend:
         query = request.query
         limit = _int_param(query, "limit", 50, 1, 500)
         before = _int_param(query, "before_id", None, 1, None)
-        verdict = query.get("verdict") or None
-        if verdict not in (None, "pass", "fail"):
-            raise HttpError(400, "BAD_REQUEST", "verdict must be 'pass' or 'fail'")
-        since = _float_param(query, "since")
+        try:
+            wanted = http_export.filters(query)
+        except http_export.BadFilter as exc:
+            raise HttpError(400, "BAD_REQUEST", str(exc)) from None
         rows = await asyncio.to_thread(
-            self._log().query,
-            since=since,
-            inspection=query.get("inspection") or None,
-            passed=None if verdict is None else verdict == "pass",
-            limit=limit + 1,
-            peer=query.get("peer") or None,
-            before_id=before,
+            self._log().query, limit=limit + 1, before_id=before, **wanted
         )
         more = len(rows) > limit
         rows = rows[:limit]
@@ -1121,6 +1138,7 @@ def _row_json(row: Any) -> dict[str, Any]:
         "config_hash": row.config_hash,
         "has_image": row.image_path is not None and row.image_path.is_file(),
         "has_overlay": row.overlay_path is not None and row.overlay_path.is_file(),
+        "operator": None if row.operator is None else row.operator.to_json(),
     }
 
 

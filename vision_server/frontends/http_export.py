@@ -40,40 +40,50 @@ COLUMNS = (
     "request_id",
     "config_hash",
     "error",
+    "operator",
+    "operator_choice",
+    "operator_reason",
     "data",
 )
 _FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
 
 
-class ExportError(ValueError):
-    """A query parameter of an export that cannot be taken; the message names it."""
+class BadFilter(ValueError):
+    """A filter or a parameter of the result log's listing or export that cannot be taken;
+    the message names it."""
 
 
 def filters(query: Mapping[str, str]) -> dict[str, Any]:
     """The result-log query's keyword arguments from a request's query string (the filters
-    ``GET /api/results`` and this export share); :class:`ExportError` naming a bad one."""
+    ``GET /api/results`` and this export share: ``operator`` a user's name as the log keeps
+    it, at most 64 characters); :class:`BadFilter` naming a bad one."""
     verdict = query.get("verdict") or None
     if verdict not in (None, "pass", "fail"):
-        raise ExportError("verdict must be 'pass' or 'fail'")
+        raise BadFilter("verdict must be 'pass' or 'fail'")
     since: float | None = None
     raw = query.get("since")
     if raw:
         try:
             since = float(raw)
         except ValueError:
-            raise ExportError(f"since must be a number (Unix seconds), got {raw!r}") from None
+            raise BadFilter(f"since must be a number (Unix seconds), got {raw!r}") from None
         if since != since or since in (float("inf"), float("-inf")):
-            raise ExportError(f"since must be a finite number, got {raw!r}")
+            raise BadFilter(f"since must be a finite number, got {raw!r}")
+    operator = query.get("operator") or None
+    if operator is not None and len(operator) > 64:
+        raise BadFilter("operator must be a name of at most 64 characters")
     return {
         "since": since,
         "inspection": query.get("inspection") or None,
         "passed": None if verdict is None else verdict == "pass",
         "peer": query.get("peer") or None,
+        "operator": operator,
     }
 
 
 def row_cells(row: StoredResult) -> list[str]:
     """One result as the CSV's cells, in :data:`COLUMNS` order."""
+    mark = row.operator
     cells: list[Any] = [
         row.id,
         datetime.fromtimestamp(row.time, UTC).isoformat(timespec="milliseconds"),
@@ -87,6 +97,9 @@ def row_cells(row: StoredResult) -> list[str]:
         row.request_id,
         row.config_hash,
         row.error or "",
+        mark.name if mark else "",
+        (mark.choice or "") if mark else "",
+        (mark.reason or "") if mark else "",
         json.dumps(row.data, separators=(",", ":"), ensure_ascii=False, default=str),
     ]
     return [_safe(str(cell)) for cell in cells]
@@ -111,7 +124,7 @@ class ExportRoutes:
         try:
             wanted = filters(query)
             limit = _limit(query.get("limit"))
-        except ExportError as exc:
+        except BadFilter as exc:
             raise web.HTTPBadRequest(reason=str(exc)) from None
         log = self.log()
         # The first page is read before the answer starts, so that a log that cannot be read
@@ -147,9 +160,9 @@ def _limit(raw: str | None) -> int:
     try:
         value = int(raw)
     except ValueError:
-        raise ExportError(f"limit must be an integer, got {raw!r}") from None
+        raise BadFilter(f"limit must be an integer, got {raw!r}") from None
     if not 1 <= value <= MAX_ROWS:
-        raise ExportError(f"limit must be in 1..{MAX_ROWS}, got {value}")
+        raise BadFilter(f"limit must be in 1..{MAX_ROWS}, got {value}")
     return value
 
 
@@ -160,4 +173,4 @@ def _lines(rows: Any) -> bytes:
     return out.getvalue().encode("utf-8")
 
 
-__all__ = ["COLUMNS", "ExportRoutes", "filters", "row_cells"]
+__all__ = ["COLUMNS", "BadFilter", "ExportRoutes", "filters", "row_cells"]

@@ -75,6 +75,7 @@ from protocol.frames import Blob, Header, encode_metadata
 from wireio import WireStream, serve
 
 from ..config import DEFAULT_LINE_PORT, SERVER_VERSION, TcpSettings, welcome_limits
+from ..results import ResultLogError
 from ..service import (
     Admission,
     CaptureReply,
@@ -815,6 +816,7 @@ class TcpSession:
             timeout_s = None
             if call.deadline_ms is not None:
                 timeout_s = max(arrived + call.deadline_ms / 1000.0 - time.monotonic(), 0.0)
+            await self._check_result_id(call)
             posted = desk.post(
                 peer=self.peer,
                 message=call.message,
@@ -823,6 +825,7 @@ class TcpSession:
                 skill=call.skill,
                 images=images,
                 timeout_s=timeout_s,
+                result_id=call.result_id,
             )
             answer = await desk.wait(
                 posted,
@@ -834,12 +837,32 @@ class TcpSession:
                     ),
                 },
             )
-            response = OperatorAnswer(rid, answer.choice, answer.by, answer.answered_at)
+            response = OperatorAnswer(
+                rid, answer.choice, answer.by, answer.answered_at, answer.reason, answer.operator
+            )
         except CellvisionError as exc:
             response = error_frame(exc, rid)
         if rid in self.conn.pending:
             self._write(response)
             await self._drain()
+
+    async def _check_result_id(self, call: OperatorCall) -> None:
+        """An OPERATOR_CALL's ``result_id`` must name a row of the result log (its answer is
+        written there): INVALID_ARGUMENT otherwise. A log that cannot be read now (a database
+        that is down) is given the benefit of the doubt; the annotation is tried on answer."""
+        results = self.service.results
+        if call.result_id is None or results is None:
+            return
+        try:
+            row = await asyncio.to_thread(results.get, call.result_id)
+        except ResultLogError:
+            return
+        if row is None:
+            raise InvalidArgument(
+                f"result_id {call.result_id} is no result of this server's result log",
+                request_id=call.request_id,
+                details={"option": "result_id"},
+            )
 
     async def _shutdown_session(self) -> None:
         grace = self.settings.shutdown_grace_s
@@ -938,6 +961,7 @@ def result_message(request_id: int, reply: InspectReply) -> Result:
         reply.config_hash,
         images,
         reply.stored,
+        reply.result_id,
     )
 
 

@@ -41,9 +41,16 @@ from urllib.parse import urlsplit, urlunsplit
 import numpy as np
 
 from .postgres_schema import SCHEMA_VERSION, check_version, migrate
-from .query import COLUMNS, page_sql, where_sql
+from .query import COLUMNS, OPERATOR_COLUMNS, page_sql, where_sql
 from .spool import Spool
-from .store import ResultEntry, ResultLogError, StoredResult, parse_data, row_values
+from .store import (
+    OperatorMark,
+    ResultEntry,
+    ResultLogError,
+    StoredResult,
+    parse_data,
+    row_values,
+)
 
 __all__ = ["PgResultLog", "is_database_url", "redact_url"]
 
@@ -51,9 +58,19 @@ logger = logging.getLogger("vision_server.results")
 
 _INSERT = (
     "INSERT INTO results (time, inspection, camera, passed, data, duration_ms, config_hash, "
-    "request_id, peer, error, uid, cell) "
-    "VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s) ON CONFLICT (uid) DO NOTHING"
+    "request_id, peer, error, uid, cell, operator) "
+    "VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s) ON CONFLICT (uid) DO NOTHING"
 )
+_UID = 10
+"""Where a row's values (:func:`row_values`, then uid, cell and operator) have the uid."""
+_VALUES = 13
+"""Values a row has; a spool written by an older server has fewer (no operator): padded."""
+
+
+def _padded(values: tuple[Any, ...]) -> tuple[Any, ...]:
+    return values + (None,) * (_VALUES - len(values))
+
+
 _BATCH = 500  # rows forwarded per transaction
 
 
@@ -238,7 +255,12 @@ class PgResultLog:
         try:
             if self._closed:
                 raise ResultLogError("the result log is closed")
-            values = (*(_text(v) for v in row_values(entry)), uuid.uuid4().hex, self.cell)
+            values = (
+                *(_text(v) for v in row_values(entry)),
+                uuid.uuid4().hex,
+                self.cell,
+                _text(entry.operator) or None,
+            )
         except Exception as exc:
             self._fault(f"result of {entry.inspection!r} not recorded", exc, row_lost=True)
             return None
@@ -284,7 +306,7 @@ class PgResultLog:
         assert self._spool is not None
         with self._mode_lock:
             try:
-                self._spool.add(values[-2], values)
+                self._spool.add(values[_UID], values)
             except Exception as exc:
                 self._fault(f"result of {inspection!r} not recorded", exc, row_lost=True)
                 return None
@@ -337,7 +359,7 @@ class PgResultLog:
                 if batch:
                     try:
                         with conn.transaction(), conn.cursor() as cur:
-                            cur.executemany(_INSERT, [values for _, values in batch])
+                            cur.executemany(_INSERT, [_padded(values) for _, values in batch])
                     except (self._pg.DataError, self._pg.IntegrityError):
                         refused = self._forward_singly(conn, batch)
             except Exception as exc:
@@ -380,7 +402,7 @@ class PgResultLog:
         for uid, values in batch:
             try:
                 with conn.transaction():
-                    conn.execute(_INSERT, values)
+                    conn.execute(_INSERT, _padded(values))
             except (self._pg.DataError, self._pg.IntegrityError) as exc:
                 refused += 1
                 self._fault(
@@ -430,9 +452,11 @@ class PgResultLog:
         newest_first: bool = True,
         peer: str | None = None,
         before_id: int | None = None,
+        operator: str | None = None,
     ) -> list[StoredResult]:
         """As :meth:`vision_server.results.ResultLog.query`."""
         sql, params = self.query_sql(
+            operator=operator,
             since=since,
             inspection=inspection,
             passed=passed,
@@ -453,9 +477,11 @@ class PgResultLog:
         newest_first: bool = True,
         peer: str | None = None,
         before_id: int | None = None,
+        operator: str | None = None,
     ) -> tuple[str, tuple[Any, ...]]:
         """The SQL and parameters :meth:`query` runs."""
         return page_sql(
+            operator=operator,
             since=since,
             inspection=inspection,
             passed=passed,
@@ -496,6 +522,38 @@ class PgResultLog:
         """The result with id ``row_id``, or None."""
         rows = self._read(f"SELECT {COLUMNS} FROM results WHERE id = %s", (int(row_id),))
         return _stored(rows[0]) if rows else None
+
+    def annotate(self, row_id: int, *, name: str, choice: str, reason: str, at: float) -> bool:
+        """As :meth:`vision_server.results.ResultLog.annotate`: one UPDATE on a write
+        connection. ResultLogError when the database cannot take it now (nothing is spooled:
+        the answer itself reached the robot and the server's log)."""
+        if self.readonly:
+            raise ResultLogError(f"{self.where} was opened read-only: it cannot annotate results")
+        self._check_open()
+        conn: Any = None
+        try:
+            with contextlib.suppress(queue.Empty):
+                conn = self._idle.get_nowait()
+            if conn is None or conn.closed:
+                conn = self._open_connection(migrating=True)
+            with conn.transaction():
+                cursor = conn.execute(
+                    "UPDATE results SET operator = %s, operator_choice = %s, "
+                    "operator_reason = %s, operator_at = %s WHERE id = %s",
+                    (_text(name), choice, _text(reason) or None, float(at), int(row_id)),
+                )
+                done = bool(cursor.rowcount > 0)
+        except Exception as exc:
+            self._drop(conn)
+            raise ResultLogError(f"cannot annotate result {row_id} in {self.where}: {exc}") from exc
+        self._idle.put(conn)
+        if self._closed:
+            self._close_idle()
+        return done
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ResultLogError(f"the result log {self.where} is closed")
 
     # ------------------------------------------------------------------ status and lifetime
 
@@ -564,4 +622,5 @@ def _stored(row: tuple[Any, ...]) -> StoredResult:
         error=error,
         image_path=None,
         overlay_path=None,
+        operator=OperatorMark.from_columns(*row[OPERATOR_COLUMNS]),
     )

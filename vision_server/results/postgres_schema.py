@@ -53,6 +53,15 @@ MIGRATIONS: tuple[str, ...] = (
     CREATE INDEX results_by_verdict ON results (passed, time, id);
     CREATE INDEX results_by_peer ON results (peer, time);
     """,
+    """
+    -- Who: a console try's user, or the operator who answered the call about this failed
+    -- result, with their choice, reason and time (Unix seconds). NULL: nobody.
+    ALTER TABLE results ADD COLUMN operator TEXT;
+    ALTER TABLE results ADD COLUMN operator_choice TEXT;
+    ALTER TABLE results ADD COLUMN operator_reason TEXT;
+    ALTER TABLE results ADD COLUMN operator_at DOUBLE PRECISION;
+    CREATE INDEX results_by_operator ON results (operator, time, id);
+    """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 

@@ -14,12 +14,14 @@ from typing import Any
 
 from .tries import TRY_PEER_PREFIX
 
-__all__ = ["COLUMNS", "KeyLookup", "page_sql", "where_sql"]
+__all__ = ["COLUMNS", "OPERATOR_COLUMNS", "KeyLookup", "page_sql", "where_sql"]
 
 COLUMNS = (
     "id, time, inspection, camera, passed, data, duration_ms, config_hash, request_id, peer, "
-    "error, image, overlay"
+    "error, image, overlay, operator, operator_choice, operator_reason, operator_at"
 )
+OPERATOR_COLUMNS = slice(13, 17)
+"""Where a row of :data:`COLUMNS` has its operator's name, choice, reason and time."""
 
 KeyLookup = Callable[[int], "tuple[float, int] | None"]
 """The (time, id) of a row by id, or None when there is no such row."""
@@ -69,10 +71,27 @@ def page_sql(
     key_of: KeyLookup,
     mark: str,
     boolean: Callable[[bool], Any],
+    operator: str | None = None,
 ) -> tuple[str, tuple[Any, ...]]:
     """The query of one page of results (see :meth:`ResultStore.query` for the filters)."""
-    where, params = where_sql(since, inspection, passed, mark=mark, boolean=boolean)
-    extra: list[str] = []
+    if operator:
+        # A person's rows are few among the log's: read them through the operator's index
+        # and apply the other filters to them. Written so that no other index can serve
+        # ``inspection`` or ``passed`` (an expression of a column hides it from the planner,
+        # in both databases): an equality on their indexes ties with the operator's, and
+        # could make a page read every row of an inspection for a few of one person's.
+        where, params = where_sql(since, None, None, mark=mark, boolean=boolean)
+        extra = [f"operator = {mark}"]
+        params = (*params, operator)
+        if inspection is not None:
+            extra.append(f"inspection || '' = {mark}")
+            params = (*params, inspection)
+        if passed is not None:
+            extra.append(f"(CASE WHEN passed THEN 1 ELSE 0 END) = {mark}")
+            params = (*params, 1 if passed else 0)
+    else:
+        where, params = where_sql(since, inspection, passed, mark=mark, boolean=boolean)
+        extra = []
     if peer:
         # A prefix as a range (an index can serve it, LIKE's wildcards play no part: a peer
         # may contain '_'); the upper bound is the prefix with its last character's

@@ -66,9 +66,17 @@ from typing import Any, get_args
 import cv2
 import numpy as np
 
-from .query import COLUMNS, page_sql
+from .query import COLUMNS, OPERATOR_COLUMNS, page_sql
 from .query import where_sql as _where
-from .store import ImagePolicy, ResultEntry, ResultLogError, StoredResult, parse_data, row_values
+from .store import (
+    ImagePolicy,
+    OperatorMark,
+    ResultEntry,
+    ResultLogError,
+    StoredResult,
+    parse_data,
+    row_values,
+)
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -122,6 +130,16 @@ _MIGRATIONS: tuple[str, ...] = (
     CREATE INDEX results_by_verdict ON results (passed, time);
     CREATE INDEX results_by_inspection_verdict ON results (inspection, passed, time);
     CREATE INDEX results_by_peer ON results (peer, time);
+    """,
+    """
+    -- Who: the console user of a try, or the operator who answered the call about this
+    -- failed result, with their choice, reason and time (Unix seconds). NULL: nobody.
+    ALTER TABLE results ADD COLUMN operator TEXT;
+    ALTER TABLE results ADD COLUMN operator_choice TEXT;
+    ALTER TABLE results ADD COLUMN operator_reason TEXT;
+    ALTER TABLE results ADD COLUMN operator_at REAL;
+    -- The console's filter by operator reads newest first, as the others.
+    CREATE INDEX results_by_operator ON results (operator, time);
     """,
 )
 SCHEMA_VERSION = len(_MIGRATIONS)
@@ -498,7 +516,9 @@ class ResultLog:
             try:
                 if self._closed:
                     raise ResultLogError("the result log is closed")
-                new_id, pruned = self._insert(values, image_name, overlay_name, image_bytes)
+                new_id, pruned = self._insert(
+                    (*values, entry.operator or None), image_name, overlay_name, image_bytes
+                )
             except Exception as exc:
                 for name in (image_name, overlay_name):
                     if name is not None:
@@ -570,14 +590,15 @@ class ResultLog:
         overlay_name: str | None,
         image_bytes: int,
     ) -> tuple[int, list[tuple[tuple[str | None, str | None], int]]]:
-        """Insert the row and drop the oldest images over the cap, in one transaction."""
+        """Insert the row (``values``: :func:`row_values` and the operator) and drop the oldest
+        images over the cap, in one transaction."""
         conn = self._conn
         conn.execute("BEGIN IMMEDIATE")
         try:
             cursor = conn.execute(
                 "INSERT INTO results (time, inspection, camera, passed, data, duration_ms, "
-                "config_hash, request_id, peer, error, image, overlay, image_bytes) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "config_hash, request_id, peer, error, operator, image, overlay, image_bytes) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (*values, image_name, overlay_name, image_bytes),
             )
             new_id = cursor.lastrowid
@@ -668,11 +689,12 @@ class ResultLog:
         newest_first: bool = True,
         peer: str | None = None,
         before_id: int | None = None,
+        operator: str | None = None,
     ) -> list[StoredResult]:
         """Results with ``time >= since`` (Unix seconds), of one inspection, with one verdict,
-        from peers starting with ``peer``, that come after row ``before_id`` in the order asked
-        (paging: the rows older than it, newest first); at most ``limit`` of them, newest (or
-        oldest) first, by time and then id.
+        from peers starting with ``peer``, annotated with ``operator``, that come after row
+        ``before_id`` in the order asked (paging: the rows older than it, newest first); at
+        most ``limit`` of them, newest (or oldest) first, by time and then id.
 
         Every filter is served by an index (see the migrations), so a page costs about ``limit``
         rows read whatever the log's size; the tests check the query plans.
@@ -685,6 +707,7 @@ class ResultLog:
             newest_first=newest_first,
             peer=peer,
             before_id=before_id,
+            operator=operator,
         )
         with self._lock:
             self._check_open()
@@ -701,9 +724,11 @@ class ResultLog:
         newest_first: bool = True,
         peer: str | None = None,
         before_id: int | None = None,
+        operator: str | None = None,
     ) -> tuple[str, tuple[Any, ...]]:
         """The SQL and parameters :meth:`query` runs (for ``EXPLAIN QUERY PLAN`` and the bench)."""
         return page_sql(
+            operator=operator,
             since=since,
             inspection=inspection,
             passed=passed,
@@ -784,7 +809,26 @@ class ResultLog:
             error=error,
             image_path=self._image_path(image),
             overlay_path=self._image_path(row[12]),
+            operator=OperatorMark.from_columns(*row[OPERATOR_COLUMNS]),
         )
+
+    def annotate(self, row_id: int, *, name: str, choice: str, reason: str, at: float) -> bool:
+        """Write an operator's answer onto row ``row_id`` (the failed result the call was
+        about): their ``name``, ``choice``, ``reason`` ("" for none) and when (``at``, Unix
+        seconds). False when there is no such row; ResultLogError when it cannot be written."""
+        if self.readonly:
+            raise ResultLogError(f"{self.path} was opened read-only: it cannot annotate results")
+        with self._lock:
+            self._check_open()
+            try:
+                cursor = self._conn.execute(
+                    "UPDATE results SET operator = ?, operator_choice = ?, operator_reason = ?, "
+                    "operator_at = ? WHERE id = ?",
+                    (str(name), str(choice), str(reason) or None, float(at), int(row_id)),
+                )
+            except sqlite3.Error as exc:
+                raise ResultLogError(f"cannot annotate result {row_id}: {exc}") from exc
+        return cursor.rowcount > 0
 
     def _check_open(self) -> None:
         if self._closed:

@@ -24,6 +24,7 @@ from . import tries
 
 __all__ = [
     "ImagePolicy",
+    "OperatorMark",
     "ResultEntry",
     "ResultLogError",
     "ResultStore",
@@ -69,6 +70,35 @@ class ResultEntry:
     config: Mapping[str, Any] | None = None
     """The whole inspection mapping a console try ran instead of the configured inspection
     (an edited or a new one); stored with the try's row under ``data.try.config``."""
+    operator: str = ""
+    """Who asked, when a person did (a console try's signed-in user); "" for a robot's."""
+
+
+@dataclass(frozen=True)
+class OperatorMark:
+    """The person a row is annotated with: a console try's user (``choice`` None), or the
+    operator who answered the call about this failed result, with their ``choice``, ``reason``
+    ("" when none) and when (``at``, Unix seconds)."""
+
+    name: str
+    choice: str | None = None
+    reason: str | None = None
+    at: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "choice": self.choice, "reason": self.reason, "at": self.at}
+
+    @classmethod
+    def from_columns(cls, name: Any, choice: Any, reason: Any, at: Any) -> OperatorMark | None:
+        """The mark of a row's four operator columns (None when it has none)."""
+        if not name:
+            return None
+        return cls(
+            str(name),
+            None if choice is None else str(choice),
+            None if reason is None else str(reason),
+            None if at is None else float(at),
+        )
 
 
 @dataclass(frozen=True)
@@ -91,6 +121,8 @@ class StoredResult:
     error: str | None
     image_path: Path | None
     overlay_path: Path | None = None
+    operator: OperatorMark | None = None
+    """Who this row is annotated with (an operator's answer, a try's user), or None."""
 
     @property
     def is_try(self) -> bool:
@@ -115,6 +147,7 @@ class StoredResult:
             "error": self.error,
             "image_path": str(self.image_path) if self.image_path is not None else None,
             "overlay_path": str(self.overlay_path) if self.overlay_path is not None else None,
+            "operator": None if self.operator is None else self.operator.to_json(),
         }
 
 
@@ -126,6 +159,9 @@ class ResultStore(Protocol):
     ``stored: false``), otherwise an int: the row's id, or 0 when the row is durably kept
     elsewhere first and gets its id later (PostgreSQL's spool). The readers raise
     :class:`ResultLogError` when the rows cannot be read (a closed log, a database that is down).
+    ``annotate`` writes an operator's answer onto a row (False when there is no such row;
+    ResultLogError when the log cannot be written); ``query(operator=NAME)`` reads the rows
+    annotated with NAME through an index.
     """
 
     @property
@@ -146,7 +182,10 @@ class ResultStore(Protocol):
         newest_first: bool = True,
         peer: str | None = None,
         before_id: int | None = None,
+        operator: str | None = None,
     ) -> list[StoredResult]: ...
+
+    def annotate(self, row_id: int, *, name: str, choice: str, reason: str, at: float) -> bool: ...
 
     def timings(
         self, *, inspection: str, since: float

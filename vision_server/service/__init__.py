@@ -40,7 +40,14 @@ from .core import (
     deadline_after,
 )
 from .door import FrontDoor, Pass, Refusal, peer_host, peer_name
-from .operator_desk import CallClosed, OperatorDesk, call_json, closed_json, desk_image
+from .operator_desk import (
+    MAX_REASON_CHARS,
+    CallClosed,
+    OperatorDesk,
+    call_json,
+    closed_json,
+    desk_image,
+)
 from .replay import (
     DEFAULT_LAST,
     MAX_LAST,
@@ -74,6 +81,7 @@ __all__ = [
     "InspectRequest",
     "InspectionRecord",
     "InspectionService",
+    "MAX_REASON_CHARS",
     "OperatorDesk",
     "Pass",
     "Refusal",

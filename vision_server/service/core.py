@@ -145,6 +145,8 @@ class InspectRequest:
     log already holds, up to 1000 at a time: a row each would flood the log with copies of
     results it has (and push real ones out of its image budget), for runs of a configuration
     nobody saved."""
+    operator: str = ""
+    """Who asked (a console try's signed-in user): recorded as the row's operator."""
 
 
 @dataclass(frozen=True)
@@ -172,6 +174,8 @@ class InspectReply:
     config_hash: str
     stored: bool | None = None
     overlay: Overlay | None = None
+    result_id: int | None = None
+    """The row's id in the result log, when the log gave one (RESULT ``result_id``)."""
 
     @property
     def timing(self) -> dict[str, float]:
@@ -598,7 +602,7 @@ class InspectionService:
         in_process = inspection.name in self.settings.process_inspections
         captured: list[Images] = []
 
-        def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None]:
+        def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None, int | None]:
             image = acquire()
             if request.images is None:
                 captured.append(Images(image.color, image.depth))
@@ -618,6 +622,7 @@ class InspectionService:
                 image=image.color,
                 options=request.options,
                 config=request.config,
+                operator=request.operator,
             )
             # The log stores the overlay beside the input it keeps (drawing costs ~0.1 ms; the
             # policy's pass/fail choice is only known after the run). Not for very large
@@ -642,9 +647,10 @@ class InspectionService:
             if sources:
                 outcome = replace(outcome, data={**outcome.data, "source_files": sources})
             stored: bool | None = None
+            row_id: int | None = None
             # A run its request gave up on (DEADLINE_EXCEEDED) already has its error row.
             if rows.claim():
-                stored = self._record(
+                stored, row_id = self._record_row(
                     replace(
                         entry, passed=outcome.passed, data=outcome.data, overlay=outcome.overlay
                     ),
@@ -654,9 +660,9 @@ class InspectionService:
             if request.overlay is not None and outcome.overlay is not None:
                 # Encoding is CPU work too: here, not on the event loop of every connection.
                 overlay = _overlay(outcome.overlay, request.overlay)
-            return outcome, compute_ms, overlay, stored
+            return outcome, compute_ms, overlay, stored, row_id
 
-        outcome, compute_ms, overlay, stored = await self._in_pool(
+        outcome, compute_ms, overlay, stored, row_id = await self._in_pool(
             work,
             request.arrived,
             request.deadline,
@@ -674,6 +680,7 @@ class InspectionService:
             catalog.config_hash,
             stored,
             overlay,
+            row_id,
         )
         self._notify(InspectionRecord(request, reply, captured[0] if captured else None))
         return reply
@@ -694,11 +701,18 @@ class InspectionService:
         without a result log). The log never raises: a full disk is counted and logged, the
         answer still goes out, with ``stored: false`` (SPEC §6.3), and :meth:`health` turns
         not ok. An error row that fails is counted the same way (its error carries no flag)."""
+        return self._record_row(entry, t0, error=error)[0]
+
+    def _record_row(
+        self, entry: ResultEntry, t0: float, *, error: str | None = None
+    ) -> tuple[bool | None, int | None]:
+        """:meth:`_record`, and the row's id when the log gave one (a PostgreSQL log that
+        spooled the row gives none yet)."""
         if self.results is None:
-            return None
+            return None, None
         duration_ms = (time.perf_counter() - t0) * 1000.0
         row_id = self.results.record(replace(entry, duration_ms=duration_ms, error=error))
-        return row_id is not None
+        return row_id is not None, (row_id if row_id else None)
 
     def _capture_timeout(self, deadline: float | None) -> float:
         if deadline is None:

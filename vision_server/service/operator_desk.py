@@ -62,6 +62,8 @@ class CallClosed(LookupError):
             why = "no such call"
         elif closed.outcome == "answered":
             why = f"already answered {closed.choice!r} by {closed.by}"
+            if closed.reason:
+                why += f" ({closed.reason})"
         else:
             why = {
                 "expired": "its deadline passed: the robot stopped waiting",
@@ -83,13 +85,21 @@ class DeskImage:
     role: str
 
 
+MAX_REASON_CHARS = 500
+"""The longest reason an answer may give (characters)."""
+
+
 @dataclass(frozen=True)
 class DeskAnswer:
-    """A person's answer: ``choice``, who gave it (``by``) and when (Unix seconds)."""
+    """A person's answer: ``choice``, who gave it (``by``: the name and where, for a log;
+    ``operator``: the signed-in name alone, "" when unknown), when (``answered_at``, Unix
+    seconds) and why (``reason``, "" when none was given)."""
 
     choice: str
     by: str
     answered_at: float
+    reason: str = ""
+    operator: str = ""
 
 
 @dataclass
@@ -107,6 +117,9 @@ class OpenCall:
     posted_at: float
     expires_at: float | None
     answer: asyncio.Future[DeskAnswer] = field(repr=False)
+    result_id: int | None = None
+    """The failed result's id in the server's result log (OPERATOR_CALL ``result_id``): its
+    row is annotated with the answer."""
 
     @property
     def image_bytes(self) -> int:
@@ -124,6 +137,9 @@ class ClosedCall:
     closed_at: float
     choice: str = ""
     by: str = ""
+    reason: str = ""
+    operator: str = ""
+    result_id: int | None = None
 
 
 def desk_image(payload: ImagePayload, *, max_pixels: int, where: str) -> DeskImage:
@@ -192,6 +208,7 @@ class OperatorDesk:
         skill: str = "",
         images: Sequence[DeskImage] = (),
         timeout_s: float | None = None,
+        result_id: int | None = None,
     ) -> OpenCall:
         """Open a call; BUSY when the desk is full, INVALID_ARGUMENT when the call can never
         fit (too many images, or more bytes than the desk holds at all)."""
@@ -230,6 +247,7 @@ class OperatorDesk:
             posted_at=now,
             expires_at=None if timeout_s is None else now + timeout_s,
             answer=asyncio.get_running_loop().create_future(),
+            result_id=result_id,
         )
         self._open[call.id] = call
         return call
@@ -276,9 +294,16 @@ class OperatorDesk:
 
     # ------------------------------------------------------------------ people
 
-    def answer(self, call_id: int, choice: str, *, by: str) -> DeskAnswer:
+    def find(self, call_id: int) -> OpenCall | None:
+        """The open call ``call_id``, or None."""
+        return self._open.get(call_id)
+
+    def answer(
+        self, call_id: int, choice: str, *, by: str, reason: str = "", operator: str = ""
+    ) -> DeskAnswer:
         """Answer an open call; CallClosed when it is not open, INVALID_ARGUMENT when
-        ``choice`` is not one the call offers."""
+        ``choice`` is not one the call offers or ``reason`` is longer than MAX_REASON_CHARS.
+        (Which choices need a reason is the console's rule, not the desk's.)"""
         call = self._open.get(call_id)
         if call is None or call.answer.done():
             raise CallClosed(call_id, self._closed(call_id))
@@ -287,7 +312,12 @@ class OperatorDesk:
                 f"call {call_id} offers {', '.join(call.choices)}; {choice!r} is not one of them",
                 details={"option": "choice"},
             )
-        answer = DeskAnswer(choice, by, time.time())
+        if len(reason) > MAX_REASON_CHARS:
+            raise InvalidArgument(
+                f"the reason has {len(reason)} characters, at most {MAX_REASON_CHARS}",
+                details={"option": "reason"},
+            )
+        answer = DeskAnswer(choice, by, time.time(), reason, operator)
         call.answer.set_result(answer)
         return answer
 
@@ -319,6 +349,9 @@ class OperatorDesk:
                 time.time(),
                 answer.choice if answer else "",
                 answer.by if answer else "",
+                answer.reason if answer else "",
+                answer.operator if answer else "",
+                call.result_id,
             )
         )
 
@@ -339,6 +372,7 @@ def call_json(call: OpenCall, now: float, image_url: str) -> dict[str, Any]:
         "posted_at": call.posted_at,
         "waiting_s": max(now - call.posted_at, 0.0),
         "expires_at": call.expires_at,
+        "result_id": call.result_id,
         "images": [
             {
                 "url": image_url.format(call=call.id, index=i),
@@ -360,12 +394,16 @@ def closed_json(call: ClosedCall) -> dict[str, Any]:
         "closed_at": call.closed_at,
         "choice": call.choice or None,
         "by": call.by or None,
+        "operator": call.operator or None,
+        "reason": call.reason or None,
+        "result_id": call.result_id,
     }
 
 
 __all__ = [
     "MAX_CALLS",
     "MAX_IMAGE_BYTES",
+    "MAX_REASON_CHARS",
     "CallClosed",
     "ClosedCall",
     "DeskAnswer",

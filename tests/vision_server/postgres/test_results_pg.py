@@ -305,7 +305,7 @@ def test_an_older_schema_is_upgraded_and_its_rows_kept(pg_url: str, tmp_path: Pa
         assert [r.inspection for r in log.query(newest_first=False)] == ["old", "qr"]
         assert log.query(inspection="old")[0].data == {"v": 1}
     with psycopg.connect(pg_url) as conn:
-        assert schema_version(conn) == SCHEMA_VERSION == 2
+        assert schema_version(conn) == SCHEMA_VERSION == 3
 
 
 def test_cells_starting_at_once_on_a_new_database_migrate_it_once(

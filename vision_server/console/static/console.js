@@ -58,6 +58,7 @@ const statusPoller = new Poller(async () => {
     pill.dataset.level = level;
     byId("server-name").textContent = info.name ?? "";
     byId("logout").hidden = !info.auth_required;
+    showSignedIn(info);
     // The session's role (operator, integrator, admin): an operator's page hides what it
     // may not do (the server refuses it anyway: 403).
     document.body.dataset.role = info.role ?? "admin";
@@ -69,6 +70,14 @@ const statusPoller = new Poller(async () => {
     setBanner(`The server does not answer: ${exc.message}`);
   }
 }, 3000);
+
+/** Who is signed in, in the header: the user's name and role, or the role of a token. */
+function showSignedIn(info) {
+  const who = byId("signed-in");
+  who.hidden = !info.auth_required || !info.role;
+  byId("signed-in-user").textContent = info.user ?? "";
+  byId("signed-in-role").textContent = info.role ?? "";
+}
 
 export function setBanner(text) {
   const banner = byId("banner");
@@ -89,6 +98,8 @@ function lock() {
   byId("page-login").hidden = false;
   byId("nav").hidden = true;
   byId("logout").hidden = true;
+  byId("signed-in").hidden = true;
+  byId("signed-in-user").textContent = "";
   byId("status-pill").textContent = "signed out";
   byId("status-pill").dataset.level = "idle";
   byId("login-token").focus();
@@ -99,7 +110,7 @@ function unlock() {
   byId("page-login").hidden = true;
   byId("nav").hidden = false;
   byId("login-error").textContent = "";
-  byId("login-token").value = "";
+  for (const id of ["login-token", "login-user", "login-pin"]) byId(id).value = "";
   statusPoller.start();
   operatorBadge.start();
   show(pageFromHash());
@@ -110,12 +121,26 @@ async function submitLogin(event) {
   const button = byId("login-submit");
   button.disabled = true;
   byId("login-error").textContent = "";
+  // Name and PIN, or a badge or token. A badge reader types into whichever field has the
+  // focus: a name without a PIN and no token is taken as a badge.
+  const user = byId("login-user").value.trim();
+  const pin = byId("login-pin").value;
+  let token = byId("login-token").value;
+  const byName = user !== "" && pin !== "";
+  if (!byName && token === "") token = user || pin;
+  if (!byName && token === "") {
+    byId("login-error").textContent = "Enter your name and PIN, or scan your badge.";
+    button.disabled = false;
+    return;
+  }
   try {
-    await api.login(byId("login-token").value);
+    await api.login(byName ? { user, pin } : token);
     unlock();
   } catch (exc) {
-    byId("login-error").textContent =
-      exc instanceof ApiError && exc.status === 401 ? "That token is not valid." : exc.message;
+    byId("login-error").textContent = exc instanceof ApiError && exc.status === 401
+      ? (byName ? "That name and PIN do not match." : "That badge or token is not valid.")
+      : exc.message;
+    byId("login-pin").value = "";
   } finally {
     button.disabled = false;
   }

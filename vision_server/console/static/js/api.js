@@ -81,7 +81,9 @@ export const api = {
   cameras: () => getJson("/api/cameras"),
   frameUrl: (name, tick) => `/api/cameras/${encodeURIComponent(name)}/frame.jpg?t=${tick}`,
   inspections: () => getJson("/api/inspections"),
-  login: (token) => postJson("/api/login", { token }),
+  /** Sign in: a token (a role's, or a badge) as a string, or {user, pin}. */
+  login: (credentials) =>
+    postJson("/api/login", typeof credentials === "string" ? { token: credentials } : credentials),
   logout: () => postJson("/api/logout", {}),
   /**
    * Try an inspection. ``request`` is {source, result_id?, options, overlay}; ``file`` a File or
@@ -106,6 +108,7 @@ export const api = {
     `/api/results/${encodeURIComponent(id)}/image.png?overlay=${overlay ? 1 : 0}`,
   stats: (params) => getJson(`/api/stats${query(params)}`),
   operatorCalls: () => getJson("/api/operator/calls"),
-  answerCall: (id, choice) =>
-    postJson(`/api/operator/calls/${encodeURIComponent(id)}/answer`, { choice }),
+  answerCall: (id, choice, reason) =>
+    postJson(`/api/operator/calls/${encodeURIComponent(id)}/answer`,
+      reason ? { choice, reason } : { choice }),
 };

@@ -106,6 +106,7 @@ export class ResultsPage {
       verdict: byId("f-verdict").value,
       since: since ? String(Math.floor(new Date(since).getTime() / 1000)) : "",
       peer: byId("f-peer").value.trim(),
+      operator: byId("f-operator").value.trim(),
     };
   }
 

@@ -37,7 +37,7 @@ export class ServerPage {
       ["hash", info.config_hash ? String(info.config_hash).slice(0, 16) : null],
       ["started", formatTime(info.started_at)], ["uptime", formatDuration(info.uptime_s)],
       ["listening", info.listen], ["sign-in", info.auth_required ? "token required" : "open"],
-      ["signed in as", info.role],
+      ["signed in as", info.user ? `${info.user} (${info.role})` : info.role],
     ]);
     const health = info.health ?? {};
     fillKeyValues(byId("srv-health"), [
