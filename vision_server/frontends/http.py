@@ -58,9 +58,11 @@ from .http_auth import COOKIE, RANK, Role, Sessions
 from .http_door import cross_site_reason, host_allowed
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
+from .http_online import OnlineRoutes
 from .http_operator import OperatorRoutes
 from .images import decode_payloads
 from .listener import Listener, Policy, quiet_logger
+from .online_board import OnlineBoard
 from .uploads import upload_loader
 
 log = logging.getLogger("vision_server")
@@ -169,6 +171,8 @@ class HttpFrontend:
         self._save_lock = asyncio.Lock()
         self.live: LiveView | None = None
         self.metrics: Metrics | None = None
+        self.online: OnlineBoard | None = None
+        """The online view's counts and last graphics (made with the application)."""
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -240,6 +244,9 @@ class HttpFrontend:
             self._listener = None
         if self.metrics is not None:
             self.metrics.close()
+        if self.online is not None:
+            self.online.close()
+            self.online = None
         if self.live is not None:
             self.live.close()
 
@@ -265,6 +272,9 @@ class HttpFrontend:
         routes.add_get("/api/stats", self.stats)
         routes.add_get("/metrics", self.metrics_text)
         OperatorRoutes(self.operator_desk).add_to(routes)
+        if self.online is None:
+            self.online = OnlineBoard(self.service)
+        OnlineRoutes(self.online, timeout_s=self.settings.request_timeout_s).add_to(routes)
         return app
 
     # ------------------------------------------------------------------ middlewares
@@ -888,7 +898,9 @@ class HttpFrontend:
 # ----------------------------------------------------------------------------- helpers
 
 
-INTEGRATOR_ROUTES = frozenset({"/api/inspections/{name}/try", "/api/inspections/{name}/save"})
+INTEGRATOR_ROUTES = frozenset(
+    {"/api/inspections/{name}/try", "/api/inspections/{name}/save", "/api/online/reset"}
+)
 """What changes an inspection or runs one with other options: the integrator's and the
 admin's, not the operator's (who views, and answers operator calls)."""
 

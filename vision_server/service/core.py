@@ -159,6 +159,10 @@ class InspectReply:
     config_hash: str
     stored: bool | None = None
     overlay: Overlay | None = None
+    result_id: int | None = None
+    """The result log's id of this run's row (None: not stored, or no log)."""
+    image_size: tuple[int, int] | None = None
+    """``(width, height)`` in pixels of the colour image the inspection ran on."""
 
     @property
     def timing(self) -> dict[str, float]:
@@ -569,8 +573,12 @@ class InspectionService:
         in_process = inspection.name in self.settings.process_inspections
         captured: list[Images] = []
 
+        size: list[tuple[int, int]] = []  # the image's (width, height), for observers
+        row_ids: list[int] = []  # the result log's id of the row, when it kept one
+
         def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None]:
             image = acquire()
+            size.append((int(image.color.shape[1]), int(image.color.shape[0])))
             if request.images is None:
                 captured.append(Images(image.color, image.depth))
             if request.overlay is not None:
@@ -613,12 +621,15 @@ class InspectionService:
             stored: bool | None = None
             # A run its request gave up on (DEADLINE_EXCEEDED) already has its error row.
             if rows.claim():
-                stored = self._record(
+                row_id = self._record_row(
                     replace(
                         entry, passed=outcome.passed, data=outcome.data, overlay=outcome.overlay
                     ),
                     t0,
                 )
+                stored = None if self.results is None else row_id is not None
+                if row_id is not None:
+                    row_ids.append(row_id)
             overlay = None
             if request.overlay is not None and outcome.overlay is not None:
                 # Encoding is CPU work too: here, not on the event loop of every connection.
@@ -643,6 +654,8 @@ class InspectionService:
             catalog.config_hash,
             stored,
             overlay,
+            row_ids[0] if row_ids else None,
+            size[0] if size else None,
         )
         self._notify(InspectionRecord(request, reply, captured[0] if captured else None))
         return reply
@@ -665,9 +678,14 @@ class InspectionService:
         not ok. An error row that fails is counted the same way (its error carries no flag)."""
         if self.results is None:
             return None
+        return self._record_row(entry, t0, error=error) is not None
+
+    def _record_row(self, entry: ResultEntry, t0: float, *, error: str | None = None) -> int | None:
+        """:meth:`_record`, answering the row's id (None: not written, or no log)."""
+        if self.results is None:
+            return None
         duration_ms = (time.perf_counter() - t0) * 1000.0
-        row_id = self.results.record(replace(entry, duration_ms=duration_ms, error=error))
-        return row_id is not None
+        return self.results.record(replace(entry, duration_ms=duration_ms, error=error))
 
     def _capture_timeout(self, deadline: float | None) -> float:
         if deadline is None:
