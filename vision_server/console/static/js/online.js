@@ -119,6 +119,8 @@ export class CameraOnline {
     this.view = view;
     this.image = image;
     this.wall = Boolean(options.wall);
+    // The wall screen's copies of the controls: ids of their own (the Cameras page's stay).
+    this.idPrefix = this.wall ? "wall-" : "";
     this.entry = null;       // this camera's part of the board
     this.canvas = el("canvas", {
       class: "online-canvas", "data-test": "online-canvas", "data-camera": camera,
@@ -128,7 +130,7 @@ export class CameraOnline {
     const cardKey = `card:${camera}`;
     this.shown = !hiddenSet().has(cardKey);
     this.toggle = el("input", {
-      type: "checkbox", id: `overlay-toggle-${camera}`, "data-test": "overlay-toggle",
+      type: "checkbox", id: `${this.idPrefix}overlay-toggle-${camera}`, "data-test": "overlay-toggle",
       "data-camera": camera, checked: this.shown,
       onchange: () => {
         this.shown = this.toggle.checked;
@@ -190,7 +192,7 @@ export class CameraOnline {
   makeRow(name) {
     const key = `insp:${this.camera}:${name}`;
     const show = el("input", {
-      type: "checkbox", id: `overlay-${this.camera}-${name}`, "data-test": "inspection-toggle",
+      type: "checkbox", id: `${this.idPrefix}overlay-${this.camera}-${name}`, "data-test": "inspection-toggle",
       "data-inspection": name, checked: !hiddenSet().has(key),
       onchange: () => {
         setHidden(key, !show.checked);
@@ -212,11 +214,12 @@ export class CameraOnline {
       "data-inspection": name, title: `Reset the counts of ${name}`,
       onclick: () => resetCounts(name),
     }, "Reset");
-    const node = el("div", { class: "online-row", id: `online-${this.camera}-${name}`, "data-test": "online-row", "data-inspection": name },
+    const node = el("div", { class: "online-row", id: `${this.idPrefix}online-${this.camera}-${name}`, "data-test": "online-row", "data-inspection": name },
       el("div", { class: "online-row-head" },
         el("label", { class: "online-name" }, show, el("span", {}, name)),
+        reset,
         verdict),
-      el("div", { class: "online-counts" }, pass.node, fail.node, yld.node, total.node, reset),
+      el("div", { class: "online-counts" }, pass.node, fail.node, yld.node, total.node),
       strip);
     return { node, show, pass: pass.value, fail: fail.value, yield: yld.value, total: total.value, verdict, strip };
   }
@@ -256,7 +259,7 @@ export class CameraOnline {
     // have another size (a scaled view): stretch by their ratio.
     const sx = imageSize ? (nw * fit) / imageSize[0] : fit;
     const sy = imageSize ? (nh * fit) / imageSize[1] : fit;
-    return { left, top, sx, sy, width, height };
+    return { left, top, sx, sy, width, height, right: left + nw * fit, bottom: top + nh * fit };
   }
 
   draw() {
@@ -272,20 +275,51 @@ export class CameraOnline {
     ctx.setTransform(ratio, 0, 0, ratio, 0, 0);
     ctx.clearRect(0, 0, width, height);
     const drawn = [];
+    let verdictBoxes = [];
     if (this.shown && this.entry) {
-      const boxes = [];
+      const labels = [];
+      const extents = [];
+      const shown = [];
+      let origin = null;
       for (const insp of this.entry.inspections) {
         if (!insp.last || !this.inspectionShown(insp.name)) continue;
         const place = this.placement(insp.last.image_size);
-        if (place !== null) drawShapes(ctx, insp.last.shapes || [], place, this.wall);
-        boxes.push(insp);
+        if (place !== null) {
+          const out = drawShapes(ctx, insp.last.shapes || [], place, this.wall);
+          labels.push(...out.labels);
+          extents.push(...out.extents);
+          origin = origin ?? place;
+        }
+        shown.push(insp);
         drawn.push(insp.name);
       }
-      let y = 8;
-      for (const insp of boxes) y = drawVerdict(ctx, insp, y, width, this.wall) + 6;
+      // The verdicts one under the other, in the image's corner that hides the fewest of the
+      // graphics; the labels last, moved off the verdict boxes they would hide under.
+      const area = {
+        left: Math.max(origin ? origin.left : 0, 0),
+        top: Math.max(origin ? origin.top : 0, 0),
+        right: Math.min(origin ? origin.right : width, width),
+        bottom: Math.min(origin ? origin.bottom : height, height),
+      };
+      const sizes = shown.map((insp) => drawVerdict(ctx, insp, 0, 0, area.right - area.left - 16, this.wall, false));
+      const stackWidth = Math.max(0, ...sizes.map((b) => b.right - b.left));
+      const stackHeight = sizes.reduce((sum, b) => sum + b.bottom - b.top + 6, 0);
+      const corner = bestCorner(area, stackWidth, stackHeight, extents);
+      let y = corner.top;
+      const boxes = [];
+      for (const insp of shown) {
+        const box = drawVerdict(ctx, insp, corner.left, y, area.right - area.left - 16, this.wall, true);
+        boxes.push(box);
+        y = box.bottom + 6;
+      }
+      verdictBoxes = boxes;
+      const size = this.wall ? 22 : 15;
+      for (const item of labels) label(ctx, item.text, item.x, item.y, size, { width, height }, boxes);
     }
     // What is drawn, for a test or a screen reader: the inspections whose graphics are shown.
     canvas.dataset.drawn = drawn.join(" ");
+    canvas.dataset.verdictBoxes = verdictBoxes
+      .map((b) => [b.left, b.top, b.right, b.bottom].map(Math.round).join(",")).join(";");
   }
 }
 
@@ -307,12 +341,54 @@ function stroke(ctx, role, path, scale = 1) {
   ctx.restore();
 }
 
+/** The corner of ``area`` (top-left first) where a ``w`` x ``h`` box covers the least of the
+ * graphics' ``extents``. */
+function bestCorner(area, w, h, extents) {
+  const lefts = [area.left + 8, Math.max(area.right - 8 - w, area.left + 8)];
+  const tops = [area.top + 8, Math.max(area.bottom - 8 - h, area.top + 8)];
+  let best = null;
+  for (const top of tops) {
+    for (const left of lefts) {
+      let covered = 0;
+      for (const e of extents) {
+        const dx = Math.min(left + w, e.right) - Math.max(left, e.left);
+        const dy = Math.min(top + h, e.bottom) - Math.max(top, e.top);
+        if (dx > 0 && dy > 0) covered += dx * dy + 1000; // any overlap costs, more the more
+      }
+      if (best === null || covered < best.covered) best = { left, top, covered };
+    }
+  }
+  return best;
+}
+
+/** Where a shape lies on the screen (CSS px), for placing the verdicts off it. */
+function extentOf(s, x, y) {
+  let points = [];
+  if (s.kind === "rect") points = [[s.x, s.y], [s.x + s.w, s.y + s.h]];
+  else if (s.kind === "polygon" || s.kind === "line") points = s.points;
+  else if (s.kind === "circle") points = [[s.u - s.r, s.v - s.r], [s.u + s.r, s.v + s.r]];
+  else if (s.kind === "point" || s.kind === "text") points = [[s.u, s.v]];
+  else if (s.kind === "axes") points = [[s.u, s.v], s.x, s.y, s.z].filter(Boolean);
+  if (points.length === 0) return null;
+  const xs = points.map((p) => x(p[0]));
+  const ys = points.map((p) => y(p[1]));
+  const pad = s.kind === "text" ? 12 : 6;
+  return {
+    left: Math.min(...xs) - pad, right: Math.max(...xs) + pad,
+    top: Math.min(...ys) - pad, bottom: Math.max(...ys) + pad,
+  };
+}
+
+/** Draw the shapes' lines; answers their labels (drawn last) and their extents on screen. */
 function drawShapes(ctx, shapes, place, wall) {
   const x = (u) => place.left + (u + 0.5) * place.sx;
   const y = (v) => place.top + (v + 0.5) * place.sy;
   const scale = wall ? 1.5 : 1;
   const texts = [];
+  const extents = [];
   for (const s of shapes) {
+    const extent = extentOf(s, x, y);
+    if (extent !== null) extents.push(extent);
     switch (s.kind) {
       case "rect":
         stroke(ctx, s.role, () => {
@@ -358,9 +434,8 @@ function drawShapes(ctx, shapes, place, wall) {
         break;
     }
   }
-  // Labels last, over every line, each on a dark box.
-  const size = wall ? 22 : 15;
-  for (const s of texts) label(ctx, s.text, x(s.u), y(s.v), size, place);
+  // Labels are drawn last, over every line and verdict, each on a dark box.
+  return { labels: texts.map((s) => ({ text: s.text, x: x(s.u), y: y(s.v) })), extents };
 }
 
 function arrow(ctx, x0, y0, x1, y1, colour, scale) {
@@ -380,15 +455,20 @@ function arrow(ctx, x0, y0, x1, y1, colour, scale) {
   }
 }
 
-function label(ctx, text, px, py, size, place) {
+function label(ctx, text, px, py, size, view, boxes) {
   ctx.save();
   ctx.font = `600 ${size}px system-ui, sans-serif`;
   ctx.textBaseline = "bottom";
   const width = ctx.measureText(text).width + 8;
   const height = size + 6;
   // Kept inside the view: a label at the image's edge must not be cut off.
-  const left = Math.min(Math.max(px, 2), Math.max(place.width - width - 2, 2));
-  const bottom = Math.min(Math.max(py, height + 2), place.height - 2);
+  const left = Math.min(Math.max(px, 2), Math.max(view.width - width - 2, 2));
+  let bottom = Math.min(Math.max(py, height + 2), view.height - 2);
+  for (const box of boxes) {
+    const overlaps = left < box.right && left + width > box.left &&
+      bottom - height < box.bottom && bottom > box.top;
+    if (overlaps) bottom = box.bottom + height + 2;
+  }
   ctx.fillStyle = "rgba(10, 14, 20, 0.78)";
   ctx.fillRect(left, bottom - height, width, height);
   ctx.fillStyle = "#ffffff";
@@ -396,9 +476,10 @@ function label(ctx, text, px, py, size, place) {
   ctx.restore();
 }
 
-/** The verdict box of one inspection at ``top``: "PASS name" in green or red on a dark box with
- * a coloured border; the result's summary below in smaller type. Returns its bottom (CSS px). */
-function drawVerdict(ctx, insp, top, width, wall) {
+/** The verdict box of one inspection at ``left``, ``top``: "PASS name" in green or red on a dark
+ * box with a coloured border; the result's summary below in smaller type. Returns its box
+ * (CSS px); without ``paint`` only measures it. */
+function drawVerdict(ctx, insp, left, top, width, wall, paint) {
   const last = insp.last;
   const verdict = last.passed ? "pass" : "fail";
   const big = wall ? 56 : 34;
@@ -414,9 +495,12 @@ function drawVerdict(ctx, insp, top, width, wall) {
   const nameWidth = ctx.measureText(name).width;
   const detailWidth = ctx.measureText(detail).width;
   const pad = wall ? 14 : 10;
-  const boxWidth = Math.min(Math.max(wordWidth + pad * 3 + nameWidth, detailWidth + pad * 2), width - 16);
+  const boxWidth = Math.min(Math.max(wordWidth + pad * 3 + nameWidth, detailWidth + pad * 2), width);
   const boxHeight = big + pad * 2 + (detail ? small + 4 : 0);
-  const left = 8;
+  if (!paint) {
+    ctx.restore();
+    return { left, top, right: left + boxWidth, bottom: top + boxHeight };
+  }
   ctx.fillStyle = "rgba(8, 12, 18, 0.86)";
   ctx.fillRect(left, top, boxWidth, boxHeight);
   ctx.strokeStyle = VERDICT_COLOUR[verdict];
@@ -436,7 +520,7 @@ function drawVerdict(ctx, insp, top, width, wall) {
     ctx.fillText(detail, left + pad, top + pad + big + 4, boxWidth - pad * 2);
   }
   ctx.restore();
-  return top + boxHeight;
+  return { left, top, right: left + boxWidth, bottom: top + boxHeight };
 }
 
 // -- reset ----------------------------------------------------------------------------------

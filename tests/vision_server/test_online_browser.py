@@ -1,0 +1,300 @@
+"""The online view in a real headless Chromium against the real server with the example cell: a
+robot client runs inspections through the protocol; the Cameras page draws each inspection's
+last graphics and verdict over its camera's image (read back from the canvas's pixels) and
+shows counts and strips equal to the results sent (console tries left out); the toggles hide
+the graphics; "Reset all counts" zeroes them; the wall screen (#/online) at 1920x1080 needs no
+mouse. With ``CONSOLE_SCREENSHOTS=docs/console`` it refreshes docs/console/online.png and
+docs/console/online-wall.png."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from browser import console_errors, headless_chromium, save_screenshot
+from console_server import TOKEN, Browserless, console_server
+
+from robot_client import SyncVisionClient
+
+selenium = pytest.importorskip("selenium")
+from console_pages import WAIT_S, sign_in, visible_page, wait_for  # noqa: E402
+from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.common.keys import Keys  # noqa: E402
+from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+FAIL_RGB = (0xFF, 0x44, 0x38)
+PASS_RGB = (0x2F, 0xD6, 0x6B)
+FEATURE_RGB = (0x00, 0xE5, 0xFF)
+
+# The canvas's pixels and where the image lies under it (CSS px = canvas px at scale 1).
+CANVAS_JS = """
+const card = document.querySelector(
+  `section.page:not([hidden]) article.camera-card[data-camera="${arguments[0]}"]`);
+const canvas = card.querySelector("canvas.online-canvas");
+const image = card.querySelector("img.camera-image");
+const ctx = canvas.getContext("2d");
+const data = ctx.getImageData(0, 0, canvas.width, canvas.height).data;
+return {width: canvas.width, height: canvas.height, pixels: Array.from(data),
+        view: [canvas.clientWidth, canvas.clientHeight],
+        natural: [image.naturalWidth, image.naturalHeight], drawn: canvas.dataset.drawn,
+        boxes: canvas.dataset.verdictBoxes};
+"""
+
+
+@pytest.fixture(scope="module")
+def driver() -> Iterator[WebDriver]:
+    with headless_chromium() as d:
+        yield d
+
+
+class Canvas:
+    """One camera card's canvas, read back: RGB pixels and the image-to-screen mapping."""
+
+    def __init__(self, raw: dict[str, Any]) -> None:
+        self.rgb = np.array(raw["pixels"], np.uint8).reshape(raw["height"], raw["width"], 4)[
+            :, :, :3
+        ]
+        self.drawn = str(raw["drawn"] or "")
+        width, height = raw["view"]
+        nw, nh = raw["natural"]
+        self.fit = min(width / nw, height / nh)
+        self.left = (width - nw * self.fit) / 2
+        self.top = (height - nh * self.fit) / 2
+        boxes = str(raw["boxes"] or "").split(";")
+        self.boxes = [tuple(int(v) for v in box.split(",")) for box in boxes if box]
+        """Each verdict box drawn: (left, top, right, bottom), CSS px."""
+
+    def screen(self, u: float, v: float) -> tuple[int, int]:
+        return round(self.left + (u + 0.5) * self.fit), round(self.top + (v + 0.5) * self.fit)
+
+    def has(self, colour: tuple[int, int, int], x: int, y: int, r: int = 3) -> bool:
+        """Whether a pixel near (x, y) has ``colour`` (within a few grey levels)."""
+        patch = self.rgb[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1].astype(int)
+        return bool((np.abs(patch - np.array(colour)).max(axis=2) <= 12).any())
+
+    def extent(self, colour: tuple[int, int, int], box: tuple[int, int, int, int]) -> int:
+        """Rows (px) from the first to the last of ``colour``'s pixels in ``box`` (x0, y0, x1,
+        y1): how tall the text in that colour is."""
+        x0, y0, x1, y1 = box
+        patch = self.rgb[y0:y1, x0:x1].astype(int)
+        rows = np.nonzero((np.abs(patch - np.array(colour)).max(axis=2) <= 12).any(axis=1))[0]
+        return int(rows[-1] - rows[0] + 1) if rows.size else 0
+
+
+def _canvas(driver: WebDriver, camera: str) -> Canvas:
+    return Canvas(driver.execute_script(CANVAS_JS, camera))
+
+
+def _row(driver: WebDriver, camera: str, inspection: str) -> Any:
+    wall = "wall-" if visible_page(driver) == "page-online" else ""
+    return driver.find_element(By.ID, f"{wall}online-{camera}-{inspection}")
+
+
+def _counts(driver: WebDriver, camera: str, inspection: str) -> dict[str, str]:
+    row = _row(driver, camera, inspection)
+    return {
+        key: row.find_element(By.CSS_SELECTOR, f'[data-test="count-{key}"]').text
+        for key in ("pass", "fail", "yield", "total")
+    }
+
+
+def _strip(driver: WebDriver, camera: str, inspection: str) -> list[tuple[str, str]]:
+    cells = _row(driver, camera, inspection).find_elements(By.CSS_SELECTOR, ".strip-cell")
+    return [(c.get_attribute("data-verdict"), c.get_attribute("data-result-id")) for c in cells]
+
+
+def _caps() -> np.ndarray:
+    image = np.full((768, 1024), 40, np.uint8)
+    cv2.circle(image, (300, 300), 80, 230, -1)
+    cv2.circle(image, (700, 420), 70, 230, -1)
+    return image
+
+
+def _inner_size(driver: WebDriver, width: int, height: int) -> None:
+    """Make the page itself ``width`` x ``height`` (the window counts its frame)."""
+    driver.set_window_size(width, height)
+    inner = driver.execute_script("return [window.innerWidth, window.innerHeight];")
+    size = driver.get_window_size()
+    driver.set_window_size(size["width"] + width - inner[0], size["height"] + height - inner[1])
+
+
+def test_the_cameras_page_draws_each_inspections_last_result_and_counts_them(
+    driver: WebDriver, tmp_path: Path
+) -> None:
+    shots = Path(os.environ.get("CONSOLE_SCREENSHOTS") or tmp_path)
+    with console_server(tmp_path) as server:
+        robot = SyncVisionClient(
+            "127.0.0.1", server.app.port, auth_token=TOKEN, request_timeout_s=WAIT_S
+        )
+        try:
+            # The cell's production: magnet_check fails three times (the empty slot),
+            # cap_locate fails once and passes twice (the last result shows two caps).
+            for _ in range(3):
+                assert not robot.inspect("magnet_check").passed
+            assert not robot.inspect("cap_locate", np.full((768, 1024), 40, np.uint8)).passed
+            for _ in range(2):
+                assert robot.inspect("cap_locate", _caps()).passed
+            # An integrator's try that passes is not production: not counted, not drawn.
+            api = Browserless(server.url)
+            api.login()
+            tried = api.try_("magnet_check", {"source": "camera", "options": {"min": 0.0}})
+            assert tried.json()["verdict"] == "pass"
+            rows = api.get("/api/results?inspection=magnet_check&limit=20").json()["results"]
+            magnet_ids = sorted(str(r["id"]) for r in rows if not r["try"])
+
+            _inner_size(driver, 1280, 800)
+            sign_in(driver, server, "cameras")
+            wait_for(
+                driver,
+                lambda d: _counts(d, "qc", "magnet_check")["total"] == "3",
+                "magnet_check's counts",
+            )
+            assert _counts(driver, "qc", "magnet_check") == {
+                "pass": "0",
+                "fail": "3",
+                "yield": "0.0 %",
+                "total": "3",
+            }
+            assert _strip(driver, "qc", "magnet_check") == [("fail", i) for i in magnet_ids]
+            wait_for(
+                driver,
+                lambda d: _counts(d, "tool", "cap_locate")["total"] == "3",
+                "cap_locate's counts",
+            )
+            assert _counts(driver, "tool", "cap_locate") == {
+                "pass": "2",
+                "fail": "1",
+                "yield": "66.7 %",
+                "total": "3",
+            }
+            assert [v for v, _ in _strip(driver, "tool", "cap_locate")] == [
+                "fail",
+                "pass",
+                "pass",
+            ]
+            verdict = _row(driver, "qc", "magnet_check").find_element(
+                By.CSS_SELECTOR, '[data-test="last-verdict"]'
+            )
+            assert verdict.text == "FAIL"
+
+            # The graphics, read back from the canvas: magnet_check's ROI in red where the
+            # configuration puts it ([486, 236, 50, 60]), and its verdict in large red type.
+            def drawn_on_qc(d: WebDriver) -> Canvas | None:
+                canvas = _canvas(d, "qc")
+                return canvas if canvas.drawn == "magnet_check" else None
+
+            qc = wait_for(driver, drawn_on_qc, "magnet_check's graphics on the qc camera")
+            for u, v in ((511, 235.5), (485.5, 266), (535.5, 266)):  # top, left, right edges
+                assert qc.has(FAIL_RGB, *qc.screen(u, v)), (u, v)
+            assert not qc.has(FAIL_RGB, *qc.screen(300, 600), 6)  # nothing elsewhere
+            # The verdict: one box, placed off the ROI, its word in red about 34 px tall.
+            (box,) = qc.boxes
+            roi_x, roi_y = qc.screen(511, 266)
+            assert not (box[0] <= roi_x <= box[2] and box[1] <= roi_y <= box[3])
+            tall = qc.extent(FAIL_RGB, (box[0] + 6, box[1] + 6, box[0] + 90, box[3] - 6))
+            assert tall >= 22, f"the FAIL verdict is {tall} px tall: too small to read far off"
+
+            tool = wait_for(
+                driver,
+                lambda d: _canvas(d, "tool") if _canvas(d, "tool").drawn else None,
+                "cap_locate's graphics",
+            )
+            assert tool.drawn == "cap_locate"
+            for (u, v), r in (((300, 300), 80), ((700, 420), 70)):
+                assert tool.has(FEATURE_RGB, *tool.screen(u, v)), "the centre's marker"
+                assert tool.has(FEATURE_RGB, *tool.screen(u + r, v)), "the circle's edge"
+            (box,) = tool.boxes
+            assert tool.extent(PASS_RGB, (box[0] + 6, box[1] + 6, box[0] + 90, box[3] - 6)) >= 22
+            assert console_errors(driver) == []
+            save_screenshot(driver, shots / "online.png")
+
+            # The card's toggle hides every graphic of that camera, the inspection's its own.
+            driver.find_element(By.ID, "overlay-toggle-qc").click()
+            hidden = wait_for(
+                driver, lambda d: (c := _canvas(d, "qc")).drawn == "" and c, "hidden graphics"
+            )
+            assert not hidden.has(FAIL_RGB, *hidden.screen(511, 236))
+            driver.find_element(By.ID, "overlay-toggle-qc").click()
+            wait_for(driver, lambda d: _canvas(d, "qc").drawn == "magnet_check", "shown again")
+            driver.find_element(By.ID, "overlay-qc-magnet_check").click()
+            wait_for(driver, lambda d: _canvas(d, "qc").drawn == "", "magnet_check hidden")
+            driver.find_element(By.ID, "overlay-qc-magnet_check").click()
+            wait_for(driver, lambda d: _canvas(d, "qc").drawn == "magnet_check", "and shown")
+
+            # Reset: every count to zero; the next result counts from there, unreloaded.
+            driver.find_element(By.ID, "online-reset-all").click()
+            wait_for(
+                driver,
+                lambda d: (
+                    _counts(d, "qc", "magnet_check")["total"] == "0"
+                    and _counts(d, "tool", "cap_locate")["total"] == "0"
+                ),
+                "the counts reset",
+            )
+            assert _strip(driver, "qc", "magnet_check") == []
+            robot.inspect("magnet_check")
+            wait_for(
+                driver,
+                lambda d: _counts(d, "qc", "magnet_check")["fail"] == "1",
+                "the next result counted",
+            )
+            robot.inspect("cap_locate", _caps())
+
+            # The wall screen at 1920x1080: no top bar, large counts, keys only.
+            _inner_size(driver, 1920, 1080)
+            driver.get(f"{server.url}#/online")
+            wait_for(driver, lambda d: visible_page(d) == "page-online", "the wall screen")
+            assert not driver.find_element(By.CSS_SELECTOR, "header.topbar").is_displayed()
+            wall = driver.find_element(By.ID, "online-cards")
+            wait_for(
+                driver,
+                lambda d: len(wall.find_elements(By.CSS_SELECTOR, "article.camera-card")) == 3,
+                "every camera on the wall",
+            )
+            wait_for(driver, lambda d: _canvas(d, "qc").drawn == "magnet_check", "wall graphics")
+            wait_for(driver, lambda d: _counts(d, "tool", "cap_locate")["pass"] == "1", "counts")
+            value = _row(driver, "qc", "magnet_check").find_element(
+                By.CSS_SELECTOR, '[data-test="count-fail"]'
+            )
+            assert float(value.value_of_css_property("font-size").removesuffix("px")) >= 32
+            qc_wall = _canvas(driver, "qc")
+            (box,) = qc_wall.boxes
+            word = (box[0] + 8, box[1] + 8, box[0] + 150, box[3] - 8)
+            assert qc_wall.extent(FAIL_RGB, word) >= 36
+            assert console_errors(driver) == []
+            save_screenshot(driver, shots / "online-wall.png", width=1280)
+            # "3" shows the third camera alone, "0" every camera, Escape leaves the wall.
+            body = driver.find_element(By.TAG_NAME, "body")
+            body.send_keys("3")
+            wait_for(
+                driver,
+                lambda d: (
+                    [
+                        c.get_attribute("data-camera")
+                        for c in wall.find_elements(By.CSS_SELECTOR, "article.camera-card")
+                    ]
+                    == ["qc"]
+                ),
+                "the qc camera alone",
+            )
+            assert driver.execute_script("return location.hash") == "#/online/qc"
+            body.send_keys("0")
+            wait_for(
+                driver,
+                lambda d: len(wall.find_elements(By.CSS_SELECTOR, "article.camera-card")) == 3,
+                "every camera again",
+            )
+            body.send_keys(Keys.ESCAPE)
+            wait_for(driver, lambda d: visible_page(d) == "page-cameras", "the Cameras page")
+            assert driver.find_element(By.CSS_SELECTOR, "header.topbar").is_displayed()
+            assert console_errors(driver) == []
+        finally:
+            robot.close()
+            _inner_size(driver, 1280, 800)
