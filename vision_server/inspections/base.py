@@ -278,7 +278,13 @@ def draw_verdict(canvas: Image, passed: bool, text: str) -> Image:
     cv2.rectangle(canvas, (left, top), (right, bottom), LABEL_BACKING, -1)
     cv2.rectangle(canvas, (left, top), (right, bottom), colour, max(1, thickness // 2))
     base = (left + pad, top + pad + word_h)
-    cv2.putText(canvas, word, base, font, scale, (0, 0, 0), thickness + 3, cv2.LINE_AA)
+    # The outline: the word in black shifted all around (OpenCV draws text no bolder than
+    # thickness 2, so a thicker black stroke under it is no outline).
+    ring = max(2, round(verdict_px(canvas) / 14))
+    for step in range(16):
+        angle = step * np.pi / 8
+        at = (base[0] + round(ring * np.cos(angle)), base[1] + round(ring * np.sin(angle)))
+        cv2.putText(canvas, word, at, font, scale, (0, 0, 0), thickness, cv2.LINE_AA)
     cv2.putText(canvas, word, base, font, scale, colour, thickness, cv2.LINE_AA)
     if detail:
         at = (left + pad + word_w, top + pad + word_h)
