@@ -64,6 +64,9 @@ class Canvas:
         self.drawn = str(raw["drawn"] or "")
         width, height = raw["view"]
         nw, nh = raw["natural"]
+        self.ready = nw > 0 and nh > 0
+        """Whether the live image has loaded (the graphics are drawn over it then)."""
+        nw, nh = (nw, nh) if self.ready else (width, height)
         self.fit = min(width / nw, height / nh)
         self.left = (width - nw * self.fit) / 2
         self.top = (height - nh * self.fit) / 2
@@ -188,7 +191,7 @@ def test_the_cameras_page_draws_each_inspections_last_result_and_counts_them(
             # configuration puts it ([486, 236, 50, 60]), and its verdict in large red type.
             def drawn_on_qc(d: WebDriver) -> Canvas | None:
                 canvas = _canvas(d, "qc")
-                return canvas if canvas.drawn == "magnet_check" else None
+                return canvas if canvas.ready and canvas.drawn == "magnet_check" else None
 
             qc = wait_for(driver, drawn_on_qc, "magnet_check's graphics on the qc camera")
             for u, v in ((511, 235.5), (485.5, 266), (535.5, 266)):  # top, left, right edges
@@ -203,7 +206,7 @@ def test_the_cameras_page_draws_each_inspections_last_result_and_counts_them(
 
             tool = wait_for(
                 driver,
-                lambda d: _canvas(d, "tool") if _canvas(d, "tool").drawn else None,
+                lambda d: c if (c := _canvas(d, "tool")).ready and c.drawn else None,
                 "cap_locate's graphics",
             )
             assert tool.drawn == "cap_locate"
@@ -258,7 +261,11 @@ def test_the_cameras_page_draws_each_inspections_last_result_and_counts_them(
                 lambda d: len(wall.find_elements(By.CSS_SELECTOR, "article.camera-card")) == 3,
                 "every camera on the wall",
             )
-            wait_for(driver, lambda d: _canvas(d, "qc").drawn == "magnet_check", "wall graphics")
+            wait_for(
+                driver,
+                lambda d: (c := _canvas(d, "qc")).ready and c.drawn == "magnet_check",
+                "the wall's graphics over the live image",
+            )
             wait_for(driver, lambda d: _counts(d, "tool", "cap_locate")["pass"] == "1", "counts")
             value = _row(driver, "qc", "magnet_check").find_element(
                 By.CSS_SELECTOR, '[data-test="count-fail"]'

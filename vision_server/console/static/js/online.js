@@ -123,7 +123,7 @@ export class CameraOnline {
     this.idPrefix = this.wall ? "wall-" : "";
     this.entry = null;       // this camera's part of the board
     this.canvas = el("canvas", {
-      class: "online-canvas", "data-test": "online-canvas", "data-camera": camera,
+      class: "online-canvas", "data-test": "online-canvas", "data-online-camera": camera,
       "aria-label": `Inspection graphics over camera ${camera}`,
     });
     view.append(this.canvas);
@@ -131,7 +131,7 @@ export class CameraOnline {
     this.shown = !hiddenSet().has(cardKey);
     this.toggle = el("input", {
       type: "checkbox", id: `${this.idPrefix}overlay-toggle-${camera}`, "data-test": "overlay-toggle",
-      "data-camera": camera, checked: this.shown,
+      "data-online-camera": camera, checked: this.shown,
       onchange: () => {
         this.shown = this.toggle.checked;
         setHidden(cardKey, !this.shown);
@@ -139,7 +139,7 @@ export class CameraOnline {
       },
     });
     this.toggleLabel = el("label", { class: "online-toggle" }, this.toggle, "Graphics");
-    this.rows = el("div", { class: "online-rows", "data-test": "online-rows", "data-camera": camera });
+    this.rows = el("div", { class: "online-rows", "data-test": "online-rows", "data-online-camera": camera });
     this.panel = el("div", { class: "online-panel" }, this.rows);
     this.rowNodes = new Map();
     this.resize = new ResizeObserver(() => this.draw());
@@ -193,7 +193,7 @@ export class CameraOnline {
     const key = `insp:${this.camera}:${name}`;
     const show = el("input", {
       type: "checkbox", id: `${this.idPrefix}overlay-${this.camera}-${name}`, "data-test": "inspection-toggle",
-      "data-inspection": name, checked: !hiddenSet().has(key),
+      "data-online-inspection": name, checked: !hiddenSet().has(key),
       onchange: () => {
         setHidden(key, !show.checked);
         this.draw();
@@ -211,10 +211,10 @@ export class CameraOnline {
     const strip = el("div", { class: "online-strip", "data-test": "strip", role: "img" });
     const reset = el("button", {
       type: "button", class: "btn btn-quiet online-reset", "data-test": "reset-inspection",
-      "data-inspection": name, title: `Reset the counts of ${name}`,
+      "data-online-inspection": name, title: `Reset the counts of ${name}`,
       onclick: () => resetCounts(name),
     }, "Reset");
-    const node = el("div", { class: "online-row", id: `${this.idPrefix}online-${this.camera}-${name}`, "data-test": "online-row", "data-inspection": name },
+    const node = el("div", { class: "online-row", id: `${this.idPrefix}online-${this.camera}-${name}`, "data-test": "online-row", "data-online-inspection": name },
       el("div", { class: "online-row-head" },
         el("label", { class: "online-name" }, show, el("span", {}, name)),
         reset,
