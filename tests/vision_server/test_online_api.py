@@ -223,3 +223,65 @@ def test_the_board_never_reads_the_result_log(
     finally:
         service.results = real
     assert touched == []
+
+
+# ----------------------------------------------------------------------------- the board alone
+
+
+class _Catalog:
+    def __init__(self, inspections: dict[str, Any], config_hash: str) -> None:
+        self.inspections = inspections
+        self.cameras = {"qc": object()}
+        self.config_hash = config_hash
+
+    def tuned(self, inspection: Any, options: Any) -> Any:
+        return inspection
+
+
+class _Service:
+    """What the board uses of the service: its catalog and its observers."""
+
+    def __init__(self, names: list[str]) -> None:
+        self.catalog = _Catalog({n: _inspection(n) for n in names}, "hash-1")
+        self.observers: list[Any] = []
+
+    def subscribe(self, observer: Any) -> Any:
+        self.observers.append(observer)
+        return lambda: self.observers.remove(observer)
+
+    def answer(self, name: str, passed: bool, peer: str = "10.0.0.7:4000") -> None:
+        from vision_server.service import InspectionRecord, InspectReply, InspectRequest
+
+        reply = InspectReply(name, "qc", passed, {"value": 0.5}, 1.0, 2.0, "h", True)
+        for observer in self.observers:
+            observer(InspectionRecord(InspectRequest(name, peer=peer), reply))
+
+
+def _inspection(name: str) -> Any:
+    from types import SimpleNamespace
+
+    return SimpleNamespace(name=name, type="presence", camera="qc")
+
+
+def test_the_board_forgets_inspections_a_reload_removed_and_its_tag_follows_the_reload() -> None:
+    from vision_server.frontends.online_board import OnlineBoard
+
+    service = _Service(["a", "b"])
+    board = OnlineBoard(service, strip_length=4)  # type: ignore[arg-type]
+    for i in range(10):
+        service.answer("a", i % 3 != 0)
+        service.answer("b", True)
+    service.answer("a", True, peer="console 127.0.0.1:5000")  # a try: not counted
+    tag, snapshot = board.snapshot()
+    (camera,) = snapshot["cameras"]
+    a = camera["inspections"][0]
+    assert (a["pass"], a["fail"], len(a["strip"])) == (6, 4, 4)
+    assert board.snapshot()[1] is snapshot  # unchanged: the same answer, not built again
+    # a reload that drops "b": its tally goes, the tag changes
+    service.catalog = _Catalog({"a": _inspection("a")}, "hash-2")
+    new_tag, after = board.snapshot()
+    assert new_tag != tag
+    assert [i["name"] for i in after["cameras"][0]["inspections"]] == ["a"]
+    assert set(board._tallies) == {"a"}
+    board.close()
+    assert service.observers == []

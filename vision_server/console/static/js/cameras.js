@@ -135,6 +135,7 @@ class CameraCard {
     this.pauseButton.textContent = this.paused ? "Resume" : "Pause";
     this.pauseButton.classList.toggle("btn-active", this.paused);
     this.node.classList.toggle("paused", this.paused);
+    this.online.setPaused(this.paused);
     if (!this.paused) this.poller.kick();
   }
 

@@ -122,6 +122,8 @@ export class CameraOnline {
     // The wall screen's copies of the controls: ids of their own (the Cameras page's stay).
     this.idPrefix = this.wall ? "wall-" : "";
     this.entry = null;       // this camera's part of the board
+    this.paused = false;     // a paused card keeps the graphics of the frame it froze on
+    this.pending = null;     // the board that arrived meanwhile
     this.canvas = el("canvas", {
       class: "online-canvas", "data-test": "online-canvas", "data-online-camera": camera,
       "aria-label": `Inspection graphics over camera ${camera}`,
@@ -156,7 +158,21 @@ export class CameraOnline {
     this.unlisten = null;
   }
 
+  /** Freeze the graphics with the card's image; on resume, show the newest board. */
+  setPaused(paused) {
+    this.paused = paused;
+    if (!paused && this.pending !== null) {
+      const board = this.pending;
+      this.pending = null;
+      this.update(board);
+    }
+  }
+
   update(board) {
+    if (this.paused) {
+      this.pending = board;
+      return;
+    }
     this.entry = (board.cameras || []).find((c) => c.name === this.camera) || null;
     this.renderRows();
     this.draw();
