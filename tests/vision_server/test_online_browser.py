@@ -305,3 +305,28 @@ def test_the_cameras_page_draws_each_inspections_last_result_and_counts_them(
         finally:
             robot.close()
             _inner_size(driver, 1280, 800)
+
+
+def test_an_operator_sees_the_counts_and_no_reset(driver: WebDriver, tmp_path: Path) -> None:
+    operator = "online-operator-tablet-token"
+    with console_server(tmp_path, operator_token=operator) as server:
+        robot = SyncVisionClient(
+            "127.0.0.1", server.app.port, auth_token=TOKEN, request_timeout_s=WAIT_S
+        )
+        try:
+            robot.inspect("magnet_check")
+            sign_in(driver, server, "cameras", token=operator)
+            wait_for(
+                driver,
+                lambda d: _counts(d, "qc", "magnet_check")["fail"] == "1",
+                "the operator's counts",
+            )
+            assert not driver.find_element(By.ID, "online-reset-all").is_displayed()
+            reset = _row(driver, "qc", "magnet_check").find_element(
+                By.CSS_SELECTOR, '[data-test="reset-inspection"]'
+            )
+            assert not reset.is_displayed()
+            assert driver.find_element(By.ID, "overlay-toggle-qc").is_displayed()
+            assert console_errors(driver) == []
+        finally:
+            robot.close()
