@@ -29,7 +29,9 @@ export class WallPage {
   }
 
   key(event) {
-    if (event.target instanceof HTMLInputElement || event.altKey || event.ctrlKey || event.metaKey) return;
+    // Typing in a field is not a command; a checkbox (the graphics toggles) takes no keys.
+    const typing = event.target instanceof HTMLInputElement && event.target.type !== "checkbox";
+    if (typing || event.altKey || event.ctrlKey || event.metaKey) return;
     if (event.key === "Escape") {
       location.hash = "#/cameras";
     } else if (event.key === "0") {
