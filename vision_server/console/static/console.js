@@ -1,5 +1,6 @@
 // The console's entry point: the router between pages (#/cameras, #/inspections, #/results,
-// #/server, #/operator, #/online: the wall screen), the login page shown whenever the API answers 401, and the status pill.
+// #/server, #/operator, #/online: the wall screen), the login page shown whenever the API
+// answers 401, and the status pill.
 
 import { api, ApiError, onUnauthorized } from "./js/api.js";
 import { byId } from "./js/dom.js";
