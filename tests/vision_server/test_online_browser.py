@@ -8,7 +8,9 @@ docs/console/online-wall.png."""
 
 from __future__ import annotations
 
+import math
 import os
+import textwrap
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -17,7 +19,7 @@ import cv2
 import numpy as np
 import pytest
 from browser import console_errors, headless_chromium, save_screenshot
-from console_server import TOKEN, Browserless, console_server
+from console_server import TOKEN, Browserless, console_server, running_cell
 
 from robot_client import SyncVisionClient
 
@@ -29,6 +31,7 @@ from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
+CASES = Path(__file__).resolve().parents[2] / "test_inspections"
 FAIL_RGB = (0xFF, 0x44, 0x38)
 PASS_RGB = (0x2F, 0xD6, 0x6B)
 FEATURE_RGB = (0x00, 0xE5, 0xFF)
@@ -77,10 +80,12 @@ class Canvas:
     def screen(self, u: float, v: float) -> tuple[int, int]:
         return round(self.left + (u + 0.5) * self.fit), round(self.top + (v + 0.5) * self.fit)
 
-    def has(self, colour: tuple[int, int, int], x: int, y: int, r: int = 3) -> bool:
-        """Whether a pixel near (x, y) has ``colour`` (within a few grey levels)."""
+    def has(
+        self, colour: tuple[int, int, int], x: int, y: int, r: int = 3, *, tolerance: int = 12
+    ) -> bool:
+        """Whether a pixel near (x, y) has ``colour`` (within ``tolerance`` grey levels)."""
         patch = self.rgb[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1].astype(int)
-        return bool((np.abs(patch - np.array(colour)).max(axis=2) <= 12).any())
+        return bool((np.abs(patch - np.array(colour)).max(axis=2) <= tolerance).any())
 
     def extent(self, colour: tuple[int, int, int], box: tuple[int, int, int, int]) -> int:
         """Rows (px) from the first to the last of ``colour``'s pixels in ``box`` (x0, y0, x1,
@@ -327,6 +332,73 @@ def test_an_operator_sees_the_counts_and_no_reset(driver: WebDriver, tmp_path: P
             )
             assert not reset.is_displayed()
             assert driver.find_element(By.ID, "overlay-toggle-qc").is_displayed()
+            assert console_errors(driver) == []
+        finally:
+            robot.close()
+
+
+def _plate_cell(folder: Path) -> Path:
+    """A cell of one request camera and test_inspections/fixtured_plate's job on it."""
+    case = (CASES / "fixtured_plate" / "inspection.yaml").read_text(encoding="utf-8")
+    job = case[case.index("inspection:\n") + len("inspection:\n") :]
+    config = folder / "cell.yaml"
+    config.write_text(
+        "server:\n  host: 127.0.0.1\n  port: 0\n  name: plate-cell\n"
+        f"  auth_token: {TOKEN}\n"
+        "console: {enabled: true, host: 127.0.0.1, port: 0}\n"
+        "cameras:\n  qc:\n    source: request\n"
+        "    intrinsics: {width: 320, height: 240, fx: 400, fy: 400, cx: 159.5, cy: 119.5}\n"
+        "inspections:\n  -" + textwrap.indent(job, "  ")[3:],
+        encoding="utf-8",
+    )
+    return config
+
+
+def test_a_fixtured_jobs_roi_is_drawn_turned_with_the_part(
+    driver: WebDriver, tmp_path: Path
+) -> None:
+    """The magnet's ROI [44, 12, 12, 12] in the part's frame, drawn where
+    docs/configuration.md's formula puts it for the part's pose in this image."""
+    image = cv2.imread(str(CASES / "fixtured_plate" / "images" / "moved_b.png"))
+    with running_cell(_plate_cell(tmp_path)) as server:
+        robot = SyncVisionClient(
+            "127.0.0.1", server.app.port, auth_token=TOKEN, request_timeout_s=WAIT_S
+        )
+        try:
+            result = robot.inspect("plate_magnet", image)
+            assert result.passed
+            part = result.data["steps"]["part"]
+            # on the wall screen, the camera alone: the 320x240 image about 1000 px wide
+            _inner_size(driver, 1920, 1080)
+            sign_in(driver, server, "online")
+            driver.execute_script("location.hash = '#/online/qc';")
+            wall = driver.find_element(By.ID, "online-cards")
+            wait_for(
+                driver,
+                lambda d: len(wall.find_elements(By.CSS_SELECTOR, "article.camera-card")) == 1,
+                "the qc camera alone on the wall",
+            )
+            qc = wait_for(
+                driver,
+                lambda d: c if (c := _canvas(d, "qc")).ready and c.drawn else None,
+                "the job's graphics",
+            )
+            assert qc.drawn == "plate_magnet"
+            assert qc.fit > 2.5
+            c, s = math.cos(part["angle"]), math.sin(part["angle"])
+            # the middle of each side of the ROI's outline (pixel edges: 43.5 .. 55.5)
+            for x, y in ((49.5, 11.5), (55.5, 17.5), (49.5, 23.5), (43.5, 17.5)):
+                u = part["u"] + x * c - y * s
+                v = part["v"] + x * s + y * c
+                assert qc.has(PASS_RGB, *qc.screen(u, v), 3, tolerance=40), (x, y)
+            assert not qc.has(
+                PASS_RGB,
+                *qc.screen(part["u"] + 49.5 * c - 17.5 * s, part["v"] + 49.5 * s + 17.5 * c),
+                3,
+            )
+            # the part frame's x axis, red, from the big hole towards the small one
+            tip = qc.screen(part["u"] + 20 * c, part["v"] + 20 * s)
+            assert qc.has(FAIL_RGB, *tip, 3, tolerance=40)
             assert console_errors(driver) == []
         finally:
             robot.close()

@@ -211,8 +211,15 @@ SUMMARY_KEYS = ("text", "value", "count", "reason")
 
 
 def summary(data: Mapping[str, Any]) -> str:
-    """A short line for the verdict box: the decoded text, the measured value, the count
-    found, or the reason it failed (at most 60 characters)."""
+    """A short line for the verdict box: for a job the steps that failed; else the decoded
+    text, the measured value, the count found, or the reason it failed (at most 60
+    characters)."""
+    steps, failed = data.get("steps"), data.get("failed")
+    if isinstance(steps, dict) and isinstance(failed, list):
+        if not failed:
+            return f"{len(steps)} steps passed"
+        text = "failed: " + ", ".join(str(f) for f in failed)
+        return text if len(text) <= 60 else text[:59] + "…"
     for key in SUMMARY_KEYS:
         value = data.get(key)
         if value is None or isinstance(value, dict | list):
@@ -224,9 +231,6 @@ def summary(data: Mapping[str, Any]) -> str:
         prefix = f"{data['measure']} = " if key == "value" and "measure" in data else ""
         text = f"{prefix}{key} {value}" if key == "count" else f"{prefix}{value}"
         return text if len(text) <= 60 else text[:59] + "…"
-    failed = data.get("failed")
-    if isinstance(failed, list):
-        return "failed: " + ", ".join(str(f) for f in failed)[:50] if failed else ""
     return ""
 
 

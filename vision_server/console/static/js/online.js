@@ -330,7 +330,10 @@ export class CameraOnline {
       }
       verdictBoxes = boxes;
       const size = this.wall ? 22 : 15;
-      for (const item of labels) label(ctx, item.text, item.x, item.y, size, { width, height }, boxes);
+      // Each label keeps off the verdicts and the labels drawn before it (two fixture frames
+      // at one origin, steps that share a corner).
+      const taken = [...boxes];
+      for (const item of labels) taken.push(label(ctx, item.text, item.x, item.y, size, { width, height }, taken));
     }
     // What is drawn, for a test or a screen reader: the inspections whose graphics are shown.
     canvas.dataset.drawn = drawn.join(" ");
@@ -479,17 +482,25 @@ function label(ctx, text, px, py, size, view, boxes) {
   const height = size + 6;
   // Kept inside the view: a label at the image's edge must not be cut off.
   const left = Math.min(Math.max(px, 2), Math.max(view.width - width - 2, 2));
-  let bottom = Math.min(Math.max(py, height + 2), view.height - 2);
-  for (const box of boxes) {
-    const overlaps = left < box.right && left + width > box.left &&
-      bottom - height < box.bottom && bottom > box.top;
-    if (overlaps) bottom = box.bottom + height + 2;
+  const place = (b) => Math.min(Math.max(b, height + 2), view.height - 2);
+  const free = (b) => !boxes.some((box) => left < box.right && left + width > box.left &&
+    b - height < box.bottom && b > box.top);
+  // Where it belongs, else the nearest free line above or below (within a few lines), else
+  // where it belongs after all.
+  let bottom = place(py);
+  for (const step of [0, -1, 1, -2, 2, -3, 3]) {
+    const candidate = place(py + step * (height + 1));
+    if (free(candidate)) {
+      bottom = candidate;
+      break;
+    }
   }
   ctx.fillStyle = "rgba(10, 14, 20, 0.78)";
   ctx.fillRect(left, bottom - height, width, height);
   ctx.fillStyle = "#ffffff";
   ctx.fillText(text, left + 4, bottom - 3);
   ctx.restore();
+  return { left, top: bottom - height, right: left + width, bottom };
 }
 
 /** The verdict box of one inspection at ``left``, ``top``: "PASS name" in green or red on a dark
