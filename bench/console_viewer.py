@@ -9,7 +9,8 @@ once):
   ``GET /api/operator/calls`` every 3 s;
 - Cameras (the live view): the list, ``GET /api/cameras`` every 2 s; a card per camera
   fetching ``frame.jpg`` every ``1 / min(view_fps or fps or 5, 15)`` s for a server camera and
-  every 1 s for a request camera (js/cameras.js);
+  every 1 s for a request camera (js/cameras.js); the online view's board, ``GET /api/online``
+  every 1 s with ``If-None-Match`` (js/online.js: a 304 without a body while nothing changed);
 - Server: ``GET /api/server`` every 2 s (js/server.js).
 
 The viewer takes its page from a control queue (``"cameras"``, ``"server"``, ``"closed"``: no
@@ -28,6 +29,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 EVERY_PAGE: tuple[tuple[str, float], ...] = (("api/server", 3.0), ("api/operator/calls", 3.0))
+ONLINE_INTERVAL_S = 1.0
+"""js/online.js's ``ONLINE_POLL_MS``: the Cameras page asks for the online board once a second."""
 MAX_VIEW_FPS = 15.0
 """js/cameras.js: the most frames per second one card asks for."""
 REQUEST_CAMERA_FPS = 1.0
@@ -117,6 +120,26 @@ class _Page:
             await asyncio.sleep(2.0)  # the first listing is the one the page opened with
             await self.cameras()
 
+    async def online(self) -> None:
+        """The online view's board, asked with the ETag of the one the page has."""
+        tag: str | None = None
+        while True:
+            started = time.monotonic()
+            headers = {"If-None-Match": tag} if tag else {}
+            try:
+                async with self.session.get(self.base + "api/online", headers=headers) as reply:
+                    body = await reply.read()
+                    self.segment.requests += 1
+                    self.segment.bytes += len(body)
+                    if reply.status == 200:
+                        tag = reply.headers.get("ETag")
+                    elif reply.status != 304:
+                        self._error(f"GET /api/online: HTTP {reply.status}")
+            except Exception as exc:  # noqa: BLE001 - counted; the page keeps polling
+                self.segment.requests += 1
+                self._error(f"GET /api/online: {type(exc).__name__}: {exc}")
+            await _rest_of(ONLINE_INTERVAL_S, started)
+
     async def card(self, info: dict[str, Any]) -> None:
         name = info["name"]
         path = f"api/cameras/{name}/frame.jpg"
@@ -142,6 +165,7 @@ class _Page:
             elif self.segment.page == "cameras":
                 listing = await self.cameras()
                 group.create_task(self.list_cameras())
+                group.create_task(self.online())
                 self.segment.cards = len(listing)
                 for info in listing:
                     group.create_task(self.card(info))

@@ -62,10 +62,12 @@ from .http_history import HistoryRoutes, Refused, why_of
 from .http_impact import IMPACT_PATH, ImpactRoutes
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
+from .http_online import OnlineRoutes
 from .http_operator import OperatorRoutes
 from .http_users import SignIn, SignInError
 from .images import decode_payloads
 from .listener import Listener, Policy, quiet_logger
+from .online_board import OnlineBoard
 from .uploads import upload_loader
 
 log = logging.getLogger("vision_server")
@@ -182,6 +184,8 @@ class HttpFrontend:
         self.live: LiveView | None = None
         self.metrics: Metrics | None = None
         self._builder = BuildRoutes(self, service)
+        self.online: OnlineBoard | None = None
+        """The online view's counts and last graphics (made with the application)."""
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -253,6 +257,9 @@ class HttpFrontend:
             self._listener = None
         if self.metrics is not None:
             self.metrics.close()
+        if self.online is not None:
+            self.online.close()
+            self.online = None
         if self.live is not None:
             self.live.close()
 
@@ -288,6 +295,9 @@ class HttpFrontend:
             allow_save=self.settings.allow_save,
         ).add_to(routes)
         ImpactRoutes(self.service, self.settings, self._written).add_to(routes)
+        if self.online is None:
+            self.online = OnlineBoard(self.service)
+        OnlineRoutes(self.online, timeout_s=self.settings.request_timeout_s).add_to(routes)
         return app
 
     # ------------------------------------------------------------------ middlewares
@@ -950,6 +960,7 @@ INTEGRATOR_ROUTES = (
             "/api/inspections/{name}/save",
             "/api/history/{version}/revert",
             IMPACT_PATH,
+            "/api/online/reset",
         }
     )
     | BUILD_INTEGRATOR_ROUTES

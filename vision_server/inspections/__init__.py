@@ -16,7 +16,8 @@ golden expectations and summary values), and the classes :class:`LocateInspectio
 :class:`PresenceInspection`, :class:`QRInspection`, :class:`CodeInspection`,
 :class:`QRPoseInspection`, :class:`JobInspection`,
 :class:`CalibrationBoardInspection`, :class:`CaliperInspection`; what the configuration's
-``output:`` and the other rooms need of them (:func:`numbers_by_position`, ...).
+``output:`` and the other rooms need of them (:func:`numbers_by_position`, ...);
+:func:`result_shapes` (a result as shapes in image pixels, for the console's online view).
 
 Inspections read their keys through :mod:`yamlfile`'s nodes; the node's owner (the
 configuration) decides the error type they raise.
@@ -37,6 +38,7 @@ from .calibration_board import CalibrationBoardInspection, parse_calibration_boa
 from .caliper import SUMMARY_VALUES, CaliperInspection, parse_caliper
 from .code import CodeInspection, parse_code
 from .contract import Inspection, InspectionInput, InspectionOutcome
+from .graphics import MAX_SHAPES, result_shapes
 from .job import JobInspection, parse_job, step_summary_values
 from .kinds import ResultKind
 from .locate import LocateInspection, parse_locate
@@ -128,6 +130,7 @@ __all__ = [
     "JobInspection",
     "LocateInspection",
     "MAX_FIELDS",
+    "MAX_SHAPES",
     "MEASURE_RANGES",
     "OutputField",
     "OutputFormat",
@@ -141,4 +144,5 @@ __all__ = [
     "default_output",
     "numbers_by_position",
     "parse_inspection",
+    "result_shapes",
 ]

@@ -168,19 +168,127 @@ def overlay_base(image: Image, region: ROI | None) -> Image:
     return canvas
 
 
+MIN_TEXT_PX = 14
+"""The smallest text an overlay writes, pixels (cap height and descent): legible on a small
+image shown at its size."""
+TEXT_FRACTION = 1 / 30
+"""An overlay's text is about this fraction of the image's height (25 px on 768 rows)."""
+LABEL_BACKING = (20, 20, 20)
+"""The dark box behind every text: legible on a bright part and on a dark belt alike."""
+_HERSHEY_PX = 22.0
+"""How tall FONT_HERSHEY_SIMPLEX's capitals are at font scale 1, pixels."""
+
+
+def text_px(canvas: Image) -> float:
+    """The height of an overlay's labels on ``canvas``: about 1/30 of its height, at least
+    :data:`MIN_TEXT_PX` (pixels of the image: the text scales with the image)."""
+    return max(float(MIN_TEXT_PX), float(canvas.shape[0]) * TEXT_FRACTION)
+
+
+def draw_text(
+    canvas: Image,
+    text: str,
+    origin: tuple[int, int],
+    colour: tuple[int, int, int],
+    *,
+    px: float | None = None,
+    opacity: float = 0.7,
+    box: bool = True,
+    letters: bool = True,
+) -> tuple[int, int, int, int]:
+    """Write ``text`` (ASCII: Hershey fonts draw nothing else) with its baseline starting at
+    ``origin`` (u, v), ``px`` tall (default :func:`text_px`), in ``colour`` over a dark box
+    of ``opacity`` (the image shows through a little), moved inside the image when it would
+    leave it. Returns the box ``(left, top, right, bottom)`` in pixels. ``box`` / ``letters``
+    False leave out that layer: a legend paints its boxes, then the shapes, then its letters,
+    so that the shapes stay visible under the legend's boxes."""
+    size = text_px(canvas) if px is None else px
+    scale = size / _HERSHEY_PX
+    thickness = max(1, round(size / 12))
+    pad = max(2, round(size / 6))
+    rows, cols = canvas.shape[:2]
+    text = fitted(text, size, cols - 2 * pad)
+    (width, height), descent = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thickness)
+    u = min(max(int(origin[0]), pad), max(cols - width - pad, pad))
+    v = min(max(int(origin[1]), height + pad), max(rows - descent - pad, height + pad))
+    left, top = max(u - pad, 0), max(v - height - pad, 0)
+    right, bottom = min(u + width + pad, cols), min(v + descent + pad, rows)
+    if box and right > left and bottom > top:
+        region = canvas[top:bottom, left:right]
+        backing = np.empty_like(region)
+        backing[...] = LABEL_BACKING if region.ndim == 3 else LABEL_BACKING[0]
+        cv2.addWeighted(backing, opacity, region, 1.0 - opacity, 0.0, dst=region)
+    if letters:
+        cv2.putText(
+            canvas, text, (u, v), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, thickness, cv2.LINE_AA
+        )
+    return left, top, right, bottom
+
+
+def fitted(text: str, px: float, width_px: int) -> str:
+    """``text`` in ASCII (Hershey fonts draw nothing else), cut with "..." to ``width_px`` at
+    ``px`` tall (as :func:`draw_text` writes it): a reason is longer than a small image is
+    wide."""
+    text = text.encode("ascii", "replace").decode()
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, px / _HERSHEY_PX
+    thickness = max(1, round(px / 12))
+    if cv2.getTextSize(text, font, scale, thickness)[0][0] <= width_px:
+        return text
+    while len(text) > 1 and cv2.getTextSize(text + "...", font, scale, thickness)[0][0] > width_px:
+        text = text[:-1]
+    return text + "..."
+
+
+def verdict_px(canvas: Image) -> float:
+    """The height of the verdict's text: half as tall again as a label."""
+    return 1.5 * text_px(canvas)
+
+
+def _verdict_metrics(canvas: Image) -> tuple[float, int, int, int, int]:
+    """The verdict's font scale, stroke, padding, word height and descent, pixels."""
+    size = verdict_px(canvas)
+    scale = size / _HERSHEY_PX
+    thickness = max(2, round(size / 10))
+    (_, word_h), descent = cv2.getTextSize("FAIL", cv2.FONT_HERSHEY_SIMPLEX, scale, thickness)
+    return scale, thickness, max(3, round(size / 5)), word_h, descent
+
+
+def verdict_bottom(canvas: Image) -> int:
+    """The row just below the verdict's box (:func:`draw_verdict`): a legend may start there."""
+    _, _, pad, word_h, descent = _verdict_metrics(canvas)
+    return min(10 + pad + word_h + descent + pad, int(canvas.shape[0]) - 1) + 1
+
+
 def draw_verdict(canvas: Image, passed: bool, text: str) -> Image:
-    label = ("PASS" if passed else "FAIL") + (f"  {text}" if text else "")
-    scale = max(0.5, canvas.shape[1] / 1400.0)
-    cv2.putText(
-        canvas,
-        label,
-        (10, int(30 * scale) + 5),
-        cv2.FONT_HERSHEY_SIMPLEX,
-        scale,
-        GREEN if passed else RED,
-        max(1, int(2 * scale)),
-        cv2.LINE_AA,
-    )
+    """The verdict at the top left: PASS in green or FAIL in red, with a black outline, on a
+    solid dark box, then ``text`` (what it found) in white on the same box."""
+    scale, thickness, pad, word_h, descent = _verdict_metrics(canvas)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    word = "PASS" if passed else "FAIL"
+    detail = text.encode("ascii", "replace").decode()
+    word_w = cv2.getTextSize(word, font, scale, thickness)[0][0]
+    small, thin = scale * 0.7, max(1, thickness - 1)
+    room = canvas.shape[1] - 2 - (10 + pad + word_w) - pad
+    detail = fitted("  " + detail, verdict_px(canvas) * 0.7, room)[2:] if detail else ""
+    detail_w = cv2.getTextSize("  " + detail, font, small, thin)[0][0] if detail else 0
+    left, top = 10, 10
+    right = min(left + pad + word_w + detail_w + pad, canvas.shape[1] - 2)
+    bottom = verdict_bottom(canvas) - 1
+    colour = GREEN if passed else RED
+    cv2.rectangle(canvas, (left, top), (right, bottom), LABEL_BACKING, -1)
+    cv2.rectangle(canvas, (left, top), (right, bottom), colour, max(1, thickness // 2))
+    base = (left + pad, top + pad + word_h)
+    # The outline: the word in black shifted all around (OpenCV draws text no bolder than
+    # thickness 2, so a thicker black stroke under it is no outline).
+    ring = max(2, round(verdict_px(canvas) / 14))
+    for step in range(16):
+        angle = step * np.pi / 8
+        at = (base[0] + round(ring * np.cos(angle)), base[1] + round(ring * np.sin(angle)))
+        cv2.putText(canvas, word, at, font, scale, (0, 0, 0), thickness, cv2.LINE_AA)
+    cv2.putText(canvas, word, base, font, scale, colour, thickness, cv2.LINE_AA)
+    if detail:
+        at = (left + pad + word_w, top + pad + word_h)
+        cv2.putText(canvas, "  " + detail, at, font, small, (255, 255, 255), thin, cv2.LINE_AA)
     return canvas
 
 

@@ -39,9 +39,11 @@ from .base import (
     Configured,
     Image,
     analysis_failed,
+    draw_text,
     draw_verdict,
     overlay_base,
     parse_common,
+    text_px,
 )
 from .caliper_config import parse_measurements, parse_units
 from .contract import InspectionInput, InspectionOutcome
@@ -77,10 +79,13 @@ class CaliperInspection(Configured):
         picture = None
         if overlay:
             picture = overlay_base(image.color, None)
+            # The legend's boxes first, then the shapes (visible through them), its letters.
+            _draw_legend(picture, results, letters=False)
             for spec in self.specs:
                 _draw_spec(picture, spec)
             for number, m in enumerate(results, start=1):
-                _draw_measurement(picture, m, number, len(results))
+                _draw_measurement(picture, m, number)
+            _draw_legend(picture, results, box=False)
             failed = [m.name for m in results if not m.passed]
             draw_verdict(picture, passed, f"out: {', '.join(failed)}" if failed else "")
         return InspectionOutcome(passed, data, picture)
@@ -141,7 +146,7 @@ def _draw_spec(canvas: Image, spec: Spec) -> None:
             cv2.circle(canvas, _px((spec.u, spec.v)), max(1, int(round(r))), YELLOW, 1)
 
 
-def _draw_measurement(canvas: Image, m: Measurement, number: int, count: int) -> None:
+def _draw_measurement(canvas: Image, m: Measurement, number: int) -> None:
     """Edge points, the pair's span, the fitted circle or line, in green (within its
     tolerance) or red, tagged with its number; the legend lists the values."""
     colour = GREEN if m.passed else RED
@@ -163,15 +168,24 @@ def _draw_measurement(canvas: Image, m: Measurement, number: int, count: int) ->
         a = (line.x - line.dx * line.extent / 2, line.y - line.dy * line.extent / 2)
         b = (line.x + line.dx * line.extent / 2, line.y + line.dy * line.extent / 2)
         cv2.line(canvas, _px(a), _px(b), colour, 1, cv2.LINE_AA)
-    font = cv2.FONT_HERSHEY_SIMPLEX
     if tag is not None and m.kind != "distance":
         u, v = _px(tag)
-        cv2.putText(canvas, str(number), (u + 4, v - 4), font, 0.4, colour, 1, cv2.LINE_AA)
-    text = f"{number} {m.name} = " + (
-        f"{m.value:.3f} {m.unit}" if math.isfinite(m.value) else "not measured"
-    )
-    row = canvas.shape[0] - 8 - 14 * (count - number)  # the legend, bottom left
-    cv2.putText(canvas, text, (6, row), font, 0.4, colour, 1, cv2.LINE_AA)
+        draw_text(canvas, str(number), (u + 4, v - 4), colour)
+
+
+def _draw_legend(
+    canvas: Image, results: list[Measurement], *, box: bool = True, letters: bool = True
+) -> None:
+    """Each measurement's number, name and value at the bottom left, a line each, in green or
+    red on dark boxes (``box`` and ``letters``: which layers, see :func:`.base.draw_text`)."""
+    spacing = round(text_px(canvas) * 1.6)
+    for number, m in enumerate(results, start=1):
+        text = f"{number} {m.name} = " + (
+            f"{m.value:.3f} {m.unit}" if math.isfinite(m.value) else "not measured"
+        )
+        v = canvas.shape[0] - 8 - spacing * (len(results) - number)
+        colour = GREEN if m.passed else RED
+        draw_text(canvas, text, (6, v), colour, box=box, letters=letters)
 
 
 def parse_caliper(

@@ -20,7 +20,15 @@ from yamlfile import Node, non_negative, one_of
 
 from ..analysis import SYMBOLOGIES, AnalysisError, Code, Grade, NotFoundError, read_codes
 from ..cameras import CameraSettings
-from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
+from .base import (
+    Common,
+    Configured,
+    analysis_failed,
+    draw_text,
+    draw_verdict,
+    overlay_base,
+    parse_common,
+)
 from .contract import InspectionInput, InspectionOutcome
 from .kinds import Data, ResultKind, as_number, points
 from .qr import parse_expect
@@ -76,16 +84,8 @@ class CodeInspection(Configured):
                 pts = np.round(code.corners).astype(np.int32)
                 cv2.polylines(picture, [pts], True, RED, 2)
                 u, v = pts[0]
-                cv2.putText(
-                    picture,
-                    f"{code.symbology}: {code.text_hri[:40]}",
-                    (int(u), max(12, int(v) - 6)),
-                    cv2.FONT_HERSHEY_SIMPLEX,
-                    0.5,
-                    RED,
-                    1,
-                    cv2.LINE_AA,
-                )
+                label = f"{code.symbology}: {code.text_hri[:40]}"
+                draw_text(picture, label, (int(u), int(v) - 6), RED)
             draw_verdict(picture, passed, codes[0].text_hri[:40] if codes else "no code")
         return InspectionOutcome(passed, data, picture)
 

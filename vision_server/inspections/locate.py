@@ -20,6 +20,7 @@ from .base import (
     Common,
     Configured,
     analysis_failed,
+    draw_text,
     draw_verdict,
     load_template,
     overlay_base,
@@ -117,17 +118,9 @@ def _draw_rejection(picture: Any, rejection: Rejection) -> None:
     """A rejected candidate: a thin orange circle and the start of its reason."""
     centre = (int(round(rejection.u)), int(round(rejection.v)))
     cv2.circle(picture, centre, max(int(round(rejection.radius)), 1), ORANGE, 1, cv2.LINE_8)
-    reason = rejection.reason if len(rejection.reason) <= 40 else rejection.reason[:39] + "…"
-    cv2.putText(
-        picture,
-        reason.replace("…", "..."),  # Hershey fonts draw ASCII only
-        (centre[0] - int(rejection.radius), centre[1] + int(rejection.radius) + 12),
-        cv2.FONT_HERSHEY_SIMPLEX,
-        0.35,
-        ORANGE,
-        1,
-        cv2.LINE_AA,
-    )
+    reason = rejection.reason if len(rejection.reason) <= 40 else rejection.reason[:39] + "..."
+    radius = int(rejection.radius)
+    draw_text(picture, reason, (centre[0] - radius, centre[1] + radius + 4), ORANGE)
 
 
 def _draw_feature(picture: Any, feature: Feature, rank: int) -> None:
@@ -141,16 +134,7 @@ def _draw_feature(picture: Any, feature: Feature, rank: int) -> None:
     )
     if feature.angle:
         cv2.line(picture, centre, tip, RED, 1, cv2.LINE_AA)
-    cv2.putText(
-        picture,
-        str(rank + 1),
-        (centre[0] + 6, centre[1] - 6),
-        cv2.FONT_HERSHEY_SIMPLEX,
-        0.6,
-        RED,
-        2,
-        cv2.LINE_AA,
-    )
+    draw_text(picture, str(rank + 1), (centre[0] + 8, centre[1] - 8), RED)
 
 
 def _threshold(value: Any) -> float | str:

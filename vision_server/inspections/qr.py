@@ -20,7 +20,15 @@ from yamlfile import Node, one_of, string
 
 from ..analysis import AnalysisError, NotFoundError, read_qr
 from ..cameras import CameraSettings
-from .base import Common, Configured, analysis_failed, draw_verdict, overlay_base, parse_common
+from .base import (
+    Common,
+    Configured,
+    analysis_failed,
+    draw_text,
+    draw_verdict,
+    overlay_base,
+    parse_common,
+)
 from .contract import InspectionInput, InspectionOutcome
 from .kinds import Data, ResultKind, points
 
@@ -64,16 +72,7 @@ class QRInspection(Configured):
                 pts = np.round(code.corners).astype(np.int32)
                 cv2.polylines(picture, [pts], True, RED, 2)
                 for index, (u, v) in enumerate(pts):
-                    cv2.putText(
-                        picture,
-                        f"c{index}",
-                        (int(u) + 4, int(v) - 4),
-                        cv2.FONT_HERSHEY_SIMPLEX,
-                        0.5,
-                        RED,
-                        1,
-                        cv2.LINE_AA,
-                    )
+                    draw_text(picture, f"c{index}", (int(u) + 4, int(v) - 4), RED)
             draw_verdict(picture, bool(codes), codes[0].text if codes else "no code")
         return InspectionOutcome(bool(codes), data, picture)
 

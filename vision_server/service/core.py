@@ -176,6 +176,8 @@ class InspectReply:
     overlay: Overlay | None = None
     result_id: int | None = None
     """The row's id in the result log, when the log gave one (RESULT ``result_id``)."""
+    image_size: tuple[int, int] | None = None
+    """``(width, height)`` in pixels of the colour image the inspection ran on."""
 
     @property
     def timing(self) -> dict[str, float]:
@@ -602,8 +604,11 @@ class InspectionService:
         in_process = inspection.name in self.settings.process_inspections
         captured: list[Images] = []
 
+        size: list[tuple[int, int]] = []  # the image's (width, height), for observers
+
         def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None, int | None]:
             image = acquire()
+            size.append((int(image.color.shape[1]), int(image.color.shape[0])))
             if request.images is None:
                 captured.append(Images(image.color, image.depth))
             if request.overlay is not None:
@@ -681,6 +686,7 @@ class InspectionService:
             stored,
             overlay,
             row_id,
+            size[0] if size else None,
         )
         self._notify(InspectionRecord(request, reply, captured[0] if captured else None))
         return reply

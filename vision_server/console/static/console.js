@@ -1,5 +1,6 @@
 // The console's entry point: the router between pages (#/cameras, #/inspections, #/results,
-// #/server, #/operator, #/history), the login page shown whenever the API answers 401, and the status pill.
+// #/server, #/operator, #/history, #/online: the wall screen), the login page shown whenever
+// the API answers 401, and the status pill.
 
 import { api, ApiError, onUnauthorized } from "./js/api.js";
 import { byId } from "./js/dom.js";
@@ -10,6 +11,8 @@ import { ResultsPage } from "./js/results.js";
 import { ServerPage, statusText } from "./js/server.js";
 import { OperatorPage, operatorBadge } from "./js/operator.js";
 import { HistoryPage } from "./js/history.js";
+import { WallPage } from "./js/wall.js";
+import { resetCounts } from "./js/online.js";
 
 const pages = {
   cameras: new CamerasPage(),
@@ -18,6 +21,7 @@ const pages = {
   server: new ServerPage(),
   operator: new OperatorPage(),
   history: new HistoryPage(),
+  online: new WallPage(),
 };
 const DEFAULT_PAGE = "cameras";
 
@@ -159,6 +163,7 @@ async function logout() {
 onUnauthorized(lock);
 byId("login-form").addEventListener("submit", submitLogin);
 byId("logout").addEventListener("click", logout);
+byId("online-reset-all").addEventListener("click", () => resetCounts(null));
 window.addEventListener("hashchange", () => show(pageFromHash()));
 // Polling stops while the tab is hidden: a console left open in a background tab costs nothing.
 document.addEventListener("visibilitychange", () => {

@@ -25,9 +25,12 @@ from ..base import (
     Common,
     Configured,
     analysis_failed,
+    draw_text,
     draw_verdict,
     overlay_base,
     parse_common,
+    text_px,
+    verdict_bottom,
 )
 from ..contract import InspectionInput, InspectionOutcome
 from ..kinds import Data, ResultKind, as_number, points
@@ -83,8 +86,14 @@ class JobInspection(Configured):
         picture = None
         if overlay:
             picture = overlay_base(image.color, None)
+            # The legend under the verdict: its boxes, then the shapes (visible through
+            # them on a small image, where the legend covers much of the part), its letters.
             for row, (name, o) in enumerate(outcomes.items()):
-                _draw_step(picture, row, name, o)
+                _draw_legend(picture, row, name, o, letters=False)
+            for o in outcomes.values():
+                _draw_step(picture, o)
+            for row, (name, o) in enumerate(outcomes.items()):
+                _draw_legend(picture, row, name, o, box=False)
             text = f"{len(failed)} of {len(outcomes)} steps failed" if failed else ""
             draw_verdict(picture, passed, text)
         return InspectionOutcome(passed, data, picture)
@@ -104,37 +113,25 @@ def _pixel(point: tuple[float, float]) -> tuple[int, int]:
     return int(round(point[0])), int(round(point[1]))
 
 
-def _draw_step(picture: Any, row: int, name: str, outcome: Outcome) -> None:
-    """A step's shapes, green when it passed, red when not, and its line of the legend under
-    the verdict (steps' shapes often share a point: the legend keeps their text apart)."""
+def _draw_step(picture: Any, outcome: Outcome) -> None:
+    """A step's shapes, green when it passed, red when not (its text is in the legend under
+    the verdict: steps' shapes often share a point, the legend keeps their text apart)."""
     colour = GREEN if outcome.passed else RED
     for shape in outcome.shapes:
         _draw_shape(picture, shape, colour)
-    scale = max(0.4, picture.shape[1] / 2400.0)
-    top = int(30 * max(0.5, picture.shape[1] / 1400.0)) + 12
-    text = _fitted(f"{name}: {outcome.label}", scale, picture.shape[1] - 20)
-    cv2.putText(
-        picture,
-        text,
-        (10, top + int((row + 1) * 18 * scale / 0.4)),
-        cv2.FONT_HERSHEY_SIMPLEX,
-        scale,
-        colour,
-        1,
-        cv2.LINE_AA,
-    )
 
 
-def _fitted(text: str, scale: float, width_px: int) -> str:
-    """``text`` in ASCII (Hershey fonts draw nothing else), cut with "..." to ``width_px``:
-    a rejection's reason is longer than a small image is wide."""
-    text = text.encode("ascii", "replace").decode()
-    font = cv2.FONT_HERSHEY_SIMPLEX
-    if cv2.getTextSize(text, font, scale, 1)[0][0] <= width_px:
-        return text
-    while len(text) > 4 and cv2.getTextSize(text + "...", font, scale, 1)[0][0] > width_px:
-        text = text[:-1]
-    return text + "..."
+def _draw_legend(
+    picture: Any, row: int, name: str, outcome: Outcome, *, box: bool = True, letters: bool = True
+) -> None:
+    """A step's line of the legend under the verdict, in its colour on a dark box (``box``
+    and ``letters``: which layers, see :func:`draw_text`)."""
+    size = text_px(picture)
+    line = round(size * 1.6)
+    text = f"{name}: {outcome.label}"
+    baseline = verdict_bottom(picture) + round(size * 0.3) + line * row + round(size)
+    colour = GREEN if outcome.passed else RED
+    draw_text(picture, text, (14, baseline), colour, px=size, box=box, letters=letters)
 
 
 def _draw_shape(picture: Any, shape: Shape, colour: tuple[int, int, int]) -> None:

@@ -1,9 +1,12 @@
 // Cameras: a card per configured camera with its live image. Each card fetches its own
 // frame.jpg (a cache-busting query, one request at a time) at the camera's view rate, capped.
+// Over the image, the online view (js/online.js) draws the last production result of every
+// inspection on that camera, with running counts below; #/online is the same as a wall screen.
 
 import { api, ApiError } from "./api.js";
 import { byId, el, formatNumber, replaceChildren } from "./dom.js";
 import { Poller } from "./poll.js";
+import { CameraOnline, onlineFeed } from "./online.js";
 
 /** The most frames per second one card asks for, whatever the camera offers. */
 const MAX_VIEW_FPS = 15;
@@ -11,7 +14,7 @@ const MAX_VIEW_FPS = 15;
 const REQUEST_CAMERA_FPS = 1;
 
 class CameraCard {
-  constructor(info) {
+  constructor(info, options = {}) {
     this.name = info.name;
     this.info = info;
     this.tick = 0;
@@ -31,12 +34,15 @@ class CameraCard {
     this.note = el("p", { class: "camera-note muted" });
     this.pauseButton = el("button", { type: "button", class: "btn", onclick: () => this.togglePause() }, "Pause");
     this.saveButton = el("button", { type: "button", class: "btn", disabled: true, onclick: () => this.save() }, "Save frame");
+    const view = el("div", { class: "camera-view" }, this.image, this.placeholder);
+    this.online = new CameraOnline(info.name, view, this.image, options);
     this.node = el("article", { class: "card camera-card", dataset: { camera: info.name } },
       el("header", { class: "card-head" },
         el("h2", { class: "camera-name" }, info.name),
         el("span", { class: "tag" }, info.source ?? "camera"),
-        info.depth ? el("span", { class: "tag" }, "depth") : null),
-      el("div", { class: "camera-view" }, this.image, this.placeholder),
+        info.depth ? el("span", { class: "tag" }, "depth") : null,
+        this.online.toggleLabel),
+      el("div", { class: "camera-body" }, view, this.online.panel),
       this.note,
       el("div", { class: "card-foot" },
         el("div", { class: "metrics" }, this.fps, this.size, this.age),
@@ -106,6 +112,11 @@ class CameraCard {
     this.image.hidden = false;
     this.saveButton.disabled = false;
     this.shown += 1;
+    // The graphics follow the image's size (the first frame, a camera that changed it).
+    if (this.image.naturalWidth !== this.drawnWidth) {
+      this.drawnWidth = this.image.naturalWidth;
+      this.online.draw();
+    }
     if (!this.info.width && this.image.naturalWidth) {
       this.size.textContent = `${this.image.naturalWidth} × ${this.image.naturalHeight}`;
     }
@@ -124,6 +135,7 @@ class CameraCard {
     this.pauseButton.textContent = this.paused ? "Resume" : "Pause";
     this.pauseButton.classList.toggle("btn-active", this.paused);
     this.node.classList.toggle("paused", this.paused);
+    this.online.setPaused(this.paused);
     if (!this.paused) this.poller.kick();
   }
 
@@ -137,13 +149,28 @@ class CameraCard {
     setTimeout(() => URL.revokeObjectURL(link.href), 10000);
   }
 
-  start() { this.poller.start(); }
-  stop() { this.poller.stop(); }
+  start() {
+    this.poller.start();
+    this.online.start();
+  }
+
+  stop() {
+    this.poller.stop();
+    this.online.stop();
+  }
 }
 
 export class CamerasPage {
-  constructor() {
+  /**
+   * ``options.wall``: the wall screen (#/online, #/online/CAMERA): large type, no top bar, one
+   * camera or all; ``grid`` and ``empty``: the ids of its card grid and its "no cameras" line.
+   */
+  constructor(options = {}) {
+    this.wall = Boolean(options.wall);
+    this.gridId = options.grid ?? "camera-cards";
+    this.emptyId = options.empty ?? "cameras-empty";
     this.cards = new Map();
+    this.allNames = [];
     // The list (rates, frame ages, cameras added by a reload) refreshes every 2 s.
     this.listPoller = new Poller(() => this.refresh(), 2000);
     this.active = false;
@@ -151,14 +178,23 @@ export class CamerasPage {
 
   start() {
     this.active = true;
+    onlineFeed.start();
     this.listPoller.start();
     for (const card of this.cards.values()) card.start();
   }
 
   stop() {
     this.active = false;
+    onlineFeed.stop();
     this.listPoller.stop();
     for (const card of this.cards.values()) card.stop();
+  }
+
+  /** The wall's choice: the camera named after #/online/, or null for every camera. */
+  chosenCamera() {
+    if (!this.wall) return null;
+    const parts = location.hash.replace(/^#\/?/, "").split("/");
+    return parts.length > 1 && parts[1] ? decodeURIComponent(parts[1]) : null;
   }
 
   async refresh() {
@@ -167,12 +203,15 @@ export class CamerasPage {
       listing = await api.cameras();
     } catch (exc) {
       if (!(exc instanceof ApiError && exc.status === 401)) {
-        byId("cameras-empty").textContent = `Cameras unavailable: ${exc.message}`;
-        byId("cameras-empty").hidden = false;
+        byId(this.emptyId).textContent = `Cameras unavailable: ${exc.message}`;
+        byId(this.emptyId).hidden = false;
       }
       return;
     }
-    const cameras = listing.cameras ?? [];
+    const chosen = this.chosenCamera();
+    const all = listing.cameras ?? [];
+    this.allNames = all.map((c) => c.name);
+    const cameras = chosen === null ? all : all.filter((c) => c.name === chosen);
     const names = new Set(cameras.map((c) => c.name));
     for (const [name, card] of this.cards) {
       if (!names.has(name)) {
@@ -184,7 +223,7 @@ export class CamerasPage {
     for (const info of cameras) {
       let card = this.cards.get(info.name);
       if (card === undefined) {
-        card = new CameraCard(info);
+        card = new CameraCard(info, { wall: this.wall });
         this.cards.set(info.name, card);
         if (this.active) card.start();
       } else {
@@ -192,12 +231,14 @@ export class CamerasPage {
       }
     }
     // Re-append only when the set or order changed: moving an <img> makes it flicker.
-    const grid = byId("camera-cards");
+    const grid = byId(this.gridId);
+    grid.dataset.count = String(cameras.length);
     const wanted = cameras.map((c) => this.cards.get(c.name).node);
     const same = wanted.length === grid.children.length &&
       wanted.every((node, i) => grid.children[i] === node);
     if (!same) replaceChildren(grid, ...wanted);
-    byId("cameras-empty").textContent = "No cameras are configured.";
-    byId("cameras-empty").hidden = cameras.length > 0;
+    byId(this.emptyId).textContent = chosen === null
+      ? "No cameras are configured." : `No camera named ${chosen}.`;
+    byId(this.emptyId).hidden = cameras.length > 0;
   }
 }
