@@ -120,6 +120,8 @@ def walk(driver: WebDriver, server: RunningConsole, shots: Path | None = None) -
     # 5. Save: the file is written (backup kept) and the server reloads.
     before = server.app.service.catalog.config_hash
     driver.find_element(By.ID, "save-config").click()
+    driver.find_element(By.ID, "save-why").send_keys("threshold 100: the magnet's edge counts")
+    driver.find_element(By.ID, "save-confirm").click()
     wait_for(driver, lambda d: "Saved and reloaded" in _text(d, "save-ok"), "the save")
     assert server.app.service.catalog.config_hash != before
     assert "threshold: 100" in server.config.read_text()

@@ -62,6 +62,9 @@ def test_live_view_and_a_dragged_roi_changes_the_verdict_and_saves(
 
         before = server.app.service.catalog.config_hash
         driver.find_element(By.ID, "save-config").click()
+        # A save asks why (kept with the version of the file).
+        driver.find_element(By.ID, "save-why").send_keys("the magnet check on the dark corner")
+        driver.find_element(By.ID, "save-confirm").click()
         ok = driver.find_element(By.ID, "save-ok")
         wait_for(driver, lambda d: "Saved and reloaded" in ok.text, "the save")
         assert server.app.service.catalog.config_hash != before

@@ -257,11 +257,13 @@ def test_the_try_panel_sends_the_dragged_roi_and_parameters(driver: WebDriver, s
             "a try with threshold 300",
         )
         driver.find_element(By.ID, "save-config").click()
+        driver.find_element(By.ID, "save-why").send_keys("too bright")
+        driver.find_element(By.ID, "save-confirm").click()
         refusal = driver.find_element(By.ID, "save-error")
         wait_for(driver, lambda d: refusal.is_displayed(), "the refusal")
         assert "cell.yaml:53: inspections[1].threshold" in refusal.text
         saves = stub.recorded("/api/inspections/magnet_check/save", "POST")
-        assert saves[-1].body == {"options": {"roi": moved, "threshold": 300}}
+        assert saves[-1].body == {"options": {"roi": moved, "threshold": 300}, "why": "too bright"}
         assert console_errors(driver) == []
 
 
