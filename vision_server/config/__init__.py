@@ -9,6 +9,7 @@
 - :mod:`.listeners`: the addresses the front-ends listen on, and that no two share one.
 - :mod:`.changes`: what a reload changed, in words.
 - :mod:`.exposure`: warnings for front-ends open beyond loopback without authentication.
+- :mod:`.drafts`: a whole inspection mapping (the console's edit or draft) read by the loader.
 """
 
 from .cell import (
@@ -23,6 +24,7 @@ from .cell import (
 )
 from .changes import NOTHING_CHANGED, changed_inspections, describe_changes
 from .document import ConfigError, Node, parse_document, read_document
+from .drafts import file_keys, parse_draft
 from .exposure import exposure_warnings
 from .listeners import Listener, ListenError, PortClash, check_distinct, enabled_listeners
 from .settings import (
@@ -69,10 +71,12 @@ __all__ = [
     "describe_changes",
     "enabled_listeners",
     "exposure_warnings",
+    "file_keys",
     "load_config",
     "load_server_settings",
     "parse_config",
     "parse_document",
+    "parse_draft",
     "read_document",
     "settings_from_node",
     "welcome_limits",

@@ -55,6 +55,7 @@ from ..service import (
 )
 from . import http_save
 from .http_auth import COOKIE, RANK, Role, Sessions
+from .http_build import BUILD_INTEGRATOR_ROUTES, BuildRoutes, check_draft_name
 from .http_door import cross_site_reason, host_allowed
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
@@ -169,6 +170,7 @@ class HttpFrontend:
         self._save_lock = asyncio.Lock()
         self.live: LiveView | None = None
         self.metrics: Metrics | None = None
+        self._builder = BuildRoutes(self, service)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -265,6 +267,7 @@ class HttpFrontend:
         routes.add_get("/api/stats", self.stats)
         routes.add_get("/metrics", self.metrics_text)
         OperatorRoutes(self.operator_desk).add_to(routes)
+        self._builder.add_to(routes)
         return app
 
     # ------------------------------------------------------------------ middlewares
@@ -547,7 +550,8 @@ class HttpFrontend:
 
     async def try_(self, request: web.Request) -> web.Response:
         name = request.match_info["name"]
-        inspection = self.service.catalog.inspection(name)  # UNKNOWN_INSPECTION: 404
+        if name not in self.service.catalog.inspections:
+            check_draft_name(name)  # a try of a draft: its config comes in the body
         arrived = time.monotonic()
         declared = request.content_length
         limit = self.settings.max_upload_bytes + FORM_OVERHEAD
@@ -572,9 +576,13 @@ class HttpFrontend:
             options = spec.get("options") or {}
             if not isinstance(options, dict):
                 raise HttpError(400, "BAD_REQUEST", "options must be a JSON object")
-            written = self._written(name)
+            # A whole edited or new mapping (http_build), else the configured inspection
+            # with the options laid over it.
+            draft = await self._builder.draft(name, spec, options)
+            inspection = draft or self.service.catalog.inspection(name)  # 404
+            written = self._written(name) if draft is None else {}
             tuned = nested_options(written, options)
-            merged = {**written, **tuned}
+            merged = {**written, **tuned} if draft is None else dict(spec["config"])
             source = spec.get("source")
             images: Images | Callable[[ImageNeeds], Images]
             if source == "camera":
@@ -609,6 +617,8 @@ class HttpFrontend:
                     deadline=arrived + self.settings.try_deadline_s,
                     peer=TRY_PEER_PREFIX + _peer(request),
                     request_class="try",
+                    draft=draft,
+                    config=None if draft is None else merged,
                 ),
                 admission=admission,
             )
@@ -888,7 +898,10 @@ class HttpFrontend:
 # ----------------------------------------------------------------------------- helpers
 
 
-INTEGRATOR_ROUTES = frozenset({"/api/inspections/{name}/try", "/api/inspections/{name}/save"})
+INTEGRATOR_ROUTES = (
+    frozenset({"/api/inspections/{name}/try", "/api/inspections/{name}/save"})
+    | BUILD_INTEGRATOR_ROUTES
+)
 """What changes an inspection or runs one with other options: the integrator's and the
 admin's, not the operator's (who views, and answers operator calls)."""
 

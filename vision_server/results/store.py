@@ -66,6 +66,9 @@ class ResultEntry:
     options: Mapping[str, Any] = field(default_factory=dict)
     """The request's own parameters (SPEC §6.3) the inspection ran with; stored with a
     console try's row (:mod:`vision_server.results.tries`)."""
+    config: Mapping[str, Any] | None = None
+    """The whole inspection mapping a console try ran instead of the configured inspection
+    (an edited or a new one); stored with the try's row under ``data.try.config``."""
 
 
 @dataclass(frozen=True)
@@ -208,7 +211,7 @@ def row_values(entry: ResultEntry) -> tuple[Any, ...]:
         str(entry.inspection),
         str(entry.camera),
         bool(entry.passed),
-        data_json(tries.marked_data(str(entry.peer), entry.options, entry.data)),
+        data_json(tries.marked_data(str(entry.peer), entry.options, entry.data, entry.config)),
         float(entry.duration_ms),
         str(entry.config_hash),
         int(entry.request_id),

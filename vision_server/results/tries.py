@@ -29,11 +29,18 @@ def is_try(peer: str) -> bool:
 
 
 def marked_data(
-    peer: str, options: Mapping[str, Any], data: Mapping[str, Any]
+    peer: str,
+    options: Mapping[str, Any],
+    data: Mapping[str, Any],
+    config: Mapping[str, Any] | None = None,
 ) -> Mapping[str, Any]:
     """The ``data`` a row stores: a try's gets ``"try": {"options": {...}}`` (the options it ran
-    with; empty when it ran the configuration as written); any other row's is returned as
+    with; empty when it ran the configuration as written), and ``"config"`` beside them when
+    it ran a whole edited or new inspection mapping instead; any other row's is returned as
     given."""
     if not is_try(peer):
         return data
-    return {**data, "try": {"options": dict(options)}}
+    marked: dict[str, Any] = {"options": dict(options)}
+    if config is not None:
+        marked["config"] = dict(config)
+    return {**data, "try": marked}

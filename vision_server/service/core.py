@@ -48,7 +48,7 @@ from protocol import (
 
 from ..cameras import Camera, CameraFrame
 from ..config import ServiceSettings
-from ..inspections import InspectionInput, InspectionOutcome
+from ..inspections import Inspection, InspectionInput, InspectionOutcome
 from ..results import ResultEntry, ResultStore
 from .admission import TRY_BUDGET_SHARE, Admission, ByteBudget, Slot, Waiter, WorkPool, try_key
 from .catalog import Catalog
@@ -132,6 +132,12 @@ class InspectRequest:
     request_class: RequestClass = "production"
     """``try``: a console try, with its own lane, cost estimates and share of the byte budget
     (:data:`~.admission.TRY_PREFIX`); production keeps its threads, slots and a reserve."""
+    draft: Inspection | None = None
+    """An inspection built from a whole mapping (a console try of an edited or a new
+    inspection, validated by the loader's rules: :func:`vision_server.config.parse_draft`),
+    run instead of the configured one; ``inspection`` is its name, which need not be
+    configured. Its ``config`` (the mapping) goes to the result log with the row."""
+    config: Mapping[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -218,6 +224,13 @@ class CaptureReply:
     camera: str
     frames: tuple[CapturedFrame, ...]
     intrinsics: dict[str, Any] | None
+
+
+def _inspection_of(request: InspectRequest, catalog: Catalog) -> Inspection:
+    """The inspection ``request`` runs: its draft, else the catalog's (UNKNOWN_INSPECTION)."""
+    if request.draft is not None:
+        return request.draft
+    return catalog.inspection(request.inspection)
 
 
 # ----------------------------------------------------------------------------- the service
@@ -374,6 +387,9 @@ class InspectionService:
     def request_key(request: InspectRequest) -> str:
         """The pool's and the cost model's key of ``request``: its inspection's name, a try's
         its own (:func:`~.admission.try_key`)."""
+        if request.draft is not None:
+            # Drafts may have any name: their costs are learnt per type, a bounded set.
+            return try_key(f"draft {request.draft.type}")
         if request.request_class == "try":
             return try_key(request.inspection)
         return request.inspection
@@ -485,7 +501,7 @@ class InspectionService:
     async def _inspect(
         self, request: InspectRequest, catalog: Catalog, admission: Admission
     ) -> InspectReply:
-        catalog.camera(catalog.inspection(request.inspection).camera)
+        catalog.camera(_inspection_of(request, catalog).camera)
         # From here on the request has an inspection and a camera to log an error row under
         # (SPEC §6.3): an unknown inspection or camera has none.
         rows = _RowOnce()
@@ -506,7 +522,7 @@ class InspectionService:
         """Log a request that ends in ``error`` unless its run already wrote its row."""
         if not rows.claim():
             return
-        inspection = catalog.inspection(request.inspection)
+        inspection = _inspection_of(request, catalog)
         entry = ResultEntry(
             time=time.time(),
             inspection=inspection.name,
@@ -518,6 +534,7 @@ class InspectionService:
             request_id=request.request_id,
             peer=request.peer,
             options=request.options,
+            config=request.config,
         )
         # Its duration is from the request's arrival (perf_counter and monotonic both tick
         # in seconds; only their difference is used).
@@ -528,7 +545,11 @@ class InspectionService:
     async def _inspect_known(
         self, request: InspectRequest, catalog: Catalog, admission: Admission, rows: _RowOnce
     ) -> InspectReply:
-        inspection = catalog.tuned(catalog.inspection(request.inspection), request.options)
+        inspection = (
+            request.draft
+            if request.draft is not None
+            else catalog.tuned(catalog.inspection(request.inspection), request.options)
+        )
         camera = catalog.camera(inspection.camera)
         declared = camera.intrinsics
         needs = ImageNeeds(
@@ -588,6 +609,7 @@ class InspectionService:
                 peer=request.peer,
                 image=image.color,
                 options=request.options,
+                config=request.config,
             )
             # The log stores the overlay beside the input it keeps (drawing costs ~0.1 ms; the
             # policy's pass/fail choice is only known after the run). Not for very large
