@@ -43,6 +43,40 @@ function round2(n) {
   return Math.round(n * 100) / 100;
 }
 
+const STAGE_MARGIN_PX = 300;   // the window's height less this is the image's at most
+
+function fitImage(image, stage) {
+  if (!image.naturalWidth) return;
+  const room = stage.clientWidth;
+  const tall = Math.max(200, window.innerHeight - STAGE_MARGIN_PX);
+  const width = Math.min(room, tall * image.naturalWidth / image.naturalHeight);
+  image.style.width = `${Math.floor(width)}px`;
+}
+
+/** A try's values as table rows: a job's steps one row each (its verdict and numbers; lists
+ * as their length), everything else as it is. */
+function summaryRows(data) {
+  const rows = [];
+  for (const [key, value] of Object.entries(data)) {
+    if (key === "steps" && isMapping(value)) {
+      for (const [name, step] of Object.entries(value)) {
+        if (!isMapping(step)) continue;
+        const bits = [step.passed ? "pass" : "FAIL"];
+        for (const [k, v] of Object.entries(step)) {
+          if (k === "passed" || k === "type") continue;
+          if (typeof v === "number") bits.push(`${k} ${formatNumber(v)}`);
+          else if (typeof v === "string" || typeof v === "boolean") bits.push(`${k} ${v}`);
+          else if (Array.isArray(v)) bits.push(`${k} ×${v.length}`);
+        }
+        rows.push([`${name} (${step.type ?? "step"})`, bits.join(" · ")]);
+      }
+    } else {
+      rows.push([key, value]);
+    }
+  }
+  return rows;
+}
+
 export class InspectionsPage {
   constructor() {
     this.inspections = [];
@@ -76,6 +110,11 @@ export class InspectionsPage {
   wire() {
     this.started = true;
     this.roi = new RoiEditor(byId("try-image"), byId("try-canvas"), (roi) => this.roiDrawn(roi));
+    // A small image (320 x 240) is shown enlarged, a large one shrunk, always whole: as wide as
+    // the panel and no taller than the window leaves beside the verdict.
+    const fit = () => fitImage(byId("try-image"), byId("try-stage"));
+    byId("try-image").addEventListener("load", fit);
+    window.addEventListener("resize", fit);
     this.tools = new ToolLayer(this.roi, (tool, shape) => this.toolDrawn(tool, shape));
     this.jobs = new JobPanel(this);
     byId("try-run").addEventListener("click", () => this.run());
@@ -470,7 +509,8 @@ export class InspectionsPage {
     if (this.measIndex === null && list.length) this.measIndex = 0;
     if (this.measIndex !== null && this.measIndex >= list.length) this.measIndex = list.length ? list.length - 1 : null;
     const kinds = keys.find((k) => k.key === "kind")?.values ?? [];
-    const keep = byId("meas-add-kind").value;
+    // A caliper's most common measurement first: the width between an edge pair.
+    const keep = byId("meas-add-kind").value || (kinds.includes("width") ? "width" : kinds[0]);
     replaceChildren(byId("meas-add-kind"), kinds.map((k) => el("option", { value: k, selected: k === keep }, k)));
     replaceChildren(byId("meas-list"), list.length ? list.map((m, i) => el("li", {
       class: `step-item${i === this.measIndex ? " active" : ""}`, dataset: { measurement: m?.name ?? "", index: i },
@@ -945,7 +985,7 @@ export class InspectionsPage {
     verdict.textContent = String(outcome.verdict ?? "—").toUpperCase();
     verdict.dataset.verdict = String(outcome.verdict ?? "none");
     this.lastData = isMapping(outcome.data) ? outcome.data : {};
-    fillKeyValues(byId("try-values"), Object.entries(this.lastData));
+    fillKeyValues(byId("try-values"), summaryRows(this.lastData));
     fillKeyValues(byId("try-timing"),
       Object.entries(outcome.timing ?? {}).map(([k, v]) => [k, typeof v === "number" ? `${formatNumber(v, 3)} ms` : v]));
     const hist = outcome.histogram;

@@ -179,7 +179,7 @@ export class JobPanel {
       status.textContent = "No locate step runs before this one: add a locate step above it first.";
       return;
     }
-    const options = (names, none) => [el("option", { value: "" }, none), names.map((n) => el("option", { value: n }, n))];
+    const options = (names, none) => [el("option", { value: "" }, none), ...names.map((n) => el("option", { value: n }, n))];
     replaceChildren(byId("fixture-origin"), locates.map((n) => el("option", { value: n }, n)));
     replaceChildren(byId("fixture-x-towards"), options(locates, "— none —"));
     replaceChildren(byId("fixture-angle-from"), options(angled, "— none —"));
@@ -210,7 +210,8 @@ export class JobPanel {
       (s.x_towards ?? undefined) === xTowards && (s.angle_from ?? undefined) === angleFrom);
     let at = index;
     if (!fixture) {
-      fixture = { name: uniqueName(host.config, `${origin}_frame`), type: "fixture", origin };
+      const base = xTowards ? `${origin}_to_${xTowards}` : angleFrom ? `${origin}_turned` : `${origin}_frame`;
+      fixture = { name: uniqueName(host.config, base), type: "fixture", origin };
       if (xTowards) fixture.x_towards = xTowards;
       if (angleFrom) fixture.angle_from = angleFrom;
       steps.splice(index, 0, fixture);
