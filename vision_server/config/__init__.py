@@ -10,6 +10,7 @@
 - :mod:`.changes`: what a reload changed, in words.
 - :mod:`.exposure`: warnings for front-ends open beyond loopback without authentication.
 - :mod:`.drafts`: a whole inspection mapping (the console's edit or draft) read by the loader.
+- :mod:`.schema`: every key of every inspection and job step type, for the console's editor.
 """
 
 from .cell import (
@@ -24,9 +25,10 @@ from .cell import (
 )
 from .changes import NOTHING_CHANGED, changed_inspections, describe_changes
 from .document import ConfigError, Node, parse_document, read_document
-from .drafts import file_keys, parse_draft
+from .drafts import check_files, file_keys, parse_draft
 from .exposure import exposure_warnings
 from .listeners import Listener, ListenError, PortClash, check_distinct, enabled_listeners
+from .schema import inspection_schema
 from .settings import (
     DEFAULT_CONSOLE_PORT,
     DEFAULT_LINE_PORT,
@@ -67,11 +69,13 @@ __all__ = [
     "TcpSettings",
     "Tuner",
     "changed_inspections",
+    "check_files",
     "check_distinct",
     "describe_changes",
     "enabled_listeners",
     "exposure_warnings",
     "file_keys",
+    "inspection_schema",
     "load_config",
     "load_server_settings",
     "parse_config",

@@ -23,7 +23,7 @@ from ..cameras import CameraSettings
 from ..inspections import InspectionSpec, parse_inspection
 from .document import ConfigError, Node
 
-__all__ = ["MAX_DRAFT_DEPTH", "file_keys", "parse_draft"]
+__all__ = ["MAX_DRAFT_DEPTH", "check_files", "file_keys", "parse_draft"]
 
 MAX_DRAFT_DEPTH = 12
 """How deep a draft's mappings and lists may nest (an inspection nests 4 at most)."""
@@ -43,12 +43,21 @@ def parse_draft(
     if not isinstance(config, dict):
         raise ConfigError("an inspection is a mapping of its keys")
     _check_depth(config, 0)
+    check_files(config, base_dir=base_dir, written=written)
+    node = Node(config, (), "", {}, {})
+    return parse_inspection(node, base_dir=base_dir, cameras=cameras)
+
+
+def check_files(
+    config: Mapping[str, Any], *, base_dir: Path, written: Mapping[str, Any] | None
+) -> None:
+    """Refuse a file named by ``config`` outside the configuration's folder ``base_dir``
+    (ConfigError naming its key path) unless ``written`` (the inspection as the file has it)
+    names that very path there."""
     for path, value in file_keys(config):
         kept = written is not None and _at(written, path) == value
         if not kept:
             _check_inside(path, value, base_dir)
-    node = Node(config, (), "", {}, {})
-    return parse_inspection(node, base_dir=base_dir, cameras=cameras)
 
 
 def file_keys(config: Mapping[str, Any]) -> Iterator[tuple[tuple[str | int, ...], Any]]:

@@ -579,7 +579,7 @@ class HttpFrontend:
             # A whole edited or new mapping (http_build), else the configured inspection
             # with the options laid over it.
             draft = await self._builder.draft(name, spec, options)
-            inspection = draft or self.service.catalog.inspection(name)  # 404
+            inspection = self.service.catalog.inspection(name) if draft is None else draft
             written = self._written(name) if draft is None else {}
             tuned = nested_options(written, options)
             merged = {**written, **tuned} if draft is None else dict(spec["config"])

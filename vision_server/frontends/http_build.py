@@ -8,13 +8,14 @@ and same-origin rule like every ``/api/*`` path.
 - ``GET /api/schema``: every key of every inspection and job step type
   (:func:`vision_server.config.inspection_schema`);
 - ``POST /api/inspections/{name}/template``: cut a template from an image and keep it
-  beside the configuration (:mod:`.templates`);
+  beside the configuration (:mod:`.template_files`);
 - ``GET /api/inspections/{name}/reads``: the texts the inspection's last results read.
 """
 
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
 import logging
 from collections.abc import Mapping
@@ -25,22 +26,32 @@ from aiohttp import web
 from protocol import CellvisionError
 from yamlfile import NAME
 
-from ..config import ConfigError, Tuner, parse_draft
+from ..config import ConfigError, Tuner, check_files, inspection_schema, parse_draft
 from ..inspections import Inspection
-from ..service import InspectionService
-from . import http_save, http_save_whole
+from ..results import is_try
+from ..service import ImageNeeds, Images, InspectionService, InspectRequest
+from . import http_save, http_save_whole, template_files
 
 if TYPE_CHECKING:
     from .http import HttpFrontend
 
 log = logging.getLogger("vision_server")
 
-BUILD_INTEGRATOR_ROUTES = frozenset({"/api/inspections/{name}"})
+BUILD_INTEGRATOR_ROUTES = frozenset({"/api/inspections/{name}", "/api/inspections/{name}/template"})
 """The paths of this module that change the configuration: the integrator's."""
 MAX_SAVE_BYTES = 64 * 1024
 """The largest body of a whole save (the mapping and the reason)."""
 MAX_WHY = 500
 """The longest reason a save may give, characters."""
+MAX_TEMPLATE_BODY = 64 * 1024
+"""The largest body of a template's training (JSON: a rectangle, maybe a draft's mapping)."""
+READS_DEFAULT = 20
+READS_MAX = 50
+"""How many of the inspection's last production results ``/reads`` reads at most."""
+READS_PAGES = 4
+"""Pages of the log read at most to find them among tries (each ``last`` rows, by index)."""
+MAX_READS = 200
+"""The most texts one answer lists (a job reads one per code step)."""
 
 
 def _error(status: int, code: str, message: str) -> Exception:
@@ -69,7 +80,18 @@ class BuildRoutes:
         self.service = service
 
     def add_to(self, router: web.UrlDispatcher) -> None:
+        router.add_get("/api/schema", self.schema)
         router.add_put("/api/inspections/{name}", self.save_whole)
+        router.add_post("/api/inspections/{name}/template", self.template)
+        router.add_get("/api/inspections/{name}/reads", self.reads)
+
+    # ------------------------------------------------------------------ schema
+
+    async def schema(self, request: web.Request) -> web.Response:
+        """Every key of every inspection and job step type (vision_server/config/schema.py),
+        ``camera`` listing the configured cameras."""
+        cameras = list(self.service.catalog.cameras)
+        return web.json_response(inspection_schema(cameras), headers={"Cache-Control": "no-store"})
 
     # ------------------------------------------------------------------ drafts
 
@@ -149,6 +171,13 @@ class BuildRoutes:
             raise _error(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
         async with console._save_lock:
             served = console._all_written()
+            try:
+                # A request never makes the server open a path it chose (drafts.py).
+                check_files(config, base_dir=path.resolve().parent, written=served.get(name))
+            except ConfigError as exc:
+                raise _error(
+                    422, "CONFIG_REFUSED", f"{path.name}: inspection {name!r} -> {exc}"
+                ) from None
             opened = http_save.opened_cameras(self.service.catalog)
             saved = await asyncio.to_thread(_save_whole, path, name, config, opened, why)
             try:
@@ -181,6 +210,136 @@ class BuildRoutes:
                 "created": saved.created,
             }
         )
+
+    # ------------------------------------------------------------------ templates
+
+    async def template(self, request: web.Request) -> web.Response:
+        """``POST /api/inspections/{name}/template``: cut ``rect`` from an image taken as a try
+        takes it, keep it as a grey PNG in ``templates/`` (content-addressed), answer its path."""
+        from .http import _json_body, _read_at_most
+
+        name = request.match_info["name"]
+        check_draft_name(name)
+        body = await _json_body(request, await _read_at_most(request, MAX_TEMPLATE_BODY))
+        console = self.console
+        path = console.config_path
+        if path is None:
+            raise _error(403, "CONFIG_REFUSED", "this server runs without a configuration file")
+        if not console.settings.allow_save:
+            raise _error(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
+        camera = self._camera_of(name, body.get("config"))
+        rect = body.get("rect")
+        try:
+            template_files.check_rect(rect, 1 << 30, 1 << 30)  # its form, before any image
+        except template_files.TemplateRefused as exc:
+            raise _error(exc.status, "TEMPLATE_REFUSED", str(exc)) from None
+        source = body.get("source")
+        images: Images | Any
+        if source == "camera":
+            images = await console._camera_images(camera)
+        elif source == "result":
+            images = console._result_loader(body.get("result_id"))
+        elif source == "recording":
+            images = console._recording_loader(camera, body.get("frame"), 1)
+        else:
+            raise _error(400, "BAD_REQUEST", "source must be 'camera', 'result' or 'recording'")
+        # One slot of the try lane while the image is decoded and cut: no more at once.
+        key = self.service.request_key(InspectRequest(name, request_class="try"))
+        admission = self.service.admit(key=key, request_class="try")
+        try:
+            needs = ImageNeeds(name, False, self.service.settings.max_image_pixels)
+            kept = await asyncio.to_thread(_train, images, needs, rect, path.parent, name)
+        finally:
+            admission.release()
+        log.info("console: template %s trained for %r", kept.path, name)
+        return web.json_response(
+            {
+                "path": kept.path,
+                "width": kept.width,
+                "height": kept.height,
+                "image": "data:image/png;base64," + base64.b64encode(kept.png).decode("ascii"),
+            }
+        )
+
+    def _camera_of(self, name: str, config: Any) -> str:
+        """The camera of inspection ``name``; a draft's ``config`` names it."""
+        catalog = self.service.catalog
+        if config is not None:
+            if not isinstance(config, dict) or not isinstance(config.get("camera"), str):
+                raise _error(400, "BAD_REQUEST", "config must be a mapping that names its camera")
+            catalog.camera(config["camera"])  # UNKNOWN_CAMERA
+            return str(config["camera"])
+        if name not in catalog.inspections:
+            raise _error(
+                404,
+                "UNKNOWN_INSPECTION",
+                f"no inspection named {name!r}: a new inspection's template needs its config "
+                "(for its camera)",
+            )
+        return catalog.inspection(name).camera
+
+    # ------------------------------------------------------------------ reads
+
+    async def reads(self, request: web.Request) -> web.Response:
+        """``GET /api/inspections/{name}/reads?last=N``: the texts the inspection's last N
+        production results read, newest first, through the log's index by inspection."""
+        from .http import _int_param
+
+        name = request.match_info["name"]
+        check_draft_name(name)
+        last = _int_param(request.query, "last", READS_DEFAULT, 1, READS_MAX)
+        log_ = self.console._log()
+        rows = await asyncio.to_thread(_production_rows, log_, name, last)
+        out: list[dict[str, Any]] = []
+        for row in rows:
+            out.extend(_texts(row))
+            if len(out) >= MAX_READS:
+                break
+        return web.json_response({"reads": out[:MAX_READS]}, headers={"Cache-Control": "no-store"})
+
+
+def _train(
+    images: Images | Any, needs: ImageNeeds, rect: Any, folder: Any, name: str
+) -> template_files.Template:
+    """Decode the image (in a thread), cut and keep the template: 400 naming ``rect``, 409
+    naming the folder."""
+    loaded = images if isinstance(images, Images) else images(needs)
+    try:
+        return template_files.keep(folder, name, template_files.cut(loaded.color, rect))
+    except template_files.TemplateRefused as exc:
+        raise _error(exc.status, "TEMPLATE_REFUSED", str(exc)) from None
+    except OSError as exc:
+        raise _error(500, "TEMPLATE_REFUSED", f"cannot write the template: {exc}") from None
+
+
+def _production_rows(log_: Any, name: str, last: int) -> list[Any]:
+    """The newest ``last`` production rows of ``name`` (tries skipped), by the log's index on
+    inspection and time: at most :data:`READS_PAGES` pages of ``last`` rows are read."""
+    found: list[Any] = []
+    before: int | None = None
+    for _ in range(READS_PAGES):
+        page = log_.query(inspection=name, limit=last, before_id=before)
+        found.extend(r for r in page if not is_try(r.peer))
+        if len(found) >= last or len(page) < last:
+            break
+        before = page[-1].id
+    return found[:last]
+
+
+def _texts(row: Any) -> list[dict[str, Any]]:
+    """What one stored result read: a code's or QR's ``text``, each code step's of a job."""
+    data = row.data if isinstance(row.data, dict) else {}
+    out = []
+    if isinstance(data.get("text"), str):
+        out.append({"result_id": row.id, "time": row.time, "text": data["text"], "step": None})
+    steps = data.get("steps")
+    if isinstance(steps, dict):
+        for step, values in steps.items():
+            if isinstance(values, dict) and isinstance(values.get("text"), str):
+                out.append(
+                    {"result_id": row.id, "time": row.time, "text": values["text"], "step": step}
+                )
+    return out
 
 
 def _save_whole(

@@ -5,7 +5,7 @@ The file is edited as text through the parsed document's node positions, as
 :mod:`.http_save` does for single values, so that everything outside the one inspection stays
 byte for byte as written (comments, order, anchors):
 
-1. the mapping is checked: its ``name`` is the inspection's, its keys plain names, its values
+1. the mapping is checked: its ``name`` is the inspection's, its keys names, its values
    booleans, finite numbers, strings, nulls, lists and mappings of those, nested at most
    :data:`MAX_DEPTH` deep;
 2. it is rendered by this module (never by a YAML emitter's guesses): block YAML at the
@@ -30,6 +30,8 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+
+from yamlfile import NAME
 
 from ..config import ConfigError, parse_document
 from . import http_save
@@ -112,6 +114,8 @@ def replaced_text(text: str, source: str, inspection: str, config: Any) -> tuple
     else:
         start, end, replacement = _append(text, root, pair, config)
         created = True
+    if "\r\n" in text:  # a file written on Windows keeps its line ends (no text has one)
+        replacement = replacement.replace("\n", "\r\n")
     out = text[:start] + replacement + text[end:]
     _verify(out, source, where, before, index, config)
     return out, created
@@ -137,10 +141,10 @@ def _check_value(where: str, value: Any, depth: int) -> None:
         raise BadValue(f"{where}: nested deeper than {MAX_DEPTH} levels")
     if isinstance(value, dict):
         for key, inner in value.items():
-            if not isinstance(key, str) or not KEY_PART.match(key):
+            # A plain name, or a summary value's STEP.VALUE (an output's scale names them).
+            if not isinstance(key, str) or not NAME.fullmatch(key):
                 raise BadKey(
-                    f"{where}: {key!r} is not a key (letters, digits and underscores, "
-                    "starting with a letter or an underscore)"
+                    f"{where}: {key!r} is not a key (letters, digits, '_', '.' and '-', at most 64)"
                 )
             _check_value(f"{where} -> {key}", inner, depth + 1)
     elif isinstance(value, list):
@@ -236,6 +240,8 @@ def _append(
     line_end = text.find("\n", after)
     if line_end < 0:
         line_end = len(text)
+    elif line_end > after and text[line_end - 1] == "\r":
+        line_end -= 1
     return line_end, line_end, "\n" + _block_sequence_item(config, dash_column, content)
 
 
@@ -309,10 +315,12 @@ def _quoted(text: str) -> str:
 
 
 def _key(key: str) -> str:
-    # Keys were checked to be plain identifiers; YAML would read some as other types.
-    if key.lower() in ("y", "n", "yes", "no", "on", "off", "true", "false", "null", "~"):
-        return _quoted(key)
-    return key
+    """A key as written: plain when it is an identifier YAML reads as that text, else
+    double-quoted (``"n"``, ``"on"``, ``"gauge.plate_width"``, ``"1e3"``)."""
+    plain = KEY_PART.match(key) and key.lower() not in (
+        "y", "n", "yes", "no", "on", "off", "true", "false", "null",
+    )  # fmt: skip
+    return key if plain else _quoted(key)
 
 
 # ----------------------------------------------------------------------------- verify

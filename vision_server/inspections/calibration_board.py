@@ -83,6 +83,9 @@ def parse_board(node: Node) -> BoardSpec:
     kind = sub.take("kind", one_of(*BOARD_KINDS))
     columns = sub.take("columns", positive_int)
     rows = sub.take("rows", positive_int)
+    for key, count in (("columns", columns), ("rows", rows)):
+        if count < 3:  # named here: the board's own check names no key
+            raise sub.error(f"a board needs at least 3 x 3 squares, got {count} {key}", key)
     square = sub.take("square_m", positive)
     marker = sub.take("marker_m", positive) if kind == "charuco" else 0.0
     dictionary = (
