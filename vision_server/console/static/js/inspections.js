@@ -94,7 +94,17 @@ export class InspectionsPage {
     this.running = false;
     this.pending = false;
     this.started = false;
-    this.rerun = debounce(() => this.run(), RERUN_DELAY_MS);
+    // Each edit is numbered; the stage says which edit the outcome shown was tried with
+    // (``#try-stage[data-edit]`` and ``[data-tried]``: equal once the try of the last edit
+    // answered), so that a person or a test can tell a stale verdict from a current one.
+    this.editSeq = 0;
+    const later = debounce(() => this.run(), RERUN_DELAY_MS);
+    this.rerun = () => {
+      this.editSeq += 1;
+      byId("try-stage").dataset.edit = String(this.editSeq);
+      later();
+    };
+    this.rerun.cancel = () => later.cancel();
     page = this;
   }
 
@@ -929,12 +939,14 @@ export class InspectionsPage {
     byId("try-run").disabled = true;
     byId("try-stage").classList.add("busy");
     const name = this.selected.name;
+    const seq = this.editSeq;
     try {
       const outcome = await api.tryInspection(name, body, file);
       if (this.selected?.name === name) this.show(outcome);
     } catch (exc) {
       if (!(exc instanceof ApiError && exc.status === 401) && this.selected?.name === name) this.showRefusal(exc);
     } finally {
+      byId("try-stage").dataset.tried = String(seq);
       this.running = false;
       byId("try-run").disabled = false;
       byId("try-stage").classList.remove("busy");
