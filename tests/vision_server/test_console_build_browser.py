@@ -221,7 +221,8 @@ def test_an_integrator_builds_a_fixtured_job_from_a_blank_inspection(
             wait_for(d, lambda x: step(x, "small_hole")["roi"][0] > 40, "the small hole's ROI")
             roi = step(d, "small_hole")["roi"]
             # The big hole is at (133.4, 105.3): the drawn box is (62, -49) from it.
-            assert abs(roi[0] - 62) <= 2 and abs(roi[1] + 49) <= 2, roi
+            assert abs(roi[0] - 62) <= 2, roi
+            assert abs(roi[1] + 49) <= 2, roi
             assert wait_tried(d, "the small hole's ROI") == "PASS"
 
             # 3. The magnet: a presence step in the part frame (origin the big hole, x towards
@@ -265,9 +266,11 @@ def test_an_integrator_builds_a_fixtured_job_from_a_blank_inspection(
             wait_for(d, lambda x: step(x, "gauge").get("measurements"), "the band's measurement")
             m = step(d, "gauge")["measurements"][0]
             assert m["kind"] == "width"
-            assert abs(m["band"]["center"][0] - 75) <= 1.5 and abs(m["band"]["center"][1]) <= 1.5, m
+            assert abs(m["band"]["center"][0] - 75) <= 1.5, m
+            assert abs(m["band"]["center"][1]) <= 1.5, m
             assert abs(m["band"]["angle_rad"] - math.pi / 2) < 0.03, m
-            assert abs(m["band"]["length"] - 100) <= 2 and m["band"]["width"] == 6, m
+            assert abs(m["band"]["length"] - 100) <= 2, m
+            assert m["band"]["width"] == 6, m
             type_into(d, "meas-field-name", "plate_width")
             type_into(d, "meas-field-min", "79")
             type_into(d, "meas-field-max", "81")
@@ -281,7 +284,8 @@ def test_an_integrator_builds_a_fixtured_job_from_a_blank_inspection(
             error = d.find_element(
                 By.CSS_SELECTOR, "#param-fields .field-error[data-error-for=verdict]"
             )
-            assert "column 38" in error.text and "vlue" in error.text, error.text
+            assert "column 38" in error.text, error.text
+            assert "vlue" in error.text, error.text
             type_into(
                 d, "insp-field-verdict", "all(big_hole, small_hole, gauge) and magnet.value >= 0.6"
             )
@@ -293,10 +297,12 @@ def test_an_integrator_builds_a_fixtured_job_from_a_blank_inspection(
             d.execute_script("document.querySelector('main').scrollTop = 0;")
             top, bottom, height, font = d.execute_script(
                 "const r = arguments[0].getBoundingClientRect();"
-                "return [r.top, r.bottom, innerHeight, parseFloat(getComputedStyle(arguments[0]).fontSize)];",
+                "const font = parseFloat(getComputedStyle(arguments[0]).fontSize);"
+                "return [r.top, r.bottom, innerHeight, font];",
                 verdict,
             )
-            assert 0 <= top and bottom <= height, (top, bottom, height)
+            assert top >= 0, (top, bottom, height)
+            assert bottom <= height, (top, bottom, height)
             assert font >= 32, font
             save_screenshot(d, shots / "build-job.png", width=1200)
 
@@ -346,10 +352,13 @@ def test_a_template_is_trained_in_the_page(driver: WebDriver, tmp_path: Path) ->
             "the crop",
         )
         path = pending(d)["config"]["template"]["image"]
-        assert path.startswith("templates/core_locate-") and path.endswith(".png"), path
+        assert path.startswith("templates/core_locate-"), path
+        assert path.endswith(".png"), path
         crop = cv2.imread(str(tmp_path / path), cv2.IMREAD_UNCHANGED)
-        assert crop is not None and crop.ndim == 2, path
-        assert abs(crop.shape[1] - 220) <= 3 and abs(crop.shape[0] - 220) <= 3, crop.shape
+        assert crop is not None, path
+        assert crop.ndim == 2, crop.shape
+        assert abs(crop.shape[1] - 220) <= 3, crop.shape
+        assert abs(crop.shape[0] - 220) <= 3, crop.shape
         assert int(preview.get_property("naturalWidth")) == crop.shape[1]
         assert path in d.find_element(By.ID, "template-path").text
         assert wait_tried(d, "the trained template") == "PASS"
