@@ -22,6 +22,7 @@ export function fieldId(scope, key) {
 function numberOk(key, value) {
   if (!Number.isFinite(value)) return "not a number";
   if (key.kind === "integer" && !Number.isInteger(value)) return "a whole number";
+  if (typeof key.min === "number" && key.min_exclusive && value <= key.min) return `more than ${formatNumber(key.min)}`;
   if (typeof key.min === "number" && value < key.min) return `at least ${formatNumber(key.min)}`;
   if (typeof key.max === "number" && value > key.max) return `at most ${formatNumber(key.max)}`;
   return null;
@@ -186,7 +187,9 @@ function makeControl(key, target, options) {
     default: {
       // string, expression, file and anything newer: a text box checked as you type.
       const box = el("input", {
-        type: "text", id, "data-key": key.key, value: current === undefined || current === null ? null : String(current),
+        type: "text", id, "data-key": key.key,
+        // A mapping here (``expect: {regex: ...}``) is edited by its own key's control.
+        value: typeof current === "string" || typeof current === "number" ? String(current) : null,
         class: key.kind === "expression" ? "mono wide" : "wide", spellcheck: "false",
         placeholder: key.default ?? "", "aria-label": key.key,
       });

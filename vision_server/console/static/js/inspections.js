@@ -358,9 +358,20 @@ export class InspectionsPage {
       if (!keys.some((k) => k.key === "name")) keys.unshift({ key: "name", kind: "string", required: true, doc: "what later steps and the verdict call it" });
       return keys;
     }
+    // The common keys less those the type does not take (a job's or a caliper's roi).
+    const without = new Set(s.types?.[type]?.without_common ?? []);
     const merged = new Map();
-    for (const key of [...(s.common ?? []), ...(s.types?.[type]?.keys ?? [])]) merged.set(key.key, key);
+    for (const key of [...(s.common ?? []), ...(s.types?.[type]?.keys ?? [])]) {
+      if (!without.has(key.key)) merged.set(key.key, key);
+    }
     return [...merged.values()];
+  }
+
+  /** A presence's min and max take the range of its measure (a slider where it is bounded). */
+  ranged(keys, scope) {
+    const range = scope?.type === "presence" ? this.schema?.presence_ranges?.[scope.measure] : null;
+    if (!Array.isArray(range)) return keys;
+    return keys.map((k) => (k.key === "min" || k.key === "max" ? { ...k, min: range[0] ?? k.min, max: range[1] ?? k.max } : k));
   }
 
   measurementKeys(targetKeys) {
@@ -400,7 +411,7 @@ export class InspectionsPage {
     // The inspection's own keys.
     byId("param-title").textContent = this.schema ? (job ? "Job" : "Settings") : "Parameters";
     if (this.schema) {
-      renderFields(byId("param-fields"), this.keysFor("inspection", this.config.type), this.config, {
+      renderFields(byId("param-fields"), this.ranged(this.keysFor("inspection", this.config.type), this.config), this.config, {
         scope: "insp", skip: INSPECTION_SKIP,
         special: (key) => (key.key === "camera" ? this.cameraControl() : null),
         validate: (key, text) => this.validateText("insp", key, text),
@@ -416,7 +427,7 @@ export class InspectionsPage {
     stepBlock.hidden = !(job && target && this.schema);
     if (!stepBlock.hidden) {
       byId("step-title").textContent = `Step ${target.name ?? ""} (${target.type ?? "?"})`;
-      renderFields(byId("step-fields"), this.keysFor("step", target.type), target, {
+      renderFields(byId("step-fields"), this.ranged(this.keysFor("step", target.type), target), target, {
         scope: "step", skip: STEP_SKIP,
         special: (key) => this.stepControl(key, target),
         validate: (key, text) => this.validateText("step", key, text),
