@@ -55,15 +55,16 @@ def shots_dir(tmp_path: Path) -> Path:
 
 def build_cell(folder: Path) -> Path:
     """The example cell plus a folder camera replaying the turned plate, an inspection on it
-    (a robot's INSPECT gives the console its frame) and a Code 128 reader on the tool camera."""
+    (a robot's INSPECT gives the console its frame) and a label reader on a request camera."""
     config = example_config(folder)
     text = config.read_text(encoding="utf-8")
     camera = f"  plate:\n    source: folder\n    path: {PLATE}\n    glob: moved_a.png\n"
+    camera += "  labels:\n    source: request\n"
     text = text.replace("\ncameras:\n", f"\ncameras:\n{camera}", 1)
     extra = (
         "  - name: plate_seen\n    type: presence\n    camera: plate\n"
         "    measure: mean_intensity\n    min: 0\n"
-        "  - name: label\n    type: code\n    camera: tool\n"
+        "  - name: label\n    type: code\n    camera: labels\n"
         "    symbologies: [code128, datamatrix]\n"
     )
     text = text.replace("\ninspections:\n", f"\ninspections:\n{extra}", 1)
@@ -335,13 +336,20 @@ def test_a_template_is_trained_in_the_page(driver: WebDriver, tmp_path: Path) ->
     d = driver
     config = build_cell(tmp_path)
     with running_cell(config) as server:
+        robot = SyncVisionClient(
+            "127.0.0.1", server.app.port, auth_token=TOKEN, request_timeout_s=WAIT_S
+        )
+        try:
+            assert robot.inspect("plate_seen").passed  # the folder camera's frame
+        finally:
+            robot.close()
         sign_in(d, server, "inspections")
-        # The QC camera sees the rotor core: a dark disc of radius about 90 px at (512, 383).
-        new_draft(d, "core_locate", "locate", "qc")
-        wait_for(d, image_ready, "the QC camera's frame")
+        # The turned plate's pocket and small hole, cut as a template and found again.
+        new_draft(d, "plate_locate", "locate", "plate")
+        wait_for(d, image_ready, "the plate camera's frame")
         choose(d, "insp-field-method", "template")
         click(d, "tool-template")
-        drag_on_image(d, d.find_element(By.ID, "try-canvas"), (402, 273), (622, 493))
+        drag_on_image(d, d.find_element(By.ID, "try-canvas"), (160, 95), (250, 165))
         train = d.find_element(By.ID, "train-template")
         wait_for(d, lambda x: train.is_enabled(), "Train template")
         train.click()
@@ -352,17 +360,18 @@ def test_a_template_is_trained_in_the_page(driver: WebDriver, tmp_path: Path) ->
             "the crop",
         )
         path = pending(d)["config"]["template"]["image"]
-        assert path.startswith("templates/core_locate-"), path
+        assert path.startswith("templates/plate_locate-"), path
         assert path.endswith(".png"), path
         crop = cv2.imread(str(tmp_path / path), cv2.IMREAD_UNCHANGED)
         assert crop is not None, path
         assert crop.ndim == 2, crop.shape
-        assert abs(crop.shape[1] - 220) <= 3, crop.shape
-        assert abs(crop.shape[0] - 220) <= 3, crop.shape
+        assert abs(crop.shape[1] - 90) <= 3, crop.shape
+        assert abs(crop.shape[0] - 70) <= 3, crop.shape
         assert int(preview.get_property("naturalWidth")) == crop.shape[1]
         assert path in d.find_element(By.ID, "template-path").text
         assert wait_tried(d, "the trained template") == "PASS"
-        assert "count" in d.find_element(By.ID, "try-values").text
+        values = d.find_element(By.ID, "try-values").text
+        assert "count" in values, values
         assert console_errors(d) == []
 
 
