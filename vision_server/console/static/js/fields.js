@@ -31,7 +31,7 @@ function numberOk(key, value) {
 function describe(key) {
   const bits = [];
   if (key.unit) bits.push(key.unit);
-  if (key.default !== null && key.default !== undefined) bits.push(`default ${typeof key.default === "object" ? JSON.stringify(key.default) : key.default}`);
+  if (key.default !== null && key.default !== undefined && key.default !== "") bits.push(`default ${typeof key.default === "object" ? JSON.stringify(key.default) : key.default}`);
   if (key.required) bits.push("required");
   return bits.join(" · ");
 }

@@ -360,9 +360,10 @@ export class InspectionsPage {
     }
     // The common keys less those the type does not take (a job's or a caliper's roi).
     const without = new Set(s.types?.[type]?.without_common ?? []);
+    // The type's own keys first (what is tuned), then the ones every inspection has.
     const merged = new Map();
-    for (const key of [...(s.common ?? []), ...(s.types?.[type]?.keys ?? [])]) {
-      if (!without.has(key.key)) merged.set(key.key, key);
+    for (const key of [...(s.types?.[type]?.keys ?? []), ...(s.common ?? [])]) {
+      if (!without.has(key.key) && !merged.has(key.key)) merged.set(key.key, key);
     }
     return [...merged.values()];
   }
