@@ -626,7 +626,10 @@ export class InspectionsPage {
     this.stepIndex = i;
     this.measIndex = null;
     this.templateRect = null;
+    this.lastRing = null;
     byId("fixture-chooser").hidden = true;
+    // Another step may not take the tool in hand: back to the ROI where it does not.
+    if (!this.toolsAllowed()[this.tools.tool]) this.useTool("roi");
     if (edited) this.edited({ structure: true });
     else this.renderEditor();
   }
@@ -647,17 +650,24 @@ export class InspectionsPage {
   }
 
   /** Which tools the target takes, what is drawn, and the ROI editor on the target's ROI. */
+  /** Which tools apply to what is edited now. */
+  toolsAllowed() {
+    const target = this.target();
+    const type = target?.type;
+    return {
+      roi: this.targetHasRoi(),
+      band: type === "caliper",
+      ring: type === "caliper" || (type === "locate" && target?.method === "circle"),
+      rect: this.templateKey() !== null,
+    };
+  }
+
   syncTools(frame) {
     if (!this.tools) return;
     const target = this.target();
     const type = target?.type;
     const circleLocate = type === "locate" && target?.method === "circle";
-    const can = {
-      roi: this.targetHasRoi(),
-      band: type === "caliper",
-      ring: type === "caliper" || circleLocate,
-      rect: this.templateKey() !== null,
-    };
+    const can = this.toolsAllowed();
     for (const button of document.querySelectorAll("#tool-bar [data-tool]")) {
       button.disabled = !can[button.dataset.tool];
     }
@@ -758,7 +768,7 @@ export class InspectionsPage {
   /** A caliper line, a ring or a template rectangle was drawn (image pixels). */
   toolDrawn(tool, shape) {
     const target = this.target();
-    if (!target) return;
+    if (!target || !this.toolsAllowed()[tool]) return;
     if (tool === "rect") {
       this.templateRect = shape;
       this.syncTools(this.targetFrame());
