@@ -127,6 +127,7 @@ export class InspectionsPage {
     window.addEventListener("resize", fit);
     this.tools = new ToolLayer(this.roi, (tool, shape) => this.toolDrawn(tool, shape));
     this.jobs = new JobPanel(this);
+    this.hintText = byId("try-hint").textContent;
     byId("try-run").addEventListener("click", () => this.run());
     for (const radio of document.querySelectorAll("input[name=try-source]")) {
       radio.addEventListener("change", () => this.sourceChanged());
@@ -237,7 +238,16 @@ export class InspectionsPage {
     this.select(name);
     // The editor opens on the camera's live frame, so that tools can be drawn before a try.
     if (source !== "request") {
-      byId("try-image").src = api.frameUrl(camera, Date.now());
+      const image = byId("try-image");
+      const failed = () => {
+        // A triggered or folder camera has no frame until an inspection took one.
+        image.removeAttribute("src");
+        byId("try-hint").textContent = `No frame of camera ${camera} yet: press Run, or upload an image.`;
+        byId("try-hint").hidden = false;
+      };
+      image.addEventListener("error", failed, { once: true });
+      image.addEventListener("load", () => image.removeEventListener("error", failed), { once: true });
+      image.src = api.frameUrl(camera, Date.now());
       byId("try-hint").hidden = true;
     }
   }
@@ -284,6 +294,7 @@ export class InspectionsPage {
     if (switched) {
       this.clearOutcome();
       byId("try-image").removeAttribute("src");
+      byId("try-hint").textContent = this.hintText;
       byId("try-hint").hidden = false;
       byId("save-ok").textContent = "";
       byId("save-error").hidden = true;
