@@ -501,3 +501,37 @@ def test_every_type_and_step_type_gets_its_controls_from_the_schema(
                     d, lambda x: len(pending(x)["config"]["steps"]) == len(schema["steps"]), "steps"
                 )
         assert console_errors(d) == []
+
+
+def test_an_existing_inspection_changes_its_measure_and_is_saved_whole(
+    driver: WebDriver, tmp_path: Path
+) -> None:
+    d = driver
+    config = build_cell(tmp_path)
+    with running_cell(config) as server:
+        sign_in(d, server, "inspections")
+        item = "[data-inspection=magnet_check]"
+        wait_for(d, lambda x: x.find_elements(By.CSS_SELECTOR, item), "the list")
+        d.find_element(By.CSS_SELECTOR, item).click()
+        wait_for(d, lambda x: x.find_elements(By.ID, "insp-field-threshold"), "its controls")
+        # Another measure: the threshold (dark_fraction's) goes, with its value.
+        choose(d, "insp-field-measure", "mean_intensity")
+        wait_for(d, lambda x: not x.find_elements(By.ID, "insp-field-threshold"), "no threshold")
+        assert "threshold" not in pending(d)["config"]
+        type_into(d, "insp-field-min", "0")
+        type_into(d, "insp-field-max", "255")
+        assert wait_tried(d, "the new measure") == "PASS"
+        assert "mean_intensity" in d.find_element(By.ID, "try-values").text
+        assert "measure: mean_intensity" in d.find_element(By.ID, "yaml-snippet").text
+        click(d, "save-config")
+        d.find_element(By.ID, "save-why").send_keys("the slot's mean grey instead")
+        click(d, "save-confirm")
+        ok = d.find_element(By.ID, "save-ok")
+        wait_for(d, lambda x: "Saved and reloaded" in ok.text, "the save")
+        saved = d.find_element(By.ID, "insp-config")
+        wait_for(d, lambda x: "mean_intensity" in saved.text, "the configuration as loaded")
+        assert "threshold" not in saved.text
+        text = config.read_text(encoding="utf-8")
+        assert '"mean_intensity"' in text
+        assert "# Quality control (paper, Table 2)" in text  # the file's comments stay
+        assert console_errors(d) == []

@@ -8,7 +8,7 @@
 // ``[data-key=KEY]`` inside its scope's container; docs/console.md lists them.
 
 import { el, formatNumber, replaceChildren } from "./dom.js";
-import { applies, getPath, setPath } from "./paths.js";
+import { applies, getPath, prune, setPath } from "./paths.js";
 import { compilePython } from "./pyregex.js";
 
 export const INSPECTION_NAME = /^[A-Za-z0-9_.-]{1,64}$/;
@@ -45,9 +45,10 @@ function describe(key) {
  */
 export function renderFields(container, keys, target, options) {
   const { scope, skip = new Set(), special = () => null } = options;
+  options.keys = keys;
   const rows = [];
   for (const key of keys) {
-    if (skip.has(key.key) || !applies(key, target)) continue;
+    if (skip.has(key.key) || !applies(key, target, keys)) continue;
     const custom = special(key, target);
     const control = custom ?? makeControl(key, target, options);
     if (control === null) continue;
@@ -76,6 +77,8 @@ function makeControl(key, target, options) {
   const current = getPath(target, key.key);
   const apply = (value, structural = false) => {
     setPath(target, key.key, value);
+    // Another method or kind: its keys' values go with it.
+    if (structural) prune(options.keys ?? [], target);
     if (structural) onStructure?.(key.key);
     else onChange?.(key.key);
   };

@@ -65,13 +65,24 @@ export function sameValue(a, b) {
  * Whether a schema key applies to ``scope`` (the mapping that holds it): its ``when`` names
  * sibling keys and the value (or list of values) each must have; no ``when``: always.
  */
-export function applies(key, scope) {
+export function applies(key, scope, keys = []) {
   const when = key.when;
   if (!isMapping(when)) return true;
   for (const [sibling, wanted] of Object.entries(when)) {
-    const actual = getPath(scope, sibling);
+    // A sibling not given has its default (units: px).
+    const actual = getPath(scope, sibling) ?? keys.find((k) => k.key === sibling)?.default ?? undefined;
     const allowed = Array.isArray(wanted) ? wanted : [wanted];
     if (!allowed.some((w) => sameValue(w, actual))) return false;
   }
   return true;
+}
+
+/**
+ * Drop from ``scope`` the values of ``keys`` whose ``when`` no longer holds (the keys of the
+ * method or kind chosen before): the loader refuses them beside another method.
+ */
+export function prune(keys, scope) {
+  for (const key of keys) {
+    if (!applies(key, scope, keys) && getPath(scope, key.key) !== undefined) setPath(scope, key.key, undefined);
+  }
 }
