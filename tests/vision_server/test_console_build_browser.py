@@ -381,6 +381,12 @@ def test_a_template_is_trained_in_the_page(driver: WebDriver, tmp_path: Path) ->
         assert wait_tried(d, "the trained template") == "PASS"
         values = d.find_element(By.ID, "try-values").text
         assert "count" in values, values
+        # A draft keeps its edits while another inspection is shown.
+        d.find_element(By.CSS_SELECTOR, "[data-inspection=magnet_check]").click()
+        wait_for(d, lambda x: x.find_element(By.ID, "insp-name").text == "magnet_check", "other")
+        d.find_element(By.CSS_SELECTOR, "[data-inspection=plate_locate]").click()
+        wait_for(d, lambda x: x.find_element(By.ID, "insp-name").text == "plate_locate", "back")
+        assert pending(d)["config"]["template"]["image"] == path
         assert console_errors(d) == []
 
 

@@ -229,8 +229,11 @@ export class InspectionsPage {
     const source = this.cameras.find((c) => c.name === camera)?.source ?? "sim";
     const config = { name, type, camera };
     if (type === "job") config.steps = [];
+    // A draft's ``config`` is the page's working copy (kept while another inspection is
+    // shown); ``initial`` is what Reset goes back to.
     this.drafts.set(name, {
-      name, type, camera, camera_source: source, depth: false, config, parameters: [], roi: null, draft: true,
+      name, type, camera, camera_source: source, depth: false, config, initial: clone(config),
+      parameters: [], roi: null, draft: true,
     });
     byId("new-form").hidden = true;
     byId("new-name").value = "";
@@ -266,7 +269,7 @@ export class InspectionsPage {
     this.selected = insp;
     this.original = insp.draft ? null : clone(insp.config ?? {});
     if (!keep) {
-      this.config = clone(insp.config ?? { name: insp.name, type: insp.type, camera: insp.camera });
+      this.config = insp.draft ? insp.config : clone(insp.config ?? { name: insp.name, type: insp.type, camera: insp.camera });
       this.stepIndex = insp.type === "job" && (this.config.steps ?? []).length ? 0 : null;
       this.measIndex = null;
     }
@@ -901,11 +904,16 @@ export class InspectionsPage {
       snippet.textContent = toYaml([this.config]);
     }
     byId("save-config").disabled = !dirty;
-    byId("reset-changes").disabled = !dirty || this.selected?.draft === true && sameValue(this.config, this.selected.config);
+    byId("reset-changes").disabled = !dirty || (this.selected?.draft === true && sameValue(this.config, this.selected.initial));
   }
 
   reset() {
-    this.config = clone(this.selected.config);
+    if (this.selected.draft) {
+      this.selected.config = clone(this.selected.initial);
+      this.config = this.selected.config;
+    } else {
+      this.config = clone(this.selected.config);
+    }
     this.stepIndex = this.isJob() && (this.config.steps ?? []).length ? 0 : null;
     this.measIndex = null;
     this.renderEditor();
