@@ -119,7 +119,7 @@ export class InspectionsPage {
 
   wire() {
     this.started = true;
-    this.roi = new RoiEditor(byId("try-image"), byId("try-canvas"), (roi) => this.roiDrawn(roi));
+    this.roi = new RoiEditor(byId("try-image"), byId("try-canvas"), (roi, final) => this.roiDrawn(roi, final));
     // A small image (320 x 240) is shown enlarged, a large one shrunk, always whole: as wide as
     // the panel and no taller than the window leaves beside the verdict.
     const fit = () => fitImage(byId("try-image"), byId("try-stage"));
@@ -744,11 +744,17 @@ export class InspectionsPage {
   }
 
   /** The ROI editor moved or drew the ROI (image pixels). */
-  roiDrawn(imageRoi) {
+  roiDrawn(imageRoi, final = true) {
     const target = this.target();
     if (!target) return;
     const frame = this.targetFrame();
-    if (frame === undefined) return;
+    if (frame === undefined) {
+      if (!final) return;
+      byId("tool-status").textContent = `Run a try first: no try has made frame ${target.fixture} yet, so the ROI cannot be put in it.`;
+      this.roi.set(null);
+      this.runSoon();
+      return;
+    }
     target.roi = imageRoi === null ? undefined : frame ? roiToPart(frame, imageRoi) : imageRoi;
     if (target.roi === undefined) delete target.roi;
     this.showRoiFields(target.roi ?? null);
@@ -791,6 +797,7 @@ export class InspectionsPage {
     }
     const frame = this.targetFrame();
     if (frame === undefined) {
+      if (!final) return;
       byId("tool-status").textContent = `Run a try first: no try has made frame ${target.fixture} yet.`;
       return;
     }
