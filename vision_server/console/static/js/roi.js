@@ -16,6 +16,14 @@ export class RoiEditor {
     this.onChange = onChange;
     this.roi = null;
     this.drag = null;
+    // Off while another tool of the tool bar (tools.js) draws on the same canvas.
+    this.enabled = true;
+    // A fixtured step's ROI is edited as the axis-aligned rectangle of its size around its
+    // centre and shown turned by its part frame's angle (radians, +u towards +v).
+    this.angle = 0;
+    // Called after each drawing with (context, displayed px per image px): the other tools'
+    // shapes go on the same canvas.
+    this.decorate = null;
     canvas.addEventListener("pointerdown", (e) => this.down(e));
     canvas.addEventListener("pointermove", (e) => this.move(e));
     canvas.addEventListener("pointerup", (e) => this.up(e));
@@ -58,7 +66,7 @@ export class RoiEditor {
   }
 
   down(event) {
-    if (!this.image.naturalWidth) return;
+    if (!this.enabled || !this.image.naturalWidth) return;
     event.preventDefault();
     this.canvas.setPointerCapture(event.pointerId);
     const p = this.toImage(event);
@@ -70,6 +78,7 @@ export class RoiEditor {
 
   move(event) {
     if (this.drag === null) {
+      if (!this.enabled) return;
       const mode = this.hit(this.toImage(event));
       this.canvas.style.cursor = mode === "move" ? "move" : mode ? `${mode}-resize` : "crosshair";
       return;
@@ -141,9 +150,36 @@ export class RoiEditor {
     const ctx = canvas.getContext("2d");
     ctx.setTransform(ratio, 0, 0, ratio, 0, 0);
     ctx.clearRect(0, 0, w, h);
-    if (this.roi === null || !this.image.naturalWidth) return;
+    if (!this.image.naturalWidth) return;
     const s = 1 / this.scale();
+    if (this.roi !== null) this.drawRoi(ctx, s, w, h);
+    this.decorate?.(ctx, s);
+  }
+
+  drawRoi(ctx, s, w, h) {
     const [x, y, rw, rh] = this.roi.map((v) => v * s);
+    if (this.angle) {
+      // Turned about its centre, where the fixture puts it: outline only.
+      const cx = x + rw / 2, cy = y + rh / 2;
+      ctx.save();
+      ctx.translate(cx, cy);
+      ctx.rotate(this.angle);
+      ctx.strokeStyle = "#ffb000";
+      ctx.lineWidth = this.enabled ? 2 : 1;
+      ctx.strokeRect(-rw / 2, -rh / 2, rw, rh);
+      ctx.beginPath();
+      ctx.moveTo(0, 0);
+      ctx.lineTo(rw / 2, 0);
+      ctx.stroke();
+      ctx.restore();
+      return;
+    }
+    if (!this.enabled) {
+      ctx.strokeStyle = "rgba(255, 176, 0, 0.7)";
+      ctx.lineWidth = 1;
+      ctx.strokeRect(x, y, rw, rh);
+      return;
+    }
     // Dim everything outside the ROI, then outline it with its corner handles.
     ctx.fillStyle = "rgba(10, 20, 30, 0.35)";
     ctx.fillRect(0, 0, w, y);
