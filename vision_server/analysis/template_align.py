@@ -113,6 +113,41 @@ def _hidden(outlier: NDArray[np.bool_], keep: NDArray[np.bool_]) -> NDArray[np.b
     return np.asarray(wide[labels[keep]], dtype=bool)
 
 
+SAMPLE_ROW = 4096
+"""Points sampled per row of the maps given to ``cv2.remap``, which takes maps of fewer than
+32767 columns: a template of more than 181 x 181 pixels has more points than one row holds."""
+
+
+def _sample(
+    image: NDArray[np.float32],
+    px: FloatArray,
+    py: FloatArray,
+    *,
+    border: int,
+    value: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0),
+) -> NDArray[np.float32]:
+    """``image`` (one or more channels) read bilinearly at the points ``(px, py)`` (pixels),
+    one row per point in their order: ``(n,)`` or ``(n, channels)``."""
+    n = int(px.size)
+    rows = max(1, -(-n // SAMPLE_ROW))
+    width = min(n, SAMPLE_ROW) if n else 1
+    mx = np.zeros(rows * width, np.float32)
+    my = np.zeros(rows * width, np.float32)
+    mx[:n] = px.ravel()
+    my[:n] = py.ravel()
+    out = cv2.remap(
+        image,
+        mx.reshape(rows, width),
+        my.reshape(rows, width),
+        cv2.INTER_LINEAR,
+        borderMode=border,
+        borderValue=value,
+    )
+    channels = 1 if out.ndim == 2 else out.shape[2]
+    flat = out.reshape(rows * width, channels)[:n]
+    return np.asarray(flat if channels > 1 else flat.ravel(), np.float32)
+
+
 @dataclass
 class _State:
     """The pose being aligned, in the patch's pixels, and the image's gain and offset."""
@@ -149,13 +184,8 @@ def _gauss_newton(
         c, s = np.cos(angle), np.sin(angle)
         rx, ry = c * qx - s * qy, s * qx + c * qy  # R q
         px, py = u + scale * rx, v + scale * ry
-        sampled = cv2.remap(
-            stack,
-            px.astype(np.float32).reshape(1, -1),
-            py.astype(np.float32).reshape(1, -1),
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=(np.nan, np.nan, np.nan, 0.0),
+        sampled = _sample(
+            stack, px, py, border=cv2.BORDER_CONSTANT, value=(np.nan, np.nan, np.nan, 0.0)
         ).reshape(-1, 3)
         sampled = np.nan_to_num(sampled)
         inside = (px >= 0) & (py >= 0) & (px <= patch.shape[1] - 1) & (py <= patch.shape[0] - 1)
@@ -260,13 +290,7 @@ def align_template(
     c, s = np.cos(angle), np.sin(angle)
     px = u + scale * (c * qx - s * qy)
     py = v + scale * (s * qx + c * qy)
-    seen = cv2.remap(
-        patch,
-        px.astype(np.float32).reshape(1, -1),
-        py.astype(np.float32).reshape(1, -1),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    ).ravel()
+    seen = _sample(patch, px, py, border=cv2.BORDER_REPLICATE).ravel()
     score = float(np.corrcoef(tv, seen.astype(np.float64))[0, 1])
     return Alignment(
         u=float(u + x0),
