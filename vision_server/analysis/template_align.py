@@ -119,7 +119,7 @@ SAMPLE_ROW = 4096
 
 
 def _sample(
-    image: NDArray[np.float32],
+    image: NDArray[Any],
     px: FloatArray,
     py: FloatArray,
     *,
