@@ -33,7 +33,6 @@ from aiohttp.http_exceptions import HttpProcessingError
 
 from protocol import (
     CellvisionError,
-    ErrorCode,
     ImageEncoding,
     ImagePayload,
     ImageTooLarge,
@@ -56,9 +55,23 @@ from ..service import (
 from . import http_export, http_save
 from .http_auth import COOKIE, RANK, Role, Sessions
 from .http_build import BUILD_INTEGRATOR_ROUTES, BuildRoutes, check_draft_name
+from .http_common import (
+    HTTP_STATUS,
+    HttpError,
+    dumps,
+    error_response,
+    float_param,
+    http_error_response,
+    int_param,
+    json_body,
+    nested_options,
+    peer_of,
+    read_at_most,
+    service_error,
+)
 from .http_door import cross_site_reason, host_allowed
 from .http_export import ExportRoutes
-from .http_history import HistoryRoutes, Refused, why_of
+from .http_history import HistoryRoutes, why_of
 from .http_impact import IMPACT_PATH, ImpactRoutes
 from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
@@ -73,26 +86,7 @@ from .uploads import upload_loader
 log = logging.getLogger("vision_server")
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
-HTTP_STATUS: dict[ErrorCode, int] = {
-    ErrorCode.NOT_AUTHENTICATED: 401,
-    ErrorCode.UNKNOWN_INSPECTION: 404,
-    ErrorCode.UNKNOWN_CAMERA: 404,
-    ErrorCode.BAD_IMAGE: 400,
-    ErrorCode.IMAGE_TOO_LARGE: 413,
-    ErrorCode.INVALID_ARGUMENT: 400,
-    ErrorCode.BAD_METADATA: 400,
-    ErrorCode.FRAME_TOO_LARGE: 413,
-    ErrorCode.CONFIG_INVALID: 422,
-    ErrorCode.INSPECTION_FAILED: 422,
-    ErrorCode.CAMERA_UNAVAILABLE: 503,
-    ErrorCode.BUSY: 503,
-    ErrorCode.SHUTTING_DOWN: 503,
-    ErrorCode.DEADLINE_EXCEEDED: 504,
-    ErrorCode.INTERNAL_ERROR: 500,
-}
-"""The one table from the service's error codes to HTTP statuses (others: 400)."""
 
-RETRY_AFTER_S = 1
 MAX_JSON_PART = 64 * 1024
 """The largest ``request`` part of a try, bytes."""
 FORM_OVERHEAD = 64 * 1024
@@ -116,28 +110,6 @@ SECURITY_HEADERS = {
 PARAMETER_RANGES: dict[str, tuple[float | None, float | None, float | None]] = {
     "threshold": (0, 255, 1),
 }
-
-
-class HttpError(Exception):
-    """An error of this front-end's own (not the service's): status, code, message."""
-
-    def __init__(self, status: int, code: str, message: str) -> None:
-        super().__init__(message)
-        self.status = status
-        self.code = code
-        self.message = message
-
-
-def error_response(status: int, code: str, message: str) -> web.Response:
-    response = web.json_response({"error": {"code": code, "message": message}}, status=status)
-    if code == "BUSY":
-        response.headers["Retry-After"] = str(RETRY_AFTER_S)
-    return response
-
-
-def service_error(exc: CellvisionError) -> web.Response:
-    """The HTTP form of a service error (see :data:`HTTP_STATUS`)."""
-    return error_response(HTTP_STATUS.get(exc.code, 400), exc.code.name, exc.message)
 
 
 ServerInfo = Callable[[], dict[str, Any]]
@@ -175,7 +147,7 @@ class HttpFrontend:
         self.started_at = time.time()
         self._runner: web.AppRunner | None = None
         self._listener: Listener | None = None
-        self._save_lock = asyncio.Lock()
+        self.save_lock = asyncio.Lock()
         if config_path is not None:
             history.set_bounds(
                 config_path,
@@ -285,16 +257,10 @@ class HttpFrontend:
         routes.add_get("/api/stats", self.stats)
         routes.add_get("/metrics", self.metrics_text)
         OperatorRoutes(self.operator_desk, self.who, self.settings, self.service).add_to(routes)
-        ExportRoutes(self._log).add_to(routes)
+        ExportRoutes(self.result_log).add_to(routes)
         self._builder.add_to(routes)
-        HistoryRoutes(
-            self.config_path,
-            self.service,
-            lock=self._save_lock,
-            who=self.who,
-            allow_save=self.settings.allow_save,
-        ).add_to(routes)
-        ImpactRoutes(self.service, self.settings, self._written).add_to(routes)
+        HistoryRoutes(self, self.service).add_to(routes)
+        ImpactRoutes(self.service, self.settings, self.written).add_to(routes)
         if self.online is None:
             self.online = OnlineBoard(self.service)
         OnlineRoutes(self.online, timeout_s=self.settings.request_timeout_s).add_to(routes)
@@ -310,7 +276,7 @@ class HttpFrontend:
         except CellvisionError as exc:
             response = service_error(exc)
         except HttpError as exc:
-            response = error_response(exc.status, exc.code, exc.message)
+            response = http_error_response(exc)
         except web.HTTPException as exc:  # routing (404, 405), body too large (413)
             if exc.status < 400:
                 raise
@@ -407,7 +373,7 @@ class HttpFrontend:
 
     async def _refuse_token(self, request: web.Request, message: str) -> HttpError:
         """A wrong token, answered after the front door's delay for its host."""
-        await asyncio.sleep(self.service.door.auth_failed(_peer(request)))
+        await asyncio.sleep(self.service.door.auth_failed(peer_of(request)))
         return HttpError(401, "UNAUTHORIZED", message)
 
     # ------------------------------------------------------------------ page, sign-in
@@ -418,8 +384,8 @@ class HttpFrontend:
         return response
 
     async def login(self, request: web.Request) -> web.Response:
-        raw = await _read_at_most(request, LOGIN_MAX_BYTES, self.settings.request_timeout_s)
-        body = await _json_body(request, raw)
+        raw = await read_at_most(request, LOGIN_MAX_BYTES, self.settings.request_timeout_s)
+        body = await json_body(request, raw)
         response = web.json_response({"ok": True})
         if not self.sessions.required:
             return response
@@ -432,7 +398,7 @@ class HttpFrontend:
             raise await self._refuse_token(request, wrong)
         if session.user is not None:
             log.info(
-                "console: %s signed in (%s) from %s", session.user, session.role, _peer(request)
+                "console: %s signed in (%s) from %s", session.user, session.role, peer_of(request)
             )
         response = web.json_response({"ok": True, "role": session.role, "user": session.user})
         response.set_cookie(
@@ -578,7 +544,7 @@ class HttpFrontend:
 
     # ------------------------------------------------------------------ inspections
 
-    def _written(self, name: str) -> dict[str, Any]:
+    def written(self, name: str) -> dict[str, Any]:
         """Inspection ``name`` as written in the configuration (empty when unknown)."""
         written = getattr(self.service.catalog.tune, "written", None)
         if not isinstance(written, Mapping) or name not in written:
@@ -589,7 +555,7 @@ class HttpFrontend:
         catalog = self.service.catalog
         out = []
         for descriptor in catalog.inspection_descriptors():
-            config = self._written(descriptor["name"]) or {
+            config = self.written(descriptor["name"]) or {
                 k: descriptor[k] for k in ("name", "type", "camera")
             }
             roi = config.get("roi")
@@ -601,7 +567,7 @@ class HttpFrontend:
                     "roi": roi if isinstance(roi, list) else None,
                 }
             )
-        return web.json_response({"inspections": out}, dumps=_dumps)
+        return web.json_response({"inspections": out}, dumps=dumps)
 
     async def try_(self, request: web.Request) -> web.Response:
         name = request.match_info["name"]
@@ -635,21 +601,21 @@ class HttpFrontend:
             # with the options laid over it.
             draft = await self._builder.draft(name, spec, options)
             inspection = self.service.catalog.inspection(name) if draft is None else draft
-            written = self._written(name) if draft is None else {}
+            written = self.written(name) if draft is None else {}
             tuned = nested_options(written, options)
             merged = {**written, **tuned} if draft is None else dict(spec["config"])
             source = spec.get("source")
             images: Images | Callable[[ImageNeeds], Images]
             if source == "camera":
-                images = await self._camera_images(inspection.camera)
+                images = await self.camera_images(inspection.camera)
             elif source == "upload":
                 if upload is None:
                     raise HttpError(400, "BAD_REQUEST", "source 'upload' needs an 'image' part")
                 images = upload_loader(upload)
             elif source == "result":
-                images = self._result_loader(spec.get("result_id"))
+                images = self.result_loader(spec.get("result_id"))
             elif source == "recording":
-                images = self._recording_loader(
+                images = self.recording_loader(
                     inspection.camera, spec.get("frame"), inspection.frames
                 )
             else:
@@ -670,7 +636,7 @@ class HttpFrontend:
                     options=tuned,
                     arrived=arrived,
                     deadline=arrived + self.settings.try_deadline_s,
-                    peer=TRY_PEER_PREFIX + _peer(request),
+                    peer=TRY_PEER_PREFIX + peer_of(request),
                     request_class="try",
                     prepared=draft,
                     config=None if draft is None else merged,
@@ -696,7 +662,7 @@ class HttpFrontend:
             "source_image": None if overlay else extras.get("source_image"),
             "config_hash": reply.config_hash,
         }
-        return web.json_response(body, dumps=_dumps)
+        return web.json_response(body, dumps=dumps)
 
     async def _try_form(self, request: web.Request) -> tuple[dict[str, Any], bytes | None]:
         """The ``request`` JSON part and the ``image`` part of a try's multipart form."""
@@ -735,7 +701,7 @@ class HttpFrontend:
             raise HttpError(400, "BAD_REQUEST", "the form has no 'request' part")
         return spec, upload
 
-    async def _camera_images(self, camera: str) -> Images | Callable[[ImageNeeds], Images]:
+    async def camera_images(self, camera: str) -> Images | Callable[[ImageNeeds], Images]:
         """The camera's current frame through the service's capture; for a triggered camera
         or a sequence (a folder replay), the frame the last inspection took: a try must not
         take a frame the cell's next inspection would then miss."""
@@ -759,7 +725,7 @@ class HttpFrontend:
         reply = await self.service.capture(CaptureRequest(camera))
         return Images(reply.frames[0].color)
 
-    def _recording_loader(
+    def recording_loader(
         self, camera: str, frame: Any, count: int
     ) -> Callable[[ImageNeeds], Images]:
         """Frame ``frame`` of a recording camera's recording (and the next ones, up to the
@@ -803,7 +769,7 @@ class HttpFrontend:
 
         return load
 
-    def _result_loader(self, result_id: Any) -> Callable[[ImageNeeds], Images]:
+    def result_loader(self, result_id: Any) -> Callable[[ImageNeeds], Images]:
         if isinstance(result_id, bool) or not isinstance(result_id, int) or result_id < 1:
             raise HttpError(400, "BAD_REQUEST", "result_id must be a positive integer")
         row = self._row(result_id)
@@ -821,21 +787,18 @@ class HttpFrontend:
         name = request.match_info["name"]
         self.service.catalog.inspection(name)
         # A save's options are a try's: no larger than a try's request part.
-        body = await _json_body(request, await _read_at_most(request, MAX_JSON_PART))
+        body = await json_body(request, await read_at_most(request, MAX_JSON_PART))
         options = body.get("options")
         if not isinstance(options, dict) or not options:
             raise HttpError(400, "BAD_REQUEST", "options must be a non-empty JSON object")
-        try:
-            why = why_of(body)
-        except Refused as exc:
-            raise HttpError(exc.status, exc.code, exc.message) from None
+        why = why_of(body)
         path = self.config_path
         if path is None:
             raise HttpError(403, "CONFIG_REFUSED", "this server runs without a configuration file")
         if not self.settings.allow_save:
             raise HttpError(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
-        async with self._save_lock:
-            served = self._all_written()
+        async with self.save_lock:
+            served = self.all_written()
             # The image size each running camera declares, which the saved ROI must fit as a
             # try's must (a simulated camera's size is its scene's, known once it is open).
             opened = http_save.opened_cameras(self.service.catalog)
@@ -850,7 +813,7 @@ class HttpFrontend:
                 raise HttpError(422, "CONFIG_REFUSED", exc.message) from None
         # The reload applies the whole file: hand edits made since the last reload go live
         # with this save, and whoever saves is told which (not silently).
-        now = self._all_written()
+        now = self.all_written()
         also = [
             other
             for other in sorted(set(served) | set(now))
@@ -865,34 +828,34 @@ class HttpFrontend:
             }
         )
 
-    def _all_written(self) -> dict[str, Any]:
+    def all_written(self) -> dict[str, Any]:
         """Every inspection as written in the configuration served (empty when unknown)."""
         written = getattr(self.service.catalog.tune, "written", None)
         return dict(written) if isinstance(written, Mapping) else {}
 
     # ------------------------------------------------------------------ results
 
-    def _log(self) -> Any:
+    def result_log(self) -> Any:
         if self.service.results is None:
             raise HttpError(404, "NOT_FOUND", "this server keeps no result log")
         return self.service.results
 
     def _row(self, result_id: int) -> Any:
-        row = self._log().get(result_id)
+        row = self.result_log().get(result_id)
         if row is None:
             raise HttpError(404, "NOT_FOUND", f"no result {result_id}")
         return row
 
     async def results_list(self, request: web.Request) -> web.Response:
         query = request.query
-        limit = _int_param(query, "limit", 50, 1, 500)
-        before = _int_param(query, "before_id", None, 1, None)
+        limit = int_param(query, "limit", 50, 1, 500)
+        before = int_param(query, "before_id", None, 1, None)
         try:
             wanted = http_export.filters(query)
         except http_export.BadFilter as exc:
             raise HttpError(400, "BAD_REQUEST", str(exc)) from None
         rows = await asyncio.to_thread(
-            self._log().query, limit=limit + 1, before_id=before, **wanted
+            self.result_log().query, limit=limit + 1, before_id=before, **wanted
         )
         more = len(rows) > limit
         rows = rows[:limit]
@@ -901,7 +864,7 @@ class HttpFrontend:
                 "results": [_row_json(r) for r in rows],
                 "next_before_id": rows[-1].id if more and rows else None,
             },
-            dumps=_dumps,
+            dumps=dumps,
         )
 
     async def result(self, request: web.Request) -> web.Response:
@@ -914,7 +877,7 @@ class HttpFrontend:
             "timing": {"inspect": row.duration_ms},
             "error": row.error,
         }
-        return web.json_response(body, dumps=_dumps)
+        return web.json_response(body, dumps=dumps)
 
     async def result_image(self, request: web.Request) -> web.Response:
         """The stored input, or with ``overlay=1`` the stored overlay; 404 naming which is
@@ -935,15 +898,15 @@ class HttpFrontend:
         return web.Response(body=data, content_type="image/png")
 
     async def stats(self, request: web.Request) -> web.Response:
-        window = _float_param(request.query, "window_s") or 86400.0
+        window = float_param(request.query, "window_s") or 86400.0
         if not 60 <= window <= 366 * 86400:
             raise HttpError(400, "BAD_REQUEST", "window_s must be in 60..31622400")
         wanted = request.query.get("inspection") or None
         names = [wanted] if wanted else sorted(self.service.catalog.inspections)
-        log_ = self._log()
+        log_ = self.result_log()
         now = time.time()
         out = await asyncio.to_thread(lambda: [stats_of(log_, n, now, window) for n in names])
-        return web.json_response({"window_s": window, "inspections": out}, dumps=_dumps)
+        return web.json_response({"window_s": window, "inspections": out}, dumps=dumps)
 
     async def metrics_text(self, request: web.Request) -> web.Response:
         assert self.metrics is not None
@@ -1017,24 +980,6 @@ def _range(key: str, measure: Any) -> tuple[float | None, float | None]:
 
 def _number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
-
-
-def nested_options(written: Mapping[str, Any], options: Mapping[str, Any]) -> dict[str, Any]:
-    """The page's options (dotted keys for nested ones) as the service's: a nested mapping
-    laid over the configured one (``circle.min_radius_px`` keeps ``circle``'s other keys)."""
-    out: dict[str, Any] = {}
-    for key, value in options.items():
-        if not isinstance(key, str) or not key:
-            raise InvalidArgument("an option's key must be a non-empty string")
-        if "." not in key:
-            out[key] = value
-            continue
-        head, _, rest = key.partition(".")
-        base = out.get(head, written.get(head, {}))
-        if not isinstance(base, dict):
-            raise InvalidArgument(f"option {key!r}: {head!r} is not a mapping")
-        out[head] = {**base, **nested_options(base, {rest: value})}
-    return out
 
 
 def _save_file(
@@ -1153,39 +1098,6 @@ def _row_json(row: Any) -> dict[str, Any]:
     }
 
 
-async def _read_at_most(request: web.Request, limit: int, timeout_s: float | None = None) -> bytes:
-    """The body, 413 beyond ``limit`` bytes (declared or sent), read no further; 408 when it
-    has not all arrived within ``timeout_s`` (what a signed-out request may make the server
-    hold: no more, and no longer)."""
-    declared = request.content_length
-    if declared is not None and declared > limit:
-        raise HttpError(413, "TOO_LARGE", f"the body has {declared} bytes, limit {limit}")
-    raw = b""
-    try:
-        async with asyncio.timeout(timeout_s):
-            while len(raw) <= limit:
-                more = await request.content.read(limit + 1 - len(raw))
-                if not more:
-                    return raw
-                raw += more
-    except TimeoutError:
-        raise HttpError(408, "TIMEOUT", f"the body did not arrive within {timeout_s:g} s") from None
-    raise HttpError(413, "TOO_LARGE", f"the body has more than {limit} bytes")
-
-
-async def _json_body(request: web.Request, raw: bytes | None = None) -> dict[str, Any]:
-    """The body (``raw`` when read already) as a JSON object."""
-    try:
-        body = await request.json() if raw is None else json.loads(raw)
-    except ValueError as exc:
-        raise HttpError(400, "BAD_REQUEST", f"the body is not JSON: {exc}") from None
-    except RecursionError:  # [[[[...]]]]: nesting deeper than the parser goes
-        raise HttpError(400, "BAD_REQUEST", "the body is JSON nested too deeply") from None
-    if not isinstance(body, dict):
-        raise HttpError(400, "BAD_REQUEST", "the body must be a JSON object")
-    return body
-
-
 async def _read_part(part: BodyPartReader, limit: int, what: str) -> bytes:
     chunks: list[bytes] = []
     size = 0
@@ -1199,55 +1111,8 @@ async def _read_part(part: BodyPartReader, limit: int, what: str) -> bytes:
         chunks.append(chunk)
 
 
-def _int_param(
-    query: Mapping[str, str], key: str, default: int | None, low: int, high: int | None
-) -> Any:
-    raw = query.get(key)
-    if raw is None or raw == "":
-        return default
-    try:
-        value = int(raw)
-    except ValueError:
-        raise HttpError(400, "BAD_REQUEST", f"{key} must be an integer, got {raw!r}") from None
-    if value < low or (high is not None and value > high):
-        raise HttpError(400, "BAD_REQUEST", f"{key} must be in {low}..{high or 'any'}")
-    return value
-
-
-def _float_param(query: Mapping[str, str], key: str) -> float | None:
-    raw = query.get(key)
-    if raw is None or raw == "":
-        return None
-    try:
-        value = float(raw)
-    except ValueError:
-        raise HttpError(400, "BAD_REQUEST", f"{key} must be a number, got {raw!r}") from None
-    if not math.isfinite(value):
-        raise HttpError(400, "BAD_REQUEST", f"{key} must be finite")
-    return value
-
-
-def _peer(request: web.Request) -> str:
-    peer = request.transport.get_extra_info("peername") if request.transport else None
-    return f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else "unknown"
-
-
 def _data_url(mime: str, data: bytes) -> str:
     return f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}"
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray | np.generic):
-        return value.tolist()
-    if isinstance(value, set | frozenset | tuple):
-        return list(value)
-    if isinstance(value, Path):
-        return value.name
-    return repr(value)
-
-
-def _dumps(value: Any) -> str:
-    return json.dumps(value, default=_json_default)
 
 
 __all__ = ["HTTP_STATUS", "HttpError", "HttpFrontend", "nested_options", "parameters"]

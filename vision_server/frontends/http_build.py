@@ -19,7 +19,7 @@ import base64
 import json
 import logging
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from aiohttp import web
 
@@ -31,10 +31,8 @@ from ..inspections import Inspection
 from ..results import is_try
 from ..service import ImageNeeds, Images, InspectionService, InspectRequest
 from . import http_save, http_save_whole, template_files
-from .http_history import Refused, why_of
-
-if TYPE_CHECKING:
-    from .http import HttpFrontend
+from .http_common import Console, HttpError, int_param, json_body, read_at_most
+from .http_history import why_of
 
 log = logging.getLogger("vision_server")
 
@@ -54,17 +52,10 @@ MAX_READS = 200
 """The most texts one answer lists (a job reads one per code step)."""
 
 
-def _error(status: int, code: str, message: str) -> Exception:
-    """The console's JSON error (its middleware renders it)."""
-    from .http import HttpError  # http imports this module: taken when called
-
-    return HttpError(status, code, message)
-
-
 def check_draft_name(name: str) -> None:
     """A name that no inspection has: it may be a draft's, if it is a name at all."""
     if not NAME.fullmatch(name):
-        raise _error(
+        raise HttpError(
             400,
             "BAD_REQUEST",
             f"{name[:80]!r} is not an inspection's name (letters, digits, '_', '-' and '.', at "
@@ -75,7 +66,7 @@ def check_draft_name(name: str) -> None:
 class BuildRoutes:
     """The building API of the console ``console`` over ``service``."""
 
-    def __init__(self, console: HttpFrontend, service: InspectionService) -> None:
+    def __init__(self, console: Console, service: InspectionService) -> None:
         self.console = console
         self.service = service
 
@@ -98,7 +89,7 @@ class BuildRoutes:
     def _tuner(self) -> Tuner:
         tune = self.service.catalog.tune
         if not isinstance(tune, Tuner):
-            raise _error(
+            raise HttpError(
                 400,
                 "BAD_REQUEST",
                 "this server's inspections do not come from a configuration file: it tries "
@@ -116,7 +107,7 @@ class BuildRoutes:
         configured = name in self.service.catalog.inspections
         if config is None:
             if not configured:
-                raise _error(
+                raise HttpError(
                     404,
                     "UNKNOWN_INSPECTION",
                     f"no inspection named {name!r}: a try of a new inspection gives its whole "
@@ -124,11 +115,13 @@ class BuildRoutes:
                 )
             return None
         if options:
-            raise _error(400, "BAD_REQUEST", "give options or config, not both")
+            raise HttpError(400, "BAD_REQUEST", "give options or config, not both")
         if not isinstance(config, dict):
-            raise _error(400, "BAD_REQUEST", "config must be the inspection's mapping (an object)")
+            raise HttpError(
+                400, "BAD_REQUEST", "config must be the inspection's mapping (an object)"
+            )
         if config.get("name") != name:
-            raise _error(
+            raise HttpError(
                 400,
                 "BAD_REQUEST",
                 f"config's name {config.get('name')!r} is not {name!r}, the inspection tried",
@@ -144,37 +137,34 @@ class BuildRoutes:
                 parse_draft, config, base_dir=tuner.base_dir, cameras=cameras, written=written
             )
         except ConfigError as exc:
-            raise _error(400, "CONFIG_INVALID", str(exc)) from None
+            raise HttpError(400, "CONFIG_INVALID", str(exc)) from None
 
     # ------------------------------------------------------------------ save whole
 
     async def save_whole(self, request: web.Request) -> web.Response:
         """``PUT /api/inspections/{name}`` ``{"config": {...}, "why": "..."}``."""
-        from .http import _json_body, _read_at_most
-
         name = request.match_info["name"]
         check_draft_name(name)
-        body = await _json_body(request, await _read_at_most(request, MAX_SAVE_BYTES))
+        body = await json_body(request, await read_at_most(request, MAX_SAVE_BYTES))
         config = body.get("config")
-        try:
-            why = why_of(body)
-        except Refused as exc:
-            raise _error(exc.status, exc.code, exc.message) from None
+        why = why_of(body)
         if not isinstance(config, dict):
-            raise _error(400, "BAD_REQUEST", "config must be the inspection's mapping (an object)")
+            raise HttpError(
+                400, "BAD_REQUEST", "config must be the inspection's mapping (an object)"
+            )
         console = self.console
         path = console.config_path
         if path is None:
-            raise _error(403, "CONFIG_REFUSED", "this server runs without a configuration file")
+            raise HttpError(403, "CONFIG_REFUSED", "this server runs without a configuration file")
         if not console.settings.allow_save:
-            raise _error(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
-        async with console._save_lock:
-            served = console._all_written()
+            raise HttpError(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
+        async with console.save_lock:
+            served = console.all_written()
             try:
                 # A request never makes the server open a path it chose (drafts.py).
                 check_files(config, base_dir=path.resolve().parent, written=served.get(name))
             except ConfigError as exc:
-                raise _error(
+                raise HttpError(
                     422, "CONFIG_REFUSED", f"{path.name}: inspection {name!r} -> {exc}"
                 ) from None
             opened = http_save.opened_cameras(self.service.catalog)
@@ -186,7 +176,7 @@ class BuildRoutes:
                 # The file validated but the server could not take it: put the old text
                 # back so that file and server agree.
                 await asyncio.to_thread(http_save.undo, saved.saved)
-                raise _error(422, "CONFIG_REFUSED", exc.message) from None
+                raise HttpError(422, "CONFIG_REFUSED", exc.message) from None
         log.info(
             "console: inspection %r %s in %s (why: %s)",
             name,
@@ -194,7 +184,7 @@ class BuildRoutes:
             path.name,
             json.dumps(why),
         )
-        now = console._all_written()
+        now = console.all_written()
         also = [
             other
             for other in sorted(set(served) | set(now))
@@ -215,33 +205,31 @@ class BuildRoutes:
     async def template(self, request: web.Request) -> web.Response:
         """``POST /api/inspections/{name}/template``: cut ``rect`` from an image taken as a try
         takes it, keep it as a grey PNG in ``templates/`` (content-addressed), answer its path."""
-        from .http import _json_body, _read_at_most
-
         name = request.match_info["name"]
         check_draft_name(name)
-        body = await _json_body(request, await _read_at_most(request, MAX_TEMPLATE_BODY))
+        body = await json_body(request, await read_at_most(request, MAX_TEMPLATE_BODY))
         console = self.console
         path = console.config_path
         if path is None:
-            raise _error(403, "CONFIG_REFUSED", "this server runs without a configuration file")
+            raise HttpError(403, "CONFIG_REFUSED", "this server runs without a configuration file")
         if not console.settings.allow_save:
-            raise _error(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
+            raise HttpError(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
         camera = self._camera_of(name, body.get("config"))
         rect = body.get("rect")
         try:
             template_files.check_rect(rect, 1 << 30, 1 << 30)  # its form, before any image
         except template_files.TemplateRefused as exc:
-            raise _error(exc.status, "TEMPLATE_REFUSED", str(exc)) from None
+            raise HttpError(exc.status, "TEMPLATE_REFUSED", str(exc)) from None
         source = body.get("source")
         images: Images | Any
         if source == "camera":
-            images = await console._camera_images(camera)
+            images = await console.camera_images(camera)
         elif source == "result":
-            images = console._result_loader(body.get("result_id"))
+            images = console.result_loader(body.get("result_id"))
         elif source == "recording":
-            images = console._recording_loader(camera, body.get("frame"), 1)
+            images = console.recording_loader(camera, body.get("frame"), 1)
         else:
-            raise _error(400, "BAD_REQUEST", "source must be 'camera', 'result' or 'recording'")
+            raise HttpError(400, "BAD_REQUEST", "source must be 'camera', 'result' or 'recording'")
         # One slot of the try lane while the image is decoded and cut: no more at once.
         key = self.service.request_key(InspectRequest(name, request_class="try"))
         admission = self.service.admit(key=key, request_class="try")
@@ -265,11 +253,13 @@ class BuildRoutes:
         catalog = self.service.catalog
         if config is not None:
             if not isinstance(config, dict) or not isinstance(config.get("camera"), str):
-                raise _error(400, "BAD_REQUEST", "config must be a mapping that names its camera")
+                raise HttpError(
+                    400, "BAD_REQUEST", "config must be a mapping that names its camera"
+                )
             catalog.camera(config["camera"])  # UNKNOWN_CAMERA
             return str(config["camera"])
         if name not in catalog.inspections:
-            raise _error(
+            raise HttpError(
                 404,
                 "UNKNOWN_INSPECTION",
                 f"no inspection named {name!r}: a new inspection's template needs its config "
@@ -282,12 +272,10 @@ class BuildRoutes:
     async def reads(self, request: web.Request) -> web.Response:
         """``GET /api/inspections/{name}/reads?last=N``: the texts the inspection's last N
         production results read, newest first, through the log's index by inspection."""
-        from .http import _int_param
-
         name = request.match_info["name"]
         check_draft_name(name)
-        last = _int_param(request.query, "last", READS_DEFAULT, 1, READS_MAX)
-        log_ = self.console._log()
+        last = int_param(request.query, "last", READS_DEFAULT, 1, READS_MAX)
+        log_ = self.console.result_log()
         rows = await asyncio.to_thread(_production_rows, log_, name, last)
         out: list[dict[str, Any]] = []
         for row in rows:
@@ -306,9 +294,9 @@ def _train(
     try:
         return template_files.keep(folder, name, template_files.cut(loaded.color, rect))
     except template_files.TemplateRefused as exc:
-        raise _error(exc.status, "TEMPLATE_REFUSED", str(exc)) from None
+        raise HttpError(exc.status, "TEMPLATE_REFUSED", str(exc)) from None
     except OSError as exc:
-        raise _error(500, "TEMPLATE_REFUSED", f"cannot write the template: {exc}") from None
+        raise HttpError(500, "TEMPLATE_REFUSED", f"cannot write the template: {exc}") from None
 
 
 def _production_rows(log_: Any, name: str, last: int) -> list[Any]:
@@ -349,9 +337,9 @@ def _save_whole(
     try:
         return http_save_whole.save_whole(path, name, config, opened=opened, who=who, why=why)
     except (http_save.SaveRefused, ConfigError) as exc:
-        raise _error(422, "CONFIG_REFUSED", str(exc)) from None
+        raise HttpError(422, "CONFIG_REFUSED", str(exc)) from None
     except (OSError, UnicodeError) as exc:
-        raise _error(500, "CONFIG_REFUSED", f"cannot save {path.name}: {exc}") from None
+        raise HttpError(500, "CONFIG_REFUSED", f"cannot save {path.name}: {exc}") from None
 
 
 __all__ = ["BUILD_INTEGRATOR_ROUTES", "BuildRoutes", "check_draft_name"]

@@ -19,7 +19,6 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import hmac
-import json
 import secrets
 from collections.abc import Awaitable, Callable, Mapping
 from pathlib import Path
@@ -32,6 +31,7 @@ from protocol import CellvisionError
 from ..config import ConfigError, history, redact_secrets
 from ..service import InspectionService
 from . import http_save
+from .http_common import Console, HttpError, int_param, json_body, read_at_most
 
 MAX_BODY = 4096
 """The largest revert body (a reason, not an upload), bytes."""
@@ -43,29 +43,18 @@ Who = Callable[[web.Request], str]
 RouteHandler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 
-class Refused(Exception):
-    """An answer other than 200: HTTP status, error code and message (docs/console.md,
-    "Errors")."""
-
-    def __init__(self, status: int, code: str, message: str) -> None:
-        super().__init__(message)
-        self.status = status
-        self.code = code
-        self.message = message
-
-
 def why_of(body: Mapping[str, Any]) -> str:
     """The ``why`` of a save's or a revert's body: a string of at most
     :data:`~vision_server.config.history.MAX_WHY` characters, stripped (absent: empty).
-    Raises :class:`Refused` (400)."""
+    Raises :class:`~.http_common.HttpError` (400)."""
     why = body.get("why", "")
     if why is None:
         return ""
     if not isinstance(why, str):
-        raise Refused(400, "BAD_REQUEST", "why must be a string (the reason for the change)")
+        raise HttpError(400, "BAD_REQUEST", "why must be a string (the reason for the change)")
     why = why.strip()
     if len(why) > history.MAX_WHY:
-        raise Refused(
+        raise HttpError(
             400,
             "BAD_REQUEST",
             f"why has {len(why)} characters, at most {history.MAX_WHY} are kept: shorten it",
@@ -74,47 +63,31 @@ def why_of(body: Mapping[str, Any]) -> str:
 
 
 def _answers(handler: RouteHandler) -> RouteHandler:
-    """``handler`` with :class:`Refused` and the history's file errors as JSON errors."""
+    """``handler`` with the history's file errors as the console's errors."""
 
     async def wrapped(request: web.Request) -> web.StreamResponse:
         try:
             return await handler(request)
         except history.UnknownVersion as exc:
-            return _error(404, "NOT_FOUND", str(exc))
-        except Refused as exc:
-            return _error(exc.status, exc.code, exc.message)
+            raise HttpError(404, "NOT_FOUND", str(exc)) from None
         except OSError as exc:  # the file, the history's folder or a version cannot be read
-            return _error(
+            raise HttpError(
                 500, "HISTORY_UNAVAILABLE", f"the configuration's history cannot be read: {exc}"
-            )
+            ) from None
 
     return wrapped
 
 
-def _error(status: int, code: str, message: str) -> web.Response:
-    return web.json_response({"error": {"code": code, "message": message}}, status=status)
-
-
 class HistoryRoutes:
-    """The history API of the configuration file ``config_path`` (None: the server runs
-    without one) served by ``service``. ``lock`` is the console's save lock (a revert and a
-    save never interleave); ``who(request)`` names the person; ``allow_save``: whether the
-    console may write the file (``server.allow_reload``)."""
+    """The history API of the configuration file of ``console`` (its ``config_path``; None:
+    the server runs without one) served by ``service``. A revert holds the console's save lock
+    (a revert and a save never interleave); ``console.who(request)`` names the person;
+    ``console.settings.allow_save`` says whether the console may write the file
+    (``server.allow_reload``)."""
 
-    def __init__(
-        self,
-        config_path: Path | None,
-        service: InspectionService,
-        *,
-        lock: asyncio.Lock,
-        who: Who,
-        allow_save: bool,
-    ) -> None:
-        self.config_path = config_path
+    def __init__(self, console: Console, service: InspectionService) -> None:
+        self.console = console
         self.service = service
-        self.lock = lock
-        self.who = who
-        self.allow_save = allow_save
         # The texts shown hide their secrets (tokens, passwords, PINs): an operator must not
         # read the admin's token in a diff. A changed secret still shows as a changed line,
         # by a fingerprint keyed with this secret, made at start and never shown.
@@ -134,14 +107,14 @@ class HistoryRoutes:
         router.add_post(r"/api/history/{version:\d{1,9}}/revert", _answers(self.revert))
 
     def _history(self) -> history.History:
-        if self.config_path is None:
-            raise Refused(404, "NOT_FOUND", "this server runs without a configuration file")
-        return history.history_of(self.config_path)
+        if self.console.config_path is None:
+            raise HttpError(404, "NOT_FOUND", "this server runs without a configuration file")
+        return history.history_of(self.console.config_path)
 
     async def list_(self, request: web.Request) -> web.Response:
         versions = self._history()
-        before = _int_query(request, "before", None, 1, None)
-        limit = _int_query(request, "limit", DEFAULT_LIMIT, 1, MAX_LIMIT)
+        before = int_param(request.query, "before", None, 1, None)
+        limit = int_param(request.query, "limit", DEFAULT_LIMIT, 1, MAX_LIMIT)
         page = await asyncio.to_thread(versions.versions, before=before, limit=limit + 1)
         more = len(page) > limit
         page = page[:limit]
@@ -185,21 +158,16 @@ class HistoryRoutes:
     async def revert(self, request: web.Request) -> web.Response:
         versions = self._history()
         number = int(request.match_info["version"])
-        raw = await _body(request)
-        try:
-            body = json.loads(raw or b"{}")
-        except (ValueError, RecursionError) as exc:
-            raise Refused(400, "BAD_REQUEST", f"the body is not JSON: {exc}") from None
-        if not isinstance(body, dict):
-            raise Refused(400, "BAD_REQUEST", 'the body must be a JSON object {"why": "..."}')
+        raw = await read_at_most(request, MAX_BODY, self.console.settings.request_timeout_s)
+        body = await json_body(request, raw or b"{}")
         why = why_of(body)
-        if not self.allow_save:
-            raise Refused(
+        if not self.console.settings.allow_save:
+            raise HttpError(
                 403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false): no revert"
             )
         path = versions.config
-        who = self.who(request)
-        async with self.lock:
+        who = self.console.who(request)
+        async with self.console.save_lock:
             target = await asyncio.to_thread(versions.text, number)
             old = await asyncio.to_thread(path.read_bytes)
             if old == target:
@@ -224,7 +192,7 @@ class HistoryRoutes:
                 # The text validated but the server could not take it (a camera that does
                 # not open): the file and the server must agree, so the old text goes back.
                 await asyncio.to_thread(http_save.undo, saved)
-                raise Refused(
+                raise HttpError(
                     422,
                     "CONFIG_REFUSED",
                     f"version {number} was written but the server could not load it, so the "
@@ -254,7 +222,7 @@ def _write_revert(
     try:
         text = target.decode("utf-8")
     except UnicodeError:
-        raise Refused(
+        raise HttpError(
             422, "CONFIG_REFUSED", f"version {number} is not UTF-8 text: it cannot be loaded"
         ) from None
     # As a save: the whole file by the loader, and each inspection the revert changes by the
@@ -267,7 +235,7 @@ def _write_revert(
             if name in present:
                 http_save.validate(text, path, inspection=name, opened=opened)
     except ConfigError as exc:
-        raise Refused(
+        raise HttpError(
             422, "CONFIG_REFUSED", f"version {number} cannot be loaded as it is now: {exc}"
         ) from None
     try:
@@ -275,22 +243,8 @@ def _write_revert(
             path, text, old=old, who=who, why=why, kind=history.REVERT, reverted_to=number
         )
     except OSError as exc:
-        raise Refused(500, "CONFIG_REFUSED", f"cannot write {path.name}: {exc}") from None
+        raise HttpError(500, "CONFIG_REFUSED", f"cannot write {path.name}: {exc}") from None
     return http_save.Saved(path, old, version)
-
-
-async def _body(request: web.Request) -> bytes:
-    """The body, at most :data:`MAX_BODY` bytes (413 beyond, read no further)."""
-    declared = request.content_length
-    if declared is not None and declared > MAX_BODY:
-        raise Refused(413, "TOO_LARGE", f"the body has {declared} bytes, limit {MAX_BODY}")
-    raw = b""
-    while len(raw) <= MAX_BODY:
-        more = await request.content.read(MAX_BODY + 1 - len(raw))
-        if not more:
-            return raw
-        raw += more
-    raise Refused(413, "TOO_LARGE", f"the body has more than {MAX_BODY} bytes")
 
 
 def _read_or_none(path: Path) -> bytes | None:
@@ -305,19 +259,4 @@ def _current_hash(path: Path) -> str | None:
     return None if data is None else history.config_hash(data)
 
 
-def _int_query(
-    request: web.Request, key: str, default: int | None, low: int, high: int | None
-) -> Any:
-    raw = request.query.get(key)
-    if raw is None or raw == "":
-        return default
-    try:
-        value = int(raw)
-    except ValueError:
-        raise Refused(400, "BAD_REQUEST", f"{key} must be an integer, got {raw[:40]!r}") from None
-    if value < low or (high is not None and value > high):
-        raise Refused(400, "BAD_REQUEST", f"{key} must be in {low}..{high or 'any'}")
-    return value
-
-
-__all__ = ["HistoryRoutes", "Refused", "why_of"]
+__all__ = ["HistoryRoutes", "why_of"]

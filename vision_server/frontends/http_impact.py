@@ -13,8 +13,6 @@ connection).
 
 from __future__ import annotations
 
-import asyncio
-import json
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -32,6 +30,7 @@ from ..service import (
     replay,
 )
 from . import http_save
+from .http_common import HttpError, bounded_json, nested_options
 
 IMPACT_PATH = "/api/inspections/{name}/impact"
 MAX_BODY_BYTES = 64 * 1024
@@ -66,14 +65,12 @@ class ImpactRoutes:
         catalog.inspection(name)  # UNKNOWN_INSPECTION: 404
         log = self.service.results
         if log is None:
-            return _error(404, "NO_RESULT_LOG", "this server keeps no result log to replay")
+            raise HttpError(404, "NO_RESULT_LOG", "this server keeps no result log to replay")
+        body = await bounded_json(request, MAX_BODY_BYTES, self.settings.request_timeout_s)
         try:
-            body = await _body(request, self.settings.request_timeout_s)
             change, last = _parse(body)
             if change.options is not None:
                 # Dotted keys of the page ("circle.min_radius_px") nested as a try nests them.
-                from .http import nested_options  # here: http imports this module
-
                 change = Change(options=nested_options(self.written(name), change.options))
             # A whole config is read with the image size each running camera declares, as a
             # save reads it (a simulated camera's size is known once it is open).
@@ -85,9 +82,11 @@ class ImpactRoutes:
                 )
             inspection = changed_inspection(catalog, name, change, cameras=cameras)
         except ChangeRefused as exc:
-            return _error(400, exc.code, exc.message, key=exc.key)
+            raise HttpError(
+                400, exc.code, exc.message, details={"key": exc.key} if exc.key else None
+            ) from None
         if self.running >= MAX_RUNNING:
-            return _error(
+            raise HttpError(
                 503,
                 "BUSY",
                 f"{self.running} impact previews are running; try again when one ends",
@@ -135,46 +134,6 @@ def _parse(body: Mapping[str, Any]) -> tuple[Change, int]:
     if not isinstance(config, dict):
         raise ChangeRefused("BAD_REQUEST", "config must be a JSON object", "config")
     return Change(config=config), last
-
-
-async def _body(request: web.Request, timeout_s: float) -> dict[str, Any]:
-    """The JSON object of the body, at most :data:`MAX_BODY_BYTES`, arrived within
-    ``timeout_s`` seconds; ChangeRefused otherwise."""
-    declared = request.content_length
-    if declared is not None and declared > MAX_BODY_BYTES:
-        raise ChangeRefused("TOO_LARGE", f"the body has {declared} bytes, limit {MAX_BODY_BYTES}")
-    raw = b""
-    try:
-        async with asyncio.timeout(timeout_s):
-            while len(raw) <= MAX_BODY_BYTES:
-                more = await request.content.read(MAX_BODY_BYTES + 1 - len(raw))
-                if not more:
-                    break
-                raw += more
-    except TimeoutError:
-        raise ChangeRefused("TIMEOUT", f"the body did not arrive within {timeout_s:g} s") from None
-    if len(raw) > MAX_BODY_BYTES:
-        raise ChangeRefused("TOO_LARGE", f"the body has more than {MAX_BODY_BYTES} bytes")
-    try:
-        body = json.loads(raw)
-    except (ValueError, RecursionError) as exc:
-        raise ChangeRefused("BAD_REQUEST", f"the body is not JSON: {exc}") from None
-    if not isinstance(body, dict):
-        raise ChangeRefused("BAD_REQUEST", "the body must be a JSON object")
-    return body
-
-
-def _error(
-    status: int, code: str, message: str, *, key: str = "", retry_after: int | None = None
-) -> web.Response:
-    error: dict[str, Any] = {"code": code, "message": message}
-    if key:
-        error["key"] = key
-    status = {"TOO_LARGE": 413, "TIMEOUT": 408}.get(code, status)
-    response = web.json_response({"error": error}, status=status)
-    if retry_after is not None:
-        response.headers["Retry-After"] = str(retry_after)
-    return response
 
 
 __all__ = ["IMPACT_PATH", "ImpactRoutes"]

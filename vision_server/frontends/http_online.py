@@ -11,13 +11,13 @@ inspection, by camera (docs/console.md, "Online view"), from the in-memory
 from __future__ import annotations
 
 import asyncio
-import json
 from typing import Any
 
 from aiohttp import web
 
 from protocol import InvalidArgument, UnknownInspection
 
+from .http_common import HttpError, json_body, read_at_most
 from .online_board import OnlineBoard
 
 RESET_MAX_BYTES = 4096
@@ -58,29 +58,11 @@ class OnlineRoutes:
 
     async def _body(self, request: web.Request) -> dict[str, Any]:
         """The body as a JSON object (empty: ``{}``), at most :data:`RESET_MAX_BYTES`."""
-        declared = request.content_length
-        if declared is not None and declared > RESET_MAX_BYTES:
-            raise web.HTTPRequestEntityTooLarge(max_size=RESET_MAX_BYTES, actual_size=declared)
-        raw = b""
+        raw = await read_at_most(request, RESET_MAX_BYTES, self.timeout_s)
         try:
-            async with asyncio.timeout(self.timeout_s):
-                while len(raw) <= RESET_MAX_BYTES:
-                    more = await request.content.read(RESET_MAX_BYTES + 1 - len(raw))
-                    if not more:
-                        break
-                    raw += more
-        except TimeoutError:
-            raise InvalidArgument(f"the body did not arrive within {self.timeout_s:g} s") from None
-        if len(raw) > RESET_MAX_BYTES:
-            raise web.HTTPRequestEntityTooLarge(max_size=RESET_MAX_BYTES, actual_size=len(raw))
-        if not raw.strip():
-            return {}
-        try:
-            body = json.loads(raw)
-        except (ValueError, RecursionError) as exc:
-            raise InvalidArgument(f"the body is not JSON: {exc}") from None
-        if not isinstance(body, dict):
-            raise InvalidArgument('the body must be {} or {"inspection": "NAME"}')
+            body = await json_body(request, raw if raw.strip() else b"{}")
+        except HttpError as exc:
+            raise InvalidArgument(exc.message) from None  # the reset's documented code
         unknown = sorted(set(body) - {"inspection"})
         if unknown:
             raise InvalidArgument(f"unknown key(s) in the body: {', '.join(unknown)}")

@@ -33,7 +33,10 @@ from ..service import (
     call_json,
     closed_json,
 )
+from .http_common import HttpError, bounded_json
 
+ANSWER_MAX_BYTES = 4096
+"""The largest answer body: a choice and a reason of at most 500 characters."""
 IMAGE_URL = "/api/operator/calls/{call}/images/{index}"
 log = logging.getLogger("vision_server")
 
@@ -90,9 +93,11 @@ class OperatorRoutes:
     async def answer(self, request: web.Request) -> web.Response:
         call_id = int(request.match_info["id"])
         try:
-            body = await request.json()
-        except ValueError as exc:
-            raise InvalidArgument(f"the body is not JSON: {exc}") from None
+            body = await bounded_json(request, ANSWER_MAX_BYTES, self.settings.request_timeout_s)
+        except HttpError as exc:
+            if exc.status != 400:  # too large (413), too slow (408): as they are
+                raise
+            raise InvalidArgument(exc.message) from None  # the answer's documented code
         choice = body.get("choice") if isinstance(body, dict) else None
         if not isinstance(choice, str):
             raise InvalidArgument(
