@@ -42,7 +42,7 @@ from protocol import (
 from ..cameras import RecordingCamera, RecordingError
 from ..config import FIXED_BY_THE_CONFIGURATION, SERVER_VERSION, ConsoleSettings, history
 from ..console import static_dir
-from ..results import TRY_PEER_PREFIX, ResultLogError
+from ..results import TRY_PEER_PREFIX, ResultLogError, TimingsCache
 from ..service import (
     CaptureRequest,
     ImageNeeds,
@@ -156,6 +156,8 @@ class HttpFrontend:
         self.live: LiveView | None = None
         self.metrics: Metrics | None = None
         self._builder = BuildRoutes(self, service)
+        self._timings: TimingsCache | None = None
+        """The statistics' columns of the result log, read incrementally (GET /api/stats)."""
         self.online: OnlineBoard | None = None
         """The online view's counts and last graphics (made with the application)."""
 
@@ -904,8 +906,11 @@ class HttpFrontend:
         wanted = request.query.get("inspection") or None
         names = [wanted] if wanted else sorted(self.service.catalog.inspections)
         log_ = self.result_log()
+        if self._timings is None or self._timings.log is not log_:
+            self._timings = TimingsCache(log_)
+        cache = self._timings
         now = time.time()
-        out = await asyncio.to_thread(lambda: [stats_of(log_, n, now, window) for n in names])
+        out = await asyncio.to_thread(lambda: [stats_of(cache, n, now, window) for n in names])
         return web.json_response({"window_s": window, "inspections": out}, dumps=dumps)
 
     async def metrics_text(self, request: web.Request) -> web.Response:

@@ -9,12 +9,14 @@
 - :mod:`.query`: the filters and pages both stores share.
 - :mod:`.tries`: how a console try is marked, so that no reader counts it as production.
 - :mod:`.configured`: the configured store opened, for writing or for reading.
+- :mod:`.timings_cache`: the statistics' columns, read once and then only the rows since.
 """
 
 from .configured import check_result_store, open_readonly, open_result_store
 from .postgres import PgResultLog, is_database_url, redact_url
 from .sqlite import ResultLog
-from .store import ResultEntry, ResultLogError, ResultStore, StoredResult
+from .store import ResultEntry, ResultLogError, ResultStore, StoredResult, TimingRows
+from .timings_cache import TimingsCache
 from .tries import TRY_PEER_PREFIX, is_try
 
 __all__ = [
@@ -25,6 +27,8 @@ __all__ = [
     "ResultLogError",
     "ResultStore",
     "StoredResult",
+    "TimingRows",
+    "TimingsCache",
     "check_result_store",
     "is_database_url",
     "is_try",

@@ -41,13 +41,14 @@ from urllib.parse import urlsplit, urlunsplit
 import numpy as np
 
 from .postgres_schema import SCHEMA_VERSION, check_version, migrate
-from .query import COLUMNS, OPERATOR_COLUMNS, page_sql, where_sql
+from .query import COLUMNS, OPERATOR_COLUMNS, page_sql, timing_sql, where_sql
 from .spool import Spool
 from .store import (
     OperatorMark,
     ResultEntry,
     ResultLogError,
     StoredResult,
+    TimingRows,
     parse_data,
     row_values,
 )
@@ -502,10 +503,24 @@ class PgResultLog:
         self, *, inspection: str, since: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """As :meth:`vision_server.results.ResultLog.timings`."""
-        where, params = where_sql(since, inspection, None, mark="%s", boolean=bool, production=True)
-        sql = f"SELECT time, passed::int, duration_ms FROM results{where} ORDER BY time"
-        table = np.array(self._read(sql, params), dtype=float).reshape(-1, 3)
-        return table[:, 0], table[:, 1] != 0, table[:, 2]
+        rows = self.timing_rows(inspection=inspection, since=since)
+        return rows.times, rows.passed, rows.durations
+
+    def timing_rows(
+        self, *, inspection: str, since: float | None = None, after_id: int | None = None
+    ) -> TimingRows:
+        """As :meth:`vision_server.results.ResultLog.timing_rows`."""
+        upto = int(self._read("SELECT coalesce(max(id), 0) FROM results", ())[0][0])
+        sql, params = timing_sql(
+            inspection,
+            since=since,
+            after_id=after_id,
+            upto_id=upto,
+            mark="%s",
+            boolean=bool,
+            passed_column="passed::int",
+        )
+        return TimingRows.of(self._read(sql, params), upto)
 
     def count(
         self,

@@ -59,6 +59,36 @@ def where_sql(
     return (" WHERE " + " AND ".join(clauses) if clauses else ""), tuple(params)
 
 
+def timing_sql(
+    inspection: str,
+    *,
+    since: float | None,
+    after_id: int | None,
+    upto_id: int,
+    mark: str,
+    boolean: Callable[[bool], Any],
+    passed_column: str = "passed",
+) -> tuple[str, tuple[Any, ...]]:
+    """The id, time, verdict (0/1) and duration of ``inspection``'s production rows with
+    ``time >= since`` (by time, through the covering index) or with ``id > after_id`` (by id,
+    a range of the primary key: only the rows written since), never beyond row ``upto_id``."""
+    where, params = where_sql(since, inspection, None, mark=mark, boolean=boolean, production=True)
+    clauses = [where[len(" WHERE ") :]] if where else []
+    extra: list[Any] = []
+    if after_id is not None:
+        clauses.append(f"id > {mark}")
+        extra.append(int(after_id))
+    clauses.append(f"id <= {mark}")
+    extra.append(int(upto_id))
+    order = "time" if after_id is None else "id"
+    sql = (
+        f"SELECT id, time, {passed_column}, duration_ms FROM results WHERE "
+        + " AND ".join(clauses)
+        + f" ORDER BY {order}"
+    )
+    return sql, params + tuple(extra)
+
+
 def page_sql(
     *,
     since: float | None,

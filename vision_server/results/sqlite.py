@@ -66,7 +66,7 @@ from typing import Any, get_args
 import cv2
 import numpy as np
 
-from .query import COLUMNS, OPERATOR_COLUMNS, page_sql
+from .query import COLUMNS, OPERATOR_COLUMNS, page_sql, timing_sql
 from .query import where_sql as _where
 from .store import (
     ImagePolicy,
@@ -74,6 +74,7 @@ from .store import (
     ResultEntry,
     ResultLogError,
     StoredResult,
+    TimingRows,
     parse_data,
     row_values,
 )
@@ -756,16 +757,26 @@ class ResultLog:
         of ``inspection`` with ``time >= since`` (console tries left out), oldest first: what
         statistics are made of.
 
-        Three columns read from one covering index, without parsing any row's data, so that a
-        window of 100,000 results costs tens of milliseconds.
+        Read from one covering index, without parsing any row's data, so that a window of
+        100,000 results costs tens of milliseconds.
         """
-        where, params = _where(since, inspection, None, mark="?", boolean=int, production=True)
-        sql = f"SELECT time, passed, duration_ms FROM results{where} ORDER BY time"
+        rows = self.timing_rows(inspection=inspection, since=since)
+        return rows.times, rows.passed, rows.durations
+
+    def timing_rows(
+        self, *, inspection: str, since: float | None = None, after_id: int | None = None
+    ) -> TimingRows:
+        """``inspection``'s production rows with ``time >= since`` (oldest first) or, with
+        ``after_id``, those written after that row (by id: what a cache of statistics adds),
+        with the log's last row id when read (:class:`TimingRows`)."""
         with self._lock:
             self._check_open()
+            upto = self._conn.execute("SELECT coalesce(max(id), 0) FROM results").fetchone()[0]
+            sql, params = timing_sql(
+                inspection, since=since, after_id=after_id, upto_id=upto, mark="?", boolean=int
+            )
             rows = self._conn.execute(sql, params).fetchall()
-        table = np.array(rows, dtype=float).reshape(-1, 3)
-        return table[:, 0], table[:, 1] != 0, table[:, 2]
+        return TimingRows.of(rows, int(upto))
 
     def count(
         self,

@@ -151,6 +151,24 @@ class StoredResult:
         }
 
 
+@dataclass(frozen=True)
+class TimingRows:
+    """Production rows of one inspection as statistics read them: ``ids``, ``times`` (Unix
+    seconds), ``passed`` (bool) and ``durations`` (ms), in the order asked; ``upto``, the
+    log's last row id when they were read (no row after it is among them)."""
+
+    ids: np.ndarray
+    times: np.ndarray
+    passed: np.ndarray
+    durations: np.ndarray
+    upto: int
+
+    @classmethod
+    def of(cls, rows: list[tuple[Any, ...]], upto: int) -> TimingRows:
+        table = np.array(rows, dtype=float).reshape(-1, 4)
+        return cls(table[:, 0].astype(np.int64), table[:, 1], table[:, 2] != 0, table[:, 3], upto)
+
+
 class ResultStore(Protocol):
     """The interface of a result log, whatever keeps its rows.
 
@@ -190,6 +208,10 @@ class ResultStore(Protocol):
     def timings(
         self, *, inspection: str, since: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+    def timing_rows(
+        self, *, inspection: str, since: float | None = None, after_id: int | None = None
+    ) -> TimingRows: ...
 
     def count(
         self,
