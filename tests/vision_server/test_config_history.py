@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from vision_server.config import history
+from vision_server.config import files, history
 from vision_server.frontends import http_save
 
 ONE = """\
@@ -163,8 +163,7 @@ def test_a_failing_write_leaves_no_half_version_and_the_file_as_it_was(
     folder = config.with_name("cell.yaml.history")
     listed = sorted(p.name for p in folder.iterdir())
     failing = FailingFsync(nth)
-    monkeypatch.setattr(history, "os", failing)
-    monkeypatch.setattr(http_save, "os", failing)
+    monkeypatch.setattr(files, "os", failing)
     with pytest.raises(OSError, match="No space left"):
         write(config, ONE, who="w", why="fails")
     monkeypatch.undo()

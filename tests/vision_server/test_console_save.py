@@ -21,8 +21,7 @@ import pytest
 import yaml
 from console_server import Browserless, RunningConsole, console_server
 
-from vision_server.config import history
-from vision_server.frontends import http_save
+from vision_server.config import files, history
 
 SAVE = "/api/inspections/{}/save"
 
@@ -284,8 +283,7 @@ def test_a_save_that_fails_while_writing_leaves_no_partial_version(
     # first) and ".cell.yaml.<random>.tmp" (the new configuration, written after it).
     config_tmp = f".{running.config.name}."
     failing = FailingOs(lambda name: name.startswith(config_tmp) == (target == "configuration"))
-    monkeypatch.setattr(http_save, "os", failing)
-    monkeypatch.setattr(history, "os", failing)
+    monkeypatch.setattr(files, "os", failing)
     failed = save(client, {"threshold": 120})
     monkeypatch.undo()
     assert failing.failed == 1

@@ -13,10 +13,12 @@
 - :mod:`.drafts`: a whole inspection mapping (the console's edit or draft) read by the loader.
 - :mod:`.schema`: every key of every inspection and job step type, for the console's editor.
 - :mod:`.redaction`: a configuration text with its tokens, passwords and PINs hidden.
+- :mod:`.files`: the files beside the configuration written atomically (the file, versions,
+  templates).
 - :mod:`.history`: the configuration file's versions (who, when, why, a diff), bounded on disk.
 """
 
-from . import history
+from . import files, history
 from .cell import (
     FIXED_BY_THE_CONFIGURATION,
     CellConfig,
@@ -97,6 +99,7 @@ __all__ = [
     "exposure_warnings",
     "file_keys",
     "inspection_schema",
+    "files",
     "history",
     "load_config",
     "load_server_settings",

@@ -26,7 +26,6 @@ import hashlib
 import json
 import os
 import re
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -34,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from .document import ConfigError, parse_document
+from .files import write_new
 
 SAVE = "save"
 """A save of tuned values from the console."""
@@ -390,33 +390,7 @@ class History:
     def _place(self, path: Path, content: bytes) -> bool:
         """Write ``content`` as ``path`` atomically and durably, never over an existing file;
         False when ``path`` exists. The mode is the configuration file's."""
-        fd, name = tempfile.mkstemp(dir=self.folder, prefix=".", suffix=".tmp")
-        tmp = Path(name)
-        try:
-            with os.fdopen(fd, "wb") as out:
-                out.write(content)
-                out.flush()
-                os.fsync(out.fileno())
-            with contextlib.suppress(OSError):
-                os.chmod(tmp, self.config.stat().st_mode & 0o777)
-            try:
-                os.link(tmp, path)  # fails when the name is taken, unlike a rename
-            except FileExistsError:
-                return False
-        finally:
-            tmp.unlink(missing_ok=True)
-        _sync_folder(self.folder)
-        return True
-
-
-def _sync_folder(folder: Path) -> None:
-    """Make a new name in ``folder`` durable (where the system allows opening a folder)."""
-    with contextlib.suppress(OSError):
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        return write_new(path, content, mode_of=self.config)
 
 
 _BOUNDS: dict[Path, Bounds] = {}

@@ -58,6 +58,7 @@ from .http_build import BUILD_INTEGRATOR_ROUTES, BuildRoutes, check_draft_name
 from .http_common import (
     HTTP_STATUS,
     HttpError,
+    bounded_json,
     dumps,
     error_response,
     float_param,
@@ -789,16 +790,12 @@ class HttpFrontend:
         name = request.match_info["name"]
         self.service.catalog.inspection(name)
         # A save's options are a try's: no larger than a try's request part.
-        body = await json_body(request, await read_at_most(request, MAX_JSON_PART))
+        body = await bounded_json(request, MAX_JSON_PART, self.settings.request_timeout_s)
         options = body.get("options")
         if not isinstance(options, dict) or not options:
             raise HttpError(400, "BAD_REQUEST", "options must be a non-empty JSON object")
         why = why_of(body)
-        path = self.config_path
-        if path is None:
-            raise HttpError(403, "CONFIG_REFUSED", "this server runs without a configuration file")
-        if not self.settings.allow_save:
-            raise HttpError(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
+        path = self.writable_config()
         async with self.save_lock:
             served = self.all_written()
             # The image size each running camera declares, which the saved ROI must fit as a
@@ -806,29 +803,46 @@ class HttpFrontend:
             opened = http_save.opened_cameras(self.service.catalog)
             who = self.who(request)
             saved = await asyncio.to_thread(_save_file, path, name, options, opened, who, why)
-            try:
-                catalog = await self.service.reload()
-            except CellvisionError as exc:
-                # The file validated but the server could not take it (a camera that does not
-                # open): put the old text back so that file and server agree.
-                await asyncio.to_thread(http_save.undo, saved)
-                raise HttpError(422, "CONFIG_REFUSED", exc.message) from None
-        # The reload applies the whole file: hand edits made since the last reload go live
-        # with this save, and whoever saves is told which (not silently).
-        now = self.all_written()
-        also = [
-            other
-            for other in sorted(set(served) | set(now))
-            if other != name and served.get(other) != now.get(other)
-        ]
+            catalog = await self.reload_or_undo(saved)
         return web.json_response(
             {
                 "config_hash": catalog.config_hash,
                 "version": saved.version.number,
-                "also_changed": also,
+                "also_changed": self.others_changed(name, served),
                 "notes": list(catalog.notes),
             }
         )
+
+    def writable_config(self) -> Path:
+        """The configuration file the console may write (403 ``CONFIG_REFUSED`` when the
+        server runs without one, or saving is off)."""
+        if self.config_path is None:
+            raise HttpError(403, "CONFIG_REFUSED", "this server runs without a configuration file")
+        if not self.settings.allow_save:
+            raise HttpError(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
+        return self.config_path
+
+    async def reload_or_undo(self, saved: http_save.Saved, *, what: str = "") -> Any:
+        """The server reloaded after the console wrote its configuration file: the new catalog.
+        When the server cannot take the text though it validated (a camera that does not
+        open), the old text goes back (so that file and server agree) and the write is
+        refused: 422 ``CONFIG_REFUSED``, ``what`` before the cause."""
+        try:
+            return await self.service.reload()
+        except CellvisionError as exc:
+            await asyncio.to_thread(http_save.undo, saved)
+            raise HttpError(422, "CONFIG_REFUSED", what + exc.message) from None
+
+    def others_changed(self, name: str, served: Mapping[str, Any]) -> list[str]:
+        """The inspections other than ``name`` whose configuration differs from ``served``
+        (as written before a save): the reload applies the whole file, so hand edits made
+        since the last reload go live with the save, and whoever saves is told which."""
+        now = self.all_written()
+        return [
+            other
+            for other in sorted(set(served) | set(now))
+            if other != name and served.get(other) != now.get(other)
+        ]
 
     def all_written(self) -> dict[str, Any]:
         """Every inspection as written in the configuration served (empty when unknown)."""

@@ -23,7 +23,6 @@ from typing import Any
 
 from aiohttp import web
 
-from protocol import CellvisionError
 from yamlfile import NAME
 
 from ..config import ConfigError, Tuner, check_files, inspection_schema, parse_draft
@@ -31,7 +30,7 @@ from ..inspections import Inspection
 from ..results import is_try
 from ..service import ImageNeeds, Images, InspectionService, InspectRequest
 from . import http_save, http_save_whole, template_files
-from .http_common import Console, HttpError, int_param, json_body, read_at_most
+from .http_common import Console, HttpError, bounded_json, int_param
 from .http_history import why_of
 
 log = logging.getLogger("vision_server")
@@ -145,7 +144,7 @@ class BuildRoutes:
         """``PUT /api/inspections/{name}`` ``{"config": {...}, "why": "..."}``."""
         name = request.match_info["name"]
         check_draft_name(name)
-        body = await json_body(request, await read_at_most(request, MAX_SAVE_BYTES))
+        body = await bounded_json(request, MAX_SAVE_BYTES, self.console.settings.request_timeout_s)
         config = body.get("config")
         why = why_of(body)
         if not isinstance(config, dict):
@@ -153,11 +152,7 @@ class BuildRoutes:
                 400, "BAD_REQUEST", "config must be the inspection's mapping (an object)"
             )
         console = self.console
-        path = console.config_path
-        if path is None:
-            raise HttpError(403, "CONFIG_REFUSED", "this server runs without a configuration file")
-        if not console.settings.allow_save:
-            raise HttpError(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
+        path = console.writable_config()
         async with console.save_lock:
             served = console.all_written()
             try:
@@ -170,13 +165,7 @@ class BuildRoutes:
             opened = http_save.opened_cameras(self.service.catalog)
             who = console.who(request)
             saved = await asyncio.to_thread(_save_whole, path, name, config, opened, who, why)
-            try:
-                catalog = await self.service.reload()
-            except CellvisionError as exc:
-                # The file validated but the server could not take it: put the old text
-                # back so that file and server agree.
-                await asyncio.to_thread(http_save.undo, saved.saved)
-                raise HttpError(422, "CONFIG_REFUSED", exc.message) from None
+            catalog = await console.reload_or_undo(saved.saved)
         log.info(
             "console: inspection %r %s in %s (why: %s)",
             name,
@@ -184,17 +173,11 @@ class BuildRoutes:
             path.name,
             json.dumps(why),
         )
-        now = console.all_written()
-        also = [
-            other
-            for other in sorted(set(served) | set(now))
-            if other != name and served.get(other) != now.get(other)
-        ]
         return web.json_response(
             {
                 "config_hash": catalog.config_hash,
                 "version": saved.saved.version.number,
-                "also_changed": also,
+                "also_changed": console.others_changed(name, served),
                 "notes": list(catalog.notes),
                 "created": saved.created,
             }
@@ -207,13 +190,11 @@ class BuildRoutes:
         takes it, keep it as a grey PNG in ``templates/`` (content-addressed), answer its path."""
         name = request.match_info["name"]
         check_draft_name(name)
-        body = await json_body(request, await read_at_most(request, MAX_TEMPLATE_BODY))
+        body = await bounded_json(
+            request, MAX_TEMPLATE_BODY, self.console.settings.request_timeout_s
+        )
         console = self.console
-        path = console.config_path
-        if path is None:
-            raise HttpError(403, "CONFIG_REFUSED", "this server runs without a configuration file")
-        if not console.settings.allow_save:
-            raise HttpError(403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false)")
+        path = console.writable_config()
         camera = self._camera_of(name, body.get("config"))
         rect = body.get("rect")
         try:

@@ -239,6 +239,19 @@ class Console(Protocol):
         """Every inspection as written in the configuration served."""
         ...
 
+    def writable_config(self) -> Path:
+        """The configuration file the console may write (else 403 ``CONFIG_REFUSED``)."""
+        ...
+
+    async def reload_or_undo(self, saved: Any, *, what: str = "") -> Any:
+        """The server's new catalog after a console write (``saved``, an
+        :class:`~.http_save.Saved`); the old text put back and 422 when it cannot load it."""
+        ...
+
+    def others_changed(self, name: str, served: Mapping[str, Any]) -> list[str]:
+        """Inspections besides ``name`` that a save's reload also changed (hand edits)."""
+        ...
+
     def result_log(self) -> ResultStore:
         """The server's result log (404 ``NOT_FOUND`` when it keeps none)."""
         ...

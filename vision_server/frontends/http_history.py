@@ -26,8 +26,6 @@ from typing import Any
 
 from aiohttp import web
 
-from protocol import CellvisionError
-
 from ..config import ConfigError, history, redact_secrets
 from ..service import InspectionService
 from . import http_save
@@ -161,11 +159,7 @@ class HistoryRoutes:
         raw = await read_at_most(request, MAX_BODY, self.console.settings.request_timeout_s)
         body = await json_body(request, raw or b"{}")
         why = why_of(body)
-        if not self.console.settings.allow_save:
-            raise HttpError(
-                403, "CONFIG_REFUSED", "saving is off (server.allow_reload: false): no revert"
-            )
-        path = versions.config
+        path = self.console.writable_config()
         who = self.console.who(request)
         async with self.console.save_lock:
             target = await asyncio.to_thread(versions.text, number)
@@ -186,18 +180,11 @@ class HistoryRoutes:
             saved = await asyncio.to_thread(
                 _write_revert, path, number, target, old, opened, who, why
             )
-            try:
-                catalog = await self.service.reload()
-            except CellvisionError as exc:
-                # The text validated but the server could not take it (a camera that does
-                # not open): the file and the server must agree, so the old text goes back.
-                await asyncio.to_thread(http_save.undo, saved)
-                raise HttpError(
-                    422,
-                    "CONFIG_REFUSED",
-                    f"version {number} was written but the server could not load it, so the "
-                    f"file was put back: {exc.message}",
-                ) from None
+            catalog = await self.console.reload_or_undo(
+                saved,
+                what=f"version {number} was written but the server could not load it, so the "
+                "file was put back: ",
+            )
         return web.json_response(
             {
                 "changed": True,

@@ -28,9 +28,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import os
 import re
-import tempfile
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +41,7 @@ from ..config import (
     CellConfig,
     ConfigError,
     Tuner,
+    files,
     history,
     parse_config,
     parse_document,
@@ -155,7 +154,7 @@ def save(
 def undo(saved: Saved) -> None:
     """Put the old text back (a reload refused what was saved) and drop the save's version
     from the history: the file's history ends again with the text it has."""
-    replace_file(saved.path, saved.old)
+    files.replace_file(saved.path, saved.old)
     history.history_of(saved.path).drop(saved.version.number)
 
 
@@ -313,43 +312,12 @@ def write_with_backup(
         text.encode("utf-8"), who=who, why=why, kind=kind, reverted_to=reverted_to
     )
     try:
-        replace_file(path, text.encode("utf-8"))
+        files.replace_file(path, text.encode("utf-8"))
     except BaseException:
         versions.drop(version.number)
         raise
     versions.prune()
     return version
-
-
-def replace_file(path: Path, data: bytes, *, mode_of: Path | None = None) -> None:
-    """Write ``data`` as ``path`` atomically and durably: a temporary file beside it, written
-    and synced, renamed over ``path``, the folder synced. On any failure the temporary file
-    is removed and ``path`` is as it was. The mode is ``mode_of``'s (default ``path``'s)."""
-    folder = path.parent
-    fd, name = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
-    tmp = Path(name)
-    try:
-        with os.fdopen(fd, "wb") as out:
-            out.write(data)
-            out.flush()
-            os.fsync(out.fileno())
-        with contextlib.suppress(OSError):
-            os.chmod(tmp, (mode_of or path).stat().st_mode & 0o777)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _sync_folder(folder)
-
-
-def _sync_folder(folder: Path) -> None:
-    """Make a rename in ``folder`` durable (where the system allows opening a folder)."""
-    with contextlib.suppress(OSError):
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
 
 
 # ----------------------------------------------------------------------------- checks
@@ -614,7 +582,6 @@ __all__ = [
     "declared_cameras",
     "edited_text",
     "opened_cameras",
-    "replace_file",
     "save",
     "undo",
     "validate",

@@ -10,16 +10,15 @@ reader ever sees half a template. The folder holds at most :data:`MAX_TEMPLATES`
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+
+from ..config import files
 
 FOLDER = "templates"
 """The folder beside the configuration file that trained templates are written to."""
@@ -119,26 +118,8 @@ def keep(config_dir: Path, inspection: str, grey: np.ndarray) -> Template:
             "delete those no inspection uses",
             409,
         )
-    fd, tmp_name = tempfile.mkstemp(dir=folder, prefix=f".{name}.", suffix=".tmp")
-    tmp = Path(tmp_name)
-    try:
-        with os.fdopen(fd, "wb") as out:
-            out.write(png)
-            out.flush()
-            os.fsync(out.fileno())
-        os.chmod(tmp, 0o644)
-        try:
-            os.link(tmp, final)  # fails when the name is taken: never overwrites
-        except FileExistsError:
-            return _same(final, relative, grey, png)  # written meanwhile, by another request
-    finally:
-        tmp.unlink(missing_ok=True)
-    with contextlib.suppress(OSError):
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+    if not files.write_new(final, png, mode=0o644):  # never over another file
+        return _same(final, relative, grey, png)  # written meanwhile, by another request
     return Template(relative, grey.shape[1], grey.shape[0], png)
 
 
