@@ -20,52 +20,26 @@ import copy
 from collections.abc import Sequence
 from typing import Any
 
+from ..analysis import DICTIONARIES as _DICTIONARIES
+from ..analysis import MEASURES as _MEASURES
+from ..analysis import POLARITIES
+from ..analysis import SYMBOLOGIES as _SYMBOLOGIES
+from ..inspections import CALIPER_KINDS as _CALIPER_KINDS
+from ..inspections import INSPECTION_TYPES as _INSPECTION_TYPES
+from ..inspections import STEP_TYPES as _STEP_TYPES
+
 __all__ = ["COMMON_KEYS", "STEP_COMMON_KEYS", "inspection_schema"]
 
 Key = dict[str, Any]
 
-MEASURES = (
-    "mean_intensity",
-    "dark_fraction",
-    "bright_fraction",
-    "edge_density",
-    "blob_count",
-    "template_score",
-)
-SYMBOLOGIES = (
-    "datamatrix",
-    "qr",
-    "micro_qr",
-    "aztec",
-    "pdf417",
-    "code128",
-    "code39",
-    "ean_upc",
-    "itf",
-    "databar",
-)
-DICTIONARIES = (
-    "DICT_4X4_50",
-    "DICT_4X4_100",
-    "DICT_4X4_250",
-    "DICT_5X5_100",
-    "DICT_5X5_250",
-    "DICT_6X6_250",
-    "DICT_APRILTAG_36h11",
-)
-CALIPER_POLARITIES = ("dark_to_light", "light_to_dark", "any")
-CALIPER_KINDS = ("edge", "width", "circle", "line", "distance")
-INSPECTION_TYPES = (
-    "locate",
-    "presence",
-    "qr",
-    "code",
-    "qr_pose",
-    "calibration_board",
-    "job",
-    "caliper",
-)
-STEP_TYPES = ("locate", "fixture", "presence", "code", "caliper")
+# The values the loader takes, from where the loader takes them (never a copy to keep in step).
+MEASURES = tuple(_MEASURES)
+SYMBOLOGIES = tuple(_SYMBOLOGIES)
+DICTIONARIES = tuple(_DICTIONARIES)
+CALIPER_POLARITIES = tuple(POLARITIES)
+CALIPER_KINDS = tuple(_CALIPER_KINDS)
+INSPECTION_TYPES = tuple(_INSPECTION_TYPES)
+STEP_TYPES = tuple(_STEP_TYPES)
 
 
 def key(

@@ -11,7 +11,8 @@ locate, fixture, presence, code, with ROIs that move with the part and a verdict
 Public API: the contract every type implements (:class:`Inspection`, run on an
 :class:`InspectionInput`, giving an :class:`InspectionOutcome`; :mod:`.contract`),
 :func:`parse_inspection` (a configuration node → an :class:`Inspection`),
-``INSPECTION_TYPES``, ``RESULT_KINDS`` (each type's :class:`ResultKind`: its
+``INSPECTION_TYPES``, a job's ``STEP_TYPES``, a caliper's measurement ``CALIPER_KINDS``,
+``RESULT_KINDS`` (each type's :class:`ResultKind`: its
 golden expectations and summary values), and the classes :class:`LocateInspection`,
 :class:`PresenceInspection`, :class:`QRInspection`, :class:`CodeInspection`,
 :class:`QRPoseInspection`, :class:`JobInspection`,
@@ -36,10 +37,11 @@ from . import calibration_board, caliper, code, job, locate, presence, qr, qr_po
 from .base import Configured
 from .calibration_board import CalibrationBoardInspection, parse_calibration_board
 from .caliper import SUMMARY_VALUES, CaliperInspection, parse_caliper
+from .caliper_config import KINDS as CALIPER_KINDS
 from .code import CodeInspection, parse_code
 from .contract import Inspection, InspectionInput, InspectionOutcome
 from .graphics import MAX_SHAPES, result_shapes
-from .job import JobInspection, parse_job, step_summary_values
+from .job import STEP_TYPES, JobInspection, parse_job, step_summary_values
 from .kinds import ResultKind
 from .locate import LocateInspection, parse_locate
 from .output import (
@@ -119,6 +121,8 @@ def parse_inspection(
 
 
 __all__ = [
+    "CALIPER_KINDS",
+    "STEP_TYPES",
     "Inspection",
     "InspectionInput",
     "InspectionOutcome",
