@@ -536,3 +536,35 @@ def test_an_existing_inspection_changes_its_measure_and_is_saved_whole(
         assert '"mean_intensity"' in text
         assert "# Quality control (paper, Table 2)" in text  # the file's comments stay
         assert console_errors(d) == []
+
+
+def test_a_new_job_on_a_camera_without_a_frame_is_drawn_on_an_upload(
+    driver: WebDriver, tmp_path: Path
+) -> None:
+    """A folder camera nothing has read has no frame to show, and a new job is refused until
+    its steps' required keys are set (some by drawing): the uploaded image is shown all the
+    same, so that the tools draw on it, and the ring then makes the refused try pass."""
+    d = driver
+    with running_cell(build_cell(tmp_path)) as server:
+        sign_in(d, server, "inspections")
+        new_draft(d, "fresh_job", "job", "plate")
+        add_step(d, "locate", "hole")
+        choose(d, "step-field-method", "circle")
+        d.find_element(By.CSS_SELECTOR, "input[name=try-source][value=upload]").click()
+        d.find_element(By.ID, "try-file").send_keys(str(PLATE / "moved_a.png"))
+        wait_for(d, image_ready, "the uploaded image shown though the try is refused")
+        assert d.find_element(By.ID, "try-verdict").text.strip().upper() == "ERROR"
+        assert "circle" in d.find_element(By.ID, "try-error").text
+        # The ring drawn on the uploaded image sets the radii the try was refused without.
+        choose(d, "step-field-circle-polarity", "dark")
+        type_into(d, "step-field-max_count", "1")
+        click(d, "tool-ring")
+        type_into(d, "tool-ring-search", "3")
+        drag_on_image(d, d.find_element(By.ID, "try-canvas"), (133, 105), (145, 105))
+        wait_for(
+            d,
+            lambda x: step(x, "hole").get("circle", {}).get("max_radius_px") == 15,
+            "the ring",
+        )
+        assert wait_tried(d, "the ring on the upload") == "PASS"
+        assert not console_errors(d)

@@ -111,8 +111,8 @@ def test_a_stored_result_is_tried_again_from_its_row(
             lambda d, v=verdict: d.find_element(By.ID, "try-verdict").text.strip().upper() == v,
             f"the try on result {row}: {verdict}",
         )
-        # The route is taken once: the hash is the page's own again.
-        assert driver.execute_script("return location.hash") == "#/inspections"
+        # The stored result is taken once: the hash names the inspection only.
+        assert driver.execute_script("return location.hash") == "#/inspections/magnet_check"
     assert not console_errors(driver)
 
 
@@ -160,3 +160,20 @@ def test_the_export_link_carries_the_filters_shown(
     wait_for(driver, lambda d: query(d) == wanted, "the export link's filters")
     href = driver.find_element(By.ID, "results-export").get_attribute("href") or ""
     assert urlsplit(href).path == "/api/results.csv"
+
+
+def test_an_inspection_is_opened_by_its_address(driver: WebDriver, server: RunningConsole) -> None:
+    sign_in(driver, server, "cameras")
+    driver.get(server.url + "#/inspections/cap_locate")
+    driver.refresh()
+    wait_for(
+        driver,
+        lambda d: d.find_element(By.ID, "insp-name").text == "cap_locate",
+        "cap_locate opened by its address",
+    )
+    driver.find_element(By.CSS_SELECTOR, "#inspection-list [data-inspection=magnet_check]").click()
+    wait_for(
+        driver,
+        lambda d: d.execute_script("return location.hash") == "#/inspections/magnet_check",
+        "the address to follow the inspection chosen",
+    )

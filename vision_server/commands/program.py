@@ -1136,6 +1136,9 @@ def _main(argv: Sequence[str] | None) -> int:
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
         stream=sys.stderr,
     )
+    # What people did through the console (saves, reverts, operators' answers) is the cell's
+    # record: in the log whatever the verbosity (vision_server/frontends/http_common.py).
+    logging.getLogger("vision_server.audit").setLevel(logging.INFO)
     return int(args.func(args))
 
 

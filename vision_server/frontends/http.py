@@ -58,6 +58,7 @@ from .http_build import BUILD_INTEGRATOR_ROUTES, BuildRoutes, check_draft_name
 from .http_common import (
     HTTP_STATUS,
     HttpError,
+    audit,
     bounded_json,
     dumps,
     error_response,
@@ -400,7 +401,7 @@ class HttpFrontend:
             wrong = "wrong name or PIN" if "user" in body or "pin" in body else "wrong token"
             raise await self._refuse_token(request, wrong)
         if session.user is not None:
-            log.info(
+            audit.info(
                 "console: %s signed in (%s) from %s", session.user, session.role, peer_of(request)
             )
         response = web.json_response({"ok": True, "role": session.role, "user": session.user})
@@ -804,6 +805,14 @@ class HttpFrontend:
             who = self.who(request)
             saved = await asyncio.to_thread(_save_file, path, name, options, opened, who, why)
             catalog = await self.reload_or_undo(saved)
+        audit.info(
+            "console: %s saved %s of %r as version %d (why: %s)",
+            who,
+            ", ".join(sorted(options)),
+            name,
+            saved.version.number,
+            json.dumps(why),
+        )
         return web.json_response(
             {
                 "config_hash": catalog.config_hash,

@@ -30,7 +30,7 @@ from ..inspections import Inspection
 from ..results import is_try
 from ..service import ImageNeeds, Images, InspectionService, InspectRequest
 from . import http_save, http_save_whole, template_files
-from .http_common import Console, HttpError, bounded_json, int_param
+from .http_common import Console, HttpError, audit, bounded_json, int_param
 from .http_history import why_of
 
 log = logging.getLogger("vision_server")
@@ -166,7 +166,7 @@ class BuildRoutes:
             who = console.who(request)
             saved = await asyncio.to_thread(_save_whole, path, name, config, opened, who, why)
             catalog = await console.reload_or_undo(saved.saved)
-        log.info(
+        audit.info(
             "console: inspection %r %s in %s (why: %s)",
             name,
             "created" if saved.created else "saved whole",
@@ -219,7 +219,7 @@ class BuildRoutes:
             kept = await asyncio.to_thread(_train, images, needs, rect, path.parent, name)
         finally:
             admission.release()
-        log.info("console: template %s trained for %r", kept.path, name)
+        audit.info("console: template %s trained for %r", kept.path, name)
         return web.json_response(
             {
                 "path": kept.path,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import math
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -44,6 +45,11 @@ HTTP_STATUS: dict[ErrorCode, int] = {
     ErrorCode.INTERNAL_ERROR: 500,
 }
 """The one table from the service's error codes to HTTP statuses (others: 400)."""
+
+audit = logging.getLogger("vision_server.audit")
+"""What people did through the console (sign-ins of named users, saves, reverts, trained
+templates, operators' answers), with who and why: ``vision-server serve`` logs it at INFO
+whatever its verbosity, so that the server's log holds it (docs/console.md)."""
 
 RETRY_AFTER_S = 1
 """``Retry-After`` of a BUSY answer, seconds (unless the error gives its own)."""
@@ -274,6 +280,7 @@ class Console(Protocol):
 __all__ = [
     "HTTP_STATUS",
     "RETRY_AFTER_S",
+    "audit",
     "Console",
     "HttpError",
     "bounded_json",

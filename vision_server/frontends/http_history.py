@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import hmac
+import json
 import secrets
 from collections.abc import Awaitable, Callable, Mapping
 from pathlib import Path
@@ -29,7 +30,7 @@ from aiohttp import web
 from ..config import ConfigError, history, redact_secrets
 from ..service import InspectionService
 from . import http_save
-from .http_common import Console, HttpError, int_param, json_body, read_at_most
+from .http_common import Console, HttpError, audit, int_param, json_body, read_at_most
 
 MAX_BODY = 4096
 """The largest revert body (a reason, not an upload), bytes."""
@@ -185,6 +186,14 @@ class HistoryRoutes:
                 what=f"version {number} was written but the server could not load it, so the "
                 "file was put back: ",
             )
+        audit.info(
+            "console: %s reverted %s to version %d as version %d (why: %s)",
+            who,
+            path.name,
+            number,
+            saved.version.number,
+            json.dumps(why),
+        )
         return web.json_response(
             {
                 "changed": True,

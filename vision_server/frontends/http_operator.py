@@ -33,7 +33,7 @@ from ..service import (
     call_json,
     closed_json,
 )
-from .http_common import HttpError, bounded_json
+from .http_common import HttpError, audit, bounded_json
 
 ANSWER_MAX_BYTES = 4096
 """The largest answer body: a choice and a reason of at most 500 characters."""
@@ -125,7 +125,7 @@ class OperatorRoutes:
                 },
                 status=404 if gone is None else 409,
             )
-        log.info(
+        audit.info(
             "operator call %d (%s, %s) answered %r by %s%s",
             call_id,
             call.skill if call is not None else "",

@@ -177,20 +177,26 @@ export class InspectionsPage {
     if (name && this.inspections.some((i) => i.name === name)) this.select(name, { keepChanges: true });
   }
 
-  /** The route `#/inspections/NAME?result=ID` (the Results page's "Try this image"): open NAME
-   * and try it on the stored input of result ID. Taken once: the hash then goes back to the
-   * page's own, so that a reload or a return does not try it again. */
+  /** The routes `#/inspections/NAME` (the inspection open: a bookmark, a reload) and
+   * `#/inspections/NAME?result=ID` (the Results page's "Try this image": NAME tried on the
+   * stored input of result ID). The result is taken once: the hash then names the inspection
+   * only, so that a reload or a return does not try it again. */
   followRoute() {
-    const match = /^#\/inspections\/([^?]+)\?result=(\d{1,18})$/.exec(location.hash);
+    const match = /^#\/inspections\/([^?]+)(?:\?result=(\d{1,18}))?$/.exec(location.hash);
     if (match === null) return false;
-    history.replaceState(null, "", "#/inspections");
     const name = decodeURIComponent(match[1]);
-    if (!this.inspections.some((i) => i.name === name)) return false;
-    this.select(name);
-    document.querySelector("input[name=try-source][value=result]").checked = true;
-    byId("try-result-id").value = match[2];
-    this.sourceChanged({ run: false });
-    this.run();
+    if (!this.inspections.some((i) => i.name === name)) {
+      history.replaceState(null, "", "#/inspections");
+      return false;
+    }
+    if (this.selected?.name !== name || match[2]) this.select(name);
+    else this.select(name, { keepChanges: true });
+    if (match[2]) {
+      document.querySelector("input[name=try-source][value=result]").checked = true;
+      byId("try-result-id").value = match[2];
+      this.sourceChanged({ run: false });
+      this.run();
+    }
     return true;
   }
 
@@ -300,6 +306,11 @@ export class InspectionsPage {
     }
     for (const button of document.querySelectorAll("#inspection-list .list-item")) {
       button.classList.toggle("active", button.dataset.inspection === name);
+    }
+    // The address names the inspection shown (a draft has none to name: not in the server's list).
+    const route = insp.draft ? "#/inspections" : `#/inspections/${encodeURIComponent(name)}`;
+    if (location.hash.startsWith("#/inspections") && location.hash !== route) {
+      history.replaceState(null, "", route);
     }
     byId("inspection-none").hidden = true;
     byId("inspection-body").hidden = false;
@@ -1007,7 +1018,10 @@ export class InspectionsPage {
       const outcome = await api.tryInspection(name, body, file);
       if (this.selected?.name === name) this.show(outcome);
     } catch (exc) {
-      if (!(exc instanceof ApiError && exc.status === 401) && this.selected?.name === name) this.showRefusal(exc);
+      if (!(exc instanceof ApiError && exc.status === 401) && this.selected?.name === name) {
+        this.showRefusal(exc);
+        if (exc.code !== "BUSY") this.showSourceImage(body, file);
+      }
     } finally {
       byId("try-stage").dataset.tried = String(seq);
       this.running = false;
@@ -1018,6 +1032,28 @@ export class InspectionsPage {
       this.pending = false;
       this.run();
     }
+  }
+
+  /** The image a refused try would have run on, so that the tools can be drawn on it: a new
+   * inspection is refused until its required keys are set, and some of them (a circle's radii,
+   * an ROI) are set by drawing. An upload is shown from the file itself, a stored result from
+   * the log, a camera's frame when the live view has one (a folder camera nothing has read
+   * yet has none: upload its image instead). */
+  showSourceImage(body, file) {
+    const image = byId("try-image");
+    let src = null;
+    if (body.source === "upload" && file) {
+      if (this.uploadUrl) URL.revokeObjectURL(this.uploadUrl);
+      this.uploadUrl = URL.createObjectURL(file);
+      src = this.uploadUrl;
+    } else if (body.source === "result" && body.result_id > 0) {
+      src = api.resultImageUrl(body.result_id, false);
+    } else if (body.source === "camera" && !image.getAttribute("src")) {
+      src = `/api/cameras/${encodeURIComponent(this.config?.camera ?? this.selected.camera)}/frame.jpg?t=${Date.now()}`;
+    }
+    if (src === null) return;
+    image.addEventListener("load", () => { byId("try-hint").hidden = true; }, { once: true });
+    image.src = src;
   }
 
   showRefusal(exc) {
