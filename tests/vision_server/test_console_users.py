@@ -231,6 +231,13 @@ def test_continue_needs_a_reason_and_the_answer_reaches_robot_log_and_result(
     assert row["operator"]["at"] == pytest.approx(answered["answered_at"])
     rows = anna.get("/api/results?operator=anna").json()["results"]
     assert [r["id"] for r in rows] == [result_id]
+    # A name is a user's whatever its case, as at sign-in.
+    for spelled in ("Anna", "ANNA"):
+        rows = anna.get(f"/api/results?operator={spelled}").json()["results"]
+        assert [r["id"] for r in rows] == [result_id], spelled
+    exported = anna.get("/api/results.csv?operator=ANNA").body.decode().splitlines()
+    assert len(exported) == 2, exported
+    assert f"{result_id}," in exported[1]
     assert anna.get("/api/results?operator=anna&verdict=pass").json()["results"] == []
     # The latest answers show who and why; a second answer is told who answered first.
     recent = anna.get("/api/operator/calls").json()["recent"][0]

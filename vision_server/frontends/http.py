@@ -261,7 +261,7 @@ class HttpFrontend:
         routes.add_get("/api/stats", self.stats)
         routes.add_get("/metrics", self.metrics_text)
         OperatorRoutes(self.operator_desk, self.who, self.settings, self.service).add_to(routes)
-        ExportRoutes(self.result_log).add_to(routes)
+        ExportRoutes(self.result_log, self.user_name).add_to(routes)
         self._builder.add_to(routes)
         HistoryRoutes(self, self.service).add_to(routes)
         ImpactRoutes(self.service, self.settings, self.written).add_to(routes)
@@ -822,6 +822,13 @@ class HttpFrontend:
             }
         )
 
+    def user_name(self, given: str) -> str:
+        """A configured user's name as the configuration writes it (and the result log keeps
+        it) when ``given`` is that name in any case (names are unique ignoring case), else
+        ``given``."""
+        folded = given.casefold()
+        return next((u.name for u in self.sessions.users if u.name.casefold() == folded), given)
+
     def writable_config(self) -> Path:
         """The configuration file the console may write (403 ``CONFIG_REFUSED`` when the
         server runs without one, or saving is off)."""
@@ -876,7 +883,7 @@ class HttpFrontend:
         limit = int_param(query, "limit", 50, 1, 500)
         before = int_param(query, "before_id", None, 1, None)
         try:
-            wanted = http_export.filters(query)
+            wanted = http_export.filters(query, self.user_name)
         except http_export.BadFilter as exc:
             raise HttpError(400, "BAD_REQUEST", str(exc)) from None
         rows = await asyncio.to_thread(

@@ -53,10 +53,11 @@ class BadFilter(ValueError):
     the message names it."""
 
 
-def filters(query: Mapping[str, str]) -> dict[str, Any]:
+def filters(query: Mapping[str, str], user_name: Callable[[str], str] = str) -> dict[str, Any]:
     """The result-log query's keyword arguments from a request's query string (the filters
     ``GET /api/results`` and this export share: ``operator`` a user's name as the log keeps
-    it, at most 64 characters); :class:`BadFilter` naming a bad one."""
+    it, at most 64 characters, written as ``user_name`` gives it: a configured user's name
+    whatever its case); :class:`BadFilter` naming a bad one."""
     verdict = query.get("verdict") or None
     if verdict not in (None, "pass", "fail"):
         raise BadFilter("verdict must be 'pass' or 'fail'")
@@ -72,6 +73,8 @@ def filters(query: Mapping[str, str]) -> dict[str, Any]:
     operator = query.get("operator") or None
     if operator is not None and len(operator) > 64:
         raise BadFilter("operator must be a name of at most 64 characters")
+    if operator is not None:
+        operator = user_name(operator)
     return {
         "since": since,
         "inspection": query.get("inspection") or None,
@@ -111,10 +114,14 @@ def _safe(text: str) -> str:
 
 class ExportRoutes:
     """``GET /api/results.csv`` over the log ``log()`` returns (it raises the console's 404
-    when the server keeps none)."""
+    when the server keeps none); ``user_name`` writes an operator filter's name as the log
+    keeps it."""
 
-    def __init__(self, log: Callable[[], ResultStore]) -> None:
+    def __init__(
+        self, log: Callable[[], ResultStore], user_name: Callable[[str], str] = str
+    ) -> None:
         self.log = log
+        self.user_name = user_name
 
     def add_to(self, router: web.UrlDispatcher) -> None:
         router.add_get("/api/results.csv", self.export)
@@ -122,7 +129,7 @@ class ExportRoutes:
     async def export(self, request: web.Request) -> web.StreamResponse:
         query = request.query
         try:
-            wanted = filters(query)
+            wanted = filters(query, self.user_name)
             limit = _limit(query.get("limit"))
         except BadFilter as exc:
             raise web.HTTPBadRequest(reason=str(exc)) from None
