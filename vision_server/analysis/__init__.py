@@ -28,6 +28,7 @@ from .caliper import POLARITIES, Band, Edge, EdgePair, find_edges, find_pairs
 from .codes import SYMBOLOGIES, Code, Grade, read_codes
 from .depth_registration import fit_depth_registration, registration_advice
 from .errors import AnalysisError, BadImageError, DepthError, NotFoundError, RoiError, TemplateError
+from .expect import Expect, Pattern, PatternError, compile_pattern
 from .locate import (
     CENTRES,
     MAX_SCALE,
@@ -57,6 +58,10 @@ from .qr import QRCode, read_qr
 from .qr_pose import UNCHECKED_SCALE_STD, UNCHECKED_SHIFT_STD_PX, QRPose, QRPoseQuality, qr_pose
 
 __all__ = [
+    "Expect",
+    "Pattern",
+    "PatternError",
+    "compile_pattern",
     "AnalysisError",
     "BOARD_KINDS",
     "BadImageError",

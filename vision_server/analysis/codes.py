@@ -30,7 +30,6 @@ Grading (:class:`Grade`, estimates from the image, not an ISO 15415/15416 verifi
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
@@ -43,6 +42,7 @@ from pyzbar import pyzbar
 from .code_grade import Grade, grade_code, is_inverted
 from .deblur import deblur_axis
 from .errors import NotFoundError
+from .expect import Expect, describe, matches
 from .qr import crop_for_code, gray_for_code, order_corners
 
 MIN_SIDE_PX = 8
@@ -59,7 +59,6 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 GrayImage = NDArray[np.uint8]
-Expect = str | re.Pattern[str] | None
 
 _F = zxingcpp.BarcodeFormat
 SYMBOLOGIES: dict[str, tuple[zxingcpp.BarcodeFormat, ...]] = {
@@ -336,14 +335,6 @@ def _pyzbar_qr(gray: GrayImage) -> list[_Raw]:
     return out
 
 
-def _matches(text: str, expect: Expect) -> bool:
-    if expect is None:
-        return True
-    if isinstance(expect, re.Pattern):
-        return expect.fullmatch(text) is not None
-    return text == expect
-
-
 def _escalate(
     gray: GrayImage, formats: Sequence[zxingcpp.BarcodeFormat], expect: Expect
 ) -> tuple[list[_Raw], list[str]]:
@@ -351,14 +342,14 @@ def _escalate(
     reframed copies until one reads a matching code."""
     tried = ["zxing"]
     found = _read(gray, formats, _LOCAL)
-    if any(_matches(r.text, expect) for r in found):
+    if any(matches(r.text, expect) for r in found):
         return found, tried
     if _F.QRCode in formats:
         # zbar reads some QR codes zxing-cpp misses (the qr inspection's union of decoders);
         # it runs only after zxing-cpp's plain read found nothing
         tried.append("pyzbar")
         found.extend(_pyzbar_qr(gray))
-        if any(_matches(r.text, expect) for r in found):
+        if any(matches(r.text, expect) for r in found):
             return found, tried
 
     def attempt(
@@ -377,7 +368,7 @@ def _escalate(
             r.decoder = f"zxing+{label}"
         seen = {r.text for r in found}
         found.extend(r for r in new if r.text not in seen)
-        return any(_matches(r.text, expect) for r in new)
+        return any(matches(r.text, expect) for r in new)
 
     for label, make, binarizer in ESCALATION:
         if attempt(label, *make(gray), binarizer):
@@ -446,12 +437,6 @@ def _counter_clockwise(quad: FloatArray) -> bool:
 # --- the reader ----------------------------------------------------------------------------
 
 
-def _describe(expect: Expect) -> str:
-    if isinstance(expect, re.Pattern):
-        return f"pattern {expect.pattern!r}"
-    return repr(expect)
-
-
 def read_codes(
     image: NDArray[np.generic],
     *,
@@ -479,7 +464,7 @@ def read_codes(
     found, tried = _escalate(gray, formats, expect)
     codes = []
     for r in found:
-        if not _matches(r.text, expect):
+        if not matches(r.text, expect):
             continue
         # zxing-cpp names DataBar's variants (DataBarOmni, DataBarExp...) one by one
         default = "databar" if r.format.startswith("DataBar") else r.format.lower()
@@ -505,7 +490,7 @@ def read_codes(
         )
     if not codes:
         names = ", ".join(symbologies)
-        what = f"no code ({names})" if expect is None else f"no code matching {_describe(expect)}"
+        what = f"no code ({names})" if expect is None else f"no code matching {describe(expect)}"
         seen = [human_readable(r.text) for r in found]
         extra = f"; read instead: {seen}" if seen else ""
         raise NotFoundError(f"{what} found (tried {', '.join(tried)}){extra}")

@@ -37,7 +37,6 @@ slightly curved side).
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
@@ -49,12 +48,12 @@ from numpy.typing import NDArray
 from pyzbar import pyzbar
 
 from .errors import BadImageError, NotFoundError, RoiError
+from .expect import Expect, describe, matches
 
 __all__ = ["QRCode", "read_qr", "decode_raw", "order_corners", "refine_corners"]
 
 FloatArray = NDArray[np.float64]
 GrayImage = NDArray[np.uint8]
-Expect = str | re.Pattern[str] | None
 
 _NEXT = [1, 2, 3, 0]  # the corner after each one (side k runs from corner k to _NEXT[k])
 _PREV = [3, 0, 1, 2]
@@ -607,14 +606,6 @@ def crop_for_code(
     return np.ascontiguousarray(gray[v : v + h, u : u + w]), np.array([u, v], np.float64)
 
 
-def _matches(text: str, expect: Expect) -> bool:
-    if expect is None:
-        return True
-    if isinstance(expect, re.Pattern):
-        return expect.fullmatch(text) is not None
-    return text == expect
-
-
 def _merge(found: list[_Raw], new: list[_Raw]) -> None:
     for r in new:
         if not found:  # the common case: nothing to compare with
@@ -641,7 +632,7 @@ def decode_raw(
     tried: list[str] = []
 
     def done() -> bool:
-        return any(_matches(f.text, expect) for f in found)
+        return any(matches(f.text, expect) for f in found)
 
     for name in decoders:
         tried.append(name)
@@ -690,7 +681,7 @@ def read_qr(
     found, tried = decode_raw(gray, decoders, expect)
     codes: list[tuple[int, float, QRCode]] = []
     for r in found:
-        if not _matches(r.text, expect):
+        if not matches(r.text, expect):
             continue
         if r.decoder.startswith("zxing") and "rot" not in r.decoder:
             # zxing-cpp reports the corners in symbol order (top-left = the finder pattern
@@ -708,7 +699,7 @@ def read_qr(
         area = float(cv2.contourArea(ordered.astype(np.float32)))
         codes.append((r.hits, area, QRCode(r.text, ordered + offset, r.decoder, modules)))
     if not codes:
-        what = "any QR code" if expect is None else f"a QR code matching {_describe(expect)}"
+        what = "any QR code" if expect is None else f"a QR code matching {describe(expect)}"
         seen = sorted({r.text for r in found})
         extra = f"; decoded instead: {seen}" if seen else ""
         raise NotFoundError(f"no {what} found (tried {', '.join(tried)}){extra}")
@@ -719,9 +710,3 @@ def read_qr(
 def _start_at(quad: FloatArray, first: FloatArray) -> FloatArray:
     k = int(np.argmin(np.linalg.norm(quad - first, axis=1)))
     return np.asarray(np.roll(quad, -k, axis=0), np.float64)
-
-
-def _describe(expect: Expect) -> str:
-    if isinstance(expect, re.Pattern):
-        return f"pattern {expect.pattern!r}"
-    return repr(expect)

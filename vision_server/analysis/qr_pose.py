@@ -80,7 +80,8 @@ from numpy.typing import NDArray
 from geometry import CameraIntrinsics, fit_plane, orthonormalize
 
 from .errors import BadImageError, DepthError, NotFoundError
-from .qr import Expect, gray_for_code, read_qr
+from .expect import Expect
+from .qr import gray_for_code, read_qr
 from .qr_grid import grid_corners
 from .qr_tilt import TiltFusion, corners_normal, fuse_normals, shift_normal_cov, tangent_basis
 

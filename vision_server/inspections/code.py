@@ -7,7 +7,6 @@ reports the symbol's own corner order (see :mod:`vision_server.analysis.codes`).
 
 from __future__ import annotations
 
-import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +17,7 @@ import numpy as np
 
 from yamlfile import Node, non_negative, one_of
 
-from ..analysis import SYMBOLOGIES, AnalysisError, Code, Grade, NotFoundError, read_codes
+from ..analysis import SYMBOLOGIES, AnalysisError, Code, Expect, Grade, NotFoundError, read_codes
 from ..cameras import CameraSettings
 from .base import (
     Common,
@@ -41,7 +40,7 @@ GRADE_KEYS = ("module_px", "contrast", "decode_margin", "quiet_zone_modules")
 class CodeInspection(Configured):
     common: Common
     symbologies: tuple[str, ...]
-    expect: str | re.Pattern[str] | None
+    expect: Expect
     min_grade: tuple[tuple[str, float], ...]
     """(grade name, lowest value that passes), in :data:`GRADE_KEYS` order."""
 

@@ -7,7 +7,6 @@ estimates (whole pixels, c0..c3 in the same order) for a check that needs the pa
 
 from __future__ import annotations
 
-import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +17,14 @@ import numpy as np
 
 from yamlfile import Node, one_of, string
 
-from ..analysis import AnalysisError, NotFoundError, read_qr
+from ..analysis import (
+    AnalysisError,
+    Expect,
+    NotFoundError,
+    PatternError,
+    compile_pattern,
+    read_qr,
+)
 from ..cameras import CameraSettings
 from .base import (
     Common,
@@ -38,7 +44,7 @@ RED = (0, 0, 255)
 @dataclass(frozen=True)
 class QRInspection(Configured):
     common: Common
-    expect: str | re.Pattern[str] | None
+    expect: Expect
     subpixel: bool = True  # ``corners: subpixel``; False: ``corners: decoder``
 
     type = "qr"
@@ -77,8 +83,9 @@ class QRInspection(Configured):
         return InspectionOutcome(bool(codes), data, picture)
 
 
-def parse_expect(node: Node) -> str | re.Pattern[str] | None:
-    """``expect: TEXT`` (exact) or ``expect: {regex: PATTERN}`` (full match)."""
+def parse_expect(node: Node) -> Expect:
+    """``expect: TEXT`` (exact) or ``expect: {regex: PATTERN}`` (full match, RE2 syntax:
+    matched in time linear in the payload, :mod:`vision_server.analysis.expect`)."""
     if "expect" not in node:
         node.take("expect", string, None)
         return None
@@ -88,8 +95,8 @@ def parse_expect(node: Node) -> str | re.Pattern[str] | None:
         pattern = sub.take("regex", string)
         sub.finish()
         try:
-            return re.compile(pattern)
-        except re.error as exc:
+            return compile_pattern(pattern)
+        except PatternError as exc:
             raise sub.error(f"bad regular expression: {exc}", "regex") from None
     return node.take("expect", string)
 

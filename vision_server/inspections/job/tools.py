@@ -9,7 +9,6 @@ that frame and maps what it finds back to image pixels.
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -17,6 +16,7 @@ from typing import Any
 from yamlfile import Node, string
 
 from ...analysis import (
+    Expect,
     Feature,
     NotFoundError,
     Polarity,
@@ -274,7 +274,7 @@ def parse_presence_step(node: Node, head: Step, chain: Chain) -> Step:
 @dataclass(frozen=True)
 class CodeStep(Step):
     symbologies: tuple[str, ...] = ()
-    expect: str | re.Pattern[str] | None = None
+    expect: Expect = None
     min_grade: tuple[tuple[str, float], ...] = ()
 
     type = "code"
