@@ -45,9 +45,14 @@ def kind(value: Any) -> str:
 def number(value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ValueError(f"expected a number, got {kind(value)}")
-    if not math.isfinite(value):
+    try:
+        out = float(value)
+    except OverflowError:  # an integer of hundreds of digits: no float holds it
+        bits = int(value).bit_length()
+        raise ValueError(f"expected a finite number, got an integer of {bits} bits") from None
+    if not math.isfinite(out):
         raise ValueError(f"expected a finite number, got {value!r}")
-    return float(value)
+    return out
 
 
 def positive(value: Any) -> float:

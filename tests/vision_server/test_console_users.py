@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import logging
 import re
+import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -411,3 +412,54 @@ def test_a_console_with_named_users_is_not_warned_about_as_open() -> None:
         "console" in w and "WITHOUT A TOKEN" in w
         for w in exposure_warnings(ServerSettings(), listeners)
     )
+
+
+def test_wrong_pins_for_one_name_wait_longer_and_longer_from_every_host(
+    tmp_path: Path,
+) -> None:
+    """A four-digit PIN must not be guessable online: past FREE_FAILURES wrong PINs in a row, a
+    name's next try waits (1 s, doubling to MAX_WAIT_S), whatever the connection, and only one
+    try of a name is checked at a time; another name is not held back, and the wait passed,
+    the right PIN signs in (and clears the count)."""
+    from vision_server.frontends.http_users import FREE_FAILURES
+
+    with running_cell(config_with_users(tmp_path)) as running:
+        guesser = Browserless(running.url)
+        for guess in range(FREE_FAILURES):
+            reply = guesser.post_json("/api/login", {"user": "anna", "pin": f"00{guess:02d}"})
+            assert reply.status == 401, reply.body
+        held = Browserless(running.url).post_json("/api/login", {"user": "ANNA", "pin": ANNA_PIN})
+        assert held.status == 429, held.body
+        assert held.json()["error"]["code"] == "TOO_MANY_TRIES"
+        assert int(held.headers["Retry-After"]) >= 1
+        assert "3 wrong PINs in a row" in held.json()["error"]["message"]
+        # Another name is not held back by anna's count.
+        assert (
+            Browserless(running.url)
+            .post_json("/api/login", {"user": "carla", "pin": CARLA_PIN})
+            .status
+            == 200
+        )
+        deadline = time.monotonic() + WAIT_S
+        while True:
+            reply = Browserless(running.url).post_json(
+                "/api/login", {"user": "anna", "pin": ANNA_PIN}
+            )
+            if reply.status != 429 or time.monotonic() > deadline:
+                break
+            time.sleep(0.2)
+        assert reply.status == 200, reply.body
+
+
+def test_one_person_signing_in_again_and_again_ends_no_one_elses_session(
+    tmp_path: Path,
+) -> None:
+    from vision_server.frontends.http_auth import MAX_SESSIONS
+
+    with running_cell(config_with_users(tmp_path)) as running:
+        tablet = signed_in(running, token=TOKEN)
+        carla = signed_in(running, user="carla", pin=CARLA_PIN)
+        for _ in range(MAX_SESSIONS + 2):
+            signed_in(running, user="anna", pin=ANNA_PIN)
+        assert tablet.get("/api/server").status == 200
+        assert carla.get("/api/server").status == 200

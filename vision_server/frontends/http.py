@@ -42,7 +42,7 @@ from protocol import (
 from ..cameras import RecordingCamera, RecordingError
 from ..config import FIXED_BY_THE_CONFIGURATION, SERVER_VERSION, ConsoleSettings, history
 from ..console import static_dir
-from ..results import TRY_PEER_PREFIX, ResultLogError, TimingsCache
+from ..results import TRY_PEER_PREFIX, ResultLogError, TimingsCache, is_row_id
 from ..service import (
     CaptureRequest,
     ImageNeeds,
@@ -66,6 +66,7 @@ from .http_common import (
     http_error_response,
     int_param,
     json_body,
+    json_object,
     nested_options,
     peer_of,
     read_at_most,
@@ -79,7 +80,7 @@ from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
 from .http_online import OnlineRoutes
 from .http_operator import OperatorRoutes
-from .http_users import SignIn, SignInError
+from .http_users import SignIn, SignInError, TooManyTries
 from .images import decode_payloads
 from .listener import Listener, Policy, quiet_logger
 from .online_board import OnlineBoard
@@ -397,6 +398,10 @@ class HttpFrontend:
             session = await self.sign_in.check(body)
         except SignInError as exc:
             raise HttpError(400, "BAD_REQUEST", str(exc)) from None
+        except TooManyTries as exc:
+            raise HttpError(
+                429, "TOO_MANY_TRIES", str(exc), retry_after=max(1, math.ceil(exc.wait_s))
+            ) from None
         if session is None:
             wrong = "wrong name or PIN" if "user" in body or "pin" in body else "wrong token"
             raise await self._refuse_token(request, wrong)
@@ -687,13 +692,7 @@ class HttpFrontend:
                     raise HttpError(400, "BAD_REQUEST", "nested multipart is not accepted")
                 if part.name == "request":
                     raw = await _read_part(part, MAX_JSON_PART, "the request part")
-                    try:
-                        parsed = json.loads(raw)
-                    except ValueError as exc:
-                        raise HttpError(400, "BAD_REQUEST", f"request is not JSON: {exc}") from None
-                    if not isinstance(parsed, dict):
-                        raise HttpError(400, "BAD_REQUEST", "request must be a JSON object")
-                    spec = parsed
+                    spec = json_object(raw, "request")
                 elif part.name == "image":
                     upload = await _read_part(part, self.settings.max_upload_bytes, "the image")
                 else:
@@ -774,8 +773,8 @@ class HttpFrontend:
         return load
 
     def result_loader(self, result_id: Any) -> Callable[[ImageNeeds], Images]:
-        if isinstance(result_id, bool) or not isinstance(result_id, int) or result_id < 1:
-            raise HttpError(400, "BAD_REQUEST", "result_id must be a positive integer")
+        if not is_row_id(result_id):
+            raise HttpError(400, "BAD_REQUEST", "result_id must be a result's id, an integer >= 1")
         row = self._row(result_id)
         path = row.image_path
         if path is None or not path.is_file():

@@ -28,8 +28,8 @@ from ..config import User
 
 COOKIE = "cellvision_session"
 MAX_SESSIONS = 256
-"""Open sessions kept per role; the role's oldest is ended beyond (a login flood cannot grow
-memory, and the operator's token cannot end the integrator's sessions)."""
+"""Open sessions kept per person (a named user, or a role's token); their oldest is ended
+beyond (a login flood cannot grow memory, and no one's sign-ins end another's sessions)."""
 
 Role = Literal["operator", "integrator", "admin"]
 RANK: dict[Role, int] = {"operator": 0, "integrator": 1, "admin": 2}
@@ -73,11 +73,13 @@ class Sessions:
 
     def open(self, role: Role, user: str | None = None) -> str:
         """A new session of ``role`` (of the named ``user``, if any); returns the cookie's
-        value. Each role keeps its newest MAX_SESSIONS sessions."""
+        value. Each person (a named user, or a role's token) keeps their newest MAX_SESSIONS."""
         session_id = secrets.token_urlsafe(24)
         self._open[session_id] = Session(role, user)
-        of_role = [sid for sid, s in self._open.items() if s.role == role]
-        for oldest in of_role[: max(0, len(of_role) - MAX_SESSIONS)]:
+        # Per person (a named user, or a role's token): one person signing in again and again
+        # ends only their own oldest sessions, never another operator's tablet.
+        mine = [sid for sid, s in self._open.items() if s.role == role and s.user == user]
+        for oldest in mine[: max(0, len(mine) - MAX_SESSIONS)]:
             del self._open[oldest]
         return f"{session_id}.{self._mac(session_id)}"
 

@@ -14,6 +14,7 @@ import asyncio
 import json
 import logging
 import math
+import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, Protocol
@@ -24,7 +25,7 @@ from aiohttp import web
 from protocol import CellvisionError, ErrorCode, InvalidArgument
 
 from ..config import ConsoleSettings
-from ..results import ResultStore
+from ..results import MAX_ROW_ID, ResultStore
 from ..service import ImageNeeds, Images
 
 HTTP_STATUS: dict[ErrorCode, int] = {
@@ -129,17 +130,49 @@ async def read_at_most(request: web.Request, limit: int, timeout_s: float | None
     raise HttpError(413, "TOO_LARGE", f"the body has more than {limit} bytes")
 
 
-async def json_body(request: web.Request, raw: bytes | None = None) -> dict[str, Any]:
-    """The body (``raw`` when read already) as a JSON object."""
+async def json_body(request: web.Request, raw: bytes) -> dict[str, Any]:
+    """The body ``request`` sent (``raw``, read within its bounds: :func:`read_at_most`) as a
+    JSON object (:func:`json_object`)."""
+    return json_object(raw, "the body")
+
+
+def json_object(raw: bytes | str, what: str) -> dict[str, Any]:
+    """``raw`` as a JSON object whose every text is valid Unicode; 400 ``BAD_REQUEST`` naming
+    ``what`` otherwise. JSON's ``\ud800`` escapes make lone surrogates, which no file, log or
+    database can write: refused here, once, before any handler keeps one (a reason, a why, a
+    token)."""
     try:
-        body = await request.json() if raw is None else json.loads(raw)
+        value = json.loads(raw)
     except ValueError as exc:
-        raise HttpError(400, "BAD_REQUEST", f"the body is not JSON: {exc}") from None
+        raise HttpError(400, "BAD_REQUEST", f"{what} is not JSON: {exc}") from None
     except RecursionError:  # [[[[...]]]]: nesting deeper than the parser goes
-        raise HttpError(400, "BAD_REQUEST", "the body is JSON nested too deeply") from None
-    if not isinstance(body, dict):
-        raise HttpError(400, "BAD_REQUEST", "the body must be a JSON object")
-    return body
+        raise HttpError(400, "BAD_REQUEST", f"{what} is JSON nested too deeply") from None
+    if not isinstance(value, dict):
+        raise HttpError(400, "BAD_REQUEST", f"{what} must be a JSON object")
+    if not _valid_text(value):
+        raise HttpError(
+            400, "BAD_REQUEST", f"{what} holds text that is not valid Unicode (a lone surrogate)"
+        )
+    return value
+
+
+def _valid_text(value: Any) -> bool:
+    """Whether every string in ``value`` (keys too) encodes as UTF-8 (no lone surrogate).
+    Iterative: the parser already bounded the nesting, the walk needs no stack of its own."""
+    pending = [value]
+    while pending:
+        item = pending.pop()
+        if isinstance(item, str):
+            try:
+                item.encode("utf-8")
+            except UnicodeEncodeError:
+                return False
+        elif isinstance(item, dict):
+            pending.extend(item.keys())
+            pending.extend(item.values())
+        elif isinstance(item, list):
+            pending.extend(item)
+    return True
 
 
 async def bounded_json(request: web.Request, limit: int, timeout_s: float) -> dict[str, Any]:
@@ -157,11 +190,12 @@ def int_param(
     raw = query.get(key)
     if raw is None or raw == "":
         return default
-    try:
-        value = int(raw)
-    except ValueError:
-        raise HttpError(400, "BAD_REQUEST", f"{key} must be an integer, got {raw!r}") from None
-    if value < low or (high is not None and value > high):
+    # Digits only: Python's int() also takes "1_0", " 10 " and "+10", which a URL should not.
+    if not re.fullmatch(r"-?[0-9]{1,19}", raw):
+        raise HttpError(400, "BAD_REQUEST", f"{key} must be an integer, got {raw[:40]!r}")
+    value = int(raw)
+    high = MAX_ROW_ID if high is None else high
+    if value < low or value > high:
         raise HttpError(400, "BAD_REQUEST", f"{key} must be in {low}..{high or 'any'}")
     return value
 
@@ -290,6 +324,7 @@ __all__ = [
     "http_error_response",
     "int_param",
     "json_body",
+    "json_object",
     "nested_options",
     "peer_of",
     "read_at_most",

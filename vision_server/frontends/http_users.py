@@ -15,6 +15,9 @@ answer does not tell which names exist.
 from __future__ import annotations
 
 import asyncio
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
 from typing import Any
 
 from ..config import Secret, User, hash_secret, users_by_name
@@ -24,8 +27,34 @@ MAX_FIELD_CHARS = 256
 """The longest name, PIN or token taken (the body itself is at most 4 KiB)."""
 
 
+FREE_FAILURES = 3
+"""Wrong PINs in a row for one name before each next try of that name must wait."""
+MAX_WAIT_S = 60.0
+"""The longest wait between tries of one name (the wait doubles per wrong PIN up to this): a
+four-digit PIN then takes a week to guess, however many connections guess at once."""
+MAX_NAMES = 1024
+"""Names whose wrong PINs are remembered (the oldest forgotten beyond: bounded memory)."""
+
+
 class SignInError(ValueError):
     """A sign-in body of the wrong shape (400), not wrong credentials (401)."""
+
+
+class TooManyTries(Exception):
+    """A name whose PIN was wrong too often is tried again before its wait ended, or while
+    another try of it is being checked (429); ``wait_s`` is how long to wait."""
+
+    def __init__(self, message: str, wait_s: float) -> None:
+        super().__init__(message)
+        self.wait_s = wait_s
+
+
+@dataclass
+class _Wrong:
+    """A name's wrong PINs in a row, and when (monotonic seconds) its next try is taken."""
+
+    count: int = 0
+    next_at: float = 0.0
 
 
 class SignIn:
@@ -37,6 +66,11 @@ class SignIn:
         self._lock = asyncio.Lock()
         # Checked for a name that is no user's: costs what a real user's check costs.
         self._decoy = Secret(hashed=hash_secret("decoy")) if self._any_hashed() else Secret("-")
+        # Per name (known or not: the answer must not tell which exist), the wrong PINs in a
+        # row: the front door slows each host, this bounds the guesses at one name from all
+        # hosts and connections at once (one try at a time, waits doubling to MAX_WAIT_S).
+        self._wrong: OrderedDict[str, _Wrong] = OrderedDict()
+        self._checking: set[str] = set()
 
     def _any_hashed(self) -> bool:
         return any(u.pin is not None and u.pin.costly for u in self.sessions.users)
@@ -47,7 +81,14 @@ class SignIn:
         either is not a non-empty string."""
         if "user" in body or "pin" in body:
             name, pin = _field(body, "user"), _field(body, "pin")
-            user = await self._by_pin(name, pin)
+            key = name.strip().casefold()
+            self._may_try(key, name)
+            self._checking.add(key)
+            try:
+                user = await self._by_pin(name, pin)
+            finally:
+                self._checking.discard(key)
+            self._count(key, right=user is not None)
             return None if user is None else Session(user.role, user.name)
         token = body.get("token")
         # Anything but a string is no one's token: refused as a wrong one (401), as always.
@@ -61,11 +102,41 @@ class SignIn:
         user = await self._by_badge(token)
         return None if user is None else Session(user.role, user.name)
 
+    def _may_try(self, key: str, name: str) -> None:
+        """TooManyTries when name ``key`` is being checked now, or waits after wrong PINs."""
+        wrong = self._wrong.get(key)
+        wait = 0.0 if wrong is None else wrong.next_at - time.monotonic()
+        if key in self._checking:
+            raise TooManyTries(f"{name!r} is being signed in already: one try at a time", 1.0)
+        if wrong is not None and wait > 0:
+            raise TooManyTries(
+                f"{wrong.count} wrong PINs in a row for {name!r}: the next try is taken in "
+                f"{wait:.0f} s",
+                wait,
+            )
+
+    def _count(self, key: str, *, right: bool) -> None:
+        if right:
+            self._wrong.pop(key, None)
+            return
+        wrong = self._wrong.pop(key, None) or _Wrong()
+        wrong.count += 1
+        if wrong.count >= FREE_FAILURES:
+            wait = min(2.0 ** (wrong.count - FREE_FAILURES), MAX_WAIT_S)
+            wrong.next_at = time.monotonic() + wait
+        self._wrong[key] = wrong
+        while len(self._wrong) > MAX_NAMES:
+            self._wrong.popitem(last=False)
+
     async def _by_pin(self, name: str, pin: str) -> User | None:
         user = self._users.get(name.strip().casefold())
         secret = user.pin if user is not None and user.pin is not None else self._decoy
-        ok = await self._matches([secret], pin)
-        return user if ok is not None and user is not None and user.pin is not None else None
+        # A plain PIN checks at once, a hashed one in ~40 ms: where some are hashed, a plain
+        # one costs a hashed check too, so that the time does not tell whose PIN is which.
+        secrets = [secret] if secret.costly or not self._decoy.costly else [secret, self._decoy]
+        ok = await self._matches(secrets, pin)
+        found = ok == 0 and user is not None and user.pin is not None
+        return user if found else None
 
     async def _by_badge(self, token: str) -> User | None:
         holders = [u for u in self.sessions.users if u.badge is not None]
@@ -99,4 +170,4 @@ def _field(body: dict[str, Any], key: str) -> str:
     return value
 
 
-__all__ = ["MAX_FIELD_CHARS", "SignIn", "SignInError"]
+__all__ = ["MAX_FIELD_CHARS", "SignIn", "SignInError", "TooManyTries"]

@@ -15,11 +15,21 @@
 from .configured import check_result_store, open_readonly, open_result_store
 from .postgres import PgResultLog, is_database_url, redact_url
 from .sqlite import ResultLog
-from .store import ResultEntry, ResultLogError, ResultStore, StoredResult, TimingRows
+from .store import (
+    MAX_ROW_ID,
+    ResultEntry,
+    ResultLogError,
+    ResultStore,
+    StoredResult,
+    TimingRows,
+    is_row_id,
+)
 from .timings_cache import TimingsCache
 from .tries import TRY_PEER_PREFIX, is_try
 
 __all__ = [
+    "MAX_ROW_ID",
+    "is_row_id",
     "TRY_PEER_PREFIX",
     "PgResultLog",
     "ResultEntry",

@@ -49,6 +49,7 @@ from .store import (
     ResultLogError,
     StoredResult,
     TimingRows,
+    is_row_id,
     parse_data,
     row_values,
 )
@@ -535,6 +536,8 @@ class PgResultLog:
 
     def get(self, row_id: int) -> StoredResult | None:
         """The result with id ``row_id``, or None."""
+        if not is_row_id(row_id):
+            return None
         rows = self._read(f"SELECT {COLUMNS} FROM results WHERE id = %s", (int(row_id),))
         return _stored(rows[0]) if rows else None
 
@@ -542,6 +545,8 @@ class PgResultLog:
         """As :meth:`vision_server.results.ResultLog.annotate`: one UPDATE on a write
         connection. ResultLogError when the database cannot take it now (nothing is spooled:
         the answer itself reached the robot and the server's log)."""
+        if not is_row_id(row_id):
+            return False
         if self.readonly:
             raise ResultLogError(f"{self.where} was opened read-only: it cannot annotate results")
         self._check_open()

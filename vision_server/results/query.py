@@ -12,6 +12,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from .store import MAX_ROW_ID
 from .tries import TRY_PEER_PREFIX
 
 __all__ = ["COLUMNS", "OPERATOR_COLUMNS", "KeyLookup", "page_sql", "where_sql"]
@@ -137,7 +138,9 @@ def page_sql(
         # finish out of order), and would read every newer row to find its place. An id
         # that is not in the log (never written yet) falls back to the ids below it.
         cmp = "<" if newest_first else ">"
-        key = key_of(int(before_id))
+        # An id beyond any a row may have is past every row: the page from the newest.
+        before_id = min(int(before_id), MAX_ROW_ID)
+        key = key_of(before_id)
         if key is None:
             extra.append(f"id {cmp} {mark}")
             params = (*params, int(before_id))

@@ -75,6 +75,7 @@ from .store import (
     ResultLogError,
     StoredResult,
     TimingRows,
+    is_row_id,
     parse_data,
     row_values,
 )
@@ -795,6 +796,8 @@ class ResultLog:
 
     def get(self, row_id: int) -> StoredResult | None:
         """The result with id ``row_id``, or None."""
+        if not is_row_id(row_id):
+            return None
         with self._lock:
             self._check_open()
             row = self._conn.execute(
@@ -827,6 +830,8 @@ class ResultLog:
         """Write an operator's answer onto row ``row_id`` (the failed result the call was
         about): their ``name``, ``choice``, ``reason`` ("" for none) and when (``at``, Unix
         seconds). False when there is no such row; ResultLogError when it cannot be written."""
+        if not is_row_id(row_id):
+            return False
         if self.readonly:
             raise ResultLogError(f"{self.path} was opened read-only: it cannot annotate results")
         with self._lock:

@@ -37,6 +37,16 @@ __all__ = [
 ImagePolicy = Literal["none", "failures", "all"]
 
 
+MAX_ROW_ID = 2**63 - 1
+"""The largest id a row may have (SQLite's and PostgreSQL's 64-bit integers): an id beyond,
+from a client, names no row (it is not sent to the database, which refuses it)."""
+
+
+def is_row_id(value: object) -> bool:
+    """Whether ``value`` may be a row's id: an integer in 1..:data:`MAX_ROW_ID`."""
+    return isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= MAX_ROW_ID
+
+
 class ResultLogError(Exception):
     """The result log cannot be opened or used as asked (not its runtime faults: those are
     counted, see :meth:`ResultStore.record`)."""
