@@ -67,3 +67,23 @@ def test_a_changed_secret_changes_its_line_only() -> None:
     assert len(changed) == 1
     assert "4321" not in changed[0][0]
     assert "9999" not in changed[0][1]
+
+
+def test_a_secret_written_over_several_lines_is_hidden_on_every_line() -> None:
+    """A flow mapping or a quoted scalar wrapped over lines (an attacker's hand edit): the
+    lines the value reaches beyond its key's are hidden whole, found from the parsed nodes."""
+    text = (
+        "server:\n"
+        "  users:\n"
+        "    - {name: dora, role: admin, pin:\n"
+        '        "2468", badge:\n'
+        '        "badge-dora-secret-998877"}\n'
+        "    - name: emil\n"
+        '      pin: "13\n'
+        '        57"\n'
+    )
+    shown = redact_secrets(text, lambda value: "f")
+    for secret in ("2468", "badge-dora-secret-998877", "13", "57"):
+        assert secret not in shown, shown
+    assert len(shown.splitlines()) == len(text.splitlines())
+    assert "name: emil" in shown

@@ -47,6 +47,9 @@ def _csv(client: Browserless, query: str = "") -> list[dict[str, str]]:
     assert reply.status == 200, reply.body[:300]
     assert reply.headers["Content-Type"].startswith("text/csv")
     assert "attachment" in reply.headers["Content-Disposition"]
+    # Streamed before the middleware that adds them elsewhere: the security headers all the same.
+    assert reply.headers["X-Content-Type-Options"] == "nosniff"
+    assert "default-src 'self'" in reply.headers["Content-Security-Policy"]
     rows = list(csv.DictReader(io.StringIO(reply.body.decode("utf-8"))))
     return rows
 

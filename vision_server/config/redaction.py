@@ -6,13 +6,17 @@ Line by line, so that a diff of two hidden texts still lines up with the file: a
 on the key's line (block or flow style) becomes ``<hidden XXXXXXXX>``, where ``XXXXXXXX`` is
 a keyed fingerprint of the value (the key is the caller's, e.g. made at start and never
 shown), so a changed secret still shows as a changed line without revealing either value; the
-lines of a block or a block scalar under a secret key are hidden whole.
+lines of a block or a block scalar under a secret key are hidden whole, and so is every line
+that a secret value reaches beyond its key's line (a flow mapping or a quoted scalar written
+over several lines: found from the parsed document's node positions).
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+
+import yaml
 
 SECRET_WORDS = frozenset(
     {
@@ -66,11 +70,15 @@ def redact_secrets(text: str, fingerprint: Fingerprint) -> str:
     of lines, each line's key and indentation kept."""
     out: list[str] = []
     block: int | None = None  # inside the value of a secret key written at this indentation
-    for line in text.splitlines(keepends=True):
+    spread = _continued_secret_lines(text)
+    for number, line in enumerate(text.splitlines(keepends=True)):
         body = line.rstrip("\r\n")
         ending = line[len(body) :]
         stripped = body.strip()
         indent = len(body) - len(body.lstrip(" "))
+        if number in spread and stripped:
+            out.append(body[:indent] + f"<hidden {fingerprint(stripped)}>" + ending)
+            continue
         if block is not None:
             if stripped == "" or indent > block or (indent == block and stripped[:2] == "- "):
                 hidden = body[:indent] + f"<hidden {fingerprint(stripped)}>" if stripped else body
@@ -91,6 +99,41 @@ def redact_secrets(text: str, fingerprint: Fingerprint) -> str:
             body = _PAIR.sub(_hide_pair(fingerprint), body)
         out.append(body + ending)
     return "".join(out)
+
+
+def _continued_secret_lines(text: str) -> set[int]:
+    """The lines (0-based) that a secret key's value reaches beyond the key's own line, by the
+    parsed document's node positions; none when the text is not YAML (the line rules then
+    stand alone)."""
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return set()
+    lines: set[int] = set()
+    for key, value in _pairs(root):
+        if not is_secret_key(key.value):
+            continue
+        last = value.end_mark.line - (1 if value.end_mark.column == 0 else 0)
+        lines.update(range(max(key.start_mark.line + 1, value.start_mark.line), last + 1))
+    return lines
+
+
+def _pairs(node: yaml.Node | None) -> Iterator[tuple[yaml.ScalarNode, yaml.Node]]:
+    """Every ``key: value`` of the document whose key is a plain scalar, at any depth."""
+    pending = [node] if node is not None else []
+    seen: set[int] = set()
+    while pending:
+        item = pending.pop()
+        if id(item) in seen:  # an alias: the same node again
+            continue
+        seen.add(id(item))
+        if isinstance(item, yaml.MappingNode):
+            for key, value in item.value:
+                if isinstance(key, yaml.ScalarNode):
+                    yield key, value
+                pending.append(value)
+        elif isinstance(item, yaml.SequenceNode):
+            pending.extend(item.value)
 
 
 def _hide_pair(fingerprint: Fingerprint) -> Callable[[re.Match[str]], str]:

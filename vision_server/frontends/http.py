@@ -262,7 +262,7 @@ class HttpFrontend:
         routes.add_get("/api/stats", self.stats)
         routes.add_get("/metrics", self.metrics_text)
         OperatorRoutes(self.operator_desk, self.who, self.settings, self.service).add_to(routes)
-        ExportRoutes(self.result_log, self.user_name).add_to(routes)
+        ExportRoutes(self.result_log, self.user_name, SECURITY_HEADERS).add_to(routes)
         self._builder.add_to(routes)
         HistoryRoutes(self, self.service).add_to(routes)
         ImpactRoutes(self.service, self.settings, self.written).add_to(routes)

@@ -21,12 +21,15 @@ from typing import Any
 from aiohttp import web
 
 from ..results import ResultStore, StoredResult
+from .http_common import HttpError
 
 PAGE_ROWS = 500
 """Rows read from the log per query while streaming."""
 DEFAULT_ROWS = 10_000
 MAX_ROWS = 1_000_000
 """The most rows one export may ask (``limit``)."""
+MAX_EXPORTS = 2
+"""Exports at once (a third is 503 BUSY): each holds a worker thread while it formats."""
 COLUMNS = (
     "id",
     "time_iso",
@@ -118,10 +121,17 @@ class ExportRoutes:
     keeps it."""
 
     def __init__(
-        self, log: Callable[[], ResultStore], user_name: Callable[[str], str] = str
+        self,
+        log: Callable[[], ResultStore],
+        user_name: Callable[[str], str] = str,
+        headers: Mapping[str, str] | None = None,
     ) -> None:
         self.log = log
         self.user_name = user_name
+        self.headers = dict(headers or {})
+        """Sent with the CSV (the console's security headers: a streamed answer is sent
+        before the middleware that adds them to other answers)."""
+        self._running = 0
 
     def add_to(self, router: web.UrlDispatcher) -> None:
         router.add_get("/api/results.csv", self.export)
@@ -133,30 +143,45 @@ class ExportRoutes:
             limit = _limit(query.get("limit"))
         except BadFilter as exc:
             raise web.HTTPBadRequest(reason=str(exc)) from None
+        if self._running >= MAX_EXPORTS:
+            raise HttpError(
+                503, "BUSY", f"{self._running} exports are running; try again when one ends"
+            )
         log = self.log()
+        self._running += 1
+        try:
+            return await self._stream(request, log, wanted, limit)
+        finally:
+            self._running -= 1
+
+    async def _stream(
+        self, request: web.Request, log: ResultStore, wanted: dict[str, Any], limit: int
+    ) -> web.StreamResponse:
+        def page(before: int | None, rows_left: int) -> tuple[bytes, int | None, int]:
+            """One page read and written as CSV in a worker thread (formatting 500 rows is
+            milliseconds of Python: never on the event loop every robot's answer needs)."""
+            rows = log.query(limit=min(PAGE_ROWS, rows_left), before_id=before, **wanted)
+            last = rows[-1].id if len(rows) == min(PAGE_ROWS, rows_left) else None
+            return _lines(row_cells(r) for r in rows), last, len(rows)
+
         # The first page is read before the answer starts, so that a log that cannot be read
         # is a JSON error (503), not a CSV cut short.
-        first = await asyncio.to_thread(log.query, limit=min(PAGE_ROWS, limit), **wanted)
+        data, last, sent = await asyncio.to_thread(page, None, limit)
         stamp = time.strftime("%Y%m%dT%H%M%S")
         response = web.StreamResponse(
             headers={
+                **self.headers,
                 "Content-Type": "text/csv; charset=utf-8",
                 "Content-Disposition": f'attachment; filename="cellvision-results-{stamp}.csv"',
                 "Cache-Control": "no-store",
             }
         )
         await response.prepare(request)
-        await response.write(_lines([list(COLUMNS)]))
-        rows, sent = first, 0
-        while rows:
-            await response.write(_lines(row_cells(r) for r in rows))
-            sent += len(rows)
-            if sent >= limit or len(rows) < PAGE_ROWS:
-                break
-            last = rows[-1].id
-            rows = await asyncio.to_thread(
-                log.query, limit=min(PAGE_ROWS, limit - sent), before_id=last, **wanted
-            )
+        await response.write(_lines([list(COLUMNS)]) + data)
+        while last is not None and sent < limit:
+            data, last, count = await asyncio.to_thread(page, last, limit - sent)
+            sent += count
+            await response.write(data)
         await response.write_eof()
         return response
 
