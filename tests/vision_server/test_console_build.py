@@ -545,3 +545,34 @@ def test_reads_read_a_bounded_number_of_pages_past_tries() -> None:
     assert rows == []
     assert len(calls) == http_build.READS_PAGES
     assert all(c["inspection"] == "station_qr" and c["limit"] == 20 for c in calls)
+
+
+def test_a_save_may_not_grow_the_file_past_its_bounds(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A text over MAX_TEXT characters, or a save that would grow the file past
+    MAX_CONFIG_BYTES (here lowered to the file's size and 10 KB, so that a few saves reach
+    it), are refused naming why: the file stays as it was."""
+    from vision_server.frontends import http_save
+
+    with console_server(tmp_path) as running:
+        c = Browserless(running.url)
+        c.login()
+        before = running.config.read_bytes()
+        config = {**draft_job(), "description": "d" * (http_save.MAX_TEXT + 1)}
+        refused = put(c, "magnet_job", {"config": config, "why": "long"})
+        assert refused.status == 422, refused.body
+        assert "at most 4096" in refused.json()["error"]["message"]
+        assert running.config.read_bytes() == before
+        bound = len(before) + 10_000
+        monkeypatch.setattr(http_save, "MAX_CONFIG_BYTES", bound)
+        statuses = []
+        for index in range(5):
+            config = {**draft_job(), "name": f"job{index}", "description": "d" * 4000}
+            reply = put(c, f"job{index}", {"config": config, "why": "bulk"})
+            statuses.append(reply.status)
+            if reply.status != 200:
+                assert f"at most {bound}" in reply.json()["error"]["message"]
+                break
+        assert statuses == [200, 200, 422], statuses
+        assert running.config.stat().st_size <= bound

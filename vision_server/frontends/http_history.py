@@ -238,6 +238,8 @@ def _write_revert(
         version = http_save.write_with_backup(
             path, text, old=old, who=who, why=why, kind=history.REVERT, reverted_to=number
         )
+    except http_save.SaveRefused as exc:
+        raise HttpError(422, "CONFIG_REFUSED", str(exc)) from None
     except OSError as exc:
         raise HttpError(500, "CONFIG_REFUSED", f"cannot write {path.name}: {exc}") from None
     return http_save.Saved(path, old, version)

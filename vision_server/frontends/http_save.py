@@ -47,6 +47,13 @@ from ..config import (
     parse_document,
 )
 
+MAX_TEXT = 4096
+"""The longest text a save writes as one value (a description, a pattern), characters."""
+MAX_CONFIG_BYTES = 1 << 20
+"""The largest configuration file the console writes, bytes: a cell's file is some kilobytes;
+without a bound, saves of long texts grew it to megabytes, each save slower than the last and
+the history's byte bound dropping the versions an audit needs."""
+
 KEY_PART = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}\Z")
 """One part of a key (``circle.min_radius_px`` has two): a plain identifier, as every key of
 an inspection is."""
@@ -304,6 +311,12 @@ def write_with_backup(
     is dropped again. Afterwards the oldest versions beyond the history's bounds are deleted.
     Returns the new version (give it to :func:`undo` through :class:`Saved` when the server
     then refuses the text). Raises OSError (nothing changed but perhaps the catch-up)."""
+    data = text.encode("utf-8")
+    if len(data) > MAX_CONFIG_BYTES:
+        raise SaveRefused(
+            f"{path.name}: the new text has {len(data)} bytes, the console writes at most "
+            f"{MAX_CONFIG_BYTES} (long texts belong in files beside it, not in the configuration)"
+        )
     if old is None:
         old = path.read_bytes()
     versions = history.history_of(path)
@@ -334,7 +347,10 @@ def _check_option(source: str, inspection: str, key: Any, value: Any) -> None:
         fixed = ", ".join(sorted(FIXED_BY_THE_CONFIGURATION))
         raise FixedKey(f"{where}: cannot be changed from the console ({fixed}: edit the file)")
     if not _plain(value):
-        raise BadValue(f"{where}: expected a number, a string, a boolean or a list of them")
+        raise BadValue(
+            f"{where}: expected a number, a string (valid Unicode, at most {MAX_TEXT} "
+            "characters), a boolean or a list of them"
+        )
 
 
 def _plain(value: Any) -> bool:
@@ -345,7 +361,7 @@ def _plain(value: Any) -> bool:
             value.encode("utf-8")
         except UnicodeEncodeError:  # a lone surrogate from JSON's \ud800
             return False
-        return True
+        return len(value) <= MAX_TEXT
     if isinstance(value, float):
         return math.isfinite(value)
     if isinstance(value, list):

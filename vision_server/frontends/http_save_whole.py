@@ -162,6 +162,10 @@ def _check_value(where: str, value: Any, depth: int) -> None:
             value.encode("utf-8")
         except UnicodeEncodeError:  # a lone surrogate from JSON's \ud800
             raise BadValue(f"{where}: the text is not valid Unicode") from None
+        if len(value) > http_save.MAX_TEXT:
+            raise BadValue(
+                f"{where}: a text of {len(value)} characters, at most {http_save.MAX_TEXT}"
+            )
     elif value is not None and not isinstance(value, bool | int):
         raise BadValue(f"{where}: expected a number, a string, a boolean, a list or a mapping")
 

@@ -5,7 +5,8 @@ A template's file name is its content's address, ``<inspection>-<first 12 hex of
 of its pixels>.png``: the same crop twice is the same file, and a file is never overwritten
 (a name that is taken by other pixels is refused). The file is written to a temporary name
 in the folder, synced, and linked to its name, which fails rather than replace a file: no
-reader ever sees half a template. The folder holds at most :data:`MAX_TEMPLATES` PNG files.
+reader ever sees half a template. The folder holds at most :data:`MAX_TEMPLATES` PNG files
+and :data:`MAX_FOLDER_BYTES` bytes.
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ MAX_SIDE = 1024
 """The largest template side, pixels (the search's cost grows with its area)."""
 MAX_TEMPLATES = 1000
 """The most PNG files the folder may hold before training is refused."""
+MAX_FOLDER_BYTES = 200 << 20
+"""The most bytes of PNG files the folder may hold before training is refused (1000 noisy
+1024 x 1024 crops are some 800 MB)."""
 
 
 class TemplateRefused(ValueError):
@@ -111,11 +115,13 @@ def keep(config_dir: Path, inspection: str, grey: np.ndarray) -> Template:
     relative = f"{FOLDER}/{name}"
     if final.exists():
         return _same(final, relative, grey, png)
-    count = sum(1 for entry in folder.iterdir() if entry.suffix.lower() == ".png")
-    if count >= MAX_TEMPLATES:
+    pngs = [entry for entry in folder.iterdir() if entry.suffix.lower() == ".png"]
+    held = sum(entry.stat().st_size for entry in pngs if entry.is_file())
+    if len(pngs) >= MAX_TEMPLATES or held + len(png) > MAX_FOLDER_BYTES:
         raise TemplateRefused(
-            f"{FOLDER}/ beside the configuration holds {count} templates, the most it may: "
-            "delete those no inspection uses",
+            f"{FOLDER}/ beside the configuration holds {len(pngs)} templates of {held} bytes; "
+            f"it may hold {MAX_TEMPLATES} templates and {MAX_FOLDER_BYTES} bytes: delete those "
+            "no inspection uses",
             409,
         )
     if not files.write_new(final, png, mode=0o644):  # never over another file
@@ -141,6 +147,7 @@ def _same(final: Path, relative: str, grey: np.ndarray, png: bytes) -> Template:
 __all__ = [
     "FOLDER",
     "MAX_SIDE",
+    "MAX_FOLDER_BYTES",
     "MAX_TEMPLATES",
     "MIN_SIDE",
     "Template",
