@@ -515,3 +515,24 @@ def test_the_docs_list_exactly_the_keys_a_job_and_its_steps_read(
         keys = set(re.findall(r"`([a-z_]+)`", rows[step_type][1])) - REFUSED
         got = read[f"step {step_type}"] - step_common
         assert got == keys, f"{step_type}: validator reads {sorted(got)}, docs list {sorted(keys)}"
+
+
+def test_a_job_stops_between_steps_once_its_deadline_passed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Work nobody waits for does not hold a worker: a job whose request's deadline passed
+    (a try's 10 s; a draft job of 32 slow searches held the try lane for 264 s) stops before its
+    next step with DEADLINE_EXCEEDED naming how far it came; without a deadline it runs whole."""
+    import types
+
+    from protocol import DeadlineExceeded
+    from vision_server.inspections.job import inspection as job_module
+
+    fixtured = job(tmp_path, MAGNET_IN_PART)
+    image = plate("taught.png")
+    assert fixtured.run(InspectionInput(image), overlay=False).passed
+    # The job's clock reads a second later each time it looks (once before each step).
+    ticks = iter(range(1000, 1100))
+    monkeypatch.setattr(job_module, "time", types.SimpleNamespace(monotonic=lambda: next(ticks)))
+    with pytest.raises(DeadlineExceeded, match=r"before step 'small_hole' \(2 of 5 steps ran\)"):
+        fixtured.run(InspectionInput(image, deadline=1001.5), overlay=False)

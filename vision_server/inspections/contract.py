@@ -22,12 +22,17 @@ class InspectionInput:
     """The images one inspection run gets.
 
     ``color``: (H, W) or (H, W, 3) uint8 (BGR); ``depth``: zero or more (H, W) uint16 frames in
-    millimetres, registered to ``color``; ``intrinsics``: the camera's, when known.
+    millimetres, registered to ``color``; ``intrinsics``: the camera's, when known;
+    ``deadline``: when (``time.monotonic()`` seconds, one clock for every process of the
+    machine) the request stops waiting, or None: an inspection of many parts (a job's steps)
+    stops between them once it has passed, so that work nobody waits for does not hold a
+    worker.
     """
 
     color: Image
     depth: tuple[Image, ...] = ()
     intrinsics: Intrinsics | None = None
+    deadline: float | None = None
 
 
 @dataclass(frozen=True)

@@ -607,7 +607,7 @@ class InspectionService:
         size: list[tuple[int, int]] = []  # the image's (width, height), for observers
 
         def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None, int | None]:
-            image = acquire()
+            image = replace(acquire(), deadline=request.deadline)
             size.append((int(image.color.shape[1]), int(image.color.shape[0])))
             if request.images is None:
                 captured.append(Images(image.color, image.depth))

@@ -219,7 +219,7 @@ class ProcessLane:
         try:
             for (offset, shape, dtype), array in zip(layout, arrays, strict=True):
                 np.ndarray(shape, dtype, buffer=block.buf, offset=offset)[...] = array
-            message = (block.name, tuple(layout), image.intrinsics, overlay)
+            message = (block.name, tuple(layout), image.intrinsics, image.deadline, overlay)
             status, payload = self._exchange(worker, number, pickled, message, force=False)
             if status == "missing":  # the process lost it (its unpickling failed): send it
                 status, payload = self._exchange(worker, number, pickled, message, force=True)
@@ -233,7 +233,7 @@ class ProcessLane:
         worker: _Worker,
         number: int,
         pickled: bytes,
-        message: tuple[str, Layout, Any, bool],
+        message: tuple[str, Layout, Any, float | None, bool],
         *,
         force: bool,
     ) -> tuple[str, Any]:
@@ -367,7 +367,7 @@ def _run_in_child(
     inspections: OrderedDict[int, Inspection],
     attached: dict[str, SharedMemory],
 ) -> InspectionOutcome:
-    number, pickled, block_name, layout, intrinsics, overlay = message
+    number, pickled, block_name, layout, intrinsics, deadline, overlay = message
     if pickled is not None:
         inspections[number] = pickle.loads(pickled)
         if len(inspections) > CACHED_INSPECTIONS:
@@ -383,7 +383,7 @@ def _run_in_child(
         for offset, shape, dtype in layout
     ]
     color, depth = images[0], tuple(images[1:])
-    outcome = inspection.run(InspectionInput(color, depth, intrinsics), overlay=overlay)
+    outcome = inspection.run(InspectionInput(color, depth, intrinsics, deadline), overlay=overlay)
     if outcome.overlay is not None and np.shares_memory(outcome.overlay, color):
         outcome = replace(outcome, overlay=np.array(outcome.overlay))
     del images, color, depth

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import re
+import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +16,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from protocol import DeadlineExceeded
 from yamlfile import Node, integer, kind, string
 
 from ...analysis import AnalysisError
@@ -57,6 +59,13 @@ class JobInspection(Configured):
     def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
         outcomes: dict[str, Outcome] = {}
         for step in self.steps:
+            if image.deadline is not None and time.monotonic() > image.deadline:
+                # Nobody waits for the rest (the answer was DEADLINE_EXCEEDED): the worker is
+                # freed now, not after every step of a search the deadline cut short.
+                raise DeadlineExceeded(
+                    f"{self.common.name}: the deadline passed before step {step.name!r} "
+                    f"({len(outcomes)} of {len(self.steps)} steps ran)"
+                )
             try:
                 outcome = step.run(image.color, outcomes)
             except StepSkipped as exc:
