@@ -68,7 +68,9 @@ def check_rect(rect: Any, width: int, height: int) -> tuple[int, int, int, int]:
         raise TemplateRefused(
             f"rect {rect}: a template is {MIN_SIDE}..{MAX_SIDE} px on each side, got {w}x{h}"
         )
-    if x < 0 or y < 0 or x + w > width or y + h > height:
+    if x < 0 or y < 0:
+        raise TemplateRefused(f"rect {rect}: x and y must be >= 0")
+    if x + w > width or y + h > height:
         raise TemplateRefused(f"rect {rect} is not inside the {width}x{height} image")
     return x, y, w, h
 

@@ -301,22 +301,26 @@ def load_template(node: Node, key: str, base_dir: Path, common: Common | None = 
     """A template image named in the configuration, read as gray uint8 at load time; refused
     when it cannot be correlated (constant) or, with ``common``, cannot fit in the region
     searched (the ROI, else the camera's declared image)."""
-    path = resolve(base_dir, node.take(key, string))
+    written = node.take(key, string)
+    path = resolve(base_dir, written)
     image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+    # Named as the configuration writes it: an error goes to clients (a console try, RELOAD),
+    # which need not see the server's folders.
     if image is None:
-        raise node.error(f"cannot read the template image {path}", key)
+        raise node.error(f"cannot read the template image {written!r}", key)
     if image.shape[0] < 3 or image.shape[1] < 3:
-        raise node.error(f"the template image {path} is smaller than 3x3 pixels", key)
+        raise node.error(f"the template image {written!r} is smaller than 3x3 pixels", key)
     if float(image.std()) == 0.0:
         raise node.error(
-            f"the template image {path} is one flat grey: normalised correlation needs texture",
+            f"the template image {written!r} is one flat grey: normalised correlation needs "
+            "texture",
             key,
         )
     region = None if common is None else common.region_size()
     if region is not None and (image.shape[1] > region[0] or image.shape[0] > region[1]):
         what = "ROI" if common is not None and common.roi is not None else "camera's image"
         raise node.error(
-            f"the {image.shape[1]}x{image.shape[0]} template {path} is larger than the "
+            f"the {image.shape[1]}x{image.shape[0]} template {written!r} is larger than the "
             f"{region[0]}x{region[1]} {what} it is searched in",
             key,
         )
