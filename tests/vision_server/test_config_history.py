@@ -1,5 +1,5 @@
 """The configuration file's history (vision_server/config/history.py) and the one writer of the
-file (``http_save.write_with_backup``): versions with who, when and why, bounded on disk, no
+file (``http_save.write_version``): versions with who, when and why, bounded on disk, no
 half version after a failing write, edits made outside the console recorded, and ``undo``."""
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def config(tmp_path: Path) -> Path:
 
 
 def write(path: Path, text: str, **kw: Any) -> history.Version:
-    return http_save.write_with_backup(path, text, **kw)
+    return http_save.write_version(path, text, **kw)
 
 
 def test_the_first_write_records_the_file_as_found_then_the_new_text(config: Path) -> None:

@@ -463,3 +463,39 @@ def test_one_person_signing_in_again_and_again_ends_no_one_elses_session(
             signed_in(running, user="anna", pin=ANNA_PIN)
         assert tablet.get("/api/server").status == 200
         assert carla.get("/api/server").status == 200
+
+
+def test_guessing_at_other_names_does_not_make_the_throttle_forget_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The names remembered after wrong PINs are bounded; a name held back is never the one
+    forgotten, so failing with many other names cannot clear its wait: when every remembered
+    name is held back, a new name is not tried at all (429)."""
+    import asyncio
+
+    from vision_server.config import Secret, User
+    from vision_server.frontends import http_users
+    from vision_server.frontends.http_auth import Sessions
+
+    monkeypatch.setattr(http_users, "MAX_NAMES", 3)
+    users = (User("anna", pin=Secret(plain=ANNA_PIN)),)
+    sign_in = http_users.SignIn(Sessions({"admin": TOKEN}, users))
+
+    async def attempt(name: str, pin: str) -> str:
+        try:
+            return "in" if await sign_in.check({"user": name, "pin": pin}) else "wrong"
+        except http_users.TooManyTries:
+            return "held"
+
+    async def run() -> list[str]:
+        seen = []
+        for name in ("anna", "x1", "x2"):
+            for _ in range(http_users.FREE_FAILURES):
+                seen.append(await attempt(name, "0000"))
+        seen.append(await attempt("x3", "0000"))  # a fourth name: the table is full of held
+        seen.append(await attempt("anna", ANNA_PIN))  # anna still waits
+        return seen
+
+    seen = asyncio.run(run())
+    assert seen[: 3 * http_users.FREE_FAILURES] == ["wrong"] * (3 * http_users.FREE_FAILURES)
+    assert seen[-2:] == ["held", "held"]

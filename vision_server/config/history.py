@@ -57,6 +57,8 @@ MAX_HEADER = 64 * 1024
 """The longest metadata line read back (bytes): a longer one is not a version of ours."""
 MAX_DIFF_LINES = 20_000
 """A diff is cut after this many lines (with a last line saying so)."""
+MAX_DIFF_BYTES = 1 << 20
+"""The largest text compared for a diff, bytes (as the console writes at most)."""
 
 STALE_TMP_S = 3600.0
 """A temporary file of the history's folder older than this (seconds) is a write a crash cut
@@ -224,6 +226,13 @@ class History:
         new = self.text(number)
         before = self.previous(number)
         old = b"" if before is None else self.text(before)
+        if max(len(old), len(new)) > MAX_DIFF_BYTES:
+            # Matching is quadratic in the worst case: a huge hand-edited version (the console
+            # writes none over 1 MiB) is not compared, whoever asks.
+            return (
+                f"... (not compared: version {number} or the one before has more than "
+                f"{MAX_DIFF_BYTES} bytes)\n"
+            )
         lines = difflib.unified_diff(
             shown(old.decode("utf-8", "replace")).splitlines(keepends=True),
             shown(new.decode("utf-8", "replace")).splitlines(keepends=True),

@@ -33,8 +33,6 @@ from aiohttp.http_exceptions import HttpProcessingError
 
 from protocol import (
     CellvisionError,
-    ImageEncoding,
-    ImagePayload,
     ImageTooLarge,
     InvalidArgument,
 )
@@ -51,6 +49,7 @@ from ..service import (
     InspectRequest,
     OperatorDesk,
     check_images,
+    stored_image_loader,
 )
 from . import http_export, http_save
 from .http_auth import COOKIE, RANK, Role, Sessions
@@ -65,7 +64,6 @@ from .http_common import (
     float_param,
     http_error_response,
     int_param,
-    json_body,
     json_object,
     nested_options,
     peer_of,
@@ -81,7 +79,6 @@ from .http_metrics import CONTENT_TYPE, Metrics
 from .http_online import OnlineRoutes
 from .http_operator import OperatorRoutes
 from .http_users import SignIn, SignInError, TooManyTries
-from .images import decode_payloads
 from .listener import Listener, Policy, quiet_logger
 from .online_board import OnlineBoard
 from .uploads import upload_loader
@@ -390,7 +387,7 @@ class HttpFrontend:
 
     async def login(self, request: web.Request) -> web.Response:
         raw = await read_at_most(request, LOGIN_MAX_BYTES, self.settings.request_timeout_s)
-        body = await json_body(request, raw)
+        body = json_object(raw, "the body")
         response = web.json_response({"ok": True})
         if not self.sessions.required:
             return response
@@ -779,12 +776,7 @@ class HttpFrontend:
         path = row.image_path
         if path is None or not path.is_file():
             raise HttpError(404, "NOT_FOUND", f"result {result_id} has no stored image")
-
-        def load(needs: ImageNeeds) -> Images:
-            data = path.read_bytes()
-            return decode_payloads([ImagePayload(ImageEncoding.PNG, 0, 0, data)], needs)
-
-        return load
+        return stored_image_loader(path)  # as an impact preview reads it
 
     async def save(self, request: web.Request) -> web.Response:
         name = request.match_info["name"]
@@ -881,10 +873,7 @@ class HttpFrontend:
         query = request.query
         limit = int_param(query, "limit", 50, 1, 500)
         before = int_param(query, "before_id", None, 1, None)
-        try:
-            wanted = http_export.filters(query, self.user_name)
-        except http_export.BadFilter as exc:
-            raise HttpError(400, "BAD_REQUEST", str(exc)) from None
+        wanted = http_export.filters(query, self.user_name)
         rows = await asyncio.to_thread(
             self.result_log().query, limit=limit + 1, before_id=before, **wanted
         )
@@ -935,9 +924,12 @@ class HttpFrontend:
         wanted = request.query.get("inspection") or None
         names = [wanted] if wanted else sorted(self.service.catalog.inspections)
         log_ = self.result_log()
-        if self._timings is None or self._timings.log is not log_:
-            self._timings = TimingsCache(log_)
-        cache = self._timings
+        cache: Any = log_
+        if getattr(log_, "ids_in_commit_order", False):
+            # Read once, then only the rows written since (results/timings_cache.py).
+            if self._timings is None or self._timings.log is not log_:
+                self._timings = TimingsCache(log_)
+            cache = self._timings
         now = time.time()
         out = await asyncio.to_thread(lambda: [stats_of(cache, n, now, window) for n in names])
         return web.json_response({"window_s": window, "inspections": out}, dumps=dumps)

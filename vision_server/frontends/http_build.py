@@ -39,7 +39,6 @@ BUILD_INTEGRATOR_ROUTES = frozenset({"/api/inspections/{name}", "/api/inspection
 """The paths of this module that change the configuration: the integrator's."""
 MAX_SAVE_BYTES = 64 * 1024
 """The largest body of a whole save (the mapping and the reason)."""
-"""The longest reason a save may give, characters."""
 MAX_TEMPLATE_BODY = 64 * 1024
 """The largest body of a template's training (JSON: a rectangle, maybe a draft's mapping)."""
 READS_DEFAULT = 20

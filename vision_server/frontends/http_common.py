@@ -130,12 +130,6 @@ async def read_at_most(request: web.Request, limit: int, timeout_s: float | None
     raise HttpError(413, "TOO_LARGE", f"the body has more than {limit} bytes")
 
 
-async def json_body(request: web.Request, raw: bytes) -> dict[str, Any]:
-    """The body ``request`` sent (``raw``, read within its bounds: :func:`read_at_most`) as a
-    JSON object (:func:`json_object`)."""
-    return json_object(raw, "the body")
-
-
 def json_object(raw: bytes | str, what: str) -> dict[str, Any]:
     """``raw`` as a JSON object whose every text is valid Unicode; 400 ``BAD_REQUEST`` naming
     ``what`` otherwise. JSON's ``\ud800`` escapes make lone surrogates, which no file, log or
@@ -177,7 +171,7 @@ def _valid_text(value: Any) -> bool:
 
 async def bounded_json(request: web.Request, limit: int, timeout_s: float) -> dict[str, Any]:
     """The body as a JSON object, at most ``limit`` bytes, arrived within ``timeout_s``."""
-    return await json_body(request, await read_at_most(request, limit, timeout_s))
+    return json_object(await read_at_most(request, limit, timeout_s), "the body")
 
 
 # ----------------------------------------------------------------------------- query strings
@@ -323,7 +317,6 @@ __all__ = [
     "float_param",
     "http_error_response",
     "int_param",
-    "json_body",
     "json_object",
     "nested_options",
     "peer_of",

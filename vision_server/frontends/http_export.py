@@ -21,7 +21,7 @@ from typing import Any
 from aiohttp import web
 
 from ..results import ResultStore, StoredResult
-from .http_common import HttpError
+from .http_common import HttpError, float_param, int_param
 
 PAGE_ROWS = 500
 """Rows read from the log per query while streaming."""
@@ -51,39 +51,23 @@ COLUMNS = (
 _FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
 
 
-class BadFilter(ValueError):
-    """A filter or a parameter of the result log's listing or export that cannot be taken;
-    the message names it."""
-
-
 def filters(query: Mapping[str, str], user_name: Callable[[str], str] = str) -> dict[str, Any]:
     """The result-log query's keyword arguments from a request's query string (the filters
     ``GET /api/results`` and this export share: ``operator`` a user's name as the log keeps
     it, at most 64 characters, written as ``user_name`` gives it: a configured user's name
-    whatever its case); :class:`BadFilter` naming a bad one."""
+    whatever its case); 400 ``BAD_REQUEST`` naming a bad one."""
     verdict = query.get("verdict") or None
     if verdict not in (None, "pass", "fail"):
-        raise BadFilter("verdict must be 'pass' or 'fail'")
-    since: float | None = None
-    raw = query.get("since")
-    if raw:
-        try:
-            since = float(raw)
-        except ValueError:
-            raise BadFilter(f"since must be a number (Unix seconds), got {raw!r}") from None
-        if since != since or since in (float("inf"), float("-inf")):
-            raise BadFilter(f"since must be a finite number, got {raw!r}")
+        raise HttpError(400, "BAD_REQUEST", "verdict must be 'pass' or 'fail'")
     operator = query.get("operator") or None
     if operator is not None and len(operator) > 64:
-        raise BadFilter("operator must be a name of at most 64 characters")
-    if operator is not None:
-        operator = user_name(operator)
+        raise HttpError(400, "BAD_REQUEST", "operator must be a name of at most 64 characters")
     return {
-        "since": since,
+        "since": float_param(query, "since"),
         "inspection": query.get("inspection") or None,
         "passed": None if verdict is None else verdict == "pass",
         "peer": query.get("peer") or None,
-        "operator": operator,
+        "operator": None if operator is None else user_name(operator),
     }
 
 
@@ -138,11 +122,8 @@ class ExportRoutes:
 
     async def export(self, request: web.Request) -> web.StreamResponse:
         query = request.query
-        try:
-            wanted = filters(query, self.user_name)
-            limit = _limit(query.get("limit"))
-        except BadFilter as exc:
-            raise web.HTTPBadRequest(reason=str(exc)) from None
+        wanted = filters(query, self.user_name)
+        limit = int_param(query, "limit", DEFAULT_ROWS, 1, MAX_ROWS)
         if self._running >= MAX_EXPORTS:
             raise HttpError(
                 503, "BUSY", f"{self._running} exports are running; try again when one ends"
@@ -186,18 +167,6 @@ class ExportRoutes:
         return response
 
 
-def _limit(raw: str | None) -> int:
-    if raw is None or raw == "":
-        return DEFAULT_ROWS
-    try:
-        value = int(raw)
-    except ValueError:
-        raise BadFilter(f"limit must be an integer, got {raw!r}") from None
-    if not 1 <= value <= MAX_ROWS:
-        raise BadFilter(f"limit must be in 1..{MAX_ROWS}, got {value}")
-    return value
-
-
 def _lines(rows: Any) -> bytes:
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\r\n")
@@ -205,4 +174,4 @@ def _lines(rows: Any) -> bytes:
     return out.getvalue().encode("utf-8")
 
 
-__all__ = ["COLUMNS", "BadFilter", "ExportRoutes", "filters", "row_cells"]
+__all__ = ["COLUMNS", "ExportRoutes", "filters", "row_cells"]

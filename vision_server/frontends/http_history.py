@@ -11,7 +11,7 @@ like every ``/api/*`` path; viewing is the operator's, a revert the integrator's
   a reload that fails puts the old text back.
 
 The versions themselves are kept by :mod:`vision_server.config.history`; every write of the
-file goes through :func:`.http_save.write_with_backup`.
+file goes through :func:`.http_save.write_version`.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from aiohttp import web
 from ..config import ConfigError, history, redact_secrets
 from ..service import InspectionService
 from . import http_save
-from .http_common import Console, HttpError, audit, int_param, json_body, read_at_most
+from .http_common import Console, HttpError, audit, int_param, json_object, read_at_most
 
 MAX_BODY = 4096
 """The largest revert body (a reason, not an upload), bytes."""
@@ -158,7 +158,7 @@ class HistoryRoutes:
         versions = self._history()
         number = int(request.match_info["version"])
         raw = await read_at_most(request, MAX_BODY, self.console.settings.request_timeout_s)
-        body = await json_body(request, raw or b"{}")
+        body = json_object(raw or b"{}", "the body")
         why = why_of(body)
         path = self.console.writable_config()
         who = self.console.who(request)
@@ -235,7 +235,7 @@ def _write_revert(
             422, "CONFIG_REFUSED", f"version {number} cannot be loaded as it is now: {exc}"
         ) from None
     try:
-        version = http_save.write_with_backup(
+        version = http_save.write_version(
             path, text, old=old, who=who, why=why, kind=history.REVERT, reverted_to=number
         )
     except http_save.SaveRefused as exc:

@@ -13,6 +13,7 @@ connection).
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -20,6 +21,7 @@ from typing import Any
 from aiohttp import web
 
 from ..config import ConsoleSettings, Tuner
+from ..inspections import Inspection
 from ..service import (
     DEFAULT_LAST,
     MAX_LAST,
@@ -67,33 +69,17 @@ class ImpactRoutes:
         if log is None:
             raise HttpError(404, "NO_RESULT_LOG", "this server keeps no result log to replay")
         body = await bounded_json(request, MAX_BODY_BYTES, self.settings.request_timeout_s)
-        try:
-            change, last = _parse(body)
-            if change.options is not None:
-                # Dotted keys of the page ("circle.min_radius_px") nested as a try nests them.
-                change = Change(options=nested_options(self.written(name), change.options))
-            # A whole config is read with the image size each running camera declares, as a
-            # save reads it (a simulated camera's size is known once it is open).
-            tuner = catalog.tune
-            cameras = None
-            if change.config is not None and isinstance(tuner, Tuner):
-                cameras = http_save.declared_cameras(
-                    tuner.cameras, http_save.opened_cameras(catalog)
-                )
-            inspection = changed_inspection(catalog, name, change, cameras=cameras)
-        except ChangeRefused as exc:
-            raise HttpError(
-                400, exc.code, exc.message, details={"key": exc.key} if exc.key else None
-            ) from None
-        if self.running >= MAX_RUNNING:
+        if self.running >= MAX_RUNNING:  # before any work: a third preview costs nothing
             raise HttpError(
                 503,
                 "BUSY",
                 f"{self.running} impact previews are running; try again when one ends",
                 retry_after=5,
             )
+        # Counted from here, the reading of the change included (it awaits a worker).
         self.running += 1
         try:
+            inspection, last = await self._changed(name, body)
             report = await replay(
                 self.service,
                 log,
@@ -108,6 +94,33 @@ class ImpactRoutes:
         answer = report.to_json()
         answer["store_images"] = getattr(log, "store_images", None)
         return web.json_response(answer, headers={"Cache-Control": "no-store"})
+
+    async def _changed(self, name: str, body: Mapping[str, Any]) -> tuple[Inspection, int]:
+        """The changed inspection a body asks a preview of, and its ``last``; 400 naming the
+        key at fault."""
+        catalog = self.service.catalog
+        try:
+            change, last = _parse(body)
+            if change.options is not None:
+                # Dotted keys of the page ("circle.min_radius_px") nested as a try nests them.
+                change = Change(options=nested_options(self.written(name), change.options))
+            # A whole config is read with the image size each running camera declares, as a
+            # save reads it (a simulated camera's size is known once it is open).
+            tuner = catalog.tune
+            cameras = None
+            if change.config is not None and isinstance(tuner, Tuner):
+                cameras = http_save.declared_cameras(
+                    tuner.cameras, http_save.opened_cameras(catalog)
+                )
+            # Building it may read template files: in a worker, not on the event loop.
+            inspection = await asyncio.to_thread(
+                changed_inspection, catalog, name, change, cameras=cameras
+            )
+        except ChangeRefused as exc:
+            raise HttpError(
+                400, exc.code, exc.message, details={"key": exc.key} if exc.key else None
+            ) from None
+        return inspection, last
 
 
 def _parse(body: Mapping[str, Any]) -> tuple[Change, int]:

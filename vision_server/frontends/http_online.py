@@ -17,7 +17,7 @@ from aiohttp import web
 
 from protocol import InvalidArgument, UnknownInspection
 
-from .http_common import HttpError, json_body, read_at_most
+from .http_common import HttpError, json_object, read_at_most
 from .online_board import OnlineBoard
 
 RESET_MAX_BYTES = 4096
@@ -60,7 +60,7 @@ class OnlineRoutes:
         """The body as a JSON object (empty: ``{}``), at most :data:`RESET_MAX_BYTES`."""
         raw = await read_at_most(request, RESET_MAX_BYTES, self.timeout_s)
         try:
-            body = await json_body(request, raw if raw.strip() else b"{}")
+            body = json_object(raw if raw.strip() else b"{}", "the body")
         except HttpError as exc:
             raise InvalidArgument(exc.message) from None  # the reset's documented code
         unknown = sorted(set(body) - {"inspection"})

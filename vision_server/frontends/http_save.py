@@ -16,7 +16,7 @@ order and anchors elsewhere stay as the integrator wrote them:
    (:class:`vision_server.config.Tuner`), with the image size each running camera declares;
 4. the new text is recorded as a version of the file's history (who, when, why, which
    inspections changed: :mod:`vision_server.config.history`, ``NAME.history/`` beside it),
-   then the file is replaced atomically (:func:`write_with_backup`, the one place the console
+   then the file is replaced atomically (:func:`write_version`, the one place the console
    writes the configuration file).
 
 Anything else is refused with a :class:`SaveRefused` subclass naming the cause, or the
@@ -154,7 +154,7 @@ def save(
         ) from None
     new = edited_text(text, path.name, inspection, options)
     validate(new, path, inspection=inspection, opened=opened)
-    version = write_with_backup(path, new, old=old, who=who, why=why)
+    version = write_version(path, new, old=old, who=who, why=why)
     return Saved(path, old, version)
 
 
@@ -290,7 +290,7 @@ def opened_cameras(catalog: Any) -> dict[str, OpenedCamera]:
 # ----------------------------------------------------------------------------- files
 
 
-def write_with_backup(
+def write_version(
     path: Path,
     text: str,
     *,
@@ -601,5 +601,5 @@ __all__ = [
     "save",
     "undo",
     "validate",
-    "write_with_backup",
+    "write_version",
 ]

@@ -17,7 +17,7 @@ byte for byte as written (comments, order, anchors):
 4. the new text must read back as the old document with only this entry replaced (or
    appended), then it is validated by the loader ``serve`` uses and the inspection by the
    rules a try runs, as a save of values is (:func:`.http_save.validate`);
-5. the old file is kept through :func:`.http_save.write_with_backup` and the file replaced
+5. the old file is kept through :func:`.http_save.write_version` and the file replaced
    atomically. The caller reloads, and puts the old text back when the reload fails.
 """
 
@@ -87,7 +87,7 @@ def save_whole(
     new, created = replaced_text(text, path.name, inspection, config)
     http_save.validate(new, path, inspection=inspection, opened=opened)
     kind = history.CREATED_INSPECTION if created else history.SAVE
-    version = http_save.write_with_backup(path, new, old=old, who=who, why=why, kind=kind)
+    version = http_save.write_version(path, new, old=old, who=who, why=why, kind=kind)
     return SavedWhole(Saved(path, old, version), created)
 
 

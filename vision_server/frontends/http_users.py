@@ -33,7 +33,8 @@ MAX_WAIT_S = 60.0
 """The longest wait between tries of one name (the wait doubles per wrong PIN up to this): a
 four-digit PIN then takes a week to guess, however many connections guess at once."""
 MAX_NAMES = 1024
-"""Names whose wrong PINs are remembered (the oldest forgotten beyond: bounded memory)."""
+"""Names whose wrong PINs are remembered (bounded memory): beyond, a name that is not held
+back is forgotten, and when every one is held back a new name is not tried."""
 
 
 class SignInError(ValueError):
@@ -103,7 +104,14 @@ class SignIn:
         return None if user is None else Session(user.role, user.name)
 
     def _may_try(self, key: str, name: str) -> None:
-        """TooManyTries when name ``key`` is being checked now, or waits after wrong PINs."""
+        """TooManyTries when name ``key`` is being checked now, or waits after wrong PINs, or
+        is a new name while every remembered one is held back (a guesser filling the table to
+        make it forget a name it guesses at)."""
+        if key not in self._wrong and len(self._wrong) >= MAX_NAMES and not self._make_room():
+            raise TooManyTries(
+                f"{MAX_NAMES} names are held back after wrong PINs: no other name is tried now",
+                MAX_WAIT_S,
+            )
         wrong = self._wrong.get(key)
         wait = 0.0 if wrong is None else wrong.next_at - time.monotonic()
         if key in self._checking:
@@ -124,9 +132,20 @@ class SignIn:
         if wrong.count >= FREE_FAILURES:
             wait = min(2.0 ** (wrong.count - FREE_FAILURES), MAX_WAIT_S)
             wrong.next_at = time.monotonic() + wait
+        if key not in self._wrong and len(self._wrong) >= MAX_NAMES and not self._make_room():
+            return  # every remembered name is held back: this one is refused before its check
         self._wrong[key] = wrong
-        while len(self._wrong) > MAX_NAMES:
-            self._wrong.popitem(last=False)
+
+    def _make_room(self) -> bool:
+        """Forget one name that is not held back (fewer wrong PINs than FREE_FAILURES, or a
+        wait long over), the oldest first; False when there is none. A held-back name is never
+        forgotten, or guessing at other names would clear its count."""
+        now = time.monotonic()
+        for key, wrong in self._wrong.items():
+            if wrong.count < FREE_FAILURES or now > wrong.next_at + 2 * MAX_WAIT_S:
+                del self._wrong[key]
+                return True
+        return False
 
     async def _by_pin(self, name: str, pin: str) -> User | None:
         user = self._users.get(name.strip().casefold())

@@ -149,6 +149,17 @@ class OnlineBoard:
             tag = self.etag()
             if self._cache is not None and self._cache[0] == tag:
                 return self._cache
+            undrawn = [
+                t.last
+                for t in self._tallies.values()
+                if t.last is not None and t.last.shapes is None
+            ]
+        # Drawing (it may rebuild an inspection with a request's options) outside the lock:
+        # the observer that takes the lock runs on the event loop, for every result.
+        for last in undrawn:
+            last.shapes = self._shapes(last)
+        with self._lock:
+            tag = self.etag()
             catalog = self.service.catalog
             for gone in [name for name in self._tallies if name not in catalog.inspections]:
                 del self._tallies[gone]
@@ -164,6 +175,9 @@ class OnlineBoard:
                     {"name": camera, "inspections": entries} for camera, entries in cameras.items()
                 ],
             }
+            drawn = all(t.last is None or t.last.shapes is not None for t in self._tallies.values())
+            if not drawn:  # a result came meanwhile: shown without shapes, drawn next time
+                return tag[:-1] + '-undrawn"', board
             self._cache = (tag, board)
             return self._cache
 
@@ -185,15 +199,13 @@ class OnlineBoard:
         }
 
     def _last_json(self, last: _Last) -> dict[str, Any]:
-        if last.shapes is None:
-            last.shapes = self._shapes(last)
         return {
             "time": last.time,
             "passed": last.passed,
             "result_id": last.result_id,
             "image_size": None if last.image_size is None else list(last.image_size),
             "summary": summary(last.data),
-            "shapes": last.shapes,
+            "shapes": last.shapes or [],
         }
 
     def _shapes(self, last: _Last) -> list[dict[str, Any]]:

@@ -128,6 +128,10 @@ class PgResultLog:
         not a result log or has a newer schema (a read-only view also when it is unreachable).
     """
 
+    ids_in_commit_order = False
+    """False: a sequence hands ids out before the rows commit, and many cells write, so a
+    later commit may carry a smaller id (``ResultStore.ids_in_commit_order``)."""
+
     def __init__(
         self,
         url: str,

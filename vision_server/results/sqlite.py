@@ -329,6 +329,9 @@ class ResultLog:
         cellvision. A server should not start without the log it was configured with.
     """
 
+    ids_in_commit_order = True
+    """One writer, ids assigned as rows commit (``ResultStore.ids_in_commit_order``)."""
+
     def __init__(
         self,
         path: Path,

@@ -192,6 +192,10 @@ class ResultStore(Protocol):
     annotated with NAME through an index.
     """
 
+    ids_in_commit_order: bool
+    """Whether a row written later always has a larger id (one writer: SQLite), so that the
+    rows after an id are all the rows written since it was read (:class:`TimingsCache`)."""
+
     @property
     def keeps_images(self) -> bool: ...
 

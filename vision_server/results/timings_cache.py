@@ -7,7 +7,9 @@ most of it building the rows in Python. :class:`TimingsCache` keeps, per inspect
 columns of the window it was last asked for, and on the next ask reads only the rows written
 after the last one it holds (a range of the primary key, :meth:`ResultStore.timing_rows`),
 appends them and drops what left the window. The log is append-only (rows are never deleted
-or changed in these columns), so the answer is the log's, row for row.
+or changed in these columns) and, where the cache is used, gives ids in the order rows commit
+(``ResultStore.ids_in_commit_order``: SQLite's one writer, not PostgreSQL's sequence shared by
+many cells), so the answer is the log's, row for row.
 
 Bounded: at most ``max_rows`` rows are held over all inspections; an inspection whose window
 holds more is read from the log each time, as before. A wider window than the one held is read

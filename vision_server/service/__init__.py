@@ -56,10 +56,12 @@ from .replay import (
     ImpactReport,
     changed_inspection,
     replay,
+    stored_image_loader,
 )
 from .runtime import CellRuntime, check_result_log
 
 __all__ = [
+    "stored_image_loader",
     "DEFAULT_LAST",
     "MAX_LAST",
     "Admission",

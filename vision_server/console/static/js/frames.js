@@ -32,7 +32,8 @@ function centre([x, y, w, h]) {
   return [x + (w - 1) / 2, y + (h - 1) / 2];
 }
 
-function round2(n) {
+/** ``n`` rounded to hundredths of a pixel: what the page writes into a configuration. */
+export function round2(n) {
   return Math.round(n * 100) / 100;
 }
 

@@ -13,7 +13,7 @@ import { buildApi } from "./buildapi.js";
 import { histogramChart } from "./charts.js";
 import { byId, debounce, el, fillKeyValues, formatNumber, replaceChildren } from "./dom.js";
 import { INSPECTION_NAME, STEP_NAME, fieldId, renderFields, showFieldError } from "./fields.js";
-import { angleToImage, angleToPart, frameFrom, pointToImage, pointToPart, roiToImage, roiToPart } from "./frames.js";
+import { angleToImage, angleToPart, frameFrom, pointToImage, pointToPart, roiToImage, roiToPart, round2 } from "./frames.js";
 import { JobPanel, renameReferences } from "./jobs.js";
 import { clone, flatten, getPath, isMapping, sameValue, setPath } from "./paths.js";
 import { RoiEditor } from "./roi.js";
@@ -32,16 +32,16 @@ const STEP_SKIP = new Set(["type", "roi", "measurements"]);
 let page = null;
 
 /**
- * The inspection being edited: ``{name, config}`` with the whole edited mapping (a copy), or
- * null when none is open. Another module (the impact preview) re-runs it over stored images.
+ * The pending change of the inspection being edited, as a save would write it: ``{name,
+ * options}`` when only tuned keys changed (the keys that differ, ``{}`` when none: the
+ * inspection as configured), else ``{name, config}`` with the whole edited mapping (a copy);
+ * null when none is open. The impact preview (js/impact.js) re-runs it over stored images.
  */
 export function pendingChange() {
   if (page === null || page.selected === null || page.config === null) return null;
+  const options = page.optionsDiff();
+  if (options !== null) return { name: page.selected.name, options };
   return { name: page.selected.name, config: clone(page.config) };
-}
-
-function round2(n) {
-  return Math.round(n * 100) / 100;
 }
 
 const STAGE_MARGIN_PX = 300;   // the window's height less this is the image's at most

@@ -7,17 +7,13 @@
 
 import { byId, el, replaceChildren } from "./dom.js";
 import {
-  angleToImage, angleToPart, pointToImage, pointToPart, roiToImage, roiToPart,
+  angleToImage, angleToPart, pointToImage, pointToPart, roiToImage, roiToPart, round2,
 } from "./frames.js";
 import { isMapping } from "./paths.js";
 
 const MAX_STEPS = 32;            // docs/configuration.md: a job has 1..32 steps
 const FIXTURE_KEYS = ["fixture", "origin", "x_towards", "angle_from"];
 const DEFAULT_FIXTURED_ROI = [-20, -20, 40, 40];
-
-function round2(n) {
-  return Math.round(n * 100) / 100;
-}
 
 /** A step name not yet used in ``config``: ``base``, ``base_2``, ... */
 export function uniqueName(config, base) {
