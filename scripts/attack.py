@@ -49,7 +49,7 @@ traceback on stderr, and its VmHWM must stay below the bound (:func:`memory_boun
     (workers + fast_workers) x max_image_pixels x 12 B  +  constant
     constant = baseline VmRSS (after a warm-up) + 2 x max_buffered_bytes (a body or reply is
                held twice at its peak: bytes and parsed payload, payloads and serialized frame)
-               + 2 x max_connections x 1 MiB (per-connection buffers) + 32 MiB (allocator)
+               + 2 x max_connections x 1 MiB (per-connection buffers) + 64 MiB (allocator)
 
 Exit status 0 when every promise held, 1 otherwise. Loopback only; bounded in time.
 """
