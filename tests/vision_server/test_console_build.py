@@ -537,7 +537,7 @@ def test_reads_read_a_bounded_number_of_pages_past_tries() -> None:
             calls.append(filters)
             start = filters["before_id"] or 10_000
             return [
-                SimpleNamespace(id=i, peer="console 127.0.0.1:1")
+                SimpleNamespace(id=i, peer="console 127.0.0.1:1", is_try=True)
                 for i in range(start - 1, start - 1 - filters["limit"], -1)
             ]
 

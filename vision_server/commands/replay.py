@@ -40,7 +40,13 @@ from protocol.cli import CONFIG_ENV, ErrorKind, ExitCode, json_error
 from ..cameras import CameraSettings, Intrinsics, SimCameraSettings, make_camera
 from ..config import ConfigError, load_config
 from ..process import decoder_limits
-from ..results import ResultLogError, ResultStore, is_database_url, open_readonly
+from ..results import (
+    ProductionRows,
+    ResultLogError,
+    ResultStore,
+    is_database_url,
+    open_readonly,
+)
 from ..service import DEFAULT_LAST, MAX_LAST, ImpactReport, replay
 from .offline import offline_service
 
@@ -214,16 +220,9 @@ def _served_intrinsics(name: str, settings: CameraSettings, base_dir: Path) -> I
 def _newest_hash(log: ResultStore, inspection: str) -> str:
     """The configuration hash of the newest production result of ``inspection`` ("" if none):
     the configuration the line ran last."""
-    before = None
-    for _ in range(20):  # the newest production row is among the first pages in practice
-        page = log.query(inspection=inspection, limit=50, before_id=before)
-        for row in page:
-            if not row.is_try:
-                return row.config_hash
-        if len(page) < 50:
-            return ""
-        before = page[-1].id
-    return ""
+    rows = ProductionRows(log, inspection, page_rows=50, max_examined=1000)
+    newest = next(iter(rows), None)  # among the first pages in practice
+    return "" if newest is None else newest.config_hash
 
 
 def _show(report: ImpactReport) -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import itertools
 import json
 import logging
 from collections.abc import Mapping
@@ -27,7 +28,7 @@ from yamlfile import NAME
 
 from ..config import ConfigError, Tuner, check_files, inspection_schema, parse_draft
 from ..inspections import Inspection
-from ..results import is_try
+from ..results import ProductionRows
 from ..service import ImageNeeds, Images, InspectionService, InspectRequest
 from . import http_save, http_save_whole, template_files
 from .http_common import Console, HttpError, audit, bounded_json, int_param
@@ -282,15 +283,8 @@ def _train(
 def _production_rows(log_: Any, name: str, last: int) -> list[Any]:
     """The newest ``last`` production rows of ``name`` (tries skipped), by the log's index on
     inspection and time: at most :data:`READS_PAGES` pages of ``last`` rows are read."""
-    found: list[Any] = []
-    before: int | None = None
-    for _ in range(READS_PAGES):
-        page = log_.query(inspection=name, limit=last, before_id=before)
-        found.extend(r for r in page if not is_try(r.peer))
-        if len(found) >= last or len(page) < last:
-            break
-        before = page[-1].id
-    return found[:last]
+    rows = ProductionRows(log_, name, page_rows=last, max_examined=READS_PAGES * last)
+    return list(itertools.islice(rows, last))
 
 
 def _texts(row: Any) -> list[dict[str, Any]]:

@@ -7,6 +7,7 @@
   :mod:`.spool` keeping rows on local disk while the database is down and
   :mod:`.postgres_schema` its versioned schema.
 - :mod:`.query`: the filters and pages both stores share.
+- :mod:`.scan`: an inspection's newest production rows, a page at a time.
 - :mod:`.tries`: how a console try is marked, so that no reader counts it as production.
 - :mod:`.configured`: the configured store opened, for writing or for reading.
 - :mod:`.timings_cache`: the statistics' columns, read once and then only the rows since.
@@ -14,6 +15,7 @@
 
 from .configured import check_result_store, open_readonly, open_result_store
 from .postgres import PgResultLog, is_database_url, redact_url
+from .scan import ProductionRows
 from .sqlite import ResultLog
 from .store import (
     MAX_ROW_ID,
@@ -32,6 +34,7 @@ __all__ = [
     "is_row_id",
     "TRY_PEER_PREFIX",
     "PgResultLog",
+    "ProductionRows",
     "ResultEntry",
     "ResultLog",
     "ResultLogError",

@@ -51,7 +51,7 @@ from protocol.images import compressed_header
 from ..cameras import CameraSettings
 from ..config import ConfigError, Tuner, parse_draft
 from ..inspections import Inspection
-from ..results import TRY_PEER_PREFIX, ResultStore, StoredResult
+from ..results import TRY_PEER_PREFIX, ProductionRows, ResultStore, StoredResult
 from .admission import Admission, Waiter, try_key
 from .catalog import Catalog
 from .core import (
@@ -281,32 +281,18 @@ def stored_rows(
     """The newest production results of ``inspection`` with a stored image, at most ``last``,
     newest first; counts what it looked at in ``report``. Reads pages of the log's indexed
     query by inspection (``before_id``), at most :data:`MAX_ROWS_EXAMINED` rows."""
-    before: int | None = None
+    rows = ProductionRows(log, inspection, page_rows=PAGE_ROWS, max_examined=MAX_ROWS_EXAMINED)
     found = 0
-    examined = 0
-    while found < last:
-        if examined >= MAX_ROWS_EXAMINED:
-            report.rows_limited = True
+    for row in rows:
+        report.considered += 1
+        # An error row has no verdict of its own to compare with (and rarely an image).
+        if row.error is not None or row.image_path is None or not row.image_path.is_file():
+            continue
+        found += 1
+        yield row
+        if found >= last:
             return
-        limit = min(PAGE_ROWS, MAX_ROWS_EXAMINED - examined)
-        page = log.query(inspection=inspection, limit=limit, before_id=before)
-        if not page:
-            return
-        examined += len(page)
-        before = page[-1].id
-        for row in page:
-            if row.is_try:
-                continue
-            report.considered += 1
-            # An error row has no verdict of its own to compare with (and rarely an image).
-            if row.error is not None or row.image_path is None or not row.image_path.is_file():
-                continue
-            found += 1
-            yield row
-            if found >= last:
-                return
-        if len(page) < limit:
-            return
+    report.rows_limited = rows.limited
 
 
 def stored_image_loader(path: Path) -> ImageLoader:
