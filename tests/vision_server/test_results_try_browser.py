@@ -39,8 +39,8 @@ def server(tmp_path: Path) -> Iterator[RunningConsole]:
         yield running
 
 
-def stored(server: RunningConsole, image: np.ndarray, *, passed: bool) -> int:
-    """A production row of magnet_check with ``image`` as its stored input."""
+def stored(server: RunningConsole, image: np.ndarray | None, *, passed: bool) -> int:
+    """A production row of magnet_check with ``image`` as its stored input (None: none)."""
     log = server.app.service.results
     assert log is not None
     row = log.record(
@@ -119,20 +119,7 @@ def test_a_stored_result_is_tried_again_from_its_row(
 def test_a_row_without_a_stored_input_offers_no_try(
     driver: WebDriver, server: RunningConsole
 ) -> None:
-    log = server.app.service.results
-    assert log is not None
-    row = log.record(
-        ResultEntry(
-            time=time.time(),
-            inspection="magnet_check",
-            camera="qc",
-            passed=True,
-            data={},
-            duration_ms=1.0,
-            config_hash="x",
-        )
-    )
-    assert row is not None
+    row = stored(server, None, passed=True)
     sign_in(driver, server, "results")
     open_row(driver, row)
     assert not driver.find_element(By.ID, "rd-try").is_displayed()
