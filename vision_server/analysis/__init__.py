@@ -19,10 +19,30 @@ Public API:
   :class:`Measurement`, in :class:`PixelUnits`, :class:`ScaleUnits` (mm per px) or
   :class:`PlaneUnits` (mm through the intrinsics and a plane distance); fits in
   :mod:`.fit2d`.
+- Anomaly detection trained from good images (:mod:`.anomaly`): :func:`train_model` →
+  :class:`AnomalyModel` (``score`` → :class:`AnomalyScore`) and :class:`TrainingReport`;
+  the model file (:func:`save_model`, :func:`load_model`, :func:`model_bytes`,
+  :func:`model_from_bytes`); ``ANOMALY_METHODS``, ``MIN_GOOD_IMAGES``; :class:`AnomalyError`,
+  :class:`WeightsError`.
 - Errors: :class:`AnalysisError` and its kinds :class:`BadImageError`, :class:`RoiError`,
   :class:`TemplateError`, :class:`DepthError`, :class:`NotFoundError`.
 """
 
+from .anomaly import METHODS as ANOMALY_METHODS
+from .anomaly import MIN_IMAGES as MIN_GOOD_IMAGES
+from .anomaly import (
+    AnomalyError,
+    AnomalyModel,
+    AnomalyScore,
+    TrainingReport,
+    WeightsError,
+    image_digest,
+    load_model,
+    model_bytes,
+    model_from_bytes,
+    save_model,
+    train_model,
+)
 from .board import BOARD_KINDS, DICTIONARIES, BoardSpec, detect_board
 from .caliper import POLARITIES, Band, Edge, EdgePair, find_edges, find_pairs
 from .codes import SYMBOLOGIES, Code, Grade, read_codes
@@ -58,6 +78,19 @@ from .qr import QRCode, read_qr
 from .qr_pose import UNCHECKED_SCALE_STD, UNCHECKED_SHIFT_STD_PX, QRPose, QRPoseQuality, qr_pose
 
 __all__ = [
+    "ANOMALY_METHODS",
+    "MIN_GOOD_IMAGES",
+    "AnomalyError",
+    "AnomalyModel",
+    "AnomalyScore",
+    "TrainingReport",
+    "WeightsError",
+    "image_digest",
+    "load_model",
+    "model_bytes",
+    "model_from_bytes",
+    "save_model",
+    "train_model",
     "Expect",
     "Pattern",
     "PatternError",

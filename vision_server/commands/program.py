@@ -15,6 +15,8 @@ register map, and check or reload a running server.
                       --out CASE [--frame N ...]   # a golden case from a recording
     vision-server results --config cell.yaml --since 1h [--inspection NAME] [--json]
     vision-server replay NAME --config changed.yaml [--last N] [--json]   # verdicts it flips
+    vision-server train NAME --config cell.yaml --images 'good/*.png' [--step S] [--reload]
+                      # an anomaly inspection's model from good images
     vision-server record CAMERA --config cell.yaml --out DIR [--frames N] [--max-bytes SIZE]
                       [--duration S] [--interval S] [--format auto|cellvision|realsense]
     vision-server modbus-map cell.yaml [--json]   # the PLC's register map (protocol/MODBUS.md)
@@ -109,6 +111,7 @@ from . import history as history_cli
 from . import record as record_cli
 from . import replay as replay_cli
 from . import sensor_check as sensor_check_cli
+from . import train as train_cli
 from .admin import AdminError, call_endpoint, resolve
 from .offline import file_request, image_payload, offline_service
 from .results import describe_health, results_command
@@ -1072,6 +1075,7 @@ def build_parser() -> argparse.ArgumentParser:
         "reload", parents=[common], help="ask a running server to re-read its configuration"
     )
     reload.set_defaults(func=_reload)
+    train_cli.add_parser(sub, [common], _reload)
     return parser
 
 

@@ -15,6 +15,7 @@
 - :mod:`.redaction`: a configuration text with its tokens, passwords and PINs hidden.
 - :mod:`.files`: the files beside the configuration written atomically (the file, versions,
   templates).
+- :mod:`.model_key`: pointing an inspection's ``model:`` at a newly trained file, in the text.
 - :mod:`.history`: the configuration file's versions (who, when, why, a diff), bounded on disk.
 """
 
@@ -34,6 +35,7 @@ from .document import ConfigError, Node, parse_document, read_document
 from .drafts import check_files, file_keys, parse_draft
 from .exposure import exposure_warnings
 from .listeners import Listener, ListenError, PortClash, check_distinct, enabled_listeners
+from .model_key import ModelKeyError, set_model_key
 from .redaction import redact_secrets
 from .schema import inspection_schema
 from .settings import (
@@ -62,6 +64,8 @@ from .users import (
 )
 
 __all__ = [
+    "ModelKeyError",
+    "set_model_key",
     "DEFAULT_CONSOLE_PORT",
     "DEFAULT_LINE_PORT",
     "DEFAULT_MODBUS_PORT",

@@ -214,7 +214,9 @@ def parse_config(
     )
 
 
-FIXED_BY_THE_CONFIGURATION = frozenset({"name", "type", "camera", "template", "number", "output"})
+FIXED_BY_THE_CONFIGURATION = frozenset(
+    {"name", "type", "camera", "template", "model", "number", "output"}
+)
 """Keys of an inspection that a request's options cannot change: what it is, its camera, the
 files it reads (a request must never make the server open a path it chose), and how the line
 protocol names and answers it."""

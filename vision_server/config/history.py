@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from .document import ConfigError, parse_document
-from .files import write_new
+from .files import replace_file, write_new
 
 SAVE = "save"
 """A save of tuned values from the console."""
@@ -416,6 +416,38 @@ def history_of(config: Path) -> History:
     return History(config, _BOUNDS.get(config.resolve()))
 
 
+def write_with_history(
+    path: Path,
+    data: bytes,
+    *,
+    old: bytes | None = None,
+    who: str,
+    why: str,
+    kind: str = SAVE,
+    reverted_to: int | None = None,
+) -> Version:
+    """Replace the configuration file ``path`` with ``data`` and record it in the file's
+    history (the one way the console and ``vision-server train`` write it). First the history
+    catches up with the file as it is (an edit made outside becomes a version of its own, the
+    file's first text the history's first version), then the new version is written, then the
+    file is replaced; each write is atomic, and when replacing the file fails the new version
+    is dropped again. Afterwards the oldest versions beyond the history's bounds are deleted.
+    ``old``: the file's bytes as read (read now when None). Raises OSError (nothing changed
+    but perhaps the catch-up)."""
+    if old is None:
+        old = path.read_bytes()
+    versions = history_of(path)
+    versions.catch_up(old)
+    version = versions.record(data, who=who, why=why, kind=kind, reverted_to=reverted_to)
+    try:
+        replace_file(path, data)
+    except BaseException:
+        versions.drop(version.number)
+        raise
+    versions.prune()
+    return version
+
+
 __all__ = [
     "CREATED_INSPECTION",
     "EDITED_OUTSIDE",
@@ -434,4 +466,5 @@ __all__ = [
     "config_hash",
     "history_of",
     "set_bounds",
+    "write_with_history",
 ]

@@ -304,11 +304,8 @@ def write_version(
     history as a version of ``kind`` made by ``who`` for ``why`` (``reverted_to``: the
     version a revert restores). ``old``: the file's bytes as read (read now when None).
 
-    The one place the console writes the configuration file. First the history catches up
-    with the file as it is (an edit made outside the console becomes a version of its own, the
-    file's first text the history's first version), then the new version is written, then the
-    file is replaced; each write is atomic, and when replacing the file fails the new version
-    is dropped again. Afterwards the oldest versions beyond the history's bounds are deleted.
+    The one place the console writes the configuration file
+    (:func:`~vision_server.config.history.write_with_history`), after checking its size.
     Returns the new version (give it to :func:`undo` through :class:`Saved` when the server
     then refuses the text). Raises OSError (nothing changed but perhaps the catch-up)."""
     data = text.encode("utf-8")
@@ -317,20 +314,9 @@ def write_version(
             f"{path.name}: the new text has {len(data)} bytes, the console writes at most "
             f"{MAX_CONFIG_BYTES} (long texts belong in files beside it, not in the configuration)"
         )
-    if old is None:
-        old = path.read_bytes()
-    versions = history.history_of(path)
-    versions.catch_up(old)
-    version = versions.record(
-        text.encode("utf-8"), who=who, why=why, kind=kind, reverted_to=reverted_to
+    return history.write_with_history(
+        path, data, old=old, who=who, why=why, kind=kind, reverted_to=reverted_to
     )
-    try:
-        files.replace_file(path, text.encode("utf-8"))
-    except BaseException:
-        versions.drop(version.number)
-        raise
-    versions.prune()
-    return version
 
 
 # ----------------------------------------------------------------------------- checks

@@ -6,7 +6,9 @@ Types: ``locate`` (feature locate: template, circle, blob), ``presence`` (ROI pr
 grade), ``qr_pose`` (pose of a QR code from colour + depth), ``calibration_board``
 (corners of a ChArUco board or chessboard, for camera calibration), ``job`` (named steps:
 locate, fixture, presence, code, with ROIs that move with the part and a verdict expression),
-``caliper`` (edges, widths, circles, lines and distances with tolerances, in px or mm).
+``caliper`` (edges, widths, circles, lines and distances with tolerances, in px or mm),
+``anomaly`` (a score against a model trained from good images, with a heat map; also a job
+step).
 
 Public API: the contract every type implements (:class:`Inspection`, run on an
 :class:`InspectionInput`, giving an :class:`InspectionOutcome`; :mod:`.contract`),
@@ -16,7 +18,8 @@ Public API: the contract every type implements (:class:`Inspection`, run on an
 golden expectations and summary values), and the classes :class:`LocateInspection`,
 :class:`PresenceInspection`, :class:`QRInspection`, :class:`CodeInspection`,
 :class:`QRPoseInspection`, :class:`JobInspection`,
-:class:`CalibrationBoardInspection`, :class:`CaliperInspection`; what the configuration's
+:class:`CalibrationBoardInspection`, :class:`CaliperInspection`, :class:`AnomalyInspection`
+(with its :class:`AnomalySettings`); what the configuration's
 ``output:`` and the other rooms need of them (:func:`numbers_by_position`, ...);
 :func:`result_shapes` (a result as shapes in image pixels, for the console's online view).
 
@@ -33,7 +36,8 @@ from pathlib import Path
 from yamlfile import Node, one_of, positive_int
 
 from ..cameras import CameraSettings
-from . import calibration_board, caliper, code, job, locate, presence, qr, qr_pose
+from . import anomaly, calibration_board, caliper, code, job, locate, presence, qr, qr_pose
+from .anomaly import AnomalyInspection, AnomalySettings, parse_anomaly
 from .base import Configured
 from .calibration_board import CalibrationBoardInspection, parse_calibration_board
 from .caliper import SUMMARY_VALUES, CaliperInspection, parse_caliper
@@ -41,7 +45,7 @@ from .caliper_config import KINDS as CALIPER_KINDS
 from .code import CodeInspection, parse_code
 from .contract import Inspection, InspectionInput, InspectionOutcome
 from .graphics import MAX_SHAPES, result_shapes
-from .job import STEP_TYPES, JobInspection, parse_job, step_summary_values
+from .job import STEP_TYPES, JobInspection, StepSkipped, parse_job, step_summary_values
 from .kinds import ResultKind
 from .locate import LocateInspection, parse_locate
 from .output import (
@@ -68,6 +72,7 @@ INSPECTION_TYPES: dict[str, Parser] = {
     "calibration_board": parse_calibration_board,
     "job": parse_job,
     "caliper": parse_caliper,
+    "anomaly": parse_anomaly,
 }
 
 RESULT_KINDS: dict[str, ResultKind] = {
@@ -79,6 +84,7 @@ RESULT_KINDS: dict[str, ResultKind] = {
     "calibration_board": calibration_board.RESULTS,
     "job": job.RESULTS,
     "caliper": caliper.RESULTS,
+    "anomaly": anomaly.RESULTS,
 }
 """Each type's result shape (golden expectations, summary values), declared by the type."""
 
@@ -121,6 +127,8 @@ def parse_inspection(
 
 
 __all__ = [
+    "AnomalyInspection",
+    "AnomalySettings",
     "CALIPER_KINDS",
     "STEP_TYPES",
     "Inspection",
@@ -145,6 +153,7 @@ __all__ = [
     "RESULT_KINDS",
     "ResultKind",
     "SUMMARY_VALUES",
+    "StepSkipped",
     "default_output",
     "numbers_by_position",
     "parse_inspection",

@@ -15,6 +15,8 @@
 - :mod:`.builtin`: :func:`builtin_catalog`, what ``serve`` offers without a configuration.
 - :mod:`.replay`: impact before save: a pending change replayed over an inspection's stored
   images (:func:`replay`), for the console's impact preview and ``vision-server replay``.
+- :mod:`.training`: training an anomaly inspection from good whole images
+  (:func:`train_inspection`), for ``vision-server train`` and the console.
 
 It speaks arrays and plain records, never a front-end's wire types.
 """
@@ -59,8 +61,22 @@ from .replay import (
     stored_image_loader,
 )
 from .runtime import CellRuntime, check_result_log
+from .training import (
+    MODELS_FOLDER,
+    Trained,
+    TrainingError,
+    next_model_file,
+    train_inspection,
+    training_patches,
+)
 
 __all__ = [
+    "MODELS_FOLDER",
+    "Trained",
+    "TrainingError",
+    "next_model_file",
+    "train_inspection",
+    "training_patches",
     "stored_image_loader",
     "DEFAULT_LAST",
     "MAX_LAST",

@@ -12,6 +12,7 @@ from .expression import Expression, ExpressionError, parse_expression
 from .frame import PartFrame
 from .inspection import RESULTS, JobInspection, parse_job, step_summary_values
 from .registry import STEP_TYPES
+from .step import StepSkipped
 
 __all__ = [
     "RESULTS",
@@ -20,6 +21,7 @@ __all__ = [
     "ExpressionError",
     "JobInspection",
     "PartFrame",
+    "StepSkipped",
     "parse_expression",
     "parse_job",
     "step_summary_values",

@@ -21,6 +21,7 @@ from yamlfile import Node, integer, kind, string
 
 from ...analysis import AnalysisError
 from ...cameras import CameraSettings
+from ..anomaly import blend_heat
 from ..base import (
     GREEN,
     RED,
@@ -95,6 +96,9 @@ class JobInspection(Configured):
         picture = None
         if overlay:
             picture = overlay_base(image.color, None)
+            for o in outcomes.values():
+                if o.heat is not None:
+                    blend_heat(picture, *o.heat)
             # The legend under the verdict: its boxes, then the shapes (visible through
             # them on a small image, where the legend covers much of the part), its letters.
             for row, (name, o) in enumerate(outcomes.items()):

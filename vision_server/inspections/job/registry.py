@@ -8,6 +8,7 @@ keys (``head`` holds the common ones: name, fixture, ROI) and refers to earlier 
 
 from __future__ import annotations
 
+from .anomaly_step import parse_anomaly_step
 from .caliper_step import parse_caliper_step
 from .tools import (
     StepParser,
@@ -23,6 +24,7 @@ STEP_TYPES: dict[str, StepParser] = {
     "presence": parse_presence_step,
     "code": parse_code_step,
     "caliper": parse_caliper_step,
+    "anomaly": parse_anomaly_step,
 }
 
 WITHOUT_ROI = ("fixture", "caliper")

@@ -52,6 +52,9 @@ class Outcome:
     shapes: list[Shape] = field(default_factory=list)
     frame: PartFrame | None = None
     label: str = ""
+    heat: tuple[Image, Affine, float] | None = None
+    """A heat map to blend into the overlay: the map (its pixels' values), the 2x3 matrix from
+    its pixels to the image's, and the value drawn red (an anomaly step's threshold)."""
 
 
 @dataclass(frozen=True)
