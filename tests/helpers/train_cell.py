@@ -68,9 +68,15 @@ def train_server(folder: Path, *, token: str | None = TOKEN) -> Iterator[Running
 
 
 def _texture() -> np.ndarray:
-    rng = np.random.default_rng(31)
-    small = rng.integers(60, 200, size=(SIZE[1] // 16, SIZE[0] // 16), dtype=np.uint8)
-    grey = np.kron(small, np.ones((16, 16), np.uint8))
+    """A machined part's picture: a lit gradient, bored holes and a milled pocket, smooth
+    enough that screenshots of it stay small."""
+    height, width = SIZE[1], SIZE[0]
+    rows, cols = np.mgrid[0:height, 0:width]
+    grey = 110 + 60 * cols / width + 30 * rows / height
+    for cx, cy, r in ((470, 350, 18), (540, 410, 26), (300, 200, 60), (760, 560, 45)):
+        grey[(cols - cx) ** 2 + (rows - cy) ** 2 < r * r] = 55
+    grey[300:330, 480:560] = 90
+    grey = np.clip(grey, 0, 255).astype(np.uint8)
     return np.stack([grey, grey, grey], axis=2)
 
 
