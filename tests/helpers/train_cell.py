@@ -5,12 +5,14 @@ tests (tests/vision_server/test_console_train*.py).
 all`` and two anomaly inspections: ``surface_check`` on the robot's camera ``tool`` (images
 arrive in requests; 1024x768) and ``qc_surface`` on the simulated QC camera (frames can be
 grabbed), both with a 128x128 ROI and the classical ``variation`` method (trained in a fraction
-of a second). :func:`send_parts` sends designed parts to ``surface_check`` through the
-cellvision protocol, as a robot does, so that every row and its stored image are the server's
-own: before training each ends in INSPECTION_FAILED ("no trained model"), its image kept.
+of a second), and the job ``surface_job`` on ``tool`` with two anomaly steps (``left`` on the
+same ROI, ``right`` elsewhere with the default ``patches`` method). :func:`send_parts` sends
+designed parts to ``surface_check`` through the cellvision protocol, as a robot does, so that
+every row and its stored image are the server's own: before training each ends in
+INSPECTION_FAILED ("no trained model"), its image kept.
 
-A good part is a fixed texture (a seeded pattern) with a little seeded noise; a bad part has a
-dark scratch across the ROI.
+A good part is a machined part's picture with a little seeded noise; a bad part has a dark
+scratch across the ROI.
 
 Importable as ``train_cell`` (pytest's ``pythonpath`` includes tests/helpers).
 """
@@ -44,6 +46,18 @@ INSPECTIONS = f"""
     camera: qc
     roi: [440, 200, 128, 128]
     method: variation
+
+  - name: surface_job
+    type: job
+    camera: tool
+    steps:
+      - name: left
+        type: anomaly
+        roi: [{ROI[0]}, {ROI[1]}, {ROI[2]}, {ROI[3]}]
+        method: variation
+      - name: right
+        type: anomaly
+        roi: [280, 160, 128, 128]
 """
 
 

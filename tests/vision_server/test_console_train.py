@@ -6,10 +6,12 @@ and stored images come from robot INSPECTs over the protocol, the real training 
 from __future__ import annotations
 
 import json
+import socket
 import threading
 import time
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import pytest
 import yaml
@@ -285,3 +287,71 @@ def test_train_from_stored_results_then_the_inspection_answers_with_the_model(ce
     assert again.status == 200, again.body
     assert again.json()["model"] == "models/surface_check.v2.npz"
     assert again.json()["version"] == 2
+
+
+def test_a_training_whose_browser_goes_away_stops_and_writes_nothing(cell: Any) -> None:
+    """The request's connection closes while the frames are grabbed: the training stops, the
+    slot is freed, no model file is written and the configuration is unchanged."""
+    server, _ = cell
+    client = carla(server)
+    before = server.config.read_bytes()
+    models = set((server.config.parent / "models").glob("*.npz"))
+    cookie = "; ".join(f"{c.name}={c.value}" for c in client.jar)
+    body = json.dumps({"source": "camera", "frames": 8, "interval_ms": 1000}).encode()
+    address = urlsplit(server.url)
+    host, port = address.hostname or "127.0.0.1", address.port or 80
+    head = (
+        f"POST /api/inspections/qc_surface/train HTTP/1.1\r\nHost: {host}:{port}\r\n"
+        f"Content-Type: application/json\r\nX-Cellvision: console\r\nCookie: {cookie}\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n"
+    )
+    with socket.create_connection((host, port)) as sock:
+        sock.sendall(head.encode() + body)
+        for _ in range(250):
+            if client.get("/api/training").json()["running"]:
+                break
+            time.sleep(0.02)
+        assert client.get("/api/training").json()["running"]
+    for _ in range(500):
+        if not client.get("/api/training").json()["running"]:
+            break
+        time.sleep(0.02)
+    assert client.get("/api/training").json() == {"running": False}
+    assert server.config.read_bytes() == before
+    assert set((server.config.parent / "models").glob("*.npz")) == models
+
+
+def test_a_job_step_is_trained_by_name_with_patches(cell: Any) -> None:
+    """A job with two anomaly steps: without ``step`` the request names both; ``right`` is
+    trained (the default ``patches`` method, learned features) on the stored images of
+    surface_check's results (the same camera), and only its ``model:`` is set."""
+    server, ids = cell
+    client = carla(server)
+    path = "/api/inspections/surface_job/train"
+    status, code, message = error_of(client.post_json(path, {"source": "results", "ids": ids}))
+    assert (status, code) == (400, "NOT_TRAINABLE")
+    assert "left" in message
+    assert "right" in message
+    reply = client.post_json(path, {"source": "results", "ids": ids[:8], "step": "right"})
+    assert reply.status == 200, reply.body
+    report = reply.json()
+    assert report["model"] == "models/surface_job.right.v1.npz"
+    assert report["step"] == "right"
+    assert report["method"] == "patches"
+    assert report["images"] == 8
+    steps = {
+        s["name"]: s
+        for s in next(
+            i
+            for i in yaml.safe_load(server.config.read_text(encoding="utf-8"))["inspections"]
+            if i["name"] == "surface_job"
+        )["steps"]
+    }
+    assert steps["right"]["model"] == report["model"]
+    assert "model" not in steps["left"]
+    models = {
+        m["step"]: m for m in client.get("/api/inspections/surface_job/model").json()["models"]
+    }
+    assert models["right"]["trained"]
+    assert models["right"]["version"] == 1
+    assert not models["left"]["trained"]
