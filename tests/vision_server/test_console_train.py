@@ -19,7 +19,7 @@ from console_server import Browserless, RunningConsole
 from console_users import ANNA_PIN, CARLA_PIN
 from train_cell import inspect, part_image, send_parts, train_server
 
-from protocol import CellvisionError
+from protocol import CameraUnavailable, CellvisionError
 from vision_server.config import history
 
 TRAIN = "/api/inspections/surface_check/train"
@@ -355,3 +355,31 @@ def test_a_job_step_is_trained_by_name_with_patches(cell: Any) -> None:
     assert models["right"]["trained"]
     assert models["right"]["version"] == 1
     assert not models["left"]["trained"]
+
+
+def test_a_reload_that_refuses_the_model_puts_everything_back(cell: Any) -> None:
+    """The server cannot take the new text (here its reloader reports a camera that does not
+    open): 422 CONFIG_REFUSED naming the model, the file's old text back, the History without
+    the version, and the model file removed."""
+    server, ids = cell
+    service = server.app.service
+    before = server.config.read_bytes()
+    versions = [v.number for v in history.history_of(server.config).versions()]
+    models = set((server.config.parent / "models").glob("*.npz"))
+
+    def refuse() -> Any:
+        raise CameraUnavailable("camera 'qc' does not open")
+
+    reloader = service.reloader
+    service.reloader = refuse
+    try:
+        reply = carla(server).post_json(TRAIN, {"source": "results", "ids": ids})
+    finally:
+        service.reloader = reloader
+    status, code, message = error_of(reply)
+    assert (status, code) == (422, "CONFIG_REFUSED")
+    assert "surface_check.v" in message
+    assert "does not open" in message
+    assert server.config.read_bytes() == before
+    assert [v.number for v in history.history_of(server.config).versions()] == versions
+    assert set((server.config.parent / "models").glob("*.npz")) == models
