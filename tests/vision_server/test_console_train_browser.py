@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 from browser import console_errors, headless_chromium, save_screenshot
-from console_users import CARLA_PIN
+from console_users import ANNA_PIN, CARLA_PIN
 from train_cell import inspect, part_image, send_parts, train_server
 
 from protocol import CellvisionError
@@ -177,4 +177,62 @@ def test_pick_good_results_train_and_the_inspection_answers_with_the_model(
         assert text(driver, "train-selected-count") == "0 selected"
         driver.find_element(By.ID, "train-select-passing").click()
         assert text(driver, "train-selected-count") == "1 selected"
+        assert console_errors(driver) == []
+
+
+def test_grab_frames_from_the_camera_and_train(driver: WebDriver, tmp_path: Path) -> None:
+    """qc_surface's camera is the simulated QC camera: the panel grabs 8 frames from it and
+    trains; an operator then sees the model in force and no training controls."""
+    with train_server(tmp_path) as server:
+        sign_in_as_carla(driver, server.url)
+        open_inspection(driver, "qc_surface")
+        wait_for(
+            driver,
+            lambda d: (
+                d.find_element(By.ID, "train-panel").is_displayed()
+                # textContent: the heading is shown in capitals (CSS)
+                and d.find_element(By.ID, "train-title").get_attribute("textContent")
+                == "Train qc_surface"
+            ),
+            "the Train panel of qc_surface",
+        )
+        camera = driver.find_element(By.ID, "train-source-camera")
+        assert camera.is_enabled()
+        camera.click()
+        assert driver.find_element(By.ID, "train-frames").is_displayed()
+        assert not driver.find_element(By.ID, "train-list").is_displayed()
+        for field, value in (("train-frames", "8"), ("train-interval", "50")):
+            box = driver.find_element(By.ID, field)
+            driver.execute_script("arguments[0].select();", box)
+            box.send_keys(value)
+        driver.find_element(By.ID, "train-run").click()
+        wait_for(
+            driver,
+            lambda d: text(d, "train-status").startswith("Trained") or text(d, "train-error"),
+            "the training's report",
+            timeout_s=120,
+        )
+        assert text(driver, "train-error") == ""
+        assert text(driver, "train-report-images") == "8"
+        assert text(driver, "train-report-model") == "models/qc_surface.v1.npz"
+        assert text(driver, "train-model-version") == "1"
+        assert (tmp_path / "models" / "qc_surface.v1.npz").is_file()
+
+        # The operator views the model in force; training is the integrator's.
+        driver.delete_all_cookies()
+        driver.get(f"{server.url}#/inspections")
+        wait_for(driver, lambda d: visible_page(d) == "page-login", "the login page")
+        driver.find_element(By.ID, "login-user").send_keys("anna")
+        driver.find_element(By.ID, "login-pin").send_keys(ANNA_PIN)
+        driver.find_element(By.ID, "login-submit").click()
+        wait_for(driver, lambda d: visible_page(d) == "page-inspections", "the inspections page")
+        open_inspection(driver, "qc_surface")
+        wait_for(
+            driver,
+            lambda d: d.find_element(By.ID, "train-model-facts").is_displayed(),
+            "the model in force for the operator",
+        )
+        assert text(driver, "train-model-file") == "models/qc_surface.v1.npz"
+        assert not driver.find_element(By.ID, "train-work").is_displayed()
+        assert not driver.find_element(By.ID, "train-run").is_displayed()
         assert console_errors(driver) == []
