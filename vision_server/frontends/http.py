@@ -78,6 +78,7 @@ from .http_live import LiveView
 from .http_metrics import CONTENT_TYPE, Metrics
 from .http_online import OnlineRoutes
 from .http_operator import OperatorRoutes
+from .http_train import TRAIN_PATH, TrainRoutes
 from .http_users import SignIn, SignInError, TooManyTries
 from .listener import Listener, Policy, quiet_logger
 from .online_board import OnlineBoard
@@ -156,6 +157,7 @@ class HttpFrontend:
         self.live: LiveView | None = None
         self.metrics: Metrics | None = None
         self._builder = BuildRoutes(self, service)
+        self._trainer = TrainRoutes(self, service)
         self._timings: TimingsCache | None = None
         """The statistics' columns of the result log, read incrementally (GET /api/stats)."""
         self.online: OnlineBoard | None = None
@@ -236,6 +238,7 @@ class HttpFrontend:
             self.online = None
         if self.live is not None:
             self.live.close()
+        self._trainer.close()
 
     def build(self) -> web.Application:
         app = web.Application(
@@ -263,6 +266,7 @@ class HttpFrontend:
         self._builder.add_to(routes)
         HistoryRoutes(self, self.service).add_to(routes)
         ImpactRoutes(self.service, self.settings, self.written).add_to(routes)
+        self._trainer.add_to(routes)
         if self.online is None:
             self.online = OnlineBoard(self.service)
         OnlineRoutes(self.online, timeout_s=self.settings.request_timeout_s).add_to(routes)
@@ -949,6 +953,7 @@ INTEGRATOR_ROUTES = (
             "/api/inspections/{name}/save",
             "/api/history/{version}/revert",
             IMPACT_PATH,
+            TRAIN_PATH,
             "/api/online/reset",
         }
     )

@@ -44,6 +44,19 @@ export function pendingChange() {
   return { name: page.selected.name, config: clone(page.config) };
 }
 
+/**
+ * Read the inspections again after the configuration changed from another panel of the page
+ * (the Train panel wrote ``model:``), keeping the inspection shown; its pending changes stay
+ * when it has any, else it shows the configuration as now loaded.
+ */
+export async function reloadInspections() {
+  if (page === null) return;
+  if (page.selected !== null && !page.selected.draft && !page.isDirty()) page.config = null;
+  await page.load();
+  const name = page.selected?.name;
+  if (name && page.config === null) page.select(name);
+}
+
 const STAGE_MARGIN_PX = 300;   // the window's height less this is the image's at most
 
 function fitImage(image, stage) {
