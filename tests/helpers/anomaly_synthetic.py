@@ -49,8 +49,10 @@ def _canonical_part() -> NDArray[np.float32]:
         cv2.circle(part, (cx, cy), 9, 45.0, -1, cv2.LINE_AA)
         cv2.circle(part, (cx, cy), 13, 150.0, 2, cv2.LINE_AA)
     cv2.rectangle(part, (70, 96), (154, 128), 120.0, 2, cv2.LINE_AA)
-    cv2.putText(part, "C31", (82, 122), cv2.FONT_HERSHEY_SIMPLEX, 0.8, 60.0, 2, cv2.LINE_AA)
-    return part
+    ink = np.zeros((SIZE, SIZE), np.uint8)  # putText draws on 8 bits only
+    cv2.putText(ink, "C31", (82, 122), cv2.FONT_HERSHEY_SIMPLEX, 0.8, 255, 2, cv2.LINE_AA)
+    alpha = ink.astype(np.float32) / 255.0
+    return np.asarray(part * (1.0 - alpha) + 60.0 * alpha, np.float32)
 
 
 _PART = _canonical_part()

@@ -292,7 +292,14 @@ def model_from_bytes(data: bytes) -> AnomalyModel:
         with np.load(io.BytesIO(data), allow_pickle=False) as archive:
             arrays = {name: archive[name] for name in archive.files}
         meta = json.loads(bytes(arrays.pop("meta")).decode("utf-8"))
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, UnicodeDecodeError) as exc:
+    except (
+        OSError,
+        EOFError,  # an empty file: np.load finds no magic number
+        ValueError,
+        KeyError,
+        zipfile.BadZipFile,
+        UnicodeDecodeError,
+    ) as exc:
         raise AnomalyError(f"not a cellvision anomaly model ({exc})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise AnomalyError("not a cellvision anomaly model")
