@@ -135,9 +135,9 @@ def _plate_canvas() -> NDArray[np.float32]:
     canvas += _texture(height, width, 11) * 0.6
     ox, oy = int(PLATE_ORIGIN[0]), int(PLATE_ORIGIN[1])
     cv2.circle(canvas, (ox, oy), 12, 40.0, -1, cv2.LINE_AA)
-    cv2.circle(canvas, (ox + 100, oy), 7, 40.0, -1, cv2.LINE_AA)
-    cv2.rectangle(canvas, (58, 30), (106, 90), 140.0, 2, cv2.LINE_AA)
-    cv2.line(canvas, (62, 60), (102, 60), 120.0, 2, cv2.LINE_AA)
+    cv2.circle(canvas, (ox + 100, oy), 9, 40.0, -1, cv2.LINE_AA)
+    cv2.rectangle(canvas, (56, 30), (84, 90), 140.0, 2, cv2.LINE_AA)
+    cv2.line(canvas, (60, 60), (80, 60), 120.0, 2, cv2.LINE_AA)
     return canvas
 
 
