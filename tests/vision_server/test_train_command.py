@@ -1,0 +1,262 @@
+"""``vision-server train`` end to end in a folder of its own: it writes models/NAME.v1.npz, points
+the inspection's ``model:`` at it (the file's history records the change, ``vision-server
+history`` lists it), and a second training writes v2; ``--json`` reports the threshold, its
+false-reject rate and the held-out scores; too few images, an unreadable image, a pattern that
+matches nothing, an unknown or untrainable inspection are exit 2 with a code naming the cause,
+and leave the configuration and the models folder as they were."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from anomaly_synthetic import SIZE, defective_part, good_part
+
+from vision_server import InspectionInput
+from vision_server.analysis.anomaly import image_digest, load_model
+from vision_server.commands import main
+from vision_server.config import load_config
+
+ROI = (10, 6, SIZE, SIZE)
+CONFIG = f"""\
+# the press line's camera 2
+cameras:
+  cam: {{source: request}}
+inspections:
+  - name: surface
+    type: anomaly
+    camera: cam
+    roi: [{ROI[0]}, {ROI[1]}, {ROI[2]}, {ROI[3]}]
+    method: variation   # aligned parts
+  - name: dark
+    type: presence
+    camera: cam
+    roi: [0, 0, 10, 10]
+    measure: dark_fraction
+    threshold: 100
+    min: 0.5
+"""
+
+
+def scene(part: np.ndarray) -> np.ndarray:
+    image = np.full((250, 250, 3), 40, np.uint8)
+    u, v, w, h = ROI
+    image[v : v + h, u : u + w] = part
+    return image
+
+
+@pytest.fixture
+def cell(tmp_path: Path) -> Path:
+    """A cell folder: cell.yaml and good/00.png .. good/11.png (whole camera images)."""
+    (tmp_path / "cell.yaml").write_text(CONFIG, encoding="utf-8")
+    good = tmp_path / "good"
+    good.mkdir()
+    rng = np.random.default_rng(4)
+    for index in range(12):
+        cv2.imwrite(str(good / f"{index:02d}.png"), scene(good_part(rng)))
+    return tmp_path
+
+
+def clean_env() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if k != "CELLVISION_CONFIG"}
+
+
+def cli(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "vision_server", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+        cwd=cwd,
+        env=clean_env(),
+    )
+
+
+def test_train_writes_the_model_points_the_configuration_at_it_and_records_history(
+    cell: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    before = load_config(cell / "cell.yaml")
+    done = cli(
+        cell, "train", "surface", "--config", "cell.yaml", "--images", "good/*.png", "--json"
+    )
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert report["inspection"] == "surface"
+    assert report["model"] == "models/surface.v1.npz"
+    assert report["method"] == "variation"
+    assert report["version"] == 1
+    assert report["images"] == 12
+    assert report["false_reject"] == 0.01
+    assert len(report["held_out_scores"]) == 12
+    assert report["threshold"] >= max(report["held_out_scores"]) * 0.5
+    assert 0.0 <= report["held_out_rejected"] <= 1.0
+    assert report["skipped"] == []
+    assert report["seconds"] >= 0
+    model_file = cell / "models" / "surface.v1.npz"
+    model = load_model(model_file)
+    assert model.threshold == report["threshold"]
+    # The model was trained on the ROIs cut from the whole images, as the inspection cuts them.
+    u, v, w, h = ROI
+    cut = [
+        np.ascontiguousarray(cv2.imread(str(p))[v : v + h, u : u + w])
+        for p in sorted((cell / "good").glob("*.png"))
+    ]
+    assert model.meta["images"] == [image_digest(image) for image in cut]
+    text = (cell / "cell.yaml").read_text(encoding="utf-8")
+    assert '    model: "models/surface.v1.npz"\n' in text
+    assert text.replace('    model: "models/surface.v1.npz"\n', "") == CONFIG
+    after = load_config(cell / "cell.yaml")
+    assert after.config_hash != before.config_hash
+    (inspection, _) = after.inspections
+    rng = np.random.default_rng(40)
+    assert inspection.run(InspectionInput(scene(good_part(rng))), overlay=False).passed
+    scratched, _ = defective_part(rng, "scratch")
+    assert not inspection.run(InspectionInput(scene(scratched)), overlay=False).passed
+
+    listed = cli(cell, "history", "--config", "cell.yaml", "--json")
+    assert listed.returncode == 0, listed.stderr
+    versions = [json.loads(line) for line in listed.stdout.splitlines()]  # newest first
+    newest = versions[0]
+    assert newest["why"] == "trained models/surface.v1.npz on 12 images"
+    assert newest["who"] == "vision-server train"
+    assert newest["config_hash"] == after.config_hash
+
+    # A second training, in process: v2, the configuration moves on, v1 stays.
+    code = main(
+        [
+            "train",
+            "surface",
+            "--config",
+            str(cell / "cell.yaml"),
+            "--images",
+            str(cell / "good") + "/0*.png",
+        ]
+    )
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "threshold" in out.out
+    assert "false-reject rate of 0.01" in out.out
+    assert "models/surface.v2.npz" in out.out
+    assert "vision-server reload" in out.out
+    assert model_file.is_file()
+    assert load_model(cell / "models" / "surface.v2.npz").version == 2
+    text = (cell / "cell.yaml").read_text(encoding="utf-8")
+    assert '    model: "models/surface.v2.npz"\n' in text
+    assert "surface.v1.npz" not in text
+    assert load_config(cell / "cell.yaml").config_hash not in (
+        before.config_hash,
+        after.config_hash,
+    )
+    listed = cli(cell, "history", "--config", "cell.yaml")
+    assert listed.returncode == 0, listed.stderr
+    assert "trained models/surface.v2.npz on 10 images" in listed.stdout
+    assert "trained models/surface.v1.npz on 12 images" in listed.stdout
+
+
+def run_json(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, dict[str, Any]]:
+    code = main(["train", *args, "--json"])
+    return code, json.loads(capsys.readouterr().out)
+
+
+def unchanged(cell: Path) -> None:
+    assert (cell / "cell.yaml").read_text(encoding="utf-8") == CONFIG
+    assert not (cell / "models").exists() or not any((cell / "models").iterdir())
+
+
+def test_too_few_images_exit_2_with_too_few_images(
+    cell: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, report = run_json(
+        capsys,
+        "surface",
+        "--config",
+        str(cell / "cell.yaml"),
+        "--images",
+        f"{cell}/good/0[0-6].png",
+    )
+    assert code == 2
+    assert report["error"]["code"] == "TOO_FEW_IMAGES"
+    assert "7 images: training needs at least 8" in report["error"]["message"]
+    assert report["error"]["kind"] == "usage"
+    unchanged(cell)
+
+
+def test_an_unreadable_image_exits_2_naming_the_file(
+    cell: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    broken = cell / "good" / "05.png"
+    broken.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    code, report = run_json(
+        capsys, "surface", "--config", str(cell / "cell.yaml"), "--images", f"{cell}/good/*.png"
+    )
+    assert code == 2
+    assert report["error"]["code"] == "BAD_IMAGE"
+    assert "05.png" in report["error"]["message"]
+    assert "not an image" in report["error"]["message"]
+    unchanged(cell)
+
+
+def test_an_image_smaller_than_the_roi_is_left_out_and_named(
+    cell: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cv2.imwrite(str(cell / "good" / "small.png"), np.zeros((100, 100, 3), np.uint8))
+    code, report = run_json(
+        capsys, "surface", "--config", str(cell / "cell.yaml"), "--images", f"{cell}/good/*.png"
+    )
+    assert code == 0, report
+    assert report["images"] == 12
+    (skipped,) = report["skipped"]
+    assert "small.png" in skipped
+    assert "reaches past the 100x100 image" in skipped
+
+
+@pytest.mark.parametrize(
+    ("args", "code_name", "cause"),
+    [
+        (["surface", "--images", "nothing/*.png"], "NO_IMAGES", "no file matches"),
+        (["nobody", "--images", "good/*.png"], "NOT_FOUND", "no inspection 'nobody'"),
+        (["dark", "--images", "good/*.png"], "NOT_TRAINABLE", "is a presence inspection"),
+        (["surface", "--images", "good/*.png", "--step", "x"], "NOT_TRAINABLE", "has no steps"),
+        (["surface", "--images", "good/*.png", "--false-reject", "0.7"], "USAGE", "(0, 0.5)"),
+    ],
+    ids=["no-match", "unknown", "presence", "step-of-non-job", "rate"],
+)
+def test_what_cannot_be_trained_exits_2_naming_the_cause(
+    cell: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    args: list[str],
+    code_name: str,
+    cause: str,
+) -> None:
+    monkeypatch.chdir(cell)
+    code, report = run_json(capsys, *args, "--config", "cell.yaml")
+    assert code == 2
+    assert report["error"]["code"] == code_name
+    assert cause in report["error"]["message"]
+    unchanged(cell)
+
+
+def test_a_broken_configuration_or_none_exits_2(
+    cell: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("CELLVISION_CONFIG", raising=False)
+    monkeypatch.chdir(cell)
+    code, report = run_json(capsys, "surface", "--images", "good/*.png")
+    assert code == 2
+    assert report["error"]["code"] == "USAGE"
+    (cell / "bad.yaml").write_text("inspections: [", encoding="utf-8")
+    code, report = run_json(capsys, "surface", "--images", "good/*.png", "--config", "bad.yaml")
+    assert code == 2
+    assert report["error"]["code"] == "CONFIG_INVALID"
+    # Without --json the code and the cause go to stderr.
+    assert main(["train", "surface", "--images", "none/*.png", "--config", "cell.yaml"]) == 2
+    assert "NO_IMAGES" in capsys.readouterr().err
