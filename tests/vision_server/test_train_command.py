@@ -260,3 +260,43 @@ def test_a_broken_configuration_or_none_exits_2(
     # Without --json the code and the cause go to stderr.
     assert main(["train", "surface", "--images", "none/*.png", "--config", "cell.yaml"]) == 2
     assert "NO_IMAGES" in capsys.readouterr().err
+
+
+JOB = f"""\
+cameras:
+  cam: {{source: request}}
+inspections:
+  - name: line
+    type: job
+    camera: cam
+    steps:
+      - name: face
+        type: anomaly
+        roi: [{ROI[0]}, {ROI[1]}, {ROI[2]}, {ROI[3]}]
+        method: variation
+      - name: edge
+        type: anomaly
+        roi: [0, 0, 64, 64]
+        method: variation
+"""
+
+
+def test_a_jobs_anomaly_step_is_trained_with_step(
+    cell: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = cell / "job.yaml"
+    config.write_text(JOB, encoding="utf-8")
+    args = ["line", "--config", str(config), "--images", f"{cell}/good/*.png"]
+    code, report = run_json(capsys, *args)
+    assert code == 2
+    assert report["error"]["code"] == "NOT_TRAINABLE"
+    assert "2 anomaly steps (face, edge): name one with --step" in report["error"]["message"]
+    code, report = run_json(capsys, *args, "--step", "face")
+    assert code == 0, report
+    assert report["model"] == "models/line.face.v1.npz"
+    text = config.read_text(encoding="utf-8")
+    assert text.count("model:") == 1
+    assert '        model: "models/line.face.v1.npz"\n' in text
+    (job,) = load_config(config).inspections
+    assert job.steps[0].settings.model.image_size == ROI[2:]  # type: ignore[attr-defined]
+    assert job.steps[1].settings.model is None  # type: ignore[attr-defined]
