@@ -22,7 +22,7 @@ from anomaly_synthetic import SIZE, defective_part, good_part
 from vision_server import InspectionInput
 from vision_server.analysis.anomaly import image_digest, load_model
 from vision_server.commands import main
-from vision_server.config import load_config
+from vision_server.config import ConfigError, load_config
 
 ROI = (10, 6, SIZE, SIZE)
 CONFIG = f"""\
@@ -300,3 +300,33 @@ def test_a_jobs_anomaly_step_is_trained_with_step(
     (job,) = load_config(config).inspections
     assert job.steps[0].settings.model.image_size == ROI[2:]  # type: ignore[attr-defined]
     assert job.steps[1].settings.model is None  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("damage", ["roi", "file"])
+def test_retraining_cures_a_model_the_configuration_refuses(
+    cell: Path, capsys: pytest.CaptureFixture[str], damage: str
+) -> None:
+    """The configuration error says "retrain it": training must then work (a resized ROI, a
+    damaged model file), and the new model makes the configuration load again."""
+    config = cell / "cell.yaml"
+    args = ["surface", "--config", str(config), "--images", f"{cell}/good/*.png"]
+    assert run_json(capsys, *args)[0] == 0
+    if damage == "roi":
+        text = config.read_text(encoding="utf-8")
+        config.write_text(text.replace(f"roi: [10, 6, {SIZE}", "roi: [10, 6, 200"), "utf-8")
+    else:
+        (cell / "models" / "surface.v1.npz").write_bytes(b"not a model")
+    with pytest.raises(ConfigError, match="surface.v1.npz"):
+        load_config(config)
+    code, report = run_json(capsys, *args)
+    assert code == 0, report
+    assert report["model"] == "models/surface.v2.npz"
+    (inspection, _) = load_config(config).inspections
+    size = (200, SIZE) if damage == "roi" else (SIZE, SIZE)
+    assert inspection.settings.model.image_size == size  # type: ignore[attr-defined]
+    # Another inspection's error is not excused: the configuration stays refused.
+    text = config.read_text(encoding="utf-8")
+    config.write_text(text.replace("min: 0.5", "min: 7"), "utf-8")
+    code, report = run_json(capsys, *args)
+    assert code == 2
+    assert report["error"]["code"] == "CONFIG_INVALID"

@@ -34,7 +34,16 @@ from numpy.typing import NDArray
 from protocol.cli import CONFIG_ENV, ErrorKind, ExitCode, json_error
 
 from ..analysis import ANOMALY_METHODS, MIN_GOOD_IMAGES, AnomalyError
-from ..config import ConfigError, ModelKeyError, history, load_config
+from ..config import (
+    CellConfig,
+    ConfigError,
+    ModelKeyError,
+    history,
+    load_config,
+    parse_config,
+    parse_document,
+    set_model_key,
+)
 from ..service import Trained, TrainingError, train_inspection, training_patches
 
 MAX_FILES = 1000
@@ -172,7 +181,7 @@ def _train(args: argparse.Namespace, *, quiet: bool) -> tuple[Trained, Path]:
         raise TrainUsage("USAGE", f"--false-reject must be in (0, 0.5), got {args.false_reject}")
     try:
         old = path.read_bytes()
-        config = load_config(path)
+        config = _config_to_train(path, old, args.inspection, args.step)
     except (ConfigError, OSError) as exc:
         raise TrainUsage("CONFIG_INVALID", f"invalid configuration: {exc}") from None
     inspection = next((i for i in config.inspections if i.name == args.inspection), None)
@@ -221,6 +230,27 @@ def _train(args: argparse.Namespace, *, quiet: bool) -> tuple[Trained, Path]:
     except OSError as exc:
         raise TrainUsage("WRITE_FAILED", f"{path}: {exc}") from None
     return Trained(**{**trained.__dict__, "skipped": tuple(skipped)}), path
+
+
+RETRAINING = "models/.retraining-{name}.absent.npz"
+"""Where the inspection's model is read from while it is retrained: a file that is not there."""
+
+
+def _config_to_train(path: Path, data: bytes, name: str, step: str | None) -> CellConfig:
+    """The configuration, loaded. When it is refused, it is loaded again with the trained
+    inspection's ``model:`` pointing at no file: the refusal may be that model's own (an ROI
+    resized since, a damaged file: the error says "retrain it"), and training is the cure. Any
+    other error is still the first one."""
+    try:
+        return load_config(path)
+    except ConfigError as refused:
+        try:
+            text = data.decode("utf-8")
+            untrained = set_model_key(text, name, RETRAINING.format(name=name), step=step)
+            root = parse_document(untrained, source=path.name)
+            return parse_config(root, text=text, base_dir=path.resolve().parent, source=path)
+        except (ConfigError, ModelKeyError, UnicodeDecodeError):
+            raise refused from None
 
 
 def _progress(message: str) -> None:
