@@ -390,3 +390,18 @@ def test_equal_scores_give_that_score_and_few_spread_scores_reach_past_the_highe
     # 30 scores cannot show a 1 % tail: the fitted tail lies above the highest seen
     assert set_threshold(scores, 0.01) > max(scores)
     assert set_threshold(scores, 0.2) < max(scores)
+
+
+def test_an_archive_that_unpacks_too_large_is_refused_before_unpacking(
+    files: dict[str, bytes], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from vision_server.analysis.anomaly import model as model_module
+
+    monkeypatch.setattr(model_module, "MAX_MODEL_BYTES", 1 << 20)
+    assert model_from_bytes(files["variation"]).method == "variation"  # 0.4 MiB unpacked
+    arrays = _arrays(files["variation"])
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays, padding=np.zeros(2 << 20, np.uint8))
+    assert len(buffer.getvalue()) < 1 << 20
+    with pytest.raises(AnomalyError, match="unpack to 2 MiB, more than 1 MiB"):
+        model_from_bytes(buffer.getvalue())
