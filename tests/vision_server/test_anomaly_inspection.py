@@ -408,3 +408,40 @@ def test_the_job_overlay_has_the_heat_map_in_the_parts_frame(
     # A corner of the camera image far from the plate keeps its grey.
     corner = picture[-20:, -20:].astype(int)
     assert (np.abs(corner[..., 0] - corner[..., 2]) < 3).all()
+
+
+def test_an_unfixtured_job_step_draws_its_heat_map_over_its_roi(cell: Cell) -> None:
+    """A job step without a fixture judges its fixed ROI; the heat map lands there."""
+    model = cell.folder / "models" / "surface.v1.npz"
+    text = f"""\
+cameras:
+  cam: {{source: request}}
+inspections:
+  - name: line
+    type: job
+    camera: cam
+    steps:
+      - name: face
+        type: anomaly
+        roi: [{ROI[0]}, {ROI[1]}, {ROI[2]}, {ROI[3]}]
+        model: "{model}"
+"""
+    (job,) = load_config(write(cell.folder, text, "job.yaml")).inspections
+    good = job.run(InspectionInput(cell.good[0]), overlay=False)
+    assert good.passed, good.data
+    direct = cell.inspection.run(InspectionInput(cell.good[0]), overlay=False)
+    assert good.data["steps"]["face"]["score"] == direct.data["score"]
+    kind, image, mask = cell.bad[1]
+    outcome = job.run(InspectionInput(image), overlay=True)
+    assert not outcome.passed
+    assert outcome.data["failed"] == ["face"]
+    picture = outcome.overlay
+    assert picture is not None
+    ys, xs = np.nonzero(mask)
+    hot = picture[ys, xs].astype(int)
+    assert (hot[:, 2] - hot[:, 0]).max() > 40, kind
+    # Below and right of the ROI the belt keeps its grey.
+    u, v, w, h = ROI
+    outside = picture[v + h + 2 :, u + w + 2 :].astype(int)
+    assert outside.size
+    assert (np.abs(outside[..., 0] - outside[..., 2]) < 3).all()
