@@ -330,3 +330,99 @@ def test_retraining_cures_a_model_the_configuration_refuses(
     code, report = run_json(capsys, *args)
     assert code == 2
     assert report["error"]["code"] == "CONFIG_INVALID"
+
+
+def test_a_running_server_takes_the_model_on_reload_without_a_restart(cell: Path) -> None:
+    """serve → the untrained inspection fails with INSPECTION_FAILED → train --reload → the
+    same server process judges with the model: a good part passes, a scratched one fails."""
+    from cli_tools import LISTENING, TOOLS, _env, tool
+
+    config = cell / "cell.yaml"
+    config.write_text(
+        "server: {port: 0, allow_reload: true}\nresults: {enabled: false}\n" + CONFIG, "utf-8"
+    )
+    rng = np.random.default_rng(41)
+    cv2.imwrite(str(cell / "part.png"), scene(good_part(rng)))
+    cv2.imwrite(str(cell / "scratched.png"), scene(defective_part(rng, "scratch")[0]))
+    proc = subprocess.Popen(
+        [*TOOLS["vision-server"], "serve", "--config", str(config)],
+        cwd=cell,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        bufsize=0,
+        env=_env(),
+    )
+    try:
+        assert proc.stdout is not None
+        match = LISTENING.fullmatch(proc.stdout.readline().decode())
+        assert match, proc.communicate(timeout=30)
+        address = f"127.0.0.1:{match[2]}"
+
+        def inspect(image: str) -> dict[str, Any]:
+            done = tool(
+                "robot-client",
+                "--server",
+                address,
+                "inspect",
+                "surface",
+                "--json",
+                "--image",
+                str(cell / image),
+            )
+            answer: dict[str, Any] = json.loads(done.stdout.splitlines()[-1])
+            return answer
+
+        untrained = inspect("part.png")
+        assert untrained["error"]["code"] == "INSPECTION_FAILED", untrained
+        assert "vision-server train surface" in untrained["error"]["message"]
+        trained = tool(
+            "vision-server",
+            "train",
+            "surface",
+            "--config",
+            str(config),
+            "--images",
+            f"{cell}/good/*.png",
+            "--reload",
+            "--server",
+            address,
+            "--json",
+        )
+        assert trained.returncode == 0, trained.stderr
+        lines = trained.stdout.splitlines()
+        assert len(lines) == 1, "--json prints one object"
+        report = json.loads(lines[0])
+        assert report["model"] == "models/surface.v1.npz"
+        assert report["reload"]["config_hash"] == load_config(config).config_hash
+        assert "surface" in report["reload"]["inspections"]
+        good = inspect("part.png")
+        assert good["verdict"] == "pass", good
+        assert good["data"]["model_version"] == 1
+        bad = inspect("scratched.png")
+        assert bad["verdict"] == "fail", bad
+        assert proc.poll() is None  # the same process throughout
+        # A reload that reaches no server: exit 3, the model written, one object still.
+        proc.kill()
+        proc.communicate(timeout=30)
+        again = tool(
+            "vision-server",
+            "train",
+            "surface",
+            "--config",
+            str(config),
+            "--images",
+            f"{cell}/good/*.png",
+            "--reload",
+            "--server",
+            address,
+            "--json",
+        )
+        assert again.returncode == 3, again.stderr
+        (line,) = again.stdout.splitlines()
+        report = json.loads(line)
+        assert report["model"] == "models/surface.v2.npz"
+        assert report["reload"]["error"]["kind"] == "connection"
+        assert (cell / "models" / "surface.v2.npz").is_file()
+    finally:
+        proc.kill()
+        proc.communicate(timeout=30)

@@ -13,13 +13,16 @@ no downtime. Nothing here needs a network.
 
 Exit codes: 0 trained; 2 usage, configuration or images that cannot be trained on (too few,
 sizes that differ, unreadable files); 3 the model was written but ``--reload`` could not reach
-the server. With ``--json`` the report (or the error) is one JSON object on stdout.
+the server. With ``--json`` the report (or the error) is one JSON object on stdout; with
+``--reload`` too, the reload's answer (or its error) is its ``reload``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import glob
+import io
 import json
 import os
 import sys
@@ -110,7 +113,16 @@ def train_command(args: argparse.Namespace, reload: Callable[[argparse.Namespace
         return int(ExitCode.USAGE)
     report = trained.report
     if json_out:
-        print(json.dumps(_report_json(args.inspection, trained, path)))
+        answer = _report_json(args.inspection, trained, path)
+        if args.reload:
+            # One JSON object on stdout: the reload's answer (or its error) goes inside it.
+            captured = io.StringIO()
+            with contextlib.redirect_stdout(captured):
+                status = reload(args)
+            answer["reload"] = _last_object(captured.getvalue())
+            print(json.dumps(answer))
+            return 0 if status == 0 else int(ExitCode.CONNECTION)
+        print(json.dumps(answer))
     else:
         print(
             f"{args.inspection}: trained {trained.model.method} on {report.images} images in "
@@ -126,6 +138,19 @@ def train_command(args: argparse.Namespace, reload: Callable[[argparse.Namespace
     if args.reload:
         return 0 if reload(args) == 0 else int(ExitCode.CONNECTION)
     return int(ExitCode.OK)
+
+
+def _last_object(text: str) -> Any:
+    """The last line of ``text`` that is a JSON object (what a command printed with --json),
+    or the text itself when there is none."""
+    for line in reversed(text.splitlines()):
+        try:
+            value = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(value, dict):
+            return value
+    return text.strip()
 
 
 def _report_json(name: str, trained: Trained, path: Path) -> dict[str, Any]:
