@@ -426,3 +426,54 @@ def test_a_running_server_takes_the_model_on_reload_without_a_restart(cell: Path
     finally:
         proc.kill()
         proc.communicate(timeout=30)
+
+
+def test_images_whose_fixture_finds_no_part_are_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from anomaly_synthetic import PLATE_WINDOW, placed_plate
+
+    config = tmp_path / "job.yaml"
+    config.write_text(
+        f"""\
+cameras:
+  cam: {{source: request}}
+inspections:
+  - name: plate
+    type: job
+    camera: cam
+    steps:
+      - name: hole
+        type: locate
+        method: circle
+        circle: {{min_radius_px: 10, max_radius_px: 15, polarity: dark}}
+        max_count: 1
+      - name: part
+        type: fixture
+        origin: hole
+      - name: surface
+        type: anomaly
+        fixture: part
+        roi: {list(PLATE_WINDOW)}
+        method: variation
+""",
+        "utf-8",
+    )
+    rng = np.random.default_rng(5)
+    for index in range(10):
+        image = (
+            placed_plate(rng, 130.0, 120.0, 0.0)[0]
+            if index < 3
+            else np.full((240, 320), 40, np.uint8)
+        )
+        cv2.imwrite(str(tmp_path / f"{index:02d}.png"), image)
+    code, report = run_json(
+        capsys, "plate", "--config", str(config), "--images", f"{tmp_path}/*.png"
+    )
+    assert code == 2
+    assert report["error"]["code"] == "NOT_TRAINABLE"
+    message = report["error"]["message"]
+    assert "7 of 10 images could not be used" in message
+    assert "03.png" in message
+    assert "fixture 'part' was not made" in message or "found nothing" in message
+    assert not (tmp_path / "models").exists()

@@ -229,6 +229,13 @@ def _train(args: argparse.Namespace, *, quiet: bool) -> tuple[Trained, Path]:
             skipped.extend(f"{file}: {why.split(': ', 1)[-1]}" for why in left_out)
     except TrainingError as exc:
         raise TrainUsage("NOT_TRAINABLE", str(exc)) from None
+    if len(skipped) > len(files) // 2:
+        # As the service's training says it: most images left out is a fixture that does not
+        # find the part (or an ROI off the images), not a few bad images to skip.
+        raise TrainUsage(
+            "NOT_TRAINABLE",
+            f"{len(skipped)} of {len(files)} images could not be used: " + "; ".join(skipped[:3]),
+        )
     progress = None if quiet else _progress
     try:
         trained = train_inspection(
