@@ -445,3 +445,26 @@ inspections:
     outside = picture[v + h + 2 :, u + w + 2 :].astype(int)
     assert outside.size
     assert (np.abs(outside[..., 0] - outside[..., 2]) < 3).all()
+
+
+def test_a_job_steps_roi_of_another_size_or_its_threshold(
+    job: tuple[JobInspection, Any], tmp_path: Path
+) -> None:
+    _, trained = job
+    with_model = JOB.replace("method: variation", f'model: "{trained.path}"')
+    w, h = PLATE_WINDOW[2:]
+    resized = with_model.replace(f"{w}, {h}]", f"{w}, {h + 8}]")
+    with pytest.raises(ConfigError) as caught:
+        load_config(write(tmp_path, resized))
+    message = str(caught.value)
+    assert f"trained on {w}x{h} images; this step's ROI is {w}x{h + 8}" in message
+    assert "steps[4] (name='surface') -> model" in message
+    lenient = with_model.replace(
+        f'model: "{trained.path}"', f'model: "{trained.path}"\n        threshold: 100000.0'
+    )
+    (inspection,) = load_config(write(tmp_path, lenient)).inspections
+    rng = np.random.default_rng(80)
+    image, _ = placed_plate(rng, 130.0, 120.0, 0.1, defect="hole")
+    outcome = inspection.run(InspectionInput(image), overlay=False)
+    assert outcome.passed, outcome.data["steps"]["surface"]
+    assert outcome.data["steps"]["surface"]["threshold"] == 100000.0
