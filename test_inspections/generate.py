@@ -768,6 +768,70 @@ def plate_case() -> None:
     write_expected("fixtured_plate", entries, {"tolerance_px": 0.3})
 
 
+ANOMALY_CASE = "anomaly_surface"
+ANOMALY_PART = 128
+"""The part's side in the stored images (px): the synthetic part of the tests, scaled down."""
+ANOMALY_ROI = (16, 11, ANOMALY_PART, ANOMALY_PART)
+ANOMALY_IMAGE = (160, 150)
+ANOMALY_VIEWS: tuple[tuple[str, str | None, int, str], ...] = (
+    ("good_a.png", None, 101, "a good part"),
+    ("good_b.png", None, 102, "a good part"),
+    ("good_c.png", None, 103, "a good part"),
+    ("scratch.png", "scratch", 104, "a dark scratch about 20 px long"),
+    ("hole.png", "hole", 105, "a drilled hole where there is none"),
+    ("stain.png", "stain", 106, "a soft dark stain"),
+    ("empty.png", "empty", 107, "no part: the bare belt"),
+)
+
+
+def anomaly_case() -> None:
+    """anomaly (method variation): a model trained on 20 good synthetic parts
+    (tests/helpers/anomaly_synthetic.py), committed beside the case, judges good parts and
+    parts with a scratch, a hole or a stain. Verdicts from what was drawn."""
+    sys.path.insert(0, str(REPO / "tests" / "helpers"))
+    from anomaly_synthetic import defective_part, good_part
+
+    from vision_server.analysis.anomaly import model_bytes, train_model
+
+    side = (ANOMALY_PART, ANOMALY_PART)
+
+    def small(part: Array) -> Array:
+        grey = cv2.cvtColor(part, cv2.COLOR_BGR2GRAY)
+        return np.asarray(cv2.resize(grey, side, interpolation=cv2.INTER_AREA), np.uint8)
+
+    def scene(part: Array | None, rng: np.random.Generator) -> Array:
+        width, height = ANOMALY_IMAGE
+        image = np.full((height, width), 45.0) + rng.normal(0.0, 2.0, (height, width))
+        if part is not None:
+            u, v, w, h = ANOMALY_ROI
+            image[v : v + h, u : u + w] = part
+        return np.clip(np.round(image), 0, 255).astype(np.uint8)
+
+    rng = np.random.default_rng(3100)
+    training = [small(good_part(rng)) for _ in range(20)]
+    model, _ = train_model(training, method="variation", false_reject=0.01, version=1)
+    # No training time in the file: the generator writes the same model every run.
+    meta = {k: v for k, v in model.meta.items() if k != "trained_at"}
+    model = type(model)(
+        model.method, model.image_size, model.threshold, model.false_reject, model.scorer, meta
+    )
+    models = HERE / ANOMALY_CASE / "models"
+    models.mkdir(parents=True, exist_ok=True)
+    (models / "surface.v1.npz").write_bytes(model_bytes(model))
+    entries: Entries = {}
+    for name, defect, seed, note in ANOMALY_VIEWS:
+        view_rng = np.random.default_rng(seed)
+        if defect is None:
+            part: Array | None = small(good_part(view_rng))
+        elif defect == "empty":
+            part = None
+        else:
+            part = small(defective_part(view_rng, defect)[0])  # type: ignore[arg-type]
+        write_png(HERE / ANOMALY_CASE / "images" / name, scene(part, view_rng))
+        entries[name] = {"verdict": "pass" if defect is None else "fail", "note": note}
+    write_expected(ANOMALY_CASE, entries, {})
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -784,8 +848,9 @@ def main() -> int:
             "template",
             "real",
             "plate",
+            "anomaly",
         ],
-        help="caps, qc, qr, qr_pose, board, codes, caliper, template, real, plate",
+        help="caps, qc, qr, qr_pose, board, codes, caliper, template, real, plate, anomaly",
     )
     args = parser.parse_args()
     steps = {
@@ -799,6 +864,7 @@ def main() -> int:
         "template": template_scale_case,
         "real": real_case,
         "plate": plate_case,
+        "anomaly": anomaly_case,
     }
     for name in args.cases:
         steps[name]()

@@ -85,6 +85,7 @@ def test_the_corpus_passes_and_covers_every_type_and_method() -> None:
         ("presence", None),
         ("qr", None),
         ("qr_pose", "plane"),
+        ("anomaly", None),
     } <= kinds
     assert sum(f.stat().st_size for f in CORPUS.rglob("*.png")) < 3_000_000
 

@@ -377,7 +377,7 @@ def error_of(tmp_path: Path, steps: str, verdict: str | None = None) -> ConfigEr
             None,
             "type: gauge",
             "steps[4] (name='magnet') -> type",
-            "expected one of locate, fixture, presence, code, caliper, got 'gauge'",
+            "expected one of locate, fixture, presence, code, caliper, anomaly, got 'gauge'",
         ),
         (
             MAGNET_IN_PART.replace(

@@ -13,13 +13,16 @@ no downtime. Nothing here needs a network.
 
 Exit codes: 0 trained; 2 usage, configuration or images that cannot be trained on (too few,
 sizes that differ, unreadable files); 3 the model was written but ``--reload`` could not reach
-the server. With ``--json`` the report (or the error) is one JSON object on stdout.
+the server. With ``--json`` the report (or the error) is one JSON object on stdout; with
+``--reload`` too, the reload's answer (or its error) is its ``reload``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import glob
+import io
 import json
 import os
 import sys
@@ -34,7 +37,16 @@ from numpy.typing import NDArray
 from protocol.cli import CONFIG_ENV, ErrorKind, ExitCode, json_error
 
 from ..analysis import ANOMALY_METHODS, MIN_GOOD_IMAGES, AnomalyError
-from ..config import ConfigError, ModelKeyError, history, load_config
+from ..config import (
+    CellConfig,
+    ConfigError,
+    ModelKeyError,
+    history,
+    load_config,
+    parse_config,
+    parse_document,
+    set_model_key,
+)
 from ..service import Trained, TrainingError, train_inspection, training_patches
 
 MAX_FILES = 1000
@@ -101,7 +113,16 @@ def train_command(args: argparse.Namespace, reload: Callable[[argparse.Namespace
         return int(ExitCode.USAGE)
     report = trained.report
     if json_out:
-        print(json.dumps(_report_json(args.inspection, trained, path)))
+        answer = _report_json(args.inspection, trained, path)
+        if args.reload:
+            # One JSON object on stdout: the reload's answer (or its error) goes inside it.
+            captured = io.StringIO()
+            with contextlib.redirect_stdout(captured):
+                status = reload(args)
+            answer["reload"] = _last_object(captured.getvalue())
+            print(json.dumps(answer))
+            return 0 if status == 0 else int(ExitCode.CONNECTION)
+        print(json.dumps(answer))
     else:
         print(
             f"{args.inspection}: trained {trained.model.method} on {report.images} images in "
@@ -117,6 +138,19 @@ def train_command(args: argparse.Namespace, reload: Callable[[argparse.Namespace
     if args.reload:
         return 0 if reload(args) == 0 else int(ExitCode.CONNECTION)
     return int(ExitCode.OK)
+
+
+def _last_object(text: str) -> Any:
+    """The last line of ``text`` that is a JSON object (what a command printed with --json),
+    or the text itself when there is none."""
+    for line in reversed(text.splitlines()):
+        try:
+            value = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(value, dict):
+            return value
+    return text.strip()
 
 
 def _report_json(name: str, trained: Trained, path: Path) -> dict[str, Any]:
@@ -172,7 +206,7 @@ def _train(args: argparse.Namespace, *, quiet: bool) -> tuple[Trained, Path]:
         raise TrainUsage("USAGE", f"--false-reject must be in (0, 0.5), got {args.false_reject}")
     try:
         old = path.read_bytes()
-        config = load_config(path)
+        config = _config_to_train(path, old, args.inspection, args.step)
     except (ConfigError, OSError) as exc:
         raise TrainUsage("CONFIG_INVALID", f"invalid configuration: {exc}") from None
     inspection = next((i for i in config.inspections if i.name == args.inspection), None)
@@ -195,6 +229,13 @@ def _train(args: argparse.Namespace, *, quiet: bool) -> tuple[Trained, Path]:
             skipped.extend(f"{file}: {why.split(': ', 1)[-1]}" for why in left_out)
     except TrainingError as exc:
         raise TrainUsage("NOT_TRAINABLE", str(exc)) from None
+    if len(skipped) > len(files) // 2:
+        # As the service's training says it: most images left out is a fixture that does not
+        # find the part (or an ROI off the images), not a few bad images to skip.
+        raise TrainUsage(
+            "NOT_TRAINABLE",
+            f"{len(skipped)} of {len(files)} images could not be used: " + "; ".join(skipped[:3]),
+        )
     progress = None if quiet else _progress
     try:
         trained = train_inspection(
@@ -221,6 +262,27 @@ def _train(args: argparse.Namespace, *, quiet: bool) -> tuple[Trained, Path]:
     except OSError as exc:
         raise TrainUsage("WRITE_FAILED", f"{path}: {exc}") from None
     return Trained(**{**trained.__dict__, "skipped": tuple(skipped)}), path
+
+
+RETRAINING = "models/.retraining-{name}.absent.npz"
+"""Where the inspection's model is read from while it is retrained: a file that is not there."""
+
+
+def _config_to_train(path: Path, data: bytes, name: str, step: str | None) -> CellConfig:
+    """The configuration, loaded. When it is refused, it is loaded again with the trained
+    inspection's ``model:`` pointing at no file: the refusal may be that model's own (an ROI
+    resized since, a damaged file: the error says "retrain it"), and training is the cure. Any
+    other error is still the first one."""
+    try:
+        return load_config(path)
+    except ConfigError as refused:
+        try:
+            text = data.decode("utf-8")
+            untrained = set_model_key(text, name, RETRAINING.format(name=name), step=step)
+            root = parse_document(untrained, source=path.name)
+            return parse_config(root, text=text, base_dir=path.resolve().parent, source=path)
+        except (ConfigError, ModelKeyError, UnicodeDecodeError):
+            raise refused from None
 
 
 def _progress(message: str) -> None:

@@ -9,8 +9,6 @@ mapping, a value given by an alias) is refused with the reason.
 
 from __future__ import annotations
 
-import json
-
 import yaml
 
 
@@ -35,6 +33,25 @@ def _named(sequence: yaml.Node | None, name: str, what: str) -> yaml.MappingNode
     raise ModelKeyError(f"no {what} named {name!r} in the configuration")
 
 
+def _double_quoted(value: str) -> str:
+    """``value`` as a YAML double-quoted scalar of printable ASCII: every other character
+    escaped (``\\uXXXX``, or ``\\UXXXXXXXX`` beyond the BMP, which JSON would write as a
+    surrogate pair that YAML reads as two characters)."""
+    parts = ['"']
+    for char in value:
+        code = ord(char)
+        if char in '"\\':
+            parts.append("\\" + char)
+        elif 0x20 <= code < 0x7F:
+            parts.append(char)
+        elif code <= 0xFFFF:
+            parts.append(f"\\u{code:04x}")
+        else:
+            parts.append(f"\\U{code:08x}")
+    parts.append('"')
+    return "".join(parts)
+
+
 def set_model_key(text: str, inspection: str, value: str, *, step: str | None = None) -> str:
     """``text`` with the ``model:`` of ``inspection`` (or of its job step ``step``) set to
     ``value`` (a path relative to the configuration's folder)."""
@@ -54,12 +71,19 @@ def set_model_key(text: str, inspection: str, value: str, *, step: str | None = 
             f"{inspection!r} is written in flow style ({{...}}): write it as a block mapping "
             "to let training set its model"
         )
-    scalar = json.dumps(value)  # a JSON string is a valid YAML double-quoted scalar
+    scalar = _double_quoted(value)
     present = _find(target, "model")
     if present is not None:
-        node = present[1]
-        if not isinstance(node, yaml.ScalarNode) or node.start_mark.index == node.end_mark.index:
+        key_node, node = present
+        if not isinstance(node, yaml.ScalarNode):
             raise ModelKeyError(f"the model: of {inspection!r} is not a plain value")
+        if node.start_mark.index == node.end_mark.index:
+            # ``model:`` with no value (not trained yet, as the inspection reads it): the value
+            # goes right after the colon, before any comment on that line.
+            colon = text.find(":", key_node.end_mark.index)
+            if colon < 0 or "\n" in text[key_node.end_mark.index : colon]:
+                raise ModelKeyError(f"the model: of {inspection!r} is not a plain value")
+            return text[: colon + 1] + " " + scalar + text[colon + 1 :]
         start, end = node.start_mark.index, node.end_mark.index
         if text[start:end] and text[start] in "*&!":
             raise ModelKeyError(f"the model: of {inspection!r} is an alias or tagged")

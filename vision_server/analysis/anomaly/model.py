@@ -286,13 +286,36 @@ def load_model(path: Path) -> AnomalyModel:
         raise AnomalyError(f"the model {path.name}: {exc}") from None
 
 
+def _check_unpacked(data: bytes) -> None:
+    """Refuse an archive whose arrays would unpack to more than :data:`MAX_MODEL_BYTES` (a
+    few kilobytes of compressed zeros can claim gigabytes) before any is unpacked."""
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            unpacked = sum(info.file_size for info in archive.infolist())
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError):
+        return  # np.load names what is wrong with it
+    if unpacked > MAX_MODEL_BYTES:
+        raise AnomalyError(
+            f"not a cellvision anomaly model (its arrays unpack to {unpacked >> 20} MiB, more "
+            f"than {MAX_MODEL_BYTES >> 20} MiB)"
+        )
+
+
 def model_from_bytes(data: bytes) -> AnomalyModel:
     """A model from its file's content; raises :class:`AnomalyError`."""
+    _check_unpacked(data)
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as archive:
             arrays = {name: archive[name] for name in archive.files}
         meta = json.loads(bytes(arrays.pop("meta")).decode("utf-8"))
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, UnicodeDecodeError) as exc:
+    except (
+        OSError,
+        EOFError,  # an empty file: np.load finds no magic number
+        ValueError,
+        KeyError,
+        zipfile.BadZipFile,
+        UnicodeDecodeError,
+    ) as exc:
         raise AnomalyError(f"not a cellvision anomaly model ({exc})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise AnomalyError("not a cellvision anomaly model")

@@ -21,6 +21,8 @@ from .step import Chain, Outcome, Region, Shape, Step
 @dataclass(frozen=True)
 class AnomalyStep(Step):
     settings: AnomalySettings | None = None
+    job: str = ""
+    """The job's name (what ``vision-server train`` is given for this step)."""
 
     type = "anomaly"
 
@@ -40,7 +42,7 @@ class AnomalyStep(Step):
     def run(self, image: Image, earlier: Mapping[str, Outcome]) -> Outcome:
         assert self.settings is not None
         region = self.patch(image, earlier)
-        passed, data, scored = self.settings.judge(self.name, region.image)
+        passed, data, scored = self.settings.judge(self.name, region.image, job=self.job)
         to_image = region.to_image
         if self.fixture is None and self.roi is not None:
             to_image = to_image.copy()
@@ -68,7 +70,7 @@ def parse_anomaly_step(node: Node, head: Step, chain: Chain) -> Step:
             "retrain it",
             "model",
         )
-    return AnomalyStep(head.name, head.fixture, head.roi, settings)
+    return AnomalyStep(head.name, head.fixture, head.roi, settings, chain.common.name)
 
 
 __all__ = ["AnomalyStep", "parse_anomaly_step"]
