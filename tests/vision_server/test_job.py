@@ -500,7 +500,8 @@ def test_the_docs_list_exactly_the_keys_a_job_and_its_steps_read(
         " kind: width, band: {center: [75, 0], length: 100}}]}\n"
     )
     code = "      - {name: label, type: code, symbologies: [qr]}\n"
-    job(tmp_path, MAGNET_IN_PART + code + caliper)
+    anomaly = "      - {name: surface, type: anomaly, fixture: part, roi: [0, 0, 32, 32]}\n"
+    job(tmp_path, MAGNET_IN_PART + code + caliper + anomaly)
     monkeypatch.undo()
 
     rows: dict[str, list[str]] = {}
