@@ -39,6 +39,7 @@ DATA_TYPES: tuple[str, ...] = (
     "calibration_board",
     "job",
     "caliper",
+    "anomaly",
 )
 """The inspection types whose RESULT ``data`` has a schema (SPEC §6.3)."""
 
