@@ -252,6 +252,17 @@ def _train(args: argparse.Namespace, *, quiet: bool) -> tuple[Trained, Path]:
     except (TrainingError, AnomalyError, ModelKeyError) as exc:
         raise TrainUsage("NOT_TRAINABLE", str(exc)) from None
     try:
+        # the new text must load as it will at the next reload or restart
+        parse_config(
+            parse_document(trained.text, source=str(path)),
+            text=trained.text,
+            base_dir=path.resolve().parent,
+            source=path,
+        )
+    except ConfigError as exc:
+        trained.path.unlink(missing_ok=True)
+        raise TrainUsage("NOT_TRAINABLE", f"the configuration with the new model: {exc}") from None
+    try:
         history.write_with_history(
             path,
             trained.text.encode("utf-8"),

@@ -62,7 +62,8 @@ def check_files(
 
 def file_keys(config: Mapping[str, Any]) -> Iterator[tuple[tuple[str | int, ...], Any]]:
     """The key paths and values of the files an inspection mapping names: a presence's
-    ``template``, a locate's ``template.image``, and the same keys in a job's steps."""
+    ``template``, a locate's ``template.image``, an anomaly check's ``model``, and the same
+    keys in a job's steps."""
     yield from _files_of(config, ())
     steps = config.get("steps")
     if isinstance(steps, list):
@@ -80,6 +81,8 @@ def _files_of(
             yield (*prefix, "template", "image"), template["image"]
     elif template is not None:
         yield (*prefix, "template"), template
+    if mapping.get("model") is not None:
+        yield (*prefix, "model"), mapping["model"]
 
 
 def _at(mapping: Any, path: tuple[str | int, ...]) -> Any:

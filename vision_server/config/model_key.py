@@ -84,6 +84,10 @@ def set_model_key(text: str, inspection: str, value: str, *, step: str | None = 
             if colon < 0 or "\n" in text[key_node.end_mark.index : colon]:
                 raise ModelKeyError(f"the model: of {inspection!r} is not a plain value")
             return text[: colon + 1] + " " + scalar + text[colon + 1 :]
+        if node.style in ("|", ">"):
+            raise ModelKeyError(
+                f"the model: of {inspection!r} is a block scalar (| or >): write it on one line"
+            )
         start, end = node.start_mark.index, node.end_mark.index
         if text[start:end] and text[start] in "*&!":
             raise ModelKeyError(f"the model: of {inspection!r} is an alias or tagged")

@@ -115,7 +115,7 @@ def parse_anomaly_settings(node: Node, base_dir: Path) -> AnomalySettings:
     model = None
     if written is not None:
         path = resolve(base_dir, written)
-        if path.exists():
+        if path.is_file():
             try:
                 model = cached_model(path)
             except AnomalyError as exc:

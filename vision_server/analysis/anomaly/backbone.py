@@ -23,7 +23,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import BadImageError
-from .weights import WeightsError, read_weights
+from .errors import WeightsError
+from .weights import WEIGHTS_SHA256, read_weights
 
 STRIDE2_BLOCKS = frozenset({1, 3, 5, 11})
 """Blocks whose depthwise convolution halves the resolution."""
@@ -35,6 +36,10 @@ BN_EPSILON = 1e-3
 INPUT_MULTIPLE = 16
 """Input sides must be multiples of the deepest tap's stride."""
 OPSET = 13
+GRAPH_VERSION = 1
+"""Counts changes to :func:`build_graph` or the features' preprocessing: with the weights'
+SHA-256 it identifies the backbone a model was trained with (the ONNX bytes themselves may
+change with the onnx package's version while the network does not)."""
 
 
 def _bn_folded(
@@ -141,7 +146,7 @@ class Backbone:
     def __init__(self) -> None:
         weights = read_weights()
         graph = build_graph(weights)
-        self.digest = hashlib.sha256(graph).hexdigest()
+        self.digest = hashlib.sha256(f"{WEIGHTS_SHA256}:{GRAPH_VERSION}".encode()).hexdigest()
         """Identifies the graph and its weights (what a model file records as its backbone)."""
         self._net = cv2.dnn.readNetFromONNX(np.frombuffer(graph, np.uint8))
         self._outputs = list(self._net.getUnconnectedOutLayersNames())

@@ -28,9 +28,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import AnalysisError, BadImageError
+from ..errors import BadImageError
 from .backbone import INPUT_MULTIPLE, shared_backbone
-from .patches import DESCRIPTOR_DIMS, MAX_INPUT, PatchBank, train_bank
+from .errors import AnomalyError
+from .patches import BANK_MAX, DESCRIPTOR_DIMS, MAX_INPUT, PatchBank, train_bank
 from .threshold import set_threshold
 from .variation import VariationModel, train_variation, working_size
 
@@ -47,10 +48,6 @@ MIN_SIDE = 32
 MAX_SIDE = 4096
 
 Array = NDArray[np.float32]
-
-
-class AnomalyError(AnalysisError):
-    """Training or a model file failed: too few images, wrong sizes, a damaged or foreign file."""
 
 
 @dataclass(frozen=True)
@@ -279,7 +276,13 @@ def load_model(path: Path) -> AnomalyModel:
         raise AnomalyError(f"cannot read the model {path.name}: {exc.strerror}") from None
     if size > MAX_MODEL_BYTES:
         raise AnomalyError(f"the model {path.name} is larger than {MAX_MODEL_BYTES >> 20} MiB")
-    data = path.read_bytes()
+    if not path.is_file():
+        raise AnomalyError(f"the model {path.name} is not a regular file")
+    # read at most the bound: the size seen a moment ago may have grown
+    with open(path, "rb") as stream:
+        data = stream.read(MAX_MODEL_BYTES + 1)
+    if len(data) > MAX_MODEL_BYTES:
+        raise AnomalyError(f"the model {path.name} is larger than {MAX_MODEL_BYTES >> 20} MiB")
     try:
         return model_from_bytes(data)
     except AnomalyError as exc:
@@ -289,16 +292,35 @@ def load_model(path: Path) -> AnomalyModel:
 def _check_unpacked(data: bytes) -> None:
     """Refuse an archive whose arrays would unpack to more than :data:`MAX_MODEL_BYTES` (a
     few kilobytes of compressed zeros can claim gigabytes) before any is unpacked."""
+    claims: list[tuple[str, int]] = []
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as archive:
             unpacked = sum(info.file_size for info in archive.infolist())
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError):
+            # np.load allocates what each array's header claims before reading its data
+            for info in archive.infolist():
+                with archive.open(info) as member:
+                    major, _ = np.lib.format.read_magic(member)
+                    read_header = (
+                        np.lib.format.read_array_header_1_0
+                        if major == 1
+                        else np.lib.format.read_array_header_2_0
+                    )
+                    shape, _, dtype = read_header(member)
+                claims.append(
+                    (info.filename, int(np.prod(shape, dtype=np.float64)) * dtype.itemsize)
+                )
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, TypeError, OverflowError):
         return  # np.load names what is wrong with it
     if unpacked > MAX_MODEL_BYTES:
         raise AnomalyError(
             f"not a cellvision anomaly model (its arrays unpack to {unpacked >> 20} MiB, more "
             f"than {MAX_MODEL_BYTES >> 20} MiB)"
         )
+    for name, claimed in claims:
+        if claimed > MAX_MODEL_BYTES:
+            raise AnomalyError(
+                f"not a cellvision anomaly model (array {name} claims {claimed >> 20} MiB)"
+            )
 
 
 def model_from_bytes(data: bytes) -> AnomalyModel:
@@ -315,6 +337,7 @@ def model_from_bytes(data: bytes) -> AnomalyModel:
         KeyError,
         zipfile.BadZipFile,
         UnicodeDecodeError,
+        MemoryError,
     ) as exc:
         raise AnomalyError(f"not a cellvision anomaly model ({exc})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
@@ -329,10 +352,16 @@ def model_from_bytes(data: bytes) -> AnomalyModel:
         threshold = float(meta["threshold"])
         false_reject = float(meta["false_reject"])
         scorer = _scorer(method, arrays, meta)
-    except (KeyError, TypeError, ValueError) as exc:
+    except AnomalyError:
+        raise
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise AnomalyError(f"a damaged model ({type(exc).__name__}: {exc})") from None
     if not math.isfinite(threshold) or threshold < 0:
         raise AnomalyError(f"a damaged model (threshold {threshold})")
+    if not (0.0 < false_reject < 0.5) or not isinstance(meta.get("version", 1), int):
+        raise AnomalyError("a damaged model (false_reject or version)")
+    if not (min(width, height) >= MIN_SIDE and max(width, height) <= MAX_SIDE):
+        raise AnomalyError(f"a damaged model (image size {width}x{height})")
     meta["digest"] = hashlib.sha256(data).hexdigest()
     return AnomalyModel(method, (width, height), threshold, false_reject, scorer, meta)
 
@@ -353,6 +382,7 @@ def _scorer(method: str, arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) 
             or members.shape[1] != DESCRIPTOR_DIMS
             or scales.shape != (3,)
             or sources.shape != members.shape[:1]
+            or not 0 < members.shape[0] <= BANK_MAX
         ):
             raise ValueError("bank arrays of the wrong shapes")
         if w % INPUT_MULTIPLE or h % INPUT_MULTIPLE or not 0 < max(w, h) <= MAX_INPUT:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -25,11 +26,11 @@ GRID_STRIDE = 8
 BANK_MAX = 8192
 """Bank members kept at most: scoring compares each of an image's cells (784 at 224x224) with
 every member, about 2.3 GFLOP at this size."""
-CANDIDATES_MAX = 60000
+CANDIDATES_MAX = 40000
 """Cells the greedy selection looks at; beyond that, an even random sample of them."""
 PROJECTION_DIMS = 64
 DESCRIPTOR_DIMS = 24 + 40 + 112
-MAX_INPUT = 1024
+MAX_INPUT = 448
 """The largest input side a model file may ask for (px)."""
 SMOOTH_SIGMA_PX = 4.0
 """The heat map's Gaussian smoothing at the model's input scale (PatchCore's)."""
@@ -53,9 +54,18 @@ def describe(features: Features, scales: Array | None = None) -> Array:
     return np.ascontiguousarray(np.concatenate(parts, axis=2), dtype=np.float32)
 
 
+TAP_WEIGHTS = (1.0, 1.0, 0.5)
+"""How much each tap (stride 4, 8, 16) counts in the distance, once their magnitudes are
+equalised. Measured on scikit-image photographs with self-made scratches, holes and stains
+(30 images, 8 parts, mean/worst AUROC): 1, 1, 1 gave 0.948/0.820; 1, 1, 0 0.962/0.878; 0, 1, 1
+0.913/0.775; 2, 1, 1 0.954/0.850; 1, 1, 0.5 0.960/0.883. The deep tap is kept at half weight
+for defects larger than a cell (a missing piece), which those small defects do not test."""
+
+
 def tap_scales(grids: Sequence[Features]) -> Array:
-    """One factor per tap that makes each tap's mean squared descriptor norm 1 over ``grids``,
-    so that no layer dominates the distance by its magnitude."""
+    """One factor per tap that makes each tap's mean squared descriptor norm its weight squared
+    (:data:`TAP_WEIGHTS`) over ``grids``, so that no layer dominates the distance by its
+    magnitude."""
     sums = np.zeros(3, np.float64)
     for features in grids:
         raw = describe(features)
@@ -63,7 +73,8 @@ def tap_scales(grids: Sequence[Features]) -> Array:
         for i, part in enumerate(np.split(raw, splits, axis=2)):
             sums[i] += float(np.mean(np.sum(part.astype(np.float64) ** 2, axis=2)))
     means = sums / max(len(grids), 1)
-    return (1.0 / np.sqrt(np.maximum(means, 1e-12))).astype(np.float32)
+    weights = np.asarray(TAP_WEIGHTS, np.float64)
+    return (weights / np.sqrt(np.maximum(means, 1e-12))).astype(np.float32)
 
 
 def _box3(tap: Array) -> Array:
@@ -78,7 +89,12 @@ def _resize(tap: Array, width: int, height: int, interpolation: int) -> Array:
     return out if out.ndim == 3 else out[:, :, None]
 
 
-def select_bank(cells: Array, budget: int, rng: np.random.Generator) -> NDArray[np.int64]:
+def select_bank(
+    cells: NDArray[np.floating[Any]],
+    budget: int,
+    rng: np.random.Generator,
+    progress: Callable[[str], None] | None = None,
+) -> NDArray[np.int64]:
     """Indices of at most ``budget`` rows of ``cells`` (N, D) that cover them: each pick is the
     row farthest from those already picked (greedy k-centre), measured on a random projection."""
     count = cells.shape[0]
@@ -89,7 +105,10 @@ def select_bank(cells: Array, budget: int, rng: np.random.Generator) -> NDArray[
         pool = np.sort(rng.choice(count, CANDIDATES_MAX, replace=False))
     dims = min(PROJECTION_DIMS, cells.shape[1])
     projection = rng.standard_normal((cells.shape[1], dims)).astype(np.float32) / np.sqrt(dims)
-    points = cells[pool] @ projection
+    points = np.empty((pool.size, dims), np.float32)
+    for start in range(0, pool.size, 8192):
+        part = pool[start : start + 8192]
+        points[start : start + part.size] = cells[part].astype(np.float32) @ projection
     chosen = np.empty(budget, np.int64)
     nearest = np.full(points.shape[0], np.inf, np.float32)
     pick = int(rng.integers(points.shape[0]))
@@ -98,6 +117,8 @@ def select_bank(cells: Array, budget: int, rng: np.random.Generator) -> NDArray[
         step = points - points[pick]
         np.minimum(nearest, np.einsum("ij,ij->i", step, step), out=nearest)
         pick = int(np.argmax(nearest))
+        if progress is not None and (i + 1) % 1024 == 0:
+            progress(f"chose {i + 1}/{budget} patches")
     return pool[chosen]
 
 
@@ -140,6 +161,10 @@ def _norms(members: Array) -> Array:
     return np.asarray(np.einsum("ij,ij->i", members, members), np.float32)
 
 
+SCALE_IMAGES = 32
+"""Images whose features set the taps' scales (the rest are described as they come)."""
+
+
 def train_bank(
     backbone: Backbone,
     images: Sequence[NDArray[np.uint8]],
@@ -148,25 +173,34 @@ def train_bank(
     progress: Callable[[str], None] | None = None,
 ) -> tuple[PatchBank, list[float]]:
     """A bank from good images, and each image's held-out score (against the bank without the
-    members taken from it)."""
-    features = []
+    members taken from it). ``progress`` is called every few images and picks (it may raise to
+    stop the training). Memory: each image's cells are kept as float16, about 0.28 MB an
+    image at 224x224."""
+    report = progress or (lambda _message: None)
+    first = [backbone.features(image, size) for image in images[:SCALE_IMAGES]]
+    scales = tap_scales(first)
+    grid0 = describe(first[0], scales)
+    rows, cols, dims = grid0.shape
+    per_image = rows * cols
+    cells = np.empty((len(images), per_image, dims), np.float16)
     for index, image in enumerate(images):
-        features.append(backbone.features(image, size))
-        if progress is not None and (index + 1) % 10 == 0:
-            progress(f"features of {index + 1}/{len(images)} images")
-    scales = tap_scales(features)
-    grids = [describe(f, scales) for f in features]
-    cells_per_image = grids[0].shape[0] * grids[0].shape[1]
-    cells = np.concatenate([g.reshape(cells_per_image, -1) for g in grids])
-    sources = np.repeat(np.arange(len(grids), dtype=np.int32), cells_per_image)
-    if progress is not None:
-        progress(f"choosing at most {BANK_MAX} of {cells.shape[0]} patches")
-    chosen = select_bank(cells, BANK_MAX, rng)
-    bank = PatchBank(size, np.ascontiguousarray(cells[chosen]), scales, sources[chosen])
-    held_out = [
-        float(bank.heat(bank.cell_distances(grid, exclude=index)).max())
-        for index, grid in enumerate(grids)
-    ]
+        features = first[index] if index < len(first) else backbone.features(image, size)
+        cells[index] = describe(features, scales).reshape(per_image, dims)
+        if (index + 1) % 10 == 0:
+            report(f"features of {index + 1}/{len(images)} images")
+    del first
+    flat = cells.reshape(-1, dims)
+    sources = np.repeat(np.arange(len(images), dtype=np.int32), per_image)
+    report(f"choosing at most {BANK_MAX} of {flat.shape[0]} patches")
+    chosen = select_bank(flat, BANK_MAX, rng, report)
+    members = np.ascontiguousarray(flat[chosen], dtype=np.float32)
+    bank = PatchBank(size, members, scales, sources[chosen])
+    held_out = []
+    for index in range(len(images)):
+        grid = cells[index].astype(np.float32).reshape(rows, cols, dims)
+        held_out.append(float(bank.heat(bank.cell_distances(grid, exclude=index)).max()))
+        if (index + 1) % 10 == 0:
+            report(f"held-out scores of {index + 1}/{len(images)} images")
     return bank, held_out
 
 

