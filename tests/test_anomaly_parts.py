@@ -54,6 +54,10 @@ def test_synthetic_parts_are_deterministic_and_extend_without_change() -> None:
     again, bad_again, _ = synthetic_part("disc", 5, good=5, defects=4)
     for a, b in zip(good + bad, again[:3] + bad_again[:2], strict=True):
         np.testing.assert_array_equal(a, b)
+    later = part_samples("disc", 5, good=2, defects=0, first_good=3)
+    assert later is not None
+    for a, b in zip(later.good, again[3:], strict=True):
+        np.testing.assert_array_equal(a, b)
     other, _, _ = synthetic_part("disc", 6, good=1, defects=0)
     assert not np.array_equal(other[0], good[0])
     assert len(masks) == 2

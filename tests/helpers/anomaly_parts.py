@@ -505,17 +505,20 @@ def part_samples(
     good: int = 20,
     defects: int = 12,
     kinds: Sequence[str] = DEFECTS,
+    first_good: int = 0,
 ) -> Samples | None:
-    """``good`` good samples and ``defects`` defect samples (kinds from ``kinds`` in turn) of
-    part ``name`` (:data:`ALL_PARTS`), ``size`` px square; None for a photograph's part where
-    scikit-image's files are not installed. Deterministic in (name, seed, index)."""
+    """``good`` good samples (from index ``first_good`` on) and ``defects`` defect samples
+    (kinds from ``kinds`` in turn) of part ``name`` (:data:`ALL_PARTS`), ``size`` px square;
+    None for a photograph's part where scikit-image's files are not installed. Deterministic
+    in (name, seed, index): training images 0..n-1 and held-out ones from ``first_good`` =
+    1000 on never overlap."""
     made = _scene(name, size)
     if made is None:
         return None
     scene, own_file = made
     index = ALL_PARTS.index(name)
     goods: list[Image] = []
-    for k in range(good):
+    for k in range(first_good, first_good + good):
         rng = np.random.default_rng([seed, index, 0, k])
         image, _, _ = _jitter(scene, rng, size)
         goods.append(_finish(image, scene, rng))
