@@ -330,6 +330,10 @@ def run(cfg: RunConfig, env: Env) -> Section:
     return section
 
 
+def _auroc(good: Sequence[float], bad: Sequence[float]) -> float:
+    return float(_parts_module().auroc(good, bad))
+
+
 def _family(helpers: Any, part: str) -> str:
     for photo in helpers.PHOTO_PARTS:
         if photo.name == part:
@@ -376,6 +380,9 @@ def _report(
         for (p, m, n), r in by_key.items():
             if p == part:
                 section.value(f"{m}_n{n}_{part}_auroc", r.auroc)
+                for kind in sorted(set(r.kinds)):  # which defects are hard where (JSON only)
+                    bad = [v for v, k in zip(r.bad, r.kinds, strict=True) if k == kind]
+                    section.value(f"{m}_n{n}_{part}_{kind}_auroc", _auroc(r.good, bad))
     section.tables.append(per_part)
 
     summary = Table(
