@@ -12,6 +12,7 @@ from __future__ import annotations
 from types import ModuleType
 
 from . import (
+    anomaly,
     calibration,
     caliper,
     camera_aravis,
@@ -51,6 +52,7 @@ SECTIONS: tuple[ModuleType, ...] = (
     caliper,
     locate_template,
     camera_aravis,
+    anomaly,
 )
 
 __all__ = ["SECTIONS"]
