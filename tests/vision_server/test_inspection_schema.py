@@ -79,6 +79,8 @@ STEPS = [
     {"name": "gauge", "type": "caliper", "measurements": copy.deepcopy(MEASUREMENTS)},
     {"name": "gauge_mm", "type": "caliper", "units": "mm", "mm_per_px": 0.25,
      "measurements": copy.deepcopy(MEASUREMENTS[:1])},
+    {"name": "surface", "type": "anomaly", "fixture": "frame", "roi": [0, 0, 64, 64],
+     "threshold": 1.5, "method": "variation", "false_reject": 0.02},
 ]  # fmt: skip
 
 TEMPLATED = "template_score"
@@ -107,6 +109,7 @@ BASES: dict[str, list[dict[str, Any]]] = {
                                          "square_m": 0.02}),
     ],
     "job": [base("job", steps=copy.deepcopy(STEPS), verdict="all(hole, magnet)")],
+    "anomaly": [base("anomaly", threshold=1.5, method="variation", false_reject=0.02)],
 }  # fmt: skip
 """Valid mappings of every type and variant (method, measure, kind, board)."""
 
@@ -218,7 +221,7 @@ def test_the_schema_covers_every_type_and_step_type_the_loader_has() -> None:
     from vision_server.inspections import INSPECTION_TYPES
 
     assert set(SCHEMA["types"]) == set(INSPECTION_TYPES)
-    assert set(SCHEMA["steps"]) == {"locate", "fixture", "presence", "code", "caliper"}
+    assert set(SCHEMA["steps"]) == {"locate", "fixture", "presence", "code", "caliper", "anomaly"}
     assert [k["key"] for k in SCHEMA["common"]] == [
         "name", "type", "camera", "roi", "frames", "description", "number", "output",
     ]  # fmt: skip

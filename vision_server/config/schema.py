@@ -226,6 +226,19 @@ PRESENCE_RANGES = {
 """Each measure's range, which ``min`` and ``max`` must lie in (served as ``ranges``)."""
 
 
+def _anomaly() -> list[Key]:
+    return [
+        key("model", "file", "the model file vision-server train (or the console's Train) "
+            "wrote; none: not trained yet"),
+        _number("threshold", "a score above it fails (default: the model's own)", min=0,
+                step=0.01),
+        key("method", "enum", "how training models the good parts", default="patches",
+            values=("patches", "variation")),
+        _number("false_reject", "the share of good parts training's threshold may fail",
+                min=0, max=0.5, min_exclusive=True, step=0.005),
+    ]  # fmt: skip
+
+
 def _code() -> list[Key]:
     return [
         key("symbologies", "symbologies", "what to look for (default: all of them)",
@@ -390,7 +403,10 @@ TYPE_DOCS = {
     "qr_pose": "the pose camera_from_qr of a QR code from colour and depth frames",
     "caliper": "measurements with tolerances: edges, widths, circles, lines, distances",
     "calibration_board": "the inner corners of a ChArUco board or chessboard",
-    "job": "named steps run in order (locate, fixture, presence, code, caliper) and a verdict",
+    "job": "named steps run in order (locate, fixture, presence, code, caliper, anomaly) and "
+    "a verdict",
+    "anomaly": "a score of how unlike the good parts it was trained on the ROI is, and a heat "
+    "map; passes when the score is at most the threshold",
 }
 
 
@@ -429,6 +445,7 @@ STEP_DOCS = {
     "presence": "a presence check's keys over the step's ROI",
     "code": "a code read's keys in the step's ROI",
     "caliper": "a caliper's keys; in a fixture's frame the geometry is in the part frame",
+    "anomaly": "an anomaly check's keys over the step's ROI (in a fixture's frame: aligned)",
 }
 
 
@@ -451,6 +468,7 @@ def inspection_schema(cameras: Sequence[str] | None = None) -> dict[str, Any]:
         "caliper": _caliper(),
         "calibration_board": _calibration_board(),
         "job": _job(),
+        "anomaly": _anomaly(),
     }
     types = {
         name: {
@@ -467,6 +485,7 @@ def inspection_schema(cameras: Sequence[str] | None = None) -> dict[str, Any]:
         "presence": _presence(),
         "code": _code(),
         "caliper": _caliper(),
+        "anomaly": _anomaly(),
     }
     steps = {
         name: {
