@@ -538,6 +538,18 @@ def _report(
         + ", ".join(f"{m} {s:.2f} s" for m, s in tally.cold_s.items())
         + "."
     )
+    spent = {m: sum(r.train_s for r in tally.runs if r.method == m) for m in tally.methods}
+    section.notes.append(
+        "Where this section's time went: training "
+        + ", ".join(f"{m} {v:.0f} s" for m, v in spent.items())
+        + " (the patches bank's selection and held-out scores grow with the images trained "
+        "on), scoring "
+        + ", ".join(
+            f"{m} {sum(sum(r.ms) for r in tally.runs if r.method == m) / 1e3:.0f} s"
+            for m in tally.methods
+        )
+        + "."
+    )
     section.notes.append(
         f"The observed false-reject rate has a resolution of 1/{held_out} per part: the target "
         f"{FALSE_REJECT * 100:g} % is judged over all parts together (the summary's counts)."

@@ -37,10 +37,14 @@ before the noise and compression (:data:`DEFECTS`, taken in turn):
   particle of random colour and grain.
 
 Sizes are of modest, realistic defects, not of trivially large ones: at 224x224 a hole is
-6..13 px across. Every sample depends only on (part, seed, index): asking for more images gives
-the same first ones. ``masks`` mark each defect's pixels (its opacity over 25 %; a stain's:
-the inner half of its soft outline); ``clean`` holds each defect sample as it was before its
-defect was painted (same jitter, noise and compression).
+6..13 px across. The random natural textures (gravel, grass) are the hardest parts by far: a
+thin scratch or a small dark hole there looks much like the texture's own gaps and blades, and
+a person finds several of them only by comparing with the clean twin.
+
+Every sample depends only on (part, seed, index): asking for more images gives the same first
+ones. ``masks`` mark each defect's pixels (its opacity over 25 %; a stain's: the inner half of
+its soft outline); ``clean`` holds each defect sample as it was before its defect was painted
+(same jitter, noise and compression).
 """
 
 from __future__ import annotations
