@@ -316,8 +316,9 @@ def test_the_schema_gives_every_type_and_step_with_the_cameras(client: Browserle
     schema = reply.json()
     assert set(schema["types"]) == {
         "presence", "locate", "qr", "code", "qr_pose", "caliper", "calibration_board", "job",
+        "anomaly",
     }  # fmt: skip
-    assert set(schema["steps"]) == {"locate", "fixture", "presence", "code", "caliper"}
+    assert set(schema["steps"]) == {"locate", "fixture", "presence", "code", "caliper", "anomaly"}
     camera = next(k for k in schema["common"] if k["key"] == "camera")
     assert camera["kind"] == "enum"
     assert set(camera["values"]) == {"tool", "rgbd", "qc"}
