@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from anomaly_synthetic import (
@@ -119,7 +120,9 @@ def test_an_untrained_inspection_loads_and_running_it_says_how_to_train(tmp_path
     assert inspection.settings.model is None
     assert inspection.settings.limit is None
     image = InspectionInput(scene(good_part(np.random.default_rng(0))))
-    with pytest.raises(InspectionFailed, match="vision-server train surface --images") as caught:
+    with pytest.raises(
+        InspectionFailed, match="vision-server train surface --config CONFIG --images"
+    ) as caught:
         inspection.run(image, overlay=False)
     assert "no trained model" in caught.value.message
     missing = CONFIG.replace("method: variation", 'model: "models/surface.v9.npz"')
@@ -237,7 +240,10 @@ def test_the_overlay_blends_the_heat_map_into_the_roi_and_nowhere_else(cell: Cel
     assert picture is not None
     assert picture.shape == image.shape
     data = outcome.data
-    reference = overlay_base(image, ROI)
+    reference = overlay_base(image, None)
+    u, v, w, h = ROI
+    colour = (0, 200, 0) if outcome.passed else (0, 0, 255)  # the ROI red on a fail
+    cv2.rectangle(reference, (u, v), (u + w - 1, v + h - 1), colour, 2)
     label = f"anomaly {data['score']:.3g} / {data['threshold']:.3g}"
     draw_verdict(reference, outcome.passed, label)
     changed = np.any(picture != reference, axis=2)
@@ -347,7 +353,7 @@ def test_an_untrained_step_names_the_job_and_the_step_to_train(tmp_path: Path) -
         inspection.run(InspectionInput(image), overlay=False)
     message = caught.value.message
     assert "step 'surface' of 'plate' has no trained model" in message
-    assert "vision-server train plate --step surface --images" in message
+    assert "vision-server train plate --step surface --config CONFIG --images" in message
 
 
 def test_the_job_step_judges_the_part_located_and_aligned(

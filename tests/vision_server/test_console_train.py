@@ -188,14 +188,14 @@ def test_too_few_and_missing_images_are_named(cell: Any) -> None:
     assert (status, code) == (400, "NO_STORED_IMAGE")
     assert "999999" in message
     assert reply.json()["error"]["result_ids"] == [999_999]
-    # A stored image of another camera's size (station_qr's rgbd camera: 640x480).
+    # A stored image of another camera (station_qr's rgbd camera): refused before any is read.
     inspect(server, "station_qr", part_image(3)[:480, :640])
     other = server.app.service.results.query(inspection="station_qr", limit=1)[0].id
     reply = client.post_json(TRAIN, {"source": "results", "ids": [*ids[:9], other]})
     status, code, message = error_of(reply)
-    assert (status, code) == (400, "BAD_IMAGE")
-    assert f"result {other}" in message
-    assert "640x480" in message
+    assert (status, code) == (400, "OTHER_CAMERA")
+    assert str(other) in message
+    assert reply.json()["error"]["result_ids"] == [other]
     assert not (server.config.parent / "models").exists()
 
 

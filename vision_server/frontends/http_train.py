@@ -102,6 +102,8 @@ class Job:
     stop_reason: str | None = None
     thread_running: bool = False
     """The training's thread still runs (its request was cancelled): the slot stays taken."""
+    notes: list[str] = field(default_factory=list)
+    """What the reply says besides the figures (failed results picked)."""
 
     def check(self) -> None:
         """Raise :class:`Stopped` when the training must stop now."""
@@ -281,7 +283,7 @@ class TrainRoutes:
                 "skipped": list(skipped),
                 "config_hash": catalog.config_hash,
                 "config_version": saved.version.number,
-                "notes": list(catalog.notes),
+                "notes": [*job.notes, *catalog.notes],
             }
         )
 
@@ -396,7 +398,22 @@ class TrainRoutes:
         """Cut the stored input image of each result (read and cut in a worker, one at a time:
         only the cut pixels stay). 400 naming every id without a stored input image."""
         log = self._log()
-        paths = await asyncio.to_thread(_stored_paths, log, ids)
+        camera = self.service.catalog.inspection(name).camera
+        paths, others, failed = await asyncio.to_thread(_stored_paths, log, ids, camera)
+        if others:
+            shown = ", ".join(str(i) for i in others[:LISTED_IDS])
+            raise HttpError(
+                400,
+                "OTHER_CAMERA",
+                f"{len(others)} of the results come from another camera than {camera!r} "
+                f"({shown}): a model learns {name!r}'s parts from its own camera's images",
+                details={"result_ids": others[:LISTED_IDS]},
+            )
+        if failed:
+            job.notes.append(
+                f"{len(failed)} of the results picked failed when they were inspected "
+                f"(e.g. {failed[0]}): a model learns that what it is trained on is good"
+            )
         missing = [i for i in ids if paths.get(i) is None]
         if missing:
             shown = ", ".join(str(i) for i in missing[:LISTED_IDS])
@@ -715,14 +732,23 @@ def _cut_stored(cut: Cutter, path: Path, needs: ImageNeeds, label: str) -> None:
     cut.add(stored_image_loader(path)(needs).color, label)
 
 
-def _stored_paths(log: Any, ids: Sequence[int]) -> dict[int, Path | None]:
-    """Each result's stored input image (None: no such row, or no image kept)."""
+def _stored_paths(
+    log: Any, ids: Sequence[int], camera: str
+) -> tuple[dict[int, Path | None], list[int], list[int]]:
+    """Each result's stored input image (None: no such row, or no image kept), the ids of
+    results of another camera than ``camera``, and those of failed results."""
     out: dict[int, Path | None] = {}
+    others: list[int] = []
+    failed: list[int] = []
     for result_id in ids:
         row = log.get(result_id)
         path = None if row is None else row.image_path
         out[result_id] = path if path is not None and path.is_file() else None
-    return out
+        if row is not None and row.camera != camera:
+            others.append(result_id)
+        elif row is not None and not row.passed:
+            failed.append(result_id)
+    return out, others, failed
 
 
 def _stored_rows(

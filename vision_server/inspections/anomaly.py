@@ -38,6 +38,8 @@ from ..analysis import (
 )
 from ..cameras import CameraSettings
 from .base import (
+    GREEN,
+    RED,
     Common,
     Configured,
     Image,
@@ -90,7 +92,8 @@ class AnomalySettings:
             raise InspectionFailed(
                 f"{what} has no trained model"
                 + (f" ({self.model_file} is missing)" if self.model_file else "")
-                + f": train it with vision-server train {command} --images 'good/*.png'"
+                + f": train it with vision-server train {command} --config CONFIG "
+                "--images 'good/*.png' (or from the console's Train panel)"
             )
         try:
             scored = self.model.score(np.ascontiguousarray(patch))
@@ -138,7 +141,10 @@ CACHED_MODELS = 16
 def cached_model(path: Path) -> AnomalyModel:
     """The model in ``path``, read once per file version (a configuration is parsed on every
     reload, try and preview; the model files are megabytes)."""
-    stat = path.stat()
+    try:
+        stat = path.stat()
+    except OSError as exc:
+        raise AnomalyError(f"cannot read the model {path.name}: {exc.strerror}") from None
     key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
     with _CACHE_LOCK:
         if key in _CACHE:
@@ -178,7 +184,11 @@ class AnomalyInspection(Configured):
         passed, data, scored = self.settings.judge(self.common.name, patch)
         picture = None
         if overlay:
-            picture = overlay_base(image.color, self.common.roi)
+            picture = overlay_base(image.color, None)
+            if self.common.roi is not None:
+                u, v, w, h = self.common.roi
+                colour = GREEN if passed else RED
+                cv2.rectangle(picture, (u, v), (u + w - 1, v + h - 1), colour, 2)
             shift = np.array([[1.0, 0.0, origin[0]], [0.0, 1.0, origin[1]]])
             blend_heat(picture, scored.heat, shift, data["threshold"])
             draw_verdict(picture, passed, f"anomaly {data['score']:.3g} / {data['threshold']:.3g}")

@@ -95,7 +95,17 @@ def training_patches(
     target, job = _target(inspection, step)
     patches: list[NDArray[np.uint8]] = []
     skipped: list[str] = []
+    declared = getattr(getattr(inspection, "common", None), "image_size", None)
+    where = f"camera {inspection.camera!r} gives"
     for number, image in enumerate(images, 1):
+        size = (image.shape[1], image.shape[0])
+        if declared is None:
+            declared, where = size, "image 1 is"
+        if declared is not None and size != tuple(declared):
+            raise TrainingError(
+                f"image {number} is {size[0]}x{size[1]} px; {where} {declared[0]}x"
+                f"{declared[1]}: train on whole images of the inspection's camera, of one size"
+            )
         try:
             if job is None:
                 patches.append(_roi(image, inspection.common.roi))  # type: ignore[attr-defined]
@@ -182,6 +192,8 @@ def train_inspection(
         )
     step_name = None if job is None else target.name
     relative, version = next_model_file(config.base_dir, name, step_name)
+    # refused edits (a flow-style mapping) are found before minutes of training, not after
+    set_model_key(text, name, relative, step=step_name)
     model, report = train_model(
         patches,
         method=method or settings.method,  # type: ignore[arg-type]
@@ -192,7 +204,9 @@ def train_inspection(
     new_text = set_model_key(text, name, relative, step=step_name)
     path = config.base_dir / relative
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not files.write_new(path, model_bytes(model)):
+    # readable as the configuration is (a container's user reads both)
+    mode_of = config.source if config.source is not None and config.source.exists() else None
+    if not files.write_new(path, model_bytes(model), mode_of=mode_of):
         raise TrainingError(f"{relative} was written meanwhile by another training: train again")
     return Trained(model, report, path, relative, new_text, tuple(skipped))
 

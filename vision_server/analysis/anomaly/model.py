@@ -279,8 +279,11 @@ def load_model(path: Path) -> AnomalyModel:
     if not path.is_file():
         raise AnomalyError(f"the model {path.name} is not a regular file")
     # read at most the bound: the size seen a moment ago may have grown
-    with open(path, "rb") as stream:
-        data = stream.read(MAX_MODEL_BYTES + 1)
+    try:
+        with open(path, "rb") as stream:
+            data = stream.read(MAX_MODEL_BYTES + 1)
+    except OSError as exc:
+        raise AnomalyError(f"cannot read the model {path.name}: {exc.strerror}") from None
     if len(data) > MAX_MODEL_BYTES:
         raise AnomalyError(f"the model {path.name} is larger than {MAX_MODEL_BYTES >> 20} MiB")
     try:
@@ -325,6 +328,8 @@ def _check_unpacked(data: bytes) -> None:
 
 def model_from_bytes(data: bytes) -> AnomalyModel:
     """A model from its file's content; raises :class:`AnomalyError`."""
+    if not data.startswith(b"PK\x03\x04"):
+        raise AnomalyError("not a cellvision anomaly model (not a NumPy .npz archive)")
     _check_unpacked(data)
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as archive:
