@@ -134,9 +134,17 @@ def train_command(args: argparse.Namespace, reload: Callable[[argparse.Namespace
             print(f"  left out: {line}")
         print(f"wrote {trained.path} and set model: {trained.relative} in {path}")
         if not args.reload:
-            print("a running server takes it on: vision-server reload")
+            print("a running server takes it on: vision-server reload (--server HOST:PORT)")
     if args.reload:
-        return 0 if reload(args) == 0 else int(ExitCode.CONNECTION)
+        if reload(args) == 0:
+            return int(ExitCode.OK)
+        print(
+            f"the model is written and the configuration points at it; no server took it: "
+            f"reload the one that serves {args.config or '$' + CONFIG_ENV} with vision-server "
+            "reload --server HOST:PORT (or SIGHUP)",
+            file=sys.stderr,
+        )
+        return int(ExitCode.CONNECTION)
     return int(ExitCode.OK)
 
 
@@ -191,7 +199,11 @@ def _read(path: Path) -> NDArray[np.uint8]:
         raise TrainUsage("BAD_IMAGE", f"{path}: {exc.strerror}") from None
     if size > MAX_FILE_BYTES:
         raise TrainUsage("BAD_IMAGE", f"{path}: larger than {MAX_FILE_BYTES >> 20} MiB")
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    try:
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    except cv2.error as exc:  # e.g. more pixels than OpenCV's decoder limit
+        reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else "unreadable"
+        raise TrainUsage("BAD_IMAGE", f"{path}: OpenCV refused it ({reason})") from None
     if image is None:
         raise TrainUsage("BAD_IMAGE", f"{path}: not an image OpenCV can read")
     return np.asarray(image, np.uint8)
@@ -252,21 +264,27 @@ def _train(args: argparse.Namespace, *, quiet: bool) -> tuple[Trained, Path]:
     except (TrainingError, AnomalyError, ModelKeyError) as exc:
         raise TrainUsage("NOT_TRAINABLE", str(exc)) from None
     try:
+        # The file as it is now (a save made while the training ran is kept), with model: set.
+        now = path.read_bytes()
+        text = set_model_key(
+            now.decode("utf-8"), args.inspection, trained.relative, step=trained.step
+        )
         # the new text must load as it will at the next reload or restart
         parse_config(
-            parse_document(trained.text, source=str(path)),
-            text=trained.text,
+            parse_document(text, source=str(path)),
+            text=text,
             base_dir=path.resolve().parent,
             source=path,
         )
-    except ConfigError as exc:
+    except (ConfigError, ModelKeyError, OSError, UnicodeError) as exc:
         trained.path.unlink(missing_ok=True)
         raise TrainUsage("NOT_TRAINABLE", f"the configuration with the new model: {exc}") from None
+    trained = Trained(**{**trained.__dict__, "text": text})
     try:
         history.write_with_history(
             path,
             trained.text.encode("utf-8"),
-            old=old,
+            old=now,
             who="vision-server train",
             why=f"trained {trained.relative} on {trained.report.images} images",
         )

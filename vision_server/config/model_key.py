@@ -96,10 +96,11 @@ def set_model_key(text: str, inspection: str, value: str, *, step: str | None = 
     assert anchor is not None  # _named found the name
     key_node, value_node = anchor
     indent = " " * key_node.start_mark.column
+    newline = "\r\n" if "\r\n" in text else "\n"  # the file's own line ending
     line_end = text.find("\n", value_node.end_mark.index)
     if line_end < 0:
-        return text + f"\n{indent}model: {scalar}\n"
-    return text[: line_end + 1] + f"{indent}model: {scalar}\n" + text[line_end + 1 :]
+        return text + f"{newline}{indent}model: {scalar}{newline}"
+    return text[: line_end + 1] + f"{indent}model: {scalar}{newline}" + text[line_end + 1 :]
 
 
 __all__ = ["ModelKeyError", "set_model_key"]

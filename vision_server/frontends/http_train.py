@@ -269,7 +269,7 @@ class TrainRoutes:
         return web.json_response(
             {
                 "inspection": name,
-                "step": _step_of(trained.relative, name),
+                "step": trained.step,
                 "model": trained.relative,
                 "version": trained.model.version,
                 "method": trained.model.method,
@@ -700,9 +700,8 @@ def _point_at_model(
     """Set ``model:`` of ``name`` (its step) in the file as it is now (a save may have come
     since the training began: its text is kept), validate and write it with the history."""
     old = path.read_bytes()
-    step = _step_of(trained.relative, name)
     try:
-        text = set_model_key(old.decode("utf-8"), name, trained.relative, step=step)
+        text = set_model_key(old.decode("utf-8"), name, trained.relative, step=trained.step)
         http_save.validate(text, path)
     except (ModelKeyError, ConfigError, UnicodeError) as exc:
         raise HttpError(422, "CONFIG_REFUSED", f"{path.name}: {exc}") from None
@@ -717,13 +716,6 @@ def _point_at_model(
     except http_save.SaveRefused as exc:
         raise HttpError(422, "CONFIG_REFUSED", str(exc)) from None
     return http_save.Saved(path, old, version)
-
-
-def _step_of(relative: str, name: str) -> str | None:
-    """The step a model file's name is for (``models/<name>.<step>.v<N>.npz``), else None."""
-    stem = Path(relative).name.removeprefix(name + ".")
-    parts = stem.split(".")
-    return parts[0] if len(parts) == 3 else None
 
 
 def _cut_stored(cut: Cutter, path: Path, needs: ImageNeeds, label: str) -> None:

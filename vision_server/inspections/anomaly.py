@@ -15,6 +15,7 @@ INSPECTION_FAILED saying so.
 
 from __future__ import annotations
 
+import math
 import threading
 from collections import OrderedDict
 from collections.abc import Mapping
@@ -101,6 +102,8 @@ class AnomalySettings:
             raise analysis_failed(owner, exc) from None
         limit = self.limit
         assert limit is not None
+        if not math.isfinite(scored.score):
+            raise InspectionFailed(f"{owner!r}: the model gave no finite score (a damaged model?)")
         passed = scored.score <= limit
         data = {
             "score": round(scored.score, 6),

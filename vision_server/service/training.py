@@ -53,6 +53,8 @@ class Trained:
     text: str
     skipped: tuple[str, ...]
     """Images left out, each with the reason (a fixture not found)."""
+    step: str | None = None
+    """The job's anomaly step trained (None: an anomaly inspection)."""
 
 
 def _target(inspection: Inspection, step: str | None) -> tuple[Any, Any]:
@@ -208,7 +210,7 @@ def train_inspection(
     mode_of = config.source if config.source is not None and config.source.exists() else None
     if not files.write_new(path, model_bytes(model), mode_of=mode_of):
         raise TrainingError(f"{relative} was written meanwhile by another training: train again")
-    return Trained(model, report, path, relative, new_text, tuple(skipped))
+    return Trained(model, report, path, relative, new_text, tuple(skipped), step_name)
 
 
 __all__ = [

@@ -280,8 +280,10 @@ def load_model(path: Path) -> AnomalyModel:
         raise AnomalyError(f"the model {path.name} is not a regular file")
     # read at most the bound: the size seen a moment ago may have grown
     try:
-        with open(path, "rb") as stream:
-            data = stream.read(MAX_MODEL_BYTES + 1)
+        # non-blocking: a "regular" file whose read blocks (/proc/kmsg) must not hang a reload
+        descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        with os.fdopen(descriptor, "rb") as stream:
+            data = stream.read(MAX_MODEL_BYTES + 1) or b""
     except OSError as exc:
         raise AnomalyError(f"cannot read the model {path.name}: {exc.strerror}") from None
     if len(data) > MAX_MODEL_BYTES:
@@ -343,6 +345,7 @@ def model_from_bytes(data: bytes) -> AnomalyModel:
         zipfile.BadZipFile,
         UnicodeDecodeError,
         MemoryError,
+        RecursionError,  # a meta of 100,000 nested objects
     ) as exc:
         raise AnomalyError(f"not a cellvision anomaly model ({exc})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
@@ -363,12 +366,24 @@ def model_from_bytes(data: bytes) -> AnomalyModel:
         raise AnomalyError(f"a damaged model ({type(exc).__name__}: {exc})") from None
     if not math.isfinite(threshold) or threshold < 0:
         raise AnomalyError(f"a damaged model (threshold {threshold})")
-    if not (0.0 < false_reject < 0.5) or not isinstance(meta.get("version", 1), int):
+    version = meta.get("version", 1)
+    if (
+        not (0.0 < false_reject < 0.5)
+        or isinstance(version, bool)
+        or not isinstance(version, int)
+        or not 1 <= version <= 1_000_000
+    ):
         raise AnomalyError("a damaged model (false_reject or version)")
     if not (min(width, height) >= MIN_SIDE and max(width, height) <= MAX_SIDE):
         raise AnomalyError(f"a damaged model (image size {width}x{height})")
     meta["digest"] = hashlib.sha256(data).hexdigest()
     return AnomalyModel(method, (width, height), threshold, false_reject, scorer, meta)
+
+
+def _floats(arrays: dict[str, NDArray[Any]], *names: str) -> None:
+    for name in names:
+        if arrays[name].dtype.kind != "f":
+            raise ValueError(f"{name} is {arrays[name].dtype}, not floating point")
 
 
 def _scorer(method: str, arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) -> Any:
@@ -379,6 +394,7 @@ def _scorer(method: str, arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) 
                 "it was trained on another backbone than the one installed (retrain it)"
             )
         w, h = (int(v) for v in arrays["input_size"])
+        _floats(arrays, "members", "scales")
         members = np.ascontiguousarray(arrays["members"], dtype=np.float32)
         scales = arrays["scales"].astype(np.float32)
         sources = arrays["sources"].astype(np.int32)
@@ -390,17 +406,26 @@ def _scorer(method: str, arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) 
             or not 0 < members.shape[0] <= BANK_MAX
         ):
             raise ValueError("bank arrays of the wrong shapes")
-        if w % INPUT_MULTIPLE or h % INPUT_MULTIPLE or not 0 < max(w, h) <= MAX_INPUT:
+        if (
+            w % INPUT_MULTIPLE
+            or h % INPUT_MULTIPLE
+            or not (0 < min(w, h) <= max(w, h) <= MAX_INPUT)
+        ):
             raise ValueError(f"input size {w}x{h}")
-        if not np.isfinite(members).all():
-            raise ValueError("bank members that are not finite")
+        if not np.isfinite(members).all() or not (np.isfinite(scales) & (scales > 0)).all():
+            raise ValueError("bank members or scales that are not finite and positive")
         return PatchBank((w, h), members, scales, sources)
     if method == "variation":
         w, h = (int(v) for v in arrays["working_size"])
+        _floats(arrays, "mean", "spread")
         mean = arrays["mean"].astype(np.float32)
         spread = arrays["spread"].astype(np.float32)
-        if mean.shape != (h, w) or spread.shape != (h, w) or not (spread > 0).all():
-            raise ValueError("mean and spread of the wrong shapes or spreads not positive")
+        if not (min(w, h) >= 8 and max(w, h) <= MAX_SIDE):
+            raise ValueError(f"working size {w}x{h}")
+        if mean.shape != (h, w) or spread.shape != (h, w):
+            raise ValueError("mean and spread of the wrong shapes")
+        if not np.isfinite(mean).all() or not (np.isfinite(spread) & (spread > 0)).all():
+            raise ValueError("a mean that is not finite or spreads not finite and positive")
         return VariationModel((w, h), mean, spread)
     raise ValueError(f"unknown method {method!r}")
 

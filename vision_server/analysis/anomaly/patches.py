@@ -111,11 +111,17 @@ def select_bank(
         points[start : start + part.size] = cells[part].astype(np.float32) @ projection
     chosen = np.empty(budget, np.int64)
     nearest = np.full(points.shape[0], np.inf, np.float32)
+    norms = np.einsum("ij,ij->i", points, points)
+    squared = np.empty_like(nearest)
     pick = int(rng.integers(points.shape[0]))
     for i in range(budget):
         chosen[i] = pick
-        step = points - points[pick]
-        np.minimum(nearest, np.einsum("ij,ij->i", step, step), out=nearest)
+        # |p - q|^2 = |p|^2 - 2 p.q + |q|^2: one matrix-vector product, no (N, D) temporary
+        np.dot(points, points[pick], out=squared)
+        squared *= -2.0
+        squared += norms
+        squared += norms[pick]
+        np.minimum(nearest, squared, out=nearest)
         pick = int(np.argmax(nearest))
         if progress is not None and (i + 1) % 1024 == 0:
             progress(f"chose {i + 1}/{budget} patches")
