@@ -271,6 +271,16 @@ def test_a_model_of_another_backbone_is_refused(files: dict[str, bytes]) -> None
         ("patches", {"members": np.zeros((10, 5), np.float16)}, "wrong shapes"),
         ("patches", {"input_size": np.array([100, 224], np.int32)}, "input size 100x224"),
         ("patches", {"input_size": np.array([4096, 224], np.int32)}, "input size 4096x224"),
+        # found by an attack: each crashed scoring, loading or a JSON answer
+        ("patches", {"input_size": np.array([0, 224], np.int32)}, "input size 0x224"),
+        ("patches", {"input_size": np.array([-16, 224], np.int32)}, "input size -16x224"),
+        ("patches", {"scales": np.array([1.0, np.nan, 1.0], np.float32)}, "not finite"),
+        ("variation", {"mean": "nan-mean"}, "not finite"),
+        ("variation", {"spread": "inf-spread"}, "not finite"),
+        ("variation", {"mean": "complex-mean"}, "not floating point"),
+        ("variation", {"working_size": np.array([0, 0], np.int32)}, "working size 0x0"),
+        ("variation", {"meta_version": True}, "false_reject or version"),
+        ("variation", {"meta_version": 10**30}, "false_reject or version"),
     ],
     ids=[
         "method",
@@ -282,13 +292,39 @@ def test_a_model_of_another_backbone_is_refused(files: dict[str, bytes]) -> None
         "bank-shape",
         "input-not-16",
         "input-too-big",
+        "input-zero",
+        "input-negative",
+        "nan-scales",
+        "nan-mean",
+        "inf-spread",
+        "complex-mean",
+        "working-zero",
+        "bool-version",
+        "huge-version",
     ],
 )
 def test_a_damaged_model_names_what_is_wrong(
     files: dict[str, bytes], method: str, changes: dict[str, Any], cause: str
 ) -> None:
+    arrays = _arrays(files[method])
+    for name, value in list(changes.items()):
+        if isinstance(value, str) and value in ("nan-mean", "inf-spread"):
+            damaged = arrays[name].copy()
+            damaged[0, 0] = np.nan if value == "nan-mean" else np.inf
+            changes[name] = damaged
+        elif isinstance(value, str) and value == "complex-mean":
+            changes[name] = arrays[name].astype(np.complex64)
     with pytest.raises(AnomalyError, match=cause):
         model_from_bytes(_rewritten(files[method], **changes))
+
+
+def test_a_deeply_nested_meta_is_a_damaged_model(files: dict[str, bytes]) -> None:
+    arrays = _arrays(files["variation"])
+    arrays["meta"] = np.frombuffer(b'{"a":' * 100_000 + b"1" + b"}" * 100_000, np.uint8)
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    with pytest.raises(AnomalyError, match="not a cellvision anomaly model"):
+        model_from_bytes(buffer.getvalue())
 
 
 def test_a_non_finite_bank_is_refused(files: dict[str, bytes]) -> None:
