@@ -477,3 +477,31 @@ inspections:
     assert "03.png" in message
     assert "fixture 'part' was not made" in message or "found nothing" in message
     assert not (tmp_path / "models").exists()
+
+
+def test_a_save_made_while_the_training_ran_is_kept(
+    cell: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Found by an attack: train wrote model: into the text it read at the start, so a save
+    made meanwhile (by the console, by hand) was silently undone."""
+    from vision_server.commands import train as train_module
+
+    config = cell / "cell.yaml"
+    original = train_module.train_inspection
+
+    def train_while_someone_saves(*args: Any, **kwargs: Any) -> Any:
+        trained = original(*args, **kwargs)
+        text = config.read_text(encoding="utf-8")
+        config.write_text(text.replace("min: 0.5", "min: 0.25  # saved meanwhile"), "utf-8")
+        return trained
+
+    monkeypatch.setattr(train_module, "train_inspection", train_while_someone_saves)
+    monkeypatch.delenv("CELLVISION_CONFIG", raising=False)
+    monkeypatch.chdir(cell)
+    status = main(["train", "surface", "--config", "cell.yaml", "--images", "good/*.png"])
+    capsys.readouterr()
+    assert status == 0
+    text = config.read_text(encoding="utf-8")
+    assert "min: 0.25  # saved meanwhile" in text
+    assert 'model: "models/surface.v1.npz"' in text
+    load_config(config)
