@@ -93,7 +93,11 @@ def test_the_heat_maps_peak_lies_on_the_defect(
         scored = model.score(image)
         assert scored.heat.shape == image.shape[:2]
         assert scored.heat.dtype == np.float32
-        assert math.isclose(float(scored.heat.max()), scored.score, rel_tol=0.05)
+        hottest = float(scored.heat.max())
+        if model.method == "variation":  # the score is the map's maximum
+            assert math.isclose(hottest, scored.score, rel_tol=0.05)
+        else:  # the mean of the map's hottest 0.3 %: at most its maximum, near it on a defect
+            assert 0.7 * hottest <= scored.score <= hottest * 1.05
         peak = np.unravel_index(int(np.argmax(scored.heat)), scored.heat.shape)
         near = dilate(mask, PEAK_REACH_PX)
         assert near[peak], f"{model.method}: {kind}'s heat peaks at {peak}, off the defect"

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from ..errors import BadImageError
 from .backbone import INPUT_MULTIPLE, shared_backbone
 from .errors import AnomalyError
-from .patches import BANK_MAX, DESCRIPTOR_DIMS, MAX_INPUT, PatchBank, train_bank
+from .patches import BANK_MAX, DESCRIPTOR_DIMS, MAX_INPUT, PatchBank, image_score, train_bank
 from .threshold import set_threshold
 from .variation import VariationModel, train_variation, working_size
 
@@ -43,7 +43,7 @@ MIN_IMAGES = 8
 """Fewer good images cannot set a threshold from held-out scores worth the name."""
 MAX_IMAGES = 1000
 MAX_MODEL_BYTES = 256 << 20
-DEFAULT_INPUT = 224
+DEFAULT_INPUT = 256
 MIN_SIDE = 32
 MAX_SIDE = 4096
 
@@ -101,9 +101,10 @@ class AnomalyModel:
         if isinstance(self.scorer, PatchBank):
             bank = self.scorer
             small = bank.heat(bank.cell_distances(bank.grid(shared_backbone(), image)))
+            score = image_score(small)
         else:
             small = self.scorer.heat(image)
-        score = float(small.max())
+            score = float(small.max())
         height, width = image.shape[:2]
         heat = np.asarray(cv2.resize(small, (width, height)), np.float32)
         return AnomalyScore(score, heat)
