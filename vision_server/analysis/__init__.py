@@ -28,6 +28,7 @@ Public API:
   :class:`TemplateError`, :class:`DepthError`, :class:`NotFoundError`.
 """
 
+from .anomaly import MAX_IMAGES as MAX_GOOD_IMAGES_TRAINED
 from .anomaly import METHODS as ANOMALY_METHODS
 from .anomaly import MIN_IMAGES as MIN_GOOD_IMAGES
 from .anomaly import (
@@ -79,6 +80,7 @@ from .qr_pose import UNCHECKED_SCALE_STD, UNCHECKED_SHIFT_STD_PX, QRPose, QRPose
 
 __all__ = [
     "ANOMALY_METHODS",
+    "MAX_GOOD_IMAGES_TRAINED",
     "MIN_GOOD_IMAGES",
     "AnomalyError",
     "AnomalyModel",

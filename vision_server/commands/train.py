@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from protocol.cli import CONFIG_ENV, ErrorKind, ExitCode, json_error
 
-from ..analysis import ANOMALY_METHODS, MIN_GOOD_IMAGES, AnomalyError
+from ..analysis import ANOMALY_METHODS, MAX_GOOD_IMAGES_TRAINED, MIN_GOOD_IMAGES, AnomalyError
 from ..config import (
     CellConfig,
     ConfigError,
@@ -47,9 +47,15 @@ from ..config import (
     parse_document,
     set_model_key,
 )
-from ..service import Trained, TrainingError, train_inspection, training_patches
+from ..service import (
+    Trained,
+    TrainingError,
+    check_usable,
+    train_inspection,
+    training_patches,
+)
 
-MAX_FILES = 1000
+MAX_FILES = MAX_GOOD_IMAGES_TRAINED
 MAX_FILE_BYTES = 256 << 20
 
 __all__ = ["add_parser", "train_command"]
@@ -239,15 +245,9 @@ def _train(args: argparse.Namespace, *, quiet: bool) -> tuple[Trained, Path]:
             cut, left_out = training_patches(inspection, [_read(file)], step=args.step)
             patches.extend(cut)
             skipped.extend(f"{file}: {why.split(': ', 1)[-1]}" for why in left_out)
+        check_usable(len(patches), skipped)
     except TrainingError as exc:
         raise TrainUsage("NOT_TRAINABLE", str(exc)) from None
-    if len(skipped) > len(files) // 2:
-        # As the service's training says it: most images left out is a fixture that does not
-        # find the part (or an ROI off the images), not a few bad images to skip.
-        raise TrainUsage(
-            "NOT_TRAINABLE",
-            f"{len(skipped)} of {len(files)} images could not be used: " + "; ".join(skipped[:3]),
-        )
     progress = None if quiet else _progress
     try:
         trained = train_inspection(

@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from protocol import CellvisionError
 
-from ..analysis import ANOMALY_METHODS, MIN_GOOD_IMAGES, AnomalyError
+from ..analysis import ANOMALY_METHODS, MAX_GOOD_IMAGES_TRAINED, MIN_GOOD_IMAGES, AnomalyError
 from ..config import CellConfig, ConfigError, ModelKeyError, set_model_key
 from ..inspections import AnomalyInspection, Inspection, JobInspection
 from ..process import MAX_NICE, lower_this_thread
@@ -49,6 +49,7 @@ from ..service import (
     InspectionService,
     Trained,
     TrainingError,
+    check_usable,
     stored_image_loader,
     train_inspection,
     training_patches,
@@ -61,7 +62,7 @@ MODEL_PATH = "/api/inspections/{name}/model"
 IMAGES_PATH = "/api/inspections/{name}/train/images"
 STATUS_PATH = "/api/training"
 
-MAX_IMAGES = 1000
+MAX_IMAGES = MAX_GOOD_IMAGES_TRAINED
 """The most images one training takes (as ``vision-server train``)."""
 MAX_BODY_BYTES = 64 * 1024
 """The largest request body: 1000 result ids are about 8 KB of JSON."""
@@ -328,14 +329,12 @@ class TrainRoutes:
                 await self._grab_frames(job, name, ask.frames, ask.interval_ms, cut)
         except Stopped as exc:
             raise HttpError(504, "DEADLINE_EXCEEDED", f"training stopped: {exc}") from None
-        if len(cut.skipped) > len(cut.patches):
+        try:
+            check_usable(len(cut.patches), cut.skipped)
+        except TrainingError as exc:
             raise HttpError(
-                400,
-                "NOT_TRAINABLE",
-                f"{len(cut.skipped)} of {len(cut.skipped) + len(cut.patches)} images could not "
-                "be used: " + "; ".join(cut.skipped[:3]),
-                details={"skipped": cut.skipped[:LISTED_IDS]},
-            )
+                400, "NOT_TRAINABLE", str(exc), details={"skipped": cut.skipped[:LISTED_IDS]}
+            ) from None
         if len(cut.patches) < MIN_GOOD_IMAGES:
             left = ""
             if cut.skipped:

@@ -146,6 +146,16 @@ def _step_patch(job: JobInspection, target: Any, image: NDArray[np.uint8]) -> ND
     raise LookupError("the step is not in the job")
 
 
+def check_usable(used: int, skipped: Sequence[str]) -> None:
+    """Refuse a training where more images were left out than used: that is a fixture that
+    does not find the part (or an ROI off the images), not a few bad images to skip."""
+    if len(skipped) > used:
+        raise TrainingError(
+            f"{len(skipped)} of {used + len(skipped)} images could not be used: "
+            + "; ".join(skipped[:3])
+        )
+
+
 def next_model_file(base_dir: Path, inspection: str, step: str | None) -> tuple[str, int]:
     """The next free ``models/<name>.v<N>.npz`` (relative to ``base_dir``) and its N."""
     stem = inspection if step is None else f"{inspection}.{step}"
@@ -188,10 +198,7 @@ def train_inspection(
     patches, skipped = (
         (list(images), []) if cut else training_patches(inspection, images, step=step)
     )
-    if len(skipped) > len(images) // 2:
-        raise TrainingError(
-            f"{len(skipped)} of {len(images)} images could not be used: " + "; ".join(skipped[:3])
-        )
+    check_usable(len(patches), skipped)
     step_name = None if job is None else target.name
     relative, version = next_model_file(config.base_dir, name, step_name)
     # refused edits (a flow-style mapping) are found before minutes of training, not after
@@ -218,6 +225,7 @@ __all__ = [
     "AnomalyError",
     "Trained",
     "TrainingError",
+    "check_usable",
     "next_model_file",
     "train_inspection",
     "training_patches",

@@ -18,6 +18,7 @@ and a heat map), :func:`save_model` / :func:`load_model` / :func:`model_bytes` /
 
 from .backbone import WeightsError
 from .model import (
+    MAX_IMAGES,
     METHODS,
     MIN_IMAGES,
     AnomalyError,
@@ -34,6 +35,7 @@ from .model import (
 )
 
 __all__ = [
+    "MAX_IMAGES",
     "METHODS",
     "MIN_IMAGES",
     "AnomalyError",

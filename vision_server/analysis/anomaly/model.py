@@ -432,6 +432,7 @@ def _scorer(method: str, arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) 
 
 
 __all__ = [
+    "MAX_IMAGES",
     "METHODS",
     "MIN_IMAGES",
     "AnomalyError",
