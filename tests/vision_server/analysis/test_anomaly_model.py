@@ -445,3 +445,21 @@ def test_an_archive_that_unpacks_too_large_is_refused_before_unpacking(
     assert len(buffer.getvalue()) < 1 << 20
     with pytest.raises(AnomalyError, match="unpack to 2 MiB, more than 1 MiB"):
         model_from_bytes(buffer.getvalue())
+
+
+def test_an_array_header_claiming_terabytes_is_refused_before_numpy_allocates_it() -> None:
+    """Found by a review: np.load trusts a .npy header's shape and allocates it first."""
+    header = "{'descr': '<f4', 'fortran_order': False, 'shape': (1000000000000,), }"
+    header += " " * (117 - len(header)) + "\n"
+    member = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header.encode() + b"\0" * 64
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("members.npy", member)
+    with pytest.raises(AnomalyError, match="claims"):
+        model_from_bytes(buffer.getvalue())
+
+
+def test_missing_weights_are_an_anomaly_error_the_train_paths_catch() -> None:
+    from vision_server.analysis import WeightsError
+
+    assert issubclass(WeightsError, AnomalyError)
