@@ -32,6 +32,7 @@ from .config import (
     Listener,
     ListenError,
     ModbusSettings,
+    OpcUaSettings,
     ServerSettings,
 )
 from .frontends import HttpFrontend, LineFrontend, TcpFrontend
@@ -39,7 +40,7 @@ from .results import ResultStore
 from .service import Catalog, InspectionService, OperatorDesk
 
 if TYPE_CHECKING:
-    from .frontends import ModbusFrontend
+    from .frontends import ModbusFrontend, OpcUaFrontend
 
 log = logging.getLogger("vision_server")
 
@@ -66,6 +67,7 @@ class App:
         console: ConsoleSettings | None = None,
         config_path: Path | None = None,
         modbus: ModbusSettings | None = None,
+        opcua: OpcUaSettings | None = None,
     ) -> None:
         self.settings = settings or ServerSettings()
         self.service = InspectionService(
@@ -83,6 +85,12 @@ class App:
             from .frontends import ModbusFrontend
 
             self.modbus = ModbusFrontend(self.service, modbus)
+        self.opcua: OpcUaFrontend | None = None
+        """OPC UA for machine vision (OPC 40100-1), when ``opcua`` enables it (extra ``opcua``)."""
+        if opcua is not None and opcua.enabled:
+            from .frontends import OpcUaFrontend
+
+            self.opcua = OpcUaFrontend(self.service, opcua, self.settings)
         # The web console (off unless enabled): its token, TLS and limits are the server's.
         self.http: HttpFrontend | None = None
         if console is not None and console.enabled:
@@ -172,6 +180,10 @@ class App:
                 "modbus.port", "Modbus TCP", modbus.settings.host, modbus.settings.port
             )
             listeners.append((where, modbus.start, lambda: modbus.stop(0.0)))
+        if self.opcua is not None:
+            opcua = self.opcua
+            where = Listener("opcua.port", "OPC UA", opcua.settings.host, opcua.settings.port)
+            listeners.append((where, opcua.start, lambda: opcua.stop(0.0)))
         if self.http is not None:
             http = self.http.settings
             where = Listener("console.port", "the web console", http.host, http.port)
@@ -189,6 +201,7 @@ class App:
         ports = [self.tcp.port]
         ports += [self.line.port] if self.line is not None else []
         ports += [self.modbus.port] if self.modbus is not None else []
+        ports += [self.opcua.port] if self.opcua is not None else []
         ports += [self.http.port] if self.http is not None else []
         return ports
 
@@ -219,6 +232,8 @@ class App:
             await self.line.stop()
         if self.modbus is not None:
             await self.modbus.stop(self.settings.shutdown_grace_s)
+        if self.opcua is not None:
+            await self.opcua.stop(self.settings.shutdown_grace_s)
         if self.http is not None:
             await self.http.stop()
         await self.tcp.stop()

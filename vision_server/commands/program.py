@@ -6,6 +6,7 @@ register map, and check or reload a running server.
                       [--host ADDR] [--port N]      # the binary protocol (server.host, .port)
                       [--console-port N | --no-console] [--line-port N | --no-line]
                       [--modbus-port N | --no-modbus]   # the front-ends the file enables
+                      [--opcua-port N | --no-opcua]
     vision-server check-config cell.yaml
     vision-server run --config cell.yaml cap_locate --image cap.png [--image more.bmp ...]
                       [--json] [--overlay out.png]
@@ -96,6 +97,7 @@ from ..config import (
     LineSettings,
     ListenError,
     ModbusSettings,
+    OpcUaSettings,
     PortClash,
     ServerSettings,
     check_distinct,
@@ -184,6 +186,7 @@ def _serve(args: argparse.Namespace) -> int:
                 console=frontends.console,
                 line=frontends.line,
                 modbus=frontends.modbus,
+                opcua=frontends.opcua,
             )
         )
     except UsageError as exc:
@@ -217,6 +220,7 @@ def _serve(args: argparse.Namespace) -> int:
             console=frontends.console,
             config_path=None if runtime is None else runtime.path,
             modbus=frontends.modbus,
+            opcua=frontends.opcua,
         )
         app.service.on_reloaded = announce_reload
         try:
@@ -247,6 +251,8 @@ def _serve(args: argparse.Namespace) -> int:
         if app.modbus is not None:
             modbus = app.modbus.settings
             print(f"{PROG}: Modbus TCP on {modbus.host}:{app.modbus.port}", flush=True)
+        if app.opcua is not None:
+            print(f"{PROG}: OPC UA on {app.opcua.endpoint}", flush=True)
         await stop.wait()
         await app.stop()
         return 0
@@ -287,12 +293,14 @@ class _Frontends:
     console: ConsoleSettings | None
     line: LineSettings | None
     modbus: ModbusSettings | None
+    opcua: OpcUaSettings | None
 
 
 FRONTEND_OPTIONS = (
     ("console", "the web console"),
     ("line", "the line protocol"),
     ("modbus", "Modbus TCP"),
+    ("opcua", "OPC UA"),
 )
 """Each optional front-end: its section (and option) name, and what it is, for messages."""
 

@@ -12,6 +12,8 @@
     line:     {enabled, host, port, tls, format, max_line_bytes, idle_timeout_s, deadline_s, ...}
     modbus:   {enabled, host, port, unit_id, word_order, deadline_s, max_connections,
                idle_timeout_s, write_timeout_s, shutdown_drain_s}  (PLCs)
+    opcua:    {enabled, host, port, path, pki, security_policies, anonymous, certificate_users,
+               deadline_s, results_kept, ...}  (OPC 40100-1 machine vision, docs/opcua.md)
 
 Every error names the file, the line and the key path; unknown keys are errors. Relative paths
 resolve against the configuration file's directory. See docs/configuration.md.
@@ -31,6 +33,7 @@ from pathlib import Path
 from typing import Any, cast
 
 from protocol import OPERATOR_CHOICES
+from protocol.cli import is_loopback
 
 from ..cameras import (
     MOUNT_KEYS,
@@ -62,9 +65,12 @@ from .listeners import PortClash, check_distinct, enabled_listeners
 from .settings import (
     LINE_FORMATS,
     MODBUS_WORD_ORDERS,
+    OPCUA_POLICIES,
     ConsoleSettings,
     LineSettings,
     ModbusSettings,
+    OpcUaCertificateUser,
+    OpcUaSettings,
     ServerSettings,
 )
 from .users import (
@@ -120,6 +126,8 @@ class CellConfig:
     """The web console (``console:``), with the server's token, TLS and limits."""
     modbus: ModbusSettings = ModbusSettings()
     """Modbus TCP for PLCs (protocol/MODBUS.md); off unless ``modbus: {enabled: true}``."""
+    opcua: OpcUaSettings = OpcUaSettings()
+    """OPC UA for machine vision (OPC 40100-1, docs/opcua.md); off unless enabled."""
 
 
 def _names(value: Any) -> tuple[str, ...]:
@@ -194,8 +202,9 @@ def parse_config(
             )
     line = _line(root.sub("line"), server)
     modbus = _modbus(root.sub("modbus"))
-    _check_ports(root, server, console, line, modbus)
-    _check_connections(root, server, console, line, modbus)
+    opcua = _opcua(root.sub("opcua"), base_dir)
+    _check_ports(root, server, console, line, modbus, opcua)
+    _check_connections(root, server, console, line, modbus, opcua)
     root.finish()
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
     tuner = Tuner(written, base_dir, cameras)
@@ -211,6 +220,7 @@ def parse_config(
         line=line,
         console=console,
         modbus=modbus,
+        opcua=opcua,
     )
 
 
@@ -488,12 +498,92 @@ def _modbus(node: Node) -> ModbusSettings:
     return settings
 
 
+def _opcua(node: Node, base_dir: Path) -> OpcUaSettings:
+    """The OPC UA front-end's settings (docs/opcua.md); its users are the server's."""
+    defaults = OpcUaSettings()
+    port = node.take("port", integer, defaults.port)
+    if not 0 <= port < 65536:
+        raise node.error(f"expected a port in 0..65535, got {port}", "port")
+    host = node.take("host", string, defaults.host)
+    path = node.take("path", string, defaults.path)
+    if not path.startswith("/") or any(c.isspace() or c in "?#" for c in path):
+        raise node.error(f"expected an URL path such as /cellvision, got {path!r}", "path")
+    pki = node.take("pki", string, None)
+    policies = node.take("security_policies", _policy_names, defaults.security_policies)
+    anonymous = node.take("anonymous", boolean, defaults.anonymous)
+    if anonymous and not is_loopback(host):
+        raise node.error(
+            f"anonymous: true is allowed only where the server listens on loopback, and host is "
+            f"{host!r}: give users (server: users, role tokens) or certificate_users instead",
+            "anonymous",
+        )
+    certificate_users: list[OpcUaCertificateUser] = []
+    names: set[str] = set()
+    for item in node.items("certificate_users"):
+        name = item.take("name", string).strip()
+        if not USER_NAME.fullmatch(name) or name.casefold() in RESERVED_NAMES:
+            raise item.error(f"expected a user's own name (letters, digits, ._@-), got {name!r}")
+        if name.casefold() in names:
+            raise item.error(f"certificate user {name!r} is named twice", "name")
+        names.add(name.casefold())
+        role = cast(UserRole, item.take("role", one_of(*USER_ROLES), "operator"))
+        certificate = _resolve(base_dir, item.take("certificate", string))
+        if not certificate.is_file():
+            raise item.error(f"no such file: {certificate}", "certificate")
+        certificate_users.append(OpcUaCertificateUser(name, role, certificate))
+        item.finish()
+    settings = OpcUaSettings(
+        enabled=node.take("enabled", boolean, defaults.enabled),
+        host=host,
+        port=port,
+        path=path,
+        advertised_host=node.take("advertised_host", string, None),
+        pki=_resolve(base_dir, pki) if pki is not None else base_dir / "opcua-pki",
+        security_policies=policies,
+        sign_only=node.take("sign_only", boolean, defaults.sign_only),
+        anonymous=anonymous,
+        trust_all_clients=node.take("trust_all_clients", boolean, defaults.trust_all_clients),
+        certificate_users=tuple(certificate_users),
+        max_connections=node.take("max_connections", positive_int, defaults.max_connections),
+        deadline_s=node.take("deadline_s", positive, defaults.deadline_s),
+        results_kept=node.take("results_kept", positive_int, defaults.results_kept),
+        request_timeout_s=node.take("request_timeout_s", positive, defaults.request_timeout_s),
+        idle_timeout_s=node.take("idle_timeout_s", positive, defaults.idle_timeout_s),
+        write_timeout_s=node.take("write_timeout_s", positive, defaults.write_timeout_s),
+        max_message_bytes=node.take("max_message_bytes", positive_int, defaults.max_message_bytes),
+    )
+    if settings.results_kept > 100_000:
+        raise node.error(f"results_kept is at most 100000, got {settings.results_kept}")
+    if settings.max_message_bytes < 65536:
+        raise node.error("max_message_bytes is at least 65536 (one OPC UA chunk)")
+    if settings.enabled and find_spec("asyncua") is None:
+        raise node.error(
+            "enabled: true needs the optional extra: pip install 'cellvision[opcua]'",
+            "enabled",
+        )
+    node.finish()
+    return settings
+
+
+def _policy_names(value: Any) -> tuple[str, ...]:
+    """A non-empty list of OPC UA security policy names (:data:`OPCUA_POLICIES`)."""
+    if not isinstance(value, list) or not value:
+        raise ValueError(f"expected a list of policies from {', '.join(OPCUA_POLICIES)}")
+    for name in value:
+        if name not in OPCUA_POLICIES:
+            raise ValueError(
+                f"unknown security policy {name!r}; known: {', '.join(OPCUA_POLICIES)}"
+            )
+    return tuple(dict.fromkeys(value))
+
+
 def _check_connections(
     root: Node,
     server: ServerSettings,
     console: ConsoleSettings,
     line: LineSettings,
     modbus: ModbusSettings,
+    opcua: OpcUaSettings,
 ) -> None:
     """The server-wide total holds every enabled front-end's own limit: then a flood of the
     others never takes the places one front-end (the robot's) was promised."""
@@ -501,6 +591,7 @@ def _check_connections(
     limits += [("console.max_connections", console.max_connections)] if console.enabled else []
     limits += [("line.max_connections", line.max_connections)] if line.enabled else []
     limits += [("modbus.max_connections", modbus.max_connections)] if modbus.enabled else []
+    limits += [("opcua.max_connections", opcua.max_connections)] if opcua.enabled else []
     needed = sum(n for _, n in limits)
     if server.max_connections_total < needed:
         parts = " + ".join(f"{key} {n}" for key, n in limits)
@@ -518,9 +609,10 @@ def _check_ports(
     console: ConsoleSettings,
     line: LineSettings,
     modbus: ModbusSettings,
+    opcua: OpcUaSettings,
 ) -> None:
     """No two enabled front-ends on one host:port: the error is at the later one's port."""
-    listeners = enabled_listeners(server, console=console, line=line, modbus=modbus)
+    listeners = enabled_listeners(server, console=console, line=line, modbus=modbus, opcua=opcua)
     try:
         check_distinct(listeners)
     except PortClash as exc:

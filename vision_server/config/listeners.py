@@ -13,7 +13,13 @@ import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from .settings import ConsoleSettings, LineSettings, ModbusSettings, ServerSettings
+from .settings import (
+    ConsoleSettings,
+    LineSettings,
+    ModbusSettings,
+    OpcUaSettings,
+    ServerSettings,
+)
 
 WILDCARD_HOSTS = frozenset({"", "0.0.0.0", "::"})
 """Hosts that mean "every interface": they overlap with any host on the same port."""
@@ -84,6 +90,7 @@ def enabled_listeners(
     console: ConsoleSettings | None = None,
     line: LineSettings | None = None,
     modbus: ModbusSettings | None = None,
+    opcua: OpcUaSettings | None = None,
 ) -> list[Listener]:
     """The listening address of each enabled front-end, the binary protocol's first."""
     listeners = [Listener("server.port", "the binary protocol", server.host, server.port)]
@@ -93,6 +100,8 @@ def enabled_listeners(
         listeners.append(Listener("line.port", "the line protocol", line.host, line.port))
     if modbus is not None and modbus.enabled:
         listeners.append(Listener("modbus.port", "Modbus TCP", modbus.host, modbus.port))
+    if opcua is not None and opcua.enabled:
+        listeners.append(Listener("opcua.port", "OPC UA", opcua.host, opcua.port))
     return listeners
 
 

@@ -14,11 +14,12 @@ from __future__ import annotations
 import os
 import ssl
 from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
 from typing import Any
 
 from protocol import DEFAULT_PORT, Limits
 
-from .users import User
+from .users import User, UserRole
 
 SERVER_VERSION = "0.1.0"
 """The server's version, announced in WELCOME."""
@@ -177,6 +178,63 @@ class ModbusSettings:
     """At a stop, once no run is left, how long open connections are still served (READY
     clear, trigger edges refused) so that a PLC reads the final state; ends early when no
     connection is left open."""
+
+
+DEFAULT_OPCUA_PORT = 4840
+"""OPC UA's registered port (IANA 4840), when ``opcua:`` enables it without one."""
+OPCUA_POLICIES = ("Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss")
+"""The security policies offered (each with SignAndEncrypt; Sign too with ``sign_only``)."""
+
+
+@dataclass(frozen=True)
+class OpcUaCertificateUser:
+    """A user who signs in with an X.509 certificate (``opcua: certificate_users:``)."""
+
+    name: str
+    role: UserRole
+    certificate: Path
+    """The user's certificate file (DER or PEM)."""
+
+
+@dataclass(frozen=True)
+class OpcUaSettings:
+    """The ``opcua:`` section: the OPC UA front-end (OPC 40100-1, docs/opcua.md), off unless
+    ``enabled``. Users sign in with the server's users and role tokens (the console's) or an
+    X.509 certificate; sessions are signed and encrypted. Durations in seconds."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = DEFAULT_OPCUA_PORT
+    path: str = "/cellvision"
+    """The endpoint URL's path: ``opc.tcp://HOST:PORT/cellvision``."""
+    advertised_host: str | None = None
+    """The host name the endpoint URL names (and the certificate's DNS name); default the
+    listening host, or the machine's name when it listens on every interface."""
+    pki: Path | None = None
+    """The certificate store: ``own/`` (the server's certificate and key, made at the first
+    start), ``trusted/`` (client certificates let in), ``rejected/`` (refused ones, to move to
+    ``trusted/`` by hand). Default ``opcua-pki`` beside the configuration file."""
+    security_policies: tuple[str, ...] = OPCUA_POLICIES
+    sign_only: bool = False
+    """Also offer Sign-only endpoints (messages signed, not encrypted)."""
+    anonymous: bool = False
+    """Let clients in without a user (as operators); only where ``host`` is a loopback address."""
+    trust_all_clients: bool = False
+    """Accept any client application certificate (else only those in ``pki/trusted``)."""
+    certificate_users: tuple[OpcUaCertificateUser, ...] = ()
+    max_connections: int = 16
+    deadline_s: float = 10.0
+    """Each job's deadline, from its StartSingleJob: it ends Failed with DEADLINE_EXCEEDED."""
+    results_kept: int = 1000
+    """Results readable by id (GetResultById): the last this many."""
+    request_timeout_s: float = 10.0
+    """Before a session is activated: each message must come within this (the handshake)."""
+    idle_timeout_s: float = 300.0
+    """A connection that sends nothing for this long is closed (a subscribed client sends
+    publish requests all the time)."""
+    write_timeout_s: float = 10.0
+    max_message_bytes: int = 4 * 1024 * 1024
+    """The largest message a client may send (OPC UA chunks of 64 KiB each)."""
 
 
 @dataclass(frozen=True)
@@ -376,7 +434,11 @@ __all__ = [
     "LineSettings",
     "MODBUS_WORD_ORDERS",
     "DEFAULT_MODBUS_PORT",
+    "DEFAULT_OPCUA_PORT",
     "ModbusSettings",
+    "OPCUA_POLICIES",
+    "OpcUaCertificateUser",
+    "OpcUaSettings",
     "ServerSettings",
     "ServiceSettings",
     "TcpSettings",

@@ -8,6 +8,8 @@ requests, call :class:`vision_server.service.InspectionService`, and render its 
   (:mod:`.modbus_handshake`) and framing (:mod:`.modbus_frames`), which need no pymodbus.
 - :mod:`.images`: image payloads (the protocol's, also image files) decoded into arrays.
 - :mod:`.http`: the web console, its JSON API and ``/metrics`` (aiohttp).
+- :mod:`.opcua`: OPC UA for machine vision (OPC 40100-1; asyncua, the optional extra
+  ``opcua``), imported when first named like Modbus.
 
 Public API: each front-end's class, the register map (``modbus-map`` prints it) and
 :func:`payload_loader`. :class:`ModbusFrontend` is imported when first named (it needs
@@ -35,6 +37,7 @@ from .tcp import DEFAULT_MAX_FRAME_BYTES, REFUSE_HELLO_TIMEOUT_S, TcpFrontend
 
 if TYPE_CHECKING:
     from .modbus import ModbusFrontend
+    from .opcua import OpcUaFrontend
 
 __all__ = [
     "DEFAULT_MAX_FRAME_BYTES",
@@ -46,6 +49,7 @@ __all__ = [
     "LineFrontend",
     "MappedInspection",
     "ModbusFrontend",
+    "OpcUaFrontend",
     "RegisterMap",
     "Row",
     "TcpFrontend",
@@ -62,4 +66,8 @@ def __getattr__(name: str) -> Any:
         from .modbus import ModbusFrontend
 
         return ModbusFrontend
+    if name == "OpcUaFrontend":  # asyncua, the optional extra ``opcua``
+        from .opcua import OpcUaFrontend
+
+        return OpcUaFrontend
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -41,7 +41,7 @@ from .core import (
     check_images,
     deadline_after,
 )
-from .door import FrontDoor, Pass, Refusal, peer_host, peer_name
+from .door import FrontDoor, Pass, Refusal, failure_key, peer_host, peer_name
 from .operator_desk import (
     MAX_REASON_CHARS,
     CallClosed,
@@ -118,6 +118,7 @@ __all__ = [
     "closed_json",
     "deadline_after",
     "desk_image",
+    "failure_key",
     "peer_host",
     "peer_name",
     "replay",

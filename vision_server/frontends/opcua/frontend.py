@@ -1,0 +1,775 @@
+"""The OPC UA front-end: OPC 40100-1's VisionSystem over the InspectionService (docs/opcua.md).
+
+asyncua (the optional extra ``opcua``) encodes, secures and serves the address space; the
+front-end loads the specification's nodeset (:mod:`.model`), runs the state machines
+(:mod:`.states`), maps recipes to inspections and jobs to inspections through the service
+(the same admission, deadlines and result log as every front-end), and keeps results readable
+by id (:mod:`.results`). Its connections come through the service's front door: the shared
+listener counts each before its first byte, with the request, idle and write timeouts of
+``opcua:``; :mod:`.wire` bounds what a client can make asyncua buffer; sign-ins are the
+server's users (:mod:`.access`), slowed down by the door after failures; certificates and trust
+lists are files (:mod:`.pki`).
+
+A job: ``StartSingleJob(MeasId, PartId, RecipeId, ProductId, Parameters)`` with RecipeId the
+inspection's name (or empty for the prepared recipe) answers at once with its JobId, the
+automatic mode goes Ready → SingleExecution, the inspection runs (with the inspection's server
+camera), and when it is answered the result is kept, ``LatestResult`` changes, a
+ResultReadyEvent is fired by the VisionSystem, and the mode goes back to Ready. A single job's
+ResultId is its JobId: ``GetResultById(JobId, Timeout)`` waits up to Timeout ms for it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+import logging
+import socket
+import tempfile
+import time
+from collections.abc import Awaitable, Callable
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from asyncua import Server, ua
+from asyncua.server.binary_server_asyncio import BinaryServer
+from asyncua.ua.status_codes import StatusCodes
+
+from protocol import CellvisionError, ConfigInvalid, ErrorCode, UnknownInspection
+from protocol.cli import is_loopback
+
+from ...config import OpcUaSettings, ServerSettings
+from ...service import InspectionService, InspectRequest
+from ..listener import Listener, Policy, quiet_logger
+from .access import CALLER, AccessDenied, Rights, SignIns, require
+from .model import (
+    MV,
+    VisionNodes,
+    build,
+    load_nodeset,
+    now_utc,
+    recipe_id,
+    result_data,
+    text_id,
+)
+from .pki import Pki, TrustList
+from .results import (
+    RESULT_ABORTED,
+    RESULT_COMPLETED,
+    RESULT_FAILED,
+    JobResult,
+    ResultFilter,
+    ResultRing,
+)
+from .states import InvalidState, Machines
+from .wire import Guarded
+
+log = logging.getLogger("vision_server")
+FRONTEND = "OPC UA"
+"""This front-end's name at the service's front door (its counts, its refusals)."""
+CHUNK_BYTES = 65535
+"""The receive buffer (largest chunk) the server offers a client, asyncua's default."""
+PENDING_CHUNKS = 64
+"""Chunks of one connection waiting for asyncua past which it is read no further until half
+have been taken (:class:`~.wire.Guarded`): its memory stays within about 4 MiB."""
+ASYNCUA_QUEUE = 4096
+"""asyncua's own limit, past which it drops the connection: never reached (see above)."""
+REFRESH_S = 1.0
+"""How often the configuration's identity, SystemState and Health are brought up to date."""
+MAX_WAIT_MS = 60_000
+"""The longest GetResultById waits for a running job's result, whatever Timeout asks."""
+POLICIES = {
+    "Basic256Sha256": (
+        ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
+        ua.SecurityPolicyType.Basic256Sha256_Sign,
+    ),
+    "Aes128_Sha256_RsaOaep": (
+        ua.SecurityPolicyType.Aes128Sha256RsaOaep_SignAndEncrypt,
+        ua.SecurityPolicyType.Aes128Sha256RsaOaep_Sign,
+    ),
+    "Aes256_Sha256_RsaPss": (
+        ua.SecurityPolicyType.Aes256Sha256RsaPss_SignAndEncrypt,
+        ua.SecurityPolicyType.Aes256Sha256RsaPss_Sign,
+    ),
+}
+ERROR_STATUS = {
+    ErrorCode.UNKNOWN_INSPECTION: StatusCodes.BadInvalidArgument,
+    ErrorCode.BUSY: StatusCodes.BadTooManyOperations,
+    ErrorCode.SHUTTING_DOWN: StatusCodes.BadShutdown,
+}
+
+
+def _status(code: int) -> ua.StatusCode:
+    return ua.StatusCode(code)
+
+
+def _int32(value: int) -> ua.Variant:
+    return ua.Variant(value, ua.VariantType.Int32)
+
+
+class OpcUaFrontend:
+    """Serves OPC UA clients with ``service`` on ``settings.host``:``settings.port``."""
+
+    def __init__(
+        self, service: InspectionService, settings: OpcUaSettings, server: ServerSettings
+    ) -> None:
+        self.service = service
+        self.settings = settings
+        self.server_settings = server
+        self.machines = Machines()
+        self.results = ResultRing(settings.results_kept)
+        self.prepared: str | None = None
+        """The recipe (inspection) prepared with PrepareRecipe: the default of StartSingleJob."""
+        self.listener: Listener | None = None
+        self.nodes: VisionNodes | None = None
+        self._ua: Server | None = None
+        self._binary: BinaryServer | None = None
+        self._job: asyncio.Task[None] | None = None
+        self._job_id: str | None = None
+        self._jobs = itertools.count(1)
+        self._job_done = asyncio.Event()
+        self._lock = asyncio.Lock()
+        """Serialises state changes and their mirror in the address space."""
+        self._refresher: asyncio.Task[None] | None = None
+        self._loaded_at = now_utc()
+        self._config_hash = ""
+        self.pki = Pki(settings.pki or Path(tempfile.gettempdir()) / "cellvision-opcua-pki")
+        self.endpoint = ""
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def port(self) -> int:
+        if self.listener is None:
+            raise RuntimeError("the OPC UA front-end is not started")
+        return self.listener.address[1]
+
+    def _advertised_host(self) -> str:
+        if self.settings.advertised_host:
+            return self.settings.advertised_host
+        host = self.settings.host
+        if host in ("", "0.0.0.0", "::"):
+            return socket.gethostname()
+        return host
+
+    async def start(self) -> None:
+        for name in ("asyncua", "asyncua.server", "asyncua.uaprotocol", "asyncua.crypto"):
+            # asyncua logs each malformed or refused message from a peer, with a traceback: a
+            # hostile client must not fill the server's log.
+            quiet_logger(name)
+        if not log.isEnabledFor(logging.DEBUG):
+            logging.getLogger("asyncua").setLevel(logging.ERROR)
+        settings = self.settings
+        server = Server(user_manager=None)
+        await server.init()
+        server.set_server_name(f"cellvision {self.server_settings.name}")
+        application_uri = f"urn:cellvision:{self.server_settings.name}:opcua"
+        await server.set_application_uri(application_uri)
+        server.product_uri = "urn:cellvision"
+        server.manufacturer_name = "cellvision"
+        server.limits.max_recv_buffer = CHUNK_BYTES
+        server.limits.max_send_buffer = CHUNK_BYTES
+        server.limits.max_message_size = settings.max_message_bytes
+        server.limits.max_chunk_count = settings.max_message_bytes // (CHUNK_BYTES - 256) + 1
+        server.iserver.max_connections = settings.max_connections
+        server.iserver.max_pending_messages_per_connection = ASYNCUA_QUEUE
+        server.iserver.max_pending_activation_seconds = settings.request_timeout_s
+        mv, cell = await load_nodeset(server)
+        self.nodes = await build(server, mv, cell)
+        self._link_methods(server, self.nodes)
+        host = self._advertised_host()
+        await self.pki.ensure(application_uri, host)
+        await server.load_certificate(str(self.pki.cert))
+        await server.load_private_key(str(self.pki.key))
+        policies = [POLICIES[name][0] for name in settings.security_policies]
+        if settings.sign_only:
+            policies += [POLICIES[name][1] for name in settings.security_policies]
+        if settings.anonymous and is_loopback(settings.host):
+            policies.append(ua.SecurityPolicyType.NoSecurity)
+        rights = Rights()
+        server.set_security_policy(policies, permission_ruleset=rights)
+        sign_ins = SignIns(settings, self.server_settings, self.service.door)
+        server.iserver.user_manager = sign_ins
+        tokens: list[type] = []
+        if sign_ins.accepts_passwords:
+            tokens.append(ua.UserNameIdentityToken)
+        if settings.certificate_users:
+            tokens.append(ua.X509IdentityToken)
+        if settings.anonymous:
+            tokens.append(ua.AnonymousIdentityToken)
+        if not tokens:
+            raise ConfigInvalid(
+                "opcua: nobody could sign in: give users (server: users or role tokens), "
+                "certificate_users, or anonymous: true on loopback",
+            )
+        server.set_identity_tokens(tokens)
+        server.set_certificate_validator(TrustList(self.pki, trust_all=settings.trust_all_clients))
+
+        policy = Policy(
+            FRONTEND,
+            settings.max_connections,
+            settings.request_timeout_s,
+            settings.idle_timeout_s,
+            settings.write_timeout_s,
+        )
+        self._binary = None
+
+        def protocol() -> asyncio.BaseProtocol:
+            assert self._binary is not None
+            assert self.listener is not None
+            return Guarded(
+                self._binary._make_protocol(),
+                policy=policy,
+                max_chunk_bytes=CHUNK_BYTES,
+                max_waiting=PENDING_CHUNKS,
+                clock_of=self.listener.clock_of,
+            )
+
+        listener = Listener(self.service.door, policy, protocol)
+        await listener.start(settings.host, settings.port)
+        self.listener = listener
+        try:
+            port = listener.address[1]
+            self.endpoint = f"opc.tcp://{host}:{port}{settings.path}"
+            server.set_endpoint(self.endpoint)
+            await server._setup_server_nodes()
+            await server.iserver.start()
+            self._binary = BinaryServer(server.iserver, settings.host, port, server.limits)
+            self._binary.set_policies(server._policies)
+            self._ua = server
+            async with self._lock:
+                await self._mirror(self.machines.become_operational(automatic=True))
+            await self._refresh()
+        except BaseException:
+            await listener.stop_accepting()
+            await listener.close_connections()
+            raise
+        self._refresher = asyncio.get_running_loop().create_task(self._refresh_forever())
+        log.info(
+            "OPC UA listening on %s (%s)", self.endpoint, ", ".join(settings.security_policies)
+        )
+
+    async def stop(self, grace_s: float = 5.0) -> None:
+        """End a running job (``grace_s`` to finish, then aborted), close every session."""
+        if self._refresher is not None:
+            self._refresher.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._refresher
+        job = self._job
+        if job is not None and not job.done():
+            with contextlib.suppress(TimeoutError, asyncio.CancelledError):
+                await asyncio.wait_for(asyncio.shield(job), grace_s)
+            if not job.done():
+                job.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await job
+        if self.listener is not None:
+            await self.listener.stop_accepting()
+            await self.listener.close_connections()
+        if self._ua is not None:
+            with contextlib.suppress(Exception):
+                await self._ua.iserver.stop()
+            self._ua = None
+
+    # ------------------------------------------------------------------ methods
+
+    def _link_methods(self, server: Server, nodes: VisionNodes) -> None:
+        handlers: dict[str, tuple[str, Callable[..., Awaitable[Any]]]] = {
+            "StartSingleJob": ("operator", self._start_single_job),
+            "StartContinuous": ("operator", self._start_continuous),
+            "Stop": ("operator", self._stop_job),
+            "Abort": ("operator", self._abort),
+            "Halt": ("integrator", self._halt),
+            "Reset": ("integrator", self._reset),
+            "SelectModeAutomatic": ("integrator", self._select_automatic),
+            "GetRecipeListFiltered": ("operator", self._recipe_list),
+            "PrepareRecipe": ("integrator", self._prepare_recipe),
+            "UnprepareRecipe": ("integrator", self._unprepare_recipe),
+            "GetResultById": ("operator", self._result_by_id),
+            "GetResultComponentsById": ("operator", self._result_components),
+            "GetResultListFiltered": ("operator", self._result_list),
+            "ReleaseResultHandle": ("operator", self._release_handle),
+            "GetConfigurationList": ("operator", self._configuration_list),
+            "GetConfigurationById": ("operator", self._configuration_by_id),
+            "ActivateConfiguration": ("integrator", self._activate_configuration),
+        }
+        for name, (role, handler) in handlers.items():
+            server.link_method(nodes.methods[name], self._guarded(name, role, handler))
+
+    def _guarded(
+        self, name: str, role: str, handler: Callable[..., Awaitable[Any]]
+    ) -> Callable[..., Awaitable[Any]]:
+        """``handler`` with its role checked and every refusal as an OPC UA status (asyncua
+        turns any other exception into BadUnexpectedError and a traceback)."""
+
+        async def call(parent: ua.NodeId, *args: ua.Variant) -> Any:
+            try:
+                require(role, name)
+                values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
+                return await handler(*values)
+            except AccessDenied as exc:
+                log.info("OPC UA: %s", exc)
+                return _status(StatusCodes.BadUserAccessDenied)
+            except InvalidState as exc:
+                log.info("OPC UA: %s", exc)
+                return _status(StatusCodes.BadInvalidState)
+            except CellvisionError as exc:
+                log.info("OPC UA %s: %s: %s", name, exc.code.name, exc.message)
+                return _status(ERROR_STATUS.get(exc.code, StatusCodes.BadInvalidArgument))
+            except (TypeError, ValueError, AttributeError) as exc:
+                log.info("OPC UA %s: bad arguments: %s", name, exc)
+                return _status(StatusCodes.BadInvalidArgument)
+            except Exception:
+                log.exception("OPC UA %s failed", name)
+                return _status(StatusCodes.BadInternalError)
+
+        return call
+
+    def _recipe_or_prepared(self, given: str) -> str:
+        name = given or self.prepared or ""
+        inspections = self.service.catalog.inspections
+        if not name:
+            raise UnknownInspection(
+                "no RecipeId given and no recipe prepared: name an inspection",
+            )
+        if name not in inspections:
+            known = ", ".join(sorted(inspections)) or "none"
+            raise UnknownInspection(f"no inspection {name!r}; recipes: {known}")
+        return name
+
+    async def _start_single_job(
+        self,
+        meas: Any = None,
+        part: Any = None,
+        recipe: Any = None,
+        product: Any = None,
+        parameters: Any = None,
+        *extra: Any,
+    ) -> list[ua.Variant]:
+        return await self._start(meas, part, recipe, product, parameters, continuous=False)
+
+    async def _start_continuous(
+        self,
+        meas: Any = None,
+        part: Any = None,
+        recipe: Any = None,
+        product: Any = None,
+        parameters: Any = None,
+        *extra: Any,
+    ) -> list[ua.Variant]:
+        return await self._start(meas, part, recipe, product, parameters, continuous=True)
+
+    async def _start(
+        self, meas: Any, part: Any, recipe: Any, product: Any, parameters: Any, *, continuous: bool
+    ) -> list[ua.Variant]:
+        if parameters:
+            raise ValueError(
+                "Parameters are not supported: give none (an inspection's "
+                "parameters are its configuration's)"
+            )
+        name = self._recipe_or_prepared(text_id(recipe))
+        async with self._lock:
+            moves = self.machines.start_continuous() if continuous else self.machines.start_single()
+            job_id = str(next(self._jobs))
+            self._job_id = job_id
+            self._job_done.clear()
+            user = getattr(CALLER.get(), "name", None) or ""
+            job = Job(job_id, name, text_id(meas), text_id(part), text_id(product), user)
+            self._job = asyncio.get_running_loop().create_task(
+                self._run_continuous(job) if continuous else self._run_single(job)
+            )
+            await self._mirror(moves)
+        return [ua.Variant(MV.JobIdDataType(Id=job_id)), _int32(0)]
+
+    async def _stop_job(
+        self, cause: Any = None, description: Any = None, *extra: Any
+    ) -> list[ua.Variant]:
+        async with self._lock:
+            moves = self.machines.stop()
+        job = self._job
+        if job is not None:
+            job.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await job
+        async with self._lock:
+            await self._mirror(moves)
+        return [_int32(0)]
+
+    async def _abort(
+        self, cause: Any = None, description: Any = None, *extra: Any
+    ) -> list[ua.Variant]:
+        async with self._lock:
+            moves = self.machines.abort()
+        job = self._job
+        if job is not None:
+            job.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await job
+        async with self._lock:
+            await self._mirror(moves)
+        return [_int32(0)]
+
+    async def _halt(
+        self, cause: Any = None, description: Any = None, *extra: Any
+    ) -> list[ua.Variant]:
+        job = self._job
+        async with self._lock:
+            moves = self.machines.halt()
+        if job is not None and not job.done():
+            job.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await job
+        async with self._lock:
+            await self._mirror(moves)
+        return [_int32(0)]
+
+    async def _reset(
+        self, cause: Any = None, description: Any = None, *extra: Any
+    ) -> list[ua.Variant]:
+        async with self._lock:
+            moves = self.machines.reset()
+            moves += self.machines.become_operational(automatic=True)
+            await self._mirror(moves)
+        return [_int32(0)]
+
+    async def _select_automatic(self, *extra: Any) -> list[ua.Variant]:
+        async with self._lock:
+            await self._mirror(self.machines.become_operational(automatic=False))
+        return [_int32(0)]
+
+    # ------------------------------------------------------------------ jobs
+
+    async def _run_single(self, job: Job) -> None:
+        try:
+            await self._run_one(job, job.job_id)
+        finally:
+            async with self._lock:
+                if self._job is asyncio.current_task():
+                    self._job = None
+                    await self._mirror(self.machines.job_done())
+            self._job_done.set()
+
+    async def _run_continuous(self, job: Job) -> None:
+        try:
+            for n in itertools.count(1):
+                await self._run_one(job, f"{job.job_id}.{n}")
+                await asyncio.sleep(0)  # a Stop between two runs is seen at once
+        finally:
+            self._job_done.set()
+
+    async def _run_one(self, job: Job, result_id: str) -> None:
+        """One inspection of ``job``; its result is kept and announced however it ends."""
+        started = now_utc()
+        arrived = time.monotonic()
+        deadline = arrived + self.settings.deadline_s
+        outcome: dict[str, Any] = {"state": RESULT_FAILED}
+        try:
+            admission = await self.service.admit_when_free(job.recipe, deadline=deadline)
+            try:
+                reply = await self.service.inspect(
+                    InspectRequest(
+                        job.recipe,
+                        None,
+                        arrived=arrived,
+                        deadline=deadline,
+                        peer=f"opcua:{job.user}" if job.user else "opcua",
+                    ),
+                    admission=admission,
+                )
+            finally:
+                admission.release()
+            outcome = {
+                "state": RESULT_COMPLETED,
+                "passed": reply.passed,
+                "data": reply.data,
+                "camera": reply.camera,
+                "config_hash": reply.config_hash,
+                "compute_ms": reply.compute_ms,
+                "log_id": reply.result_id,
+            }
+        except CellvisionError as exc:
+            outcome["error_code"], outcome["error_message"] = exc.code.name, exc.message
+        except asyncio.CancelledError:
+            outcome = {
+                "state": RESULT_ABORTED,
+                "error_code": ErrorCode.SHUTTING_DOWN.name if self._ua is None else "ABORTED",
+                "error_message": "the job was stopped, aborted or halted before its result",
+            }
+            await self._keep(job, result_id, started, outcome)
+            raise
+        except Exception as exc:  # a bug: the job fails, the vision system goes to Error
+            log.exception("OPC UA job %s failed", job.job_id)
+            outcome["error_code"], outcome["error_message"] = "INTERNAL_ERROR", repr(exc)
+            async with self._lock:
+                await self._mirror(self.machines.fail())
+        await self._keep(job, result_id, started, outcome)
+
+    async def _keep(
+        self, job: Job, result_id: str, started: datetime, outcome: dict[str, Any]
+    ) -> None:
+        result = JobResult(
+            result_id=result_id,
+            job_id=job.job_id,
+            recipe=job.recipe,
+            config_hash=outcome.get("config_hash") or self.service.catalog.config_hash,
+            state=outcome["state"],
+            started=started,
+            ended=now_utc(),
+            meas_id=job.meas_id,
+            part_id=job.part_id,
+            product_id=job.product_id,
+            passed=bool(outcome.get("passed", False)),
+            data=outcome.get("data") or {},
+            camera=outcome.get("camera", ""),
+            error_code=outcome.get("error_code", ""),
+            error_message=outcome.get("error_message", ""),
+            compute_ms=float(outcome.get("compute_ms", 0.0)),
+            log_id=outcome.get("log_id"),
+        )
+        self.results.add(result)
+        if self.nodes is not None and self._ua is not None:
+            try:
+                await self.nodes.show_result(result)
+                await self.nodes.announce(result)
+            except Exception:  # the result is kept; a client can still read it by id
+                log.exception("OPC UA: announcing result %s failed", result_id)
+
+    # ------------------------------------------------------------------ recipes
+
+    async def _recipe_list(
+        self,
+        external: Any = None,
+        product: Any = None,
+        prepared: Any = None,
+        most: Any = 0,
+        start: Any = 0,
+        wait_ms: Any = 0,
+        *extra: Any,
+    ) -> list[ua.Variant]:
+        wanted = text_id(external)
+        catalog = self.service.catalog
+        names = [n for n in catalog.inspections if not wanted or n == wanted]
+        first = int(start or 0)
+        count = int(most or 0)
+        page = names[first : first + count] if count > 0 else names[first:]
+        complete = first + len(page) >= len(names)
+        listed = [recipe_id(n, catalog.config_hash) for n in page]
+        return [
+            ua.Variant(complete, ua.VariantType.Boolean),
+            ua.Variant(len(names), ua.VariantType.UInt32),
+            ua.Variant(0, ua.VariantType.UInt32),
+            ua.Variant(listed, ua.VariantType.ExtensionObject),
+            _int32(0),
+        ]
+
+    async def _prepare_recipe(
+        self, external: Any = None, internal: Any = None, *extra: Any
+    ) -> list[ua.Variant]:
+        name = self._recipe_or_prepared(text_id(external) or text_id(internal))
+        self.prepared = name
+        return [
+            ua.Variant(recipe_id(name, self.service.catalog.config_hash)),
+            ua.Variant(True, ua.VariantType.Boolean),
+            _int32(0),
+        ]
+
+    async def _unprepare_recipe(
+        self, external: Any = None, internal: Any = None, *extra: Any
+    ) -> list[ua.Variant]:
+        name = text_id(external) or text_id(internal)
+        if name and name == self.prepared:
+            self.prepared = None
+        return [ua.Variant(recipe_id(name, self.service.catalog.config_hash)), _int32(0)]
+
+    # ------------------------------------------------------------------ results
+
+    async def _wait_for(self, result_id: str, timeout_ms: int) -> JobResult | None:
+        found = self.results.get(result_id)
+        if found is not None or timeout_ms <= 0 or result_id != self._job_id:
+            return found
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(min(timeout_ms, MAX_WAIT_MS) / 1000.0):
+                while self.results.get(result_id) is None and self._job is not None:
+                    await self._job_done.wait()
+        return self.results.get(result_id)
+
+    async def _result_by_id(self, result: Any = None, wait_ms: Any = 0, *extra: Any) -> Any:
+        found = await self._wait_for(text_id(result), int(wait_ms or 0))
+        if found is None:
+            return _status(StatusCodes.BadNotFound)
+        return [ua.Variant(0, ua.VariantType.UInt32), ua.Variant(result_data(found)), _int32(0)]
+
+    async def _result_components(self, result: Any = None, wait_ms: Any = 0, *extra: Any) -> Any:
+        found = await self._wait_for(text_id(result), int(wait_ms or 0))
+        if found is None:
+            return _status(StatusCodes.BadNotFound)
+        data = result_data(found)
+        return [
+            ua.Variant(False, ua.VariantType.Boolean),
+            ua.Variant(0, ua.VariantType.UInt32),
+            ua.Variant(False, ua.VariantType.Boolean),
+            ua.Variant(False, ua.VariantType.Boolean),
+            _int32(found.state),
+            ua.Variant(data.MeasId or MV.MeasIdDataType(Id="")),
+            ua.Variant(data.PartId or MV.PartIdDataType(Id="")),
+            ua.Variant(data.ExternalRecipeId),
+            ua.Variant(data.InternalRecipeId),
+            ua.Variant(data.ProductId or MV.ProductIdDataType(Id="")),
+            ua.Variant(data.InternalConfigurationId),
+            ua.Variant(data.InternalConfigurationId),
+            ua.Variant(data.JobId),
+            ua.Variant(data.CreationTime, ua.VariantType.DateTime),
+            ua.Variant(data.ProcessingTimes),
+            ua.Variant(data.ResultContent, ua.VariantType.Variant),
+            _int32(0),
+        ]
+
+    async def _result_list(
+        self,
+        state: Any = 0,
+        meas: Any = None,
+        part: Any = None,
+        external: Any = None,
+        internal: Any = None,
+        external_config: Any = None,
+        internal_config: Any = None,
+        product: Any = None,
+        job: Any = None,
+        most: Any = 0,
+        start: Any = 0,
+        wait_ms: Any = 0,
+        *extra: Any,
+    ) -> list[ua.Variant]:
+        criteria = ResultFilter(
+            state=int(state or 0),
+            meas_id=text_id(meas),
+            part_id=text_id(part),
+            recipe=text_id(external) or text_id(internal),
+            config_hash=text_id(internal_config) or text_id(external_config),
+            product_id=text_id(product),
+            job_id=text_id(job),
+        )
+        page, total, complete = self.results.filtered(
+            criteria, start=max(0, int(start or 0)), most=max(0, int(most or 0))
+        )
+        return [
+            ua.Variant(complete, ua.VariantType.Boolean),
+            ua.Variant(total, ua.VariantType.UInt32),
+            ua.Variant(0, ua.VariantType.UInt32),
+            ua.Variant([result_data(r) for r in page], ua.VariantType.ExtensionObject),
+            _int32(0),
+        ]
+
+    async def _release_handle(self, handle: Any = 0, *extra: Any) -> list[ua.Variant]:
+        return [_int32(0)]  # no handle is ever held: results are not transferred as files
+
+    # ------------------------------------------------------------------ configuration
+
+    def _configuration(self) -> Any:
+        return MV.ConfigurationDataType(
+            HasTransferableDataOnFile=False,
+            InternalId=MV.ConfigurationIdDataType(
+                Id=self.service.catalog.config_hash, Version=self.service.catalog.config_hash
+            ),
+            LastModified=self._loaded_at,
+        )
+
+    async def _configuration_list(
+        self, most: Any = 0, start: Any = 0, wait_ms: Any = 0, *extra: Any
+    ) -> list[ua.Variant]:
+        listed = [self._configuration()] if int(start or 0) == 0 else []
+        return [
+            ua.Variant(True, ua.VariantType.Boolean),
+            ua.Variant(1, ua.VariantType.UInt32),
+            ua.Variant(0, ua.VariantType.UInt32),
+            ua.Variant(listed, ua.VariantType.ExtensionObject),
+            _int32(0),
+        ]
+
+    async def _configuration_by_id(
+        self, internal: Any = None, wait_ms: Any = 0, *extra: Any
+    ) -> Any:
+        if text_id(internal) != self.service.catalog.config_hash:
+            return _status(StatusCodes.BadNotFound)
+        return [ua.Variant(0, ua.VariantType.UInt32), ua.Variant(self._configuration()), _int32(0)]
+
+    async def _activate_configuration(self, internal: Any = None, *extra: Any) -> Any:
+        # The configuration served is the file's (reloaded by the console, RELOAD or SIGHUP):
+        # only it can be "activated", which changes nothing.
+        if text_id(internal) != self.service.catalog.config_hash:
+            return _status(StatusCodes.BadNotFound)
+        return [_int32(0)]
+
+    # ------------------------------------------------------------------ mirror
+
+    async def _mirror(self, moves: list[Any]) -> None:
+        """Show the machines' states in the address space (after ``moves`` were taken)."""
+        if self.nodes is None:
+            return
+        await self.nodes.show_states(self.machines.vision, self.machines.automatic)
+        if moves:
+            log.info(
+                "OPC UA: %s",
+                ", ".join(f"{m.source} → {m.target} ({m.number})" for m in moves),
+            )
+        await self._show_system_state()
+
+    async def _show_system_state(self) -> None:
+        if self.nodes is None:
+            return
+        machines = self.machines
+        vision = machines.vision.browse_name
+        if machines.executing:
+            state = "productive"
+        elif machines.ready:
+            state = "standby"
+        elif vision == "Halted":
+            state = "scheduled_downtime"
+        elif vision == "Error":
+            state = "unscheduled_downtime"
+        else:
+            state = "engineering"
+        await self.nodes.show_system_state(state, machines.describe())
+
+    async def _refresh(self) -> None:
+        if self.nodes is None:
+            return
+        config_hash = self.service.catalog.config_hash
+        if config_hash != self._config_hash:
+            self._config_hash = config_hash
+            self._loaded_at = now_utc()
+            await self.nodes.show_configuration(config_hash, self._loaded_at)
+        health = self.service.health()
+        health["opcua"] = {
+            "state": self.machines.describe(),
+            "results_kept": len(self.results),
+            "connections": 0 if self.listener is None else self.listener.connections,
+        }
+        await self.nodes.show_health(json.dumps(health, default=str, sort_keys=True))
+
+    async def _refresh_forever(self) -> None:
+        while True:
+            await asyncio.sleep(REFRESH_S)
+            try:
+                await self._refresh()
+            except Exception:
+                log.exception("OPC UA: refreshing the configuration's identity failed")
+
+
+class Job:
+    """One StartSingleJob or StartContinuous: what it runs and what the client called it."""
+
+    def __init__(
+        self, job_id: str, recipe: str, meas_id: str, part_id: str, product_id: str, user: str
+    ) -> None:
+        self.job_id = job_id
+        self.recipe = recipe
+        self.meas_id = meas_id
+        self.part_id = part_id
+        self.product_id = product_id
+        self.user = user
+
+
+__all__ = ["FRONTEND", "OpcUaFrontend"]

@@ -1,0 +1,377 @@
+"""The OPC 40100-1 information model in an asyncua server: the specification's nodeset loaded
+unchanged, one ``VisionSystem`` object of its ``VisionSystemType`` under Objects, and what the
+front-end writes into it (states, results, the configuration's identity, health).
+
+What the instance holds (docs/opcua.md maps each node to cellvision):
+
+- ``VisionStateMachine`` (CurrentState, Halt, Reset, SelectModeAutomatic) and its
+  ``AutomaticModeStateMachine`` (CurrentState, StartSingleJob, StartContinuous, Stop, Abort);
+- ``RecipeManagement`` (GetRecipeListFiltered, PrepareRecipe, UnprepareRecipe);
+- ``ResultManagement`` (GetResultById, GetResultComponentsById, GetResultListFiltered,
+  ReleaseResultHandle) and, in cellvision's namespace, ``LatestResult``;
+- ``ConfigurationManagement`` (ActiveConfiguration, GetConfigurationList,
+  GetConfigurationById, ActivateConfiguration);
+- ``SystemState``, ``DiagnosticLevel``, and in cellvision's namespace ``Health`` (JSON).
+
+Optional parts cellvision does not implement (file transfer, step models, safety, products,
+simulation) are left out of the instance, so that a client never finds a method that does
+nothing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from asyncua import Node, Server, ua
+from asyncua.common.instantiate_util import instantiate
+
+from .results import JobResult
+from .states import AutomaticState, VisionState
+
+MV_URI = "http://opcfoundation.org/UA/MachineVision"
+"""OPC 40100-1's namespace."""
+CELL_URI = "urn:cellvision:opcua"
+"""cellvision's namespace: the VisionSystem instance and the few nodes the model adds."""
+NODESET = Path(__file__).parent / "nodeset" / "Opc.Ua.MachineVision.NodeSet2.xml"
+NODESET_SHA256 = "3e67454155a9618e0981aa8b3ee248f7a9ee216f9f915b53eb26a69533c0cc62"
+
+VISION_SYSTEM_TYPE = 1003
+VISION_STATE_MACHINE_TYPE = 1017
+AUTOMATIC_MODE_TYPE = 1021
+RESULT_READY_EVENT_TYPE = 1024
+
+LEFT_OUT = (
+    ("SafetyStateManagement",),
+    ("ConfigurationManagement", "AddConfiguration"),
+    ("ConfigurationManagement", "RemoveConfiguration"),
+    ("ConfigurationManagement", "ReleaseConfigurationHandle"),
+    ("ConfigurationManagement", "Configurations"),
+    ("ConfigurationManagement", "ConfigurationTransfer"),
+    ("RecipeManagement", "AddRecipe"),
+    ("RecipeManagement", "RemoveRecipe"),
+    ("RecipeManagement", "PrepareProduct"),
+    ("RecipeManagement", "UnprepareProduct"),
+    ("RecipeManagement", "UnlinkProduct"),
+    ("RecipeManagement", "ReleaseRecipeHandle"),
+    ("RecipeManagement", "Products"),
+    ("RecipeManagement", "Recipes"),
+    ("RecipeManagement", "RecipeTransfer"),
+    ("ResultManagement", "Results"),
+    ("ResultManagement", "ResultTransfer"),
+    ("VisionStateMachine", "ConfirmAll"),
+    ("VisionStateMachine", "PreoperationalStepModel"),
+    ("VisionStateMachine", "HaltedStepModel"),
+    ("VisionStateMachine", "ErrorStepModel"),
+    ("VisionStateMachine", "AutomaticModeStateMachine", "SimulationMode"),
+    ("VisionStateMachine", "AutomaticModeStateMachine", "InitializedStepModel"),
+    ("VisionStateMachine", "AutomaticModeStateMachine", "ReadyStepModel"),
+    ("VisionStateMachine", "AutomaticModeStateMachine", "SingleExecutionStepModel"),
+    ("VisionStateMachine", "AutomaticModeStateMachine", "ContinuousExecutionStepModel"),
+)
+"""The optional nodes of VisionSystemType that cellvision leaves out (see the module)."""
+
+METHODS = {
+    "Halt": ("VisionStateMachine", "Halt"),
+    "Reset": ("VisionStateMachine", "Reset"),
+    "SelectModeAutomatic": ("VisionStateMachine", "SelectModeAutomatic"),
+    "StartSingleJob": ("VisionStateMachine", "AutomaticModeStateMachine", "StartSingleJob"),
+    "StartContinuous": ("VisionStateMachine", "AutomaticModeStateMachine", "StartContinuous"),
+    "Stop": ("VisionStateMachine", "AutomaticModeStateMachine", "Stop"),
+    "Abort": ("VisionStateMachine", "AutomaticModeStateMachine", "Abort"),
+    "GetRecipeListFiltered": ("RecipeManagement", "GetRecipeListFiltered"),
+    "PrepareRecipe": ("RecipeManagement", "PrepareRecipe"),
+    "UnprepareRecipe": ("RecipeManagement", "UnprepareRecipe"),
+    "GetResultById": ("ResultManagement", "GetResultById"),
+    "GetResultComponentsById": ("ResultManagement", "GetResultComponentsById"),
+    "GetResultListFiltered": ("ResultManagement", "GetResultListFiltered"),
+    "ReleaseResultHandle": ("ResultManagement", "ReleaseResultHandle"),
+    "GetConfigurationList": ("ConfigurationManagement", "GetConfigurationList"),
+    "GetConfigurationById": ("ConfigurationManagement", "GetConfigurationById"),
+    "ActivateConfiguration": ("ConfigurationManagement", "ActivateConfiguration"),
+}
+"""Each method the front-end implements, by the path of browse names below VisionSystem."""
+
+EVENT_FIELDS = {
+    # ResultReadyEventType's own fields (§8.3.8.4) and how each is encoded
+    "ResultId": ua.VariantType.ExtensionObject,
+    "IsPartial": ua.VariantType.Boolean,
+    "IsSimulated": ua.VariantType.Boolean,
+    "ResultState": ua.VariantType.Int32,
+    "MeasId": ua.VariantType.ExtensionObject,
+    "PartId": ua.VariantType.ExtensionObject,
+    "ExternalRecipeId": ua.VariantType.ExtensionObject,
+    "InternalRecipeId": ua.VariantType.ExtensionObject,
+    "ProductId": ua.VariantType.ExtensionObject,
+    "InternalConfigurationId": ua.VariantType.ExtensionObject,
+    "JobId": ua.VariantType.ExtensionObject,
+    "CreationTime": ua.VariantType.DateTime,
+    "ProcessingTimes": ua.VariantType.ExtensionObject,
+    "ResultContent": ua.VariantType.Variant,
+}
+
+SYSTEM_STATES = {
+    # OPC 40100-1 §12.22 SystemStateDataType (SEMI E10): what each state means for the line
+    "productive": 1,
+    "standby": 2,
+    "engineering": 3,
+    "scheduled_downtime": 4,
+    "unscheduled_downtime": 5,
+    "non_scheduled": 6,
+}
+
+
+class _Types:
+    """The nodeset's data types (ResultDataType, JobIdDataType, ...), which asyncua makes as
+    Python classes when the nodeset is loaded (:func:`load_nodeset`) and keeps in ``ua``."""
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return getattr(ua, name)
+        except AttributeError:
+            raise ModelError(f"{name} is not defined: the nodeset is not loaded") from None
+
+
+MV = _Types()
+
+
+class ModelError(Exception):
+    """The nodeset is missing or not the one this server was written for."""
+
+
+async def load_nodeset(server: Server) -> tuple[int, int]:
+    """Import OPC 40100-1's nodeset (checked against :data:`NODESET_SHA256`) and register
+    its data types; return the namespace indexes of the specification and of cellvision."""
+    data = NODESET.read_bytes()
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != NODESET_SHA256:
+        raise ModelError(f"{NODESET} is not the OPC 40100-1 nodeset expected (sha256 {digest})")
+    await server.import_xml(xmlstring=data.decode("utf-8"))
+    await server.load_data_type_definitions()
+    machine_vision = await server.get_namespace_index(MV_URI)
+    cell = await server.register_namespace(CELL_URI)
+    return machine_vision, cell
+
+
+@dataclass
+class VisionNodes:
+    """Handles on the instance's nodes the front-end writes or links methods to."""
+
+    server: Server
+    mv: int
+    cell: int
+    system: Node
+    vision_state: Node
+    automatic_state: Node
+    state_ids: dict[str, ua.NodeId]
+    methods: dict[str, Node]
+    active_configuration: Node
+    system_state: Node
+    latest_result: Node
+    health: Node
+    result_ready: Any = None
+    """asyncua's event generator of ResultReadyEventType, emitted by the VisionSystem."""
+    _written: dict[str, Any] = field(default_factory=dict)
+
+    # ------------------------------------------------------------------ writing
+
+    async def _write(self, node: Node, key: str, value: ua.Variant) -> None:
+        """Write ``value`` unless it is what the node holds (no data change for nothing)."""
+        if self._written.get(key) == value.Value:
+            return
+        await node.write_value(value)
+        self._written[key] = value.Value
+
+    async def show_states(self, vision: VisionState, automatic: AutomaticState | None) -> None:
+        await self._current_state(self.vision_state, "vision", vision.browse_name)
+        await self._current_state(
+            self.automatic_state, "automatic", None if automatic is None else automatic.browse_name
+        )
+
+    async def _current_state(self, machine: Node, key: str, state: str | None) -> None:
+        current = await machine.get_child(["0:CurrentState"])
+        text = ua.LocalizedText(state or "", "en") if state else ua.LocalizedText("")
+        await self._write(current, f"{key}.text", ua.Variant(text, ua.VariantType.LocalizedText))
+        state_id = ua.NodeId() if state is None else self.state_ids[state]
+        identity = await current.get_child(["0:Id"])
+        await self._write(identity, f"{key}.id", ua.Variant(state_id, ua.VariantType.NodeId))
+
+    async def show_configuration(self, config_hash: str, loaded: datetime) -> None:
+        value = MV.ConfigurationDataType(
+            InternalId=configuration_id(config_hash), LastModified=loaded
+        )
+        await self._write(self.active_configuration, "configuration", ua.Variant(value))
+
+    async def show_system_state(self, state: str, description: str) -> None:
+        value = MV.SystemStateDescriptionDataType(
+            State=MV.SystemStateDataType(SYSTEM_STATES[state]),
+            StateDescription=description[:255],
+        )
+        await self._write(self.system_state, "system_state", ua.Variant(value))
+
+    async def show_health(self, text: str) -> None:
+        await self._write(self.health, "health", ua.Variant(text, ua.VariantType.String))
+
+    async def show_result(self, result: JobResult) -> None:
+        await self.latest_result.write_value(ua.Variant(result_data(result)))
+
+    async def announce(self, result: JobResult) -> None:
+        """Fire ResultReadyEventType from the VisionSystem with the result's fields."""
+        event = self.result_ready.event
+        data = result_data(result)
+        for name, kind in EVENT_FIELDS.items():
+            value = getattr(data, name)
+            if value is None:
+                kind = ua.VariantType.Null  # an optional identifier the client did not give
+            # asyncua types each field by the value the type's property holds, and these hold
+            # none: the type goes with the value.
+            event.data_types[name] = kind
+            setattr(event, name, value)
+        verdict = "pass" if result.passed else "fail"
+        if result.error_code:
+            verdict = result.error_code
+        event.Severity = 100 if result.passed else 300
+        await self.result_ready.trigger(
+            message=f"result {result.result_id} of {result.recipe}: {verdict}"
+        )
+
+
+async def build(server: Server, mv: int, cell: int) -> VisionNodes:
+    """Instantiate ``VisionSystem`` under Objects with the parts cellvision implements."""
+    objects = server.nodes.objects
+    made = await instantiate(
+        objects,
+        server.get_node(ua.NodeId(VISION_SYSTEM_TYPE, mv)),
+        bname=ua.QualifiedName("VisionSystem", cell),
+        dname=ua.LocalizedText("VisionSystem"),
+        idx=cell,
+        instantiate_optional=True,
+    )
+    system = made[0]
+    for path in LEFT_OUT:
+        node = await _child(system, mv, path)
+        await node.delete(recursive=True)
+    vision = await _child(system, mv, ("VisionStateMachine",))
+    automatic = await _child(system, mv, ("VisionStateMachine", "AutomaticModeStateMachine"))
+    state_ids: dict[str, ua.NodeId] = {}
+    for type_id in (VISION_STATE_MACHINE_TYPE, AUTOMATIC_MODE_TYPE):
+        for child in await server.get_node(ua.NodeId(type_id, mv)).get_children():
+            if await child.read_type_definition() == ua.NodeId(ua.ObjectIds.StateType):
+                state_ids[(await child.read_browse_name()).Name] = child.nodeid
+    methods = {name: await _child(system, mv, path) for name, path in METHODS.items()}
+    results = await _child(system, mv, ("ResultManagement",))
+    latest = await results.add_variable(
+        cell,
+        "LatestResult",
+        ua.Variant(None, ua.VariantType.ExtensionObject),
+        datatype=ua.NodeId(3006, mv),  # ResultDataType
+    )
+    health = await system.add_variable(cell, "Health", "{}")
+    nodes = VisionNodes(
+        server=server,
+        mv=mv,
+        cell=cell,
+        system=system,
+        vision_state=vision,
+        automatic_state=automatic,
+        state_ids=state_ids,
+        methods=methods,
+        active_configuration=await _child(
+            system, mv, ("ConfigurationManagement", "ActiveConfiguration")
+        ),
+        system_state=await _child(system, mv, ("SystemState",)),
+        latest_result=latest,
+        health=health,
+    )
+    await server.nodes.server.add_reference(
+        system.nodeid, ua.ObjectIds.HasNotifier, forward=True, bidirectional=False
+    )
+    nodes.result_ready = await server.get_event_generator(
+        ua.NodeId(RESULT_READY_EVENT_TYPE, mv), emitting_node=system
+    )
+    diagnostic = await _child(system, mv, ("DiagnosticLevel",))
+    await diagnostic.write_value(ua.Variant(0, ua.VariantType.UInt16))
+    return nodes
+
+
+async def _child(parent: Node, mv: int, path: tuple[str, ...]) -> Node:
+    """The node at ``path`` (browse names of OPC 40100-1's namespace) below ``parent``."""
+    return await parent.get_child([f"{mv}:{name}" for name in path])
+
+
+# ---------------------------------------------------------------------------- values
+
+
+def text_id(value: Any) -> str:
+    """The ``Id`` text of one of the specification's identifier structures given as a method
+    argument (MeasIdDataType, RecipeIdExternalDataType, ...), "" when absent or null."""
+    if value is None:
+        return ""
+    ident = getattr(value, "Id", None)
+    if ident is None and isinstance(value, str):
+        ident = value
+    return ident.strip() if isinstance(ident, str) else ""
+
+
+def configuration_id(config_hash: str) -> Any:
+    return MV.ConfigurationIdDataType(Id=config_hash, Version=config_hash)
+
+
+def recipe_id(name: str, config_hash: str) -> Any:
+    """An inspection as the recipe's internal id: its name, versioned by the configuration."""
+    return MV.RecipeIdInternalDataType(Id=name, Version=config_hash)
+
+
+def result_data(result: JobResult) -> Any:
+    """A :class:`JobResult` as OPC 40100-1's ResultDataType. ResultContent holds two values:
+    the verdict (Boolean) and cellvision's result as JSON text (docs/opcua.md "Results")."""
+    started = result.started.astimezone(UTC)
+    ended = result.ended.astimezone(UTC)
+    return MV.ResultDataType(
+        ResultId=MV.ResultIdDataType(Id=result.result_id),
+        HasTransferableDataOnFile=False,
+        IsPartial=False,
+        IsSimulated=False,
+        ResultState=result.state,
+        MeasId=MV.MeasIdDataType(Id=result.meas_id) if result.meas_id else None,
+        PartId=MV.PartIdDataType(Id=result.part_id) if result.part_id else None,
+        ExternalRecipeId=MV.RecipeIdExternalDataType(Id=result.recipe),
+        InternalRecipeId=recipe_id(result.recipe, result.config_hash),
+        ProductId=MV.ProductIdDataType(Id=result.product_id) if result.product_id else None,
+        InternalConfigurationId=configuration_id(result.config_hash),
+        JobId=MV.JobIdDataType(Id=result.job_id),
+        CreationTime=ended,
+        ProcessingTimes=MV.ProcessingTimesDataType(
+            StartTime=started,
+            EndTime=ended,
+            ProcessingDuration=float(result.compute_ms),
+        ),
+        ResultContent=[
+            ua.Variant(result.passed, ua.VariantType.Boolean),
+            ua.Variant(result.content_json(), ua.VariantType.String),
+        ],
+    )
+
+
+def now_utc() -> datetime:
+    return datetime.now(UTC)
+
+
+__all__ = [
+    "CELL_URI",
+    "MV",
+    "METHODS",
+    "MV_URI",
+    "ModelError",
+    "VisionNodes",
+    "build",
+    "configuration_id",
+    "load_nodeset",
+    "now_utc",
+    "recipe_id",
+    "result_data",
+    "text_id",
+]
