@@ -283,14 +283,12 @@ class OpcUaFrontend:
             "Abort": ("operator", self._abort),
             "Halt": ("integrator", self._halt),
             "Reset": ("integrator", self._reset),
-            "SelectModeAutomatic": ("integrator", self._select_automatic),
             "GetRecipeListFiltered": ("operator", self._recipe_list),
             "PrepareRecipe": ("integrator", self._prepare_recipe),
             "UnprepareRecipe": ("integrator", self._unprepare_recipe),
             "GetResultById": ("operator", self._result_by_id),
             "GetResultComponentsById": ("operator", self._result_components),
             "GetResultListFiltered": ("operator", self._result_list),
-            "ReleaseResultHandle": ("operator", self._release_handle),
             "GetConfigurationList": ("operator", self._configuration_list),
             "GetConfigurationById": ("operator", self._configuration_by_id),
             "ActivateConfiguration": ("integrator", self._activate_configuration),
@@ -432,11 +430,6 @@ class OpcUaFrontend:
             moves = self.machines.reset()
             moves += self.machines.become_operational(automatic=True)
             await self._mirror(moves)
-        return [_int32(0)]
-
-    async def _select_automatic(self, *extra: Any) -> list[ua.Variant]:
-        async with self._lock:
-            await self._mirror(self.machines.become_operational(automatic=False))
         return [_int32(0)]
 
     # ------------------------------------------------------------------ jobs
@@ -661,9 +654,6 @@ class OpcUaFrontend:
             ua.Variant([result_data(r) for r in page], ua.VariantType.ExtensionObject),
             _int32(0),
         ]
-
-    async def _release_handle(self, handle: Any = 0, *extra: Any) -> list[ua.Variant]:
-        return [_int32(0)]  # no handle is ever held: results are not transferred as files
 
     # ------------------------------------------------------------------ configuration
 

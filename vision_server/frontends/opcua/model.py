@@ -4,18 +4,18 @@ front-end writes into it (states, results, the configuration's identity, health)
 
 What the instance holds (docs/opcua.md maps each node to cellvision):
 
-- ``VisionStateMachine`` (CurrentState, Halt, Reset, SelectModeAutomatic) and its
+- ``VisionStateMachine`` (CurrentState, Halt, Reset) and its
   ``AutomaticModeStateMachine`` (CurrentState, StartSingleJob, StartContinuous, Stop, Abort);
 - ``RecipeManagement`` (GetRecipeListFiltered, PrepareRecipe, UnprepareRecipe);
-- ``ResultManagement`` (GetResultById, GetResultComponentsById, GetResultListFiltered,
-  ReleaseResultHandle) and, in cellvision's namespace, ``LatestResult``;
+- ``ResultManagement`` (GetResultById, GetResultComponentsById, GetResultListFiltered) and,
+  in cellvision's namespace, ``LatestResult``;
 - ``ConfigurationManagement`` (ActiveConfiguration, GetConfigurationList,
   GetConfigurationById, ActivateConfiguration);
 - ``SystemState``, ``DiagnosticLevel``, and in cellvision's namespace ``Health`` (JSON).
 
 Optional parts cellvision does not implement (file transfer, step models, safety, products,
-simulation) are left out of the instance, so that a client never finds a method that does
-nothing.
+simulation, the optional methods) are not made in the instance, so that a client never finds a
+method that does nothing.
 """
 
 from __future__ import annotations
@@ -44,40 +44,21 @@ VISION_STATE_MACHINE_TYPE = 1017
 AUTOMATIC_MODE_TYPE = 1021
 RESULT_READY_EVENT_TYPE = 1024
 
-LEFT_OUT = (
-    ("SafetyStateManagement",),
-    ("ConfigurationManagement", "AddConfiguration"),
-    ("ConfigurationManagement", "RemoveConfiguration"),
-    ("ConfigurationManagement", "ReleaseConfigurationHandle"),
-    ("ConfigurationManagement", "Configurations"),
-    ("ConfigurationManagement", "ConfigurationTransfer"),
-    ("RecipeManagement", "AddRecipe"),
-    ("RecipeManagement", "RemoveRecipe"),
-    ("RecipeManagement", "PrepareProduct"),
-    ("RecipeManagement", "UnprepareProduct"),
-    ("RecipeManagement", "UnlinkProduct"),
-    ("RecipeManagement", "ReleaseRecipeHandle"),
-    ("RecipeManagement", "Products"),
-    ("RecipeManagement", "Recipes"),
-    ("RecipeManagement", "RecipeTransfer"),
-    ("ResultManagement", "Results"),
-    ("ResultManagement", "ResultTransfer"),
-    ("VisionStateMachine", "ConfirmAll"),
-    ("VisionStateMachine", "PreoperationalStepModel"),
-    ("VisionStateMachine", "HaltedStepModel"),
-    ("VisionStateMachine", "ErrorStepModel"),
-    ("VisionStateMachine", "AutomaticModeStateMachine", "SimulationMode"),
-    ("VisionStateMachine", "AutomaticModeStateMachine", "InitializedStepModel"),
-    ("VisionStateMachine", "AutomaticModeStateMachine", "ReadyStepModel"),
-    ("VisionStateMachine", "AutomaticModeStateMachine", "SingleExecutionStepModel"),
-    ("VisionStateMachine", "AutomaticModeStateMachine", "ContinuousExecutionStepModel"),
+OPTIONAL_PARTS = (
+    # (parent's path below VisionSystem, browse name, the specification's type): the optional
+    # components of VisionSystemType and VisionStateMachineType that cellvision implements,
+    # each made with its mandatory children only.
+    ((), "ConfigurationManagement", 1006),
+    ((), "RecipeManagement", 1004),
+    ((), "ResultManagement", 1007),
+    (("VisionStateMachine",), "AutomaticModeStateMachine", AUTOMATIC_MODE_TYPE),
 )
-"""The optional nodes of VisionSystemType that cellvision leaves out (see the module)."""
+SYSTEM_STATE_DATA_TYPE = 3024
+RESULT_DATA_TYPE = 3006
 
 METHODS = {
     "Halt": ("VisionStateMachine", "Halt"),
     "Reset": ("VisionStateMachine", "Reset"),
-    "SelectModeAutomatic": ("VisionStateMachine", "SelectModeAutomatic"),
     "StartSingleJob": ("VisionStateMachine", "AutomaticModeStateMachine", "StartSingleJob"),
     "StartContinuous": ("VisionStateMachine", "AutomaticModeStateMachine", "StartContinuous"),
     "Stop": ("VisionStateMachine", "AutomaticModeStateMachine", "Stop"),
@@ -88,7 +69,6 @@ METHODS = {
     "GetResultById": ("ResultManagement", "GetResultById"),
     "GetResultComponentsById": ("ResultManagement", "GetResultComponentsById"),
     "GetResultListFiltered": ("ResultManagement", "GetResultListFiltered"),
-    "ReleaseResultHandle": ("ResultManagement", "ReleaseResultHandle"),
     "GetConfigurationList": ("ConfigurationManagement", "GetConfigurationList"),
     "GetConfigurationById": ("ConfigurationManagement", "GetConfigurationById"),
     "ActivateConfiguration": ("ConfigurationManagement", "ActivateConfiguration"),
@@ -248,12 +228,32 @@ async def build(server: Server, mv: int, cell: int) -> VisionNodes:
         bname=ua.QualifiedName("VisionSystem", cell),
         dname=ua.LocalizedText("VisionSystem"),
         idx=cell,
-        instantiate_optional=True,
+        instantiate_optional=False,
     )
     system = made[0]
-    for path in LEFT_OUT:
-        node = await _child(system, mv, path)
-        await node.delete(recursive=True)
+    # Made part by part rather than all optional parts made and the unwanted deleted: asyncua
+    # deletes a node in time proportional to the whole address space (seconds for these).
+    for parent_path, name, type_id in OPTIONAL_PARTS:
+        parent = await _child(system, mv, parent_path) if parent_path else system
+        await instantiate(
+            parent,
+            server.get_node(ua.NodeId(type_id, mv)),
+            bname=ua.QualifiedName(name, mv),
+            dname=ua.LocalizedText(name),
+            idx=cell,
+            instantiate_optional=False,
+        )
+    system_state = await system.add_variable(
+        ua.NodeId("VisionSystem.SystemState", cell),
+        ua.QualifiedName("SystemState", mv),
+        ua.Variant(None, ua.VariantType.ExtensionObject),
+        datatype=ua.NodeId(SYSTEM_STATE_DATA_TYPE, mv),
+    )
+    diagnostic = await system.add_variable(
+        ua.NodeId("VisionSystem.DiagnosticLevel", cell),
+        ua.QualifiedName("DiagnosticLevel", mv),
+        ua.Variant(0, ua.VariantType.UInt16),
+    )
     vision = await _child(system, mv, ("VisionStateMachine",))
     automatic = await _child(system, mv, ("VisionStateMachine", "AutomaticModeStateMachine"))
     state_ids: dict[str, ua.NodeId] = {}
@@ -267,7 +267,7 @@ async def build(server: Server, mv: int, cell: int) -> VisionNodes:
         cell,
         "LatestResult",
         ua.Variant(None, ua.VariantType.ExtensionObject),
-        datatype=ua.NodeId(3006, mv),  # ResultDataType
+        datatype=ua.NodeId(RESULT_DATA_TYPE, mv),
     )
     health = await system.add_variable(cell, "Health", "{}")
     nodes = VisionNodes(
@@ -282,7 +282,7 @@ async def build(server: Server, mv: int, cell: int) -> VisionNodes:
         active_configuration=await _child(
             system, mv, ("ConfigurationManagement", "ActiveConfiguration")
         ),
-        system_state=await _child(system, mv, ("SystemState",)),
+        system_state=system_state,
         latest_result=latest,
         health=health,
     )
@@ -292,8 +292,7 @@ async def build(server: Server, mv: int, cell: int) -> VisionNodes:
     nodes.result_ready = await server.get_event_generator(
         ua.NodeId(RESULT_READY_EVENT_TYPE, mv), emitting_node=system
     )
-    diagnostic = await _child(system, mv, ("DiagnosticLevel",))
-    await diagnostic.write_value(ua.Variant(0, ua.VariantType.UInt16))
+    del diagnostic  # 0: the threshold of diagnostics, of which cellvision sends none
     return nodes
 
 
