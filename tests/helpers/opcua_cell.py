@@ -143,6 +143,7 @@ async def signed_in(
     endpoint: str,
     certs: tuple[Path, Path],
     user: tuple[str, str] | None = OPERATOR,
+    # None: the certificate is the user's identity too
     policy: str = "Basic256Sha256",
 ) -> AsyncIterator[Vision]:
     client = Client(endpoint, timeout=10)
@@ -156,6 +157,9 @@ async def signed_in(
     if user is not None:
         client.set_user(user[0])
         client.set_password(user[1])
+    else:  # sign in with the application certificate as the user's (an X.509 identity token)
+        await client.load_client_certificate(str(certs[0]))
+        await client.load_private_key(str(certs[1]))
     async with client:
         await client.load_data_type_definitions()
         mv = await client.get_namespace_index(MV)

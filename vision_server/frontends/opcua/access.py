@@ -50,6 +50,12 @@ SIGNED_IN: contextvars.ContextVar[Callable[[], None] | None] = contextvars.Conte
 )
 """Called when the connection's session is activated (set beside :data:`PEER`): from then on
 its clock allows the idle timeout between messages instead of the request timeout."""
+X509_USER: contextvars.ContextVar[bytes | None] = contextvars.ContextVar(
+    "opcua_x509_user", default=None
+)
+"""The DER certificate of an X.509 identity token whose signature asyncua has just verified
+(:func:`note_x509_users`): asyncua hands the user manager the secure channel's certificate for
+every other kind of token too, so only this says that the token was a certificate."""
 CALLER: contextvars.ContextVar[User | None] = contextvars.ContextVar("opcua_caller", default=None)
 """The signed-in user of the request being processed (set by :class:`Rights`)."""
 MAX_BLOCKED_HOSTS = 4096
@@ -109,11 +115,13 @@ class SignIns:
         if self._blocked.get(host, 0.0) > now:
             log.info("OPC UA: a sign-in from %s refused unchecked (failed sign-ins)", peer)
             return None
+        token_certificate = X509_USER.get()
+        X509_USER.set(None)
         if username is not None:
             user = self._by_password(username, password or "")
             how = f"user {username!r}"
-        elif isinstance(certificate, x509.Certificate):
-            user = self._by_certificate(certificate)
+        elif token_certificate is not None:
+            user = self._by_certificate(token_certificate)
             how = "a user certificate"
         else:
             user = CellUser(UserRole.User, "anonymous", "operator") if self.anonymous else None
@@ -146,11 +154,28 @@ class SignIns:
             return CellUser(UserRole.User, known.name, known.role)
         return None
 
-    def _by_certificate(self, certificate: x509.Certificate) -> User | None:
+    def _by_certificate(self, der: bytes) -> User | None:
+        try:
+            certificate = x509.load_der_x509_certificate(der)
+        except ValueError:
+            return None
         for listed, name, role in self.certificates:
             if same_certificate(listed, certificate):
                 return CellUser(UserRole.Admin if role == "admin" else UserRole.User, name, role)
         return None
+
+
+def note_x509_users(iserver: Any) -> None:
+    """Make asyncua's check of an X.509 identity token's signature say, in :data:`X509_USER`,
+    which certificate it verified (see there)."""
+    verify = iserver.verify_x509_token
+
+    def verified(isession: Any, token: Any, signature: Any) -> bytes:
+        der: bytes = verify(isession, token, signature)
+        X509_USER.set(der)
+        return der
+
+    iserver.verify_x509_token = verified
 
 
 _ADMIN_ONLY = frozenset(
@@ -202,6 +227,7 @@ __all__ = [
     "Rights",
     "SignIns",
     "may",
+    "note_x509_users",
     "require",
     "role_of",
 ]

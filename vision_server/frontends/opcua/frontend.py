@@ -43,7 +43,7 @@ from protocol.cli import is_loopback
 from ...config import OpcUaSettings, ServerSettings
 from ...service import InspectionService, InspectRequest
 from ..listener import Listener, Policy, quiet_logger
-from .access import CALLER, AccessDenied, Rights, SignIns, require
+from .access import CALLER, AccessDenied, Rights, SignIns, note_x509_users, require
 from .model import (
     MV,
     VisionNodes,
@@ -192,6 +192,7 @@ class OpcUaFrontend:
         server.set_security_policy(policies, permission_ruleset=rights)
         sign_ins = SignIns(settings, self.server_settings, self.service.door)
         server.iserver.user_manager = sign_ins
+        note_x509_users(server.iserver)
         tokens: list[type] = []
         if sign_ins.accepts_passwords:
             tokens.append(ua.UserNameIdentityToken)
