@@ -24,6 +24,7 @@ from vision_server.config import (
     Listener,
     ListenError,
     ModbusSettings,
+    OpcUaSettings,
     PortClash,
     ServerSettings,
     check_distinct,
@@ -50,6 +51,7 @@ def _defaults() -> dict[str, int]:
             console=ConsoleSettings(enabled=True),
             line=LineSettings(enabled=True),
             modbus=ModbusSettings(enabled=True),
+            opcua=OpcUaSettings(enabled=True),
         )
     }
 
@@ -63,6 +65,7 @@ def test_every_front_end_has_its_own_default_port_as_documented() -> None:
             console=ConsoleSettings(enabled=True),
             line=LineSettings(enabled=True),
             modbus=ModbusSettings(enabled=True),
+            opcua=OpcUaSettings(enabled=True),
         )
     )
     text = (ROOT / "docs" / "configuration.md").read_text(encoding="utf-8")
