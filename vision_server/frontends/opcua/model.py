@@ -304,15 +304,25 @@ async def _child(parent: Node, mv: int, path: tuple[str, ...]) -> Node:
 # ---------------------------------------------------------------------------- values
 
 
+MAX_ID_CHARS = 255
+"""The longest identifier a client may give (MeasId, PartId, ...): OPC 40100-1's TrimmedString
+has no bound of its own, and every kept result holds its identifiers."""
+
+
 def text_id(value: Any) -> str:
     """The ``Id`` text of one of the specification's identifier structures given as a method
-    argument (MeasIdDataType, RecipeIdExternalDataType, ...), "" when absent or null."""
+    argument (MeasIdDataType, RecipeIdExternalDataType, ...), "" when absent or null. Raises
+    ValueError (BadInvalidArgument) for an identifier longer than :data:`MAX_ID_CHARS`."""
     if value is None:
         return ""
     ident = getattr(value, "Id", None)
     if ident is None and isinstance(value, str):
         ident = value
-    return ident.strip() if isinstance(ident, str) else ""
+    if not isinstance(ident, str):
+        return ""
+    if len(ident) > MAX_ID_CHARS:
+        raise ValueError(f"an identifier of {len(ident)} characters (at most {MAX_ID_CHARS})")
+    return ident.strip()
 
 
 def configuration_id(config_hash: str) -> Any:
