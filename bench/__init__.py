@@ -26,6 +26,7 @@ from . import (
     locate_template,
     mixed,
     pick,
+    plant,
     qr_real,
     render,
     results_page,
@@ -53,6 +54,7 @@ SECTIONS: tuple[ModuleType, ...] = (
     locate_template,
     camera_aravis,
     anomaly,
+    plant,
 )
 
 __all__ = ["SECTIONS"]

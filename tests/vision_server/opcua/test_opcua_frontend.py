@@ -283,3 +283,36 @@ def test_recipes_and_the_configuration_identity(tmp_path: Path) -> None:
                 assert (await node.read_value()).InternalId.Id == app.catalog.config_hash
 
     run(body(), timeout_s=60)
+
+
+def test_every_structure_of_the_nodeset_has_its_whole_definition(tmp_path: Path) -> None:
+    """The 1.0.0 nodeset leaves the Definition of BinaryIdBaseDataType's subtypes empty; a
+    client that reads DataTypeDefinition (asyncua's in another process, node-opcua) could then
+    build none of RecipeIdExternalDataType, ConfigurationIdDataType or ResultDataType."""
+    path = write_cell(tmp_path)
+
+    async def body() -> None:
+        certs = await client_certificate(tmp_path / "client")
+        async with serving(path) as app:
+            assert app.opcua is not None
+            async with signed_in(app.opcua.endpoint, certs) as vision:
+                client = vision.client
+                empty: list[str] = []
+                seen = 0
+                pending = [client.get_node(ua.NodeId(ua.ObjectIds.Structure))]
+                while pending:
+                    node = pending.pop()
+                    for child in await node.get_children(
+                        refs=ua.ObjectIds.HasSubtype, nodeclassmask=ua.NodeClass.DataType
+                    ):
+                        pending.append(child)
+                        if child.nodeid.NamespaceIndex != vision.mv:
+                            continue
+                        seen += 1
+                        definition = await child.read_data_type_definition()
+                        if not getattr(definition, "Fields", None):
+                            empty.append((await child.read_browse_name()).Name)
+                assert seen >= 15
+                assert empty == []
+
+    run(body(), timeout_s=90)

@@ -20,6 +20,7 @@ method that does nothing.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -130,10 +131,51 @@ async def load_nodeset(server: Server) -> tuple[int, int]:
     if digest != NODESET_SHA256:
         raise ModelError(f"{NODESET} is not the OPC 40100-1 nodeset expected (sha256 {digest})")
     await server.import_xml(xmlstring=data.decode("utf-8"))
-    await server.load_data_type_definitions()
     machine_vision = await server.get_namespace_index(MV_URI)
+    await _complete_definitions(server, machine_vision)
+    await server.load_data_type_definitions()
     cell = await server.register_namespace(CELL_URI)
     return machine_vision, cell
+
+
+async def _complete_definitions(server: Server, mv: int) -> None:
+    """Give each structure of the nodeset whose Definition is empty the whole definition its
+    clients need: the 1.0.0 nodeset leaves ``<Definition/>`` empty for the subtypes of
+    BinaryIdBaseDataType that add no field (RecipeIdExternalDataType, RecipeIdInternalDataType,
+    ConfigurationIdDataType, ...), and a client that reads DataTypeDefinition (asyncua's,
+    node-opcua's) then cannot encode them, nor any structure that holds one (ResultDataType).
+    OPC UA's StructureDefinition of a subtype lists the inherited fields too."""
+    structure = ua.NodeId(ua.ObjectIds.Structure)
+    for node in await server.get_node(structure).get_children(
+        refs=ua.ObjectIds.HasSubtype, nodeclassmask=ua.NodeClass.DataType
+    ):
+        await _complete_below(server, node, mv, None)
+
+
+async def _complete_below(server: Server, node: Node, mv: int, inherited: Any) -> None:
+    definition: Any = None
+    with contextlib.suppress(ua.UaError):
+        definition = await node.read_data_type_definition()
+    fields = getattr(definition, "Fields", None)
+    if node.nodeid.NamespaceIndex == mv and inherited is not None and not fields:
+        encoding = None
+        for ref in await node.get_references(refs=ua.ObjectIds.HasEncoding):
+            if ref.BrowseName.Name == "Default Binary":
+                encoding = ref.NodeId
+        definition = ua.StructureDefinition(
+            DefaultEncodingId=encoding or ua.NodeId(),
+            BaseDataType=inherited[0],
+            StructureType=inherited[1].StructureType,
+            Fields=list(inherited[1].Fields),
+        )
+        await node.write_attribute(
+            ua.AttributeIds.DataTypeDefinition, ua.DataValue(ua.Variant(definition))
+        )
+    passed_on = (node.nodeid, definition) if getattr(definition, "Fields", None) else None
+    for child in await node.get_children(
+        refs=ua.ObjectIds.HasSubtype, nodeclassmask=ua.NodeClass.DataType
+    ):
+        await _complete_below(server, child, mv, passed_on)
 
 
 @dataclass
