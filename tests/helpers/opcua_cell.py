@@ -36,6 +36,7 @@ server: {port: 0, workers: 2, operator_token: op-secret-123, integrator_token: i
 results: {enabled: false}
 cameras:
   shelf: {source: folder, path: imgs}
+  tool: {source: request}
 inspections:
   - name: bright
     type: presence
@@ -47,6 +48,11 @@ inspections:
     camera: shelf
     measure: mean_intensity
     max: 10
+  - name: from_robot
+    type: presence
+    camera: tool
+    measure: mean_intensity
+    min: 10
 opcua: {enabled: true, port: 0, pki: pki, trust_all_clients: true OPCUA_EXTRA}
 """
 
@@ -133,6 +139,18 @@ class Vision:
         _handle, result, error = out
         assert error == 0
         return result
+
+    async def start_continuous(self, recipe: str) -> str:
+        job, error = await self.automatic.call_method(
+            f"{self.mv}:StartContinuous",
+            ua.MeasIdDataType(Id=""),
+            ua.PartIdDataType(Id=""),
+            ua.RecipeIdExternalDataType(Id=recipe),
+            ua.ProductIdDataType(Id=""),
+            ua.Variant([], ua.VariantType.Variant),
+        )
+        assert error == 0
+        return str(job.Id)
 
     async def call(self, node: Node, method: str, *args: Any) -> Any:
         return await node.call_method(f"{self.mv}:{method}", *args)

@@ -24,6 +24,7 @@ from opcua_cell import (
 )
 
 RESULT_READY = 1024
+NO_CAUSE = (ua.Variant(0, ua.VariantType.Int32), "")
 
 
 class Events:
@@ -246,8 +247,8 @@ def test_recipes_and_the_configuration_identity(tmp_path: Path) -> None:
                     ua.Variant(0, ua.VariantType.UInt32),
                     ua.Variant(0, ua.VariantType.Int32),
                 )
-                assert (complete, count, error) == (True, 2, 0)
-                assert sorted(r.Id for r in listed) == ["bright", "dark"]
+                assert (complete, count, error) == (True, 3, 0)
+                assert sorted(r.Id for r in listed) == ["bright", "dark", "from_robot"]
                 assert {r.Version for r in listed} == {app.catalog.config_hash}
 
                 # A prepared recipe is what an empty RecipeId runs.
@@ -314,5 +315,65 @@ def test_every_structure_of_the_nodeset_has_its_whole_definition(tmp_path: Path)
                             empty.append((await child.read_browse_name()).Name)
                 assert seen >= 15
                 assert empty == []
+
+    run(body(), timeout_s=90)
+
+
+def test_continuous_execution_until_stop_and_a_failed_run_ends_it(tmp_path: Path) -> None:
+    path = write_cell(tmp_path)
+
+    async def body() -> None:
+        certs = await client_certificate(tmp_path / "client")
+        async with serving(path) as app:
+            assert app.opcua is not None
+            async with signed_in(app.opcua.endpoint, certs) as vision:
+                events = Events()
+                subscription = await vision.client.create_subscription(0, events)
+                await subscription.subscribe_events(
+                    vision.system, ua.NodeId(RESULT_READY, vision.mv)
+                )
+                job = await vision.start_continuous("bright")
+                seen = [await events.next() for _ in range(3)]
+                assert [e.ResultId.Id for e in seen] == [f"{job}.1", f"{job}.2", f"{job}.3"]
+                assert await vision.state() == ("Operational", "ContinuousExecution")
+                with pytest.raises(UaStatusCodeError) as busy:
+                    await vision.start_job("bright")
+                assert status_of(busy.value) == ua.StatusCodes.BadInvalidState
+                assert await vision.call(vision.automatic, "Stop", *NO_CAUSE) == 0
+                assert await vision.state() == ("Operational", "Ready")
+                # Stop lets the inspection running finish: every result of the job completed.
+                _c, count, _h, results, _e = await vision.call(
+                    vision.results,
+                    "GetResultListFiltered",
+                    ua.Variant(0, ua.VariantType.Int32),
+                    *([None] * 7),
+                    ua.JobIdDataType(Id=job),
+                    ua.Variant(0, ua.VariantType.UInt32),
+                    ua.Variant(0, ua.VariantType.UInt32),
+                    ua.Variant(0, ua.VariantType.Int32),
+                )
+                assert count >= 3
+                assert {r.ResultState for r in results} == {1}
+
+                # A run that fails (no image: the camera's images come with the request)
+                # ends a continuous job with that one Failed result.
+                failing = await vision.start_continuous("from_robot")
+                event = await events.next()
+                while event.JobId.Id != failing:  # the stopped job's last results first
+                    event = await events.next()
+                assert event.ResultId.Id == f"{failing}.1"
+                assert event.ResultState == 4  # Failed
+                assert content(event)[1]["error"]["code"] == "BAD_IMAGE"
+                for _ in range(50):
+                    if await vision.state() == ("Operational", "Ready"):
+                        break
+                    await asyncio.sleep(0.05)
+                assert await vision.state() == ("Operational", "Ready")
+
+                # Abort ends one at once; its mode is Ready again.
+                await vision.start_continuous("bright")
+                await events.next()
+                assert await vision.call(vision.automatic, "Abort", *NO_CAUSE) == 0
+                assert await vision.state() == ("Operational", "Ready")
 
     run(body(), timeout_s=90)

@@ -48,8 +48,10 @@ def test_stop_and_abort_end_a_running_job_only() -> None:
     with pytest.raises(InvalidState, match="Abort needs a job running"):
         machines.abort()
     machines.start_continuous()
-    assert machines.job_done() == []  # a continuous run goes on after each result
+    assert [m.number for m in machines.job_done()] == [860]  # ended by a failed run
+    machines.start_continuous()
     assert [m.number for m in machines.stop()] == [861]
+    assert machines.job_done() == []  # nothing runs any more
     machines.start_single()
     assert [(m.source, m.number) for m in machines.abort()] == [("SingleExecution", 762)]
     machines.start_continuous()

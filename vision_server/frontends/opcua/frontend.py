@@ -78,6 +78,8 @@ ASYNCUA_QUEUE = 4096
 """asyncua's own limit, past which it drops the connection: never reached (see above)."""
 REFRESH_S = 1.0
 """How often the configuration's identity, SystemState and Health are brought up to date."""
+BACKSTOP_S = 5.0
+"""How long past a job's deadline Stop waits for its inspection before it answers anyway."""
 MAX_WAIT_MS = 60_000
 """The longest GetResultById waits for a running job's result, whatever Timeout asks."""
 POLICIES = {
@@ -126,10 +128,9 @@ class OpcUaFrontend:
         self.nodes: VisionNodes | None = None
         self._ua: Server | None = None
         self._binary: BinaryServer | None = None
-        self._job: asyncio.Task[None] | None = None
-        self._job_id: str | None = None
+        self._current: Job | None = None
+        """The job running now (one at a time: OPC 40100-1's automatic mode)."""
         self._jobs = itertools.count(1)
-        self._job_done = asyncio.Event()
         self._lock = asyncio.Lock()
         """Serialises state changes and their mirror in the address space."""
         self._refresher: asyncio.Task[None] | None = None
@@ -258,14 +259,14 @@ class OpcUaFrontend:
             self._refresher.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._refresher
-        job = self._job
-        if job is not None and not job.done():
-            with contextlib.suppress(TimeoutError, asyncio.CancelledError):
-                await asyncio.wait_for(asyncio.shield(job), grace_s)
-            if not job.done():
-                job.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await job
+        job = self._current
+        if job is not None:
+            job.stop_requested = True  # a continuous job ends after the inspection running
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(grace_s):
+                    await job.done.wait()
+            if not job.done.is_set():
+                await self._end(job)
         if self.listener is not None:
             await self.listener.stop_accepting()
             await self.listener.close_connections()
@@ -369,43 +370,40 @@ class OpcUaFrontend:
                 "parameters are its configuration's)"
             )
         name = self._recipe_or_prepared(text_id(recipe))
+        meas_id, part_id, product_id = text_id(meas), text_id(part), text_id(product)
         async with self._lock:
             moves = self.machines.start_continuous() if continuous else self.machines.start_single()
-            job_id = str(next(self._jobs))
-            self._job_id = job_id
-            self._job_done.clear()
             user = getattr(CALLER.get(), "name", None) or ""
-            job = Job(job_id, name, text_id(meas), text_id(part), text_id(product), user)
-            self._job = asyncio.get_running_loop().create_task(
-                self._run_continuous(job) if continuous else self._run_single(job)
-            )
+            job = Job(str(next(self._jobs)), name, meas_id, part_id, product_id, user)
+            self._current = job
+            job.task = asyncio.get_running_loop().create_task(self._execute(job, continuous))
             await self._mirror(moves)
-        return [ua.Variant(MV.JobIdDataType(Id=job_id)), _int32(0)]
+        return [ua.Variant(MV.JobIdDataType(Id=job.job_id)), _int32(0)]
 
     async def _stop_job(
         self, cause: Any = None, description: Any = None, *extra: Any
     ) -> list[ua.Variant]:
+        """Stop: the inspection running is finished and kept, then the mode goes to Ready."""
         async with self._lock:
-            moves = self.machines.stop()
-        job = self._job
-        if job is not None:
-            job.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await job
-        async with self._lock:
-            await self._mirror(moves)
+            job = self._current
+            if job is None or not self.machines.executing:
+                raise InvalidState(
+                    f"Stop needs a job running; the vision system is {self.machines.describe()}"
+                )
+            job.stop_requested = True
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(self.settings.deadline_s + BACKSTOP_S):
+                await job.done.wait()
         return [_int32(0)]
 
     async def _abort(
         self, cause: Any = None, description: Any = None, *extra: Any
     ) -> list[ua.Variant]:
+        """Abort: the inspection running is given up (its result Aborted) at once."""
         async with self._lock:
             moves = self.machines.abort()
-        job = self._job
-        if job is not None:
-            job.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await job
+            job = self._current
+        await self._end(job)
         async with self._lock:
             await self._mirror(moves)
         return [_int32(0)]
@@ -413,16 +411,22 @@ class OpcUaFrontend:
     async def _halt(
         self, cause: Any = None, description: Any = None, *extra: Any
     ) -> list[ua.Variant]:
-        job = self._job
         async with self._lock:
             moves = self.machines.halt()
-        if job is not None and not job.done():
-            job.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await job
+            job = self._current
+        await self._end(job)
         async with self._lock:
             await self._mirror(moves)
         return [_int32(0)]
+
+    async def _end(self, job: Job | None) -> None:
+        """Give up ``job`` at once: its running inspection's result is kept as Aborted."""
+        if job is None or job.task is None:
+            return
+        job.aborted = True
+        job.task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await job.task
 
     async def _reset(
         self, cause: Any = None, description: Any = None, *extra: Any
@@ -435,26 +439,28 @@ class OpcUaFrontend:
 
     # ------------------------------------------------------------------ jobs
 
-    async def _run_single(self, job: Job) -> None:
-        try:
-            await self._run_one(job, job.job_id)
-        finally:
-            async with self._lock:
-                if self._job is asyncio.current_task():
-                    self._job = None
-                    await self._mirror(self.machines.job_done())
-            self._job_done.set()
-
-    async def _run_continuous(self, job: Job) -> None:
+    async def _execute(self, job: Job, continuous: bool) -> None:
+        """A job's inspections, one after another for a continuous one, until a Stop, an
+        Abort or Halt, or (continuous) a run that does not complete; then the mode's move."""
         try:
             for n in itertools.count(1):
-                await self._run_one(job, f"{job.job_id}.{n}")
-                await asyncio.sleep(0)  # a Stop between two runs is seen at once
+                result_id = f"{job.job_id}.{n}" if continuous else job.job_id
+                state = await self._run_one(job, result_id)
+                if not continuous or job.stop_requested or state != RESULT_COMPLETED:
+                    break
+                await asyncio.sleep(0)  # a method call between two runs is served at once
         finally:
-            self._job_done.set()
+            async with self._lock:
+                if self._current is job:
+                    self._current = None
+                    if not job.aborted:  # Abort and Halt move the state themselves
+                        ended = self.machines.stop if job.stop_requested else self.machines.job_done
+                        await self._mirror(ended())
+            job.done.set()
 
-    async def _run_one(self, job: Job, result_id: str) -> None:
-        """One inspection of ``job``; its result is kept and announced however it ends."""
+    async def _run_one(self, job: Job, result_id: str) -> int:
+        """One inspection of ``job``; its result is kept and announced however it ends.
+        Returns its ResultState."""
         started = now_utc()
         arrived = time.monotonic()
         deadline = arrived + self.settings.deadline_s
@@ -498,7 +504,9 @@ class OpcUaFrontend:
             outcome["error_code"], outcome["error_message"] = "INTERNAL_ERROR", repr(exc)
             async with self._lock:
                 await self._mirror(self.machines.fail())
+            job.aborted = True  # the vision system is in Error: no move of the mode is left
         await self._keep(job, result_id, started, outcome)
+        return int(outcome["state"])
 
     async def _keep(
         self, job: Job, result_id: str, started: datetime, outcome: dict[str, Any]
@@ -579,14 +587,16 @@ class OpcUaFrontend:
 
     # ------------------------------------------------------------------ results
 
-    async def _wait_for(self, result_id: str, timeout_ms: int) -> JobResult | None:
+    async def _wait_for(self, result_id: str, wait_ms: int) -> JobResult | None:
+        """The result kept under ``result_id``; for the single job running now, waited for
+        up to ``wait_ms`` (at most :data:`MAX_WAIT_MS`)."""
         found = self.results.get(result_id)
-        if found is not None or timeout_ms <= 0 or result_id != self._job_id:
+        job = self._current
+        if found is not None or wait_ms <= 0 or job is None or job.job_id != result_id:
             return found
         with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(min(timeout_ms, MAX_WAIT_MS) / 1000.0):
-                while self.results.get(result_id) is None and self._job is not None:
-                    await self._job_done.wait()
+            async with asyncio.timeout(min(wait_ms, MAX_WAIT_MS) / 1000.0):
+                await job.done.wait()
         return self.results.get(result_id)
 
     async def _result_by_id(self, result: Any = None, wait_ms: Any = 0, *extra: Any) -> Any:
@@ -761,6 +771,12 @@ class Job:
         self.part_id = part_id
         self.product_id = product_id
         self.user = user
+        self.task: asyncio.Task[None] | None = None
+        self.stop_requested = False
+        self.aborted = False
+        """Ended by Abort, Halt, an internal error or the server's stop: the mode was moved
+        (or left) by whoever ended it."""
+        self.done = asyncio.Event()
 
 
 __all__ = ["FRONTEND", "OpcUaFrontend"]

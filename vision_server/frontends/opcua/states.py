@@ -147,8 +147,9 @@ class Machines:
         return [self._automatic_to(AutomaticState.CONTINUOUS_EXECUTION, automatic=False)]
 
     def job_done(self) -> list[Transition]:
-        """A single job ended by itself (a continuous run goes on: nothing)."""
-        if self.automatic is AutomaticState.SINGLE_EXECUTION:
+        """A job ended by itself: a single job with its result, a continuous one with a run
+        that did not complete. Nothing when no job runs (an Abort or Halt came first)."""
+        if self.executing:
             return [self._automatic_to(AutomaticState.READY, automatic=True)]
         return []
 
