@@ -4,8 +4,10 @@
 pool, admission, deadlines, cameras, result log, reload) to the front-ends that serve it — the
 TCP protocol (:class:`~vision_server.frontends.tcp.TcpFrontend`) and, when enabled, the line
 protocol, Modbus TCP (:class:`~vision_server.frontends.modbus.ModbusFrontend`, imported only
-then: pymodbus is an optional extra) and the web console. SIGHUP reloads through the
-service, the same path as the protocol's RELOAD (in a thread, never on the event loop).
+then: pymodbus is an optional extra) and the web console; and, outbound, the MQTT results
+publisher (:class:`~vision_server.frontends.mqtt.MqttPublisher`, the extra ``mqtt``).
+SIGHUP reloads through the service, the same path as the protocol's RELOAD (in a thread,
+never on the event loop).
 
 ``vision-server serve`` builds one from a configuration file
 (:mod:`vision_server.commands.program`);
@@ -32,6 +34,7 @@ from .config import (
     Listener,
     ListenError,
     ModbusSettings,
+    MqttSettings,
     ServerSettings,
 )
 from .frontends import HttpFrontend, LineFrontend, TcpFrontend
@@ -39,7 +42,7 @@ from .results import ResultStore
 from .service import Catalog, InspectionService, OperatorDesk
 
 if TYPE_CHECKING:
-    from .frontends import ModbusFrontend
+    from .frontends import ModbusFrontend, MqttPublisher
 
 log = logging.getLogger("vision_server")
 
@@ -66,6 +69,7 @@ class App:
         console: ConsoleSettings | None = None,
         config_path: Path | None = None,
         modbus: ModbusSettings | None = None,
+        mqtt: MqttSettings | None = None,
     ) -> None:
         self.settings = settings or ServerSettings()
         self.service = InspectionService(
@@ -83,6 +87,13 @@ class App:
             from .frontends import ModbusFrontend
 
             self.modbus = ModbusFrontend(self.service, modbus)
+        self.mqtt: MqttPublisher | None = None
+        """Production results published to an MQTT broker, when ``mqtt`` enables it."""
+        if mqtt is not None and mqtt.enabled:
+            from .frontends import MqttPublisher  # aiomqtt: an optional extra
+
+            self.mqtt = MqttPublisher(self.service, mqtt, server=self.settings.name)
+            self.service.health_parts["mqtt"] = self.mqtt.health
         # The web console (off unless enabled): its token, TLS and limits are the server's.
         self.http: HttpFrontend | None = None
         if console is not None and console.enabled:
@@ -135,6 +146,11 @@ class App:
             # The worker processes start before the server listens (spawn imports for seconds).
             await asyncio.to_thread(self.service.processes.start)
         started: list[Callable[[], Awaitable[None]]] = []
+        if self.mqtt is not None:
+            # Before anything listens: every answered result is spooled (MqttSpoolError when
+            # the spool cannot be used).
+            await self.mqtt.start()
+            started.append(self.mqtt.stop)
         try:
             for listener, start, stop in self._listeners():
                 try:
@@ -222,6 +238,8 @@ class App:
         if self.http is not None:
             await self.http.stop()
         await self.tcp.stop()
+        if self.mqtt is not None:  # after the front-ends: their last results are spooled
+            await self.mqtt.stop()
         self.service.close()
 
     async def __aenter__(self) -> App:

@@ -103,6 +103,7 @@ from ..config import (
     exposure_warnings,
     load_config,
 )
+from ..frontends import MqttSpoolError
 from ..process import PROCESS_ENV, decoder_limits
 from ..results import is_database_url
 from ..service import Catalog, Images, InspectReply, InspectRequest, builtin_catalog
@@ -217,6 +218,7 @@ def _serve(args: argparse.Namespace) -> int:
             console=frontends.console,
             config_path=None if runtime is None else runtime.path,
             modbus=frontends.modbus,
+            mqtt=None if runtime is None else runtime.config.mqtt,
         )
         app.service.on_reloaded = announce_reload
         try:
@@ -224,6 +226,9 @@ def _serve(args: argparse.Namespace) -> int:
         except ListenError as exc:  # port in use, address not on this machine, no permission
             print(f"{PROG}: {exc}", file=sys.stderr)
             return int(ExitCode.CONNECTION)
+        except MqttSpoolError as exc:  # a corrupt or unwritable spool file, named
+            print(f"{PROG}: {exc}", file=sys.stderr)
+            return int(ExitCode.USAGE)
         for warning in exposure_warnings(settings, app.listening()):
             log.warning("%s", warning)
         if runtime is None:
@@ -247,6 +252,8 @@ def _serve(args: argparse.Namespace) -> int:
         if app.modbus is not None:
             modbus = app.modbus.settings
             print(f"{PROG}: Modbus TCP on {modbus.host}:{app.modbus.port}", flush=True)
+        if app.mqtt is not None:
+            print(f"{PROG}: MQTT to {app.mqtt.broker}", flush=True)
         await stop.wait()
         await app.stop()
         return 0

@@ -1,7 +1,7 @@
 """The cell configuration: one YAML file read, validated and frozen (docs/configuration.md).
 
 - :mod:`.cell`: :func:`load_config` → :class:`CellConfig` (server, console, line, Modbus,
-  results, cameras, inspections); :class:`Tuner` re-reads an inspection with a request's
+  MQTT, results, cameras, inspections); :class:`Tuner` re-reads an inspection with a request's
   options.
 - :mod:`.document`: the YAML reading, every error a :class:`ConfigError` naming file, line and
   key path.
@@ -42,12 +42,15 @@ from .settings import (
     DEFAULT_CONSOLE_PORT,
     DEFAULT_LINE_PORT,
     DEFAULT_MODBUS_PORT,
+    DEFAULT_MQTT_PORT,
+    DEFAULT_MQTTS_PORT,
     LINE_FORMATS,
     MODBUS_WORD_ORDERS,
     SERVER_VERSION,
     ConsoleSettings,
     LineSettings,
     ModbusSettings,
+    MqttSettings,
     ServerSettings,
     ServiceSettings,
     TcpSettings,
@@ -69,6 +72,8 @@ __all__ = [
     "DEFAULT_CONSOLE_PORT",
     "DEFAULT_LINE_PORT",
     "DEFAULT_MODBUS_PORT",
+    "DEFAULT_MQTT_PORT",
+    "DEFAULT_MQTTS_PORT",
     "FIXED_BY_THE_CONFIGURATION",
     "LINE_FORMATS",
     "MODBUS_WORD_ORDERS",
@@ -88,6 +93,7 @@ __all__ = [
     "ListenError",
     "Listener",
     "ModbusSettings",
+    "MqttSettings",
     "Node",
     "PortClash",
     "ResultsConfig",

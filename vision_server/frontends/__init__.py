@@ -6,12 +6,14 @@ requests, call :class:`vision_server.service.InspectionService`, and render its 
 - :mod:`.modbus`: Modbus TCP for PLCs (protocol/MODBUS.md; pymodbus, the optional extra
   ``modbus``), with its register map (:mod:`.modbus_map`), hand-shake state machine
   (:mod:`.modbus_handshake`) and framing (:mod:`.modbus_frames`), which need no pymodbus.
+- :mod:`.mqtt`: results published to an MQTT broker (docs/mqtt.md; aiomqtt, the optional
+  extra ``mqtt``), through a local spool (:class:`MqttSpoolError` when it cannot be used).
 - :mod:`.images`: image payloads (the protocol's, also image files) decoded into arrays.
 - :mod:`.http`: the web console, its JSON API and ``/metrics`` (aiohttp).
 
 Public API: each front-end's class, the register map (``modbus-map`` prints it) and
 :func:`payload_loader`. :class:`ModbusFrontend` is imported when first named (it needs
-pymodbus, the ``modbus`` extra).
+pymodbus, the ``modbus`` extra); :class:`MqttPublisher` likewise (aiomqtt, the ``mqtt`` extra).
 """
 
 from __future__ import annotations
@@ -31,10 +33,12 @@ from .modbus_map import (
     config_map,
     value_rows,
 )
+from .mqtt import OutboxError as MqttSpoolError
 from .tcp import DEFAULT_MAX_FRAME_BYTES, REFUSE_HELLO_TIMEOUT_S, TcpFrontend
 
 if TYPE_CHECKING:
     from .modbus import ModbusFrontend
+    from .mqtt import MqttPublisher
 
 __all__ = [
     "DEFAULT_MAX_FRAME_BYTES",
@@ -46,6 +50,8 @@ __all__ = [
     "LineFrontend",
     "MappedInspection",
     "ModbusFrontend",
+    "MqttPublisher",
+    "MqttSpoolError",
     "RegisterMap",
     "Row",
     "TcpFrontend",
@@ -62,4 +68,8 @@ def __getattr__(name: str) -> Any:
         from .modbus import ModbusFrontend
 
         return ModbusFrontend
+    if name == "MqttPublisher":
+        from .mqtt import MqttPublisher
+
+        return MqttPublisher
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
