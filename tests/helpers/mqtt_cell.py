@@ -55,6 +55,8 @@ async def serving(path: Path) -> AsyncIterator[App]:
         ServerSettings(**{**runtime.config.server.__dict__, "workers": 2}),
         results=runtime.results,
         mqtt=runtime.config.mqtt,
+        console=runtime.config.console,
+        config_path=path,
     )
     try:
         async with app:

@@ -8,6 +8,7 @@ import asyncio
 import json
 from pathlib import Path
 
+import aiohttp
 from loopback import run, wait_until
 from mosquitto import Broker, Subscriber
 from mqtt_cell import RESULTS, STATE, inspect, serving, valid_results, write_cell
@@ -19,7 +20,7 @@ from robot_client import VisionClient
 def test_every_inspection_arrives_schema_valid_with_its_verdict(
     tmp_path: Path, broker: Broker
 ) -> None:
-    path = write_cell(tmp_path, broker.port)
+    path = write_cell(tmp_path, broker.port, "console: {enabled: true, port: 0}\n")
     count = 20
 
     async def body() -> None:
@@ -31,9 +32,22 @@ def test_every_inspection_arrives_schema_valid_with_its_verdict(
                 await subscriber.wait_for(
                     lambda s: len(s.payloads("/results/bright")) >= count, "every result"
                 )
+                mqtt = app.mqtt
+                await wait_until(lambda: mqtt.health()["spooled"] == 0, "every PUBACK")
                 health = app.health()
                 assert health["mqtt"]["connected"] is True
+                assert health["mqtt"]["published"] == count
                 assert health["ok"] is True
+                assert app.http is not None
+                async with (
+                    aiohttp.ClientSession() as http,
+                    http.get(f"{app.http.url}metrics") as reply,
+                ):
+                    metrics = await reply.text()
+                assert "cellvision_mqtt_connected 1.0" in metrics
+                assert f"cellvision_mqtt_published_total {count}.0" in metrics
+                assert "cellvision_mqtt_spooled 0.0" in metrics
+                assert "cellvision_mqtt_dropped_total 0.0" in metrics
             got = valid_results(subscriber.payloads("/results/bright"))
             assert {rid: p["passed"] for rid, p in got.items()} == dict(answers)
             payloads = subscriber.payloads("/results/bright")
