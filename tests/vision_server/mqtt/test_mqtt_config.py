@@ -187,3 +187,26 @@ def test_the_server_does_not_import_aiomqtt_unless_mqtt_is_enabled() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
     )
     assert out.stdout.strip() == "False False"
+
+
+def test_the_editors_schema_lists_exactly_the_keys_the_loader_takes(tmp_path: Path) -> None:
+    """GET /api/schema's ``sections.mqtt``: each key (``tls.ca``: a key of ``tls:``) is one the
+    loader accepts, every key it accepts is listed, and each bound is refused one beyond."""
+    from vision_server.config import inspection_schema
+
+    keys = inspection_schema()["sections"]["mqtt"]["keys"]
+    listed = {k["key"] for k in keys}
+    allowed: set[str] = set()
+    for where, text in (("mqtt", "mqtt: {bogus: 1}\n"), ("mqtt.tls", "mqtt: {tls: {bogus: 1}}\n")):
+        with pytest.raises(ConfigError) as error:
+            load_config(cell(tmp_path, text))
+        names = re.search(r"allowed here: (.*)\)", str(error.value))
+        assert names is not None
+        prefix = "" if where == "mqtt" else "tls."
+        allowed |= {prefix + n for n in names.group(1).split(", ")}
+    assert listed == allowed - {"tls"} | {"tls.ca", "tls.cert", "tls.key"}
+    for k in keys:
+        for bound, beyond in (("min", -1), ("max", 1)):
+            if k[bound] is not None and k["kind"] == "integer":
+                with pytest.raises(ConfigError, match=f"mqtt -> {k['key']}"):
+                    load_config(cell(tmp_path, f"mqtt: {{{k['key']}: {k[bound] + beyond}}}\n"))
