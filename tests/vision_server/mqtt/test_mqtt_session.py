@@ -199,3 +199,34 @@ def test_past_its_bound_the_spool_drops_the_oldest_and_health_says_so(
         assert len(drops) <= 2
 
     run(body(), timeout_s=60)
+
+
+def test_a_broker_certificate_from_another_ca_is_refused_and_said(
+    tmp_path: Path, secured: tuple[Broker, Path], caplog: pytest.LogCaptureFixture
+) -> None:
+    broker, _ = secured
+    assert broker.tls_port is not None
+    other = tmp_path / "other"
+    other.mkdir()
+    stranger = make_tls(other).ca
+    extra = f"  tls: {{ca: {stranger}}}\n  username: cell7\n  password: s3cret-pw\n"
+    path = write_cell(tmp_path / "cell", broker.tls_port, extra)
+    caplog.set_level(logging.WARNING, logger="vision_server.mqtt")
+
+    async def body() -> None:
+        async with (
+            serving(path) as app,
+            VisionClient("127.0.0.1", app.port, request_timeout_s=10.0) as client,
+        ):
+            mqtt = app.mqtt
+            assert mqtt is not None
+            await wait_until(lambda: mqtt.last_error is not None, "the refusal", 20.0)
+            assert (await inspect(client, True))[1] is True
+            assert mqtt.health()["connected"] is False
+            assert mqtt.health()["spooled"] == 1
+
+    run(body(), timeout_s=60)
+    refused = [r for r in caplog.records if "no TLS connection" in r.getMessage()]
+    assert refused
+    assert refused[0].levelno == logging.ERROR
+    assert "certificate verify failed" in refused[0].getMessage()

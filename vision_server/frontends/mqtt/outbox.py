@@ -164,11 +164,15 @@ class Outbox:
         return dropped
 
     def remove(self, seq: int) -> bool:
-        """Forget an acknowledged row; False when it was gone already (dropped)."""
+        """Forget an acknowledged row; False when it was gone already (dropped). Raises
+        :class:`OutboxError`."""
         with self._lock:
-            gone = self._conn.execute(
-                "DELETE FROM outbox WHERE seq = ? RETURNING size", (seq,)
-            ).fetchone()
+            try:
+                gone = self._conn.execute(
+                    "DELETE FROM outbox WHERE seq = ? RETURNING size", (seq,)
+                ).fetchone()
+            except (sqlite3.Error, OSError) as exc:
+                raise OutboxError(f"cannot delete from the MQTT spool {self.path}: {exc}") from exc
             if gone is None:
                 return False
             self._rows -= 1
@@ -178,12 +182,17 @@ class Outbox:
     # ------------------------------------------------------------------ reading
 
     def after(self, seq: int, limit: int) -> list[OutboxRow]:
-        """The oldest ``limit`` rows with a seq above ``seq``, left in the outbox."""
+        """The oldest ``limit`` rows with a seq above ``seq``, left in the outbox. Raises
+        :class:`OutboxError`."""
         with self._lock:
-            found = self._conn.execute(
-                "SELECT seq, uid, topic, payload FROM outbox WHERE seq > ? ORDER BY seq LIMIT ?",
-                (seq, limit),
-            ).fetchall()
+            try:
+                found = self._conn.execute(
+                    "SELECT seq, uid, topic, payload FROM outbox WHERE seq > ? ORDER BY seq "
+                    "LIMIT ?",
+                    (seq, limit),
+                ).fetchall()
+            except (sqlite3.Error, OSError) as exc:
+                raise OutboxError(f"cannot read the MQTT spool {self.path}: {exc}") from exc
         return [OutboxRow(int(s), str(u), str(t), bytes(p)) for s, u, t, p in found]
 
     @property

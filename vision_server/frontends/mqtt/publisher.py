@@ -116,9 +116,11 @@ class MqttPublisher:
         self._wake.set()
         task, self._task = self._task, None
         if task is not None:
-            # The drain, the offline state and the disconnect, each bounded; then cancelled
-            # (a connect to a broker that does not answer).
-            await asyncio.wait({task}, timeout=drain_s + 2 * STATE_TIMEOUT_S)
+            if self.connected:
+                # The drain, the offline state and the disconnect, each bounded.
+                await asyncio.wait({task}, timeout=drain_s + 2 * STATE_TIMEOUT_S)
+            else:  # waiting to retry (returns at once), or connecting: not worth waiting for
+                await asyncio.wait({task}, timeout=0.1)
             for _ in range(3):
                 if task.done():
                     break
@@ -189,6 +191,11 @@ class MqttPublisher:
             try:
                 await self._connection()
             except aiomqtt.MqttError as exc:
+                self._lost(exc, was_connected=self.connects != before)
+            except (OutboxError, OSError, ssl.SSLError) as exc:  # a spool or TLS failure
+                self._lost(exc, was_connected=self.connects != before)
+            except Exception as exc:  # never let the publisher die: the spool keeps results
+                log.exception("MQTT: the connection failed unexpectedly")
                 self._lost(exc, was_connected=self.connects != before)
             else:
                 return  # stopped cleanly
@@ -303,13 +310,19 @@ class MqttPublisher:
         finally:
             self._wake.set()
 
-    def _lost(self, exc: aiomqtt.MqttError, *, was_connected: bool) -> None:
+    def _lost(self, exc: Exception, *, was_connected: bool) -> None:
         was = was_connected
         self.connected = False
         if isinstance(exc, MqttConnectError):
             text = (
                 f"the broker {self.broker} refused the connection: {exc} (check mqtt.username, "
                 "the password and the broker's access rules)"
+            )
+            level = logging.ERROR
+        elif "certificate" in str(exc).lower() or "ssl" in str(exc).lower():
+            text = (
+                f"no TLS connection to the broker {self.broker}: {exc} (check mqtt.host against "
+                "the broker's certificate, and mqtt.tls)"
             )
             level = logging.ERROR
         else:
