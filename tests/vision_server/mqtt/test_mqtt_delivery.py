@@ -42,8 +42,11 @@ def test_every_inspection_arrives_schema_valid_with_its_verdict(
                 async with (
                     aiohttp.ClientSession() as http,
                     http.get(f"{app.http.url}metrics") as reply,
+                    http.get(f"{app.http.url}api/server") as server,
                 ):
                     metrics = await reply.text()
+                    checks = (await server.json())["health"]["checks"]
+                assert {"name": "MQTT", "ok": True, "message": ""} in checks
                 assert "cellvision_mqtt_connected 1.0" in metrics
                 assert f"cellvision_mqtt_published_total {count}.0" in metrics
                 assert "cellvision_mqtt_spooled 0.0" in metrics

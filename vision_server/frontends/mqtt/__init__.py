@@ -7,6 +7,7 @@ An outbound front-end over :class:`vision_server.service.InspectionService`:
   :func:`state_payload`, :func:`encode`.
 - :mod:`.outbox`: the local SQLite spool of results waiting for the broker's PUBACK
   (:class:`Outbox`, :class:`OutboxError`).
+- :mod:`.health`: its health report as the console shows it (:func:`mqtt_check`).
 - :mod:`.publisher`: :class:`MqttPublisher`, the observer and the connection (aiomqtt, the
   optional extra ``mqtt``; imported when first named, so the rest works without it).
 """
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from .health import mqtt_check
 from .outbox import Outbox, OutboxError, OutboxRow
 from .payload import RESULT_SCHEMA, STATE_SCHEMA, encode, iso_utc, result_payload, state_payload
 from .topics import Topics, topic_level
@@ -32,6 +34,7 @@ __all__ = [
     "Topics",
     "encode",
     "iso_utc",
+    "mqtt_check",
     "result_payload",
     "state_payload",
     "topic_level",
