@@ -33,7 +33,7 @@ import ssl
 import tempfile
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import Any
 
@@ -241,12 +241,17 @@ class MqttPublisher:
             self.last_error = None
             self._logged.pop("lost", None)
             log.info("MQTT: connected to %s as %s", self.broker, self.settings.identifier)
+            # Watches the connection from now on: aiomqtt's publish does not end when the
+            # connection does (it would wait for its timeout).
+            lost = asyncio.get_running_loop().create_task(_until_lost(client))
             try:
-                await self._state(client, "online", "connected")
-                await self._send_rows(client)
-                await self._state(client, "offline", "stopped")
+                await _unless_lost(self._state(client, "online", "connected"), lost)
+                await self._send_rows(client, lost)
+                await _unless_lost(self._state(client, "offline", "stopped"), lost)
             finally:
                 self.connected = False
+                lost.cancel()
+                await asyncio.gather(lost, return_exceptions=True)
 
     async def _state(self, client: aiomqtt.Client, state: str, reason: str) -> None:
         payload = state_payload(
@@ -256,14 +261,13 @@ class MqttPublisher:
             self.topics.state, encode(payload), qos=1, retain=True, timeout=STATE_TIMEOUT_S
         )
 
-    async def _send_rows(self, client: aiomqtt.Client) -> None:
+    async def _send_rows(self, client: aiomqtt.Client, lost: asyncio.Task[None]) -> None:
         """Send the outbox's rows in order, at most ``max_in_flight`` unacknowledged, until a
         stop (then wait up to STOP_DRAIN_S for those in flight) or the connection ends
         (raises MqttError)."""
         assert self.outbox is not None
         outbox = self.outbox
         window = self.settings.max_in_flight
-        lost = asyncio.get_running_loop().create_task(_until_lost(client))
         in_flight: set[asyncio.Task[None]] = set()
         cursor = 0  # every row still in the outbox is unacknowledged: all are sent again
         drain_until: float | None = None
@@ -294,10 +298,9 @@ class MqttPublisher:
                 finally:
                     woken.cancel()
         finally:
-            lost.cancel()
             for task in in_flight:
                 task.cancel()
-            await asyncio.gather(lost, *in_flight, return_exceptions=True)
+            await asyncio.gather(*in_flight, return_exceptions=True)
 
     async def _publish(self, client: aiomqtt.Client, row: OutboxRow) -> None:
         try:
@@ -372,6 +375,21 @@ class MqttPublisher:
     def _log_now(self, key: str, level: int, message: str, *args: Any) -> None:
         if self._due(key):
             log.log(level, message, *args)
+
+
+async def _unless_lost(work: Coroutine[Any, Any, None], lost: asyncio.Task[None]) -> None:
+    """Run ``work`` unless the connection ends first (then MqttError)."""
+    task = asyncio.get_running_loop().create_task(work)
+    try:
+        await asyncio.wait({task, lost}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        if not task.done():
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+    if task.cancelled() or not task.done():
+        lost.result()  # raises the connection's MqttError
+        raise aiomqtt.MqttError("disconnected")
+    task.result()
 
 
 async def _until_lost(client: aiomqtt.Client) -> None:
