@@ -210,3 +210,17 @@ def test_the_editors_schema_lists_exactly_the_keys_the_loader_takes(tmp_path: Pa
             if k[bound] is not None and k["kind"] == "integer":
                 with pytest.raises(ConfigError, match=f"mqtt -> {k['key']}"):
                     load_config(cell(tmp_path, f"mqtt: {{{k['key']}: {k[bound] + beyond}}}\n"))
+
+
+def test_ping_says_the_mqtt_state() -> None:
+    from vision_server.commands.results import describe_health
+
+    mqtt = {
+        **{"ok": False, "broker": "b:1883", "connected": False, "spooled": 7, "published": 3},
+        **{"dropped": 2, "spool_errors": 0, "last_error": "no connection to the broker b:1883"},
+    }
+    text = describe_health({"ok": False, "mqtt": mqtt})
+    assert text == (
+        "not ok; MQTT to b:1883 NOT CONNECTED, 7 spooled, 3 published, 2 dropped "
+        "(no connection to the broker b:1883)"
+    )
