@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ipaddress
 import logging
 import ssl
 import tempfile
@@ -79,6 +80,7 @@ class MqttPublisher:
         self._stop = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._unsubscribe: Callable[[], None] | None = None
+        self._drain_s = STOP_DRAIN_S
         self._logged: dict[str, float] = {}
         self._dropped_unlogged = 0
 
@@ -103,6 +105,11 @@ class MqttPublisher:
         self.outbox = await asyncio.to_thread(Outbox, path, self.settings.spool_max_bytes)
         if self.outbox.rows:
             log.info("MQTT: %d results from before wait in %s", self.outbox.rows, path)
+        settings = self.settings
+        if settings.password is not None and not settings.tls and not _loopback(settings.host):
+            log.warning(
+                "MQTT: the password for %s travels in clear text (no mqtt.tls)", self.broker
+            )
         self._unsubscribe = self.service.subscribe(self._observe)
         self._task = asyncio.get_running_loop().create_task(self._run(), name="mqtt publisher")
 
@@ -112,6 +119,7 @@ class MqttPublisher:
         if self._unsubscribe is not None:
             self._unsubscribe()
             self._unsubscribe = None
+        self._drain_s = drain_s
         self._stop.set()
         self._wake.set()
         task, self._task = self._task, None
@@ -263,7 +271,7 @@ class MqttPublisher:
 
     async def _send_rows(self, client: aiomqtt.Client, lost: asyncio.Task[None]) -> None:
         """Send the outbox's rows in order, at most ``max_in_flight`` unacknowledged, until a
-        stop (then wait up to STOP_DRAIN_S for those in flight) or the connection ends
+        stop (then wait up to its ``drain_s`` for those in flight) or the connection ends
         (raises MqttError)."""
         assert self.outbox is not None
         outbox = self.outbox
@@ -286,7 +294,7 @@ class MqttPublisher:
                         cursor = row.seq
                         in_flight.add(asyncio.create_task(self._publish(client, row)))
                 else:
-                    drain_until = drain_until or time.monotonic() + STOP_DRAIN_S
+                    drain_until = drain_until or time.monotonic() + self._drain_s
                     if not in_flight or time.monotonic() >= drain_until:
                         return
                 woken = asyncio.ensure_future(self._wake.wait())
@@ -397,6 +405,13 @@ async def _until_lost(client: aiomqtt.Client) -> None:
     only ends, with MqttError, when the client disconnects)."""
     async for _ in client.messages:
         pass
+
+
+def _loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
 
 
 def _tls_context(settings: MqttSettings) -> ssl.SSLContext:
