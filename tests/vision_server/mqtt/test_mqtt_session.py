@@ -230,3 +230,39 @@ def test_a_broker_certificate_from_another_ca_is_refused_and_said(
     assert refused
     assert refused[0].levelno == logging.ERROR
     assert "certificate verify failed" in refused[0].getMessage()
+
+
+def test_results_acknowledged_before_the_server_was_killed_are_sent_after_its_restart(
+    tmp_path: Path, broker: Broker
+) -> None:
+    """The spool is written before each RESULT is sent: SIGKILL (no stop, no flush) loses
+    none of the answered results."""
+    path = write_cell(tmp_path, broker.port)
+
+    async def body() -> None:
+        await asyncio.to_thread(broker.stop)
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "vision_server", "serve", "--config", str(path),
+            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        try:
+            assert proc.stdout is not None
+            port = int(re.findall(r":(\d+)", (await proc.stdout.readline()).decode())[-1])
+            async with VisionClient("127.0.0.1", port, request_timeout_s=10.0) as client:
+                answers = dict([await inspect(client, i % 2 == 0) for i in range(8)])
+            proc.send_signal(signal.SIGKILL)
+            await proc.wait()
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+        await asyncio.to_thread(broker.start)
+        async with Subscriber(broker.port, (RESULTS,)) as subscriber, serving(path):
+            await subscriber.wait_for(
+                lambda s: set(answers) <= {p["result_id"] for p in s.payloads()},
+                "the results answered before the kill",
+            )
+        got = valid_results(subscriber.payloads())
+        assert {rid: got[rid]["passed"] for rid in answers} == answers
+
+    run(body(), timeout_s=60)
