@@ -224,3 +224,32 @@ def test_ping_says_the_mqtt_state() -> None:
         "not ok; MQTT to b:1883 NOT CONNECTED, 7 spooled, 3 published, 2 dropped "
         "(no connection to the broker b:1883)"
     )
+
+
+def test_a_payload_too_large_for_brokers_leaves_its_data_out_and_says_so() -> None:
+    """A broker refusing a packet would get it again and again, holding back the results after
+    it: past MAX_PAYLOAD_BYTES the data is left out, its size said; NaN is null."""
+    import json
+    import math
+
+    from protocol import schema
+    from vision_server.frontends.mqtt import MAX_PAYLOAD_BYTES, encode_result, result_payload
+    from vision_server.service import InspectionRecord, InspectReply, InspectRequest
+
+    def payload(data: dict[str, object]) -> dict[str, object]:
+        reply = InspectReply("a", "tool", True, data, 1.0, 2.0, "abc", result_id=5)
+        record = InspectionRecord(InspectRequest("a", peer="plc"), reply)
+        uid = "0d8f3b4e-4b1d-4c53-9a53-3f1f0c8a9d2e"
+        return result_payload(record, uid=uid, seq=1, cell="c", server="s", time_s=1.5e9)
+
+    small = json.loads(encode_result(payload({"value": math.nan, "xs": (1, 2)})))
+    schema.validate_mqtt("result", small)
+    assert small["data"] == {"value": None, "xs": [1, 2]}
+    assert "data_omitted" not in small
+    huge = encode_result(payload({"values": list(range(MAX_PAYLOAD_BYTES // 4))}))
+    assert len(huge) < 1000
+    cut = json.loads(huge)
+    schema.validate_mqtt("result", cut)
+    assert cut["data"] == {}
+    assert cut["data_omitted"] > MAX_PAYLOAD_BYTES
+    assert cut["result_id"] == 5

@@ -4,7 +4,7 @@ An outbound front-end over :class:`vision_server.service.InspectionService`:
 
 - :mod:`.topics`: the topic tree of a cell (:class:`Topics`, :func:`topic_level`).
 - :mod:`.payload`: the JSON payloads (protocol/schema/mqtt/): :func:`result_payload`,
-  :func:`state_payload`, :func:`encode`.
+  :func:`state_payload`, :func:`encode`, :func:`encode_result`.
 - :mod:`.outbox`: the local SQLite spool of results waiting for the broker's PUBACK
   (:class:`Outbox`, :class:`OutboxError`).
 - :mod:`.health`: its health report as the console shows it (:func:`mqtt_check`).
@@ -18,13 +18,23 @@ from typing import TYPE_CHECKING, Any
 
 from .health import mqtt_check
 from .outbox import Outbox, OutboxError, OutboxRow
-from .payload import RESULT_SCHEMA, STATE_SCHEMA, encode, iso_utc, result_payload, state_payload
+from .payload import (
+    MAX_PAYLOAD_BYTES,
+    RESULT_SCHEMA,
+    STATE_SCHEMA,
+    encode,
+    encode_result,
+    iso_utc,
+    result_payload,
+    state_payload,
+)
 from .topics import Topics, topic_level
 
 if TYPE_CHECKING:
     from .publisher import MqttPublisher
 
 __all__ = [
+    "MAX_PAYLOAD_BYTES",
     "RESULT_SCHEMA",
     "STATE_SCHEMA",
     "MqttPublisher",
@@ -33,6 +43,7 @@ __all__ = [
     "OutboxRow",
     "Topics",
     "encode",
+    "encode_result",
     "iso_utc",
     "mqtt_check",
     "result_payload",

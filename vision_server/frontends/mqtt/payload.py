@@ -18,6 +18,11 @@ from ...service import InspectionRecord
 RESULT_SCHEMA = 1
 """``schema`` of a result payload: raised only by a change a consumer must know about."""
 STATE_SCHEMA = 1
+MAX_PAYLOAD_BYTES = 256 * 1024
+"""A result payload larger than this is sent with its ``data`` left out (``data_omitted``):
+brokers refuse large packets (EMQX's default limit is 1 MB), and a refused one would be sent
+again and again, holding back every result after it. A RESULT's data is a few kB at most in
+practice; the result log keeps the whole of it (``result_id``)."""
 MAX_DEPTH = 64
 """Deeper data is cut (None) rather than recursed into: RESULT data is never this deep."""
 
@@ -67,6 +72,16 @@ def state_payload(
         "time": round(time_s, 6),
         "time_iso": iso_utc(time_s),
     }
+
+
+def encode_result(payload: dict[str, Any]) -> bytes:
+    """:func:`encode`, with ``data`` replaced by ``{}`` and ``data_omitted`` set to the data's
+    size when the whole would exceed :data:`MAX_PAYLOAD_BYTES`."""
+    encoded = encode(payload)
+    if len(encoded) <= MAX_PAYLOAD_BYTES:
+        return encoded
+    data_bytes = len(encode({"data": payload["data"]}))
+    return encode({**payload, "data": {}, "data_omitted": data_bytes})
 
 
 def encode(payload: dict[str, Any]) -> bytes:

@@ -44,7 +44,7 @@ from aiomqtt.exceptions import MqttConnectError
 from ...config import MqttSettings
 from ...service import InspectionRecord, InspectionService
 from .outbox import Outbox, OutboxError, OutboxRow
-from .payload import encode, result_payload, state_payload
+from .payload import encode, encode_result, result_payload, state_payload
 from .topics import Topics
 
 log = logging.getLogger("vision_server.mqtt")
@@ -163,7 +163,7 @@ class MqttPublisher:
                     seq,
                     payload["uid"],
                     self.topics.result(record.reply.inspection),
-                    encode(payload),
+                    encode_result(payload),
                 )
             )
         except OutboxError as exc:
