@@ -253,3 +253,16 @@ def test_a_payload_too_large_for_brokers_leaves_its_data_out_and_says_so() -> No
     assert cut["data"] == {}
     assert cut["data_omitted"] > MAX_PAYLOAD_BYTES
     assert cut["result_id"] == 5
+
+
+def test_a_reload_says_that_mqtt_changes_wait_for_a_restart(tmp_path: Path) -> None:
+    from vision_server.service import CellRuntime
+
+    path = cell(tmp_path, "mqtt: {enabled: true, port: 1883}\n")
+    runtime = CellRuntime(path)
+    try:
+        path.write_text(HEAD + "mqtt: {enabled: true, port: 1884}\n", encoding="utf-8")
+        notes = runtime.reload().notes
+    finally:
+        runtime.close()
+    assert "cell.yaml: changes under 'mqtt:' take effect after a restart" in notes
