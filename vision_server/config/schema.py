@@ -479,7 +479,7 @@ def _mqtt_section() -> list[Key]:
             min=1,
             max=65535,
         ),
-        key("spool", "file", "the spool's SQLite file (default: mqtt-spool.sqlite beside it)"),
+        key("spool", "string", "the spool's SQLite file (default: mqtt-spool.sqlite beside it)"),
         _positive("spool_max_mb", "the spool's bound; past it the oldest are dropped", default=100),
         _positive("reconnect_min_s", "first wait before reconnecting", default=0.5, unit="s"),
         _positive("reconnect_max_s", "longest wait between reconnects", default=30, unit="s"),
