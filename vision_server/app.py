@@ -4,8 +4,10 @@
 pool, admission, deadlines, cameras, result log, reload) to the front-ends that serve it — the
 TCP protocol (:class:`~vision_server.frontends.tcp.TcpFrontend`) and, when enabled, the line
 protocol, Modbus TCP (:class:`~vision_server.frontends.modbus.ModbusFrontend`, imported only
-then: pymodbus is an optional extra) and the web console. SIGHUP reloads through the
-service, the same path as the protocol's RELOAD (in a thread, never on the event loop).
+then: pymodbus is an optional extra) and the web console; and, outbound, the MQTT results
+publisher (:class:`~vision_server.frontends.mqtt.MqttPublisher`, the extra ``mqtt``).
+SIGHUP reloads through the service, the same path as the protocol's RELOAD (in a thread,
+never on the event loop).
 
 ``vision-server serve`` builds one from a configuration file
 (:mod:`vision_server.commands.program`);
@@ -32,6 +34,7 @@ from .config import (
     Listener,
     ListenError,
     ModbusSettings,
+    MqttSettings,
     OpcUaSettings,
     ServerSettings,
 )
@@ -40,7 +43,7 @@ from .results import ResultStore
 from .service import Catalog, InspectionService, OperatorDesk
 
 if TYPE_CHECKING:
-    from .frontends import ModbusFrontend, OpcUaFrontend
+    from .frontends import ModbusFrontend, MqttPublisher, OpcUaFrontend
 
 log = logging.getLogger("vision_server")
 
@@ -68,6 +71,7 @@ class App:
         config_path: Path | None = None,
         modbus: ModbusSettings | None = None,
         opcua: OpcUaSettings | None = None,
+        mqtt: MqttSettings | None = None,
     ) -> None:
         self.settings = settings or ServerSettings()
         self.service = InspectionService(
@@ -91,6 +95,14 @@ class App:
             from .frontends import OpcUaFrontend
 
             self.opcua = OpcUaFrontend(self.service, opcua, self.settings)
+            self.service.health_parts["opcua"] = self.opcua.health
+        self.mqtt: MqttPublisher | None = None
+        """Production results published to an MQTT broker, when ``mqtt`` enables it."""
+        if mqtt is not None and mqtt.enabled:
+            from .frontends import MqttPublisher  # aiomqtt: an optional extra
+
+            self.mqtt = MqttPublisher(self.service, mqtt, server=self.settings.name)
+            self.service.health_parts["mqtt"] = self.mqtt.health
         # The web console (off unless enabled): its token, TLS and limits are the server's.
         self.http: HttpFrontend | None = None
         if console is not None and console.enabled:
@@ -143,6 +155,11 @@ class App:
             # The worker processes start before the server listens (spawn imports for seconds).
             await asyncio.to_thread(self.service.processes.start)
         started: list[Callable[[], Awaitable[None]]] = []
+        if self.mqtt is not None:
+            # Before anything listens: every answered result is spooled (MqttSpoolError when
+            # the spool cannot be used).
+            await self.mqtt.start()
+            started.append(self.mqtt.stop)
         try:
             for listener, start, stop in self._listeners():
                 try:
@@ -237,6 +254,8 @@ class App:
         if self.http is not None:
             await self.http.stop()
         await self.tcp.stop()
+        if self.mqtt is not None:  # after the front-ends: their last results are spooled
+            await self.mqtt.stop()
         self.service.close()
 
     async def __aenter__(self) -> App:

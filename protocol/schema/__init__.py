@@ -3,7 +3,8 @@
 The schemas are package data beside this module: ``common.json`` (shared ``$defs``: image,
 inspection and camera descriptors, limits, corners, transforms), ``messages/<type>.json`` (one
 per message type's metadata, named after :class:`~protocol.constants.MessageType` in lower
-case) and ``data/<inspection type>.json`` (a RESULT's ``data`` by the inspection's type).
+case), ``data/<inspection type>.json`` (a RESULT's ``data`` by the inspection's type) and
+``mqtt/<payload>.json`` (what a server publishes to an MQTT broker: docs/mqtt.md).
 
 Reading them needs nothing but the standard library (:func:`load_schema`, :func:`schemas`).
 Validating needs the optional ``jsonschema`` package (``pip install 'cellvision[conformance]'``),
@@ -43,6 +44,9 @@ DATA_TYPES: tuple[str, ...] = (
 )
 """The inspection types whose RESULT ``data`` has a schema (SPEC §6.3)."""
 
+MQTT_PAYLOADS: tuple[str, ...] = ("result", "state")
+"""The MQTT payloads with a schema (``mqtt/<name>.json``)."""
+
 INSTALL_HINT = "pip install 'cellvision[conformance]' (or: pip install jsonschema)"
 
 
@@ -70,7 +74,7 @@ class SchemaViolation(ValueError):
 def _files() -> Iterator[str]:
     root = resources.files(__name__)
     yield "common.json"
-    for folder in ("messages", "data"):
+    for folder in ("messages", "data", "mqtt"):
         for entry in sorted(root.joinpath(folder).iterdir(), key=lambda e: e.name):
             if entry.name.endswith(".json"):
                 yield f"{folder}/{entry.name}"
@@ -139,6 +143,15 @@ def validate_data(inspection_type: str, data: Any) -> None:
     _check(path, data, f"RESULT data of a {inspection_type} inspection")
 
 
+def validate_mqtt(payload_kind: str, payload: Any) -> None:
+    """Check a published MQTT payload (parsed JSON) against ``mqtt/<payload_kind>.json``
+    (``result`` or ``state``). Raises :class:`SchemaViolation`, :class:`KeyError` for another
+    kind and :class:`SchemaUnavailable`."""
+    if payload_kind not in MQTT_PAYLOADS:
+        raise KeyError(f"no MQTT payload schema {payload_kind!r}")
+    _check(f"mqtt/{payload_kind}.json", payload, f"MQTT {payload_kind} payload")
+
+
 def _check(path: str, instance: Any, what: str) -> None:
     validator = _validators()[path]
     errors = list(validator.iter_errors(instance))
@@ -186,6 +199,7 @@ def _validators() -> Mapping[str, Any]:
 __all__ = [
     "DATA_TYPES",
     "ID_PREFIX",
+    "MQTT_PAYLOADS",
     "SchemaUnavailable",
     "SchemaViolation",
     "available",
@@ -196,4 +210,5 @@ __all__ = [
     "schemas",
     "validate_data",
     "validate_metadata",
+    "validate_mqtt",
 ]

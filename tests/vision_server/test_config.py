@@ -651,6 +651,8 @@ def test_docs_list_exactly_the_keys_the_validator_reads(
             return "line"
         if path[:1] == ("modbus",):
             return "modbus"
+        if path[:1] == ("mqtt",):
+            return "mqtt.tls" if path[1:] == ("tls",) else "mqtt"
         if path[:1] == ("inspections",) and path[2:3] == ("output",):
             if len(path) == 3:
                 return "inspections.output"
@@ -745,6 +747,10 @@ line: {{enabled: true, host: 0.0.0.0, port: 0, tls: false, format: ur, max_line_
        idle_timeout_s: 1, deadline_s: 2, max_connections: 3, write_timeout_s: 4}}
 modbus: {{enabled: true, host: 0.0.0.0, port: 0, unit_id: 3, word_order: low_first,
          deadline_s: 2, max_connections: 2}}
+mqtt: {{enabled: true, host: broker, port: 8883, cell: c7, topic_prefix: plant/h2, client_id: x,
+       username: u, password_file: token, tls: {{}}, keepalive_s: 10, max_in_flight: 8,
+       spool: s.db, spool_max_mb: 1, reconnect_min_s: 1, reconnect_max_s: 2,
+       publish_timeout_s: 3}}
 """
     load_config(write(tmp_path, text))
     docs = documented_keys()
@@ -754,6 +760,8 @@ modbus: {{enabled: true, host: 0.0.0.0, port: 0, unit_id: 3, word_order: low_fir
         "results": docs["results"],
         "line": docs["line"],
         "modbus": docs["modbus"],
+        "mqtt": docs["mqtt"],
+        "mqtt.tls": docs["mqtt.tls"],
         "inspections.output": docs["inspections.output"],
         "output.fields": {"name", "decimals", "scale"},
         "cameras.intrinsics": docs["cameras.intrinsics"],

@@ -105,6 +105,7 @@ from ..config import (
     exposure_warnings,
     load_config,
 )
+from ..frontends import MqttSpoolError
 from ..process import PROCESS_ENV, decoder_limits
 from ..results import is_database_url
 from ..service import Catalog, Images, InspectReply, InspectRequest, builtin_catalog
@@ -221,6 +222,7 @@ def _serve(args: argparse.Namespace) -> int:
             config_path=None if runtime is None else runtime.path,
             modbus=frontends.modbus,
             opcua=frontends.opcua,
+            mqtt=None if runtime is None else runtime.config.mqtt,
         )
         app.service.on_reloaded = announce_reload
         try:
@@ -228,6 +230,9 @@ def _serve(args: argparse.Namespace) -> int:
         except ListenError as exc:  # port in use, address not on this machine, no permission
             print(f"{PROG}: {exc}", file=sys.stderr)
             return int(ExitCode.CONNECTION)
+        except MqttSpoolError as exc:  # a corrupt or unwritable spool file, named
+            print(f"{PROG}: {exc}", file=sys.stderr)
+            return int(ExitCode.USAGE)
         for warning in exposure_warnings(settings, app.listening()):
             log.warning("%s", warning)
         if runtime is None:
@@ -253,6 +258,8 @@ def _serve(args: argparse.Namespace) -> int:
             print(f"{PROG}: Modbus TCP on {modbus.host}:{app.modbus.port}", flush=True)
         if app.opcua is not None:
             print(f"{PROG}: OPC UA on {app.opcua.endpoint}", flush=True)
+        if app.mqtt is not None:
+            print(f"{PROG}: MQTT to {app.mqtt.broker}", flush=True)
         await stop.wait()
         await app.stop()
         return 0

@@ -66,6 +66,26 @@ def describe_health(health: Mapping[str, Any] | None) -> str:
     """
     if health is None:
         return "the server sent no health report"
+    return _result_log_text(health) + _mqtt_text(health.get("mqtt"))
+
+
+def _mqtt_text(mqtt: Any) -> str:
+    """``; MQTT to host:port connected, 3 spooled, 1042 published, 0 dropped`` (docs/mqtt.md)."""
+    if not isinstance(mqtt, Mapping):
+        return ""
+    state = "connected" if mqtt.get("connected") else "NOT CONNECTED"
+    text = (
+        f"; MQTT to {mqtt.get('broker', '?')} {state}, {mqtt.get('spooled', '?')} spooled, "
+        f"{mqtt.get('published', '?')} published, {mqtt.get('dropped', '?')} dropped"
+    )
+    if mqtt.get("spool_errors"):
+        text += f", {mqtt['spool_errors']} not spooled"
+    if mqtt.get("last_error"):
+        text += f" ({mqtt['last_error']})"
+    return text
+
+
+def _result_log_text(health: Mapping[str, Any]) -> str:
     log = health.get("result_log")
     if not isinstance(log, Mapping):
         return "no result log" if health.get("ok") is True else "not ok"

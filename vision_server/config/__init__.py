@@ -1,7 +1,7 @@
 """The cell configuration: one YAML file read, validated and frozen (docs/configuration.md).
 
 - :mod:`.cell`: :func:`load_config` → :class:`CellConfig` (server, console, line, Modbus,
-  results, cameras, inspections); :class:`Tuner` re-reads an inspection with a request's
+  MQTT, results, cameras, inspections); :class:`Tuner` re-reads an inspection with a request's
   options.
 - :mod:`.document`: the YAML reading, every error a :class:`ConfigError` naming file, line and
   key path.
@@ -42,6 +42,8 @@ from .settings import (
     DEFAULT_CONSOLE_PORT,
     DEFAULT_LINE_PORT,
     DEFAULT_MODBUS_PORT,
+    DEFAULT_MQTT_PORT,
+    DEFAULT_MQTTS_PORT,
     DEFAULT_OPCUA_PORT,
     LINE_FORMATS,
     MODBUS_WORD_ORDERS,
@@ -49,6 +51,7 @@ from .settings import (
     ConsoleSettings,
     LineSettings,
     ModbusSettings,
+    MqttSettings,
     OpcUaCertificateUser,
     OpcUaSettings,
     ServerSettings,
@@ -72,6 +75,8 @@ __all__ = [
     "DEFAULT_CONSOLE_PORT",
     "DEFAULT_LINE_PORT",
     "DEFAULT_MODBUS_PORT",
+    "DEFAULT_MQTT_PORT",
+    "DEFAULT_MQTTS_PORT",
     "FIXED_BY_THE_CONFIGURATION",
     "LINE_FORMATS",
     "MODBUS_WORD_ORDERS",
@@ -94,6 +99,7 @@ __all__ = [
     "DEFAULT_OPCUA_PORT",
     "OpcUaCertificateUser",
     "OpcUaSettings",
+    "MqttSettings",
     "Node",
     "PortClash",
     "ResultsConfig",

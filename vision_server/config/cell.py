@@ -14,6 +14,9 @@
                idle_timeout_s, write_timeout_s, shutdown_drain_s}  (PLCs)
     opcua:    {enabled, host, port, path, pki, security_policies, anonymous, certificate_users,
                deadline_s, results_kept, ...}  (OPC 40100-1 machine vision, docs/opcua.md)
+    mqtt:     {enabled, host, port, cell, topic_prefix, client_id, username, password |
+               password_file | password_env, tls: {ca, cert, key}, spool, spool_max_mb, ...}
+               (results published to a broker, docs/mqtt.md)
 
 Every error names the file, the line and the key path; unknown keys are errors. Relative paths
 resolve against the configuration file's directory. See docs/configuration.md.
@@ -23,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import os
 import ssl
 import types
 import typing
@@ -63,12 +67,14 @@ from .document import (
 )
 from .listeners import PortClash, check_distinct, enabled_listeners
 from .settings import (
+    DEFAULT_MQTTS_PORT,
     LINE_FORMATS,
     MODBUS_WORD_ORDERS,
     OPCUA_POLICIES,
     ConsoleSettings,
     LineSettings,
     ModbusSettings,
+    MqttSettings,
     OpcUaCertificateUser,
     OpcUaSettings,
     ServerSettings,
@@ -128,6 +134,8 @@ class CellConfig:
     """Modbus TCP for PLCs (protocol/MODBUS.md); off unless ``modbus: {enabled: true}``."""
     opcua: OpcUaSettings = OpcUaSettings()
     """OPC UA for machine vision (OPC 40100-1, docs/opcua.md); off unless enabled."""
+    mqtt: MqttSettings = MqttSettings()
+    """Results published to an MQTT broker (docs/mqtt.md); off unless enabled."""
 
 
 def _names(value: Any) -> tuple[str, ...]:
@@ -203,6 +211,7 @@ def parse_config(
     line = _line(root.sub("line"), server)
     modbus = _modbus(root.sub("modbus"))
     opcua = _opcua(root.sub("opcua"), base_dir)
+    mqtt = _mqtt(root.sub("mqtt"), base_dir, server, source)
     _check_ports(root, server, console, line, modbus, opcua)
     _check_connections(root, server, console, line, modbus, opcua)
     root.finish()
@@ -221,6 +230,7 @@ def parse_config(
         console=console,
         modbus=modbus,
         opcua=opcua,
+        mqtt=mqtt,
     )
 
 
@@ -559,6 +569,141 @@ def _opcua(node: Node, base_dir: Path) -> OpcUaSettings:
     if settings.enabled and find_spec("asyncua") is None:
         raise node.error(
             "enabled: true needs the optional extra: pip install 'cellvision[opcua]'",
+            "enabled",
+        )
+    node.finish()
+    return settings
+
+
+MQTT_LEVEL_MAX_CHARS = 128
+"""The longest cell name or topic prefix level (MQTT allows 65535 bytes for a whole topic)."""
+
+
+def _topic_level(value: str, what: str) -> str | None:
+    """Why ``value`` cannot be one MQTT topic level (None: it can): not empty, none of the
+    wildcards ``+`` ``#``, no ``/`` (it would add levels), no NUL, not starting with ``$``
+    (brokers keep those topics for themselves)."""
+    if not value:
+        return f"{what} is empty"
+    bad = sorted({c for c in value if c in "+#/\0"})
+    if bad:
+        return f"{what} {value!r} contains {' '.join(repr(c) for c in bad)}"
+    if value.startswith("$"):
+        return f"{what} {value!r} starts with '$' (topics of the broker's own)"
+    if len(value) > MQTT_LEVEL_MAX_CHARS:
+        return f"{what} has more than {MQTT_LEVEL_MAX_CHARS} characters"
+    return None
+
+
+def _mqtt(node: Node, base_dir: Path, server: ServerSettings, source: Path | None) -> MqttSettings:
+    """``mqtt:``: the results publisher (docs/mqtt.md). Its password as the server's tokens
+    are given (``password`` or ``password_file``, hidden in the console's history), or in an
+    environment variable named by ``password_env``."""
+    defaults = MqttSettings()
+    enabled = node.take("enabled", boolean, defaults.enabled)
+    tls_node = node.sub_optional("tls")
+    tls = tls_node is not None
+    ca = cert = key = None
+    if tls_node is not None:
+        ca = tls_node.take("ca", string, None)
+        cert = tls_node.take("cert", string, None)
+        key = tls_node.take("key", string, None)
+        if (cert is None) != (key is None):
+            raise tls_node.error("a client certificate needs both cert and key")
+        for name, value in (("ca", ca), ("cert", cert), ("key", key)):
+            if value is not None and not _resolve(base_dir, value).is_file():
+                raise tls_node.error(f"no such file: {_resolve(base_dir, value)}", name)
+        try:
+            context = ssl.create_default_context(ssl.Purpose.SERVER_AUTH)
+            if ca is not None:
+                context.load_verify_locations(_resolve(base_dir, ca))
+            if cert is not None and key is not None:
+                context.load_cert_chain(_resolve(base_dir, cert), _resolve(base_dir, key))
+        except (ssl.SSLError, OSError) as exc:
+            raise tls_node.error(
+                f"the files cannot make a TLS client ({exc.strerror or exc}): ca is a PEM "
+                "certificate, cert and key a PEM certificate and its private key",
+                "ca" if cert is None else "key",
+            ) from None
+        tls_node.finish()
+    port = node.take("port", integer, DEFAULT_MQTTS_PORT if tls else defaults.port)
+    if not 0 < port < 65536:
+        raise node.error(f"expected a port in 1..65535, got {port}", "port")
+    cell = node.take("cell", string, None)
+    if cell is None:
+        why = _topic_level(server.name, "server.name")
+        if enabled and why is not None:
+            raise node.error(
+                f"the cell's topic level defaults to server.name, and {why}: give mqtt.cell",
+                "cell",
+            )
+        cell = server.name
+    elif (why := _topic_level(cell, "cell")) is not None:
+        raise node.error(why, "cell")
+    prefix = node.take("topic_prefix", string, defaults.topic_prefix)
+    for level in prefix.split("/"):
+        why = _topic_level(level, "a level of the prefix")
+        if why is not None:
+            raise node.error(
+                f"{why}: give levels separated by single '/', such as plant/hall-2", "topic_prefix"
+            )
+    password = _secret(node, base_dir, "password")
+    env_name = node.take("password_env", string, None)
+    if env_name is not None:
+        if password is not None:
+            raise node.error("give password, password_file or password_env, one of them")
+        password = os.environ.get(env_name)
+        if not password:
+            raise node.error(
+                f"the environment variable {env_name!r} is not set or empty", "password_env"
+            )
+    username = node.take("username", string, None)
+    if password is not None and username is None:
+        raise node.error("a password needs its username", "username")
+    spool = node.take("spool", string, None)
+    if spool is not None:
+        spool_path: Path | None = _resolve(base_dir, spool)
+    else:
+        # Beside the configuration (a result must outlive the process); no file: a temp dir.
+        spool_path = None if source is None else base_dir / "mqtt-spool.sqlite"
+    reconnect_min = node.take("reconnect_min_s", positive, defaults.reconnect_min_s)
+    reconnect_max = node.take("reconnect_max_s", positive, defaults.reconnect_max_s)
+    if reconnect_max < reconnect_min:
+        raise node.error(
+            f"reconnect_max_s ({reconnect_max}) is less than reconnect_min_s ({reconnect_min})",
+            "reconnect_max_s",
+        )
+    keepalive = node.take("keepalive_s", positive_int, defaults.keepalive_s)
+    if keepalive > 65535:
+        raise node.error(f"expected at most 65535 s, got {keepalive}", "keepalive_s")
+    settings = MqttSettings(
+        enabled=enabled,
+        host=node.take("host", string, defaults.host),
+        port=port,
+        cell=cell,
+        topic_prefix=prefix,
+        client_id=node.take("client_id", string, defaults.client_id),
+        username=username,
+        password=password,
+        tls=tls,
+        tls_ca=None if ca is None else str(_resolve(base_dir, ca)),
+        tls_cert=None if cert is None else str(_resolve(base_dir, cert)),
+        tls_key=None if key is None else str(_resolve(base_dir, key)),
+        keepalive_s=keepalive,
+        max_in_flight=node.take("max_in_flight", positive_int, defaults.max_in_flight),
+        spool=None if spool_path is None else str(spool_path),
+        spool_max_bytes=int(
+            node.take("spool_max_mb", positive, defaults.spool_max_bytes / 2**20) * 2**20
+        ),
+        reconnect_min_s=reconnect_min,
+        reconnect_max_s=reconnect_max,
+        publish_timeout_s=node.take("publish_timeout_s", positive, defaults.publish_timeout_s),
+    )
+    if settings.max_in_flight > 65535:
+        raise node.error("at most 65535 (MQTT's packet identifiers)", "max_in_flight")
+    if enabled and find_spec("aiomqtt") is None:
+        raise node.error(
+            "enabled: true needs the optional extra: pip install 'cellvision[mqtt]'",
             "enabled",
         )
     node.finish()

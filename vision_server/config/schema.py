@@ -449,13 +449,59 @@ STEP_DOCS = {
 }
 
 
+# ----------------------------------------------------------------------------- sections
+
+
+def _mqtt_section() -> list[Key]:
+    """``mqtt:`` (docs/configuration.md, "mqtt"; the loader: cell.py ``_mqtt``)."""
+    return [
+        key("enabled", "boolean", "publish results to an MQTT broker", default=False),
+        key("host", "string", "the broker's host name or address", default="127.0.0.1"),
+        key("port", "integer", "the broker's port (8883 with tls)", default=1883, min=1, max=65535),
+        key("cell", "string", "this cell's topic level (default: server.name)"),
+        key(
+            "topic_prefix", "string", "the first topic level(s), /-separated", default="cellvision"
+        ),
+        key("client_id", "string", "the MQTT client identifier (default: cellvision-<cell>)"),
+        key("username", "string", "sign in with this name"),
+        key("password", "string", "... and this password (or password_file, password_env)"),
+        key("password_file", "file", "the password read from this file"),
+        key("password_env", "string", "the password read from this environment variable"),
+        key("tls.ca", "file", "the CA (PEM) the broker's certificate is checked against"),
+        key("tls.cert", "file", "a client certificate (PEM), with tls.key"),
+        key("tls.key", "file", "the client certificate's private key (PEM)"),
+        key("keepalive_s", "integer", "MQTT keep-alive", default=30, min=1, max=65535, unit="s"),
+        key(
+            "max_in_flight",
+            "integer",
+            "results unacknowledged at once",
+            default=64,
+            min=1,
+            max=65535,
+        ),
+        key("spool", "string", "the spool's SQLite file (default: mqtt-spool.sqlite beside it)"),
+        _positive("spool_max_mb", "the spool's bound; past it the oldest are dropped", default=100),
+        _positive("reconnect_min_s", "first wait before reconnecting", default=0.5, unit="s"),
+        _positive("reconnect_max_s", "longest wait between reconnects", default=30, unit="s"),
+        _positive(
+            "publish_timeout_s", "a PUBACK this late ends the connection", default=30, unit="s"
+        ),
+    ]
+
+
+SECTION_DOCS = {
+    "mqtt": "every production result published to an MQTT broker (docs/mqtt.md)",
+}
+
+
 # ----------------------------------------------------------------------------- the whole
 
 
 def inspection_schema(cameras: Sequence[str] | None = None) -> dict[str, Any]:
     """The schema served as ``GET /api/schema``: ``types``, ``steps``, ``common`` (and
-    ``step_common``, ``presence_ranges``). ``cameras``: the configured cameras' names, which
-    ``camera`` takes (None: not listed)."""
+    ``step_common``, ``presence_ranges``, and ``sections``: the keys of configuration sections
+    besides the inspections that it describes, so far ``mqtt``). ``cameras``: the configured
+    cameras' names, which ``camera`` takes (None: not listed)."""
     common = copy.deepcopy(list(COMMON_KEYS))
     if cameras is not None:
         next(k for k in common if k["key"] == "camera")["values"] = list(cameras)
@@ -507,4 +553,5 @@ def inspection_schema(cameras: Sequence[str] | None = None) -> dict[str, Any]:
         "common": common,
         "step_common": copy.deepcopy(list(STEP_COMMON_KEYS)),
         "presence_ranges": {m: list(r) for m, r in PRESENCE_RANGES.items()},
+        "sections": {"mqtt": {"doc": SECTION_DOCS["mqtt"], "keys": _mqtt_section()}},
     }

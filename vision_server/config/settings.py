@@ -237,6 +237,54 @@ class OpcUaSettings:
     """The largest message a client may send (OPC UA chunks of 64 KiB each)."""
 
 
+DEFAULT_MQTT_PORT = 1883
+"""The broker's port when ``mqtt:`` gives none (8883, MQTT over TLS's, when ``tls`` is set)."""
+DEFAULT_MQTTS_PORT = 8883
+
+
+@dataclass(frozen=True)
+class MqttSettings:
+    """The ``mqtt:`` section: every production result published to an MQTT broker
+    (docs/mqtt.md), off unless ``enabled``. An outbound client: it listens on no port."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = DEFAULT_MQTT_PORT
+    cell: str = "cellvision"
+    """The topic level naming this cell (default: ``server.name``)."""
+    topic_prefix: str = "cellvision"
+    """The first topic level(s): ``{topic_prefix}/{cell}/results/{inspection}``."""
+    client_id: str = ""
+    """The MQTT client identifier ("": ``cellvision-{cell}``); unique per broker."""
+    username: str | None = None
+    password: str | None = None
+    """From ``password``, ``password_file`` or the environment variable ``password_env``."""
+    tls: bool = False
+    tls_ca: str | None = None
+    """The CA file the broker's certificate is checked against (None: the system's)."""
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    """A client certificate and its key, for brokers that ask for one."""
+    keepalive_s: int = 30
+    """MQTT keep-alive: a silent broker is given up after 1.5 times this."""
+    max_in_flight: int = 64
+    """Results published and not yet acknowledged (PUBACK) at once."""
+    spool: str | None = None
+    """The SQLite outbox file (None: a file in a temporary directory)."""
+    spool_max_bytes: int = 100 * 1024 * 1024
+    """Past this many bytes of waiting results, the oldest are dropped (and counted)."""
+    reconnect_min_s: float = 0.5
+    reconnect_max_s: float = 30.0
+    """Reconnects back off exponentially from the min to the max, then stay at the max."""
+    publish_timeout_s: float = 30.0
+    """A result not acknowledged this long after it was sent ends the connection (then it is
+    sent again on the next)."""
+
+    @property
+    def identifier(self) -> str:
+        return self.client_id or f"cellvision-{self.cell}"
+
+
 @dataclass(frozen=True)
 class ServerSettings:
     """The ``server:`` section of a configuration file: the service's settings and the TCP
@@ -439,6 +487,9 @@ __all__ = [
     "OPCUA_POLICIES",
     "OpcUaCertificateUser",
     "OpcUaSettings",
+    "DEFAULT_MQTT_PORT",
+    "DEFAULT_MQTTS_PORT",
+    "MqttSettings",
     "ServerSettings",
     "ServiceSettings",
     "TcpSettings",

@@ -6,6 +6,8 @@ requests, call :class:`vision_server.service.InspectionService`, and render its 
 - :mod:`.modbus`: Modbus TCP for PLCs (protocol/MODBUS.md; pymodbus, the optional extra
   ``modbus``), with its register map (:mod:`.modbus_map`), hand-shake state machine
   (:mod:`.modbus_handshake`) and framing (:mod:`.modbus_frames`), which need no pymodbus.
+- :mod:`.mqtt`: results published to an MQTT broker (docs/mqtt.md; aiomqtt, the optional
+  extra ``mqtt``), through a local spool (:class:`MqttSpoolError` when it cannot be used).
 - :mod:`.images`: image payloads (the protocol's, also image files) decoded into arrays.
 - :mod:`.http`: the web console, its JSON API and ``/metrics`` (aiohttp).
 - :mod:`.opcua`: OPC UA for machine vision (OPC 40100-1; asyncua, the optional extra
@@ -13,7 +15,7 @@ requests, call :class:`vision_server.service.InspectionService`, and render its 
 
 Public API: each front-end's class, the register map (``modbus-map`` prints it) and
 :func:`payload_loader`. :class:`ModbusFrontend` is imported when first named (it needs
-pymodbus, the ``modbus`` extra).
+pymodbus, the ``modbus`` extra); :class:`MqttPublisher` likewise (aiomqtt, the ``mqtt`` extra).
 """
 
 from __future__ import annotations
@@ -33,10 +35,12 @@ from .modbus_map import (
     config_map,
     value_rows,
 )
+from .mqtt import OutboxError as MqttSpoolError
 from .tcp import DEFAULT_MAX_FRAME_BYTES, REFUSE_HELLO_TIMEOUT_S, TcpFrontend
 
 if TYPE_CHECKING:
     from .modbus import ModbusFrontend
+    from .mqtt import MqttPublisher
     from .opcua import OpcUaFrontend
 
 __all__ = [
@@ -50,6 +54,8 @@ __all__ = [
     "MappedInspection",
     "ModbusFrontend",
     "OpcUaFrontend",
+    "MqttPublisher",
+    "MqttSpoolError",
     "RegisterMap",
     "Row",
     "TcpFrontend",
@@ -70,4 +76,8 @@ def __getattr__(name: str) -> Any:
         from .opcua import OpcUaFrontend
 
         return OpcUaFrontend
+    if name == "MqttPublisher":
+        from .mqtt import MqttPublisher
+
+        return MqttPublisher
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -81,6 +81,7 @@ from .http_operator import OperatorRoutes
 from .http_train import TRAIN_PATH, TrainRoutes
 from .http_users import SignIn, SignInError, TooManyTries
 from .listener import Listener, Policy, quiet_logger
+from .mqtt import mqtt_check
 from .online_board import OnlineBoard
 from .uploads import upload_loader
 
@@ -432,9 +433,12 @@ class HttpFrontend:
     async def server(self, request: web.Request) -> web.Response:
         service = self.service
         health = service.health()
-        checks = [{"name": "result log", "ok": bool(health["ok"]), "message": ""}]
-        if "result_log" in health and not health["ok"]:
+        log_ok = bool(health["result_log"]["ok"]) if "result_log" in health else True
+        checks = [{"name": "result log", "ok": log_ok, "message": ""}]
+        if "result_log" in health and not log_ok:
             checks[0]["message"] = str(health["result_log"].get("last_error") or "rows lost")
+        if "mqtt" in health:  # the MQTT publisher (docs/mqtt.md)
+            checks.append(mqtt_check(health["mqtt"]))
         info = self.server_info()
         reloads = [
             {"time": r.time, "ok": r.ok, "config_hash": r.config_hash, "message": r.message}

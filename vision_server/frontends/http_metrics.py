@@ -3,7 +3,8 @@
 Counted as results are answered (an observer of the service): inspections by name and verdict,
 and their latency (arrival to reply). Read at each scrape: requests admitted and capacity,
 BUSY answers, reloads by outcome, each camera's frame age as the live view last saw it, its
-connection and reconnects, and a streaming device's frame and packet statistics.
+connection and reconnects, a streaming device's frame and packet statistics, and the MQTT
+publisher's connection, spool and counters when it runs.
 One registry per front-end, so that servers in one process (tests) do not share counters.
 """
 
@@ -118,6 +119,37 @@ class _StateCollector(Collector):
                 age.add_metric([name], max(now - frame.timestamp, 0.0))
         yield age
         yield from _camera_families(service)
+        yield from _mqtt_families(service)
+
+
+def _mqtt_families(
+    service: InspectionService,
+) -> Iterator[GaugeMetricFamily | CounterMetricFamily]:
+    """The MQTT publisher's connection, spool and counters (docs/mqtt.md), when it runs."""
+    report = service.health_parts.get("mqtt")
+    if report is None:
+        return
+    mqtt = report()
+    connected = GaugeMetricFamily(
+        "cellvision_mqtt_connected", "1 while the MQTT publisher is connected to its broker."
+    )
+    connected.add_metric([], 1 if mqtt["connected"] else 0)
+    yield connected
+    spooled = GaugeMetricFamily(
+        "cellvision_mqtt_spooled", "Results in the MQTT spool, not yet acknowledged (PUBACK)."
+    )
+    spooled.add_metric([], mqtt["spooled"])
+    yield spooled
+    yield CounterMetricFamily(
+        "cellvision_mqtt_published",
+        "Results the broker acknowledged since start (repeats after a reconnect included).",
+        value=mqtt["published"],
+    )
+    yield CounterMetricFamily(
+        "cellvision_mqtt_dropped",
+        "Results dropped since start: the oldest, over the spool's bound (spool_max_mb).",
+        value=mqtt["dropped"],
+    )
 
 
 _STREAM_FRAMES = {"completed": "frames_completed", "failed": "frames_failed"}

@@ -292,6 +292,9 @@ class InspectionService:
         self.door = FrontDoor(self.settings.max_connections_total)
         """What every front-end's connections and sign-ins go through (:mod:`.door`)."""
         self._observers: list[Callable[[InspectionRecord], None]] = []
+        self.health_parts: dict[str, Callable[[], dict[str, Any]]] = {}
+        """Reports of front-ends that hold results of their own (``mqtt``: its spool), each
+        a dict with ``ok``: merged into :meth:`health` under its name."""
         self._reload_lock = threading.Lock()
         self.busy_count = 0
         """BUSY answers of :meth:`admit` and the pool since start (for health and metrics)."""
@@ -375,12 +378,16 @@ class InspectionService:
 
     def health(self) -> dict[str, Any]:
         """``ok`` false once the result log lost a row since start (see
-        :meth:`ResultLog.health`), the admission counters and the log's."""
+        :meth:`ResultLog.health`), the admission counters and the log's; and each of
+        :attr:`health_parts` (``ok`` false when one of them is not ok)."""
         report: dict[str, Any] = {"ok": True, "admission": self.admission_counters()}
         if self.results is not None:
             result_log = self.results.health()
             report["ok"] = bool(result_log["ok"])
             report["result_log"] = result_log
+        for name, part in self.health_parts.items():
+            report[name] = part()
+            report["ok"] = report["ok"] and bool(report[name].get("ok", True))
         return report
 
     def admission_counters(self) -> dict[str, Any]:

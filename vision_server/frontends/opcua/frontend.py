@@ -743,12 +743,19 @@ class OpcUaFrontend:
             self._loaded_at = now_utc()
             await self.nodes.show_configuration(config_hash, self._loaded_at)
         health = self.service.health()
-        health["opcua"] = {
-            "state": self.machines.describe(),
-            "results_kept": len(self.results),
-            "connections": 0 if self.listener is None else self.listener.connections,
-        }
+        health.setdefault("opcua", self.health())
         await self.nodes.show_health(json.dumps(health, default=str, sort_keys=True))
+
+    def health(self) -> dict[str, Any]:
+        """The front-end's part of the server's health: not ok while the vision system is in
+        Error (a job ended in an internal error; Reset clears it)."""
+        return {
+            "ok": self.machines.vision.browse_name != "Error",
+            "state": self.machines.describe(),
+            "endpoint": self.endpoint,
+            "connections": 0 if self.listener is None else self.listener.connections,
+            "results_kept": len(self.results),
+        }
 
     async def _refresh_forever(self) -> None:
         while True:
