@@ -547,6 +547,7 @@ async function runHalt(session, nodes, report) {
     });
     report.halt_status = statusName(result.statusCode);
     report.halt_output = (result.outputArguments || []).map(plain);
+    report.states_after = await readStates(session, nodes);
 }
 
 async function main() {
