@@ -285,6 +285,9 @@ async function findNodes(session, ns) {
         resultManagement: await at(`/${m}:ResultManagement`, "ResultManagement"),
         getResultById: await at(`/${m}:ResultManagement/${m}:GetResultById`, "GetResultById"),
         getResultByIdArgs: await at(`/${m}:ResultManagement/${m}:GetResultById/0:InputArguments`, "GetResultById.InputArguments"),
+        latestResult: await at(`/${m}:ResultManagement/${ns.cell}:LatestResult`, "ResultManagement.LatestResult"),
+        systemState: await at(`/${m}:SystemState`, "SystemState"),
+        health: await at(`/${ns.cell}:Health`, "Health"),
     };
 }
 
@@ -307,6 +310,28 @@ async function readStates(session, nodes) {
         vision_state_machine: { text: plain(values[0].value.value), id: plain(values[1].value.value) },
         automatic_mode: { text: plain(values[2].value.value), id: plain(values[3].value.value) },
     };
+}
+
+// A variable's value, failing on a bad status.
+async function readValue(session, nodeId, what) {
+    const value = await session.read({ nodeId, attributeId: AttributeIds.Value });
+    if (!value.statusCode.isGood()) {
+        throw new Failure("read", `read ${what}: ${statusName(value.statusCode)}`, statusName(value.statusCode));
+    }
+    return value.value.value;
+}
+
+// SystemState (SystemStateDescriptionDataType) and Health (JSON text): the server's condition.
+async function readCondition(session, nodes) {
+    const system = await readValue(session, nodes.systemState, "SystemState");
+    const health = await readValue(session, nodes.health, "Health");
+    let parsed;
+    try {
+        parsed = JSON.parse(health);
+    } catch (error) {
+        throw new Failure("read", `Health is not JSON: ${error.message}: ${String(health).slice(0, 200)}`);
+    }
+    return { system_state: plain(system), health: parsed };
 }
 
 // The InputArguments a method declares (name and DataType NodeId, in order).
@@ -533,6 +558,22 @@ async function runJob(session, nodes, ns, options, report) {
         content: content(result.resultContent, "GetResultById's Result"),
     };
     report.states_after = await readStates(session, nodes);
+    const latest = await readValue(session, nodes.latestResult, "LatestResult");
+    report.latest_result = { ResultId: plain(latest && latest.resultId), JobId: plain(latest && latest.jobId) };
+
+    // An id the server never gave: BadNotFound (docs/opcua.md), at once with Timeout 0.
+    const unknownId = await structure(session, getArgs[0].dataType, { id: `no-such-result-${jobId}` });
+    const unknown = await session.call({
+        objectId: nodes.resultManagement,
+        methodId: nodes.getResultById,
+        inputArguments: [
+            new Variant({ dataType: DataType.ExtensionObject, value: unknownId }),
+            new Variant({ dataType: DataType.Int32, value: 0 }),
+        ],
+    });
+    report.unknown_result_status = statusName(unknown.statusCode);
+    // Every result is announced once: by now a second event for the job would have come.
+    report.events_for_job = events.events.filter((e) => e.JobId && e.JobId.id === jobId).length;
     await events.subscription.terminate();
 }
 
@@ -575,6 +616,7 @@ async function main() {
             GetResultById: nodes.getResultById.toString(),
         };
         report.states = await readStates(session, nodes);
+        Object.assign(report, await readCondition(session, nodes));
         if (options.mode === "job") await runJob(session, nodes, ns, options, report);
         if (options.mode === "halt") await runHalt(session, nodes, report);
         report.ok = true;

@@ -171,10 +171,14 @@ def check_job(run: ClientRun, served: Served, *, recipe: str, passed: bool) -> N
     """Everything the client saw of one StartSingleJob is what the inspection must give."""
     assert run.ok, run.explain()
     report = run.report
-    assert report["namespaces"]["mv"] != report["namespaces"]["cellvision"]
-    assert report["states"]["vision_state_machine"]["text"] == "Operational"
-    assert report["states"]["automatic_mode"]["text"] == "Ready"
-    assert report["states_after"]["automatic_mode"]["text"] == "Ready"
+    mv = report["namespaces"]["mv"]
+    assert mv != report["namespaces"]["cellvision"]
+    for states in (report["states"], report["states_after"]):
+        # CurrentState's Id: the state object's NodeId in OPC 40100-1's types.
+        assert states["vision_state_machine"] == {"text": "Operational", "id": f"ns={mv};i=5031"}
+        assert states["automatic_mode"] == {"text": "Ready", "id": f"ns={mv};i=5057"}
+    assert report["system_state"]["state"] == 2, "SBY while Ready"
+    assert report["health"]["ok"] is True
     assert [a["name"] for a in report["start_single_job_arguments"]] == [
         "MeasId",
         "PartId",
@@ -220,6 +224,9 @@ def check_job(run: ClientRun, served: Served, *, recipe: str, passed: bool) -> N
     assert event["content"]["json_text"] == report["result"]["content"]["json_text"]
     assert report["result"]["Error"] == 0
     assert report["result"]["IsPartial"] is False
+    assert report["events_for_job"] == 1, "every result is announced once"
+    assert report["latest_result"] == {"ResultId": {"id": job_id}, "JobId": {"id": job_id}}
+    assert report["unknown_result_status"] == "BadNotFound"
 
 
 JOBS = [
@@ -243,21 +250,25 @@ def test_the_policies_tested_are_the_ones_offered() -> None:
     assert sorted(p for p, _, _ in JOBS) == sorted(POLICIES)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "server defect: RecipeIdExternalDataType (and RecipeIdInternalDataType, "
-        "ConfigurationIdDataType) have no DataTypeDefinition and their binary encoding is not "
-        "registered, so a RecipeId sent as the specification's type is not decoded "
-        "(BadInvalidArgument 'no RecipeId given'); the client works around it unless --strict"
-    ),
+KNOWN_RECIPE_ID_DEFECT = (
+    "server defect: RecipeIdExternalDataType (like RecipeIdInternalDataType and "
+    "ConfigurationIdDataType, subtypes that add no field) reads no DataTypeDefinition and its "
+    "binary encoding is not registered, so a RecipeId sent as the specification's type is not "
+    "decoded: BadInvalidArgument 'no RecipeId given' (the client works around it unless --strict)"
 )
+
+
 def test_a_recipe_id_as_the_specification_encodes_it(served: Served) -> None:
+    """StartSingleJob with RecipeId as OPC 40100-1's RecipeIdExternalDataType, no workaround.
+    An expected failure while the server's known defect lasts, and only for that defect."""
     run = served.run(
         "job", user="operator", password=OPERATOR, extra=("--recipe", "bright", "--strict")
     )
+    report = run.report
+    if (report.get("stage"), report.get("status")) == ("call", "BadInvalidArgument"):
+        pytest.xfail(KNOWN_RECIPE_ID_DEFECT)
     check_job(run, served, recipe="bright", passed=True)
-    assert run.report["workarounds"] == []
+    assert report["workarounds"] == []
 
 
 def test_an_untrusted_client_is_refused_until_its_certificate_is_moved_to_trusted(
@@ -301,9 +312,7 @@ def test_a_wrong_password_is_refused_and_others_are_still_served(served: Served)
     wrong = served.run("states", user="operator", password=OPERATOR + "x")
     assert not wrong.ok, f"a wrong password got in: {wrong.explain()}"
     assert wrong.report["stage"] == "session", wrong.explain()
-    assert wrong.report["status"] in {"BadUserAccessDenied", "BadIdentityTokenRejected"}, (
-        wrong.explain()
-    )
+    assert wrong.report["status"] == "BadUserAccessDenied", wrong.explain()
 
     other = served.run("states", user="integrator", password=INTEGRATOR)
     assert other.ok, other.explain()
