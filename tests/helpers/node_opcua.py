@@ -78,7 +78,8 @@ def run_client(
     """Run ``client.js`` once against ``endpoint`` with its own certificate store ``pki``.
 
     ``server_cert``: the one server certificate the client trusts (else it accepts any).
-    ``timeout_s`` only bounds the wait on a stuck client (it also stops itself after 60 s).
+    ``timeout_s`` only bounds the wait on a stuck client (the client stops itself 40 s after
+    its ``--timeout-ms``, 20 s by default).
     """
     node = shutil.which("node")
     if node is None:

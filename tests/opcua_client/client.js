@@ -591,8 +591,17 @@ async function runHalt(session, nodes, report) {
     report.states_after = await readStates(session, nodes);
 }
 
+// A guard on the whole run, so that a stuck exchange fails with a message instead of hanging:
+// the result's wait plus time for everything else.
+let guard = null;
+
 async function main() {
     const options = parseArgs(process.argv.slice(2));
+    const guardMs = options.timeoutMs + 40000;
+    guard = setTimeout(() => {
+        process.stdout.write(`${JSON.stringify({ ok: false, stage: "timeout", status: null, message: `the client gave up after ${guardMs} ms` })}\n`);
+        process.exit(1);
+    }, guardMs);
     fs.mkdirSync(options.pki, { recursive: true });
     const manager = await makeCertificateManager(options);
     const report = {
@@ -627,12 +636,6 @@ async function main() {
         await manager.dispose().catch(() => {});
     }
 }
-
-// A guard on the whole run, so that a stuck exchange fails with a message instead of hanging.
-const guard = setTimeout(() => {
-    process.stdout.write(`${JSON.stringify({ ok: false, stage: "timeout", status: null, message: "the client gave up after 60 s" })}\n`);
-    process.exit(1);
-}, 60000);
 
 main().then((report) => {
     clearTimeout(guard);
