@@ -524,6 +524,11 @@ async function runJob(session, nodes, ns, options, report) {
             + `(${events.events.length} other events)`);
     }
     report.event = eventReport(event);
+    // The DataType each structure field arrived as (its encoding names it): the event's fields
+    // are declared with OPC 40100-1's types (RecipeIdExternalDataType, JobIdDataType, ...).
+    report.event_types = Object.fromEntries(Object.entries(event)
+        .filter(([, value]) => value && value.schema && value.schema.name)
+        .map(([name, value]) => [name, value.schema.name]));
     report.event.content = content(event.ResultContent, "the event");
 
     const getArgs = await declaredArguments(session, nodes.getResultByIdArgs);
