@@ -338,3 +338,14 @@ def test_a_wrong_password_is_refused_and_others_are_still_served(served: Served)
     other = served.run("states", user="integrator", password=INTEGRATOR)
     assert other.ok, other.explain()
     assert other.report["states"]["vision_state_machine"]["text"] == "Operational"
+
+
+def test_the_certificate_the_client_trusted_is_the_one_documented(served: Served) -> None:
+    """Every run above trusted exactly PKI/own/cert.der; it names what docs/opcua.md says."""
+    cert = x509.load_der_x509_certificate(served.server_cert.read_bytes())
+    names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert "urn:cellvision:nodetest:opcua" in names.get_values_for_type(
+        x509.UniformResourceIdentifier
+    )
+    key = served.pki / "own" / "private" / "key.pem"
+    assert key.stat().st_mode & 0o777 == 0o600
