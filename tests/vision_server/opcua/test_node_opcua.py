@@ -349,3 +349,14 @@ def test_the_certificate_the_client_trusted_is_the_one_documented(served: Served
     )
     key = served.pki / "own" / "private" / "key.pem"
     assert key.stat().st_mode & 0o777 == 0o600
+
+
+def test_no_anonymous_session_without_anonymous_true(served: Served) -> None:
+    """``anonymous: false`` (the default): a secured channel with no user gets no session."""
+    run = served.run("states")
+    assert not run.ok, f"an anonymous client got in: {run.explain()}"
+    assert run.report["stage"] == "session", run.explain()
+    # Either the endpoint offers no anonymous token policy (node-opcua then does not even ask)
+    # or the server refuses the session.
+    offered_none = "ANONYMOUS user token policy" in run.report["message"]
+    assert offered_none or str(run.report["status"]).startswith("Bad"), run.explain()
