@@ -6,8 +6,8 @@ One real server for the module (an App on loopback port 0, a folder camera, a re
 its own application certificate and a user name and password: a whole job over each security
 policy (browse by browse names, both CurrentStates, the ResultReadyEventType event,
 StartSingleJob, GetResultById), the trust list as files (refused, in ``rejected/``, moved to
-``trusted/``, accepted without a restart), a role's limit (Halt as operator) and a wrong
-password. Skipped, with the set-up script's reason, only where node-opcua cannot be installed.
+``trusted/``, accepted without a restart), a role's limit (Halt as operator), a wrong
+password, and no anonymous session. Skipped, with the set-up script's reason, only where node-opcua cannot be installed.
 """
 
 from __future__ import annotations
