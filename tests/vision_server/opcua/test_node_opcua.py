@@ -7,7 +7,8 @@ its own application certificate and a user name and password: a whole job over e
 policy (browse by browse names, both CurrentStates, the ResultReadyEventType event,
 StartSingleJob, GetResultById), the trust list as files (refused, in ``rejected/``, moved to
 ``trusted/``, accepted without a restart), a role's limit (Halt as operator), a wrong
-password, and no anonymous session. Skipped, with the set-up script's reason, only where node-opcua cannot be installed.
+password, and no anonymous session. Skipped, with the set-up script's reason, only where
+node-opcua cannot be installed.
 """
 
 from __future__ import annotations
@@ -260,15 +261,6 @@ def test_the_policies_tested_are_the_ones_offered() -> None:
     assert sorted(p for p, _, _ in JOBS) == sorted(POLICIES)
 
 
-KNOWN_RECIPE_ID_DEFECT = (
-    "server defect: RecipeIdExternalDataType (like RecipeIdInternalDataType and "
-    "ConfigurationIdDataType, subtypes that add no field) reads no DataTypeDefinition and its "
-    "binary encoding is not registered, so a RecipeId sent as the specification's type is not "
-    "decoded: BadInvalidArgument 'no RecipeId given' (the client works around it unless "
-    "--strict); the event's fields of those types arrive as the abstract BinaryIdBaseDataType"
-)
-
-
 SUBTYPE_FIELDS = {
     "ExternalRecipeId": "RecipeIdExternalDataType",
     "InternalRecipeId": "RecipeIdInternalDataType",
@@ -277,18 +269,17 @@ SUBTYPE_FIELDS = {
 
 
 def test_a_recipe_id_as_the_specification_encodes_it(served: Served) -> None:
-    """StartSingleJob with RecipeId as OPC 40100-1's RecipeIdExternalDataType, no workaround.
-    An expected failure while the server's known defect lasts, and only for that defect."""
+    """StartSingleJob with RecipeId as OPC 40100-1's RecipeIdExternalDataType, no workaround:
+    the nodeset leaves the Definition of BinaryIdBaseDataType's subtypes empty, and the server
+    once neither decoded them nor sent them as themselves."""
     run = served.run(
         "job", user="operator", password=OPERATOR, extra=("--recipe", "bright", "--strict")
     )
     report = run.report
-    if (report.get("stage"), report.get("status")) == ("call", "BadInvalidArgument"):
-        pytest.xfail(KNOWN_RECIPE_ID_DEFECT)
     check_job(run, served, recipe="bright", passed=True)
     assert report["workarounds"] == []
-    # The same defect's other face: the event's identifiers of these types arrive encoded as
-    # their abstract supertype BinaryIdBaseDataType.
+    # The event's identifiers of these types arrive as themselves, not as their abstract
+    # supertype BinaryIdBaseDataType.
     assert {k: report["event_types"].get(k) for k in SUBTYPE_FIELDS} == SUBTYPE_FIELDS
 
 

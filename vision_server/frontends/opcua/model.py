@@ -105,11 +105,37 @@ SYSTEM_STATES = {
 }
 
 
+DATA_TYPES = {
+    # the nodeset's structures, by their NodeId in OPC 40100-1's namespace
+    "ConfigurationDataType": 3007,
+    "ConfigurationIdDataType": 3008,
+    "JobIdDataType": 3016,
+    "MeasIdDataType": 3015,
+    "PartIdDataType": 3004,
+    "ProcessingTimesDataType": 3005,
+    "ProductIdDataType": 3003,
+    "RecipeIdExternalDataType": 3002,
+    "RecipeIdInternalDataType": 3013,
+    "ResultDataType": 3006,
+    "ResultIdDataType": 3021,
+    "SystemStateDescriptionDataType": 3024,
+}
+
+
 class _Types:
     """The nodeset's data types (ResultDataType, JobIdDataType, ...), which asyncua makes as
-    Python classes when the nodeset is loaded (:func:`load_nodeset`) and keeps in ``ua``."""
+    Python classes when the nodeset is loaded (:func:`load_nodeset`). Looked up by their
+    NodeId: asyncua binds a subtype that adds no field (RecipeIdExternalDataType) to its
+    supertype's class under its name, which would encode it as BinaryIdBaseDataType."""
+
+    namespace: int | None = None
 
     def __getattr__(self, name: str) -> Any:
+        number = DATA_TYPES.get(name)
+        if number is not None and self.namespace is not None:
+            found = ua.extension_objects_by_datatype.get(ua.NodeId(number, self.namespace))
+            if found is not None:
+                return found
         try:
             return getattr(ua, name)
         except AttributeError:
@@ -134,6 +160,7 @@ async def load_nodeset(server: Server) -> tuple[int, int]:
     machine_vision = await server.get_namespace_index(MV_URI)
     await _complete_definitions(server, machine_vision)
     await server.load_data_type_definitions()
+    MV.namespace = machine_vision
     cell = await server.register_namespace(CELL_URI)
     return machine_vision, cell
 
