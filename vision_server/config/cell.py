@@ -210,7 +210,7 @@ def parse_config(
             )
     line = _line(root.sub("line"), server)
     modbus = _modbus(root.sub("modbus"))
-    opcua = _opcua(root.sub("opcua"), base_dir)
+    opcua = _opcua(root.sub("opcua"), base_dir, server)
     mqtt = _mqtt(root.sub("mqtt"), base_dir, server, source)
     _check_ports(root, server, console, line, modbus, opcua)
     _check_connections(root, server, console, line, modbus, opcua)
@@ -508,7 +508,7 @@ def _modbus(node: Node) -> ModbusSettings:
     return settings
 
 
-def _opcua(node: Node, base_dir: Path) -> OpcUaSettings:
+def _opcua(node: Node, base_dir: Path, server: ServerSettings) -> OpcUaSettings:
     """The OPC UA front-end's settings (docs/opcua.md); its users are the server's."""
     defaults = OpcUaSettings()
     port = node.take("port", integer, defaults.port)
@@ -566,6 +566,16 @@ def _opcua(node: Node, base_dir: Path) -> OpcUaSettings:
         raise node.error(f"results_kept is at most 100000, got {settings.results_kept}")
     if settings.max_message_bytes < 65536:
         raise node.error("max_message_bytes is at least 65536 (one OPC UA chunk)")
+    passwords = server.users or server.auth_token or server.operator_token
+    if settings.enabled and not (
+        passwords or server.integrator_token or certificate_users or anonymous
+    ):
+        raise node.error(
+            "enabled: true, and nobody could sign in: give server: users or a role's token "
+            "(operator_token, integrator_token, auth_token), opcua: certificate_users, or "
+            "anonymous: true on loopback",
+            "enabled",
+        )
     if settings.enabled and find_spec("asyncua") is None:
         raise node.error(
             "enabled: true needs the optional extra: pip install 'cellvision[opcua]'",

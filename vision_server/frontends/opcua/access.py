@@ -215,7 +215,7 @@ def require(role: str, method: str) -> None:
     caller = CALLER.get()
     if not may(caller, role):
         held = role_of(caller) or "nobody"
-        raise AccessDenied(f"{method} needs the {role} role; the session's user is a {held}")
+        raise AccessDenied(f"{method} needs the {role} role; the session's user's role is {held}")
 
 
 __all__ = [

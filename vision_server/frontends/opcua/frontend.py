@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from asyncua import Server, ua
+from asyncua.crypto import security_policies
 from asyncua.server.binary_server_asyncio import BinaryServer
 from asyncua.ua.status_codes import StatusCodes
 
@@ -44,6 +45,7 @@ from ...config import OpcUaSettings, ServerSettings
 from ...service import InspectionService, InspectRequest
 from ..listener import Listener, Policy, quiet_logger
 from .access import CALLER, AccessDenied, Rights, SignIns, note_x509_users, require
+from .hardening import NONE_URI, advertise_limits, harden, harden_server
 from .model import (
     MV,
     VisionNodes,
@@ -131,6 +133,9 @@ class OpcUaFrontend:
         self._current: Job | None = None
         """The job running now (one at a time: OPC 40100-1's automatic mode)."""
         self._jobs = itertools.count(1)
+        self._boot = f"{time.time_ns() // 1_000_000:x}"
+        """This start's stamp (Unix milliseconds, hex): JobIds and ResultIds are
+        ``STAMP-N``, so that they stay unique across restarts (OPC 40100-1: system-wide)."""
         self._lock = asyncio.Lock()
         """Serialises state changes and their mirror in the address space."""
         self._refresher: asyncio.Task[None] | None = None
@@ -161,7 +166,9 @@ class OpcUaFrontend:
             # hostile client must not fill the server's log.
             quiet_logger(name)
         if not log.isEnabledFor(logging.DEBUG):
-            logging.getLogger("asyncua").setLevel(logging.ERROR)
+            # Its errors are each refused request's fault response: the front-end logs the
+            # cause in its own words (-v); a client must not fill the log.
+            logging.getLogger("asyncua").setLevel(logging.CRITICAL)
         settings = self.settings
         server = Server(user_manager=None)
         await server.init()
@@ -187,7 +194,8 @@ class OpcUaFrontend:
         policies = [POLICIES[name][0] for name in settings.security_policies]
         if settings.sign_only:
             policies += [POLICIES[name][1] for name in settings.security_policies]
-        if settings.anonymous and is_loopback(settings.host):
+        anonymous_channel = settings.anonymous and is_loopback(settings.host)
+        if anonymous_channel:
             policies.append(ua.SecurityPolicyType.NoSecurity)
         rights = Rights()
         server.set_security_policy(policies, permission_ruleset=rights)
@@ -207,7 +215,11 @@ class OpcUaFrontend:
                 "certificate_users, or anonymous: true on loopback",
             )
         server.set_identity_tokens(tokens)
-        server.set_certificate_validator(TrustList(self.pki, trust_all=settings.trust_all_clients))
+        offered = frozenset(security_policies.SECURITY_POLICY_TYPE_MAP[p][0].URI for p in policies)
+        offered |= {NONE_URI}  # discovery only, unless anonymous (hardening.py)
+        trust = TrustList(self.pki, trust_all=settings.trust_all_clients, policies=offered)
+        server.set_certificate_validator(trust)
+        harden_server(server.iserver)
 
         policy = Policy(
             FRONTEND,
@@ -227,6 +239,13 @@ class OpcUaFrontend:
                 max_chunk_bytes=CHUNK_BYTES,
                 max_waiting=PENDING_CHUNKS,
                 clock_of=self.listener.clock_of,
+                on_processor=lambda processor, peer: harden(
+                    processor,
+                    server.iserver,
+                    trust.check_channel,
+                    peer,
+                    sessions_without_security=anonymous_channel,
+                ),
             )
 
         listener = Listener(self.service.door, policy, protocol)
@@ -240,6 +259,7 @@ class OpcUaFrontend:
             await server.iserver.start()
             self._binary = BinaryServer(server.iserver, settings.host, port, server.limits)
             self._binary.set_policies(server._policies)
+            await advertise_limits(server)
             self._ua = server
             async with self._lock:
                 await self._mirror(self.machines.become_operational(automatic=True))
@@ -374,7 +394,8 @@ class OpcUaFrontend:
         async with self._lock:
             moves = self.machines.start_continuous() if continuous else self.machines.start_single()
             user = getattr(CALLER.get(), "name", None) or ""
-            job = Job(str(next(self._jobs)), name, meas_id, part_id, product_id, user)
+            job_id = f"{self._boot}-{next(self._jobs)}"
+            job = Job(job_id, name, meas_id, part_id, product_id, user)
             self._current = job
             job.task = asyncio.get_running_loop().create_task(self._execute(job, continuous))
             await self._mirror(moves)
@@ -524,7 +545,7 @@ class OpcUaFrontend:
             product_id=job.product_id,
             passed=bool(outcome.get("passed", False)),
             data=outcome.get("data") or {},
-            camera=outcome.get("camera", ""),
+            camera=outcome.get("camera") or self._camera_of(job.recipe),
             error_code=outcome.get("error_code", ""),
             error_message=outcome.get("error_message", ""),
             compute_ms=float(outcome.get("compute_ms", 0.0)),
@@ -537,6 +558,11 @@ class OpcUaFrontend:
                 await self.nodes.announce(result)
             except Exception:  # the result is kept; a client can still read it by id
                 log.exception("OPC UA: announcing result %s failed", result_id)
+
+    def _camera_of(self, recipe: str) -> str:
+        """The camera of an inspection that ended without a reply (a failed run)."""
+        inspection = self.service.catalog.inspections.get(recipe)
+        return "" if inspection is None else str(inspection.camera)
 
     # ------------------------------------------------------------------ recipes
 
@@ -560,7 +586,7 @@ class OpcUaFrontend:
         listed = [recipe_id(n, catalog.config_hash) for n in page]
         return [
             ua.Variant(complete, ua.VariantType.Boolean),
-            ua.Variant(len(names), ua.VariantType.UInt32),
+            ua.Variant(len(listed), ua.VariantType.UInt32),  # the list's length (§7.3.2.2)
             ua.Variant(0, ua.VariantType.UInt32),
             ua.Variant(listed, ua.VariantType.ExtensionObject),
             _int32(0),
@@ -655,12 +681,12 @@ class OpcUaFrontend:
             product_id=text_id(product),
             job_id=text_id(job),
         )
-        page, total, complete = self.results.filtered(
+        page, _total, complete = self.results.filtered(
             criteria, start=max(0, int(start or 0)), most=max(0, int(most or 0))
         )
         return [
             ua.Variant(complete, ua.VariantType.Boolean),
-            ua.Variant(total, ua.VariantType.UInt32),
+            ua.Variant(len(page), ua.VariantType.UInt32),  # the list's length (Table 70)
             ua.Variant(0, ua.VariantType.UInt32),
             ua.Variant([result_data(r) for r in page], ua.VariantType.ExtensionObject),
             _int32(0),
@@ -760,6 +786,11 @@ class OpcUaFrontend:
     async def _refresh_forever(self) -> None:
         while True:
             await asyncio.sleep(REFRESH_S)
+            if self._binary is not None:
+                # asyncua keeps each lost connection's closing task until its own clean-up
+                # loop (BinaryServer.start, which the listener replaces) takes it.
+                closing = self._binary.closing_tasks
+                closing[:] = [task for task in closing if not task.done()]
             try:
                 await self._refresh()
             except Exception:

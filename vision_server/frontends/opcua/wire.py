@@ -49,6 +49,7 @@ class Guarded(asyncio.Protocol):
         max_chunk_bytes: int,
         max_waiting: int,
         clock_of: Callable[[asyncio.BaseTransport | None], Clock | None],
+        on_processor: Callable[[Any, str], None] | None = None,
     ) -> None:
         self.inner = inner
         self.policy = policy
@@ -56,6 +57,9 @@ class Guarded(asyncio.Protocol):
         self.max_waiting = max_waiting
         self._paused = False
         self.clock_of = clock_of
+        self.on_processor = on_processor
+        """Called with asyncua's message processor of the connection once it is made (the
+        front-end hardens it: :mod:`.hardening`)."""
         self.transport: asyncio.Transport | None = None
         self.peer = ""
         self._head = b""
@@ -68,6 +72,9 @@ class Guarded(asyncio.Protocol):
         PEER.set(self.peer)  # copied into the task asyncua starts next (see the module)
         SIGNED_IN.set(self._signed_in)
         self.inner.connection_made(transport)
+        processor = getattr(self.inner, "processor", None)
+        if processor is not None and self.on_processor is not None:
+            self.on_processor(processor, self.peer)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._closed = True

@@ -1,0 +1,191 @@
+"""The attacks a held-out attacker made on the OPC UA front-end, each as a regression test
+(frontends/opcua/hardening.py): a session taken over by its guessed token, services over a
+None channel, discovery registrations kept forever, sessions created and never activated,
+huge requests, subscriptions and monitored items without bound, identifiers that wedged the
+state machine. Each ends with a legitimate client still served."""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import Any
+
+import pytest
+from asyncua import Client, ua
+from asyncua.ua.ua_binary import struct_from_binary
+from asyncua.ua.uaerrors import UaStatusCodeError
+from loopback import run
+from opcua_cell import client_certificate, serving, signed_in, write_cell
+
+from vision_server.frontends.opcua.hardening import (
+    MAX_MONITORED_ITEMS,
+    MAX_OPERATIONS,
+    MAX_SUBSCRIPTIONS,
+)
+
+NO_CAUSE = (ua.Variant(0, ua.VariantType.Int32), "")
+
+
+async def unsecured(endpoint: str) -> Client:
+    """A client with a None secure channel open and no session."""
+    client = Client(endpoint, timeout=5)
+    await client.connect_socket()
+    await client.send_hello()
+    await client.open_secure_channel()
+    return client
+
+
+async def send(client: Client, request: Any) -> bytes:
+    data: bytes = await client.uaclient.protocol.send_request(request)
+    return data
+
+
+def test_a_live_session_is_not_taken_over_by_its_token(tmp_path: Path) -> None:
+    path = write_cell(tmp_path)
+
+    async def body() -> None:
+        certs = await client_certificate(tmp_path / "client")
+        async with serving(path) as app:
+            assert app.opcua is not None
+            async with signed_in(app.opcua.endpoint, certs) as victim:
+                token = victim.client.uaclient.protocol.authentication_token
+                attacker = await unsecured(app.opcua.endpoint)
+                try:
+                    attacker.uaclient.protocol.authentication_token = token
+                    request = ua.ActivateSessionRequest()
+                    request.Parameters.UserIdentityToken = ua.AnonymousIdentityToken()
+                    with pytest.raises(UaStatusCodeError) as refused:
+                        await send(attacker, request)
+                    assert refused.value.code in (
+                        ua.StatusCodes.BadSecurityModeRejected,
+                        ua.StatusCodes.BadSessionIdInvalid,
+                    )
+                    read = ua.ReadRequest()
+                    value = ua.ReadValueId()
+                    value.NodeId = ua.NodeId(ua.ObjectIds.Server_NamespaceArray)
+                    value.AttributeId = ua.AttributeIds.Value
+                    read.Parameters.NodesToRead = [value]
+                    with pytest.raises(UaStatusCodeError):
+                        await send(attacker, read)
+                finally:
+                    with contextlib.suppress(Exception):
+                        attacker.disconnect_socket()
+                # The victim's session is untouched.
+                job = await victim.start_job("bright")
+                assert (await victim.result(job)).ResultState == 1
+
+    run(body(), timeout_s=60)
+
+
+def test_a_none_channel_serves_discovery_only(tmp_path: Path) -> None:
+    path = write_cell(tmp_path)
+
+    async def body() -> None:
+        async with serving(path) as app:
+            assert app.opcua is not None
+            client = await unsecured(app.opcua.endpoint)
+            try:
+                endpoints = await client.get_endpoints()
+                assert endpoints, "discovery works over None"
+                request = ua.CreateSessionRequest()
+                request.Parameters.ClientDescription.ApplicationUri = "urn:attacker"
+                request.Parameters.RequestedSessionTimeout = 60000
+                with pytest.raises(UaStatusCodeError) as refused:
+                    await send(client, request)
+                assert refused.value.code == ua.StatusCodes.BadSecurityModeRejected
+                registration = ua.RegisterServerRequest()
+                registration.Server.DiscoveryUrls = ["opc.tcp://x"] * 1000
+                with pytest.raises(UaStatusCodeError) as register:
+                    await send(client, registration)
+                assert register.value.code in (
+                    ua.StatusCodes.BadServiceUnsupported,
+                    ua.StatusCodes.BadSecurityModeRejected,
+                )
+            finally:
+                client.disconnect_socket()
+            assert app.opcua._ua is not None
+            known = app.opcua._ua.iserver._known_servers
+            assert list(known) == ["urn:cellvision:cellvision:opcua"], "only the server itself"
+
+    run(body(), timeout_s=60)
+
+
+def test_sessions_per_connection_and_operations_per_request_are_bounded(tmp_path: Path) -> None:
+    path = write_cell(tmp_path)
+
+    async def body() -> None:
+        certs = await client_certificate(tmp_path / "client")
+        async with serving(path) as app:
+            assert app.opcua is not None
+            assert app.opcua._ua is not None
+            iserver = app.opcua._ua.iserver
+            async with signed_in(app.opcua.endpoint, certs) as vision:
+                client = vision.client
+                before = len(iserver._external_sessions)
+                for _ in range(20):  # CreateSession again and again on one connection
+                    request = ua.CreateSessionRequest()
+                    request.Parameters.ClientDescription.ApplicationUri = (
+                        "urn:cellvision:test:client"
+                    )
+                    request.Parameters.RequestedSessionTimeout = 60000
+                    await send(client, request)
+                assert len(iserver._external_sessions) <= before
+
+            async with signed_in(app.opcua.endpoint, certs) as vision:
+                read = ua.ReadRequest()
+                value = ua.ReadValueId()
+                value.NodeId = ua.NodeId(ua.ObjectIds.Server_ServerStatus_State)
+                value.AttributeId = ua.AttributeIds.Value
+                read.Parameters.NodesToRead = [value] * (MAX_OPERATIONS + 1)
+                with pytest.raises(UaStatusCodeError) as refused:
+                    await send(vision.client, read)
+                assert refused.value.code == ua.StatusCodes.BadTooManyOperations
+                read.Parameters.NodesToRead = [value] * MAX_OPERATIONS
+                answer = struct_from_binary(ua.ReadResponse, await send(vision.client, read))
+                assert len(answer.Results) == MAX_OPERATIONS
+                limit = await vision.client.get_node(
+                    ua.NodeId(
+                        ua.ObjectIds.Server_ServerCapabilities_OperationLimits_MaxNodesPerRead
+                    )
+                ).read_value()
+                assert limit == MAX_OPERATIONS
+
+                class Quiet:
+                    def datachange_notification(self, *args: Any) -> None:
+                        pass
+
+                subscriptions = [
+                    await vision.client.create_subscription(1000, Quiet())
+                    for _ in range(MAX_SUBSCRIPTIONS)
+                ]
+                with pytest.raises(UaStatusCodeError) as too_many:
+                    await vision.client.create_subscription(1000, Quiet())
+                assert too_many.value.code == ua.StatusCodes.BadTooManySubscriptions
+                health = await vision.system.get_child(f"{vision.cell}:Health")
+                with pytest.raises(UaStatusCodeError) as items:
+                    await subscriptions[0].subscribe_data_change(
+                        [health] * (MAX_MONITORED_ITEMS + 1)
+                    )
+                assert items.value.code == ua.StatusCodes.BadTooManyMonitoredItems
+                job = await vision.start_job("bright")
+                assert (await vision.result(job)).ResultState == 1
+
+    run(body(), timeout_s=90)
+
+
+def test_an_identifier_too_long_leaves_the_state_machine_ready(tmp_path: Path) -> None:
+    path = write_cell(tmp_path)
+
+    async def body() -> None:
+        certs = await client_certificate(tmp_path / "client")
+        async with serving(path) as app:
+            assert app.opcua is not None
+            async with signed_in(app.opcua.endpoint, certs) as vision:
+                with pytest.raises(UaStatusCodeError) as refused:
+                    await vision.start_job("bright", meas="m" * 256)
+                assert refused.value.code == ua.StatusCodes.BadInvalidArgument
+                assert await vision.state() == ("Operational", "Ready")
+                job = await vision.start_job("bright", meas="m" * 255)
+                assert (await vision.result(job)).MeasId.Id == "m" * 255
+
+    run(body(), timeout_s=60)
