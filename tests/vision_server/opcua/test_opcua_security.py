@@ -239,3 +239,16 @@ def test_the_endpoint_names_the_machine_when_listening_everywhere(tmp_path: Path
             assert app.opcua.endpoint.startswith(f"opc.tcp://{socket.gethostname()}:")
 
     run(body(), timeout_s=60)
+
+
+def test_a_configuration_where_nobody_could_sign_in_is_refused(tmp_path: Path) -> None:
+    text = CONFIG.replace(
+        "operator_token: op-secret-123, integrator_token: int-secret-456", "name: cell-7"
+    )
+    path = write_cell(tmp_path, text)
+    with pytest.raises(ConfigError) as refused:
+        load_config(path)
+    assert "opcua -> enabled" in str(refused.value)
+    assert "nobody could sign in" in str(refused.value)
+    path.write_text(text.replace("OPCUA_EXTRA", ", anonymous: true"), encoding="utf-8")
+    assert load_config(path).opcua.anonymous
