@@ -26,11 +26,14 @@ RUN python3 -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 
 # The dependencies in their own layer, rebuilt only when pyproject.toml changes; with them the
-# build backend, so that installing the sources below needs no network.
+# build backend, so that installing the sources below needs no network. The plant's front-ends
+# come in the image too (the extras opcua and mqtt: OPC UA and results to a broker).
 WORKDIR /opt/cellvision
 COPY pyproject.toml ./
 RUN python3 -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb')); \
-print('\n'.join(p['project']['dependencies'] + p['build-system']['requires']))" \
+extras = p['project']['optional-dependencies']; \
+print('\n'.join(p['project']['dependencies'] + p['build-system']['requires'] \
+                + extras['opcua'] + extras['mqtt']))" \
         > /tmp/requirements.txt \
     && pip install --no-cache-dir -r /tmp/requirements.txt \
     && rm /tmp/requirements.txt
@@ -52,7 +55,7 @@ RUN useradd --uid 10001 --user-group --groups video --create-home --shell /usr/s
     && mkdir -p /config /data && chown cellvision /data
 USER cellvision
 VOLUME ["/data"]
-EXPOSE 7878
+EXPOSE 7878 4840
 
 # The container listens on every interface on purpose; outside a container the default is
 # 127.0.0.1.
