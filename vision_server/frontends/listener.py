@@ -34,7 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..service import FrontDoor, Pass, Refusal, peer_name
+from ..service import FrontDoor, Pass, Refusal, failure_key, peer_host, peer_name
 
 log = logging.getLogger("vision_server")
 
@@ -54,6 +54,11 @@ class Policy:
     idle_timeout_s: float
     write_timeout_s: float
     tls_handshake_timeout_s: float = 10.0
+    max_unsigned_per_host: int | None = None
+    """Connections one host (an IPv6 /64, all of loopback as one) may hold before any of them
+    has signed in; one more from it is refused. None: no such bound (a browser opens several
+    connections before it signs in). Without it, one host that reconnects in a loop holds
+    every place of the front-end and nobody else can sign in."""
 
 
 @dataclass
@@ -62,6 +67,8 @@ class Clock:
 
     started: float
     transport: asyncio.BaseTransport | None = None
+    host: str = ""
+    """Whose connection (:func:`~vision_server.service.failure_key` of its peer)."""
     signed_in: bool = False
     busy: int = 0
     """Requests of this connection being answered now."""
@@ -214,6 +221,8 @@ class Listener:
         self._tasks: set[asyncio.Task[None]] = set()
         self._clocks: dict[asyncio.BaseTransport, Clock] = {}
         self._pending: set[socket.socket] = set()
+        self._pending_hosts: list[str] = []
+        """The hosts of the connections in ``_pending`` (accepted, not yet served)."""
         self._refused_unlogged = 0
         self._last_refusal_log = 0.0
         self._stopping = False
@@ -308,17 +317,31 @@ class Listener:
                 await asyncio.sleep(0.1)
                 continue
             peer = peer_name(address)
+            host = failure_key(peer_host(peer))
+            unsigned = self.policy.max_unsigned_per_host
+            if unsigned is not None and self._unsigned_from(host) >= unsigned:
+                self._log_refusal(
+                    Refusal(f"{unsigned} connections from {host} not signed in yet"), peer
+                )
+                self._refuse(sock, Refusal("too many connections from this host"))
+                continue
             admitted = self.door.enter(self.policy.name, peer, limit=self.policy.max_connections)
             if isinstance(admitted, Refusal):
                 self._log_refusal(admitted, peer)
                 self._refuse(sock, admitted)
                 continue
             self._pending.add(sock)
-            loop.create_task(self._serve(sock, admitted))
+            self._pending_hosts.append(host)
+            loop.create_task(self._serve(sock, admitted, host))
 
-    async def _serve(self, sock: socket.socket, admitted: Pass) -> None:
+    def _unsigned_from(self, host: str) -> int:
+        """Connections of ``host`` held now that have not signed in (TLS handshakes too)."""
+        held = sum(1 for c in self._clocks.values() if c.host == host and not c.signed_in)
+        return held + self._pending_hosts.count(host)
+
+    async def _serve(self, sock: socket.socket, admitted: Pass, host: str = "") -> None:
         loop = asyncio.get_running_loop()
-        clock = Clock(started=time.monotonic())
+        clock = Clock(started=time.monotonic(), host=host)
         clock.deadline = clock.started + self.policy.request_timeout_s
 
         def made(transport: asyncio.BaseTransport) -> None:
@@ -349,6 +372,8 @@ class Listener:
             return
         finally:
             self._pending.discard(sock)
+            with contextlib.suppress(ValueError):
+                self._pending_hosts.remove(host)
 
     def _refuse(self, sock: socket.socket, refusal: Refusal) -> None:
         """Close a refused connection at once: with one short message (never waited for: a

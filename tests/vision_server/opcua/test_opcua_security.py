@@ -81,8 +81,35 @@ def test_connections_beyond_the_limit_are_closed_and_bad_bytes_end_theirs(tmp_pa
             async with signed_in(app.opcua.endpoint, certs) as vision:
                 job = await vision.start_job("bright")
                 assert (await vision.result(job)).ResultState == 1
-            counts = app.service.door.counts()["OPC UA"]
-            assert counts["refused"] >= 1
+
+    run(body(), timeout_s=90)
+
+
+def test_one_host_cannot_hold_every_place_before_signing_in(tmp_path: Path) -> None:
+    """A host that reconnects in a loop held all 16 places and nobody else got in: a host may
+    hold a quarter of them (at least 2) before any of its connections has signed in."""
+    path = write_cell(tmp_path, extra=", max_connections: 16")
+
+    async def body() -> None:
+        certs = await client_certificate(tmp_path / "client")
+        async with serving(path) as app:
+            assert app.opcua is not None
+            port = app.opcua.port
+            held = [await asyncio.open_connection("127.0.0.1", port) for _ in range(4)]
+            await wait_until(lambda: app.service.door.held("OPC UA") == 4, "four held")
+            assert await closed_by_server(port, within_s=5), "a fifth from the host is refused"
+            assert app.service.door.held("OPC UA") == 4
+            for _, writer in held:
+                writer.close()
+            await wait_until(lambda: app.service.door.held("OPC UA") == 0, "given back")
+            async with signed_in(app.opcua.endpoint, certs) as vision:
+                # Signed in, it no longer counts against its host's places.
+                more = [await asyncio.open_connection("127.0.0.1", port) for _ in range(4)]
+                await wait_until(lambda: app.service.door.held("OPC UA") == 5, "five held")
+                job = await vision.start_job("bright")
+                assert (await vision.result(job)).ResultState == 1
+                for _, writer in more:
+                    writer.close()
 
     run(body(), timeout_s=90)
 

@@ -227,6 +227,7 @@ class OpcUaFrontend:
             settings.request_timeout_s,
             settings.idle_timeout_s,
             settings.write_timeout_s,
+            max_unsigned_per_host=max(2, settings.max_connections // 4),
         )
         self._binary = None
 
