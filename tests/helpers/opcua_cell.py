@@ -3,6 +3,7 @@ SignAndEncrypt session (docs/opcua.md), for the OPC UA tests."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -30,6 +31,8 @@ INTEGRATOR = ("integrator", "int-secret-456")
 MEAN = 100
 """The grey level of the folder camera's image: ``bright`` passes, ``dark`` fails."""
 CLIENT_URI = "urn:cellvision:test:client"
+PROCESSING = 2
+"""ResultStateDataType: not finished yet."""
 
 CONFIG = """\
 server: {port: 0, workers: 2, operator_token: op-secret-123, integrator_token: int-secret-456}
@@ -130,15 +133,20 @@ class Vision:
         assert error == 0
         return str(job.Id)
 
-    async def result(self, result_id: str, wait_ms: int = 10_000) -> Any:
-        out = await self.results.call_method(
-            f"{self.mv}:GetResultById",
-            ua.ResultIdDataType(Id=result_id),
-            ua.Variant(wait_ms, ua.VariantType.Int32),
-        )
-        _handle, result, error = out
-        assert error == 0
-        return result
+    async def result(self, result_id: str, within_s: float = 15.0) -> Any:
+        """GetResultById, asked again while the job still runs (ResultState 2, Processing)."""
+        async with asyncio.timeout(within_s):
+            while True:
+                out = await self.results.call_method(
+                    f"{self.mv}:GetResultById",
+                    ua.ResultIdDataType(Id=result_id),
+                    ua.Variant(10_000, ua.VariantType.Int32),
+                )
+                _handle, result, error = out
+                assert error == 0
+                if result.ResultState != PROCESSING:
+                    return result
+                await asyncio.sleep(0.01)
 
     async def start_continuous(self, recipe: str) -> str:
         job, error = await self.automatic.call_method(

@@ -189,3 +189,42 @@ def test_an_identifier_too_long_leaves_the_state_machine_ready(tmp_path: Path) -
                 assert (await vision.result(job)).MeasId.Id == "m" * 255
 
     run(body(), timeout_s=60)
+
+
+def test_notification_queues_and_publishing_intervals_are_bounded(tmp_path: Path) -> None:
+    """A subscription that would publish every 11 days, with many event items, kept 3 MB of
+    copies per result: intervals are clamped, queues short, queue sizes not to be modified."""
+    path = write_cell(tmp_path)
+
+    async def body() -> None:
+        certs = await client_certificate(tmp_path / "client")
+        async with serving(path) as app:
+            assert app.opcua is not None
+            async with signed_in(app.opcua.endpoint, certs) as vision:
+
+                class Quiet:
+                    def event_notification(self, event: Any) -> None:
+                        pass
+
+                subscription = await vision.client.create_subscription(1e9, Quiet())
+                revised = subscription.subscription_id
+                assert revised is not None
+                assert app.opcua._ua is not None
+                internal = app.opcua._ua.iserver.subscription_service.subscriptions[revised]
+                assert internal.data.RevisedPublishingInterval <= 10_000
+                handle = await subscription.subscribe_events(
+                    vision.system, ua.NodeId(1024, vision.mv), queuesize=0
+                )
+                items = internal.monitored_item_srv._monitored_items
+                assert all(item.queue_size <= 10 for item in items.values())
+                request = ua.ModifyMonitoredItemsRequest()
+                request.Parameters.SubscriptionId = revised
+                change = ua.MonitoredItemModifyRequest()
+                change.MonitoredItemId = handle
+                change.RequestedParameters.QueueSize = 0
+                request.Parameters.ItemsToModify = [change]
+                with pytest.raises(UaStatusCodeError) as refused:
+                    await send(vision.client, request)
+                assert refused.value.code == ua.StatusCodes.BadServiceUnsupported
+
+    run(body(), timeout_s=60)

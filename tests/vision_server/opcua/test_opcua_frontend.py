@@ -9,6 +9,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 from asyncua import ua
 from asyncua.ua.uaerrors import UaStatusCodeError
@@ -69,8 +71,14 @@ def test_a_job_and_its_result_over_each_security_policy(tmp_path: Path, policy: 
                 await subscription.subscribe_events(
                     vision.system, ua.NodeId(RESULT_READY, vision.mv)
                 )
+                at_server = Events()  # the root notifier sees every event too
+                root = await vision.client.create_subscription(20, at_server)
+                await root.subscribe_events(
+                    vision.client.nodes.server, ua.NodeId(RESULT_READY, vision.mv)
+                )
                 job = await vision.start_job("bright", meas="m-1", part="p-1")
                 event = await events.next()
+                assert (await at_server.next()).ResultId.Id == job
                 assert event.ResultId.Id == job
                 assert event.JobId.Id == job
                 assert event.ResultState == 1  # Completed
@@ -89,6 +97,15 @@ def test_a_job_and_its_result_over_each_security_policy(tmp_path: Path, policy: 
                 assert result.InternalRecipeId.Version == app.catalog.config_hash
                 assert content(result) == (passed, body)
                 assert await vision.state() == ("Operational", "Ready")
+                health_node = await vision.system.get_child(f"{vision.cell}:Health")
+                for _ in range(40):  # brought up to date every second
+                    health = json.loads(await health_node.read_value())
+                    if health["opcua"]["results_kept"] == 1:
+                        break
+                    await asyncio.sleep(0.1)
+                assert health["opcua"]["results_kept"] == 1
+                assert health["opcua"]["connections"] >= 1
+                assert health["opcua"]["state"] == "Operational/Ready"
 
     run(body(), timeout_s=60)
 
@@ -102,8 +119,9 @@ def test_a_failing_inspection_is_a_completed_result_with_a_false_verdict(tmp_pat
             assert app.opcua is not None
             async with signed_in(app.opcua.endpoint, certs) as vision:
                 job = await vision.start_job("dark")
-                # No subscription: GetResultById with a Timeout waits for the running job.
-                result = await vision.result(job, wait_ms=10_000)
+                # No subscription: GetResultById answers at once, Processing while the job
+                # runs, then its result.
+                result = await vision.result(job)
                 assert result.ResultState == 1
                 passed, body = content(result)
                 assert passed is False
@@ -163,7 +181,7 @@ def test_refusals_are_typed_status_codes(tmp_path: Path) -> None:
                     )
                 assert status_of(parameters.value) == ua.StatusCodes.BadInvalidArgument
                 with pytest.raises(UaStatusCodeError) as missing:
-                    await vision.result("999", wait_ms=0)
+                    await vision.result("999")
                 assert status_of(missing.value) == ua.StatusCodes.BadNotFound
                 # An operator may not halt the vision system.
                 with pytest.raises(UaStatusCodeError) as denied:
@@ -340,6 +358,11 @@ def test_continuous_execution_until_stop_and_a_failed_run_ends_it(tmp_path: Path
                     await vision.start_job("bright")
                 assert status_of(busy.value) == ua.StatusCodes.BadInvalidState
                 assert await vision.call(vision.automatic, "Stop", *NO_CAUSE) == 0
+                # Stop answers at once; the mode goes to Ready when the running run ends.
+                for _ in range(100):
+                    if await vision.state() == ("Operational", "Ready"):
+                        break
+                    await asyncio.sleep(0.05)
                 assert await vision.state() == ("Operational", "Ready")
                 # Stop lets the inspection running finish: every result of the job completed.
                 _c, count, _h, results, _e = await vision.call(
@@ -375,5 +398,42 @@ def test_continuous_execution_until_stop_and_a_failed_run_ends_it(tmp_path: Path
                 await events.next()
                 assert await vision.call(vision.automatic, "Abort", *NO_CAUSE) == 0
                 assert await vision.state() == ("Operational", "Ready")
+
+    run(body(), timeout_s=90)
+
+
+def test_a_running_job_is_processing_and_abort_gives_it_up(tmp_path: Path) -> None:
+    """A 16-megapixel noise image takes the folder camera a while to decode: long enough to
+    see the job running and to abort it."""
+    path = write_cell(tmp_path)
+    noise = np.random.default_rng(1).integers(0, 256, (4000, 4000), dtype=np.uint8)
+    cv2.imwrite(str(tmp_path / "imgs" / "a.png"), noise)
+
+    async def body() -> None:
+        certs = await client_certificate(tmp_path / "client")
+        async with serving(path) as app:
+            assert app.opcua is not None
+            async with signed_in(app.opcua.endpoint, certs) as vision:
+                events = Events()
+                subscription = await vision.client.create_subscription(0, events)
+                await subscription.subscribe_events(
+                    vision.system, ua.NodeId(RESULT_READY, vision.mv)
+                )
+                job = await vision.start_job("bright")
+                _h, running, _e = await vision.results.call_method(
+                    f"{vision.mv}:GetResultById",
+                    ua.ResultIdDataType(Id=job),
+                    ua.Variant(0, ua.VariantType.Int32),
+                )
+                assert running.ResultState == 2  # Processing: answered at once
+                assert await vision.call(vision.automatic, "Abort", *NO_CAUSE) == 0
+                assert await vision.state() == ("Operational", "Ready")
+                event = await events.next()
+                assert event.ResultId.Id == job
+                assert event.ResultState == 3  # Aborted
+                assert content(event)[1]["error"]["code"] == "ABORTED"
+                assert (await vision.result(job)).ResultState == 3
+                # The server goes on: the next job runs to its end.
+                assert (await vision.result(await vision.start_job("bright"))).ResultState == 1
 
     run(body(), timeout_s=90)

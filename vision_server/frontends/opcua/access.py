@@ -82,8 +82,16 @@ class SignIns:
     """asyncua's user manager: names, PINs, role tokens and certificates to users; failed
     sign-ins slowed down by the front door (see the module)."""
 
-    def __init__(self, settings: OpcUaSettings, server: ServerSettings, door: FrontDoor) -> None:
+    def __init__(
+        self,
+        settings: OpcUaSettings,
+        server: ServerSettings,
+        door: FrontDoor,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.door = door
+        self._clock = clock
         self.anonymous = settings.anonymous
         self.users = users_by_name(server.users)
         tokens = {
@@ -111,7 +119,7 @@ class SignIns:
     ) -> User | None:
         peer = PEER.get()
         host = failure_key(peer_host(peer)) if peer else "unknown"
-        now = time.monotonic()
+        now = self._clock()
         if self._blocked.get(host, 0.0) > now:
             log.info("OPC UA: a sign-in from %s refused unchecked (failed sign-ins)", peer)
             return None

@@ -42,7 +42,7 @@ from protocol import CellvisionError, ConfigInvalid, ErrorCode, UnknownInspectio
 from protocol.cli import is_loopback
 
 from ...config import OpcUaSettings, ServerSettings
-from ...service import InspectionService, InspectRequest
+from ...service import InspectionService, InspectReply, InspectRequest
 from ..listener import Listener, Policy, quiet_logger
 from .access import CALLER, AccessDenied, Rights, SignIns, note_x509_users, require
 from .hardening import NONE_URI, advertise_limits, harden, harden_server
@@ -61,6 +61,7 @@ from .results import (
     RESULT_ABORTED,
     RESULT_COMPLETED,
     RESULT_FAILED,
+    RESULT_PROCESSING,
     JobResult,
     ResultFilter,
     ResultRing,
@@ -81,9 +82,10 @@ ASYNCUA_QUEUE = 4096
 REFRESH_S = 1.0
 """How often the configuration's identity, SystemState and Health are brought up to date."""
 BACKSTOP_S = 5.0
-"""How long past a job's deadline Stop waits for its inspection before it answers anyway."""
-MAX_WAIT_MS = 60_000
-"""The longest GetResultById waits for a running job's result, whatever Timeout asks."""
+"""How long Abort, Halt or a stop wait for a job's own end once its inspection is cancelled."""
+MAX_PAGE = 100
+"""Results (or recipes) one list answer holds at most, whatever MaxResults asks (0: no
+bound, by the specification): a page of a thousand results could outgrow a message."""
 POLICIES = {
     "Basic256Sha256": (
         ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
@@ -405,7 +407,10 @@ class OpcUaFrontend:
     async def _stop_job(
         self, cause: Any = None, description: Any = None, *extra: Any
     ) -> list[ua.Variant]:
-        """Stop: the inspection running is finished and kept, then the mode goes to Ready."""
+        """Stop: the inspection running is finished and kept, then the mode goes to Ready
+        (SingleExecutionToReadyStop, ContinuousExecutionToReadyStop). Answers at once: asyncua
+        serves a connection's requests one after another, so a Stop that waited would hold
+        up that client's every other request (and its keep-alive)."""
         async with self._lock:
             job = self._current
             if job is None or not self.machines.executing:
@@ -413,9 +418,6 @@ class OpcUaFrontend:
                     f"Stop needs a job running; the vision system is {self.machines.describe()}"
                 )
             job.stop_requested = True
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(self.settings.deadline_s + BACKSTOP_S):
-                await job.done.wait()
         return [_int32(0)]
 
     async def _abort(
@@ -442,13 +444,17 @@ class OpcUaFrontend:
         return [_int32(0)]
 
     async def _end(self, job: Job | None) -> None:
-        """Give up ``job`` at once: its running inspection's result is kept as Aborted."""
-        if job is None or job.task is None:
+        """Give up ``job`` at once: its running inspection is cancelled (its result kept as
+        Aborted), and the job's own end (keeping, announcing, the mode's move) runs to its
+        finish — it is never cancelled itself."""
+        if job is None:
             return
         job.aborted = True
-        job.task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await job.task
+        if job.run is not None:
+            job.run.cancel()
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(BACKSTOP_S):
+                await job.done.wait()
 
     async def _reset(
         self, cause: Any = None, description: Any = None, *extra: Any
@@ -468,17 +474,22 @@ class OpcUaFrontend:
             for n in itertools.count(1):
                 result_id = f"{job.job_id}.{n}" if continuous else job.job_id
                 state = await self._run_one(job, result_id)
-                if not continuous or job.stop_requested or state != RESULT_COMPLETED:
+                if not continuous or job.stop_requested or job.aborted:
+                    break
+                if state != RESULT_COMPLETED:
                     break
                 await asyncio.sleep(0)  # a method call between two runs is served at once
         finally:
-            async with self._lock:
-                if self._current is job:
-                    self._current = None
-                    if not job.aborted:  # Abort and Halt move the state themselves
-                        ended = self.machines.stop if job.stop_requested else self.machines.job_done
-                        await self._mirror(ended())
-            job.done.set()
+            try:
+                async with self._lock:
+                    if self._current is job:
+                        self._current = None
+                        if not job.aborted:  # Abort and Halt move the state themselves
+                            stopped = job.stop_requested
+                            ended = self.machines.stop if stopped else self.machines.job_done
+                            await self._mirror(ended())
+            finally:
+                job.done.set()
 
     async def _run_one(self, job: Job, result_id: str) -> int:
         """One inspection of ``job``; its result is kept and announced however it ends.
@@ -487,21 +498,11 @@ class OpcUaFrontend:
         arrived = time.monotonic()
         deadline = arrived + self.settings.deadline_s
         outcome: dict[str, Any] = {"state": RESULT_FAILED}
+        job.run = asyncio.get_running_loop().create_task(
+            self._inspect(job.recipe, job.user, arrived, deadline)
+        )
         try:
-            admission = await self.service.admit_when_free(job.recipe, deadline=deadline)
-            try:
-                reply = await self.service.inspect(
-                    InspectRequest(
-                        job.recipe,
-                        None,
-                        arrived=arrived,
-                        deadline=deadline,
-                        peer=f"opcua:{job.user}" if job.user else "opcua",
-                    ),
-                    admission=admission,
-                )
-            finally:
-                admission.release()
+            reply = await job.run
             outcome = {
                 "state": RESULT_COMPLETED,
                 "passed": reply.passed,
@@ -514,13 +515,14 @@ class OpcUaFrontend:
         except CellvisionError as exc:
             outcome["error_code"], outcome["error_message"] = exc.code.name, exc.message
         except asyncio.CancelledError:
+            if not job.run.cancelled():
+                raise  # this task itself is being cancelled (the server's loop ends)
             outcome = {
                 "state": RESULT_ABORTED,
-                "error_code": ErrorCode.SHUTTING_DOWN.name if self._ua is None else "ABORTED",
-                "error_message": "the job was stopped, aborted or halted before its result",
+                "error_code": "ABORTED",
+                "error_message": "the job was aborted, halted or the server stopped before "
+                "its result",
             }
-            await self._keep(job, result_id, started, outcome)
-            raise
         except Exception as exc:  # a bug: the job fails, the vision system goes to Error
             log.exception("OPC UA job %s failed", job.job_id)
             outcome["error_code"], outcome["error_message"] = "INTERNAL_ERROR", repr(exc)
@@ -529,6 +531,26 @@ class OpcUaFrontend:
             job.aborted = True  # the vision system is in Error: no move of the mode is left
         await self._keep(job, result_id, started, outcome)
         return int(outcome["state"])
+
+    async def _inspect(
+        self, recipe: str, user: str, arrived: float, deadline: float
+    ) -> InspectReply:
+        """One inspection through the service, waiting for a worker within its deadline (a
+        job, like a PLC's trigger, waits rather than being refused at once)."""
+        admission = await self.service.admit_when_free(recipe, deadline=deadline)
+        try:
+            return await self.service.inspect(
+                InspectRequest(
+                    recipe,
+                    None,
+                    arrived=arrived,
+                    deadline=deadline,
+                    peer=f"opcua:{user}" if user else "opcua",
+                ),
+                admission=admission,
+            )
+        finally:
+            admission.release()
 
     async def _keep(
         self, job: Job, result_id: str, started: datetime, outcome: dict[str, Any]
@@ -580,9 +602,9 @@ class OpcUaFrontend:
         wanted = text_id(external)
         catalog = self.service.catalog
         names = [n for n in catalog.inspections if not wanted or n == wanted]
-        first = int(start or 0)
-        count = int(most or 0)
-        page = names[first : first + count] if count > 0 else names[first:]
+        first = max(0, int(start or 0))
+        count = min(int(most or 0) or MAX_PAGE, MAX_PAGE)
+        page = names[first : first + count]
         complete = first + len(page) >= len(names)
         listed = [recipe_id(n, catalog.config_hash) for n in page]
         return [
@@ -614,26 +636,37 @@ class OpcUaFrontend:
 
     # ------------------------------------------------------------------ results
 
-    async def _wait_for(self, result_id: str, wait_ms: int) -> JobResult | None:
-        """The result kept under ``result_id``; for the single job running now, waited for
-        up to ``wait_ms`` (at most :data:`MAX_WAIT_MS`)."""
+    def _lookup(self, result_id: str) -> JobResult | None:
+        """The result kept under ``result_id``; for the single job running now, its result so
+        far (ResultState 2, Processing). OPC 40100-1's Timeout argument says how long the
+        client will need the result, not how long to wait: the answer comes at once."""
         found = self.results.get(result_id)
         job = self._current
-        if found is not None or wait_ms <= 0 or job is None or job.job_id != result_id:
+        if found is not None or job is None or job.job_id != result_id:
             return found
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(min(wait_ms, MAX_WAIT_MS) / 1000.0):
-                await job.done.wait()
-        return self.results.get(result_id)
+        now = now_utc()
+        return JobResult(
+            result_id=job.job_id,
+            job_id=job.job_id,
+            recipe=job.recipe,
+            config_hash=self.service.catalog.config_hash,
+            state=RESULT_PROCESSING,
+            started=job.started,
+            ended=now,
+            meas_id=job.meas_id,
+            part_id=job.part_id,
+            product_id=job.product_id,
+            camera=self._camera_of(job.recipe),
+        )
 
     async def _result_by_id(self, result: Any = None, wait_ms: Any = 0, *extra: Any) -> Any:
-        found = await self._wait_for(text_id(result), int(wait_ms or 0))
+        found = self._lookup(text_id(result))
         if found is None:
             return _status(StatusCodes.BadNotFound)
         return [ua.Variant(0, ua.VariantType.UInt32), ua.Variant(result_data(found)), _int32(0)]
 
     async def _result_components(self, result: Any = None, wait_ms: Any = 0, *extra: Any) -> Any:
-        found = await self._wait_for(text_id(result), int(wait_ms or 0))
+        found = self._lookup(text_id(result))
         if found is None:
             return _status(StatusCodes.BadNotFound)
         data = result_data(found)
@@ -648,7 +681,7 @@ class OpcUaFrontend:
             ua.Variant(data.ExternalRecipeId),
             ua.Variant(data.InternalRecipeId),
             ua.Variant(data.ProductId or MV.ProductIdDataType(Id="")),
-            ua.Variant(data.InternalConfigurationId),
+            ua.Variant(None, ua.VariantType.ExtensionObject),  # no external configuration id
             ua.Variant(data.InternalConfigurationId),
             ua.Variant(data.JobId),
             ua.Variant(data.CreationTime, ua.VariantType.DateTime),
@@ -682,8 +715,9 @@ class OpcUaFrontend:
             product_id=text_id(product),
             job_id=text_id(job),
         )
+        asked = max(0, int(most or 0))
         page, _total, complete = self.results.filtered(
-            criteria, start=max(0, int(start or 0)), most=max(0, int(most or 0))
+            criteria, start=max(0, int(start or 0)), most=min(asked or MAX_PAGE, MAX_PAGE)
         )
         return [
             ua.Variant(complete, ua.VariantType.Boolean),
@@ -810,7 +844,10 @@ class Job:
         self.part_id = part_id
         self.product_id = product_id
         self.user = user
+        self.started = now_utc()
         self.task: asyncio.Task[None] | None = None
+        self.run: asyncio.Task[InspectReply] | None = None
+        """The inspection running now: what Abort, Halt and a stop cancel."""
         self.stop_requested = False
         self.aborted = False
         """Ended by Abort, Halt, an internal error or the server's stop: the mode was moved

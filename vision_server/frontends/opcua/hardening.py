@@ -20,7 +20,9 @@ made (:func:`harden`), and the internal server once (:func:`harden_server`):
   TranslateBrowsePaths, RegisterNodes, CreateMonitoredItems, ...), counted from the array's
   length before the request is decoded (BadTooManyOperations); the server's OperationLimits say
   so. Subscriptions per session are at most :data:`MAX_SUBSCRIPTIONS`, monitored items per
-  session :data:`MAX_MONITORED_ITEMS`.
+  session :data:`MAX_MONITORED_ITEMS`, each keeping at most :data:`MAX_ITEM_QUEUE` unfetched
+  notifications; a subscription publishes at least every :data:`MAX_PUBLISHING_INTERVAL_MS`;
+  ModifyMonitoredItems is refused (asyncua grants any queue size it asks for).
 """
 
 from __future__ import annotations
@@ -42,8 +44,16 @@ MAX_SESSIONS = 64
 """Sessions the server holds at once (activated or not)."""
 MAX_SUBSCRIPTIONS = 10
 """Subscriptions one session may hold (asyncua's own bound, 1000, is for the whole server)."""
-MAX_MONITORED_ITEMS = 1000
+MAX_MONITORED_ITEMS = 100
 """Monitored items one session may hold over its subscriptions."""
+MAX_ITEM_QUEUE = 10
+"""Notifications one monitored item keeps for a client that has not fetched them (asyncua:
+10,000, and a client may ask for "no bound"): with a publishing interval of days, a session
+with 1000 event items kept 3 MB per result."""
+MAX_UNACKNOWLEDGED = 100
+"""Notification messages kept per subscription for a client that does not acknowledge them."""
+MAX_PUBLISHING_INTERVAL_MS = 10_000.0
+"""The longest publishing interval granted: a subscription publishes at least this often."""
 
 NONE_URI = "http://opcfoundation.org/UA/SecurityPolicy#None"
 
@@ -87,6 +97,8 @@ OPERATION_ARRAYS: dict[ua.NodeId, Callable[[Buffer], None]] = {
     _request("HistoryRead"): _skip(0),
 }
 REFUSED = {
+    # ModifyMonitoredItems: asyncua grants any queue size it asks for, unbounded included
+    _request("ModifyMonitoredItems"): ua.StatusCodes.BadServiceUnsupported,
     _request("RegisterServer"): ua.StatusCodes.BadServiceUnsupported,
     _request("RegisterServer2"): ua.StatusCodes.BadServiceUnsupported,
     _request("HistoryRead"): ua.StatusCodes.BadServiceUnsupported,
@@ -222,8 +234,20 @@ async def advertise_limits(server: Any) -> None:
 
 def harden_server(iserver: Any) -> None:
     """The internal server's part: no session is ever looked up by its token from another
-    connection (see the module)."""
+    connection; notification queues and publishing intervals bounded (see the module)."""
     iserver.lookup_external_session = _no_session
+    iserver.max_monitored_item_queue_size = MAX_ITEM_QUEUE
+    iserver.max_unacked_messages_per_subscription = MAX_UNACKNOWLEDGED
+    service = iserver.subscription_service
+    create = service.create_subscription
+
+    async def create_bounded(params: Any, *args: Any, **kwargs: Any) -> Any:
+        interval = float(params.RequestedPublishingInterval or 0.0)
+        if not 0.0 <= interval <= MAX_PUBLISHING_INTERVAL_MS:  # NaN and negatives too
+            params.RequestedPublishingInterval = MAX_PUBLISHING_INTERVAL_MS
+        return await create(params, *args, **kwargs)
+
+    service.create_subscription = create_bounded
 
 
 def _no_session(auth_token: Any) -> None:
@@ -231,6 +255,7 @@ def _no_session(auth_token: Any) -> None:
 
 
 __all__ = [
+    "MAX_ITEM_QUEUE",
     "MAX_MONITORED_ITEMS",
     "MAX_OPERATIONS",
     "MAX_SESSIONS",

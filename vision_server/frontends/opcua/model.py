@@ -286,6 +286,14 @@ class VisionNodes:
         await self.result_ready.trigger(
             message=f"result {result.result_id} of {result.recipe}: {verdict}"
         )
+        # The Server object is the root of every event notifier (OPC 10000-3 §7.17): a client
+        # that subscribes to events there sees this one too (asyncua delivers an event only to
+        # the subscribers of the node that emitted it). Same event, same EventId.
+        event.emitting_node = ua.NodeId(ua.ObjectIds.Server)
+        try:
+            await self.server.iserver.isession.subscription_service.trigger_event(event)
+        finally:
+            event.emitting_node = self.system.nodeid
 
 
 async def build(server: Server, mv: int, cell: int) -> VisionNodes:
