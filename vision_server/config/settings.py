@@ -257,8 +257,9 @@ class MqttSettings:
     client_id: str = ""
     """The MQTT client identifier ("": ``cellvision-{cell}``); unique per broker."""
     username: str | None = None
-    password: str | None = None
-    """From ``password``, ``password_file`` or the environment variable ``password_env``."""
+    password: str | None = field(default=None, repr=False)
+    """From ``password``, ``password_file`` or the environment variable ``password_env`` (kept
+    out of the record's repr, so that no log or traceback shows it)."""
     tls: bool = False
     tls_ca: str | None = None
     """The CA file the broker's certificate is checked against (None: the system's)."""

@@ -5,6 +5,8 @@
 - :mod:`.malloc`: the glibc malloc settings ``serve`` starts with (:data:`PROCESS_ENV`).
 - :mod:`.cpu_priority`: the niceness of the work that can wait (the main lane's threads, the
   worker processes, the console's live view).
+- :mod:`.ownership`: files one running server owns (a spool, a certificate store), claimed
+  with a lock so that two servers never share them.
 
 Nothing here imports cv2 or another room of the server: every room may use it, and
 :mod:`vision_server` imports it first.
@@ -19,11 +21,15 @@ from .cpu_priority import (
     target_niceness,
 )
 from .malloc import PROCESS_ENV
+from .ownership import Claim, Claimed, claim
 
 __all__ = [
+    "Claim",
+    "Claimed",
     "MAX_NICE",
     "POLICIES",
     "PROCESS_ENV",
+    "claim",
     "decoder_limits",
     "lower_this_thread",
     "run_this_process_at",

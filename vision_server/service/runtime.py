@@ -152,7 +152,7 @@ class CellRuntime:
             changes = describe_changes(self.config, config)
             restart = tuple(
                 f"{self.path.name}: changes under '{section}:' take effect after a restart"
-                for section in ("server", "results", "line", "mqtt")
+                for section in ("server", "results", "line", "mqtt", "opcua")
                 if getattr(config, section) != getattr(self._started, section)
             )
             for note in restart:

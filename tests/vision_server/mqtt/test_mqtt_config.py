@@ -266,3 +266,21 @@ def test_a_reload_says_that_mqtt_changes_wait_for_a_restart(tmp_path: Path) -> N
     finally:
         runtime.close()
     assert "cell.yaml: changes under 'mqtt:' take effect after a restart" in notes
+
+
+def test_two_servers_never_share_a_spool(tmp_path: Path) -> None:
+    from vision_server.frontends.mqtt import Outbox, OutboxError
+
+    first = Outbox(tmp_path / "mqtt-spool.sqlite", 1 << 20)
+    try:
+        with pytest.raises(OutboxError, match="in use by another running server"):
+            Outbox(tmp_path / "mqtt-spool.sqlite", 1 << 20)
+    finally:
+        first.close()
+    Outbox(tmp_path / "mqtt-spool.sqlite", 1 << 20).close()  # given back at close
+
+
+def test_the_password_is_not_in_the_settings_repr() -> None:
+    from vision_server.config import MqttSettings
+
+    assert "s3cret" not in repr(MqttSettings(password="s3cret"))

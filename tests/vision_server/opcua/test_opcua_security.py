@@ -300,3 +300,61 @@ def test_a_sign_in_within_the_delay_after_a_failure_is_refused_unchecked() -> No
     assert sign_ins.get_user(None, "operator", "wrong") is None
     PEER.set("10.0.0.7:50001")
     assert sign_ins.get_user(None, "operator", "op-secret-123") is not None
+
+
+def test_a_reload_says_that_opcua_changes_wait_for_a_restart(tmp_path: Path) -> None:
+    from vision_server.service import CellRuntime
+
+    path = write_cell(tmp_path)
+    runtime = CellRuntime(path)
+    try:
+        path.write_text(
+            path.read_text(encoding="utf-8").replace("port: 0, pki", "port: 0, deadline_s: 3, pki"),
+            encoding="utf-8",
+        )
+        notes = runtime.reload().notes
+    finally:
+        runtime.close()
+    assert "cell.yaml: changes under 'opcua:' take effect after a restart" in notes
+
+
+def test_a_certificate_put_in_by_hand_is_never_replaced(tmp_path: Path) -> None:
+    """A plant CA's certificate in PKI/own/ that does not name the server is refused at start
+    with the reason, not overwritten by a self-signed one."""
+
+    from vision_server.frontends.opcua.pki import Pki, PkiError
+
+    pki = Pki(tmp_path / "pki")
+    run(pki.ensure("urn:cellvision:cell-7:opcua", "cellpc"), timeout_s=60)
+    ours = (tmp_path / "pki" / "own" / "cert.der").read_bytes()
+    run(pki.ensure("urn:cellvision:cell-7:opcua", "cellpc"), timeout_s=60)
+    assert (tmp_path / "pki" / "own" / "cert.der").read_bytes() == ours, "kept while it fits"
+    run(pki.ensure("urn:cellvision:cell-7:opcua", "cellpc.plant.example"), timeout_s=60)
+    assert (tmp_path / "pki" / "own" / "cert.der").read_bytes() != ours, "ours is made again"
+
+    async def plant_certificate() -> bytes:
+        await client_certificate(tmp_path / "plant", "urn:plant:ca-issued")
+        return (tmp_path / "plant" / "client.der").read_bytes()
+
+    foreign = run(plant_certificate(), timeout_s=60)
+    (tmp_path / "pki" / "own" / "cert.der").write_bytes(foreign)
+    with pytest.raises(PkiError, match="not one cellvision made"):
+        run(pki.ensure("urn:cellvision:cell-7:opcua", "cellpc"), timeout_s=60)
+    assert (tmp_path / "pki" / "own" / "cert.der").read_bytes() == foreign
+
+
+def test_two_servers_never_share_a_certificate_store(tmp_path: Path) -> None:
+    path = write_cell(tmp_path)
+
+    async def body() -> None:
+        async with serving(path) as app:
+            assert app.opcua is not None
+            with pytest.raises(PkiError, match="in use by another running server"):
+                async with serving(path):
+                    pass
+        async with serving(path) as app:  # given back at the stop
+            assert app.opcua is not None
+
+    from vision_server.frontends.opcua.pki import PkiError
+
+    run(body(), timeout_s=60)

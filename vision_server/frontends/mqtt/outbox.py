@@ -26,6 +26,8 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+from ...process import Claimed, claim
+
 FORMAT = 1
 """``PRAGMA user_version`` of an outbox file: another value is not ours (or is newer)."""
 ROW_OVERHEAD = 64
@@ -72,21 +74,30 @@ class Outbox:
         self._lock = threading.Lock()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._claim = claim(self.path, "the MQTT spool")
+        except Claimed as exc:
+            raise OutboxError(str(exc)) from None
+        except OSError as exc:
+            raise OutboxError(f"cannot open the MQTT spool {self.path}: {exc}") from exc
+        try:
             self._conn = sqlite3.connect(
                 str(self.path), isolation_level=None, check_same_thread=False, timeout=5.0
             )
         except (sqlite3.Error, OSError) as exc:
+            self._claim.release()
             raise OutboxError(f"cannot open the MQTT spool {self.path}: {exc}") from exc
         try:
             self._open()
         except (sqlite3.Error, OSError) as exc:
             self._conn.close()
+            self._claim.release()
             raise OutboxError(
                 f"cannot use the MQTT spool {self.path}: {exc} (move the file away to start "
                 "with an empty spool; its unsent results are then lost)"
             ) from exc
         except OutboxError:
             self._conn.close()
+            self._claim.release()
             raise
 
     def _open(self) -> None:
@@ -208,3 +219,4 @@ class Outbox:
     def close(self) -> None:
         with self._lock, contextlib.suppress(sqlite3.Error):
             self._conn.close()
+        self._claim.release()

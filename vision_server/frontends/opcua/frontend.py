@@ -42,6 +42,7 @@ from protocol import CellvisionError, ConfigInvalid, ErrorCode, UnknownInspectio
 from protocol.cli import is_loopback
 
 from ...config import OpcUaSettings, ServerSettings
+from ...process import Claim, Claimed, claim
 from ...service import InspectionService, InspectReply, InspectRequest
 from ..listener import Listener, Policy, quiet_logger
 from .access import CALLER, AccessDenied, Rights, SignIns, note_x509_users, require
@@ -56,7 +57,7 @@ from .model import (
     result_data,
     text_id,
 )
-from .pki import Pki, TrustList
+from .pki import Pki, PkiError, TrustList
 from .results import (
     RESULT_ABORTED,
     RESULT_COMPLETED,
@@ -145,6 +146,8 @@ class OpcUaFrontend:
         self._config_hash = ""
         self.pki = Pki(settings.pki or Path(tempfile.gettempdir()) / "cellvision-opcua-pki")
         self.endpoint = ""
+        self._pki_claim: Claim | None = None
+        """This server's hold on its certificate store (two servers never share one)."""
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -163,6 +166,16 @@ class OpcUaFrontend:
         return host
 
     async def start(self) -> None:
+        try:
+            await self._serve()
+        except BaseException:
+            if self._pki_claim is not None:
+                self._pki_claim.release()
+                self._pki_claim = None
+            raise
+
+    async def _serve(self) -> None:
+        """:meth:`start`'s work (the certificate store's claim is given back if it fails)."""
         for name in ("asyncua", "asyncua.server", "asyncua.uaprotocol", "asyncua.crypto"):
             # asyncua logs each malformed or refused message from a peer, with a traceback: a
             # hostile client must not fill the server's log.
@@ -190,6 +203,10 @@ class OpcUaFrontend:
         self.nodes = await build(server, mv, cell)
         self._link_methods(server, self.nodes)
         host = self._advertised_host()
+        try:
+            self._pki_claim = claim(self.pki.root, "the OPC UA certificate store")
+        except Claimed as exc:
+            raise PkiError(str(exc)) from None
         await self.pki.ensure(application_uri, host)
         await server.load_certificate(str(self.pki.cert))
         await server.load_private_key(str(self.pki.key))
@@ -297,6 +314,9 @@ class OpcUaFrontend:
             with contextlib.suppress(Exception):
                 await self._ua.iserver.stop()
             self._ua = None
+        if self._pki_claim is not None:
+            self._pki_claim.release()
+            self._pki_claim = None
 
     # ------------------------------------------------------------------ methods
 

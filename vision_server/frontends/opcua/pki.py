@@ -36,7 +36,7 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.hazmat.primitives.serialization import Encoding
-from cryptography.x509.oid import ExtendedKeyUsageOID
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 log = logging.getLogger("vision_server")
 
@@ -82,6 +82,14 @@ class Pki:
                 self.cert.unlink(missing_ok=True)  # made for another key
             if self._current(application_uri, host):
                 return
+            if self.cert.is_file() and not self._made_here():
+                # A plant CA's certificate, put here by hand: never replaced by one of ours.
+                raise ValueError(
+                    f"{self.cert} is not one cellvision made, and it does not name the "
+                    f"application URI {application_uri} and the host {host} (or it expires "
+                    "within a day): give the server a certificate that names both "
+                    "(opcua: advertised_host sets the host), or remove it to have one made"
+                )
             certificate = generate_self_signed_app_certificate(
                 key,
                 f"cellvision OPC UA server {socket.gethostname()}",
@@ -94,6 +102,17 @@ class Pki:
             log.info("OPC UA: made the server's certificate %s", self.cert)
         except (OSError, ValueError, TypeError) as exc:
             raise PkiError(f"OPC UA certificate store {self.root}: {exc}") from exc
+
+    def _made_here(self) -> bool:
+        """Whether the certificate on file is one :meth:`ensure` made (self-signed, cellvision)."""
+        try:
+            certificate = x509.load_der_x509_certificate(self.cert.read_bytes())
+        except ValueError:
+            return True  # not a certificate at all: ours to replace
+        organizations = certificate.subject.get_attributes_for_oid(NameOID.ORGANIZATION_NAME)
+        return certificate.issuer == certificate.subject and any(
+            o.value == "cellvision" for o in organizations
+        )
 
     def _current(self, application_uri: str, host: str) -> bool:
         """Whether the certificate on file may serve on: it names both, for a day more."""

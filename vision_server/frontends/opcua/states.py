@@ -9,8 +9,10 @@ in, which method may move it where, and the transition each move takes.
   (``StartSingleJob``) or ContinuousExecution (``StartContinuous``) → Ready when the job ends,
   or by ``Stop`` / ``Abort``.
 
-The numbers are the specification's StateNumber and TransitionNumber (the nodeset's values),
-which clients see in ``CurrentState`` and ``LastTransition``.
+The numbers are the specification's StateNumber and TransitionNumber (the nodeset's values):
+clients see the state in ``CurrentState`` (its ``Id`` the state object's NodeId); the
+transitions taken are logged with their numbers (the optional ``LastTransition`` is not in
+the instance).
 """
 
 from __future__ import annotations
