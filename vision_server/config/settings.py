@@ -233,8 +233,9 @@ class OpcUaSettings:
     """A connection that sends nothing for this long is closed (a subscribed client sends
     publish requests all the time)."""
     write_timeout_s: float = 10.0
-    max_message_bytes: int = 4 * 1024 * 1024
-    """The largest message a client may send (OPC UA chunks of 64 KiB each)."""
+    max_message_bytes: int = 1024 * 1024
+    """The largest message either side may send (OPC UA chunks of 64 KiB each): every request
+    the VisionSystem needs is a few KiB, a page of results some hundreds."""
 
 
 DEFAULT_MQTT_PORT = 1883

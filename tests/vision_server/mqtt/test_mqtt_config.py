@@ -284,3 +284,36 @@ def test_the_password_is_not_in_the_settings_repr() -> None:
     from vision_server.config import MqttSettings
 
     assert "s3cret" not in repr(MqttSettings(password="s3cret"))
+
+
+def test_an_acknowledged_row_the_disk_cannot_delete_is_not_sent_again(tmp_path: Path) -> None:
+    """A full disk made every delete fail: the session ended and every row went out again at
+    each reconnect, for ever. An acknowledged row is now remembered and skipped, and deleted
+    when the disk lets it."""
+    import sqlite3
+
+    from vision_server.frontends.mqtt import Outbox, OutboxRow
+
+    outbox = Outbox(tmp_path / "mqtt-spool.sqlite", 1 << 20)
+    try:
+        for n in range(3):
+            outbox.add(OutboxRow(outbox.next_seq(), f"uid-{n}", "cellvision/c/results/x", b"{}"))
+        first, second, third = outbox.after(0, 10)
+        real = outbox._conn
+
+        class FullDisk:
+            def execute(self, sql: str, *args: object) -> object:
+                if sql.lstrip().startswith("DELETE"):
+                    raise sqlite3.OperationalError("database or disk is full")
+                return real.execute(sql, *args)
+
+        outbox._conn = FullDisk()  # type: ignore[assignment]
+        assert outbox.remove(first.seq) is True
+        assert outbox.delete_errors == 1
+        assert [r.seq for r in outbox.after(0, 10)] == [second.seq, third.seq]
+        outbox._conn = real
+        assert outbox.remove(second.seq) is True  # and the first one with it
+        assert [r.seq for r in outbox.after(0, 10)] == [third.seq]
+        assert outbox.rows == 1
+    finally:
+        outbox.close()

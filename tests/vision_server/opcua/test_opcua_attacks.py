@@ -6,6 +6,7 @@ state machine. Each ends with a legitimate client still served."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 from pathlib import Path
 from typing import Any
@@ -226,5 +227,69 @@ def test_notification_queues_and_publishing_intervals_are_bounded(tmp_path: Path
                 with pytest.raises(UaStatusCodeError) as refused:
                     await send(vision.client, request)
                 assert refused.value.code == ua.StatusCodes.BadServiceUnsupported
+
+    run(body(), timeout_s=60)
+
+
+def test_a_session_cannot_touch_another_sessions_subscriptions(tmp_path: Path) -> None:
+    path = write_cell(tmp_path)
+
+    async def body() -> None:
+        certs = await client_certificate(tmp_path / "client")
+        async with serving(path) as app:
+            assert app.opcua is not None
+            async with (
+                signed_in(app.opcua.endpoint, certs) as victim,
+                signed_in(app.opcua.endpoint, certs) as other,
+            ):
+
+                class Quiet:
+                    def event_notification(self, event: Any) -> None:
+                        pass
+
+                theirs = await victim.client.create_subscription(100, Quiet())
+                request = ua.DeleteSubscriptionsRequest()
+                request.Parameters.SubscriptionIds = [theirs.subscription_id]
+                with pytest.raises(UaStatusCodeError) as deleting:
+                    await send(other.client, request)
+                assert deleting.value.code == ua.StatusCodes.BadSubscriptionIdInvalid
+                transfer = ua.TransferSubscriptionsRequest()
+                transfer.Parameters.SubscriptionIds = [theirs.subscription_id]
+                with pytest.raises(UaStatusCodeError) as taking:
+                    await send(other.client, transfer)
+                assert taking.value.code == ua.StatusCodes.BadServiceUnsupported
+                # The victim's subscription still works.
+                await theirs.subscribe_events(victim.system, ua.NodeId(1024, victim.mv))
+                await theirs.delete()  # its own: allowed
+
+    run(body(), timeout_s=60)
+
+
+def test_strangers_send_small_single_chunk_messages_only(tmp_path: Path) -> None:
+    path = write_cell(tmp_path)
+
+    async def body() -> None:
+        async with serving(path) as app:
+            assert app.opcua is not None
+            port = app.opcua.port
+
+            async def closed_after(data: bytes) -> bool:
+                reader, writer = await asyncio.open_connection("127.0.0.1", port)
+                try:
+                    writer.write(data)
+                    await writer.drain()
+                    async with asyncio.timeout(5):
+                        while await reader.read(65536):
+                            pass
+                    return True
+                except (TimeoutError, ConnectionError):
+                    return False
+                finally:
+                    writer.close()
+
+            # An OpenSecureChannel of 60 KiB: refused at its header, before any RSA work.
+            assert await closed_after(b"OPNF" + (60 * 1024).to_bytes(4, "little") + b"\0" * 64)
+            # A message announced in several chunks before any sign-in.
+            assert await closed_after(b"MSGC" + (1024).to_bytes(4, "little") + b"\0" * 64)
 
     run(body(), timeout_s=60)

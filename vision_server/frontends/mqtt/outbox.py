@@ -30,6 +30,8 @@ from ...process import Claimed, claim
 
 FORMAT = 1
 """``PRAGMA user_version`` of an outbox file: another value is not ours (or is newer)."""
+MAX_UNDELETED = 100_000
+"""Acknowledged rows kept in memory while the disk cannot delete them (a few MB at most)."""
 ROW_OVERHEAD = 64
 """Bytes counted per row besides its topic and payload (key, uid, SQLite's record)."""
 
@@ -72,6 +74,10 @@ class Outbox:
         self.dropped = 0
         """Rows dropped over the bound since this outbox was opened."""
         self._lock = threading.Lock()
+        self._undeleted: set[int] = set()
+        """Acknowledged rows the disk could not delete yet (see :meth:`remove`)."""
+        self.delete_errors = 0
+        """Deletes of acknowledged rows that failed (a full disk) since this outbox opened."""
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._claim = claim(self.path, "the MQTT spool")
@@ -175,20 +181,44 @@ class Outbox:
         return dropped
 
     def remove(self, seq: int) -> bool:
-        """Forget an acknowledged row; False when it was gone already (dropped). Raises
-        :class:`OutboxError`."""
+        """Forget an acknowledged row; False when it was gone already (dropped).
+
+        A row the disk cannot delete now (SQLite needs room in its log even to delete: a full
+        disk) is remembered as acknowledged, skipped by :meth:`after` and deleted by a later
+        call: otherwise every reconnect would send it again, for ever. Raises
+        :class:`OutboxError` only when :data:`MAX_UNDELETED` such rows wait."""
         with self._lock:
             try:
+                self._delete_acknowledged()
                 gone = self._conn.execute(
                     "DELETE FROM outbox WHERE seq = ? RETURNING size", (seq,)
                 ).fetchone()
             except (sqlite3.Error, OSError) as exc:
-                raise OutboxError(f"cannot delete from the MQTT spool {self.path}: {exc}") from exc
+                if len(self._undeleted) >= MAX_UNDELETED:
+                    raise OutboxError(
+                        f"cannot delete from the MQTT spool {self.path}: {exc}"
+                    ) from exc
+                self._undeleted.add(seq)
+                self.delete_errors += 1
+                return True
             if gone is None:
                 return False
             self._rows -= 1
             self._bytes -= int(gone[0])
             return True
+
+    def _delete_acknowledged(self) -> None:
+        """Delete the acknowledged rows an earlier :meth:`remove` could not (lock held)."""
+        while self._undeleted:
+            some = sorted(self._undeleted)[:500]
+            marks = ",".join("?" * len(some))
+            gone = self._conn.execute(
+                f"DELETE FROM outbox WHERE seq IN ({marks}) RETURNING size",  # noqa: S608
+                some,
+            ).fetchall()
+            self._rows -= len(gone)
+            self._bytes -= sum(int(g[0]) for g in gone)
+            self._undeleted.difference_update(some)
 
     # ------------------------------------------------------------------ reading
 
@@ -200,11 +230,16 @@ class Outbox:
                 found = self._conn.execute(
                     "SELECT seq, uid, topic, payload FROM outbox WHERE seq > ? ORDER BY seq "
                     "LIMIT ?",
-                    (seq, limit),
+                    (seq, limit + len(self._undeleted)),
                 ).fetchall()
             except (sqlite3.Error, OSError) as exc:
                 raise OutboxError(f"cannot read the MQTT spool {self.path}: {exc}") from exc
-        return [OutboxRow(int(s), str(u), str(t), bytes(p)) for s, u, t, p in found]
+            rows = [
+                OutboxRow(int(s), str(u), str(t), bytes(p))
+                for s, u, t, p in found
+                if int(s) not in self._undeleted  # acknowledged already
+            ]
+        return rows[:limit]
 
     @property
     def rows(self) -> int:

@@ -176,6 +176,10 @@ class OpcUaFrontend:
 
     async def _serve(self) -> None:
         """:meth:`start`'s work (the certificate store's claim is given back if it fails)."""
+        try:  # first: a second server on the same store stops before any work
+            self._pki_claim = claim(self.pki.root, "the OPC UA certificate store")
+        except Claimed as exc:
+            raise PkiError(str(exc)) from None
         for name in ("asyncua", "asyncua.server", "asyncua.uaprotocol", "asyncua.crypto"):
             # asyncua logs each malformed or refused message from a peer, with a traceback: a
             # hostile client must not fill the server's log.
@@ -203,10 +207,6 @@ class OpcUaFrontend:
         self.nodes = await build(server, mv, cell)
         self._link_methods(server, self.nodes)
         host = self._advertised_host()
-        try:
-            self._pki_claim = claim(self.pki.root, "the OPC UA certificate store")
-        except Claimed as exc:
-            raise PkiError(str(exc)) from None
         await self.pki.ensure(application_uri, host)
         await server.load_certificate(str(self.pki.cert))
         await server.load_private_key(str(self.pki.key))
@@ -444,19 +444,18 @@ class OpcUaFrontend:
         self, cause: Any = None, description: Any = None, *extra: Any
     ) -> list[ua.Variant]:
         """Abort: the inspection running is given up (its result Aborted) at once."""
-        async with self._lock:
-            moves = self.machines.abort()
-            job = self._current
-        await self._end(job)
-        async with self._lock:
-            await self._mirror(moves)
-        return [_int32(0)]
+        return await self._move_ending_the_job(self.machines.abort)
 
     async def _halt(
         self, cause: Any = None, description: Any = None, *extra: Any
     ) -> list[ua.Variant]:
+        """Halt: as Abort for a job running, then Halted."""
+        return await self._move_ending_the_job(self.machines.halt)
+
+    async def _move_ending_the_job(self, move: Callable[[], list[Any]]) -> list[ua.Variant]:
+        """Take ``move`` (refused: InvalidState), end the job running, show the new state."""
         async with self._lock:
-            moves = self.machines.halt()
+            moves = move()
             job = self._current
         await self._end(job)
         async with self._lock:

@@ -16,6 +16,10 @@ made (:func:`harden`), and the internal server once (:func:`harden_server`):
   cannot pile up); at most :data:`MAX_SESSIONS` in all.
 - **Discovery registration** (RegisterServer, RegisterServer2) is refused before its body is
   decoded: cellvision is no discovery server, and asyncua kept every registration.
+- **Subscriptions are their session's**: a request naming another session's subscription
+  (DeleteSubscriptions, CreateMonitoredItems, Republish, SetPublishingMode, ...) is
+  refused (BadSubscriptionIdInvalid), and TransferSubscriptions is not served: asyncua let any
+  session take or delete any other's by its small counter id.
 - **Operations per request** are at most :data:`MAX_OPERATIONS` (Read, Write, Browse, Call,
   TranslateBrowsePaths, RegisterNodes, CreateMonitoredItems, ...), counted from the array's
   length before the request is decoded (BadTooManyOperations); the server's OperationLimits say
@@ -99,15 +103,48 @@ OPERATION_ARRAYS: dict[ua.NodeId, Callable[[Buffer], None]] = {
 REFUSED = {
     # ModifyMonitoredItems: asyncua grants any queue size it asks for, unbounded included
     _request("ModifyMonitoredItems"): ua.StatusCodes.BadServiceUnsupported,
+    # TransferSubscriptions: asyncua hands any session's subscription to whoever asks
+    _request("TransferSubscriptions"): ua.StatusCodes.BadServiceUnsupported,
     _request("RegisterServer"): ua.StatusCodes.BadServiceUnsupported,
     _request("RegisterServer2"): ua.StatusCodes.BadServiceUnsupported,
     _request("HistoryRead"): ua.StatusCodes.BadServiceUnsupported,
     _request("HistoryUpdate"): ua.StatusCodes.BadServiceUnsupported,
 }
+ONE_SUBSCRIPTION = frozenset(
+    # services whose body starts with the SubscriptionId they act on
+    _request(name)
+    for name in (
+        "CreateMonitoredItems",
+        "DeleteMonitoredItems",
+        "SetMonitoringMode",
+        "SetTriggering",
+        "ModifySubscription",
+        "Republish",
+    )
+)
+DELETE_SUBSCRIPTIONS = _request("DeleteSubscriptions")
+SET_PUBLISHING_MODE = _request("SetPublishingMode")
 CREATE_SESSION = _request("CreateSession")
 ACTIVATE_SESSION = _request("ActivateSession")
 CREATE_SUBSCRIPTION = _request("CreateSubscription")
 CREATE_MONITORED_ITEMS = _request("CreateMonitoredItems")
+
+
+def subscriptions_named(typeid: ua.NodeId, body: Buffer) -> list[int]:
+    """The subscription ids a request acts on, read from a copy of its body (asyncua checks
+    none of them against the session that asks)."""
+    peek = body.copy()
+    try:
+        if typeid in ONE_SUBSCRIPTION:
+            return [struct.unpack("<I", peek.read(4))[0]]
+        if typeid == SET_PUBLISHING_MODE:
+            peek.skip(1)  # PublishingEnabled
+        elif typeid != DELETE_SUBSCRIPTIONS:
+            return []
+        (count,) = struct.unpack("<i", peek.read(4))
+        return [struct.unpack("<I", peek.read(4))[0] for _ in range(max(0, count))]
+    except Exception:  # a truncated request: asyncua's own decoding refuses it
+        return []
 
 
 def operations_in(typeid: ua.NodeId, body: Buffer) -> int:
@@ -167,6 +204,11 @@ def harden(
         if operations_in(typeid, body) > MAX_OPERATIONS:
             raise ServiceError(ua.StatusCodes.BadTooManyOperations)
         session = processor.session
+        named = subscriptions_named(typeid, body)
+        if named and session is not None:
+            own = {s.data.SubscriptionId for s in _subscriptions_of(iserver, session)}
+            if any(n not in own for n in named):
+                raise ServiceError(ua.StatusCodes.BadSubscriptionIdInvalid)
         if typeid == CREATE_SESSION:
             if session is not None:  # one session per connection: the earlier one ends
                 processor.session = None

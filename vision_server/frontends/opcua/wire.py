@@ -7,7 +7,9 @@ the byte stream shows, before asyncua sees a byte:
 - every OPC UA chunk header (message type, chunk type, size) is checked as it arrives: an
   unknown message type or a chunk larger than the receive buffer the server offers closes the
   connection at once, so no client holds more than one chunk of unparsed bytes (asyncua itself
-  would buffer whatever a header claims);
+  would buffer whatever a header claims); until its session is activated a connection sends
+  single-chunk messages only, at most two OpenSecureChannel messages of at most 16 KiB (each is
+  decrypted with the server's private key before anything can look at it);
 - each complete chunk is a sign of life: the clock's deadline moves on, to the request timeout
   until a session is activated (:data:`~.access.SIGNED_IN`), to the idle timeout after;
 - a client that sends requests faster than asyncua answers them is read no further while
@@ -34,6 +36,12 @@ log = logging.getLogger("vision_server")
 HEADER_BYTES = 8
 MESSAGE_TYPES = frozenset({b"HEL", b"ACK", b"ERR", b"RHE", b"OPN", b"MSG", b"CLO"})
 CHUNK_TYPES = frozenset(b"FCA")
+MAX_OPEN_BYTES = 16 * 1024
+"""An OpenSecureChannel message is a certificate or two and a nonce: a few KiB. Each of its
+RSA blocks costs the server a private-key operation, so a large one is refused unread."""
+MAX_OPENS_BEFORE_SIGN_IN = 2
+"""OpenSecureChannel messages a connection may send before its session is activated (a
+channel's opening, and one retry); renewals come later, when it is signed in."""
 RESUME_CHECK_S = 0.005
 """How soon a paused connection looks again whether asyncua has taken its waiting chunks."""
 
@@ -65,6 +73,7 @@ class Guarded(asyncio.Protocol):
         self._head = b""
         self._left = 0
         self._closed = False
+        self._opens = 0
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
@@ -140,6 +149,9 @@ class Guarded(asyncio.Protocol):
                         f"a chunk of {length} bytes (at most {self.max_chunk_bytes}, the receive "
                         "buffer the server offers)"
                     )
+                problem = self._before_sign_in(kind, chunk, length)
+                if problem is not None:
+                    return problem
                 self._left = length - HEADER_BYTES
                 if self._left == 0:
                     self._chunk_done()
@@ -149,6 +161,24 @@ class Guarded(asyncio.Protocol):
                 at += take
                 if self._left == 0:
                     self._chunk_done()
+        return None
+
+    def _before_sign_in(self, kind: bytes, chunk: int, length: int) -> str | None:
+        """What a connection may not send before its session is activated: asyncua decodes
+        (and for OpenSecureChannel, RSA-decrypts) a whole message before anything can look at
+        it, so a stranger's messages are kept to one chunk, and its channel opening small and
+        rare."""
+        if kind == b"OPN":
+            self._opens += 1
+            if length > MAX_OPEN_BYTES:
+                return f"an OpenSecureChannel of {length} bytes (at most {MAX_OPEN_BYTES})"
+        clock = self.clock_of(self.transport)
+        if clock is not None and clock.signed_in:
+            return None
+        if kind == b"OPN" and self._opens > MAX_OPENS_BEFORE_SIGN_IN:
+            return "OpenSecureChannel again before signing in"
+        if chunk == ord("C"):
+            return "a message of several chunks before signing in"
         return None
 
     def _chunk_done(self) -> None:
