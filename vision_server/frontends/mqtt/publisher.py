@@ -50,6 +50,9 @@ from .topics import Topics
 log = logging.getLogger("vision_server.mqtt")
 
 LOG_INTERVAL_S = 60.0
+STABLE_S = 10.0
+"""How long a connection must have lasted for the next reconnect to start from the shortest
+wait again."""
 """A repeated trouble (the broker still away, rows still dropped) is logged at most this often."""
 STOP_DRAIN_S = 2.0
 """At a stop, how long rows in flight may wait for their PUBACKs before the disconnect."""
@@ -82,6 +85,10 @@ class MqttPublisher:
         self._unsubscribe: Callable[[], None] | None = None
         self._drain_s = STOP_DRAIN_S
         self._logged: dict[str, float] = {}
+        self._up_since = 0.0
+        """When (monotonic s) the connection came up last."""
+        self._last_lost: str | None = None
+        """The last loss's words: a new kind is logged at once, the same one once a minute."""
         self._dropped_unlogged = 0
 
     @property
@@ -207,7 +214,10 @@ class MqttPublisher:
                 self._lost(exc, was_connected=self.connects != before)
             else:
                 return  # stopped cleanly
-            if self.connects != before:  # it was up: the first retry comes soon
+            up_for = time.monotonic() - self._up_since
+            if self.connects != before and up_for >= STABLE_S:
+                # It was up a while: the first retry comes soon. A broker that takes each
+                # connection and drops it at once keeps the back-off growing instead.
                 delay = self.settings.reconnect_min_s
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(delay):
@@ -246,8 +256,10 @@ class MqttPublisher:
         async with self._client(connected_at) as client:
             self.connected = True
             self.connects += 1
+            self._up_since = time.monotonic()
             self.last_error = None
-            self._logged.pop("lost", None)
+            # The log's rate limit is kept: a flapping broker logs once a minute, not once
+            # a connection.
             log.info("MQTT: connected to %s as %s", self.broker, self.settings.identifier)
             # Watches the connection from now on: aiomqtt's publish does not end when the
             # connection does (it would wait for its timeout).
@@ -341,8 +353,8 @@ class MqttPublisher:
             level = logging.WARNING
         if was:
             text = f"lost the connection to the broker {self.broker}: {exc}"
-        changed = text != self.last_error
-        self.last_error = text
+        changed = text != self._last_lost
+        self.last_error = self._last_lost = text
         waiting = self.outbox.rows if self.outbox is not None else 0
         if changed:
             self._logged.pop("lost", None)
