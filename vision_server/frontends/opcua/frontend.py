@@ -38,7 +38,7 @@ from asyncua.crypto import security_policies
 from asyncua.server.binary_server_asyncio import BinaryServer
 from asyncua.ua.status_codes import StatusCodes
 
-from protocol import CellvisionError, ConfigInvalid, ErrorCode, UnknownInspection
+from protocol import CellvisionError, ConfigInvalid, ErrorCode
 from protocol.cli import is_loopback
 
 from ...config import OpcUaSettings, ServerSettings
@@ -47,24 +47,24 @@ from ...service import InspectionService, InspectReply, InspectRequest
 from ..listener import Listener, Policy, quiet_logger
 from .access import CALLER, AccessDenied, Rights, SignIns, note_x509_users, require
 from .hardening import NONE_URI, advertise_limits, harden, harden_server
+from .job import Job
 from .model import (
     MV,
     VisionNodes,
     build,
+    int32,
     load_nodeset,
     now_utc,
-    recipe_id,
-    result_data,
+    status,
     text_id,
 )
 from .pki import Pki, PkiError, TrustList
+from .queries import Queries
 from .results import (
     RESULT_ABORTED,
     RESULT_COMPLETED,
     RESULT_FAILED,
-    RESULT_PROCESSING,
     JobResult,
-    ResultFilter,
     ResultRing,
 )
 from .states import InvalidState, Machines
@@ -84,9 +84,6 @@ REFRESH_S = 1.0
 """How often the configuration's identity, SystemState and Health are brought up to date."""
 BACKSTOP_S = 5.0
 """How long Abort, Halt or a stop wait for a job's own end once its inspection is cancelled."""
-MAX_PAGE = 100
-"""Results (or recipes) one list answer holds at most, whatever MaxResults asks (0: no
-bound, by the specification): a page of a thousand results could outgrow a message."""
 POLICIES = {
     "Basic256Sha256": (
         ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
@@ -108,14 +105,6 @@ ERROR_STATUS = {
 }
 
 
-def _status(code: int) -> ua.StatusCode:
-    return ua.StatusCode(code)
-
-
-def _int32(value: int) -> ua.Variant:
-    return ua.Variant(value, ua.VariantType.Int32)
-
-
 class OpcUaFrontend:
     """Serves OPC UA clients with ``service`` on ``settings.host``:``settings.port``."""
 
@@ -127,8 +116,12 @@ class OpcUaFrontend:
         self.server_settings = server
         self.machines = Machines()
         self.results = ResultRing(settings.results_kept)
-        self.prepared: str | None = None
-        """The recipe (inspection) prepared with PrepareRecipe: the default of StartSingleJob."""
+        self.queries = Queries(
+            service,
+            self.results,
+            current=lambda: self._current,
+            loaded_at=lambda: self._loaded_at,
+        )
         self.listener: Listener | None = None
         self.nodes: VisionNodes | None = None
         self._ua: Server | None = None
@@ -328,15 +321,15 @@ class OpcUaFrontend:
             "Abort": ("operator", self._abort),
             "Halt": ("integrator", self._halt),
             "Reset": ("integrator", self._reset),
-            "GetRecipeListFiltered": ("operator", self._recipe_list),
-            "PrepareRecipe": ("integrator", self._prepare_recipe),
-            "UnprepareRecipe": ("integrator", self._unprepare_recipe),
-            "GetResultById": ("operator", self._result_by_id),
-            "GetResultComponentsById": ("operator", self._result_components),
-            "GetResultListFiltered": ("operator", self._result_list),
-            "GetConfigurationList": ("operator", self._configuration_list),
-            "GetConfigurationById": ("operator", self._configuration_by_id),
-            "ActivateConfiguration": ("integrator", self._activate_configuration),
+            "GetRecipeListFiltered": ("operator", self.queries.recipe_list),
+            "PrepareRecipe": ("integrator", self.queries.prepare_recipe),
+            "UnprepareRecipe": ("integrator", self.queries.unprepare_recipe),
+            "GetResultById": ("operator", self.queries.result_by_id),
+            "GetResultComponentsById": ("operator", self.queries.result_components),
+            "GetResultListFiltered": ("operator", self.queries.result_list),
+            "GetConfigurationList": ("operator", self.queries.configuration_list),
+            "GetConfigurationById": ("operator", self.queries.configuration_by_id),
+            "ActivateConfiguration": ("integrator", self.queries.activate_configuration),
         }
         for name, (role, handler) in handlers.items():
             server.link_method(nodes.methods[name], self._guarded(name, role, handler))
@@ -354,33 +347,21 @@ class OpcUaFrontend:
                 return await handler(*values)
             except AccessDenied as exc:
                 log.info("OPC UA: %s", exc)
-                return _status(StatusCodes.BadUserAccessDenied)
+                return status(StatusCodes.BadUserAccessDenied)
             except InvalidState as exc:
                 log.info("OPC UA: %s", exc)
-                return _status(StatusCodes.BadInvalidState)
+                return status(StatusCodes.BadInvalidState)
             except CellvisionError as exc:
                 log.info("OPC UA %s: %s: %s", name, exc.code.name, exc.message)
-                return _status(ERROR_STATUS.get(exc.code, StatusCodes.BadInvalidArgument))
+                return status(ERROR_STATUS.get(exc.code, StatusCodes.BadInvalidArgument))
             except (TypeError, ValueError, AttributeError) as exc:
                 log.info("OPC UA %s: bad arguments: %s", name, exc)
-                return _status(StatusCodes.BadInvalidArgument)
+                return status(StatusCodes.BadInvalidArgument)
             except Exception:
                 log.exception("OPC UA %s failed", name)
-                return _status(StatusCodes.BadInternalError)
+                return status(StatusCodes.BadInternalError)
 
         return call
-
-    def _recipe_or_prepared(self, given: str) -> str:
-        name = given or self.prepared or ""
-        inspections = self.service.catalog.inspections
-        if not name:
-            raise UnknownInspection(
-                "no RecipeId given and no recipe prepared: name an inspection",
-            )
-        if name not in inspections:
-            known = ", ".join(sorted(inspections)) or "none"
-            raise UnknownInspection(f"no inspection {name!r}; recipes: {known}")
-        return name
 
     async def _start_single_job(
         self,
@@ -412,7 +393,7 @@ class OpcUaFrontend:
                 "Parameters are not supported: give none (an inspection's "
                 "parameters are its configuration's)"
             )
-        name = self._recipe_or_prepared(text_id(recipe))
+        name = self.queries.recipe_or_prepared(text_id(recipe))
         meas_id, part_id, product_id = text_id(meas), text_id(part), text_id(product)
         async with self._lock:
             moves = self.machines.start_continuous() if continuous else self.machines.start_single()
@@ -422,7 +403,7 @@ class OpcUaFrontend:
             self._current = job
             job.task = asyncio.get_running_loop().create_task(self._execute(job, continuous))
             await self._mirror(moves)
-        return [ua.Variant(MV.JobIdDataType(Id=job.job_id)), _int32(0)]
+        return [ua.Variant(MV.JobIdDataType(Id=job.job_id)), int32(0)]
 
     async def _stop_job(
         self, cause: Any = None, description: Any = None, *extra: Any
@@ -438,7 +419,7 @@ class OpcUaFrontend:
                     f"Stop needs a job running; the vision system is {self.machines.describe()}"
                 )
             job.stop_requested = True
-        return [_int32(0)]
+        return [int32(0)]
 
     async def _abort(
         self, cause: Any = None, description: Any = None, *extra: Any
@@ -460,7 +441,7 @@ class OpcUaFrontend:
         await self._end(job)
         async with self._lock:
             await self._mirror(moves)
-        return [_int32(0)]
+        return [int32(0)]
 
     async def _end(self, job: Job | None) -> None:
         """Give up ``job`` at once: its running inspection is cancelled (its result kept as
@@ -482,7 +463,7 @@ class OpcUaFrontend:
             moves = self.machines.reset()
             moves += self.machines.become_operational(automatic=True)
             await self._mirror(moves)
-        return [_int32(0)]
+        return [int32(0)]
 
     # ------------------------------------------------------------------ jobs
 
@@ -587,7 +568,7 @@ class OpcUaFrontend:
             product_id=job.product_id,
             passed=bool(outcome.get("passed", False)),
             data=outcome.get("data") or {},
-            camera=outcome.get("camera") or self._camera_of(job.recipe),
+            camera=outcome.get("camera") or self.queries.camera_of(job.recipe),
             error_code=outcome.get("error_code", ""),
             error_message=outcome.get("error_message", ""),
             compute_ms=float(outcome.get("compute_ms", 0.0)),
@@ -600,188 +581,6 @@ class OpcUaFrontend:
                 await self.nodes.announce(result)
             except Exception:  # the result is kept; a client can still read it by id
                 log.exception("OPC UA: announcing result %s failed", result_id)
-
-    def _camera_of(self, recipe: str) -> str:
-        """The camera of an inspection that ended without a reply (a failed run)."""
-        inspection = self.service.catalog.inspections.get(recipe)
-        return "" if inspection is None else str(inspection.camera)
-
-    # ------------------------------------------------------------------ recipes
-
-    async def _recipe_list(
-        self,
-        external: Any = None,
-        product: Any = None,
-        prepared: Any = None,
-        most: Any = 0,
-        start: Any = 0,
-        wait_ms: Any = 0,
-        *extra: Any,
-    ) -> list[ua.Variant]:
-        wanted = text_id(external)
-        catalog = self.service.catalog
-        names = [n for n in catalog.inspections if not wanted or n == wanted]
-        first = max(0, int(start or 0))
-        count = min(int(most or 0) or MAX_PAGE, MAX_PAGE)
-        page = names[first : first + count]
-        complete = first + len(page) >= len(names)
-        listed = [recipe_id(n, catalog.config_hash) for n in page]
-        return [
-            ua.Variant(complete, ua.VariantType.Boolean),
-            ua.Variant(len(listed), ua.VariantType.UInt32),  # the list's length (§7.3.2.2)
-            ua.Variant(0, ua.VariantType.UInt32),
-            ua.Variant(listed, ua.VariantType.ExtensionObject),
-            _int32(0),
-        ]
-
-    async def _prepare_recipe(
-        self, external: Any = None, internal: Any = None, *extra: Any
-    ) -> list[ua.Variant]:
-        name = self._recipe_or_prepared(text_id(external) or text_id(internal))
-        self.prepared = name
-        return [
-            ua.Variant(recipe_id(name, self.service.catalog.config_hash)),
-            ua.Variant(True, ua.VariantType.Boolean),
-            _int32(0),
-        ]
-
-    async def _unprepare_recipe(
-        self, external: Any = None, internal: Any = None, *extra: Any
-    ) -> list[ua.Variant]:
-        name = text_id(external) or text_id(internal)
-        if name and name == self.prepared:
-            self.prepared = None
-        return [ua.Variant(recipe_id(name, self.service.catalog.config_hash)), _int32(0)]
-
-    # ------------------------------------------------------------------ results
-
-    def _lookup(self, result_id: str) -> JobResult | None:
-        """The result kept under ``result_id``; for the single job running now, its result so
-        far (ResultState 2, Processing). OPC 40100-1's Timeout argument says how long the
-        client will need the result, not how long to wait: the answer comes at once."""
-        found = self.results.get(result_id)
-        job = self._current
-        if found is not None or job is None or job.job_id != result_id:
-            return found
-        now = now_utc()
-        return JobResult(
-            result_id=job.job_id,
-            job_id=job.job_id,
-            recipe=job.recipe,
-            config_hash=self.service.catalog.config_hash,
-            state=RESULT_PROCESSING,
-            started=job.started,
-            ended=now,
-            meas_id=job.meas_id,
-            part_id=job.part_id,
-            product_id=job.product_id,
-            camera=self._camera_of(job.recipe),
-        )
-
-    async def _result_by_id(self, result: Any = None, wait_ms: Any = 0, *extra: Any) -> Any:
-        found = self._lookup(text_id(result))
-        if found is None:
-            return _status(StatusCodes.BadNotFound)
-        return [ua.Variant(0, ua.VariantType.UInt32), ua.Variant(result_data(found)), _int32(0)]
-
-    async def _result_components(self, result: Any = None, wait_ms: Any = 0, *extra: Any) -> Any:
-        found = self._lookup(text_id(result))
-        if found is None:
-            return _status(StatusCodes.BadNotFound)
-        data = result_data(found)
-        return [
-            ua.Variant(False, ua.VariantType.Boolean),
-            ua.Variant(0, ua.VariantType.UInt32),
-            ua.Variant(False, ua.VariantType.Boolean),
-            ua.Variant(False, ua.VariantType.Boolean),
-            _int32(found.state),
-            ua.Variant(data.MeasId or MV.MeasIdDataType(Id="")),
-            ua.Variant(data.PartId or MV.PartIdDataType(Id="")),
-            ua.Variant(data.ExternalRecipeId),
-            ua.Variant(data.InternalRecipeId),
-            ua.Variant(data.ProductId or MV.ProductIdDataType(Id="")),
-            ua.Variant(None, ua.VariantType.ExtensionObject),  # no external configuration id
-            ua.Variant(data.InternalConfigurationId),
-            ua.Variant(data.JobId),
-            ua.Variant(data.CreationTime, ua.VariantType.DateTime),
-            ua.Variant(data.ProcessingTimes),
-            ua.Variant(data.ResultContent, ua.VariantType.Variant),
-            _int32(0),
-        ]
-
-    async def _result_list(
-        self,
-        state: Any = 0,
-        meas: Any = None,
-        part: Any = None,
-        external: Any = None,
-        internal: Any = None,
-        external_config: Any = None,
-        internal_config: Any = None,
-        product: Any = None,
-        job: Any = None,
-        most: Any = 0,
-        start: Any = 0,
-        wait_ms: Any = 0,
-        *extra: Any,
-    ) -> list[ua.Variant]:
-        criteria = ResultFilter(
-            state=int(state or 0),
-            meas_id=text_id(meas),
-            part_id=text_id(part),
-            recipe=text_id(external) or text_id(internal),
-            config_hash=text_id(internal_config) or text_id(external_config),
-            product_id=text_id(product),
-            job_id=text_id(job),
-        )
-        asked = max(0, int(most or 0))
-        page, _total, complete = self.results.filtered(
-            criteria, start=max(0, int(start or 0)), most=min(asked or MAX_PAGE, MAX_PAGE)
-        )
-        return [
-            ua.Variant(complete, ua.VariantType.Boolean),
-            ua.Variant(len(page), ua.VariantType.UInt32),  # the list's length (Table 70)
-            ua.Variant(0, ua.VariantType.UInt32),
-            ua.Variant([result_data(r) for r in page], ua.VariantType.ExtensionObject),
-            _int32(0),
-        ]
-
-    # ------------------------------------------------------------------ configuration
-
-    def _configuration(self) -> Any:
-        return MV.ConfigurationDataType(
-            HasTransferableDataOnFile=False,
-            InternalId=MV.ConfigurationIdDataType(
-                Id=self.service.catalog.config_hash, Version=self.service.catalog.config_hash
-            ),
-            LastModified=self._loaded_at,
-        )
-
-    async def _configuration_list(
-        self, most: Any = 0, start: Any = 0, wait_ms: Any = 0, *extra: Any
-    ) -> list[ua.Variant]:
-        listed = [self._configuration()] if int(start or 0) == 0 else []
-        return [
-            ua.Variant(True, ua.VariantType.Boolean),
-            ua.Variant(1, ua.VariantType.UInt32),
-            ua.Variant(0, ua.VariantType.UInt32),
-            ua.Variant(listed, ua.VariantType.ExtensionObject),
-            _int32(0),
-        ]
-
-    async def _configuration_by_id(
-        self, internal: Any = None, wait_ms: Any = 0, *extra: Any
-    ) -> Any:
-        if text_id(internal) != self.service.catalog.config_hash:
-            return _status(StatusCodes.BadNotFound)
-        return [ua.Variant(0, ua.VariantType.UInt32), ua.Variant(self._configuration()), _int32(0)]
-
-    async def _activate_configuration(self, internal: Any = None, *extra: Any) -> Any:
-        # The configuration served is the file's (reloaded by the console, RELOAD or SIGHUP):
-        # only it can be "activated", which changes nothing.
-        if text_id(internal) != self.service.catalog.config_hash:
-            return _status(StatusCodes.BadNotFound)
-        return [_int32(0)]
 
     # ------------------------------------------------------------------ mirror
 
@@ -849,29 +648,6 @@ class OpcUaFrontend:
                 await self._refresh()
             except Exception:
                 log.exception("OPC UA: refreshing the configuration's identity failed")
-
-
-class Job:
-    """One StartSingleJob or StartContinuous: what it runs and what the client called it."""
-
-    def __init__(
-        self, job_id: str, recipe: str, meas_id: str, part_id: str, product_id: str, user: str
-    ) -> None:
-        self.job_id = job_id
-        self.recipe = recipe
-        self.meas_id = meas_id
-        self.part_id = part_id
-        self.product_id = product_id
-        self.user = user
-        self.started = now_utc()
-        self.task: asyncio.Task[None] | None = None
-        self.run: asyncio.Task[InspectReply] | None = None
-        """The inspection running now: what Abort, Halt and a stop cancel."""
-        self.stop_requested = False
-        self.aborted = False
-        """Ended by Abort, Halt, an internal error or the server's stop: the mode was moved
-        (or left) by whoever ended it."""
-        self.done = asyncio.Event()
 
 
 __all__ = ["FRONTEND", "OpcUaFrontend"]

@@ -442,6 +442,16 @@ def result_data(result: JobResult) -> Any:
     )
 
 
+def status(code: int) -> ua.StatusCode:
+    """A method's answer that is an OPC UA status (asyncua sends it as the call's status)."""
+    return ua.StatusCode(code)
+
+
+def int32(value: int) -> ua.Variant:
+    """An Int32 output argument (a method's ``Error``)."""
+    return ua.Variant(value, ua.VariantType.Int32)
+
+
 def now_utc() -> datetime:
     return datetime.now(UTC)
 
@@ -456,8 +466,10 @@ __all__ = [
     "build",
     "configuration_id",
     "load_nodeset",
+    "int32",
     "now_utc",
     "recipe_id",
     "result_data",
+    "status",
     "text_id",
 ]
