@@ -19,6 +19,8 @@ from loopback import run
 from opcua_cell import client_certificate, serving, signed_in, write_cell
 
 from vision_server.frontends.opcua.hardening import (
+    MAX_EVENT_ITEMS,
+    MAX_ITEM_QUEUE,
     MAX_MONITORED_ITEMS,
     MAX_OPERATIONS,
     MAX_SUBSCRIPTIONS,
@@ -217,7 +219,12 @@ def test_notification_queues_and_publishing_intervals_are_bounded(tmp_path: Path
                     vision.system, ua.NodeId(1024, vision.mv), queuesize=0
                 )
                 items = internal.monitored_item_srv._monitored_items
-                assert all(item.queue_size <= 10 for item in items.values())
+                assert all(item.queue_size <= MAX_ITEM_QUEUE for item in items.values())
+                for _ in range(MAX_EVENT_ITEMS - 1):  # one is held already
+                    await subscription.subscribe_events(vision.system, ua.NodeId(1024, vision.mv))
+                with pytest.raises(UaStatusCodeError) as events:
+                    await subscription.subscribe_events(vision.system, ua.NodeId(1024, vision.mv))
+                assert events.value.code == ua.StatusCodes.BadTooManyMonitoredItems
                 request = ua.ModifyMonitoredItemsRequest()
                 request.Parameters.SubscriptionId = revised
                 change = ua.MonitoredItemModifyRequest()

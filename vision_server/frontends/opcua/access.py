@@ -127,13 +127,15 @@ class SignIns:
         X509_USER.set(None)
         if username is not None:
             user = self._by_password(username, password or "")
-            how = f"user {username!r}"
+            known = username.casefold() in self.tokens or username.casefold() in self.users
+            why = "wrong password" if known else "no such user"
+            how = f"user {username!r} ({why})"
         elif token_certificate is not None:
             user = self._by_certificate(token_certificate)
-            how = "a user certificate"
+            how = "a user certificate (not in opcua: certificate_users)"
         else:
             user = CellUser(UserRole.User, "anonymous", "operator") if self.anonymous else None
-            how = "anonymous"
+            how = "anonymous (opcua: anonymous is off)"
         if user is None:
             delay = self.door.auth_failed(peer or "unknown")
             self._blocked[host] = now + delay

@@ -24,7 +24,8 @@ made (:func:`harden`), and the internal server once (:func:`harden_server`):
   TranslateBrowsePaths, RegisterNodes, CreateMonitoredItems, ...), counted from the array's
   length before the request is decoded (BadTooManyOperations); the server's OperationLimits say
   so. Subscriptions per session are at most :data:`MAX_SUBSCRIPTIONS`, monitored items per
-  session :data:`MAX_MONITORED_ITEMS`, each keeping at most :data:`MAX_ITEM_QUEUE` unfetched
+  session :data:`MAX_MONITORED_ITEMS` (:data:`MAX_EVENT_ITEMS` of them on events), each
+  keeping at most :data:`MAX_ITEM_QUEUE` unfetched
   notifications; a subscription publishes at least every :data:`MAX_PUBLISHING_INTERVAL_MS`;
   ModifyMonitoredItems is refused (asyncua grants any queue size it asks for).
 """
@@ -38,7 +39,7 @@ from typing import Any
 
 from asyncua import ua
 from asyncua.common.utils import Buffer, ServiceError
-from asyncua.ua.ua_binary import nodeid_from_binary, uatcp_to_binary
+from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, uatcp_to_binary
 
 log = logging.getLogger("vision_server")
 
@@ -50,10 +51,13 @@ MAX_SUBSCRIPTIONS = 10
 """Subscriptions one session may hold (asyncua's own bound, 1000, is for the whole server)."""
 MAX_MONITORED_ITEMS = 100
 """Monitored items one session may hold over its subscriptions."""
-MAX_ITEM_QUEUE = 10
+MAX_ITEM_QUEUE = 100
 """Notifications one monitored item keeps for a client that has not fetched them (asyncua:
 10,000, and a client may ask for "no bound"): with a publishing interval of days, a session
-with 1000 event items kept 3 MB per result."""
+with 1000 event items kept 3 MB per result. 100 holds a continuous job's results between two
+publishes of a client that publishes every second or faster."""
+MAX_EVENT_ITEMS = 10
+"""Event monitored items one session may hold (each queues copies of every result event)."""
 MAX_UNACKNOWLEDGED = 100
 """Notification messages kept per subscription for a client that does not acknowledge them."""
 MAX_PUBLISHING_INTERVAL_MS = 10_000.0
@@ -200,6 +204,11 @@ def harden(
             raise ServiceError(refused)
         unsecured = processor._connection.security_policy.URI == NONE_URI
         if unsecured and not sessions_without_security and typeid not in DISCOVERY:
+            log.info(
+                "OPC UA: a request from %s over a None channel refused (only discovery is "
+                "served without security)",
+                peer,
+            )
             raise ServiceError(ua.StatusCodes.BadSecurityModeRejected)
         if operations_in(typeid, body) > MAX_OPERATIONS:
             raise ServiceError(ua.StatusCodes.BadTooManyOperations)
@@ -223,8 +232,12 @@ def harden(
             if len(held) >= MAX_SUBSCRIPTIONS:
                 raise ServiceError(ua.StatusCodes.BadTooManySubscriptions)
         elif typeid == CREATE_MONITORED_ITEMS and session is not None:
-            items = sum(_item_count(s) for s in _subscriptions_of(iserver, session))
+            held = _subscriptions_of(iserver, session)
+            items = sum(_item_count(s) for s in held)
             if items + operations_in(typeid, body) > MAX_MONITORED_ITEMS:
+                raise ServiceError(ua.StatusCodes.BadTooManyMonitoredItems)
+            events = sum(_event_item_count(s) for s in held) + _events_asked(body)
+            if events > MAX_EVENT_ITEMS:
                 raise ServiceError(ua.StatusCodes.BadTooManyMonitoredItems)
         return await process_message(typeid, requesthdr, seqhdr, body)
 
@@ -248,6 +261,25 @@ def _first_certificate(algohdr: Any) -> bytes | None:
 def _subscriptions_of(iserver: Any, session: Any) -> list[Any]:
     subscriptions = iserver.subscription_service.subscriptions.values()
     return [s for s in subscriptions if s.session_id == session.session_id]
+
+
+def _event_item_count(subscription: Any) -> int:
+    items = getattr(subscription.monitored_item_srv, "_monitored_items", {}).values()
+    return sum(1 for item in items if _is_event(item.read_value_id))
+
+
+def _is_event(read_value_id: Any) -> bool:
+    return bool(read_value_id.AttributeId == ua.AttributeIds.EventNotifier)
+
+
+def _events_asked(body: Buffer) -> int:
+    """How many event items a CreateMonitoredItems asks for (decoded from a copy: the request
+    names at most MAX_OPERATIONS items, checked before)."""
+    try:
+        params = struct_from_binary(ua.CreateMonitoredItemsParameters, body.copy())
+    except Exception:  # a request asyncua's own decoding will refuse
+        return 0
+    return sum(1 for item in params.ItemsToCreate if _is_event(item.ItemToMonitor))
 
 
 def _item_count(subscription: Any) -> int:
