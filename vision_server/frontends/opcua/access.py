@@ -36,9 +36,12 @@ from cryptography import x509
 
 from ...config import OpcUaSettings, ServerSettings, users_by_name
 from ...service import FrontDoor, failure_key, peer_host
+from ..listener import quiet_logger
 from .pki import load_certificate_file, same_certificate
 
 log = logging.getLogger("vision_server")
+refusals = quiet_logger("vision_server.opcua.refusals")
+"""Refusals a stranger can repeat at will: logged once per interval, with a count."""
 
 ROLE_RANK = {"operator": 0, "integrator": 1, "admin": 2}
 PEER: contextvars.ContextVar[str] = contextvars.ContextVar("opcua_peer", default="")
@@ -121,7 +124,7 @@ class SignIns:
         host = failure_key(peer_host(peer)) if peer else "unknown"
         now = self._clock()
         if self._blocked.get(host, 0.0) > now:
-            log.info("OPC UA: a sign-in from %s refused unchecked (failed sign-ins)", peer)
+            refusals.info("OPC UA: a sign-in from %s refused unchecked (failed sign-ins)", peer)
             return None
         token_certificate = X509_USER.get()
         X509_USER.set(None)
@@ -142,7 +145,7 @@ class SignIns:
             self._blocked.move_to_end(host)
             while len(self._blocked) > MAX_BLOCKED_HOSTS:
                 self._blocked.popitem(last=False)
-            log.warning("OPC UA: sign-in as %s from %s refused", how, peer or "?")
+            refusals.warning("OPC UA: sign-in as %s from %s refused", how, peer or "?")
             return None
         signed_in = SIGNED_IN.get()
         if signed_in is not None:

@@ -41,7 +41,11 @@ from asyncua import ua
 from asyncua.common.utils import Buffer, ServiceError
 from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, uatcp_to_binary
 
+from ..listener import quiet_logger
+
 log = logging.getLogger("vision_server")
+refusals = quiet_logger("vision_server.opcua.refusals")
+"""Refused channels and requests: what a stranger's flood makes, logged once per interval."""
 
 MAX_OPERATIONS = 2000
 """Nodes (or calls, paths, items) one request may name."""
@@ -191,7 +195,7 @@ def harden(
             refusal = check_channel(algohdr.SecurityPolicyURI, _first_certificate(algohdr))
             if refusal is not None:
                 code, reason = refusal
-                log.info("OPC UA: a secure channel from %s refused: %s", peer, reason)
+                refusals.info("OPC UA: a secure channel from %s refused: %s", peer, reason)
                 error = ua.ErrorMessage(ua.StatusCode(code), reason)
                 processor._transport.write(uatcp_to_binary(ua.MessageType.Error, error))
                 processor._transport.close()
@@ -204,7 +208,7 @@ def harden(
             raise ServiceError(refused)
         unsecured = processor._connection.security_policy.URI == NONE_URI
         if unsecured and not sessions_without_security and typeid not in DISCOVERY:
-            log.info(
+            refusals.info(
                 "OPC UA: a request from %s over a None channel refused (only discovery is "
                 "served without security)",
                 peer,

@@ -38,7 +38,11 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from ..listener import quiet_logger
+
 log = logging.getLogger("vision_server")
+refusals = quiet_logger("vision_server.opcua.refusals")
+"""Refusals a stranger can repeat at will: logged once per interval, with a count."""
 
 CERTIFICATE_DAYS = 365
 """How long a certificate the server makes for itself is valid; it makes a new one a day
@@ -225,7 +229,7 @@ class TrustList:
             )
         if not self.trusted(certificate):
             self.pki.reject(certificate)
-            log.info(
+            refusals.info(
                 "OPC UA: refused an untrusted client (its certificate is now in %s; move it to "
                 "%s to trust it)",
                 self.pki.rejected,
