@@ -134,10 +134,6 @@ class Pki:
             and x509.UniformResourceIdentifier(application_uri) in names.value
         )
 
-    def thumbprint(self) -> str:
-        """The server certificate's SHA-1 thumbprint (what OPC UA tools show), hex."""
-        return hashlib.sha1(self.cert.read_bytes()).hexdigest()  # noqa: S324 (a name, not security)
-
     def reject(self, certificate: x509.Certificate) -> None:
         """Keep a refused client's certificate in ``rejected/`` (bounded in number)."""
         der = certificate.public_bytes(Encoding.DER)
