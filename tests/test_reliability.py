@@ -138,7 +138,11 @@ def test_quick_attack_soak_every_hole_of_issue_13(tmp_path: Path) -> None:
     assert logins.get("huge:413")
     assert logins.get("stalled:408")
     assert phases["line_before_token"]["ends"].get("ER 8 no A <token> within")
-    assert phases["unread_answers"]["ends"] == {"closed": phases["unread_answers"]["sent"] - 1}
+    # Dropped, each: with a FIN, or with a RST when the server dropped it while requests the
+    # client had sent were still unread on its side (the kernel resets such a close).
+    unread = phases["unread_answers"]["ends"]
+    assert set(unread) <= {"closed", "reset"}, unread
+    assert sum(unread.values()) == phases["unread_answers"]["sent"] - 1
     assert phases["modbus_idle"]["figures"]["plc_polls"] > 1
     # Wrong tokens answered slowly (the per-guess delays are checked by the script), the right
     # one at once.
