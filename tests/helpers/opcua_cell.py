@@ -103,6 +103,23 @@ async def client_certificate(folder: Path, uri: str = CLIENT_URI) -> tuple[Path,
     return cert, key
 
 
+RESULT_READY = 1024
+"""ResultReadyEventType's NodeId in OPC 40100-1's namespace."""
+
+
+class Events:
+    """ResultReadyEvents as asyncua's subscription hands them over."""
+
+    def __init__(self) -> None:
+        self.queue: asyncio.Queue[Any] = asyncio.Queue()
+
+    def event_notification(self, event: Any) -> None:
+        self.queue.put_nowait(event)
+
+    async def next(self) -> Any:
+        return await asyncio.wait_for(self.queue.get(), 15)
+
+
 @dataclass
 class Vision:
     """A signed-in client and the VisionSystem's nodes it uses."""
@@ -114,6 +131,13 @@ class Vision:
     states: Node
     automatic: Node
     results: Node
+
+    async def result_events(self, source: Node | None = None, interval_ms: float = 0) -> Events:
+        """ResultReadyEvents of ``source`` (default the VisionSystem), in a new subscription."""
+        events = Events()
+        subscription = await self.client.create_subscription(interval_ms, events)
+        await subscription.subscribe_events(source or self.system, ua.NodeId(RESULT_READY, self.mv))
+        return events
 
     async def state(self) -> tuple[str, str]:
         vision = await (await self.states.get_child("0:CurrentState")).read_value()

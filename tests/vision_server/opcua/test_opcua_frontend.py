@@ -25,21 +25,7 @@ from opcua_cell import (
     write_cell,
 )
 
-RESULT_READY = 1024
 NO_CAUSE = (ua.Variant(0, ua.VariantType.Int32), "")
-
-
-class Events:
-    """ResultReadyEvents as asyncua's subscription hands them over."""
-
-    def __init__(self) -> None:
-        self.queue: asyncio.Queue[Any] = asyncio.Queue()
-
-    def event_notification(self, event: Any) -> None:
-        self.queue.put_nowait(event)
-
-    async def next(self) -> Any:
-        return await asyncio.wait_for(self.queue.get(), 15)
 
 
 def content(result: Any) -> tuple[bool, dict[str, Any]]:
@@ -66,16 +52,9 @@ def test_a_job_and_its_result_over_each_security_policy(tmp_path: Path, policy: 
             assert app.opcua is not None
             async with signed_in(app.opcua.endpoint, certs, OPERATOR, policy) as vision:
                 assert await vision.state() == ("Operational", "Ready")
-                events = Events()
-                subscription = await vision.client.create_subscription(20, events)
-                await subscription.subscribe_events(
-                    vision.system, ua.NodeId(RESULT_READY, vision.mv)
-                )
-                at_server = Events()  # the root notifier sees every event too
-                root = await vision.client.create_subscription(20, at_server)
-                await root.subscribe_events(
-                    vision.client.nodes.server, ua.NodeId(RESULT_READY, vision.mv)
-                )
+                events = await vision.result_events(interval_ms=20)
+                # The root notifier sees every event too.
+                at_server = await vision.result_events(vision.client.nodes.server, 20)
                 job = await vision.start_job("bright", meas="m-1", part="p-1")
                 event = await events.next()
                 assert (await at_server.next()).ResultId.Id == job
@@ -345,11 +324,7 @@ def test_continuous_execution_until_stop_and_a_failed_run_ends_it(tmp_path: Path
         async with serving(path) as app:
             assert app.opcua is not None
             async with signed_in(app.opcua.endpoint, certs) as vision:
-                events = Events()
-                subscription = await vision.client.create_subscription(0, events)
-                await subscription.subscribe_events(
-                    vision.system, ua.NodeId(RESULT_READY, vision.mv)
-                )
+                events = await vision.result_events()
                 job = await vision.start_continuous("bright")
                 seen = [await events.next() for _ in range(3)]
                 assert [e.ResultId.Id for e in seen] == [f"{job}.1", f"{job}.2", f"{job}.3"]
@@ -414,11 +389,7 @@ def test_a_running_job_is_processing_and_abort_gives_it_up(tmp_path: Path) -> No
         async with serving(path) as app:
             assert app.opcua is not None
             async with signed_in(app.opcua.endpoint, certs) as vision:
-                events = Events()
-                subscription = await vision.client.create_subscription(0, events)
-                await subscription.subscribe_events(
-                    vision.system, ua.NodeId(RESULT_READY, vision.mv)
-                )
+                events = await vision.result_events()
                 job = await vision.start_job("bright")
                 _h, running, _e = await vision.results.call_method(
                     f"{vision.mv}:GetResultById",

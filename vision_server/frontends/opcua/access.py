@@ -36,12 +36,9 @@ from cryptography import x509
 
 from ...config import OpcUaSettings, ServerSettings, users_by_name
 from ...service import FrontDoor, failure_key, peer_host
-from ..listener import quiet_logger
-from .pki import load_certificate_file, same_certificate
+from .pki import load_certificate_file, refusals, same_certificate
 
 log = logging.getLogger("vision_server")
-refusals = quiet_logger("vision_server.opcua.refusals")
-"""Refusals a stranger can repeat at will: logged once per interval, with a count."""
 
 ROLE_RANK = {"operator": 0, "integrator": 1, "admin": 2}
 PEER: contextvars.ContextVar[str] = contextvars.ContextVar("opcua_peer", default="")

@@ -41,11 +41,9 @@ from asyncua import ua
 from asyncua.common.utils import Buffer, ServiceError
 from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, uatcp_to_binary
 
-from ..listener import quiet_logger
+from .pki import refusals
 
 log = logging.getLogger("vision_server")
-refusals = quiet_logger("vision_server.opcua.refusals")
-"""Refused channels and requests: what a stranger's flood makes, logged once per interval."""
 
 MAX_OPERATIONS = 2000
 """Nodes (or calls, paths, items) one request may name."""

@@ -42,7 +42,8 @@ from ..listener import quiet_logger
 
 log = logging.getLogger("vision_server")
 refusals = quiet_logger("vision_server.opcua.refusals")
-"""Refusals a stranger can repeat at will: logged once per interval, with a count."""
+"""Refusals a stranger can repeat at will (channels, requests over None, sign-ins, untrusted
+certificates), for every module of the front-end: logged once per interval, with a count."""
 
 CERTIFICATE_DAYS = 365
 """How long a certificate the server makes for itself is valid; it makes a new one a day
@@ -286,5 +287,6 @@ __all__ = [
     "PkiError",
     "TrustList",
     "load_certificate_file",
+    "refusals",
     "same_certificate",
 ]
