@@ -13,6 +13,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeAlias
 
+import numpy as np
+
 from .constants import BLOB_LENGTH, HEADER, HEADER_SIZE, MAGIC, MAX_U32
 from .errors import BadMetadata, CellvisionError, FrameTooLarge, MalformedFrame
 
@@ -311,6 +313,19 @@ SCRATCH_BYTES = 64 * 1024
 frames); a body is received straight into its own buffer."""
 
 
+UNZEROED_BODY_MIN = 64 * 1024
+"""A body of at least this many bytes gets memory that is not zeroed first (it is filled
+from the socket at once): zeroing an image-sized bytearray costs as much as reading it."""
+
+
+def new_body(size: int) -> bytearray | np.ndarray[Any, np.dtype[np.uint8]]:
+    """A writable buffer of ``size`` bytes for a frame body, every byte of which the caller
+    overwrites before it is read."""
+    if size < UNZEROED_BODY_MIN:
+        return bytearray(size)
+    return np.empty(size, dtype=np.uint8)
+
+
 class FrameDecoder:
     """Incremental frame parser: feed bytes, take complete frames.
 
@@ -342,7 +357,7 @@ class FrameDecoder:
         # Bytes received and not yet in a body: a header, or what follows a complete body.
         self._buffer = bytearray()
         self._header: Header | None = None
-        self._body: bytearray | None = None
+        self._body: bytearray | np.ndarray[Any, np.dtype[np.uint8]] | None = None
         self._filled = 0
         self._skip = 0
         self._scratch = bytearray(SCRATCH_BYTES)
@@ -527,7 +542,7 @@ class FrameDecoder:
     def _start_body(self, header: Header) -> None:
         """Give an admitted frame its body buffer, with the body bytes already received."""
         self._header = header
-        self._body = bytearray(header.body_length)
+        self._body = new_body(header.body_length)
         taken = min(len(self._buffer) - HEADER_SIZE, header.body_length)
         self._body[:taken] = memoryview(self._buffer)[HEADER_SIZE : HEADER_SIZE + taken]
         del self._buffer[: HEADER_SIZE + taken]

@@ -5,7 +5,8 @@ buffers (no intermediate ``bytes``, no join).
 Public API:
 
 - :class:`WireStream`: one connection; ``receive()`` (pulled by the owner: a body is read
-  into its buffer once the connection has admitted its header), ``pause_reading()`` /
+  into its buffer once the connection has admitted its header; ``interrupt()`` ends a wait
+  with :data:`INTERRUPTED`), ``pause_reading()`` /
   ``resume_reading()``, ``writelines(parts)`` / ``write``, ``drain()``, ``close()``,
   ``abort()``, ``wait_closed()``, ``get_extra_info()``, ``start_tls()``.
 - :func:`serve` (a listening server for ``loop.create_server``) and :func:`open_connection`.
@@ -16,6 +17,13 @@ Imports only :mod:`protocol` and asyncio; ``vision_server`` and ``robot_client``
 
 from .endpoints import open_connection, serve
 from .framing import FrameCursor
-from .stream import READ_BUFFER_BYTES, WireStream
+from .stream import INTERRUPTED, READ_BUFFER_BYTES, WireStream
 
-__all__ = ["READ_BUFFER_BYTES", "FrameCursor", "WireStream", "open_connection", "serve"]
+__all__ = [
+    "INTERRUPTED",
+    "READ_BUFFER_BYTES",
+    "FrameCursor",
+    "WireStream",
+    "open_connection",
+    "serve",
+]

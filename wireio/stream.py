@@ -15,9 +15,10 @@ bytes have come that the owner has not seen, and while the owner has paused it; 
 own flow control holds the peer back (backpressure).
 
 Sending takes a list of buffers (:meth:`Connection.send_parts`): nothing is joined. asyncio's
-plain socket transport of Python 3.11 joins in ``writelines``, so the parts are written one by
-one there (each is sent from the caller's memory; what the kernel does not take at once is
-copied into the transport's buffer, counted in :attr:`WireStream.write_copied_bytes`); the TLS
+plain socket transport of Python 3.11 joins in ``writelines``, so when its buffer is empty the
+parts go out in one ``writev`` from the caller's memory; what the kernel does not take at once
+is handed to the transport, which copies it into its buffer (counted in
+:attr:`WireStream.write_copied_bytes`). uvloop's transports gather the parts themselves; the TLS
 transport keeps the views until it has encrypted them.
 """
 
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import ssl
 from collections.abc import Awaitable, Callable, Iterable
 from typing import Any, cast
@@ -43,6 +45,10 @@ DIRECT_BODY_MIN = 64 * 1024
 """A body with more than this still to come is read straight into its own buffer (reading
 waits for the owner to admit its header first); a smaller rest comes with the reads between
 frames (and is copied on its way, as small frames are)."""
+IOV_MAX = 1024
+"""The most buffers one writev takes (Linux's IOV_MAX); a message has a handful."""
+INTERRUPTED = -1
+"""What :meth:`WireStream.receive` returns after :meth:`WireStream.interrupt`."""
 UNSEEN_BYTES_MAX = 256 * 1024
 """Reading between frames stops once this much has been read that the owner has not seen."""
 
@@ -70,6 +76,8 @@ class WireStream(asyncio.BufferedProtocol):
         self._on_connect = on_connect
         self._owner_task: asyncio.Task[None] | None = None
         self._transport: asyncio.Transport | None = None
+        self._fd = -1
+        """The socket's descriptor, for :meth:`_write_gathered` (-1: none)."""
         self._switching = False
         """True while start_tls swaps the transport: reading is not switched then."""
         self._cursor = FrameCursor()
@@ -79,6 +87,7 @@ class WireStream(asyncio.BufferedProtocol):
         self._fresh = 0
         """Bytes delivered to the connection that no receive() has returned yet."""
         self._eof = False
+        self._interrupted = False
         self._error: BaseException | None = None
         self._lost = False
         self._closed: asyncio.Future[None] = self._loop.create_future()
@@ -126,7 +135,8 @@ class WireStream(asyncio.BufferedProtocol):
 
     async def receive(self) -> int:
         """Wait until bytes from the peer have gone into the connection since the last call;
-        how many (0: the peer closed its side, and the connection has been told).
+        how many (0: the peer closed its side, and the connection has been told;
+        :data:`INTERRUPTED` after :meth:`interrupt`).
 
         Call it again only after ``next_event()`` returned ``NEED_DATA``: the stream reads a
         frame's body only once its header has been seen. Raises the OSError that broke the
@@ -135,6 +145,9 @@ class WireStream(asyncio.BufferedProtocol):
         if self._waiter is not None:
             raise RuntimeError("receive() is already being awaited on this stream")
         while True:
+            if self._interrupted:
+                self._interrupted = False
+                return INTERRUPTED
             if self._fresh:
                 fresh, self._fresh = self._fresh, 0
                 return fresh
@@ -152,6 +165,13 @@ class WireStream(asyncio.BufferedProtocol):
                 await waiter
             finally:
                 self._waiter = None
+
+    def interrupt(self) -> None:
+        """Make the pending :meth:`receive` (or the next one) return :data:`INTERRUPTED` at
+        once: the owner has something else to look at (shutdown, a changed timeout). Costs
+        nothing while the owner is not waiting; several calls before a receive count once."""
+        self._interrupted = True
+        self._wake()
 
     def pause_reading(self) -> None:
         """Read nothing more until :meth:`resume_reading` (TCP backpressure on the peer)."""
@@ -182,14 +202,37 @@ class WireStream(asyncio.BufferedProtocol):
                 self.on_write(view)
         self.sent_bytes += sum(len(view) for view in views)
         if type(transport).writelines is asyncio.WriteTransport.writelines:
-            # The base class joins the parts into one bytes object: write each instead. The
-            # transport sends from our buffer at once when its own buffer is empty.
-            for view in views:
-                before = transport.get_write_buffer_size()
-                transport.write(view)
-                self.write_copied_bytes += max(transport.get_write_buffer_size() - before, 0)
+            self._write_gathered(transport, views)
         else:
+            # uvloop's transports gather the parts in one writev; TLS keeps the views.
             transport.writelines(views)
+
+    def _write_gathered(self, transport: asyncio.Transport, views: list[memoryview]) -> None:
+        """Send ``views`` on asyncio's plain socket transport, whose ``writelines`` joins them
+        into one bytes object (Python 3.11). When its buffer is empty, one ``writev`` sends
+        the whole message from our buffers: one system call and one TCP segment train, not
+        one per part (with TCP_NODELAY each part was a wake-up of the peer: a PONG cost two).
+        What the kernel does not take goes through the transport, which copies it."""
+        fd = self._fd
+        if fd >= 0 and not transport.is_closing() and transport.get_write_buffer_size() == 0:
+            try:
+                sent = os.writev(fd, views[:IOV_MAX])
+            except (BlockingIOError, InterruptedError):
+                sent = 0
+            except OSError:
+                sent = 0  # the transport's own send meets the same error and reports it
+            for index, view in enumerate(views):
+                if sent >= len(view):
+                    sent -= len(view)
+                    continue
+                views = [view[sent:], *views[index + 1 :]]
+                break
+            else:
+                return
+        for view in views:
+            before = transport.get_write_buffer_size()
+            transport.write(view)
+            self.write_copied_bytes += max(transport.get_write_buffer_size() - before, 0)
 
     async def drain(self) -> None:
         """Wait until the transport's buffer is below its high-water mark; ConnectionResetError
@@ -266,6 +309,8 @@ class WireStream(asyncio.BufferedProtocol):
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = cast(asyncio.Transport, transport)
+        sock = transport.get_extra_info("socket")
+        self._fd = sock.fileno() if sock is not None else -1
         # Nothing is read until the owner asks. Over TLS, not at once: asyncio's TLS layer
         # (3.11) sends the handshake's last message after connection_made, and only when
         # reading is not paused (a client that waits for the server would hang the handshake).
@@ -396,6 +441,7 @@ class WireStream(asyncio.BufferedProtocol):
 
 __all__ = [
     "DIRECT_BODY_MIN",
+    "INTERRUPTED",
     "READ_BUFFER_BYTES",
     "UNSEEN_BYTES_MAX",
     "OnConnect",

@@ -72,7 +72,7 @@ from protocol import (
 )
 from protocol.constants import HEADER_SIZE, SUPPORTED_VERSIONS, MessageType
 from protocol.frames import Blob, Header, encode_metadata
-from wireio import WireStream, serve
+from wireio import INTERRUPTED, WireStream, serve
 
 from ..config import DEFAULT_LINE_PORT, SERVER_VERSION, TcpSettings, welcome_limits
 from ..results import ResultLogError
@@ -332,8 +332,6 @@ class TcpSession:
         self._reading_over = asyncio.Event()
         """Set once nothing more is read: the client sent CLOSE or ended its stream."""
         self._tasks: set[asyncio.Task[None]] = set()
-        self._tasks_done = asyncio.Event()
-        """Set when the last request task of the connection has finished."""
         self._frame_admission: Admission | None = None
         self._held: set[Admission] = set()
         # Admission that waits for a slot (see _admit and _wait_for_admission).
@@ -347,6 +345,7 @@ class TcpSession:
 
     def begin_shutdown(self) -> None:
         self._shutdown.set()
+        self.stream.interrupt()
 
     # ------------------------------------------------------------------ admission
 
@@ -507,50 +506,25 @@ class TcpSession:
         while True:
             # Backpressure: do not read more while the peer is not reading our answers.
             await self._drain()
-            read = asyncio.ensure_future(self.stream.receive())
-            stop = asyncio.ensure_future(self._shutdown.wait())
-            timeout, why = self._read_timeout()
-            waiters = {read, stop}
-            # With requests in flight there is no idle timeout; wake up when the last one is
-            # answered, so that a client that then goes silent is closed after idle_timeout_s.
-            woken: asyncio.Future[Any] | None = None
-            if timeout is None and self._tasks:
-                self._tasks_done.clear()
-                woken = asyncio.ensure_future(self._tasks_done.wait())
-                waiters.add(woken)
-            try:
-                done, _ = await asyncio.wait(
-                    waiters, timeout=timeout, return_when=asyncio.FIRST_COMPLETED
-                )
-            except asyncio.CancelledError:  # a request task failed: leave nothing pending
-                read.cancel()
-                stop.cancel()
-                if woken is not None:
-                    woken.cancel()
-                raise
-            if woken is not None:
-                woken.cancel()
-                if woken in done and read not in done and stop not in done:
-                    read.cancel()
-                    stop.cancel()
-                    with contextlib.suppress(asyncio.CancelledError, ConnectionError):
-                        await read
-                    continue
-            if read not in done:
-                read.cancel()
-                with contextlib.suppress(asyncio.CancelledError, ConnectionError):
-                    await read
-                if stop not in done:  # silent for too long
-                    stop.cancel()
-                    log.info("%s: %s; closing", self.peer, why)
-                    self._write(Close(reason=why))
-                    await self._drain()
-                    return False
+            if self._shutdown.is_set():
                 await self._shutdown_session()
                 return True
-            stop.cancel()
+            # One wait per read, woken by the peer's bytes, the clock, or interrupt() (on
+            # shutdown, and when the last request is answered: the idle timeout starts then,
+            # so a client that goes silent after its answers is closed after idle_timeout_s).
+            timeout, why = self._read_timeout()
+            try:
+                async with asyncio.timeout(timeout):
+                    got = await self.stream.receive()
+            except TimeoutError:
+                log.info("%s: %s; closing", self.peer, why)
+                self._write(Close(reason=why))
+                await self._drain()
+                return False
+            if got == INTERRUPTED:
+                continue
             # The bytes are in the connection already (read into its frame body).
-            if read.result() and self._frame_started is None:
+            if got and self._frame_started is None:
                 self._frame_started = time.monotonic()
             frame_ended = False
             while True:
@@ -653,7 +627,7 @@ class TcpSession:
     def _task_done(self, task: asyncio.Task[None]) -> None:
         self._tasks.discard(task)
         if not self._tasks:
-            self._tasks_done.set()
+            self.stream.interrupt()  # the read loop's idle timeout starts now
 
     def _token_ok(self, hello: Hello) -> bool:
         """Whether the HELLO carries the server's token, when it has one (constant-time)."""
