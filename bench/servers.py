@@ -285,6 +285,10 @@ def main() -> None:
     parser.add_argument("--config", type=Path, default=None)
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    if os.environ.get("UVL"):
+        import uvloop
+
+        uvloop.install()
     if args.kind == "cellvision":
         asyncio.run(_serve_cellvision(args.config))
     elif args.kind == "cellvision_idle":

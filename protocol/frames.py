@@ -318,12 +318,12 @@ UNZEROED_BODY_MIN = 64 * 1024
 from the socket at once): zeroing an image-sized bytearray costs as much as reading it."""
 
 
-def new_body(size: int) -> bytearray | np.ndarray[Any, np.dtype[np.uint8]]:
+def new_body(size: int) -> bytearray | memoryview:
     """A writable buffer of ``size`` bytes for a frame body, every byte of which the caller
-    overwrites before it is read."""
+    overwrites before it is read: a bytearray, or a view of a flat uint8 array."""
     if size < UNZEROED_BODY_MIN:
         return bytearray(size)
-    return np.empty(size, dtype=np.uint8)
+    return np.empty(size, dtype=np.uint8).data
 
 
 class FrameDecoder:
@@ -357,7 +357,7 @@ class FrameDecoder:
         # Bytes received and not yet in a body: a header, or what follows a complete body.
         self._buffer = bytearray()
         self._header: Header | None = None
-        self._body: bytearray | np.ndarray[Any, np.dtype[np.uint8]] | None = None
+        self._body: bytearray | memoryview | None = None
         self._filled = 0
         self._skip = 0
         self._scratch = bytearray(SCRATCH_BYTES)

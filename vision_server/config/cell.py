@@ -308,6 +308,7 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
         queue_depth=node.take("queue_depth", integer, defaults.queue_depth),
         fast_workers=node.take("fast_workers", integer, defaults.fast_workers),
         fast_lane_ms=node.take("fast_lane_ms", non_negative, defaults.fast_lane_ms),
+        inline_ms=node.take("inline_ms", non_negative, defaults.inline_ms),
         max_queue_ms=node.take("max_queue_ms", positive, defaults.max_queue_ms),
         admission_wait_s=node.take("admission_wait_s", non_negative, defaults.admission_wait_s),
         opencv_threads=node.take("opencv_threads", positive_int, defaults.opencv_threads),

@@ -39,6 +39,10 @@ class ServiceSettings:
     """Threads of their own for cheap inspections (0: none, every request in the main lane)."""
     fast_lane_ms: float = 5.0
     """An inspection whose measured time on a worker is at most this runs in the fast lane."""
+    inline_ms: float = 0.5
+    """An inspection whose measured time to get its images and run is at most this (ms) runs
+    on the event loop itself when its images came raw in the request (no thread hop); its
+    result log row and overlay encoding still go to a thread. 0: never."""
     max_queue_ms: float = 2000.0
     """A lane admits work while what it holds is at most this many milliseconds per thread
     (by the measured cost of each inspection): the wait a new request can expect."""
@@ -307,6 +311,7 @@ class ServerSettings:
     """Jobs that may wait for a worker in each lane (see ServiceSettings)."""
     fast_workers: int = 1
     fast_lane_ms: float = 5.0
+    inline_ms: float = 0.5
     max_queue_ms: float = 2000.0
     admission_wait_s: float = 5.0
     opencv_threads: int | None = None

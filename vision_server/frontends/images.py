@@ -20,14 +20,21 @@ from protocol.images import compressed_header
 from ..service import ImageLoader, ImageNeeds, Images, check_image_size
 
 
+class PayloadLoader:
+    """The images of one request, decoded when the service calls it; ``cheap`` when every
+    one is raw pixels (viewed in place: the service may load them on the event loop)."""
+
+    def __init__(self, payloads: Sequence[ImagePayload]) -> None:
+        self._payloads = tuple(payloads)
+        self.cheap = all(p.encoding.is_raw for p in self._payloads)
+
+    def __call__(self, needs: ImageNeeds) -> Images:
+        return decode_payloads(self._payloads, needs)
+
+
 def payload_loader(payloads: Sequence[ImagePayload]) -> ImageLoader:
-    """A loader for the images of one request, decoded when the service calls it."""
-    held = tuple(payloads)
-
-    def load(needs: ImageNeeds) -> Images:
-        return decode_payloads(held, needs)
-
-    return load
+    """A loader for the images of one request (:class:`PayloadLoader`)."""
+    return PayloadLoader(payloads)
 
 
 def decode_payloads(payloads: Sequence[ImagePayload], needs: ImageNeeds) -> Images:
@@ -67,4 +74,4 @@ def decode_payloads(payloads: Sequence[ImagePayload], needs: ImageNeeds) -> Imag
     return Images(color, depth)
 
 
-__all__ = ["decode_payloads", "payload_loader"]
+__all__ = ["PayloadLoader", "decode_payloads", "payload_loader"]

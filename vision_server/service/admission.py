@@ -82,6 +82,24 @@ class CostModel:
             return dict(self._mean)
 
 
+class PeakCost(CostModel):
+    """The slowest recent duration per key, in milliseconds: each measurement replaces the
+    estimate when it is higher, else the estimate decays towards it by ``decay`` per
+    measurement (1 %: one slow run among fast ones counts for a few hundred runs). For a
+    decision that must hold for the exceptional run, not the mean one (what may run on the
+    event loop)."""
+
+    def __init__(self, decay: float = 0.01) -> None:
+        super().__init__(weight=decay)
+
+    def observe(self, key: str | None, ms: float) -> None:
+        if key is None:
+            return
+        with self._lock:
+            old = self._mean.get(key)
+            self._mean[key] = ms if old is None or ms >= old else old + self._weight * (ms - old)
+
+
 @dataclass(frozen=True)
 class Slot:
     """A place in a lane, held from admission until the work returns. ``cost_ms`` is what it

@@ -11,8 +11,11 @@ renders the :class:`InspectReply`. The service owns everything between:
 - deadlines, absolute, stamped by the front-end when the whole request had arrived (SPEC §6.1);
 - images: those of the request (arrays, or a loader that decodes them in a worker), else a
   capture from the inspection's server camera; checked the same way whatever brought them;
-- the result log, overlays (drawn and encoded in the worker), configuration reload (always in a
-  thread, never on the event loop) and observers of results.
+- where a run happens: in a worker thread or process (the pool's lanes), or, for an inspection
+  whose slowest recent run is at most ``inline_ms`` on raw images of the request, on the event
+  loop itself, since a hop to a thread and back costs more than such a run;
+- the result log, overlays (drawn in the run, encoded in a worker), configuration reload (always
+  in a thread, never on the event loop) and observers of results.
 
 Errors are :class:`protocol.CellvisionError` subclasses without a request id (the code names
 the cause; the front-end that knows the request maps the code to its own form). Nothing here
@@ -50,7 +53,16 @@ from ..cameras import Camera, CameraFrame
 from ..config import ServiceSettings
 from ..inspections import Inspection, InspectionInput, InspectionOutcome
 from ..results import ResultEntry, ResultStore
-from .admission import TRY_BUDGET_SHARE, Admission, ByteBudget, Slot, Waiter, WorkPool, try_key
+from .admission import (
+    TRY_BUDGET_SHARE,
+    Admission,
+    ByteBudget,
+    PeakCost,
+    Slot,
+    Waiter,
+    WorkPool,
+    try_key,
+)
 from .catalog import Catalog
 from .door import FrontDoor
 from .process_lane import ProcessLane
@@ -101,6 +113,12 @@ class ImageNeeds:
 ImageLoader = Callable[[ImageNeeds], Images]
 """Decodes a request's images; called in a worker thread, once the inspection is known. Raises
 BadImage or ImageTooLarge for images that cannot be decoded."""
+
+
+def loads_cheaply(images: Images | ImageLoader | None) -> bool:
+    """Whether a request's images are arrays at no cost: arrays already, or a loader that
+    says so (``cheap``: it views raw pixels in place, nothing is decoded)."""
+    return isinstance(images, Images) or bool(getattr(images, "cheap", False))
 
 
 def deadline_after(arrived: float, deadline_ms: float | None) -> float | None:
@@ -288,6 +306,9 @@ class InspectionService:
             max_queue_ms=self.settings.max_queue_ms,
             main_lane_nice=self.settings.main_lane_nice,
         )
+        self.loop_costs = PeakCost()
+        """Each inspection's slowest recent time to get its images and run, wherever it ran
+        (ms): what it could hold the event loop for (:meth:`_runs_inline`)."""
         self.budget = ByteBudget(self.settings.max_buffered_bytes)
         self.door = FrontDoor(self.settings.max_connections_total)
         """What every front-end's connections and sign-ins go through (:mod:`.door`)."""
@@ -613,14 +634,15 @@ class InspectionService:
 
         size: list[tuple[int, int]] = []  # the image's (width, height), for observers
 
-        def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None, int | None]:
+        def prepare() -> tuple[InspectionInput, ResultEntry, bool]:
+            """The images, checked, and the result log's entry for them; whether the run
+            draws an overlay."""
             image = replace(acquire(), deadline=request.deadline)
             size.append((int(image.color.shape[1]), int(image.color.shape[0])))
             if request.images is None:
                 captured.append(Images(image.color, image.depth))
             if request.overlay is not None:
                 self._admit_overlay(image.color, admission)
-            t0 = time.perf_counter()
             entry = ResultEntry(
                 time=time.time(),
                 inspection=inspection.name,
@@ -646,16 +668,23 @@ class InspectionService:
                 and self.results.keeps_images
                 and image.color.shape[0] * image.color.shape[1] <= STORED_OVERLAY_MAX_PIXELS
             )
-            try:
-                if self.processes is not None and in_process:
-                    outcome = self.processes.run(inspection, image, overlay=draw)
-                else:
-                    outcome = inspection.run(image, overlay=draw)
-            except CellvisionError as exc:
-                if rows.claim():
-                    self._record(entry, t0, error=f"{exc.code.name}: {exc.message}")
-                raise
-            compute_ms = (time.perf_counter() - t0) * 1000.0
+            return image, entry, draw
+
+        def run(image: InspectionInput, draw: bool) -> InspectionOutcome:
+            if self.processes is not None and in_process:
+                ran: InspectionOutcome = self.processes.run(inspection, image, overlay=draw)
+                return ran
+            return inspection.run(image, overlay=draw)
+
+        def failed(entry: ResultEntry, t0: float, exc: CellvisionError) -> None:
+            if rows.claim():
+                self._record(entry, t0, error=f"{exc.code.name}: {exc.message}")
+
+        def finish(
+            outcome: InspectionOutcome, entry: ResultEntry, t0: float
+        ) -> tuple[InspectionOutcome, Overlay | None, bool | None, int | None]:
+            """The result log's row and the overlay's encoding: disk and CPU work that is
+            never done on the event loop."""
             if sources:
                 outcome = replace(outcome, data={**outcome.data, "source_files": sources})
             stored: bool | None = None
@@ -672,16 +701,31 @@ class InspectionService:
             if request.overlay is not None and outcome.overlay is not None:
                 # Encoding is CPU work too: here, not on the event loop of every connection.
                 overlay = _overlay(outcome.overlay, request.overlay)
+            return outcome, overlay, stored, row_id
+
+        def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None, int | None]:
+            started = time.perf_counter()
+            image, entry, draw = prepare()
+            t0 = time.perf_counter()
+            try:
+                outcome = run(image, draw)
+            except CellvisionError as exc:
+                failed(entry, t0, exc)
+                raise
+            compute_ms = (time.perf_counter() - t0) * 1000.0
+            self.loop_costs.observe(key, (time.perf_counter() - started) * 1000.0)
+            outcome, overlay, stored, row_id = finish(outcome, entry, t0)
             return outcome, compute_ms, overlay, stored, row_id
 
-        outcome, compute_ms, overlay, stored, row_id = await self._in_pool(
-            work,
-            request.arrived,
-            request.deadline,
-            admission,
-            hold=catalog,
-            key=self.request_key(request),
-        )
+        key = self.request_key(request)
+        if not in_process and self._runs_inline(request, key):
+            outcome, compute_ms, overlay, stored, row_id = await self._inline(
+                prepare, run, failed, finish, request, admission, hold=catalog, key=key
+            )
+        else:
+            outcome, compute_ms, overlay, stored, row_id = await self._in_pool(
+                work, request.arrived, request.deadline, admission, hold=catalog, key=key
+            )
         reply = InspectReply(
             inspection.name,
             camera.name,
@@ -697,6 +741,104 @@ class InspectionService:
         )
         self._notify(InspectionRecord(request, reply, captured[0] if captured else None))
         return reply
+
+    def _runs_inline(self, request: InspectRequest, key: str) -> bool:
+        """Whether ``request`` runs on the event loop itself: a production inspection whose
+        images came in the request as raw pixels (nothing to decode, no camera to wait for)
+        and whose slowest recent time for that (images, checks, the run, drawing) is at most
+        ``inline_ms``. A thread hop costs two wake-ups and a hand-over of the GIL, more than
+        such a run; the result log's row and an overlay's encoding still go to a thread."""
+        limit = self.settings.inline_ms
+        if limit <= 0 or request.request_class != "production" or request.prepared is not None:
+            return False
+        if not loads_cheaply(request.images):
+            return False
+        cost = self.loop_costs.estimate(key)
+        return cost is not None and cost <= limit
+
+    async def _inline(
+        self,
+        prepare: Callable[[], tuple[InspectionInput, ResultEntry, bool]],
+        run: Callable[[InspectionInput, bool], InspectionOutcome],
+        failed: Callable[[ResultEntry, float, CellvisionError], None],
+        finish: Callable[
+            [InspectionOutcome, ResultEntry, float],
+            tuple[InspectionOutcome, Overlay | None, bool | None, int | None],
+        ],
+        request: InspectRequest,
+        admission: Admission,
+        *,
+        hold: Catalog,
+        key: str,
+    ) -> tuple[InspectionOutcome, float, Overlay | None, bool | None, int | None]:
+        """:meth:`_in_pool` for a cheap run (:meth:`_runs_inline`): ``prepare`` and ``run``
+        here, on the event loop, on the slot ``admission`` holds; ``finish`` (the result
+        log, the overlay's encoding) and ``failed`` (an error's row) in the slot's lane
+        thread when they have work to do, awaited until the request's deadline."""
+        deadline = request.deadline
+        if deadline is not None and deadline <= time.monotonic():
+            budget_ms = round((deadline - request.arrived) * 1000.0, 3)
+            raise DeadlineExceeded(f"not done within the request's deadline of {budget_ms:g} ms")
+        slot = admission.hand_slot_to_pool() or self.pool.try_reserve(key)
+        if slot is None:
+            raise self._busy(key)
+        loop = asyncio.get_running_loop()
+        lease = hold.acquire()
+
+        def done(_: object = None) -> None:
+            lease.release()
+            self.pool.release(slot)
+
+        handed_over = False  # the slot and the lease go with work handed to a thread
+        try:
+            started = time.perf_counter()
+            image, entry, draw = prepare()
+            t0 = time.perf_counter()
+            try:
+                outcome = run(image, draw)
+            except CellvisionError as exc:
+                if self.results is None or not request.record:
+                    raise
+                failing = loop.run_in_executor(slot.lane.executor, failed, entry, t0, exc)
+                failing.add_done_callback(done)
+                handed_over = True
+                await asyncio.shield(failing)
+                raise
+            compute_ms = (time.perf_counter() - t0) * 1000.0
+            loop_ms = (time.perf_counter() - started) * 1000.0
+            self.loop_costs.observe(key, loop_ms)
+            self.pool.costs.observe(key, loop_ms)
+            if request.overlay is None and (self.results is None or not request.record):
+                finished, overlay, stored, row_id = finish(outcome, entry, t0)  # nothing to do
+                return finished, compute_ms, overlay, stored, row_id
+            finishing = loop.run_in_executor(slot.lane.executor, finish, outcome, entry, t0)
+            finishing.add_done_callback(done)
+            handed_over = True
+            finished, overlay, stored, row_id = await self._until(
+                finishing, request.arrived, deadline
+            )
+            return finished, compute_ms, overlay, stored, row_id
+        finally:
+            if not handed_over:
+                done()
+
+    async def _until(
+        self, future: asyncio.Future[_T], arrived: float, deadline: float | None
+    ) -> _T:
+        """``future``'s result, or DEADLINE_EXCEEDED once ``deadline`` (monotonic seconds) has
+        passed; the work goes on (it holds what it needs until it ends)."""
+        if deadline is None:
+            return await future
+        budget_ms = round((deadline - arrived) * 1000.0, 3)
+        try:
+            loop = asyncio.get_running_loop()
+            # The loop's clock is time.monotonic(): the deadline is absolute on it.
+            async with asyncio.timeout_at(loop.time() + (deadline - time.monotonic())):
+                return await asyncio.shield(future)
+        except TimeoutError:
+            raise DeadlineExceeded(
+                f"not done within the request's deadline of {budget_ms:g} ms"
+            ) from None
 
     def _admit_overlay(self, color: Image, admission: Admission) -> None:
         """Reserve the bytes of the overlay a reply will carry before the inspection runs: it
@@ -850,18 +992,7 @@ class InspectionService:
         if slot is None:
             lease.release()
             raise self._busy(key)
-        future = self.pool.submit(slot, leased)
-        if deadline is None:
-            return await future
-        try:
-            loop = asyncio.get_running_loop()
-            # The loop's clock is time.monotonic(): the deadline is absolute on it.
-            async with asyncio.timeout_at(loop.time() + (deadline - time.monotonic())):
-                return await asyncio.shield(future)
-        except TimeoutError:
-            raise DeadlineExceeded(
-                f"not done within the request's deadline of {budget_ms:g} ms"
-            ) from None
+        return await self._until(self.pool.submit(slot, leased), arrived, deadline)
 
 
 # ----------------------------------------------------------------------------- helpers
