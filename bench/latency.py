@@ -50,6 +50,8 @@ INSPECTION = "brightness"
 VERSION = (1, 0)
 OVERHEAD_GOAL_MS = 0.3
 FLOOR = "floor (bare asyncio socket)"
+UVLOOP = "cellvision on uvloop"
+"""The same server on uvloop's event loop (``server: event_loop: uvloop``)."""
 HTTP_PING = "HTTP/JSON (aiohttp)"
 HTTP_INSPECT = "HTTP/JSON + base64 (aiohttp)"
 HTTP_GOAL = 3.0
@@ -480,7 +482,7 @@ def large_notes(cases: list[Case]) -> list[str]:
 
 def run(cfg: RunConfig, env: Env) -> Section:
     section = Section(NAME, TITLE)
-    env.start("cellvision", "echo", "http")  # in parallel, while the images render
+    env.start("cellvision", "cellvision_uvloop", "echo", "http")  # while the images render
     image = np.ascontiguousarray(env.samples.tool)  # 1024x768 gray, the tool camera
     assert image.shape == (768, 1024)
     cellvision = env.server("cellvision")
@@ -490,6 +492,11 @@ def run(cfg: RunConfig, env: Env) -> Section:
         http = env.server("http")
     except Skip as exc:
         section.skipped.append(f"HTTP/JSON reference: {exc}")
+    uv = None
+    try:
+        uv = env.server("cellvision_uvloop")
+    except Skip as exc:
+        section.skipped.append(f"cellvision on uvloop: {exc}")
     inspection = env.catalog.catalog.inspection(INSPECTION)
     from vision_server import InspectionInput
 
@@ -511,12 +518,17 @@ def run(cfg: RunConfig, env: Env) -> Section:
         InProcess("in-process compute", in_process),
         server_side,
     ]
+    if uv is not None:
+        ping_paths.append(Cellvision(UVLOOP, uv.port, None))
+        inspect_paths.append(Cellvision(UVLOOP, uv.port, image))
     if http is not None:
         ping_paths.append(Http(HTTP_PING, http.port, None))
         inspect_paths.append(Http(HTTP_INSPECT, http.port, image))
     rounds = cfg.n(5, 1)
     warmup = cfg.n(100, 3)
     servers = {FLOOR: echo, "cellvision": cellvision}
+    if uv is not None:
+        servers[UVLOOP] = uv
     if http is not None:
         servers[HTTP_PING] = servers[HTTP_INSPECT] = http
     pings = asyncio.run(_measure(ping_paths, rounds, cfg.n(400, 10), warmup, servers))
@@ -640,6 +652,31 @@ def run(cfg: RunConfig, env: Env) -> Section:
                 f"PING: {ratio(http_p.p50, cv_p.p50)})",
                 http_i.p50 / cv_i.p50 >= HTTP_GOAL,
             )
+        )
+        section.value("ping_cellvision_over_http_p50", cv_p.p50 / http_p.p50)
+        section.goals.append(
+            Goal(
+                "PING p50 no slower than the HTTP/JSON reference's (aiohttp, same run)",
+                f"cellvision {fmt(cv_p.p50)} ms ÷ HTTP {fmt(http_p.p50)} ms = "
+                f"{ratio(cv_p.p50, http_p.p50)} (p99 {fmt(cv_p.p99)} vs {fmt(http_p.p99)} ms)",
+                cv_p.p50 <= http_p.p50,
+            )
+        )
+    if uv is not None:
+        uv_i = inspects.stats(UVLOOP)
+        uv_p = pings.stats(UVLOOP)
+        uv_cpu = sum(inspects.cpu_ms(UVLOOP))
+        section.value("inspect_uvloop_p50_ms", uv_i.p50)
+        section.value("ping_uvloop_p50_ms", uv_p.p50)
+        section.value("uvloop_over_asyncio_inspect_p50", uv_i.p50 / cv_i.p50)
+        section.value("uvloop_over_asyncio_ping_p50", uv_p.p50 / cv_p.p50)
+        section.notes.append(
+            f"The event loop (`server: event_loop`): the same server on uvloop answers INSPECT "
+            f"in {fmt(uv_i.p50)} ms p50 ({ratio(uv_i.p50, cv_i.p50)} asyncio's "
+            f"{fmt(cv_i.p50)} ms; p99 {fmt(uv_i.p99)} vs {fmt(cv_i.p99)} ms) and PING in "
+            f"{fmt(uv_p.p50)} ms ({ratio(uv_p.p50, cv_p.p50)} asyncio's {fmt(cv_p.p50)} ms), "
+            f"with {fmt(uv_cpu)} ms of CPU per INSPECT (server + client) against asyncio's "
+            f"{fmt(cv_cpu)} ms. The rows and goals above are asyncio's, the default."
         )
     timing = server_side.server_timing[warmup:]
     srv_total = Stats.of(t.get("total_ms", float("nan")) for t in timing)

@@ -2,7 +2,8 @@
 
 - ``cellvision``: :class:`vision_server.VisionServer` with the bench catalog (bench/cell.py),
   default settings except the port. ``cellvision_idle``: the same with ``main_lane_policy:
-  idle`` (section 2c compares the two).
+  idle`` (section 2c compares the two). ``cellvision_uvloop``: the same on uvloop's event
+  loop (``server: event_loop: uvloop``; section 1 compares the loops).
 - ``echo``: the floor, a bare asyncio socket. It reads a frame's 24-byte header and body (the
   same bytes a cellvision client sends) and answers with as many bytes as the header's request
   id field says (the client puts there the size of the real answer), so the same bytes cross
@@ -31,12 +32,13 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Coroutine
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
-from vision_server.process import PROCESS_ENV
+from vision_server.process import EVENT_LOOPS, PROCESS_ENV, loop_factory
 
 from .common import ROOT, Skip
 
@@ -281,22 +283,29 @@ async def _serve_http(config: Path | None) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(prog="python -m bench.servers")
-    parser.add_argument("kind", choices=["cellvision", "cellvision_idle", "echo", "http"])
+    parser.add_argument(
+        "kind", choices=["cellvision", "cellvision_idle", "cellvision_uvloop", "echo", "http"]
+    )
     parser.add_argument("--config", type=Path, default=None)
+    parser.add_argument("--loop", choices=EVENT_LOOPS, default="asyncio")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    if os.environ.get("UVL"):
-        import uvloop
-
-        uvloop.install()
+    serving: Coroutine[Any, Any, None]
+    loop = args.loop
     if args.kind == "cellvision":
-        asyncio.run(_serve_cellvision(args.config))
+        serving = _serve_cellvision(args.config)
+    elif args.kind == "cellvision_uvloop":
+        serving = _serve_cellvision(args.config)
+        loop = "uvloop"
     elif args.kind == "cellvision_idle":
-        asyncio.run(_serve_cellvision(args.config, "idle"))
+        serving = _serve_cellvision(args.config, "idle")
     elif args.kind == "echo":
-        asyncio.run(_serve_echo())
+        serving = _serve_echo()
     else:
-        asyncio.run(_serve_http(args.config))
+        serving = _serve_http(args.config)
+    # The loop `serve` would run with `server: event_loop` (section 1 measures both).
+    with asyncio.Runner(loop_factory=loop_factory(loop)) as runner:
+        runner.run(serving)
 
 
 if __name__ == "__main__":

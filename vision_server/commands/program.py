@@ -106,7 +106,7 @@ from ..config import (
     load_config,
 )
 from ..frontends import MqttSpoolError
-from ..process import PROCESS_ENV, decoder_limits
+from ..process import PROCESS_ENV, decoder_limits, loop_factory
 from ..results import is_database_url
 from ..service import Catalog, Images, InspectReply, InspectRequest, builtin_catalog
 from . import hash_secret as hash_secret_cli
@@ -265,7 +265,8 @@ def _serve(args: argparse.Namespace) -> int:
         return 0
 
     try:
-        return asyncio.run(main())
+        with asyncio.Runner(loop_factory=loop_factory(settings.event_loop)) as runner:
+            return runner.run(main())
     finally:
         if runtime is not None:
             runtime.close()

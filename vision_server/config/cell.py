@@ -52,7 +52,7 @@ from ..cameras import (
     RecordingReader,
 )
 from ..inspections import InspectionSpec, numbers_by_position, parse_inspection
-from ..process import MAX_NICE, POLICIES
+from ..process import EVENT_LOOPS, MAX_NICE, POLICIES, uvloop_available
 from .document import (
     ConfigError,
     Node,
@@ -296,6 +296,12 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
     port = node.take("port", integer, defaults.port)
     if not 0 <= port < 65536:
         raise node.error(f"expected a port in 0..65535, got {port}", "port")
+    event_loop = node.take("event_loop", one_of(*EVENT_LOOPS), defaults.event_loop)
+    if event_loop == "uvloop" and not uvloop_available():
+        raise node.error(
+            "uvloop is not installed: pip install 'cellvision[uvloop]', or event_loop: asyncio",
+            "event_loop",
+        )
     settings = ServerSettings(
         host=node.take("host", string, defaults.host),
         port=port,
@@ -319,6 +325,7 @@ def _server(node: Node, base_dir: Path) -> ServerSettings:
         main_lane_policy=node.take(
             "main_lane_policy", one_of(*POLICIES), defaults.main_lane_policy
         ),
+        event_loop=event_loop,
         auth_token=token,
         operator_token=roles["operator_token"],
         integrator_token=roles["integrator_token"],

@@ -318,6 +318,9 @@ class ServerSettings:
     process_inspections: tuple[str, ...] = ()
     main_lane_nice: int = 10
     main_lane_policy: str = "nice"
+    event_loop: str = "asyncio"
+    """The event loop ``serve`` runs on: ``asyncio`` (Python's) or ``uvloop``
+    (vision_server/process/event_loop.py)."""
     auth_token: str | None = None
     operator_token: str | None = None
     """The web console's operator role: view, answer operator calls (not try or save)."""

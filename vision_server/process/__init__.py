@@ -5,6 +5,7 @@
 - :mod:`.malloc`: the glibc malloc settings ``serve`` starts with (:data:`PROCESS_ENV`).
 - :mod:`.cpu_priority`: the niceness of the work that can wait (the main lane's threads, the
   worker processes, the console's live view).
+- :mod:`.event_loop`: the event loop ``serve`` runs on (asyncio's or uvloop).
 - :mod:`.ownership`: files one running server owns (a spool, a certificate store), claimed
   with a lock so that two servers never share them.
 
@@ -20,10 +21,12 @@ from .cpu_priority import (
     run_this_process_at,
     target_niceness,
 )
+from .event_loop import EVENT_LOOPS, loop_factory, uvloop_available
 from .malloc import PROCESS_ENV
 from .ownership import Claim, Claimed, claim
 
 __all__ = [
+    "EVENT_LOOPS",
     "Claim",
     "Claimed",
     "MAX_NICE",
@@ -31,7 +34,9 @@ __all__ = [
     "PROCESS_ENV",
     "claim",
     "decoder_limits",
+    "loop_factory",
     "lower_this_thread",
     "run_this_process_at",
     "target_niceness",
+    "uvloop_available",
 ]
