@@ -22,6 +22,7 @@ from .errors import (
     LocalProtocolError,
     MalformedFrame,
     NotAuthenticated,
+    TooLargeToSend,
     UnexpectedMessage,
     UnknownMessageType,
     UnsupportedVersion,
@@ -454,9 +455,13 @@ class Connection:
         """The bytes of ``message``; raises LocalProtocolError if it may not be sent now."""
         return b"".join(self.send_parts(message))
 
-    def send_parts(self, message: Message) -> list[Blob]:
+    def send_parts(self, message: Message, *, max_bytes: int | None = None) -> list[Blob]:
         """Like :meth:`send`, the frame as buffers to write in order (``writelines``,
-        ``socket.sendmsg``): the image blobs are not copied into one ``bytes``."""
+        ``socket.sendmsg``): the image blobs are not copied into one ``bytes``.
+
+        ``max_bytes``: raise :class:`TooLargeToSend` for a larger frame. Whatever is raised
+        (also TypeError or ValueError for metadata JSON cannot carry) leaves the state as
+        it was: nothing was sent."""
         mtype = message.TYPE
         key = (self.role, self.state, Direction.SEND, mtype)
         # A fatal ERROR may still be sent after the peer broke the protocol.
@@ -493,6 +498,14 @@ class Connection:
                 raise LocalProtocolError(f"version {message.version} is not one we speak")
             self.version = message.version
         data = message.to_frame(self.wire_version).serialize_parts()
+        if max_bytes is not None:
+            size = sum(len(part) for part in data)
+            if size > max_bytes:
+                raise TooLargeToSend(
+                    f"{mtype.name} is {size} bytes, more than the {max_bytes} the peer accepts",
+                    size,
+                    max_bytes,
+                )
         if key in TRANSITIONS:
             self._apply(key, message)
         return data

@@ -279,3 +279,14 @@ def error_from_code(
 
 class LocalProtocolError(Exception):
     """Our own code tried to do something the protocol does not allow (a bug on this side)."""
+
+
+class TooLargeToSend(LocalProtocolError):
+    """A frame is larger than the peer accepts (its HELLO's ``max_frame_bytes``): nothing was
+    sent and the connection's state is unchanged, so another answer may be sent instead."""
+
+    def __init__(self, message: str, size: int, max_size: int) -> None:
+        super().__init__(message)
+        self.size = size
+        """The frame's size in bytes."""
+        self.max_size = max_size

@@ -64,14 +64,15 @@ from protocol import (
     Role,
     ShuttingDown,
     State,
+    TooLargeToSend,
     UnexpectedMessage,
     UnsupportedVersion,
     Welcome,
     negotiate_version,
     payload_from_array,
 )
-from protocol.constants import HEADER_SIZE, SUPPORTED_VERSIONS, MessageType
-from protocol.frames import Blob, Header, encode_metadata
+from protocol.constants import SUPPORTED_VERSIONS, MessageType
+from protocol.frames import Blob, Header
 from wireio import INTERRUPTED, WireStream, serve
 
 from ..config import DEFAULT_LINE_PORT, SERVER_VERSION, TcpSettings, welcome_limits
@@ -868,10 +869,9 @@ class TcpSession:
 
     def _encode(self, message: Message) -> list[Blob]:
         rid = message.request_id
+        limit = None if isinstance(message, Error) else self.max_reply_bytes
         try:
-            frame = message.to_frame(self.conn.wire_version)
-            size = HEADER_SIZE + len(encode_metadata(frame.metadata))
-            size += sum(4 + len(blob) for blob in frame.blobs)
+            return self.conn.send_parts(message, max_bytes=limit)
         except (TypeError, ValueError) as exc:
             # Data JSON cannot carry (numpy scalars, NaN): fail this request, not the
             # connection (the state machine is unchanged when serializing fails).
@@ -881,23 +881,24 @@ class TcpSession:
                     InternalError(f"the server could not encode its answer: {exc}", request_id=rid)
                 )
             )
-        if size > self.max_reply_bytes and not isinstance(message, Error):
+        except TooLargeToSend as big:
             log.warning(
-                "%s: %s of %d bytes exceeds the client's limit", self.peer, message.TYPE.name, size
+                "%s: %s of %d bytes exceeds the client's limit",
+                self.peer,
+                message.TYPE.name,
+                big.size,
             )
             return self.conn.send_parts(
                 Error.from_exception(
                     InvalidArgument(
-                        f"the answer ({message.TYPE.name}) is {size} bytes, more than the "
-                        f"{self.max_reply_bytes} bytes the client accepts (HELLO "
-                        "max_frame_bytes); ask for less (fewer frames, a compressed encoding, "
-                        "no overlay)",
+                        f"the answer ({message.TYPE.name}) is {big.size} bytes, more than the "
+                        f"{big.max_size} bytes the client accepts (HELLO max_frame_bytes); ask "
+                        "for less (fewer frames, a compressed encoding, no overlay)",
                         request_id=rid,
-                        details={"size": size, "max_size": self.max_reply_bytes},
+                        details={"size": big.size, "max_size": big.max_size},
                     )
                 )
             )
-        return self.conn.send_parts(message)
 
     async def _drain(self) -> None:
         """Wait until the client has taken our answers; drop a client that does not read."""
