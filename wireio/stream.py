@@ -362,6 +362,8 @@ class WireStream(asyncio.BufferedProtocol):
             # A body comes next: its header must be admitted first. Or enough is unseen.
             self._gate = True
         self._apply_reading()
+        if self._direct and self._body_is_direct:
+            return  # the rest of a large body: the owner has nothing to do until it is whole
         self._wake()
 
     def eof_received(self) -> bool:

@@ -341,6 +341,8 @@ class TcpSession:
         self._refusal: CellvisionError | None = None
         self._last_activity = time.monotonic()
         self._frame_started: float | None = None
+        self._watchdog: asyncio.TimerHandle | None = None
+        """The read loop's one timer (:meth:`_watch`)."""
         peer = stream.get_extra_info("peername")
         self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
 
@@ -475,6 +477,9 @@ class TcpSession:
         except* Exception:
             log.exception("%s: unexpected error; closing this connection only", self.peer)
         finally:
+            if self._watchdog is not None:
+                self._watchdog.cancel()
+                self._watchdog = None
             self.stream.close()
             with contextlib.suppress(Exception):
                 await self.stream.wait_closed()
@@ -502,6 +507,31 @@ class TcpSession:
             )
         return None, ""
 
+    def _watch(self, timeout: float | None) -> None:
+        """Have the watchdog look again within ``timeout`` seconds (None: nothing is due).
+        One timer per connection, moved only when a deadline comes nearer than it: each read
+        of a large body would otherwise make and cancel a timer of its own."""
+        if timeout is None:
+            return  # an armed watchdog finds nothing due and stops
+        loop = asyncio.get_running_loop()
+        due = loop.time() + timeout
+        watchdog = self._watchdog
+        if watchdog is not None and watchdog.when() <= due:
+            return
+        if watchdog is not None:
+            watchdog.cancel()
+        self._watchdog = loop.call_at(due, self._watchdog_due)
+
+    def _watchdog_due(self) -> None:
+        self._watchdog = None
+        timeout, _ = self._read_timeout()
+        if timeout is None:
+            return
+        if timeout <= 0.0:
+            self.stream.interrupt()  # the read loop finds the timeout due and closes
+        else:
+            self._watch(timeout)  # the deadline moved on (activity): look again then
+
     async def _read_loop(self, group: asyncio.TaskGroup) -> bool:
         """Read and dispatch until the peer closes (True) or broke the protocol (False)."""
         while True:
@@ -510,18 +540,18 @@ class TcpSession:
             if self._shutdown.is_set():
                 await self._shutdown_session()
                 return True
-            # One wait per read, woken by the peer's bytes, the clock, or interrupt() (on
-            # shutdown, and when the last request is answered: the idle timeout starts then,
-            # so a client that goes silent after its answers is closed after idle_timeout_s).
+            # One wait per read, woken by the peer's bytes or interrupt(): on shutdown, by the
+            # watchdog once a timeout is due, and when the last request is answered (the idle
+            # timeout starts then, so a client that goes silent after its answers is closed
+            # after idle_timeout_s).
             timeout, why = self._read_timeout()
-            try:
-                async with asyncio.timeout(timeout):
-                    got = await self.stream.receive()
-            except TimeoutError:
+            if timeout is not None and timeout <= 0.0:
                 log.info("%s: %s; closing", self.peer, why)
                 self._write(Close(reason=why))
                 await self._drain()
                 return False
+            self._watch(timeout)
+            got = await self.stream.receive()
             if got == INTERRUPTED:
                 continue
             # The bytes are in the connection already (read into its frame body).
