@@ -41,12 +41,18 @@ class Where:
     frames: int = 1
     threads: list[str] = field(default_factory=list)
     slow_once_ms: float = 0.0
+    spin: bool = False
     fail: bool = False
 
     def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
         self.threads.append(threading.current_thread().name)
         if self.slow_once_ms:
-            time.sleep(self.slow_once_ms / 1000.0)
+            if self.spin:  # busy: CPU time
+                end = time.perf_counter() + self.slow_once_ms / 1000.0
+                while time.perf_counter() < end:
+                    pass
+            else:  # waiting (a lock, I/O): wall time only
+                time.sleep(self.slow_once_ms / 1000.0)
             self.slow_once_ms = 0.0
         if self.fail:
             raise BadImage("this part is not in the image")
@@ -198,10 +204,12 @@ def test_compressed_images_are_decoded_in_a_worker() -> None:
     assert where.threads[4] == loop_thread  # raw pixels through the same loader: cheap
 
 
-def test_one_slow_run_keeps_an_inspection_off_the_loop() -> None:
+@pytest.mark.parametrize("spin", [False, True], ids=["waiting", "busy"])
+def test_one_slow_run_keeps_an_inspection_off_the_loop(spin: bool) -> None:
     """What may run on the loop is judged by the slowest recent run, not the mean: after a
-    20 ms run the inspection goes back to a worker for the runs that follow."""
-    where = Where()
+    20 ms run, busy or waiting, the inspection goes back to a worker for the runs that
+    follow."""
+    where = Where(spin=spin)
 
     async def body() -> None:
         service = service_with(where)

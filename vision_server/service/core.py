@@ -308,7 +308,7 @@ class InspectionService:
         )
         self.loop_costs = PeakCost()
         """Each inspection's slowest recent time to get its images and run, wherever it ran
-        (ms): what it could hold the event loop for (:meth:`_runs_inline`)."""
+        (ms, :class:`RunClock`): what it could hold the event loop for (:meth:`_runs_inline`)."""
         self.budget = ByteBudget(self.settings.max_buffered_bytes)
         self.door = FrontDoor(self.settings.max_connections_total)
         """What every front-end's connections and sign-ins go through (:mod:`.door`)."""
@@ -704,7 +704,7 @@ class InspectionService:
             return outcome, overlay, stored, row_id
 
         def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None, int | None]:
-            started = time.perf_counter()
+            started = RunClock()
             image, entry, draw = prepare()
             t0 = time.perf_counter()
             try:
@@ -713,7 +713,7 @@ class InspectionService:
                 failed(entry, t0, exc)
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
-            self.loop_costs.observe(key, (time.perf_counter() - started) * 1000.0)
+            self.loop_costs.observe(key, started.cost_ms())
             outcome, overlay, stored, row_id = finish(outcome, entry, t0)
             return outcome, compute_ms, overlay, stored, row_id
 
@@ -791,7 +791,7 @@ class InspectionService:
 
         handed_over = False  # the slot and the lease go with work handed to a thread
         try:
-            started = time.perf_counter()
+            started = RunClock()
             image, entry, draw = prepare()
             t0 = time.perf_counter()
             try:
@@ -805,9 +805,8 @@ class InspectionService:
                 await asyncio.shield(failing)
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
-            loop_ms = (time.perf_counter() - started) * 1000.0
-            self.loop_costs.observe(key, loop_ms)
-            self.pool.costs.observe(key, loop_ms)
+            self.loop_costs.observe(key, started.cost_ms())
+            self.pool.costs.observe(key, started.wall_ms())
             if request.overlay is None and (self.results is None or not request.record):
                 finished, overlay, stored, row_id = finish(outcome, entry, t0)  # nothing to do
                 return finished, compute_ms, overlay, stored, row_id
@@ -996,6 +995,29 @@ class InspectionService:
 
 
 # ----------------------------------------------------------------------------- helpers
+
+
+WAITED_MS = 5.0
+"""A run whose wall time exceeds its CPU time by more than this waited for something (a lock,
+a sleep, I/O): its wall time is its cost on the event loop, not its CPU time."""
+
+
+class RunClock:
+    """What a run would hold the event loop for: its thread's CPU time, which a wait for the
+    GIL or a preemption under load does not inflate (a run timed in a worker waits for the
+    GIL while the loop works), unless it waited for something else (:data:`WAITED_MS`)."""
+
+    def __init__(self) -> None:
+        self._wall = time.perf_counter()
+        self._cpu = time.thread_time()
+
+    def wall_ms(self) -> float:
+        return (time.perf_counter() - self._wall) * 1000.0
+
+    def cost_ms(self) -> float:
+        wall_ms = self.wall_ms()
+        cpu_ms = (time.thread_time() - self._cpu) * 1000.0
+        return wall_ms if wall_ms - cpu_ms > WAITED_MS else cpu_ms
 
 
 class _RowOnce:
