@@ -183,6 +183,12 @@ class WireStream(asyncio.BufferedProtocol):
         self._apply_reading()
 
     @property
+    def write_paused(self) -> bool:
+        """True while the transport holds more than its high-water mark: :meth:`drain`
+        would wait."""
+        return self._write_paused
+
+    @property
     def reading_paused(self) -> bool:
         """True while the owner has paused reading."""
         return self._paused_by_owner

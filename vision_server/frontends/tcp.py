@@ -932,8 +932,8 @@ class TcpSession:
 
     async def _drain(self) -> None:
         """Wait until the client has taken our answers; drop a client that does not read."""
-        if self.stream.is_closing():
-            return
+        if self.stream.is_closing() or not self.stream.write_paused:
+            return  # nothing to wait for: no timer either
         try:
             async with asyncio.timeout(self.settings.write_timeout_s):
                 await self.stream.drain()

@@ -564,7 +564,7 @@ class InspectionService:
         self, request: InspectRequest, catalog: Catalog, rows: _RowOnce, error: str
     ) -> None:
         """Log a request that ends in ``error`` unless its run already wrote its row."""
-        if not rows.claim():
+        if self.results is None or not rows.claim():
             return
         inspection = _inspection_of(request, catalog)
         entry = ResultEntry(
@@ -634,30 +634,32 @@ class InspectionService:
 
         size: list[tuple[int, int]] = []  # the image's (width, height), for observers
 
-        def prepare() -> tuple[InspectionInput, ResultEntry, bool]:
-            """The images, checked, and the result log's entry for them; whether the run
-            draws an overlay."""
+        def prepare() -> tuple[InspectionInput, ResultEntry | None, bool]:
+            """The images, checked, and the result log's entry for them (None: no row is
+            written); whether the run draws an overlay."""
             image = replace(acquire(), deadline=request.deadline)
             size.append((int(image.color.shape[1]), int(image.color.shape[0])))
             if request.images is None:
                 captured.append(Images(image.color, image.depth))
             if request.overlay is not None:
                 self._admit_overlay(image.color, admission)
-            entry = ResultEntry(
-                time=time.time(),
-                inspection=inspection.name,
-                camera=camera.name,
-                passed=False,
-                data={},
-                duration_ms=0.0,
-                config_hash=catalog.config_hash,
-                request_id=request.request_id,
-                peer=request.peer,
-                image=image.color,
-                options=request.options,
-                config=request.config,
-                operator=request.operator,
-            )
+            entry = None
+            if self.results is not None and request.record:
+                entry = ResultEntry(
+                    time=time.time(),
+                    inspection=inspection.name,
+                    camera=camera.name,
+                    passed=False,
+                    data={},
+                    duration_ms=0.0,
+                    config_hash=catalog.config_hash,
+                    request_id=request.request_id,
+                    peer=request.peer,
+                    image=image.color,
+                    options=request.options,
+                    config=request.config,
+                    operator=request.operator,
+                )
             # The log stores the overlay beside the input it keeps (drawing costs ~0.1 ms; the
             # policy's pass/fail choice is only known after the run). Not for very large
             # images: a colour copy of 16 MP is 48 MB more per worker, for a picture the
@@ -676,12 +678,12 @@ class InspectionService:
                 return ran
             return inspection.run(image, overlay=draw)
 
-        def failed(entry: ResultEntry, t0: float, exc: CellvisionError) -> None:
-            if rows.claim():
+        def failed(entry: ResultEntry | None, t0: float, exc: CellvisionError) -> None:
+            if entry is not None and rows.claim():
                 self._record(entry, t0, error=f"{exc.code.name}: {exc.message}")
 
         def finish(
-            outcome: InspectionOutcome, entry: ResultEntry, t0: float
+            outcome: InspectionOutcome, entry: ResultEntry | None, t0: float
         ) -> tuple[InspectionOutcome, Overlay | None, bool | None, int | None]:
             """The result log's row and the overlay's encoding: disk and CPU work that is
             never done on the event loop."""
@@ -690,7 +692,7 @@ class InspectionService:
             stored: bool | None = None
             row_id: int | None = None
             # A run its request gave up on (DEADLINE_EXCEEDED) already has its error row.
-            if rows.claim():
+            if entry is not None and rows.claim():
                 stored, row_id = self._record_row(
                     replace(
                         entry, passed=outcome.passed, data=outcome.data, overlay=outcome.overlay
@@ -758,11 +760,11 @@ class InspectionService:
 
     async def _inline(
         self,
-        prepare: Callable[[], tuple[InspectionInput, ResultEntry, bool]],
+        prepare: Callable[[], tuple[InspectionInput, ResultEntry | None, bool]],
         run: Callable[[InspectionInput, bool], InspectionOutcome],
-        failed: Callable[[ResultEntry, float, CellvisionError], None],
+        failed: Callable[[ResultEntry | None, float, CellvisionError], None],
         finish: Callable[
-            [InspectionOutcome, ResultEntry, float],
+            [InspectionOutcome, ResultEntry | None, float],
             tuple[InspectionOutcome, Overlay | None, bool | None, int | None],
         ],
         request: InspectRequest,
@@ -797,7 +799,7 @@ class InspectionService:
             try:
                 outcome = run(image, draw)
             except CellvisionError as exc:
-                if self.results is None or not request.record:
+                if entry is None:
                     raise
                 failing = loop.run_in_executor(slot.lane.executor, failed, entry, t0, exc)
                 failing.add_done_callback(done)
@@ -807,7 +809,7 @@ class InspectionService:
             compute_ms = (time.perf_counter() - t0) * 1000.0
             self.loop_costs.observe(key, started.cost_ms())
             self.pool.costs.observe(key, started.wall_ms())
-            if request.overlay is None and (self.results is None or not request.record):
+            if request.overlay is None and entry is None:
                 finished, overlay, stored, row_id = finish(outcome, entry, t0)  # nothing to do
                 return finished, compute_ms, overlay, stored, row_id
             finishing = loop.run_in_executor(slot.lane.executor, finish, outcome, entry, t0)
