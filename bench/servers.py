@@ -2,8 +2,9 @@
 
 - ``cellvision``: :class:`vision_server.VisionServer` with the bench catalog (bench/cell.py),
   default settings except the port. ``cellvision_idle``: the same with ``main_lane_policy:
-  idle`` (section 2c compares the two). ``cellvision_uvloop``: the same on uvloop's event
-  loop (``server: event_loop: uvloop``; section 1 compares the loops).
+  idle`` (section 2c compares the two). ``cellvision_asyncio``, ``cellvision_uvloop``: the
+  same on that event loop (``server: event_loop``); ``cellvision`` runs on the default one, and
+  sections 1 and 2 compare it with the other.
 - ``echo``: the floor, a bare asyncio socket. It reads a frame's 24-byte header and body (the
   same bytes a cellvision client sends) and answers with as many bytes as the header's request
   id field says (the client puts there the size of the real answer), so the same bytes cross
@@ -281,22 +282,36 @@ async def _serve_http(config: Path | None) -> None:
     service.close()
 
 
+def default_loop() -> str:
+    """The event loop ``serve`` runs on by default (``server: event_loop``)."""
+    from vision_server import ServerSettings
+
+    return ServerSettings().event_loop
+
+
+def other_loop() -> str:
+    """The loop the benchmarks compare the default with."""
+    return next(name for name in EVENT_LOOPS if name != default_loop())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(prog="python -m bench.servers")
     parser.add_argument(
-        "kind", choices=["cellvision", "cellvision_idle", "cellvision_uvloop", "echo", "http"]
+        "kind",
+        choices=["cellvision", "cellvision_idle", *(f"cellvision_{n}" for n in EVENT_LOOPS)]
+        + ["echo", "http"],
     )
     parser.add_argument("--config", type=Path, default=None)
-    parser.add_argument("--loop", choices=EVENT_LOOPS, default="asyncio")
+    parser.add_argument("--loop", choices=EVENT_LOOPS, default=default_loop())
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
     serving: Coroutine[Any, Any, None]
     loop = args.loop
     if args.kind == "cellvision":
         serving = _serve_cellvision(args.config)
-    elif args.kind == "cellvision_uvloop":
+    elif args.kind.startswith("cellvision_") and args.kind[len("cellvision_") :] in EVENT_LOOPS:
         serving = _serve_cellvision(args.config)
-        loop = "uvloop"
+        loop = args.kind[len("cellvision_") :]
     elif args.kind == "cellvision_idle":
         serving = _serve_cellvision(args.config, "idle")
     elif args.kind == "echo":

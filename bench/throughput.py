@@ -42,7 +42,7 @@ from .common import Goal, RunConfig, Section, Skip, Stats, Table, fmt, ratio
 from .env import Env
 from .inprocess import Rate, cores, process_rate, rate, runner
 from .plots import log_scale_if_positive, pyplot, save
-from .servers import ServerProcess
+from .servers import ServerProcess, default_loop, other_loop
 
 NAME = "throughput"
 TITLE = "2. Throughput against concurrency"
@@ -372,8 +372,76 @@ def run(cfg: RunConfig, env: Env) -> Section:
         "(100 % = one core). With the cores shared by server and clients, what the clients use "
         "is not available to the server.",
     ]
+    loops_table(section, cfg, env, server, image, inspections, drain_s)
     section.plot = _plotter(cells, [n for n, _, _ in inspections], clients, depths, limit_rps)
     return section
+
+
+LOOP_CELLS = ((4, 1), (64, PIPELINE))
+"""The cells measured on both event loops: the saturation point and the heaviest load."""
+
+
+def loops_table(
+    section: Section,
+    cfg: RunConfig,
+    env: Env,
+    server: ServerProcess,
+    image: Any,
+    inspections: Sequence[tuple[str, float, float]],
+    drain_s: float,
+) -> None:
+    """The same cells on the default event loop and the other one, alternated (one round,
+    two for the cheap inspection), so that ``server: event_loop`` is chosen by measurement."""
+    other = other_loop()
+    try:
+        alternative = env.server(f"cellvision_{other}")
+    except Skip as exc:
+        section.skipped.append(f"the {other} event loop: {exc}")
+        return
+    table = Table(
+        [
+            "inspection",
+            "clients",
+            "mode",
+            *(f"{n} req/s" for n in (default_loop(), other)),
+            f"{other} ÷ {default_loop()}",
+            *(f"{n} p99 ms" for n in (default_loop(), other)),
+        ],
+        caption=f"Both event loops in the same run (`server: event_loop`, default "
+        f"{default_loop()}), alternated cell by cell:",
+    )
+    cells = LOOP_CELLS if not cfg.quick else ((2, 1),)
+    for name, window_s, warmup_s in inspections:
+        for clients, depth in cells:
+            measured: dict[str, list[Cell]] = {default_loop(): [], other: []}
+            for _ in range(2 if name == "brightness" and not cfg.quick else 1):
+                for loop, proc in ((default_loop(), server), (other, alternative)):
+                    cell = Cell(name, clients, depth, window_s)
+                    asyncio.run(
+                        _run_cell(proc, cell, image, warmup_s, drain_s, max_requests=100_000)
+                    )
+                    measured[loop].append(cell)
+            rps = {
+                k: sum(c.completed for c in v) / sum(c.window_s for c in v)
+                for k, v in measured.items()
+            }
+            p99 = {k: Stats.of(x for c in v for x in c.latencies).p99 for k, v in measured.items()}
+            first = measured[default_loop()][0]
+            table.add(
+                name,
+                clients,
+                first.mode,
+                fmt(rps[default_loop()], 1),
+                fmt(rps[other], 1),
+                ratio(rps[other], rps[default_loop()]),
+                fmt(p99[default_loop()], 2),
+                fmt(p99[other], 2),
+            )
+            section.value(
+                f"{name}_c{clients}_d{depth}_{other}_over_default_rps",
+                rps[other] / rps[default_loop()],
+            )
+    section.tables.append(table)
 
 
 def collapse_goals(name: str, cells: Sequence[Cell]) -> list[Goal]:
