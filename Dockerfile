@@ -27,13 +27,14 @@ ENV PATH=/opt/venv/bin:$PATH
 
 # The dependencies in their own layer, rebuilt only when pyproject.toml changes; with them the
 # build backend, so that installing the sources below needs no network. The plant's front-ends
-# come in the image too (the extras opcua and mqtt: OPC UA and results to a broker).
+# come in the image too (the extras opcua and mqtt: OPC UA and results to a broker), and uvloop
+# for `server: event_loop: uvloop`.
 WORKDIR /opt/cellvision
 COPY pyproject.toml ./
 RUN python3 -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb')); \
 extras = p['project']['optional-dependencies']; \
 print('\n'.join(p['project']['dependencies'] + p['build-system']['requires'] \
-                + extras['opcua'] + extras['mqtt']))" \
+                + extras['opcua'] + extras['mqtt'] + extras['uvloop']))" \
         > /tmp/requirements.txt \
     && pip install --no-cache-dir -r /tmp/requirements.txt \
     && rm /tmp/requirements.txt

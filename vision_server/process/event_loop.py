@@ -31,7 +31,8 @@ def loop_factory(name: str) -> Callable[[], asyncio.AbstractEventLoop]:
         )
     import uvloop
 
-    return uvloop.new_event_loop
+    make: Callable[[], asyncio.AbstractEventLoop] = uvloop.new_event_loop
+    return make
 
 
 __all__ = ["EVENT_LOOPS", "loop_factory", "uvloop_available"]

@@ -100,6 +100,33 @@ class PeakCost(CostModel):
             self._mean[key] = ms if old is None or ms >= old else old + self._weight * (ms - old)
 
 
+class LoopCosts:
+    """What a run would hold the event loop for (ms), per key (an inspection, with or without
+    drawing its overlay) and image size: the slowest recent cost per pixel (:class:`PeakCost`)
+    times the request's pixels, known only up to the largest image measured so far (a cost
+    that grows faster than the image is never extrapolated)."""
+
+    def __init__(self, decay: float = 0.01) -> None:
+        self._per_pixel = PeakCost(decay)
+        self._lock = threading.Lock()
+        self._largest: dict[str, int] = {}
+
+    def estimate(self, key: str, pixels: int) -> float | None:
+        """The cost of a run on ``pixels`` (all its images together); None when unknown."""
+        with self._lock:
+            largest = self._largest.get(key)
+        per_pixel = self._per_pixel.estimate(key)
+        if largest is None or per_pixel is None or not 0 < pixels <= largest:
+            return None
+        return per_pixel * pixels
+
+    def observe(self, key: str, ms: float, pixels: int) -> None:
+        pixels = max(pixels, 1)
+        self._per_pixel.observe(key, ms / pixels)
+        with self._lock:
+            self._largest[key] = max(self._largest.get(key, 0), pixels)
+
+
 @dataclass(frozen=True)
 class Slot:
     """A place in a lane, held from admission until the work returns. ``cost_ms`` is what it

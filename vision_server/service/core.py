@@ -57,7 +57,7 @@ from .admission import (
     TRY_BUDGET_SHARE,
     Admission,
     ByteBudget,
-    PeakCost,
+    LoopCosts,
     Slot,
     Waiter,
     WorkPool,
@@ -113,6 +113,23 @@ class ImageNeeds:
 ImageLoader = Callable[[ImageNeeds], Images]
 """Decodes a request's images; called in a worker thread, once the inspection is known. Raises
 BadImage or ImageTooLarge for images that cannot be decoded."""
+
+
+def request_pixels(images: Images | ImageLoader | None) -> int:
+    """The pixels of a request's images together (colour and depth), as far as known before
+    they are loaded (0: unknown); a loader says so with ``pixels``."""
+    if isinstance(images, Images):
+        return int(images.color.shape[0] * images.color.shape[1]) + sum(
+            int(d.shape[0] * d.shape[1]) for d in images.depth
+        )
+    return int(getattr(images, "pixels", 0))
+
+
+def input_pixels(image: InspectionInput) -> int:
+    """The pixels of an inspection's input, colour and depth together."""
+    return int(image.color.shape[0] * image.color.shape[1]) + sum(
+        int(d.shape[0] * d.shape[1]) for d in image.depth
+    )
 
 
 def loads_cheaply(images: Images | ImageLoader | None) -> bool:
@@ -306,9 +323,10 @@ class InspectionService:
             max_queue_ms=self.settings.max_queue_ms,
             main_lane_nice=self.settings.main_lane_nice,
         )
-        self.loop_costs = PeakCost()
-        """Each inspection's slowest recent time to get its images and run, wherever it ran
-        (ms, :class:`RunClock`): what it could hold the event loop for (:meth:`_runs_inline`)."""
+        self.loop_costs = LoopCosts()
+        """Each inspection's slowest recent time per pixel to get its images and run,
+        wherever it ran (ms, :class:`RunClock`): what a run could hold the event loop for
+        (:meth:`_runs_inline`). Forgotten when the catalog is replaced."""
         self.budget = ByteBudget(self.settings.max_buffered_bytes)
         self.door = FrontDoor(self.settings.max_connections_total)
         """What every front-end's connections and sign-ins go through (:mod:`.door`)."""
@@ -337,6 +355,8 @@ class InspectionService:
         """Serve new requests with ``catalog``; requests already running finish on the old,
         whose lease they hold (retiring it is its owner's job, see CellRuntime.reload)."""
         self._catalog = catalog
+        # An inspection changed under the same name costs what it costs now: measured again.
+        self.loop_costs = LoopCosts()
 
     async def reload(self) -> Catalog:
         """Re-read the configuration through ``reloader`` in a thread (building a catalog opens
@@ -712,17 +732,27 @@ class InspectionService:
             try:
                 outcome = run(image, draw)
             except CellvisionError as exc:
+                self.loop_costs.observe(loop_key, started.cost_ms(), input_pixels(image))
                 failed(entry, t0, exc)
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
-            self.loop_costs.observe(key, started.cost_ms())
+            self.loop_costs.observe(loop_key, started.cost_ms(), input_pixels(image))
             outcome, overlay, stored, row_id = finish(outcome, entry, t0)
             return outcome, compute_ms, overlay, stored, row_id
 
         key = self.request_key(request)
-        if not in_process and self._runs_inline(request, key):
+        loop_key = self._loop_key(request, key)
+        if not in_process and self._runs_inline(request, loop_key):
             outcome, compute_ms, overlay, stored, row_id = await self._inline(
-                prepare, run, failed, finish, request, admission, hold=catalog, key=key
+                prepare,
+                run,
+                failed,
+                finish,
+                request,
+                admission,
+                hold=catalog,
+                key=key,
+                loop_key=loop_key,
             )
         else:
             outcome, compute_ms, overlay, stored, row_id = await self._in_pool(
@@ -744,18 +774,28 @@ class InspectionService:
         self._notify(InspectionRecord(request, reply, captured[0] if captured else None))
         return reply
 
-    def _runs_inline(self, request: InspectRequest, key: str) -> bool:
-        """Whether ``request`` runs on the event loop itself: a production inspection whose
-        images came in the request as raw pixels (nothing to decode, no camera to wait for)
-        and whose slowest recent time for that (images, checks, the run, drawing) is at most
-        ``inline_ms``. A thread hop costs two wake-ups and a hand-over of the GIL, more than
-        such a run; the result log's row and an overlay's encoding still go to a thread."""
+    def _loop_key(self, request: InspectRequest, key: str) -> str:
+        """What :attr:`loop_costs` knows a request's run by: its pool key, and whether the run
+        draws an overlay (asked for, or kept by the result log)."""
+        draws = request.overlay is not None or (
+            request.record and self.results is not None and self.results.keeps_images
+        )
+        return f"{key} +overlay" if draws else key
+
+    def _runs_inline(self, request: InspectRequest, loop_key: str) -> bool:
+        """Whether ``request`` runs on the event loop itself: a production inspection without
+        options (they may make it another computation), whose images came in the request as
+        raw pixels (nothing to decode, no camera to wait for), and whose slowest recent time
+        per pixel for that (images, checks, the run, drawing) makes at most ``inline_ms`` on
+        this request's pixels, no more than the largest image measured. A thread hop costs
+        two wake-ups and a hand-over of the GIL, more than such a run; the result log's row
+        and an overlay's encoding still go to a thread."""
         limit = self.settings.inline_ms
         if limit <= 0 or request.request_class != "production" or request.prepared is not None:
             return False
-        if not loads_cheaply(request.images):
+        if request.options or not loads_cheaply(request.images):
             return False
-        cost = self.loop_costs.estimate(key)
+        cost = self.loop_costs.estimate(loop_key, request_pixels(request.images))
         return cost is not None and cost <= limit
 
     async def _inline(
@@ -772,6 +812,7 @@ class InspectionService:
         *,
         hold: Catalog,
         key: str,
+        loop_key: str,
     ) -> tuple[InspectionOutcome, float, Overlay | None, bool | None, int | None]:
         """:meth:`_in_pool` for a cheap run (:meth:`_runs_inline`): ``prepare`` and ``run``
         here, on the event loop, on the slot ``admission`` holds; ``finish`` (the result
@@ -799,16 +840,24 @@ class InspectionService:
             try:
                 outcome = run(image, draw)
             except CellvisionError as exc:
+                self.loop_costs.observe(loop_key, started.cost_ms(), input_pixels(image))
                 if entry is None:
                     raise
                 failing = loop.run_in_executor(slot.lane.executor, failed, entry, t0, exc)
                 failing.add_done_callback(done)
                 handed_over = True
-                await asyncio.shield(failing)
+                await self._until(failing, request.arrived, deadline)
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
-            self.loop_costs.observe(key, started.cost_ms())
+            self.loop_costs.observe(loop_key, started.cost_ms(), input_pixels(image))
             self.pool.costs.observe(key, started.wall_ms())
+            if deadline is not None and time.monotonic() > deadline:
+                # As in a worker: a run done after its deadline is not answered as a result
+                # (the request's error row is written by the caller).
+                budget_ms = round((deadline - request.arrived) * 1000.0, 3)
+                raise DeadlineExceeded(
+                    f"not done within the request's deadline of {budget_ms:g} ms"
+                )
             if request.overlay is None and entry is None:
                 finished, overlay, stored, row_id = finish(outcome, entry, t0)  # nothing to do
                 return finished, compute_ms, overlay, stored, row_id
