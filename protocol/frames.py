@@ -98,13 +98,17 @@ class Frame:
         return [b"".join((header, meta, table)), *(b for b in blobs if len(b))]
 
 
+_ENCODER = json.JSONEncoder(
+    separators=(",", ":"), sort_keys=True, ensure_ascii=False, allow_nan=False
+)
+"""One encoder for every frame (``json.dumps`` with options makes a new one per call)."""
+
+
 def encode_metadata(metadata: dict[str, Any]) -> bytes:
     """Compact UTF-8 JSON, keys sorted, no NaN; ``{}`` is sent as zero bytes."""
     if not metadata:
         return b""
-    return json.dumps(
-        metadata, separators=(",", ":"), sort_keys=True, ensure_ascii=False, allow_nan=False
-    ).encode("utf-8")
+    return _ENCODER.encode(metadata).encode("utf-8")
 
 
 MAX_SAFE_INTEGER = 2**53 - 1
@@ -145,6 +149,14 @@ def _object_without_nulls(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return result
 
 
+_DECODER = json.JSONDecoder(
+    parse_constant=_reject_constant,
+    parse_float=_finite_float,
+    parse_int=_safe_int,
+    object_pairs_hook=_object_without_nulls,
+)
+"""One decoder for every frame (``json.loads`` with options makes a new one per call)."""
+
 # A \uD800-\uDFFF escape may leave a lone surrogate, which no UTF-8 encoder can send back.
 _SURROGATE_ESCAPE = re.compile(r"\\u[dD][89a-fA-F]")
 
@@ -160,13 +172,7 @@ def decode_metadata(data: bytes, *, request_id: int) -> dict[str, Any]:
         return {}
     try:
         text = data.decode("utf-8")
-        value = json.loads(
-            text,
-            parse_constant=_reject_constant,
-            parse_float=_finite_float,
-            parse_int=_safe_int,
-            object_pairs_hook=_object_without_nulls,
-        )
+        value = _DECODER.decode(text)
         if _SURROGATE_ESCAPE.search(text):
             # Cheap test first; only then the full check that every string encodes.
             json.dumps(value, ensure_ascii=False).encode("utf-8")

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import resource
 import threading
 import time
 from collections import deque
@@ -726,7 +727,7 @@ class InspectionService:
             return outcome, overlay, stored, row_id
 
         def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None, int | None]:
-            started = RunClock()
+            started = RunClock(on_loop=False)
             image, entry, draw = prepare()
             t0 = time.perf_counter()
             try:
@@ -834,7 +835,7 @@ class InspectionService:
 
         handed_over = False  # the slot and the lease go with work handed to a thread
         try:
-            started = RunClock()
+            started = RunClock(on_loop=True)
             image, entry, draw = prepare()
             t0 = time.perf_counter()
             try:
@@ -1048,27 +1049,42 @@ class InspectionService:
 # ----------------------------------------------------------------------------- helpers
 
 
-WAITED_MS = 5.0
-"""A run whose wall time exceeds its CPU time by more than this waited for something (a lock,
-a sleep, I/O): its wall time is its cost on the event loop, not its CPU time."""
+BLOCKED_MS = 5.0
+"""A run in a worker whose wall time exceeds its CPU time by more than this blocked on
+something (a lock, I/O, a sleep): its wall time is what it would hold the event loop for."""
 
 
 class RunClock:
-    """What a run would hold the event loop for: its thread's CPU time, which a wait for the
-    GIL or a preemption under load does not inflate (a run timed in a worker waits for the
-    GIL while the loop works), unless it waited for something else (:data:`WAITED_MS`)."""
+    """What a run would hold the event loop for (ms).
 
-    def __init__(self) -> None:
+    On the loop itself: its CPU time, which a preemption under load does not inflate, unless
+    the thread gave up the CPU on its own during the run (blocked on a lock, I/O, a sleep, the
+    GIL: a voluntary context switch), when the loop was held for the whole wall time. In a
+    worker thread: its CPU time too (its wall time counts waits for the GIL, which the loop
+    holds meanwhile), unless it waited more than :data:`BLOCKED_MS` beyond it."""
+
+    def __init__(self, *, on_loop: bool) -> None:
+        self._on_loop = on_loop
         self._wall = time.perf_counter()
         self._cpu = time.thread_time()
+        self._switches = _voluntary_switches() if on_loop else 0
 
     def wall_ms(self) -> float:
         return (time.perf_counter() - self._wall) * 1000.0
 
     def cost_ms(self) -> float:
-        wall_ms = self.wall_ms()
         cpu_ms = (time.thread_time() - self._cpu) * 1000.0
-        return wall_ms if wall_ms - cpu_ms > WAITED_MS else cpu_ms
+        wall_ms = self.wall_ms()
+        if self._on_loop:
+            blocked = _voluntary_switches() != self._switches
+        else:
+            blocked = wall_ms - cpu_ms > BLOCKED_MS
+        return max(wall_ms, cpu_ms) if blocked else cpu_ms
+
+
+def _voluntary_switches() -> int:
+    """This thread's voluntary context switches so far (Linux counts them per thread)."""
+    return resource.getrusage(resource.RUSAGE_THREAD).ru_nvcsw
 
 
 class _RowOnce:
