@@ -10,6 +10,7 @@ Everything that affects the state machine lives in this file, in ``TRANSITIONS``
 
 from __future__ import annotations
 
+from collections.abc import KeysView
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any
@@ -204,9 +205,10 @@ class Connection:
     # ------------------------------------------------------------------ introspection
 
     @property
-    def pending(self) -> frozenset[int]:
-        """Request ids awaiting an answer (client) or owed an answer (server)."""
-        return frozenset(self._pending)
+    def pending(self) -> KeysView[int]:
+        """Request ids awaiting an answer (client) or owed an answer (server): a live,
+        read-only view (no copy per request; ``sorted()`` it to keep a snapshot)."""
+        return self._pending.keys()
 
     def speaks(self, version: Version) -> bool:
         """True when this side speaks ``version`` (same major, minor not above ours)."""

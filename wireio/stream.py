@@ -202,7 +202,9 @@ class WireStream(asyncio.BufferedProtocol):
         transport = self._transport
         if transport is None:
             raise RuntimeError("the stream is not connected")
-        views = [view for view in map(blob_view, parts) if len(view)]
+        # bytes (a frame's head) are flat already; anything else is viewed as flat bytes.
+        flat = (memoryview(p) if type(p) is bytes else blob_view(p) for p in parts)
+        views = [view for view in flat if len(view)]
         if self.on_write is not None:
             for view in views:
                 self.on_write(view)
