@@ -694,10 +694,13 @@ def run(cfg: RunConfig, env: Env) -> Section:
         "server: whole request received -> RESULT ready (`timing.total_ms`)", fmt(srv_total.p50)
     )
     breakdown.add(
-        "· of which the inspection in the worker (`timing.compute_ms`)", fmt(srv_compute.p50)
+        "· of which the inspection (`timing.compute_ms`; a cheap one runs on the event loop "
+        "itself, `inline_ms`)",
+        fmt(srv_compute.p50),
     )
     breakdown.add(
-        "· of which decoding, pool hand-off and back (total - compute)",
+        "· of which the image checks, the service's bookkeeping and any hand-off to a worker "
+        "(total - compute)",
         fmt(srv_total.p50 - srv_compute.p50),
     )
     breakdown.add(
