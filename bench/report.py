@@ -100,6 +100,7 @@ def markdown(
             f"{start:.2f} at its start, {end:.2f} at its end</sub>",
             "",
         ]
+    out += included_section(report, "fast-path.md")
     out += reliability_section(report)
     return "\n".join(out).rstrip() + "\n"
 
@@ -108,7 +109,14 @@ def reliability_section(report: Path) -> list[str]:
     """The reliability figures (soak, load, faults, security, durability) are measured by
     scripts/soak.py and scripts/load.py, not by this run: their write-up, docs/bench/
     reliability.md, is included as it is (its headings start at level 2, like the sections)."""
-    source = report.parent / "bench" / "reliability.md"
+    return included_section(report, "reliability.md")
+
+
+def included_section(report: Path, name: str) -> list[str]:
+    """docs/bench/NAME beside the report, included as it is (its headings start at level 2,
+    like the sections): a write-up of work measured by the sections above or by scripts of
+    their own (docs/bench/fast-path.md: what issue 33 changed and tried)."""
+    source = report.parent / "bench" / name
     if not source.is_file():
         return []
     lines = source.read_text(encoding="utf-8").splitlines()
