@@ -12,7 +12,8 @@ Public API:
 - Images: :class:`ImagePayload`, :func:`payload_from_array`, :func:`array_from_payload`,
   :class:`ImageEncoding`, :class:`ImageRole`.
 - Errors: :class:`ErrorCode`, :class:`CellvisionError` and one subclass per code,
-  :func:`error_from_code`, :class:`LocalProtocolError`.
+  :func:`error_from_code`, :class:`LocalProtocolError` (and :class:`TooLargeToSend`, a frame
+  larger than the peer accepts: ``Connection.send_parts(message, max_bytes=)``).
 - Constants: ``PROTOCOL_VERSION``, ``SUPPORTED_VERSIONS``, ``DEFAULT_PORT``, :class:`MessageType`.
 
 ``protocol.conformance`` (not imported here) is a tool that checks any server over TCP.

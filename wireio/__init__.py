@@ -6,9 +6,10 @@ Public API:
 
 - :class:`WireStream`: one connection; ``receive()`` (pulled by the owner: a body is read
   into its buffer once the connection has admitted its header; ``interrupt()`` ends a wait
-  with :data:`INTERRUPTED`), ``pause_reading()`` /
-  ``resume_reading()``, ``writelines(parts)`` / ``write``, ``drain()``, ``close()``,
-  ``abort()``, ``wait_closed()``, ``get_extra_info()``, ``start_tls()``.
+  with :data:`INTERRUPTED`), ``pause_reading()`` / ``resume_reading()``,
+  ``writelines(parts)`` / ``write`` (one ``writev`` per message), ``drain()`` (needed only
+  while ``write_paused``), ``close()``, ``abort()``, ``wait_closed()``, ``get_extra_info()``,
+  ``start_tls()``.
 - :func:`serve` (a listening server for ``loop.create_server``) and :func:`open_connection`.
 - :class:`FrameCursor`: where a byte stream is, frame by frame.
 

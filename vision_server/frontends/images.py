@@ -2,7 +2,8 @@
 
 Used by the TCP front-end for the images of an INSPECT and by the offline tools for image files
 (which :func:`protocol.image_files.payload_from_file` reads into the same payloads). The loader
-runs in a worker thread of the service (decoding is CPU work) once the inspection is known.
+runs once the inspection is known: in a worker thread of the service (decoding is CPU work), or
+on the event loop when it is ``cheap`` (raw pixels, viewed in place) and the inspection too.
 
 Wire-level checks are made here, before anything is decompressed: the number of colour images,
 and each compressed header's bit depth and channels (a 16-bit colour PNG is refused without

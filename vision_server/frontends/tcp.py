@@ -5,9 +5,10 @@ One task reads each connection and feeds a sans-IO :class:`protocol.Connection`;
 CAPTURE runs as a child task in the connection's TaskGroup and calls the service. What is this
 front-end's own: the listener (``max_connections``, TLS started per connection, refusing with a
 fatal BUSY), the handshake (versions, the token, the client's ``max_frame_bytes``), the
-per-connection limits (``max_in_flight``) and timeouts (handshake, idle, frame, write), payload
-decoding (:mod:`.images`, run by the service in a worker) and the one table from the service's
-errors to ERROR frames (:func:`error_frame`).
+per-connection limits (``max_in_flight``) and timeouts (handshake, idle, frame: one watchdog
+timer per connection; write), payload decoding (:mod:`.images`, run by the service: in a worker,
+or for raw pixels of a cheap inspection on the event loop, ``inline_ms``) and the one table from
+the service's errors to ERROR frames (:func:`error_frame`).
 
 Admission happens when a frame's header arrives (:meth:`TcpSession._admit`): the service
 reserves a worker slot and the bytes of a large body (:meth:`InspectionService.admit`) before the
