@@ -541,10 +541,10 @@ class TcpSession:
             if self._shutdown.is_set():
                 await self._shutdown_session()
                 return True
-            # One wait per read, woken by the peer's bytes or interrupt(): on shutdown, by the
-            # watchdog once a timeout is due, and when the last request is answered (the idle
-            # timeout starts then, so a client that goes silent after its answers is closed
-            # after idle_timeout_s).
+            # One wait per read, woken by the peer's bytes or interrupt(): on shutdown, and by
+            # the watchdog once a timeout is due (the idle timeout is set when the last request
+            # is answered, so a client that goes silent after its answers is closed after
+            # idle_timeout_s).
             timeout, why = self._read_timeout()
             if timeout is not None and timeout <= 0.0:
                 log.info("%s: %s; closing", self.peer, why)
@@ -659,7 +659,9 @@ class TcpSession:
     def _task_done(self, task: asyncio.Task[None]) -> None:
         self._tasks.discard(task)
         if not self._tasks:
-            self.stream.interrupt()  # the read loop's idle timeout starts now
+            # The idle timeout starts now: the watchdog is set for it without waking the
+            # read loop (it finds the timeout due, or moved on by a new request, then).
+            self._watch(self._read_timeout()[0])
 
     def _token_ok(self, hello: Hello) -> bool:
         """Whether the HELLO carries the server's token, when it has one (constant-time)."""
