@@ -588,19 +588,7 @@ class InspectionService:
         if self.results is None or not rows.claim():
             return
         inspection = _inspection_of(request, catalog)
-        entry = ResultEntry(
-            time=time.time(),
-            inspection=inspection.name,
-            camera=inspection.camera,
-            passed=False,
-            data={},
-            duration_ms=0.0,
-            config_hash=catalog.config_hash,
-            request_id=request.request_id,
-            peer=request.peer,
-            options=request.options,
-            config=request.config,
-        )
+        entry = _entry(request, catalog, inspection.name, inspection.camera)
         # Its duration is from the request's arrival (perf_counter and monotonic both tick
         # in seconds; only their difference is used).
         t0 = time.perf_counter() - (time.monotonic() - request.arrived)
@@ -666,21 +654,7 @@ class InspectionService:
                 self._admit_overlay(image.color, admission)
             entry = None
             if self.results is not None and request.record:
-                entry = ResultEntry(
-                    time=time.time(),
-                    inspection=inspection.name,
-                    camera=camera.name,
-                    passed=False,
-                    data={},
-                    duration_ms=0.0,
-                    config_hash=catalog.config_hash,
-                    request_id=request.request_id,
-                    peer=request.peer,
-                    image=image.color,
-                    options=request.options,
-                    config=request.config,
-                    operator=request.operator,
-                )
+                entry = _entry(request, catalog, inspection.name, camera.name, image.color)
             # The log stores the overlay beside the input it keeps (drawing costs ~0.1 ms; the
             # policy's pass/fail choice is only known after the run). Not for very large
             # images: a colour copy of 16 MP is 48 MB more per worker, for a picture the
@@ -1085,6 +1059,32 @@ class RunClock:
 def _voluntary_switches() -> int:
     """This thread's voluntary context switches so far (Linux counts them per thread)."""
     return resource.getrusage(resource.RUSAGE_THREAD).ru_nvcsw
+
+
+def _entry(
+    request: InspectRequest,
+    catalog: Catalog,
+    inspection: str,
+    camera: str,
+    image: Image | None = None,
+) -> ResultEntry:
+    """The result log's row for ``request`` before its outcome is known (not passed, no
+    data): the run fills those in, an error row adds its error."""
+    return ResultEntry(
+        time=time.time(),
+        inspection=inspection,
+        camera=camera,
+        passed=False,
+        data={},
+        duration_ms=0.0,
+        config_hash=catalog.config_hash,
+        request_id=request.request_id,
+        peer=request.peer,
+        image=image,
+        options=request.options,
+        config=request.config,
+        operator=request.operator,
+    )
 
 
 class _RowOnce:
