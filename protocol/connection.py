@@ -495,11 +495,12 @@ class Connection:
                 raise LocalProtocolError(f"no request with id {rid} is waiting for an answer")
             if request is not T.ERROR and mtype not in RESPONSES[request]:
                 raise LocalProtocolError(f"{mtype.name} cannot answer {request.name}")
+        version = self.wire_version
         if isinstance(message, Welcome):
             if not self.speaks(message.version):
                 raise LocalProtocolError(f"version {message.version} is not one we speak")
-            self.version = message.version
-        data = message.to_frame(self.wire_version).serialize_parts()
+            version = message.version  # the WELCOME goes out in the version it chose
+        data = message.to_frame(version).serialize_parts()
         if max_bytes is not None:
             size = sum(len(part) for part in data)
             if size > max_bytes:
@@ -508,6 +509,8 @@ class Connection:
                     size,
                     max_bytes,
                 )
+        if isinstance(message, Welcome):
+            self.version = message.version  # only once it is sent
         if key in TRANSITIONS:
             self._apply(key, message)
         return data

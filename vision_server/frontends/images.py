@@ -28,8 +28,8 @@ class PayloadLoader:
     def __init__(self, payloads: Sequence[ImagePayload]) -> None:
         self._payloads = tuple(payloads)
         self.cheap = all(p.encoding.is_raw for p in self._payloads)
-        self.pixels = sum(p.width * p.height for p in self._payloads)
-        """The pixels the payloads say they have (checked when they are decoded)."""
+        self.raw_bytes = sum(len(p.data) for p in self._payloads) if self.cheap else 0
+        """The bytes of the pixels when they are all raw (checked when they are viewed)."""
 
     def __call__(self, needs: ImageNeeds) -> Images:
         return decode_payloads(self._payloads, needs)

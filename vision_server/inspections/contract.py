@@ -45,7 +45,10 @@ class InspectionOutcome:
 
 
 class Inspection(Protocol):
-    """A named, configured inspection. ``run`` is CPU-bound and runs in a worker thread.
+    """A named, configured inspection. ``run`` is CPU-bound and must not block (no sleeps, no
+    waits on devices or locks): it runs in a worker thread or process, or, when it has proven
+    cheap (``inline_ms``), on the server's event loop itself, where a wait would hold up every
+    connection until the run is measured as slow.
 
     ``frames``: how many frames a server camera captures for one run (depth averaging).
     """

@@ -102,29 +102,30 @@ class PeakCost(CostModel):
 
 class LoopCosts:
     """What a run would hold the event loop for (ms), per key (an inspection, with or without
-    drawing its overlay) and image size: the slowest recent cost per pixel (:class:`PeakCost`)
-    times the request's pixels, known only up to the largest image measured so far (a cost
-    that grows faster than the image is never extrapolated)."""
+    drawing its overlay) and image size: the slowest recent cost per byte of image
+    (:class:`PeakCost`; bytes, so that a colour image counts its three channels) times the
+    request's bytes, known only up to the largest image measured so far (a cost that grows
+    faster than the image is never extrapolated)."""
 
     def __init__(self, decay: float = 0.01) -> None:
-        self._per_pixel = PeakCost(decay)
+        self._per_byte = PeakCost(decay)
         self._lock = threading.Lock()
         self._largest: dict[str, int] = {}
 
-    def estimate(self, key: str, pixels: int) -> float | None:
-        """The cost of a run on ``pixels`` (all its images together); None when unknown."""
+    def estimate(self, key: str, size: int) -> float | None:
+        """The cost of a run on ``size`` bytes of images; None when unknown."""
         with self._lock:
             largest = self._largest.get(key)
-        per_pixel = self._per_pixel.estimate(key)
-        if largest is None or per_pixel is None or not 0 < pixels <= largest:
+        per_byte = self._per_byte.estimate(key)
+        if largest is None or per_byte is None or not 0 < size <= largest:
             return None
-        return per_pixel * pixels
+        return per_byte * size
 
-    def observe(self, key: str, ms: float, pixels: int) -> None:
-        pixels = max(pixels, 1)
-        self._per_pixel.observe(key, ms / pixels)
+    def observe(self, key: str, ms: float, size: int) -> None:
+        size = max(size, 1)
+        self._per_byte.observe(key, ms / size)
         with self._lock:
-            self._largest[key] = max(self._largest.get(key, 0), pixels)
+            self._largest[key] = max(self._largest.get(key, 0), size)
 
 
 @dataclass(frozen=True)

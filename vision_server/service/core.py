@@ -112,25 +112,22 @@ class ImageNeeds:
 
 
 ImageLoader = Callable[[ImageNeeds], Images]
-"""Decodes a request's images; called in a worker thread, once the inspection is known. Raises
-BadImage or ImageTooLarge for images that cannot be decoded."""
+"""Decodes a request's images, once the inspection is known: in a worker thread, or on the
+event loop for a loader marked ``cheap`` (raw pixels viewed in place: :func:`loads_cheaply`).
+Raises BadImage or ImageTooLarge for images that cannot be decoded."""
 
 
-def request_pixels(images: Images | ImageLoader | None) -> int:
-    """The pixels of a request's images together (colour and depth), as far as known before
-    they are loaded (0: unknown); a loader says so with ``pixels``."""
+def request_bytes(images: Images | ImageLoader | None) -> int:
+    """The bytes of a request's images together (colour and depth), as far as known before
+    they are loaded (0: unknown); a loader says so with ``raw_bytes``."""
     if isinstance(images, Images):
-        return int(images.color.shape[0] * images.color.shape[1]) + sum(
-            int(d.shape[0] * d.shape[1]) for d in images.depth
-        )
-    return int(getattr(images, "pixels", 0))
+        return int(images.color.nbytes) + sum(int(d.nbytes) for d in images.depth)
+    return int(getattr(images, "raw_bytes", 0))
 
 
-def input_pixels(image: InspectionInput) -> int:
-    """The pixels of an inspection's input, colour and depth together."""
-    return int(image.color.shape[0] * image.color.shape[1]) + sum(
-        int(d.shape[0] * d.shape[1]) for d in image.depth
-    )
+def input_bytes(image: InspectionInput) -> int:
+    """The bytes of an inspection's input, colour and depth together."""
+    return int(image.color.nbytes) + sum(int(d.nbytes) for d in image.depth)
 
 
 def loads_cheaply(images: Images | ImageLoader | None) -> bool:
@@ -547,9 +544,10 @@ class InspectionService:
     async def inspect(
         self, request: InspectRequest, *, admission: Admission | None = None
     ) -> InspectReply:
-        """Run ``request``: its images (or a capture), the named inspection in the pool, the
-        result log, the overlay. Without ``admission`` a slot is taken here (BUSY when none is
-        free) and given back when done."""
+        """Run ``request``: its images (or a capture), the named inspection (in the pool, or on
+        the event loop when it is cheap: :meth:`_runs_inline`), the result log, the overlay.
+        Without ``admission`` a slot is taken here (BUSY when none is free) and given back when
+        done."""
         own = admission is None
         key = self.request_key(request)
         held = self.admit(key=key) if admission is None else admission
@@ -700,24 +698,33 @@ class InspectionService:
                 overlay = _overlay(outcome.overlay, request.overlay)
             return outcome, overlay, stored, row_id
 
+        # The table this request learns into (a reload starts a new one: runs of the old
+        # catalog must not teach it).
+        loop_costs = self.loop_costs
+
         def work() -> tuple[InspectionOutcome, float, Overlay | None, bool | None, int | None]:
-            started = RunClock(on_loop=False)
+            # What a run would cost on the loop: loading there is only ever viewing raw
+            # pixels, so a decode or a camera's grab here is not counted.
+            started = RunClock(on_loop=False) if cheap else None
             image, entry, draw = prepare()
+            started = started or RunClock(on_loop=False)
             t0 = time.perf_counter()
             try:
                 outcome = run(image, draw)
-            except CellvisionError as exc:
-                self.loop_costs.observe(loop_key, started.cost_ms(), input_pixels(image))
-                failed(entry, t0, exc)
+            except Exception as exc:  # a bug that burnt the CPU first counts as much
+                loop_costs.observe(loop_key, started.cost_ms(), input_bytes(image))
+                if isinstance(exc, CellvisionError):
+                    failed(entry, t0, exc)
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
-            self.loop_costs.observe(loop_key, started.cost_ms(), input_pixels(image))
+            loop_costs.observe(loop_key, started.cost_ms(), input_bytes(image))
             outcome, overlay, stored, row_id = finish(outcome, entry, t0)
             return outcome, compute_ms, overlay, stored, row_id
 
         key = self.request_key(request)
         loop_key = self._loop_key(request, key)
-        if not in_process and self._runs_inline(request, loop_key):
+        cheap = loads_cheaply(request.images)
+        if not in_process and self._runs_inline(request, loop_key, loop_costs):
             outcome, compute_ms, overlay, stored, row_id = await self._inline(
                 prepare,
                 run,
@@ -728,6 +735,7 @@ class InspectionService:
                 hold=catalog,
                 key=key,
                 loop_key=loop_key,
+                loop_costs=loop_costs,
             )
         else:
             outcome, compute_ms, overlay, stored, row_id = await self._in_pool(
@@ -757,7 +765,7 @@ class InspectionService:
         )
         return f"{key} +overlay" if draws else key
 
-    def _runs_inline(self, request: InspectRequest, loop_key: str) -> bool:
+    def _runs_inline(self, request: InspectRequest, loop_key: str, costs: LoopCosts) -> bool:
         """Whether ``request`` runs on the event loop itself: a production inspection without
         options (they may make it another computation), whose images came in the request as
         raw pixels (nothing to decode, no camera to wait for), and whose slowest recent time
@@ -770,7 +778,7 @@ class InspectionService:
             return False
         if request.options or not loads_cheaply(request.images):
             return False
-        cost = self.loop_costs.estimate(loop_key, request_pixels(request.images))
+        cost = costs.estimate(loop_key, request_bytes(request.images))
         return cost is not None and cost <= limit
 
     async def _inline(
@@ -788,6 +796,7 @@ class InspectionService:
         hold: Catalog,
         key: str,
         loop_key: str,
+        loop_costs: LoopCosts,
     ) -> tuple[InspectionOutcome, float, Overlay | None, bool | None, int | None]:
         """:meth:`_in_pool` for a cheap run (:meth:`_runs_inline`): ``prepare`` and ``run``
         here, on the event loop, on the slot ``admission`` holds; ``finish`` (the result
@@ -814,17 +823,17 @@ class InspectionService:
             t0 = time.perf_counter()
             try:
                 outcome = run(image, draw)
-            except CellvisionError as exc:
-                self.loop_costs.observe(loop_key, started.cost_ms(), input_pixels(image))
-                if entry is None:
-                    raise
+            except Exception as exc:  # a bug that burnt the CPU first counts as much
+                loop_costs.observe(loop_key, started.cost_ms(), input_bytes(image))
+                if entry is None or not isinstance(exc, CellvisionError):
+                    raise  # (another error's row is written by the caller)
                 failing = loop.run_in_executor(slot.lane.executor, failed, entry, t0, exc)
                 failing.add_done_callback(done)
                 handed_over = True
                 await self._until(failing, request.arrived, deadline)
                 raise
             compute_ms = (time.perf_counter() - t0) * 1000.0
-            self.loop_costs.observe(loop_key, started.cost_ms(), input_pixels(image))
+            loop_costs.observe(loop_key, started.cost_ms(), input_bytes(image))
             self.pool.costs.observe(key, started.wall_ms())
             if deadline is not None and time.monotonic() > deadline:
                 # As in a worker: a run done after its deadline is not answered as a result
@@ -851,9 +860,11 @@ class InspectionService:
         self, future: asyncio.Future[_T], arrived: float, deadline: float | None
     ) -> _T:
         """``future``'s result, or DEADLINE_EXCEEDED once ``deadline`` (monotonic seconds) has
-        passed; the work goes on (it holds what it needs until it ends)."""
+        passed. The work goes on whatever happens to the caller, a cancellation too (it holds
+        its slot, its lease and its result log row until it ends: a job cancelled while queued
+        would never give them back)."""
         if deadline is None:
-            return await future
+            return await asyncio.shield(future)
         budget_ms = round((deadline - arrived) * 1000.0, 3)
         try:
             loop = asyncio.get_running_loop()
