@@ -2,7 +2,8 @@
 loop still is not: the result log's row, an overlay's encoding, decoding a compressed image, a
 run that once took long. Which thread did what is recorded by the inspection and by wrappers
 around the log and the encoder; nothing here depends on timing except the one slow run, which
-is slow on purpose (20 ms against a 0.5 ms bound)."""
+is slow on purpose (20 ms against a 0.5 ms bound). An inspection is brought onto the loop by
+running it until a run lands there (tests/helpers/inline_runs.py), not by counting runs."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from inline_runs import until_on_the_loop
 from loopback import run
 
 from protocol import BadImage, ImageEncoding, ImagePayload, ImageRole, payload_from_array
@@ -80,6 +82,10 @@ def service_with(where: Where, **settings: Any) -> InspectionService:
     )
 
 
+async def onto_the_loop(service: InspectionService, where: Where, **request: Any) -> None:
+    await until_on_the_loop(lambda: inspect_times(service, 1, **request), where.threads)
+
+
 async def inspect_times(service: InspectionService, n: int, **request: Any) -> list[Any]:
     images = request.pop("images", None)
     replies = []
@@ -96,7 +102,8 @@ def test_a_cheap_run_on_raw_images_is_on_the_event_loop_once_measured() -> None:
 
     async def body() -> None:
         service = service_with(where)
-        replies = await inspect_times(service, 4)
+        await onto_the_loop(service, where)
+        replies = await inspect_times(service, 3)
         assert all(r.passed for r in replies)
         assert service.pool.admitted == 0
         service.close()
@@ -104,7 +111,7 @@ def test_a_cheap_run_on_raw_images_is_on_the_event_loop_once_measured() -> None:
     loop_thread = threading.current_thread().name
     run(body())
     assert where.threads[0].startswith("inspect")
-    assert where.threads[1:] == [loop_thread] * 3
+    assert where.threads[-3:] == [loop_thread] * 3
 
 
 def test_the_result_log_row_is_written_in_a_worker_when_the_run_was_on_the_loop(
@@ -115,8 +122,9 @@ def test_the_result_log_row_is_written_in_a_worker_when_the_run_was_on_the_loop(
 
     async def body() -> None:
         service = service_with(where, results=log)
-        replies = await inspect_times(service, 3)
-        assert [r.stored for r in replies] == [True, True, True]
+        await onto_the_loop(service, where)
+        replies = await inspect_times(service, 2)
+        assert [r.stored for r in replies] == [True, True]
         assert all(r.result_id for r in replies)
         service.close()
 
@@ -125,9 +133,9 @@ def test_the_result_log_row_is_written_in_a_worker_when_the_run_was_on_the_loop(
         run(body())
     finally:
         log.close()
-    assert where.threads[1:] == [loop_thread] * 2
+    assert where.threads[-2:] == [loop_thread] * 2
     assert all(t.startswith("inspect") for t in log.threads)
-    assert len(log.threads) == 3
+    assert len(log.threads) == len(where.threads)  # one row per run
 
 
 def test_an_error_row_of_a_run_on_the_loop_is_written_in_a_worker(tmp_path: Path) -> None:
@@ -136,7 +144,7 @@ def test_an_error_row_of_a_run_on_the_loop_is_written_in_a_worker(tmp_path: Path
 
     async def body() -> None:
         service = service_with(where, results=log)
-        await inspect_times(service, 2)
+        await onto_the_loop(service, where)
         where.fail = True
         with pytest.raises(BadImage, match="not in the image"):
             await inspect_times(service, 1)
@@ -169,8 +177,8 @@ def test_an_overlay_is_encoded_in_a_worker_when_the_run_was_on_the_loop(
 
     async def body() -> None:
         service = service_with(where)
-        # Drawing is part of the run: a run that draws is measured on its own first.
-        await inspect_times(service, 1, overlay=".png")
+        # Drawing is part of the run: runs that draw are measured on their own.
+        await onto_the_loop(service, where, overlay=".png")
         [reply] = await inspect_times(service, 1, overlay=".png")
         assert reply.overlay is not None
         assert reply.overlay.encoded is not None
@@ -179,8 +187,8 @@ def test_an_overlay_is_encoded_in_a_worker_when_the_run_was_on_the_loop(
 
     loop_thread = threading.current_thread().name
     run(body())
-    assert where.threads == [where.threads[0], loop_thread]
-    assert len(encoded_in) == 2
+    assert where.threads[-2:] == [loop_thread] * 2
+    assert len(encoded_in) == len(where.threads)
     assert all(t.startswith("inspect") for t in encoded_in)
 
 
@@ -193,16 +201,15 @@ def test_compressed_images_are_decoded_in_a_worker() -> None:
 
     async def body() -> None:
         service = service_with(where)
-        await inspect_times(service, 2)
+        await onto_the_loop(service, where)
         await inspect_times(service, 2, images=lambda: payload_loader([png]))
         await inspect_times(service, 1, images=lambda: payload_loader([payload_from_array(GRAY)]))
         service.close()
 
     loop_thread = threading.current_thread().name
     run(body())
-    assert where.threads[1] == loop_thread
-    assert all(t.startswith("inspect") for t in where.threads[2:4])
-    assert where.threads[4] == loop_thread  # raw pixels through the same loader: cheap
+    assert all(t.startswith("inspect") for t in where.threads[-3:-1])
+    assert where.threads[-1] == loop_thread  # raw pixels through the same loader: cheap
 
 
 @pytest.mark.parametrize("spin", [False, True], ids=["waiting", "busy"])
@@ -214,7 +221,7 @@ def test_one_slow_run_keeps_an_inspection_off_the_loop(spin: bool) -> None:
 
     async def body() -> None:
         service = service_with(where)
-        await inspect_times(service, 2)
+        await onto_the_loop(service, where)
         where.slow_once_ms = 20.0
         await inspect_times(service, 1)  # on the loop: its cost was not known
         await inspect_times(service, 5)
@@ -222,8 +229,8 @@ def test_one_slow_run_keeps_an_inspection_off_the_loop(spin: bool) -> None:
 
     loop_thread = threading.current_thread().name
     run(body())
-    assert where.threads[1:3] == [loop_thread] * 2
-    assert all(t.startswith("inspect") for t in where.threads[3:])
+    assert where.threads[-6] == loop_thread
+    assert all(t.startswith("inspect") for t in where.threads[-5:])
 
 
 def test_inline_ms_zero_keeps_every_run_in_a_worker() -> None:
