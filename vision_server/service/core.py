@@ -768,9 +768,10 @@ class InspectionService:
     def _runs_inline(self, request: InspectRequest, loop_key: str, costs: LoopCosts) -> bool:
         """Whether ``request`` runs on the event loop itself: a production inspection without
         options (they may make it another computation), whose images came in the request as
-        raw pixels (nothing to decode, no camera to wait for), and whose slowest recent time
-        per pixel for that (images, checks, the run, drawing) makes at most ``inline_ms`` on
-        this request's pixels, no more than the largest image measured. A thread hop costs
+        raw pixels (nothing to decode, no camera to wait for), and whose slowest recent cost
+        per byte of image for that (viewing the images, checks, the run, drawing) makes at
+        most ``inline_ms`` on this request's images, no larger than the largest measured
+        (:class:`~.admission.LoopCosts`). A thread hop costs
         two wake-ups and a hand-over of the GIL, more than such a run; the result log's row
         and an overlay's encoding still go to a thread."""
         limit = self.settings.inline_ms
