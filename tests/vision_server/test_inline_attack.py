@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from inline_runs import until_on_the_loop
+from inline_runs import FailsSlowly, until_on_the_loop
 from loopback import run
 
 from protocol import BadImage, DeadlineExceeded
@@ -120,7 +120,7 @@ def test_a_large_image_to_an_inspection_measured_on_small_ones_is_not_run_on_the
 ) -> None:
     """No options at all: a blob count measured on 64x48 images (cheap: it runs on the loop)
     gets one 4096x4096 image, within max_image_pixels: that run goes to a worker (the
-    estimate is per pixel, and never beyond the largest image measured). On the first
+    estimate is per byte of image, and never beyond the largest image measured). On the first
     version of inline runs it stalled the loop for 270-300 ms."""
     threads: list[str] = []
     catalog = noting_catalog(tmp_path, threads)
@@ -214,28 +214,9 @@ def test_a_failing_run_answers_at_its_deadline_when_the_result_log_hangs(
     assert log_still_hung  # answered at the deadline, not after the row
 
 
-class SlowFailure:
-    """Cheap while it passes; once ``fail_after_ms`` is set each run burns that much CPU and
-    then raises (a search that finds nothing in a large image: NOT_FOUND after the work)."""
-
-    name = "search"
-    camera = "tool"
-    type = "test_search"
-    uses_depth = False
-    frames = 1
-
-    def __init__(self) -> None:
-        self.fail_after_ms = 0.0
-        self.threads: list[str] = []
-
-    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
-        self.threads.append(threading.current_thread().name)
-        if self.fail_after_ms:
-            end = time.perf_counter() + self.fail_after_ms / 1000.0
-            while time.perf_counter() < end:
-                pass
-            raise BadImage("nothing found")
-        return InspectionOutcome(True, {})
+def slow_search() -> FailsSlowly:
+    """A search that finds nothing after the work: NOT_FOUND-like, a CellvisionError."""
+    return FailsSlowly("search", lambda: BadImage("nothing found"))
 
 
 def test_a_run_that_fails_slowly_on_the_loop_counts_as_slow() -> None:
@@ -244,7 +225,7 @@ def test_a_run_that_fails_slowly_on_the_loop_counts_as_slow() -> None:
     measured (``loop_costs.observe`` comes after ``run``, in ``_inline`` and in ``work``). A
     client that can make a cheap inspection fail slowly (an input where a search finds nothing)
     holds the event loop on every such request, for ever."""
-    search = SlowFailure()
+    search = slow_search()
     catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [search])
 
     async def body() -> None:
@@ -271,7 +252,7 @@ def test_a_run_on_the_loop_that_overruns_its_deadline_is_not_answered_as_a_resul
     before the run: a run measured cheap that then takes 40 ms with a 10 ms deadline is
     answered with its RESULT at 40 ms (without a result log or overlay nothing after the run
     looks at the deadline)."""
-    search = SlowFailure()
+    search = slow_search()
     catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [search])
 
     async def body() -> BaseException | None:
@@ -300,7 +281,7 @@ def test_a_run_on_the_loop_that_overruns_its_deadline_is_not_answered_as_a_resul
 class SlowRun:
     """While entered, ``search``'s runs pass after spinning ``ms``."""
 
-    def __init__(self, search: SlowFailure, ms: float) -> None:
+    def __init__(self, search: FailsSlowly, ms: float) -> None:
         self.search = search
         self.ms = ms
         self.original = search.run

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from inline_runs import until_on_the_loop
+from inline_runs import FailsSlowly, until_on_the_loop
 from loopback import run, wait_until
 
 from vision_server import Catalog, InspectionInput, InspectionOutcome
@@ -39,32 +39,13 @@ from vision_server.service import Images, InspectionService, InspectRequest
 SMALL = np.full((48, 64), 120, np.uint8)
 
 
-class SlowBug:
-    """Cheap while it passes; once ``fail_after_ms`` is set each run burns that much CPU and
-    then fails with an exception that is no CellvisionError (a bug, or OpenCV's own error)."""
-
-    name = "buggy"
-    camera = "tool"
-    type = "test_buggy"
-    uses_depth = False
-    frames = 1
-
-    def __init__(self) -> None:
-        self.fail_after_ms = 0.0
-        self.threads: list[str] = []
-
-    def run(self, image: InspectionInput, *, overlay: bool) -> InspectionOutcome:
-        self.threads.append(threading.current_thread().name)
-        if self.fail_after_ms:
-            end = time.perf_counter() + self.fail_after_ms / 1000.0
-            while time.perf_counter() < end:
-                pass
-            raise ValueError("an index out of range deep in the inspection")
-        return InspectionOutcome(True, {})
+def slow_bug() -> FailsSlowly:
+    """Fails with an exception that is no CellvisionError (a bug, or OpenCV's own error)."""
+    return FailsSlowly("buggy", lambda: ValueError("an index out of range deep in the inspection"))
 
 
 def test_a_run_on_the_loop_that_fails_slowly_with_a_bug_counts_as_slow() -> None:
-    bug = SlowBug()
+    bug = slow_bug()
     catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [bug])
 
     async def body() -> None:
@@ -225,7 +206,7 @@ def test_decoding_a_compressed_image_does_not_send_raw_requests_off_the_loop() -
     run only by the inspection: one PNG request makes the same inspection on raw pixels look
     as slow as the decoding, and sends it to the workers for the next ~50 runs (a client that
     mixes one PNG in 50 keeps it off the loop for good)."""
-    bug = SlowBug()
+    bug = slow_bug()
     catalog = Catalog.build([RequestCamera("tool", RequestCameraSettings())], [bug])
 
     async def body() -> None:
